@@ -1,0 +1,69 @@
+"""Config-hash cache for built artifacts (SynthCity, teacher, pseudo-labels, student, feature caches).
+
+An artifact lives in ``<cache_dir>/<kind>-<hash>/``. It is built in a temporary sibling directory
+and renamed when complete, so a directory with the final name is always a finished artifact.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+
+def config_hash(key: Any, length: int = 12) -> str:
+    """Stable short hash of a JSON-able (or OmegaConf) object."""
+    if isinstance(key, (DictConfig, ListConfig)):
+        key = OmegaConf.to_container(key, resolve=True)
+    text = json.dumps(key, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def artifact_dir(cache_dir: str | Path, kind: str, key: Any) -> Path:
+    """Final directory of the artifact ``kind`` identified by ``key``."""
+    return Path(cache_dir) / f"{kind}-{config_hash(key)}"
+
+
+def build_once(
+    cache_dir: str | Path,
+    kind: str,
+    key: Any,
+    build: Callable[[Path], None],
+    resumable: bool = False,
+) -> Path:
+    """Return the artifact directory, calling ``build(tmp_dir)`` first if it does not exist yet.
+
+    ``build`` writes into a temporary directory; on success it is renamed into place and ``key``
+    is saved beside the content as ``key.json``. A failed build leaves nothing behind, unless
+    ``resumable``: then the temporary directory is kept under a fixed name and handed to the next
+    ``build`` call, which may skip the files already there.
+    """
+    final = artifact_dir(cache_dir, kind, key)
+    if final.is_dir():
+        return final
+    final.parent.mkdir(parents=True, exist_ok=True)
+    suffix = "partial" if resumable else f"tmp-{uuid.uuid4().hex[:8]}"
+    tmp = final.parent / f".{final.name}.{suffix}"
+    tmp.mkdir(exist_ok=resumable)
+    try:
+        build(tmp)
+        if isinstance(key, (DictConfig, ListConfig)):
+            key = OmegaConf.to_container(key, resolve=True)
+        (tmp / "key.json").write_text(json.dumps(key, sort_keys=True, indent=1, default=str))
+        try:
+            os.rename(tmp, final)
+        except OSError:
+            # Another job finished the same artifact first; theirs is equally valid.
+            if not final.is_dir():
+                raise
+            shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        if not resumable:
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final

@@ -1,0 +1,1 @@
+"""Datasets: SynthCity generator, place sets, segmentation sets, datamodules."""

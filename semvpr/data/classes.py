@@ -1,0 +1,51 @@
+"""Cityscapes class table: labelIds → 19 trainIds, and the static / dynamic split of DESIGN §3."""
+from __future__ import annotations
+
+import numpy as np
+
+IGNORE = 255
+
+#: The 19 Cityscapes evaluation classes, indexed by trainId.
+TRAIN_ID_NAMES: tuple[str, ...] = (
+    "road", "sidewalk", "building", "wall", "fence", "pole", "traffic light", "traffic sign",
+    "vegetation", "terrain", "sky", "person", "rider", "car", "truck", "bus", "train",
+    "motorcycle", "bicycle",
+)  # fmt: skip
+
+#: Classes whose features describe the place (DESIGN §3); everything else is dynamic/uninformative.
+STATIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[:10]
+DYNAMIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[10:]
+
+# Cityscapes labelId → trainId (labels.py of the cityscapesScripts); unlisted ids are ignored.
+_LABEL_TO_TRAIN = {7: 0, 8: 1, 11: 2, 12: 3, 13: 4, 17: 5, 19: 6, 20: 7, 21: 8, 22: 9, 23: 10,
+                   24: 11, 25: 12, 26: 13, 27: 14, 28: 15, 31: 16, 32: 17, 33: 18}  # fmt: skip
+TRAIN_TO_LABEL: tuple[int, ...] = tuple(sorted(_LABEL_TO_TRAIN, key=_LABEL_TO_TRAIN.get))
+
+LABEL_TO_TRAIN_LUT = np.full(256, IGNORE, dtype=np.uint8)
+for _label, _train in _LABEL_TO_TRAIN.items():
+    LABEL_TO_TRAIN_LUT[_label] = _train
+
+
+def label_ids_to_train_ids(label_ids: np.ndarray) -> np.ndarray:
+    """Map a Cityscapes labelIds image to trainIds (255 = ignore)."""
+    return LABEL_TO_TRAIN_LUT[label_ids.astype(np.uint8)]
+
+
+def train_ids_to_label_ids(train_ids: np.ndarray) -> np.ndarray:
+    """Map trainIds back to Cityscapes labelIds (ignore → 0, 'unlabeled')."""
+    lut = np.zeros(256, dtype=np.uint8)
+    lut[: len(TRAIN_TO_LABEL)] = TRAIN_TO_LABEL
+    return lut[train_ids.astype(np.uint8)]
+
+
+def static_lut(static_names: tuple[str, ...] | list[str] = STATIC_NAMES) -> np.ndarray:
+    """Lookup table trainId → 1.0 (static) / 0.0 (dynamic or ignore), length 256."""
+    unknown = set(static_names) - set(TRAIN_ID_NAMES)
+    if unknown:
+        from semvpr.errors import SemvprError
+
+        raise SemvprError(f"unknown static class names {sorted(unknown)}; known: {TRAIN_ID_NAMES}")
+    lut = np.zeros(256, dtype=np.float32)
+    for name in static_names:
+        lut[TRAIN_ID_NAMES.index(name)] = 1.0
+    return lut

@@ -1,0 +1,26 @@
+"""User-facing errors: one exception type, printed as one line with exit code 2 by the CLIs."""
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Callable, TypeVar
+
+F = TypeVar("F", bound=Callable[..., object])
+
+
+class SemvprError(Exception):
+    """A problem with the user's input (data, weights, config), reported without a traceback."""
+
+
+def exit_on_user_error(fn: F) -> F:
+    """Wrap a CLI entry point so a SemvprError prints one line on stderr and exits with code 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: object, **kwargs: object) -> object:
+        try:
+            return fn(*args, **kwargs)
+        except SemvprError as err:
+            print(f"semvpr: error: {err}", file=sys.stderr)
+            raise SystemExit(2) from None
+
+    return wrapper  # type: ignore[return-value]

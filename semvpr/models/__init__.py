@@ -1,0 +1,1 @@
+"""Models: backbones, aggregators (NetVLAD, SRAL), mask sources, retriever, teacher, student."""
