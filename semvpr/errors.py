@@ -24,3 +24,15 @@ def exit_on_user_error(fn: F) -> F:
             raise SystemExit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def unwrap_user_error(err: BaseException) -> SemvprError | None:
+    """The SemvprError behind hydra's InstantiationException wrapping, if any."""
+    seen: set[int] = set()
+    cur: BaseException | None = err
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, SemvprError):
+            return cur
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return None

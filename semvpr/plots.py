@@ -1,0 +1,271 @@
+"""Sweep-report figures: Recall@N curves, the seed paper's Figure 3 (attention / masks), top-k retrievals."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import zipfile
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+    from semvpr.report import Job, Sweep
+
+# Figure-3 columns: (maps.npz array, filter jobs to take it from in preference order, column title).
+MAP_COLUMNS = (
+    ("attention", ("attention", "unet", "mask2former"), "SRAL attention\n(per-image scaled)"),
+    ("teacher", ("mask2former",), "teacher mask\n(bright = static)"),
+    ("student", ("unet",), "student mask\n(bright = static)"),
+    ("oracle", ("oracle",), "oracle mask (labels)\n(bright = static)"),
+)
+OK_COLOUR, WRONG_COLOUR = "#1a9850", "#d73027"
+
+
+def _new_figure(width: float, height: float) -> Figure:
+    """A pyplot-free Agg figure: no global backend switch, safe inside a user's process."""
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, out: Path) -> None:
+    """Save a PNG via a temp name and rename."""
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    fig.savefig(tmp, format="png", dpi=100)
+    os.replace(tmp, out)
+
+
+@lru_cache(maxsize=256)
+def _thumb(path: Path | None, max_side: int = 320) -> np.ndarray | None:
+    """A small RGB copy of an image, or None when it cannot be read."""
+    if path is None:
+        return None
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            im = im.convert("RGB")
+            im.thumbnail((max_side, max_side))
+            return np.asarray(im)
+    except OSError:
+        return None
+
+
+def _na(ax: Axes, what: str = "n/a") -> None:
+    """Mark a panel whose input is missing."""
+    ax.text(0.5, 0.5, what, ha="center", va="center", fontsize=11, color="0.4", transform=ax.transAxes)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def _curve(recalls: Any) -> dict[int, float]:
+    """metrics["recalls"] ({"1": r, "2": r, ...}) as {N: recall}, skipping malformed entries."""
+    out: dict[int, float] = {}
+    for key, value in (recalls or {}).items() if isinstance(recalls, dict) else ():
+        try:
+            out[int(key)] = float(value)
+        except (TypeError, ValueError):
+            continue
+    return {n: v for n, v in out.items() if math.isfinite(v)}
+
+
+def recall_curves(sweep: Sweep, out: Path) -> str | None:
+    """Recall@N curves (mean over seeds, ±1 std band) per filter, one panel per backbone; else a skip reason."""
+    panels = []
+    for bb in sweep.backbones:
+        lines = []
+        for f in sweep.filters:
+            curves = [c for c in (_curve(j.metrics.get("recalls")) for j in sweep.jobs_of(f, bb) if j.ok) if c]
+            ns = sorted(set.intersection(*(set(c) for c in curves))) if curves else []
+            if ns:
+                lines.append((f, ns, np.array([[c[n] for n in ns] for c in curves])))
+        if lines:
+            panels.append((bb, lines))
+    if not panels:
+        return "no finished run recorded per-N recalls (metrics.json \"recalls\")"
+    fig = _new_figure(5.5 * len(panels), 4.3)
+    for ax, (bb, lines) in zip(fig.subplots(1, len(panels), squeeze=False)[0], panels):
+        for f, ns, ys in lines:
+            mean = ys.mean(axis=0)
+            (line,) = ax.plot(ns, mean, marker="o", ms=3, ls="--" if sweep.label(f) != f else "-",
+                              color=f"C{sweep.filters.index(f) % 10}",  # same colour per filter in every panel
+                              label=f"{sweep.label(f)} (n={len(ys)})")
+            if len(ys) > 1:
+                std = ys.std(axis=0, ddof=1)
+                ax.fill_between(ns, mean - std, mean + std, color=line.get_color(), alpha=0.15)
+        ax.set(title=f"backbone: {bb}", xlabel="N (top-N retrieved)", ylabel="Recall@N (%)", ylim=(0, 100))
+        top = max(max(ns) for _, ns, _ in lines)
+        ax.set_xlim(1, top)
+        ax.set_xticks([n for n in (1, 5, 10, 15, 20, 25, 50, 100) if n <= top])  # the reported N, not 2.5 steps
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=9)
+    fig.suptitle("Recall@N per filter (mean over seeds, band = ±1 std)")
+    _save(fig, out)
+    return None
+
+
+def _maps(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of a maps.npz, or None when it is missing or damaged."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def _map_source(sweep: Sweep, backbone: str, key: str, prefer: tuple[str, ...]) -> tuple[Job, dict] | None:
+    """The first job (preferred filters first, ok runs and low seeds first) whose maps.npz has array `key`."""
+    order = list(prefer) + [f for f in sweep.filters if f not in prefer]
+    for f in order:
+        for job in sweep.jobs_of(f, backbone, needs="maps.npz"):
+            maps = _maps(job.dir / "maps.npz")
+            if maps and key in maps and "query_index" in maps:
+                return job, maps
+    return None
+
+
+def _image_of(sources: Any, qi: int) -> str | None:
+    """The stored image path of query `qi` from whichever maps.npz lists it."""
+    for src in sources:
+        if src and "image_paths" in src[1] and qi in list(src[1]["query_index"]):
+            return str(src[1]["image_paths"][list(src[1]["query_index"]).index(qi)])
+    return None
+
+
+def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
+    """Seed Figure 3: per query a row of image, SRAL attention, teacher mask, student mask; else a skip reason."""
+    # the backbone whose runs fill the most columns; sorted order breaks ties
+    candidates = [(bb, {key: _map_source(sweep, bb, key, prefer) for key, prefer, _ in MAP_COLUMNS})
+                  for bb in sweep.backbones]
+    bb, sources = max(candidates, key=lambda c: sum(v is not None for v in c[1].values()))
+    if not any(sources.values()):
+        return "no job wrote maps.npz with attention / teacher / student arrays"
+    # oracle is an extra column, shown only when a run provided it; the seed's three always show (n/a if absent)
+    cols = [(key, title, sources[key]) for key, _, title in MAP_COLUMNS if key != "oracle" or sources[key]]
+    first = next(s for s in sources.values() if s)
+    queries = [int(q) for q in first[1]["query_index"][:max_queries]]
+    fig = _new_figure(2.6 * (1 + len(cols)), 2.2 * len(queries) + 0.8)
+    axes = fig.subplots(len(queries), 1 + len(cols), squeeze=False)
+    for r, qi in enumerate(queries):
+        stored = _image_of(sources.values(), qi)
+        img = _thumb(sweep.image_path(stored)) if stored else None
+        ax = axes[r, 0]
+        if img is None:
+            _na(ax, "image n/a")
+        else:
+            ax.imshow(img)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        ax.set_ylabel(f"query {qi}\n{Path(stored).name[:28] if stored else ''}", fontsize=8)
+        for c, (key, title, src) in enumerate(cols, start=1):
+            ax = axes[r, c]
+            idx = list(src[1]["query_index"]).index(qi) if src and qi in list(src[1]["query_index"]) else None
+            if idx is None:
+                _na(ax)
+            else:
+                m = src[1][key][idx].astype(np.float32)
+                lo, hi = (float(m.min()), float(m.max())) if key == "attention" else (0.0, 1.0)
+                h, w = img.shape[:2] if img is not None else m.shape
+                if img is not None:  # faded image underneath so one sees *what* is kept
+                    ax.imshow(img.mean(axis=2), cmap="gray", extent=(0, w, h, 0))
+                # feature-grid map stretched over the image extent; nearest keeps binary masks crisp
+                ax.imshow(m, cmap="magma", vmin=lo, vmax=max(hi, lo + 1e-6), extent=(0, w, h, 0),
+                          alpha=0.7 if img is not None else 1.0,
+                          interpolation="bilinear" if key == "attention" else "nearest")
+                ax.set_xticks([])
+                ax.set_yticks([])
+            if r == len(queries) - 1:
+                ax.set_xlabel(f"from {src[0].filter}, seed {'?' if src[0].seed is None else src[0].seed}" if src else "no run wrote it", fontsize=8)
+        if r == 0:
+            for c, title in enumerate(["image"] + [t for _, t, _ in cols]):
+                axes[0, c].set_title(title, fontsize=10)
+    fig.suptitle(f"Figure 3: SRAL attention and static masks ({bb})")
+    _save(fig, out)
+    return None
+
+
+def _utm_distance(a: Any, b: Any) -> float:
+    """Metres between two [east, north] pairs (nan if either is missing)."""
+    try:
+        return float(np.hypot(float(a[0]) - float(b[0]), float(a[1]) - float(b[1])))
+    except (TypeError, ValueError, IndexError):
+        return math.nan
+
+
+def _retrievals(job: Job) -> dict[str, dict]:
+    """retrievals.json of a job as {query path: entry}, empty when missing or damaged."""
+    try:
+        data = json.loads((job.dir / "retrievals.json").read_text(encoding="utf-8"))
+        return {str(q["query"]): q for q in data["queries"] if isinstance(q, dict) and "query" in q}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str | None:
+    """Per query a block: query image and each filter's top-k, framed green (correct) / red; else a skip reason."""
+    candidates = []
+    for bb in sweep.backbones:
+        per_filter: dict[str, dict[str, dict]] = {}
+        for f in sweep.filters:
+            for job in sweep.jobs_of(f, bb, needs="retrievals.json"):
+                if entries := _retrievals(job):
+                    per_filter[f] = entries
+                    break
+        candidates.append((bb, per_filter))
+    bb, per_filter = max(candidates, key=lambda c: len(c[1]))  # the backbone covering most filters
+    if not per_filter:
+        return "no job wrote retrievals.json"
+    order = list(dict.fromkeys(q for entries in per_filter.values() for q in entries))
+
+    def disagreement(q: str) -> int:  # queries where filters differ on top-1 say the most about filtering
+        tops = {bool(e[q]["topk"][0].get("correct")) for e in per_filter.values() if q in e and e[q].get("topk")}
+        return -len(tops)
+
+    queries = sorted(order, key=disagreement)[:max_queries]
+    filters = list(per_filter)
+    fig = _new_figure(2.0 * (k + 1.4), 1.45 * len(queries) * len(filters) + 0.7)
+    grid = fig.add_gridspec(len(queries) * len(filters), k + 1, width_ratios=[1.4] + [1.0] * k)
+    for b, q in enumerate(queries):
+        r0 = b * len(filters)
+        ax = fig.add_subplot(grid[r0:r0 + len(filters), 0])
+        img = _thumb(sweep.image_path(q))
+        if img is None:
+            _na(ax, "query n/a")
+        else:
+            ax.imshow(img)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        ax.set_title(f"query: {Path(q).name[:24]}", fontsize=8)
+        for i, f in enumerate(filters):
+            entry = per_filter[f].get(q, {})
+            for c in range(k):
+                ax = fig.add_subplot(grid[r0 + i, c + 1])
+                hits = entry.get("topk") or []
+                if c >= len(hits):
+                    _na(ax)
+                    continue
+                hit = hits[c]
+                img = _thumb(sweep.image_path(str(hit.get("path", ""))))
+                if img is None:
+                    _na(ax, "image n/a")
+                else:
+                    ax.imshow(img)
+                    ax.set_xticks([])
+                    ax.set_yticks([])
+                colour = OK_COLOUR if hit.get("correct") else WRONG_COLOUR
+                for spine in ax.spines.values():
+                    spine.set(edgecolor=colour, linewidth=4)
+                dist = _utm_distance(entry.get("utm"), hit.get("utm"))
+                ax.set_title(f"#{c + 1}" + (f" · {dist:.0f} m" if math.isfinite(dist) else ""), fontsize=8)
+                if c == 0:
+                    ax.set_ylabel(sweep.label(f), fontsize=9)
+    fig.suptitle(f"Top-{k} retrievals per filter ({bb}; green = correct, red = wrong)")
+    _save(fig, out)
+    return None

@@ -1,0 +1,309 @@
+"""Sweep-end report: results.csv / results.md and figures, read back from the per-run files of a multirun."""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from semvpr.errors import SemvprError, exit_on_user_error
+
+NS = (1, 5, 10, 20)
+FILTER_ORDER = ("none", "attention", "unet", "mask2former")
+UPPER_BOUNDS = frozenset({"oracle"})  # ground-truth masks: a ceiling to read against, not a competitor
+
+
+@dataclass
+class Job:
+    """One run of the sweep as read back from its directory."""
+
+    dir: Path
+    name: str
+    filter: str
+    backbone: str
+    seed: int | None
+    ok: bool
+    error: str
+    metrics: dict[str, Any]
+
+    def recall(self, n: int) -> float:
+        """Test Recall@n in percent (nan when the run did not record it)."""
+        value = self.metrics.get(f"test/R@{n}")
+        return float(value) if isinstance(value, (int, float)) else math.nan
+
+
+@dataclass
+class Sweep:
+    """All jobs of one sweep directory, with the orderings the table and figures share."""
+
+    dir: Path
+    jobs: list[Job]
+
+    @property
+    def backbones(self) -> list[str]:
+        """Backbones in a stable (alphabetical) order, unknown ones last."""
+        return sorted({j.backbone for j in self.jobs}, key=lambda b: (b == "?", b))
+
+    @property
+    def filters(self) -> list[str]:
+        """Filters in reading order: the seed's four, then extras, upper bounds last."""
+        return sorted({j.filter for j in self.jobs}, key=filter_rank)
+
+    def label(self, name: str) -> str:
+        """Display name of a filter."""
+        return f"{name} (upper bound)" if name in UPPER_BOUNDS else name
+
+    def jobs_of(self, filter_: str, backbone: str, needs: str | None = None) -> list[Job]:
+        """Jobs of one cell, ok runs first then by seed, optionally only those holding file `needs`."""
+        jobs = [j for j in self.jobs if j.filter == filter_ and j.backbone == backbone]
+        jobs = [j for j in jobs if needs is None or (j.dir / needs).is_file()]
+        return sorted(jobs, key=lambda j: (not j.ok, j.seed if j.seed is not None else math.inf, j.name))
+
+    def image_path(self, stored: str) -> Path | None:
+        """Find an image path stored by a run (relative paths are relative to the run's launch dir)."""
+        path = Path(stored)
+        if path.is_absolute():
+            return path if path.is_file() else None
+        # The launch dir is usually the project root, an ancestor of outputs/multiruns/<date>/<time>.
+        for root in (Path.cwd(), self.dir, *self.dir.resolve().parents):
+            if (root / path).is_file():
+                return root / path
+        return None
+
+
+def filter_rank(name: str) -> tuple[int, str]:
+    """Sort key placing none, attention, unet, mask2former first and upper bounds last."""
+    if name in FILTER_ORDER:
+        return FILTER_ORDER.index(name), ""
+    return len(FILTER_ORDER) + (name in UPPER_BOUNDS), name
+
+
+def _error_line(error: object) -> str:
+    """The telling line of an error: a traceback ends with the exception, so take the last line."""
+    lines = [ln.strip() for ln in str(error or "").splitlines() if ln.strip()]
+    return lines[-1][:200] if lines else ""
+
+
+def _hydra_facts(job_dir: Path) -> dict[str, str]:
+    """filter / backbone / seed of a job from its .hydra files (for jobs that died before metrics.json)."""
+    # lowest priority: the dir name itself, Hydra's override_dirname "backbone=vgg16,filter=unet,seed=1"
+    facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(","))
+             if k in ("filter", "backbone", "seed") and v}
+    hydra_dir = job_dir / ".hydra"
+    try:
+        if (hydra_dir / "config.yaml").is_file():
+            seed = OmegaConf.select(OmegaConf.load(hydra_dir / "config.yaml"), "seed", default=None,
+                                    throw_on_resolution_failure=False)
+            if seed is not None:
+                facts["seed"] = str(seed)
+        if (hydra_dir / "hydra.yaml").is_file():
+            choices = OmegaConf.select(OmegaConf.load(hydra_dir / "hydra.yaml"), "hydra.runtime.choices")
+            for key in ("filter", "backbone"):
+                if choices is not None and choices.get(key) is not None:
+                    facts[key] = str(choices.get(key))
+        if (hydra_dir / "overrides.yaml").is_file():
+            for item in OmegaConf.load(hydra_dir / "overrides.yaml"):
+                key, _, value = str(item).lstrip("+~").partition("=")
+                if key in ("filter", "backbone", "seed"):
+                    facts[key] = value
+    except Exception:  # a damaged .hydra dir only costs us labels, never the report
+        pass
+    return facts
+
+
+def read_job(job_dir: Path, sweep_dir: Path) -> Job:
+    """Read one job directory; a missing or unreadable metrics.json makes a failed job."""
+    rel = job_dir.relative_to(sweep_dir).as_posix()
+    name = job_dir.name if rel == "." else rel
+    metrics: dict[str, Any] = {}
+    error = ""
+    path = job_dir / "metrics.json"
+    if not path.is_file():
+        error = "no metrics.json"
+    else:
+        try:
+            loaded = json.loads(path.read_text(encoding="utf-8"))
+            metrics = loaded if isinstance(loaded, dict) else {}
+            error = "" if metrics else "metrics.json is not a JSON object"
+        except (OSError, ValueError) as err:
+            error = f"unreadable metrics.json ({err})"
+    ok = not error and metrics.get("status") == "ok"
+    if not ok and not error:
+        error = _error_line(metrics.get("error")) or f"status {metrics.get('status')!r}"
+    facts = _hydra_facts(job_dir)
+    seed = metrics.get("seed", facts.get("seed"))
+    try:
+        seed = int(seed) if seed is not None else None
+    except ValueError:
+        seed = None
+    return Job(job_dir, name, str(metrics.get("filter") or facts.get("filter") or "?"),
+               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics)
+
+
+def load_sweep(sweep_dir: Path) -> Sweep:
+    """Discover job dirs (any dir holding metrics.json or a .hydra dir) and read them."""
+    sweep_dir = Path(sweep_dir)
+    if not sweep_dir.is_dir():
+        raise SemvprError(f"sweep dir {sweep_dir} does not exist; pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
+    dirs = {p.parent for p in sweep_dir.rglob("metrics.json")}
+    dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}
+    if not dirs:
+        raise SemvprError(f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "
+                          "pass the multirun dir written by `python -m semvpr.train -m ...`")
+    return Sweep(sweep_dir, [read_job(d, sweep_dir) for d in sorted(dirs)])
+
+
+def mean_std(values: list[float]) -> tuple[float, float]:
+    """Mean and sample std (ddof=1) of the finite values; std is nan for fewer than two."""
+    vals = np.array([v for v in values if math.isfinite(v)], dtype=np.float64)
+    if vals.size == 0:
+        return math.nan, math.nan
+    return float(vals.mean()), float(vals.std(ddof=1)) if vals.size > 1 else math.nan
+
+
+def _rows(sweep: Sweep) -> list[dict[str, Any]]:
+    """One aggregated row per (backbone, filter), backbones outer, filters in reading order."""
+    rows = []
+    for bb in sweep.backbones:
+        for f in sweep.filters:
+            jobs = sweep.jobs_of(f, bb)
+            if not jobs:
+                continue
+            ok = [j for j in jobs if j.ok]
+            row: dict[str, Any] = {"filter": f, "backbone": bb, "n": len(ok), "failed": len(jobs) - len(ok),
+                                   "seeds": sorted(j.seed for j in ok if j.seed is not None)}
+            for n in NS:
+                row[f"R@{n}"] = mean_std([j.recall(n) for j in ok])
+            walls = [float(j.metrics["wall_time_s"]) for j in ok if isinstance(j.metrics.get("wall_time_s"), (int, float))]
+            row["wall_time_s"] = mean_std(walls)[0]
+            rows.append(row)
+    return rows
+
+
+def _fmt(x: float, signed: bool = False) -> str:
+    """One decimal; a typographic minus so signed gains read as −2.0 / +3.1."""
+    if not math.isfinite(x):
+        return "–"
+    return (f"{x:+.1f}" if signed else f"{x:.1f}").replace("-", "−")
+
+
+def _csv_text(rows: list[dict[str, Any]]) -> str:
+    """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing."""
+    buf = io.StringIO()
+    cols = ["filter", "backbone", "n", "seeds"] + [f"R@{n}_{s}" for n in NS for s in ("mean", "std")] + ["wall_time_s", "failed"]
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(cols)
+    num = lambda x: "" if not math.isfinite(x) else f"{x:.4f}"  # noqa: E731
+    for r in rows:
+        stats = [num(v) for n in NS for v in r[f"R@{n}"]]
+        writer.writerow([r["filter"], r["backbone"], r["n"], " ".join(map(str, r["seeds"])), *stats,
+                         num(r["wall_time_s"]), r["failed"]])
+    return buf.getvalue()
+
+
+def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str | None]) -> str:
+    """Human-readable report: table, R@1 gains over `none`, failed jobs, figures."""
+    n_ok = sum(j.ok for j in sweep.jobs)
+    out = ["# semvpr sweep results", "",
+           f"Sweep `{sweep.dir}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
+           "Recall@N in %, mean ± sample std over seeds.", "",
+           "| backbone | filter | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
+           "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
+    for r in rows:
+        cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in NS]
+        out.append(f"| {r['backbone']} | {sweep.label(r['filter'])} | {' | '.join(cells)} | {r['n']} | "
+                   f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |")
+    out.append("")
+    for bb in sweep.backbones:
+        base = {r["filter"]: r["R@1"][0] for r in rows if r["backbone"] == bb}
+        others = [f for f in base if f != "none" and math.isfinite(base[f])]
+        if not others:
+            continue
+        if not math.isfinite(base.get("none", math.nan)):
+            out += [f"**R@1 gain over `none` ({bb}):** no finished `none` run to compare with.", ""]
+            continue
+        gains = ", ".join(f"{sweep.label(f)} {_fmt(base[f] - base['none'], signed=True)}" for f in others)
+        out.append(f"**R@1 gain over `none` ({bb}):** {gains}")
+        out.append("")  # separate paragraphs, one line per backbone when rendered
+    failed = [j for j in sweep.jobs if not j.ok]
+    if failed:
+        out += ["## Failed jobs", ""]
+        out += [f"- `{j.name}` ({j.filter}, {j.backbone}, seed {j.seed if j.seed is not None else '?'}): {j.error}"
+                for j in failed]
+    out += ["", "## Figures", ""] if failed else ["## Figures", ""]
+    for fname, skipped in figures.items():  # blank-line separated so each image renders as its own block
+        out += [f"- `{fname}` skipped: {skipped}" if skipped else f"![{fname}]({fname})", ""]
+    return "\n".join(out).rstrip() + "\n"
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write via a temp name and rename, so a reader never sees half a file."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def write_report(sweep_dir: Path) -> Path:
+    """Write results.csv, results.md and the figures into sweep_dir; return the results.md path."""
+    from semvpr import plots  # matplotlib is only needed here, not to import the callback
+
+    sweep = load_sweep(Path(sweep_dir))
+    rows = _rows(sweep)
+    figures: dict[str, str | None] = {}
+    for fname, draw in (("recall_at_n.png", plots.recall_curves), ("figure3.png", plots.figure3),
+                        ("retrievals.png", plots.retrievals)):
+        try:
+            figures[fname] = draw(sweep, sweep.dir / fname)
+        except Exception as err:  # one broken figure must not cost the table
+            figures[fname] = f"{type(err).__name__}: {err}"
+    atomic_write_text(sweep.dir / "results.csv", _csv_text(rows))
+    md = sweep.dir / "results.md"
+    atomic_write_text(md, _markdown(sweep, rows, figures))
+    return md
+
+
+def print_summary(md: Path) -> None:
+    """Print where the report is and its table."""
+    print(f"semvpr report: {md}")
+    print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith(("|", "**R@1"))))
+
+
+class ReportCallback(Callback):
+    """Hydra callback: write the report when a multirun ends (hydra.callbacks.report._target_)."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Report on config.hydra.sweep.dir; never raise, the runs' own files are the results."""
+        where = "the sweep dir"
+        try:
+            sweep_dir = Path(str(config.hydra.sweep.dir))
+            if not sweep_dir.is_absolute():
+                sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
+            where = str(sweep_dir)
+            print_summary(write_report(sweep_dir))
+        except Exception as err:
+            print(f"semvpr: report failed for {where} ({type(err).__name__}: {err}); "
+                  f"rerun with `python -m semvpr.report {where}`", file=sys.stderr)
+
+
+@exit_on_user_error
+def main(argv: list[str] | None = None) -> int:
+    """CLI: python -m semvpr.report <sweep dir>."""
+    parser = argparse.ArgumentParser(prog="python -m semvpr.report",
+                                     description="Write results.csv/.md and figures for a finished sweep.")
+    parser.add_argument("sweep_dir", type=Path, help="multirun dir, e.g. outputs/multiruns/<date>/<time>")
+    print_summary(write_report(parser.parse_args(argv).sweep_dir))
+    return 0
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,183 @@
+"""Sweep report: aggregation numbers, table order, gains, failed jobs, figures, CLI and Hydra callback."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from PIL import Image
+
+from semvpr.report import ReportCallback, write_report
+
+ROOT = Path(__file__).resolve().parents[1]
+NS = (1, 5, 10, 20)
+# (filter, seed) -> R@1; R@N = R@1 + (N - 1) so every column has hand-checkable stats
+R1 = {("none", 1): 40.0, ("none", 2): 44.0, ("attention", 1): 38.0, ("attention", 2): 40.0,
+      ("unet", 1): 48.0, ("unet", 2): 50.0, ("mask2former", 1): 50.0, ("mask2former", 2): 56.0,
+      ("oracle", 1): 70.0}
+
+
+def _png(path: Path, colour: tuple[int, int, int]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.new("RGB", (20, 16), colour).save(path)
+    return path
+
+
+def _metrics(filter_: str, seed: int, r1: float, backbone: str = "vgg16") -> dict:
+    m = {"status": "ok", "error": None, "filter": filter_, "backbone": backbone, "seed": seed,
+         "wall_time_s": 10.0 * seed, "recalls": {str(n): min(100.0, r1 + n - 1) for n in range(1, 21)},
+         "overrides": f"filter={filter_},seed={seed}"}
+    m.update({f"test/R@{n}": r1 + n - 1 for n in NS})
+    return m
+
+
+def _job(sweep: Path, name: str, metrics: dict | None) -> Path:
+    job = sweep / name
+    (job / ".hydra").mkdir(parents=True)
+    if metrics is not None:
+        (job / "metrics.json").write_text(json.dumps(metrics))
+    return job
+
+
+@pytest.fixture()
+def sweep(tmp_path: Path) -> Path:
+    """A hand-made multirun: 4 filters x 2 seeds + 1 oracle run, one failed job, one hard crash."""
+    sweep = tmp_path / "multiruns" / "2024-01-01" / "12-00-00"
+    queries = [_png(tmp_path / "data" / f"q{i}.png", (200, 40 * i, 0)) for i in range(2)]
+    dbs = [_png(tmp_path / "data" / f"db{i}.png", (0, 40 * i, 200)) for i in range(3)]
+    rng = np.random.default_rng(0)
+    for (f, seed), r1 in R1.items():
+        job = _job(sweep, f"filter={f},seed={seed}", _metrics(f, seed, r1))
+        arrays: dict[str, np.ndarray] = {"query_index": np.array([0, 1]),
+                                         "image_paths": np.array([str(q) for q in queries])}
+        if f != "none":
+            arrays["attention"] = rng.random((2, 4, 5)).astype(np.float32)
+        if f == "mask2former":
+            arrays["teacher"] = (rng.random((2, 4, 5)) > 0.5).astype(np.float32)
+        if f == "unet":
+            arrays["student"] = (rng.random((2, 4, 5)) > 0.5).astype(np.float32)
+        np.savez(job / "maps.npz", **arrays)
+        topk = [{"path": str(d), "utm": [float(i), 0.0], "correct": i == 0 and f != "none"} for i, d in enumerate(dbs)]
+        (job / "retrievals.json").write_text(json.dumps(
+            {"queries": [{"query": str(q), "utm": [0.0, 0.0], "topk": topk} for q in queries]}))
+    _job(sweep, "filter=unet,seed=3", {"status": "failed", "filter": "unet", "backbone": "vgg16", "seed": 3,
+                                       "error": "Traceback (most recent call last):\n  File x\nRuntimeError: out of memory"})
+    crashed = _job(sweep, "filter=mask2former,seed=3", None)
+    (crashed / ".hydra" / "overrides.yaml").write_text("- filter=mask2former\n- seed=3\n")
+    (crashed / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    choices:\n      backbone: vgg16\n")
+    return sweep
+
+
+def _csv_rows(sweep: Path) -> dict[str, dict[str, str]]:
+    with open(sweep / "results.csv", newline="") as fh:
+        return {r["filter"]: r for r in csv.DictReader(fh)}
+
+
+def test_csv_means_and_sample_stds(sweep: Path) -> None:
+    write_report(sweep)
+    rows = _csv_rows(sweep)
+    assert float(rows["none"]["R@1_mean"]) == pytest.approx(42.0)
+    assert float(rows["none"]["R@1_std"]) == pytest.approx(2.8284, abs=1e-4)  # ddof=1 of 40, 44
+    assert float(rows["mask2former"]["R@20_mean"]) == pytest.approx(72.0)
+    assert float(rows["mask2former"]["R@20_std"]) == pytest.approx(4.2426, abs=1e-4)
+    assert rows["oracle"]["R@1_std"] == ""  # one run: no std
+    assert rows["unet"]["n"] == "2" and rows["unet"]["failed"] == "1" and rows["unet"]["seeds"] == "1 2"
+    assert rows["mask2former"]["failed"] == "1"  # the hard crash is grouped by its .hydra choices
+    assert float(rows["none"]["wall_time_s"]) == pytest.approx(15.0)
+    assert rows["none"]["backbone"] == "vgg16"
+
+
+def test_markdown_order_gains_failures_and_figures(sweep: Path) -> None:
+    md = write_report(sweep)
+    assert md == sweep / "results.md"
+    text = md.read_text()
+    table = [ln for ln in text.splitlines() if ln.startswith("| vgg16 |")]
+    assert [ln.split("|")[2].strip() for ln in table] == ["none", "attention", "unet", "mask2former",
+                                                          "oracle (upper bound)"]
+    assert "| 42.0 ± 2.8 | 46.0 ± 2.8 | 51.0 ± 2.8 | 61.0 ± 2.8 | 2 | 1, 2 | 0 | 15.0 |" in table[0]
+    assert "| 70.0 ± – |" in table[4]
+    assert "**R@1 gain over `none` (vgg16):** attention −3.0, unet +7.0, mask2former +11.0, oracle (upper bound) +28.0" in text
+    failed = [ln for ln in text.splitlines() if ln.startswith("- `filter=")]
+    assert len(failed) == 2
+    assert any("filter=unet,seed=3" in ln and ln.endswith("RuntimeError: out of memory") for ln in failed)
+    assert any("filter=mask2former,seed=3" in ln and "vgg16" in ln and ln.endswith("no metrics.json") for ln in failed)
+    assert "skipped" not in text
+    for name in ("recall_at_n.png", "figure3.png", "retrievals.png"):
+        assert f"]({name})" in text
+        with Image.open(sweep / name) as im:
+            assert im.format == "PNG" and im.width > 200 and im.height > 200
+            assert len(set(np.asarray(im.convert("L")).ravel().tolist())) > 10  # something was drawn
+    assert not list(sweep.glob(".*.tmp"))  # temp files renamed away
+
+
+def test_missing_inputs_skip_figures_with_note(tmp_path: Path) -> None:
+    _job(tmp_path, "backbone=resnet50,filter=unet,seed=1", _metrics("unet", 1, 30.0, "resnet50"))
+    _job(tmp_path, "backbone=vgg16,filter=none,seed=1", _metrics("none", 1, 20.0))
+    text = write_report(tmp_path).read_text()
+    assert "- `figure3.png` skipped: no job wrote maps.npz" in text
+    assert "- `retrievals.png` skipped: no job wrote retrievals.json" in text
+    assert "](recall_at_n.png)" in text and (tmp_path / "recall_at_n.png").stat().st_size > 0
+    assert "**R@1 gain over `none` (resnet50):** no finished `none` run" in text
+    assert "| resnet50 | unet | 30.0 ± – |" in text
+
+
+def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
+    for target in (tmp_path, tmp_path / "missing"):
+        proc = subprocess.run([sys.executable, "-m", "semvpr.report", str(target)], capture_output=True, text=True,
+                              cwd=ROOT, timeout=120)
+        assert proc.returncode == 2
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("semvpr: error:") and str(target) in lines[0]
+
+
+def test_callback_resolves_relative_sweep_dir(sweep: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    root = sweep.parents[2]
+    cfg = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep.relative_to(root))}, "runtime": {"cwd": str(root)}}})
+    ReportCallback().on_multirun_end(cfg)
+    out = capsys.readouterr().out
+    assert str(sweep / "results.md") in out and "| vgg16 | none | 42.0 ± 2.8 |" in out
+    # a report failure is one stderr line, never an exception that would hide the sweep's results
+    bad = OmegaConf.create({"hydra": {"sweep": {"dir": str(root / "nope")}}})
+    ReportCallback().on_multirun_end(bad)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "report failed" in err[0]
+
+
+def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
+    """A real `-m` sweep with the callback configured writes results.md into hydra.sweep.dir."""
+    (tmp_path / "app.py").write_text(textwrap.dedent("""
+        import json, hydra
+        from hydra.core.hydra_config import HydraConfig
+        from pathlib import Path
+
+        @hydra.main(version_base=None, config_path=".", config_name="cfg")
+        def main(cfg):
+            r1 = 30.0 + 10 * (cfg.filter == "unet") + cfg.seed
+            m = {"status": "ok", "filter": cfg.filter, "backbone": "vgg16", "seed": cfg.seed, "wall_time_s": 1.0}
+            m.update({f"test/R@{n}": r1 for n in (1, 5, 10, 20)})
+            Path(HydraConfig.get().runtime.output_dir, "metrics.json").write_text(json.dumps(m))
+
+        main()
+    """))
+    (tmp_path / "cfg.yaml").write_text(textwrap.dedent("""
+        filter: none
+        seed: 1
+        hydra:
+          callbacks:
+            report: {_target_: semvpr.report.ReportCallback}
+          sweep: {dir: "multiruns/${now:%Y-%m-%d}/${now:%H-%M-%S}", subdir: "${hydra.job.override_dirname}"}
+    """))
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([sys.executable, "app.py", "-m", "filter=none,unet", "seed=1,2"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    (md,) = tmp_path.glob("multiruns/*/*/results.md")
+    assert "| vgg16 | unet | 41.5 ± 0.7 |" in md.read_text()
+    assert "**R@1 gain over `none` (vgg16):** unet +10.0" in proc.stdout

@@ -1,0 +1,121 @@
+"""End-to-end training jobs on the tiny SynthCity preset."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from semvpr.errors import SemvprError
+from semvpr.train import run_job
+from tests.helpers import tiny_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One artifact cache for the whole session: SynthCity, teacher and labels are built once."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def trained_run(cache_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A complete tiny filter=none job (2 epochs)."""
+    run_dir = tmp_path_factory.mktemp("run")
+    run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2"), run_dir)
+    return run_dir
+
+
+@pytest.mark.parametrize("filter_name", ["none", "attention", "unet", "mask2former", "oracle"])
+def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: str) -> None:
+    cfg = tiny_config(cache_dir, f"filter={filter_name}", "+trainer.fast_dev_run=true")
+    metrics = run_job(cfg, tmp_path)
+    assert metrics["filter"] == filter_name
+    assert 0.0 <= metrics["test/R@1"] <= metrics["test/R@5"] <= metrics["test/R@20"] <= 100.0
+    maps = np.load(tmp_path / "maps.npz")
+    if filter_name != "none":
+        attention = maps["attention"]
+        assert attention.min() >= 0.0 and attention.max() <= 1.0 + 1e-5
+    expected_mask = {"unet": "student", "mask2former": "teacher", "oracle": "oracle"}.get(filter_name)
+    if expected_mask:
+        assert set(np.unique(maps[expected_mask])) <= {0.0, 1.0}
+
+
+def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
+    metrics = json.loads((trained_run / "metrics.json").read_text())
+    assert metrics["status"] == "ok" and metrics["backbone"] == "vgg16" and metrics["seed"] == 0
+    for n in (1, 5, 10, 20):
+        assert 0.0 <= metrics[f"test/R@{n}"] <= 100.0
+    assert [metrics["recalls"][str(n)] for n in (1, 5, 10, 20)] == [metrics[f"test/R@{n}"] for n in (1, 5, 10, 20)]
+    assert (trained_run / "checkpoints" / "last.ckpt").is_file()
+    assert (trained_run / "checkpoints" / "best.ckpt").is_file()
+    assert list((trained_run / "csv").rglob("metrics.csv"))
+    assert list((trained_run / "tensorboard").rglob("events.out.tfevents.*"))
+    retrievals = json.loads((trained_run / "retrievals.json").read_text())
+    assert len(retrievals["queries"]) == 8 and len(retrievals["queries"][0]["topk"]) == 5
+
+
+def test_training_beats_kmeans_only_model(cache_dir: Path, tmp_path: Path) -> None:
+    metrics = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=6"), tmp_path)
+    assert metrics["test/R@1"] > metrics["untrained/test/R@1"], metrics
+
+
+def test_resume_from_last_checkpoint(cache_dir: Path, trained_run: Path, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=1"), run_dir)
+    first = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
+    run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), run_dir)
+    resumed = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
+    assert (first["epoch"], resumed["epoch"]) == (0, 1)
+    assert resumed["global_step"] > first["global_step"]
+
+
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(cache_dir: Path, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    original = torch.nn.TripletMarginLoss.forward
+
+    def nan_after_first_epoch(self, *args):  # type: ignore[no-untyped-def]
+        loss = original(self, *args)
+        return loss * float("nan") if last.exists() else loss
+
+    monkeypatch.setattr(torch.nn.TripletMarginLoss, "forward", nan_after_first_epoch)
+    with pytest.raises(SemvprError, match="loss became nan"):
+        run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=3"), tmp_path)
+    assert torch.load(last, weights_only=True)["epoch"] == 0
+    assert json.loads((tmp_path / "metrics.json").read_text())["status"] == "failed"
+
+
+def test_failed_job_in_sweep_is_recorded_not_raised(cache_dir: Path, tmp_path: Path) -> None:
+    metrics = run_job(tiny_config(cache_dir, "model.num_clusters=0"), tmp_path, multirun=True)
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["status"] == written["status"] == "failed"
+    assert "model.num_clusters=0" in written["error"]
+
+
+def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "semvpr.eval", "experiment=tiny", f"paths.cache_dir={cache_dir}",
+         f"hydra.run.dir={cache_dir.parent / 'eval'}", *overrides],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+
+
+def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None:
+    metrics = json.loads((trained_run / "metrics.json").read_text())
+    proc = _eval(cache_dir, f"ckpt={metrics['best_checkpoint']}")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)
+
+
+def test_eval_rejects_checkpoint_of_another_backbone(cache_dir: Path, trained_run: Path) -> None:
+    proc = _eval(cache_dir, f"ckpt={trained_run / 'checkpoints' / 'best.ckpt'}", "backbone=resnet50")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "backbone=vgg16" in proc.stderr
+    missing = _eval(cache_dir, f"ckpt={trained_run / 'nope.ckpt'}")
+    assert missing.returncode == 2 and "not found" in missing.stderr
