@@ -1,0 +1,264 @@
+"""Place-recognition sets (database + queries with UTM positions) and readers for the common formats."""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from semvpr.errors import SemvprError
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+#: MSLS convention (mapillary_sls): these train_val cities form the validation split.
+MSLS_VAL_CITIES = ("cph", "sf")
+#: dbStruct fields in the order MATLAB writes them (Pitts250k/30k, Tokyo 24/7).
+DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages",
+                   "numQueries", "posDistThr", "posDistSqThr", "nonTrivPosDistSqThr")  # fmt: skip
+
+
+# eq=False: the arrays make field-wise equality ambiguous and the set unhashable otherwise.
+@dataclass(frozen=True, eq=False)
+class PlaceSet:
+    """A database and a query set of images with (east, north) UTM positions in metres."""
+
+    name: str
+    db_paths: tuple[Path, ...]
+    q_paths: tuple[Path, ...]
+    db_utm: np.ndarray
+    q_utm: np.ndarray
+    db_labels: tuple[Path, ...] | None = None
+    q_labels: tuple[Path, ...] | None = None
+
+    def __post_init__(self) -> None:
+        # Normalise here so every reader (and hand-built sets) gets the same types and checks.
+        for field in ("db_paths", "q_paths", "db_labels", "q_labels"):
+            value = getattr(self, field)
+            if value is not None:
+                object.__setattr__(self, field, tuple(Path(p) for p in value))
+        for paths, utm_field in ((self.db_paths, "db_utm"), (self.q_paths, "q_utm")):
+            utm = np.asarray(getattr(self, utm_field), dtype=np.float64).reshape(-1, 2)
+            if len(utm) != len(paths):
+                raise SemvprError(f"place set {self.name!r}: {len(paths)} paths but {len(utm)} "
+                                  f"positions in {utm_field}")
+            object.__setattr__(self, utm_field, utm)
+        for labels, paths, field in ((self.db_labels, self.db_paths, "db_labels"),
+                                     (self.q_labels, self.q_paths, "q_labels")):
+            if labels is not None and len(labels) != len(paths):
+                raise SemvprError(f"place set {self.name!r}: {len(paths)} images but "
+                                  f"{len(labels)} {field}")
+
+    def positives(self, radius: float = 25.0) -> list[np.ndarray]:
+        """Per query: database indices within `radius` metres, nearest first."""
+        if len(self.db_utm) == 0:
+            return [np.zeros(0, dtype=np.int64) for _ in range(len(self.q_utm))]
+        tree = cKDTree(self.db_utm)
+        out = []
+        for q, hits in zip(self.q_utm, tree.query_ball_point(self.q_utm, r=radius)):
+            idx = np.asarray(hits, dtype=np.int64)
+            dist = np.linalg.norm(self.db_utm[idx] - q, axis=1)
+            # Stable sort so ties keep database order: results are reproducible across runs.
+            out.append(idx[np.argsort(dist, kind="stable")])
+        return out
+
+    def summary(self) -> str:
+        """Short human-readable description: counts and UTM extent."""
+        lines = [f"{self.name}: {len(self.db_paths)} database, {len(self.q_paths)} queries"]
+        for label, utm in (("database", self.db_utm), ("queries", self.q_utm)):
+            if len(utm):
+                lo, hi = utm.min(0), utm.max(0)
+                lines.append(f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
+                             f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)")
+        return "\n".join(lines)
+
+
+def parse_utm_name(path: str | Path) -> tuple[float, float]:
+    """(east, north) from a VPR-datasets-downloader name `@east@north@zone@...@.jpg`."""
+    fields = Path(path).name.split("@")
+    try:
+        if len(fields) < 4 or fields[0] != "":
+            raise ValueError
+        return float(fields[1]), float(fields[2])
+    except ValueError:
+        raise SemvprError(f"{path}: not an @UTM@ image name "
+                          f"(expected @utm_east@utm_north@zone@...@.jpg)") from None
+
+
+def _images_in(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
+    """Read `root/images/<split>/{database,queries}/*.jpg` (@UTM@ names); root may also be images/."""
+    root = Path(root).expanduser()
+    if not root.is_dir():
+        raise SemvprError(f"dataset root {root} does not exist; point data.root=... at the folder "
+                          f"holding images/{split}/database and images/{split}/queries")
+    base = root / "images" if (root / "images").is_dir() else root
+    split_dir = base / split
+    if not split_dir.is_dir():
+        found = sorted(p.name for p in base.iterdir() if p.is_dir())
+        raise SemvprError(f"split folder {split_dir} not found (splits there: {found or 'none'}); "
+                          f"expected images/{split}/database and images/{split}/queries under data.root")
+    paths = {}
+    for sub in ("database", "queries"):
+        folder = split_dir / sub
+        images = _images_in(folder) if folder.is_dir() else []
+        if not images:
+            raise SemvprError(f"{folder}: no {sub} images (.jpg/.png) found; the @UTM@ layout needs "
+                              f"images/{split}/database and images/{split}/queries")
+        paths[sub] = images
+    name = base.parent.name if base.name == "images" else base.name
+    return PlaceSet(
+        name=f"{name}/{split}",
+        db_paths=tuple(paths["database"]),
+        q_paths=tuple(paths["queries"]),
+        db_utm=np.array([parse_utm_name(p) for p in paths["database"]], dtype=np.float64),
+        q_utm=np.array([parse_utm_name(p) for p in paths["queries"]], dtype=np.float64),
+    )
+
+
+def _mat_strings(cell: np.ndarray) -> list[str]:
+    """Names from a MATLAB cell array of char arrays as scipy.io.loadmat returns it."""
+    out = []
+    for item in np.asarray(cell, dtype=object).ravel():
+        flat = np.asarray(item).ravel()
+        out.append(str(flat[0]).strip() if flat.size else "")
+    return out
+
+
+def _mat_utm(value: np.ndarray, count: int, mat_path: Path, field: str) -> np.ndarray:
+    utm = np.asarray(value, dtype=np.float64)
+    if utm.size == 0 and count == 0:
+        return np.zeros((0, 2))
+    if utm.ndim == 2 and utm.shape[0] == 2 and utm.shape[1] == count:
+        return utm.T.copy()
+    if utm.ndim == 2 and utm.shape == (count, 2):  # already transposed by whoever re-saved the file
+        return utm
+    raise SemvprError(f"{mat_path}: dbStruct.{field} has shape {utm.shape}, expected (2, {count})")
+
+
+def _resolve_root(names: list[str], candidates: list[Path], mat_path: Path, what: str) -> Path:
+    """First candidate folder holding the first listed image (one stat, not one per image)."""
+    if not names:
+        return candidates[0]
+    for folder in candidates:
+        if (folder / names[0]).exists():
+            return folder
+    looked = ", ".join(str(c / names[0]) for c in candidates)
+    raise SemvprError(f"{mat_path}: first {what} image {names[0]!r} not found (looked at {looked}); "
+                      f"point image_root (data.root) and, if elsewhere, query_root at the image folders")
+
+
+def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | None = None,
+                      query_root: str | Path | None = None) -> PlaceSet:
+    """Read a Pitts250k/30k or Tokyo 24/7 `dbStruct` .mat; image names resolve under image_root."""
+    from scipy.io import loadmat
+
+    mat_path, image_root = Path(mat_path).expanduser(), Path(image_root).expanduser()
+    if not mat_path.is_file():
+        raise SemvprError(f"dbStruct file {mat_path} not found; check data.root (it should hold "
+                          f"datasets/<name>.mat of the Pittsburgh / Tokyo 24/7 release, and the images)")
+    try:
+        mat = loadmat(str(mat_path))
+    except NotImplementedError:
+        raise SemvprError(f"{mat_path}: MATLAB v7.3 (HDF5) file; re-save it with save(..., '-v7')") from None
+    except Exception as err:  # scipy raises several types for corrupt files
+        raise SemvprError(f"{mat_path}: not a readable .mat file ({err})") from None
+    if "dbStruct" not in mat:
+        keys = sorted(k for k in mat if not k.startswith("__"))
+        raise SemvprError(f"{mat_path}: no 'dbStruct' variable (found {keys})")
+    struct = mat["dbStruct"]
+    names_present = struct.dtype.names or ()
+    record = struct.ravel()[0] if struct.size else None
+
+    def field(key: str) -> np.ndarray:
+        if record is None or key not in names_present:
+            raise SemvprError(f"{mat_path}: dbStruct lacks field '{key}' (fields found: "
+                              f"{list(names_present)}); is this a Pitts/Tokyo dbStruct file?")
+        return record[key]
+
+    db_names, q_names = _mat_strings(field("dbImageFns")), _mat_strings(field("qImageFns"))
+    db_utm = _mat_utm(field("utmDb"), len(db_names), mat_path, "utmDb")
+    q_utm = _mat_utm(field("utmQ"), len(q_names), mat_path, "utmQ")
+    which = _mat_strings(field("whichSet"))
+    if not db_names or not q_names:
+        raise SemvprError(f"{mat_path}: empty split ({len(db_names)} database, {len(q_names)} query names)")
+    if not image_root.is_dir():
+        raise SemvprError(f"image root {image_root} does not exist; set data.root=... to the folder "
+                          f"holding the images listed in {mat_path.name}")
+    db_root = _resolve_root(db_names, [image_root], mat_path, "database")
+    # pytorch-NetVlad joins Pitts query names onto <root>/queries_real; other releases keep the prefix.
+    q_candidates = ([Path(query_root).expanduser()] if query_root
+                    else [image_root, image_root / "queries_real"])
+    q_root = _resolve_root(q_names, q_candidates, mat_path, "query")
+    return PlaceSet(
+        name=name or f"{mat_path.stem}" + (f"/{which[0]}" if which and which[0] else ""),
+        db_paths=tuple(db_root / n for n in db_names),
+        q_paths=tuple(q_root / n for n in q_names),
+        db_utm=db_utm,
+        q_utm=q_utm,
+    )
+
+
+def _read_msls_side(folder: Path) -> tuple[list[Path], list[tuple[float, float]]]:
+    csv_path = folder / "postprocessed.csv"
+    if not csv_path.is_file():
+        raise SemvprError(f"{csv_path} not found; MSLS needs <city>/{{query,database}}/postprocessed.csv")
+    with csv_path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        columns = set(reader.fieldnames or ())
+        missing = [c for c in ("key", "easting", "northing") if c not in columns]
+        if missing:
+            raise SemvprError(f"{csv_path}: missing column(s) {missing} (found {sorted(columns)})")
+        paths, utm = [], []
+        for row in reader:
+            try:
+                utm.append((float(row["easting"]), float(row["northing"])))
+            except (TypeError, ValueError):
+                raise SemvprError(f"{csv_path}: bad easting/northing in row key={row['key']!r}") from None
+            paths.append(folder / "images" / f"{row['key']}.jpg")
+    return paths, utm
+
+
+def read_msls(root: str | Path, split: str, cities: list[str] | None = None) -> PlaceSet:
+    """Read Mapillary SLS: train/val from train_val/<city> (val: cph, sf), test from test/<city>."""
+    root = Path(root).expanduser()
+    if split not in ("train", "val", "test"):
+        raise SemvprError(f"MSLS split {split!r} unknown; use train, val or test")
+    sub = root / ("test" if split == "test" else "train_val")
+    if not sub.is_dir():
+        raise SemvprError(f"MSLS folder {sub} not found; set data.root=... to the folder holding "
+                          f"train_val/ and test/")
+    if cities is None:
+        available = sorted(p.name for p in sub.iterdir() if p.is_dir())
+        if split == "val":
+            cities = [c for c in available if c in MSLS_VAL_CITIES]
+        elif split == "train":
+            cities = [c for c in available if c not in MSLS_VAL_CITIES]
+        else:
+            cities = available
+    if not cities:
+        raise SemvprError(f"{sub}: no cities for MSLS split {split!r}")
+    db_paths: list[Path] = []
+    q_paths: list[Path] = []
+    db_utm: list[tuple[float, float]] = []
+    q_utm: list[tuple[float, float]] = []
+    for i, city in enumerate(cities):
+        if not (sub / city).is_dir():
+            raise SemvprError(f"MSLS city folder {sub / city} not found")
+        # Cities sit in different UTM zones whose (east, north) ranges overlap; shifting each
+        # city's easting by 10,000 km keeps radius searches from ever pairing two cities.
+        shift = i * 1e7
+        paths, utm = _read_msls_side(sub / city / "database")
+        db_paths += paths
+        db_utm += [(e + shift, n) for e, n in utm]
+        paths, utm = _read_msls_side(sub / city / "query")
+        q_paths += paths
+        q_utm += [(e + shift, n) for e, n in utm]
+    if not db_paths or not q_paths:
+        raise SemvprError(f"{sub}: empty MSLS split {split!r} for cities {cities} "
+                          f"({len(db_paths)} database, {len(q_paths)} queries)")
+    return PlaceSet(name=f"msls/{split}", db_paths=tuple(db_paths), q_paths=tuple(q_paths),
+                    db_utm=np.array(db_utm).reshape(-1, 2), q_utm=np.array(q_utm).reshape(-1, 2))

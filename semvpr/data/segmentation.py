@@ -1,0 +1,123 @@
+"""Cityscapes-format segmentation sets and the image / label loaders every module shares."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from semvpr.data.classes import IGNORE, LABEL_TO_TRAIN_LUT, TRAIN_ID_NAMES
+from semvpr.errors import SemvprError
+
+IMAGE_SUFFIX = "_leftImg8bit.png"
+LABEL_SUFFIX = "_gtFine_labelIds.png"
+
+
+@dataclass(frozen=True)
+class SegmentationSet:
+    """Paired images and Cityscapes labelIds PNGs (same order)."""
+
+    images: tuple[Path, ...]
+    labels: tuple[Path, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "images", tuple(Path(p) for p in self.images))
+        object.__setattr__(self, "labels", tuple(Path(p) for p in self.labels))
+        if len(self.images) != len(self.labels):
+            raise SemvprError(f"segmentation set has {len(self.images)} images but {len(self.labels)} labels")
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+
+def read_cityscapes(root: str | Path, split: str) -> SegmentationSet:
+    """Pair leftImg8bit/<split>/<city>/*_leftImg8bit.png with gtFine/.../*_gtFine_labelIds.png."""
+    root = Path(root).expanduser()
+    image_dir = root / "leftImg8bit" / split
+    if not image_dir.is_dir():
+        raise SemvprError(f"Cityscapes images {image_dir} not found; set the segmentation root to the "
+                          f"folder holding leftImg8bit/ and gtFine/")
+    images = sorted(image_dir.glob(f"*/*{IMAGE_SUFFIX}"))
+    if not images:
+        raise SemvprError(f"{image_dir}: no <city>/*{IMAGE_SUFFIX} images")
+    labels = []
+    for image in images:
+        stem = image.name[: -len(IMAGE_SUFFIX)]
+        label = root / "gtFine" / split / image.parent.name / f"{stem}{LABEL_SUFFIX}"
+        if not label.is_file():
+            raise SemvprError(f"{image}: label map {label} is missing")
+        labels.append(label)
+    return SegmentationSet(images=tuple(images), labels=tuple(labels))
+
+
+def _open(path: Path, what: str) -> Image.Image:
+    """Open and decode fully, so truncated files fail here with their name, not deep in a worker."""
+    try:
+        img = Image.open(path)
+        img.load()
+    except FileNotFoundError:
+        raise SemvprError(f"{what} {path} not found") from None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as err:
+        raise SemvprError(f"{what} {path} is unreadable or corrupt ({err})") from None
+    return img
+
+
+def _hw(size: tuple[int, int] | list[int] | None) -> tuple[int, int] | None:
+    if size is None:
+        return None
+    h, w = (int(v) for v in size)
+    return h, w
+
+
+def load_image(path: str | Path, size: tuple[int, int] | list[int] | None = None) -> torch.Tensor:
+    """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes bilinearly (antialiased)."""
+    img = _open(Path(path), "image").convert("RGB")
+    hw = _hw(size)
+    if hw is not None and img.size != (hw[1], hw[0]):
+        img = img.resize((hw[1], hw[0]), Image.BILINEAR)
+    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
+
+
+def load_train_ids(path: str | Path, size: tuple[int, int] | list[int] | None = None, *,
+                   from_label_ids: bool, image: str | Path | None = None) -> torch.Tensor:
+    """(H,W) long trainIds from a labelIds PNG (from_label_ids=True) or a trainId PNG; nearest resize."""
+    path = Path(path)
+    if image is not None:
+        check_pair(image, path)
+    img = _open(path, "label map")
+    if img.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
+        raise SemvprError(f"label map {path} has mode {img.mode}; expected a single-channel PNG of ids")
+    hw = _hw(size)
+    if hw is not None and img.size != (hw[1], hw[0]):
+        img = img.resize((hw[1], hw[0]), Image.NEAREST)  # nearest: ids must never be blended
+    ids = np.asarray(img).astype(np.int64)
+    if from_label_ids:
+        ids = np.where((ids >= 0) & (ids < 256), LABEL_TO_TRAIN_LUT[np.clip(ids, 0, 255)], IGNORE)
+    else:
+        # Anything that is not a trainId would crash a cross-entropy with ignore_index=255.
+        ids = np.where((ids >= 0) & (ids < len(TRAIN_ID_NAMES)), ids, IGNORE)
+    return torch.from_numpy(ids.astype(np.int64))
+
+
+def check_pair(image: str | Path, label: str | Path) -> None:
+    """Raise if a label map's size differs from its image's (reads headers only)."""
+    sizes = []
+    for path in (Path(image), Path(label)):
+        try:
+            with Image.open(path) as img:
+                sizes.append(img.size)
+        except FileNotFoundError:
+            raise SemvprError(f"{path} not found") from None
+        except (OSError, ValueError, SyntaxError) as err:
+            raise SemvprError(f"{path} is unreadable or corrupt ({err})") from None
+    if sizes[0] != sizes[1]:
+        (iw, ih), (lw, lh) = sizes
+        raise SemvprError(f"label map {label} is {lh}x{lw} but its image {image} is {ih}x{iw} (HxW)")
+
+
+def load_pair(image: str | Path, label: str | Path, size: tuple[int, int] | list[int] | None = None, *,
+              from_label_ids: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Image (3,H,W) and trainIds (H,W), after checking their native sizes agree."""
+    return load_image(image, size), load_train_ids(label, size, from_label_ids=from_label_ids, image=image)

@@ -1,0 +1,187 @@
+"""PlaceSet positives and the @UTM@ folder, dbStruct .mat and MSLS readers, incl. bad input."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from PIL import Image
+
+from semvpr.data.places import (DBSTRUCT_FIELDS, PlaceSet, parse_utm_name, read_dbstruct_mat,
+                                read_msls, read_utm_folder)
+from semvpr.errors import SemvprError
+
+
+def utm_name(east: float, north: float) -> str:
+    """A VPR-datasets-downloader file name at (east, north)."""
+    return f"@{east:.2f}@{north:.2f}@17@T@40.44@-79.99@pano@@0@@@@201311@@.jpg"
+
+
+def write_jpg(path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.new("RGB", (8, 6), (120, 30, 200)).save(path)
+
+
+def make_utm_folder(root: Path, split: str = "test") -> Path:
+    """3 database images along a street, 2 queries: one near db 1, one far from everything."""
+    for e, n in [(100.0, 0.0), (110.0, 0.0), (150.0, 0.0)]:
+        write_jpg(root / "images" / split / "database" / utm_name(e, n))
+    for e, n in [(112.0, 3.0), (900.0, 900.0)]:
+        write_jpg(root / "images" / split / "queries" / utm_name(e, n))
+    return root
+
+
+def test_positives_hand_made_case() -> None:
+    db = np.array([[0.0, 0.0], [10.0, 0.0], [30.0, 0.0], [0.0, 24.0]])
+    q = np.array([[9.0, 0.0], [1000.0, 0.0], [0.0, 20.0]])
+    places = PlaceSet("toy", tuple(f"d{i}" for i in range(4)), ("q0", "q1", "q2"), db, q)
+    pos = places.positives(25.0)
+    # q0→d3 is sqrt(81+576)=25.6 m: just outside.
+    assert [p.tolist() for p in pos] == [[1, 0, 2], [], [3, 0, 1]]
+    assert [p.tolist() for p in places.positives(10.0)] == [[1, 0], [], [3]]
+    assert places.db_utm.dtype == np.float64 and isinstance(places.db_paths[0], Path)
+
+
+def test_placeset_rejects_mismatched_lengths() -> None:
+    with pytest.raises(SemvprError, match="2 paths but 3 positions"):
+        PlaceSet("bad", ("a", "b"), ("q",), np.zeros((3, 2)), np.zeros((1, 2)))
+
+
+def test_parse_utm_name() -> None:
+    assert parse_utm_name("/x/" + utm_name(584321.5, 4477654.25)) == (584321.5, 4477654.25)
+    with pytest.raises(SemvprError, match="holiday.jpg"):
+        parse_utm_name("/x/holiday.jpg")
+    with pytest.raises(SemvprError, match="@abc@"):
+        parse_utm_name("@abc@12@17@T@.jpg")
+
+
+@pytest.mark.parametrize("use_images_dir", [False, True])
+def test_read_utm_folder(tmp_path: Path, use_images_dir: bool) -> None:
+    root = make_utm_folder(tmp_path / "city")
+    places = read_utm_folder(root / "images" if use_images_dir else root, "test")
+    assert places.name == "city/test"
+    assert len(places.db_paths) == 3 and len(places.q_paths) == 2
+    # Sorted file order: "@100" < "@110" < "@150" lexicographically too.
+    np.testing.assert_allclose(places.db_utm, [[100, 0], [110, 0], [150, 0]])
+    np.testing.assert_allclose(places.q_utm, [[112, 3], [900, 900]])
+    assert [p.tolist() for p in places.positives()] == [[1, 0], []]
+    assert all(p.is_file() for p in places.db_paths + places.q_paths)
+
+
+def test_read_utm_folder_bad_inputs(tmp_path: Path) -> None:
+    with pytest.raises(SemvprError, match=r"nowhere.*data\.root="):
+        read_utm_folder(tmp_path / "nowhere", "test")
+    root = make_utm_folder(tmp_path / "city")
+    with pytest.raises(SemvprError, match=r"images/val.*splits there: \['test'\]"):
+        read_utm_folder(root, "val")
+    write_jpg(root / "images" / "test" / "queries" / "IMG_0001.jpg")
+    with pytest.raises(SemvprError, match="IMG_0001.jpg"):
+        read_utm_folder(root, "test")
+    (root / "images" / "train" / "database").mkdir(parents=True)
+    write_jpg(root / "images" / "train" / "queries" / utm_name(1, 2))
+    with pytest.raises(SemvprError, match=r"train/database: no database images"):
+        read_utm_folder(root, "train")
+
+
+def write_dbstruct(path: Path, db_names: list[str], db_utm: np.ndarray, q_names: list[str],
+                   q_utm: np.ndarray, drop: str | None = None) -> None:
+    """A dbStruct .mat as MATLAB writes it: one struct, fields in the Pitts order."""
+    values = {
+        "whichSet": "test", "dbImageFns": db_names, "utmDb": db_utm.T, "qImageFns": q_names,
+        "utmQ": q_utm.T, "numImages": len(db_names), "numQueries": len(q_names),
+        "posDistThr": 25.0, "posDistSqThr": 625.0, "nonTrivPosDistSqThr": 100.0,
+    }
+    fields = [f for f in DBSTRUCT_FIELDS if f != drop]
+    struct = np.empty((1, 1), dtype=[(f, object) for f in fields])
+    for f in fields:
+        v = values[f]
+        if isinstance(v, list):  # cell array N×1 of char arrays
+            cell = np.empty((len(v), 1), dtype=object)
+            for i, s in enumerate(v):
+                cell[i, 0] = np.array([s])
+            v = cell
+        struct[0, 0][f] = v
+    scipy.io.savemat(str(path), {"dbStruct": struct})
+
+
+def test_read_dbstruct_mat(tmp_path: Path) -> None:
+    root = tmp_path / "pitts"
+    db_names = ["000/000000_pitch1_yaw1.jpg", "000/000001_pitch1_yaw2.jpg", "001/001000_pitch2_yaw1.jpg"]
+    q_names = ["000/000002_pitch1_yaw1.jpg", "000/000003_pitch1_yaw1.jpg"]
+    for n in db_names:
+        write_jpg(root / n)
+    for n in q_names:  # pytorch-NetVlad layout: query names relative to queries_real/
+        write_jpg(root / "queries_real" / n)
+    db_utm = np.array([[585000.0, 4477000.0], [585020.0, 4477000.0], [586000.0, 4478000.0]])
+    q_utm = np.array([[585010.0, 4477001.0], [590000.0, 4470000.0]])
+    mat = tmp_path / "pitts30k_test.mat"
+    write_dbstruct(mat, db_names, db_utm, q_names, q_utm)
+    places = read_dbstruct_mat(mat, root)
+    assert places.name == "pitts30k_test/test"
+    assert places.db_paths[2] == root / db_names[2]
+    assert places.q_paths[0] == root / "queries_real" / q_names[0]
+    np.testing.assert_allclose(places.db_utm, db_utm)
+    np.testing.assert_allclose(places.q_utm, q_utm)
+    assert [p.tolist() for p in places.positives()] == [[0, 1], []]
+    assert read_dbstruct_mat(mat, root, name="p30k").name == "p30k"
+
+
+def test_read_dbstruct_mat_bad_inputs(tmp_path: Path) -> None:
+    names, utm = ["a.jpg"], np.zeros((1, 2))
+    mat = tmp_path / "broken.mat"
+    write_dbstruct(mat, names, utm, names, utm, drop="utmQ")
+    with pytest.raises(SemvprError, match=r"broken\.mat.*lacks field 'utmQ'"):
+        read_dbstruct_mat(mat, tmp_path)
+    with pytest.raises(SemvprError, match=r"missing\.mat not found"):
+        read_dbstruct_mat(tmp_path / "missing.mat", tmp_path)
+    mat = tmp_path / "ok.mat"
+    write_dbstruct(mat, names, utm, names, utm)
+    with pytest.raises(SemvprError, match=r"ok\.mat.*'a\.jpg' not found"):
+        read_dbstruct_mat(mat, tmp_path)
+    (tmp_path / "junk.mat").write_bytes(b"not a mat file at all" * 10)
+    with pytest.raises(SemvprError, match=r"junk\.mat"):
+        read_dbstruct_mat(tmp_path / "junk.mat", tmp_path)
+
+
+def write_msls_side(folder: Path, rows: list[tuple[str, float, float]],
+                    columns: str = "easting,northing") -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = [f",key,lat,lon,{columns},night,view_direction"]
+    lines += [f"{i},{k},55.6,12.5,{e},{n},False,Forward" for i, (k, e, n) in enumerate(rows)]
+    (folder / "postprocessed.csv").write_text("\n".join(lines) + "\n")
+
+
+def make_msls(root: Path) -> Path:
+    tv = root / "train_val"
+    write_msls_side(tv / "cph" / "database", [("c_db0", 100.0, 0.0), ("c_db1", 300.0, 0.0)])
+    write_msls_side(tv / "cph" / "query", [("c_q0", 105.0, 0.0)])
+    write_msls_side(tv / "london" / "database", [("l_db0", 100.0, 0.0)])  # same UTM numbers, other zone
+    write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0)])
+    write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0)])
+    write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0)])
+    return root
+
+
+def test_read_msls(tmp_path: Path) -> None:
+    root = make_msls(tmp_path / "msls")
+    val = read_msls(root, "val")
+    assert len(val.db_paths) == 3 and len(val.q_paths) == 2
+    assert val.db_paths[0] == root / "train_val" / "cph" / "database" / "images" / "c_db0.jpg"
+    assert [p.tolist() for p in val.positives()] == [[0], [2]]
+    train = read_msls(root, "train")
+    assert [p.name for p in train.q_paths] == ["l_q0.jpg"]
+    both = read_msls(root, "train", cities=["cph", "london"])
+    # Same (east, north) in two cities must not make them positives of each other.
+    assert [p.tolist() for p in both.positives()] == [[0], [2]]
+
+
+def test_read_msls_bad_inputs(tmp_path: Path) -> None:
+    with pytest.raises(SemvprError, match=r"train_val not found.*data\.root="):
+        read_msls(tmp_path / "none", "train")
+    root = make_msls(tmp_path / "msls")
+    write_msls_side(root / "train_val" / "sf" / "query", [("s_q0", 5.0, 6.0)], columns="utm_x,utm_y")
+    with pytest.raises(SemvprError, match=r"sf/query/postprocessed\.csv: missing column.*easting"):
+        read_msls(root, "val")
+    with pytest.raises(SemvprError, match="split 'dev' unknown"):
+        read_msls(root, "dev")
