@@ -1,0 +1,150 @@
+"""Speed ratios measured in one run: VGG16 extraction vs bf16 roofline, vectorised vs loop NetVLAD, Recall@N at Pitts30k scale.
+
+python benchmarks/speed.py [--batch 16] [--reps 3]
+Last line: extract_roofline_ratio=<r> aggregate_speedup=<s> recall_pitts30k_s=<t>
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from semvpr.metrics import knn, positives_within, recall_result
+from semvpr.models.backbones import VGG16Backbone
+from semvpr.models.netvlad import NetVLAD, netvlad_loop_reference
+
+REPO = Path(__file__).resolve().parents[1]
+PITTS = REPO.parent / "shared" / "realdata" / "pitts30k_test.npz"
+VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512)
+
+
+def best_time(fn: Callable[[], object], reps: int) -> float:
+    """Best wall time of ``reps`` calls after one warm-up (the minimum is least disturbed by other load)."""
+    fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def vgg16_conv_flops(h: int, w: int) -> float:
+    """Multiply-add FLOPs (2 per MAC) of VGG16's 13 3×3 convs up to conv5_3 at input h×w."""
+    flops, cin = 0.0, 3
+    for v in VGG16_CFG:
+        if v == "M":
+            h, w = h // 2, w // 2
+        else:
+            flops += 2.0 * cin * v * 9 * h * w
+            cin = v
+    return flops
+
+
+def bf16_matmul_flops(reps: int, n: int = 4096) -> float:
+    """Measured bf16 FLOP/s of an n×n×n matmul: the roofline the conv trunk is compared with."""
+    a, b = torch.randn(n, n, dtype=torch.bfloat16), torch.randn(n, n, dtype=torch.bfloat16)
+    return 2.0 * n**3 / best_time(lambda: a @ b, reps)
+
+
+def bench_extract(batch: int, reps: int, hw: tuple[int, int] = (120, 160)) -> float:
+    """VGG16 conv5_3 images/s with bf16 autocast + channels_last vs fp32; returns the roofline ratio."""
+    model = VGG16Backbone(weights="none").eval()
+    x = torch.rand(batch, 3, *hw)
+    flops_img = vgg16_conv_flops(*hw)
+    with torch.inference_mode():
+        t_fp32 = best_time(lambda: model(x)[-1], max(1, reps - 1))
+        model_cl, x_cl = model.to(memory_format=torch.channels_last), x.contiguous(memory_format=torch.channels_last)
+
+        def run_bf16() -> torch.Tensor:
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                return model_cl(x_cl)[-1]
+
+        t_bf16 = best_time(run_bf16, reps)
+    peak = bf16_matmul_flops(reps)
+    ips_bf16, ips_fp32 = batch / t_bf16, batch / t_fp32
+    roofline_ips = peak / flops_img
+    print(f"extract: VGG16 conv5_3 {hw[0]}x{hw[1]} batch {batch}: {flops_img / 1e9:.2f} GFLOP/img; "
+          f"fp32 {ips_fp32:.1f} img/s, bf16+channels_last {ips_bf16:.1f} img/s (x{ips_bf16 / ips_fp32:.2f}); "
+          f"bf16 matmul {peak / 1e12:.2f} TFLOP/s -> roofline {roofline_ips:.1f} img/s")
+    return ips_bf16 / roofline_ips
+
+
+def bench_aggregate(batch: int, reps: int) -> float:
+    """Vectorised NetVLAD vs the per-cluster loop (outputs asserted equal); returns the speed-up at 7x10."""
+    torch.manual_seed(0)
+    layer = NetVLAD(64, 512).eval()
+    layer.init_from_features(torch.relu(torch.randn(10_000, 512)), seed=0, niter=10)
+    c, alpha = layer.centroids.detach(), float(layer.alpha)
+    speedups = []
+    with torch.inference_mode():
+        # 7x10 is the 120x160 SynthCity grid; 30x40 the 480x640 paper grid (smaller batch: the loop is slow).
+        for b, h, w in ((batch, 7, 10), (max(1, batch // 4), 30, 40)):
+            x = torch.relu(torch.randn(b, 512, h, w))
+            mask = (torch.rand(b, 1, h, w) > 0.3).float()
+            torch.testing.assert_close(layer(x, mask), netvlad_loop_reference(x, c, alpha, mask), rtol=1e-4, atol=1e-5)
+            t_vec = best_time(lambda: layer(x, mask), reps)
+            t_loop = best_time(lambda: netvlad_loop_reference(x, c, alpha, mask), reps)
+            speedups.append(t_loop / t_vec)
+            print(f"aggregate: K=64 D=512 batch {b} grid {h}x{w}: vectorised {t_vec * 1e3:.1f} ms, "
+                  f"loop {t_loop * 1e3:.1f} ms, speed-up x{speedups[-1]:.1f} (outputs allclose)")
+    return speedups[0]
+
+
+def pitts30k_utms() -> tuple[np.ndarray, np.ndarray, str]:
+    """Pitts30k-test UTMs from ../shared/realdata when present, else a synthetic route of the same size."""
+    if PITTS.is_file():
+        data = np.load(PITTS)
+        return data["utmDb"].astype(np.float64), data["utmQ"].astype(np.float64), f"real UTMs ({PITTS.name})"
+    rng = np.random.default_rng(0)
+    route = np.cumsum(rng.normal(0, 1, (10_000, 2)) + [4.0, 1.0], axis=0) + [585_000.0, 4_477_000.0]
+    q = route[rng.choice(len(route), 6_816)] + rng.normal(0, 8, (6_816, 2))
+    return route, q, "synthetic route (pitts30k_test.npz not found)"
+
+
+def bench_recall(dim: int = 4096) -> float:
+    """Positives (25 m) + faiss kNN (k=20) + Recall@N for 10,000 db × 6,816 queries; returns seconds."""
+    db_utm, q_utm, source = pitts30k_utms()
+    rng = np.random.default_rng(0)
+    db = rng.standard_normal((len(db_utm), dim)).astype(np.float32)
+    t0 = time.perf_counter()
+    positives = positives_within(db_utm, q_utm, 25.0)
+    t_pos = time.perf_counter() - t0
+    # Queries are noisy copies of their nearest positive's descriptor; σ = √D/4 puts R@1 near 50 %, so a
+    # ranking bug would show as a change in the printed recalls.
+    anchor = np.array([p[0] if len(p) else rng.integers(len(db)) for p in positives])
+    q = db[anchor] + 0.25 * np.sqrt(dim) * rng.standard_normal((len(q_utm), dim)).astype(np.float32)
+    t1 = time.perf_counter()
+    pred = knn(db, q, 20)
+    t_knn = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    res = recall_result(pred, positives)
+    t_rec = time.perf_counter() - t2
+    total = t_pos + t_knn + t_rec
+    recalls = " ".join(f"R@{n}={v:.1f}" for n, v in res.recalls.items())
+    print(f"recall: {len(db)} db x {len(q)} queries, {dim}-D, {source}: {recalls} "
+          f"({res.num_queries} queries with positives, {res.num_without_positives} without); "
+          f"positives {t_pos:.2f} s, faiss kNN {t_knn:.2f} s ({100 * t_knn / total:.0f} %), recall {t_rec:.2f} s")
+    return total
+
+
+def main() -> None:
+    """Run the three measurements and print the summary line."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=16, help="images per extraction batch")
+    parser.add_argument("--agg-batch", type=int, default=32, help="feature maps per aggregation batch")
+    parser.add_argument("--reps", type=int, default=3, help="timed repetitions (best is kept)")
+    args = parser.parse_args()
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    ratio = bench_extract(args.batch, args.reps)
+    speedup = bench_aggregate(args.agg_batch, args.reps)
+    seconds = bench_recall()
+    print(f"extract_roofline_ratio={ratio:.2f} aggregate_speedup={speedup:.2f} recall_pitts30k_s={seconds:.2f}")
+
+
+if __name__ == "__main__":
+    main()

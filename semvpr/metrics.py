@@ -1,0 +1,102 @@
+"""Retrieval evaluation: positives by UTM radius, faiss kNN, Recall@N.
+
+Recall@N is the percentage of queries *that have at least one positive* whose top-N retrievals
+contain a positive (as in pytorch-NetVlad / the VPR benchmarks; Pitts30k-test has none without).
+Queries without any positive are excluded from the denominator and counted separately:
+``recall_result`` returns a ``RecallResult`` with that count; ``recall_at_n`` / ``recall_curve``
+are the dict-only shortcuts.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import faiss
+import numpy as np
+from scipy.spatial import cKDTree
+
+from semvpr.errors import SemvprError
+
+DEFAULT_NS = (1, 5, 10, 20)
+
+
+@dataclass(frozen=True)
+class RecallResult:
+    """Recall@N in percent over the ``num_queries`` queries with positives."""
+
+    recalls: dict[int, float]
+    num_queries: int
+    num_without_positives: int
+
+
+def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float = 25.0) -> list[np.ndarray]:
+    """Per query, the database indices within ``radius`` metres, sorted by distance (exact, float64)."""
+    db = np.asarray(db_utm, np.float64)
+    q = np.asarray(q_utm, np.float64)
+    tree = cKDTree(db)
+    out = []
+    for qi, idx in zip(q, tree.query_ball_point(q, r=radius)):
+        idx = np.asarray(idx, np.int64)
+        dist = np.linalg.norm(db[idx] - qi, axis=1)
+        out.append(idx[np.argsort(dist, kind="stable")])
+    return out
+
+
+def _unit_float32(x: np.ndarray) -> np.ndarray:
+    arr = np.ascontiguousarray(x, dtype=np.float32).copy()
+    faiss.normalize_L2(arr)
+    return arr
+
+
+def knn(db: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
+    """(M, min(k,N)) database indices nearest to each query, exact L2 on L2-normalised descriptors."""
+    if db.ndim != 2 or q.ndim != 2 or db.shape[1] != q.shape[1]:
+        raise ValueError(f"db and queries must be (N,D) and (M,D) with the same D, got {db.shape} and {q.shape}")
+    index = faiss.IndexFlatL2(db.shape[1])
+    index.add(_unit_float32(db))
+    _, idx = index.search(_unit_float32(q), min(k, db.shape[0]))
+    return idx.astype(np.int64)
+
+
+def first_hit_ranks(predictions: np.ndarray, positives: Sequence[np.ndarray]) -> np.ndarray:
+    """0-based rank of the first positive in each query's predictions; k if none in the top-k, -1 if no positives."""
+    predictions = np.asarray(predictions)
+    if len(predictions) != len(positives):
+        raise ValueError(f"{len(predictions)} prediction rows but {len(positives)} positive lists")
+    k = predictions.shape[1]
+    ranks = np.full(len(predictions), k, dtype=np.int64)
+    for i, (pred, pos) in enumerate(zip(predictions, positives)):
+        if len(pos) == 0:
+            ranks[i] = -1
+            continue
+        hits = np.flatnonzero(np.isin(pred, pos))
+        if hits.size:
+            ranks[i] = hits[0]
+    return ranks
+
+
+def recall_result(predictions: np.ndarray, positives: Sequence[np.ndarray],
+                  ns: Iterable[int] = DEFAULT_NS) -> RecallResult:
+    """Recall@N (percent) for each N in ``ns`` plus the query counts behind it."""
+    ns = tuple(int(n) for n in ns)
+    if max(ns) > np.asarray(predictions).shape[1]:
+        raise ValueError(f"Recall@{max(ns)} needs at least {max(ns)} predictions per query, "
+                         f"got {np.asarray(predictions).shape[1]}")
+    ranks = first_hit_ranks(predictions, positives)
+    valid = ranks[ranks >= 0]
+    if valid.size == 0:
+        raise SemvprError("no query has a database image within the positive radius; check the UTM coordinates "
+                          "of the test set (or the radius)")
+    recalls = {n: float(100.0 * np.mean(valid < n)) for n in ns}
+    return RecallResult(recalls=recalls, num_queries=int(valid.size), num_without_positives=int((ranks < 0).sum()))
+
+
+def recall_at_n(predictions: np.ndarray, positives: Sequence[np.ndarray],
+                ns: Iterable[int] = DEFAULT_NS) -> dict[int, float]:
+    """{N: Recall@N in percent}; queries without positives are excluded (see ``recall_result`` for the count)."""
+    return recall_result(predictions, positives, ns).recalls
+
+
+def recall_curve(predictions: np.ndarray, positives: Sequence[np.ndarray], max_n: int = 20) -> dict[int, float]:
+    """{N: Recall@N} for N = 1..max_n (for recall curves)."""
+    return recall_at_n(predictions, positives, range(1, max_n + 1))

@@ -1,0 +1,194 @@
+"""CNN trunks (VGG16 up to conv5_3, ResNet50 up to layer3/4) split into a frozen prefix and a trainable part.
+
+A trunk is an ordered list of *units*. Scale units (``conv1`` … ``conv5`` for VGG16; ``conv1`` (stem),
+``layer1`` … ``layer4`` for ResNet50) end at one of the multi-scale outputs; pool units sit between them.
+``train_from`` names the first trainable scale unit; everything before it is frozen (``requires_grad``
+False, kept in eval mode) and its pool belongs to the frozen prefix, so for VGG16 ``train_from="conv5"``
+the trainable part starts at the pool4 output. ``train_from=None`` freezes the whole trunk (then
+``forward_trainable`` is the identity and ``forward_frozen(x)[-1]`` are the local features).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torchvision
+from torch import Tensor, nn
+
+from semvpr.errors import SemvprError
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+# (unit name, output channels, output stride, is scale output) — widths come from here, never from probing.
+VGG16_UNITS: tuple[tuple[str, int, int, bool], ...] = (
+    ("conv1", 64, 1, True), ("pool1", 64, 2, False),
+    ("conv2", 128, 2, True), ("pool2", 128, 4, False),
+    ("conv3", 256, 4, True), ("pool3", 256, 8, False),
+    ("conv4", 512, 8, True), ("pool4", 512, 16, False),
+    ("conv5", 512, 16, True),
+)
+# torchvision vgg16().features index ranges of the units above; conv5 stops after conv5_3's ReLU (no pool5).
+VGG16_SLICES = ((0, 4), (4, 5), (5, 9), (9, 10), (10, 16), (16, 17), (17, 23), (23, 24), (24, 30))
+RESNET50_UNITS: tuple[tuple[str, int, int, bool], ...] = (
+    ("conv1", 64, 2, True), ("maxpool", 64, 4, False),
+    ("layer1", 256, 4, True), ("layer2", 512, 8, True),
+    ("layer3", 1024, 16, True), ("layer4", 2048, 32, True),
+)
+WEIGHT_FILES = {
+    "vgg16": torchvision.models.VGG16_Weights.IMAGENET1K_V1,
+    "resnet50": torchvision.models.ResNet50_Weights.IMAGENET1K_V1,
+}
+
+
+def _load_state_dict(arch: str, weights: str | Path) -> dict[str, Tensor] | None:
+    """Resolve ``weights`` ("none" | "imagenet" | path) to a torchvision-format state dict, never downloading."""
+    if str(weights) == "none":
+        return None
+    if str(weights) == "imagenet":
+        url = WEIGHT_FILES[arch].url
+        cache = Path(torch.hub.get_dir()) / "checkpoints"
+        path = cache / Path(url).name
+        if not path.is_file():
+            # Tests and offline clusters must never hit the network, so we only read torchvision's cache.
+            raise SemvprError(
+                f"ImageNet weights {path.name} for {arch} not found in {cache} (set TORCH_HOME or download "
+                f"{url} there), or use backbone.weights=none for a random-init trunk"
+            )
+    else:
+        path = Path(weights)
+        if not path.is_file():
+            raise SemvprError(f"backbone weights file {path} does not exist; pass a torchvision {arch} state dict "
+                              "path, backbone.weights=imagenet or backbone.weights=none")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupt/unsupported pickle: a user file problem, not a bug
+        raise SemvprError(f"cannot read backbone weights {path}: {type(err).__name__}: {err}") from None
+    if isinstance(state, dict) and "state_dict" in state:
+        state = state["state_dict"]
+    if not isinstance(state, dict):
+        raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
+    return state
+
+
+class Backbone(nn.Module):
+    """Trunk of named units with multi-scale outputs, a frozen prefix and a trainable part."""
+
+    out_channels: int
+    skip_channels: tuple[int, ...]
+    skip_strides: tuple[int, ...]
+    frozen_channels: tuple[int, ...]
+    frozen_strides: tuple[int, ...]
+
+    def __init__(self, units: list[tuple[str, nn.Module]], table: tuple[tuple[str, int, int, bool], ...],
+                 train_from: str | None) -> None:
+        super().__init__()
+        names = [name for name, *_ in table]
+        scale_names = [name for name, _, _, scale in table if scale]
+        if train_from is not None and train_from not in scale_names:
+            raise SemvprError(f"backbone.train_from={train_from!r} is not one of {scale_names} (or null to freeze all)")
+        self.units = nn.ModuleList(module for _, module in units)
+        self.is_scale = [scale for *_, scale in table]
+        self.split = len(names) if train_from is None else names.index(train_from)
+        self.train_from = train_from
+        self.out_channels = table[-1][1]
+        self.skip_channels = tuple(c for _, c, _, scale in table if scale)
+        self.skip_strides = tuple(s for _, _, s, scale in table if scale)
+        frozen = [(c, s) for _, c, s, scale in table[: self.split] if scale]
+        if self.split == 0 or not table[self.split - 1][3]:
+            # The trainable part's input is not a scale output (a pool or the normalised image): append it.
+            prev = table[self.split - 1] if self.split else ("input", 3, 1, False)
+            frozen.append((prev[1], prev[2]))
+        self.frozen_channels = tuple(c for c, _ in frozen)
+        self.frozen_strides = tuple(s for _, s in frozen)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        for unit in self.units[: self.split]:
+            unit.requires_grad_(False)
+        self.train()
+
+    def train(self, mode: bool = True) -> Backbone:
+        """Set train mode, but keep the frozen prefix in eval mode (BatchNorm statistics stay fixed)."""
+        super().train(mode)
+        for unit in self.units[: self.split]:
+            unit.eval()
+        return self
+
+    def _normalise(self, x: Tensor) -> Tensor:
+        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        """All multi-scale features of a [0,1] RGB batch, shallow to deep; [-1] are the local features."""
+        h = self._normalise(x)
+        outs = []
+        for unit, scale in zip(self.units, self.is_scale):
+            h = unit(h)
+            if scale:
+                outs.append(h)
+        return outs
+
+    def forward_frozen(self, x: Tensor) -> list[Tensor]:
+        """Scale outputs inside the frozen prefix; [-1] is the input of the trainable part."""
+        h = self._normalise(x)
+        outs = []
+        for unit, scale in zip(self.units[: self.split], self.is_scale[: self.split]):
+            h = unit(h)
+            if scale:
+                outs.append(h)
+        if not outs or not self.is_scale[self.split - 1]:
+            outs.append(h)
+        return outs
+
+    def forward_trainable(self, h: Tensor) -> Tensor:
+        """Local features from ``forward_frozen(x)[-1]``."""
+        for unit in self.units[self.split:]:
+            h = unit(h)
+        return h
+
+
+class VGG16Backbone(Backbone):
+    """torchvision VGG16 features cut after conv5_3's ReLU: 512 channels, stride 16."""
+
+    def __init__(self, weights: str | Path = "none", train_from: str | None = "conv5") -> None:
+        # Only the conv trunk: building torchvision's 103M-parameter classifier would dominate start-up time.
+        model = nn.Module()
+        model.features = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"])
+        for m in model.features.modules():
+            if isinstance(m, nn.Conv2d):  # torchvision's VGG init, so random-init trunks match vgg16()
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+                nn.init.zeros_(m.bias)
+        state = _load_state_dict("vgg16", weights)
+        if state is not None:
+            _load_into(model, state, prefix="features.", arch="vgg16", source=weights)
+        feats = list(model.features.children())[:30]  # drop pool5
+        units = [(name, nn.Sequential(*feats[a:b])) for (name, *_), (a, b) in zip(VGG16_UNITS, VGG16_SLICES)]
+        super().__init__(units, VGG16_UNITS, train_from)
+
+
+class ResNet50Backbone(Backbone):
+    """torchvision ResNet50 cut after ``stage`` (layer3: 1024 ch, stride 16; layer4: 2048 ch, stride 32)."""
+
+    def __init__(self, stage: str = "layer3", weights: str | Path = "none", train_from: str | None = "layer3") -> None:
+        if stage not in ("layer3", "layer4"):
+            raise SemvprError(f"backbone.stage={stage!r} is not one of ['layer3', 'layer4']")
+        model = torchvision.models.resnet50()
+        state = _load_state_dict("resnet50", weights)
+        if state is not None:
+            _load_into(model, state, prefix="layer1.", arch="resnet50", source=weights)
+        table = RESNET50_UNITS[: 5 if stage == "layer3" else 6]
+        stem = nn.Sequential(model.conv1, model.bn1, model.relu)
+        modules = {"conv1": stem, "maxpool": model.maxpool, "layer1": model.layer1, "layer2": model.layer2,
+                   "layer3": model.layer3, "layer4": model.layer4}
+        super().__init__([(name, modules[name]) for name, *_ in table], table, train_from)
+
+
+def _load_into(model: nn.Module, state: dict[str, Tensor], prefix: str, arch: str, source: str | Path) -> None:
+    """Load a torchvision-format state dict; the classifier head may be missing, extra keys are ignored."""
+    try:
+        missing, _ = model.load_state_dict(state, strict=False)
+    except RuntimeError as err:  # shape mismatch: wrong architecture in the file
+        raise SemvprError(f"backbone weights {source} do not fit torchvision {arch}: {str(err).splitlines()[-1].strip()}") from None
+    missing = [k for k in missing if not k.startswith("fc.")]
+    if missing or not any(k.startswith(prefix) for k in state):
+        raise SemvprError(f"backbone weights {source} do not match torchvision {arch} "
+                          f"(missing e.g. {missing[:2] or [prefix + '*']}); pass a torchvision {arch} state dict")

@@ -1,0 +1,211 @@
+"""NetVLAD aggregation (Arandjelović et al., CVPR'16), its k-means/α initialisation, and PCA whitening.
+
+Soft-assignment is a 1×1 conv initialised as w_k = 2α·c_k, b_k = −α‖c_k‖², i.e. a softmax over
+−α‖x − c_k‖² (pytorch-NetVlad "vladv2"); conv and centroids are separate learnable parameters.
+A mask m (B,1,h,w) weights each location's contribution: V(:,k) = Σ_i m_i·a_k(x_i)·(x_i − c_k).
+The aggregation always runs in fp32 (autocast off): α is in the thousands at init, so bf16 logits
+would flip assignments.
+"""
+from __future__ import annotations
+
+import math
+
+import faiss
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from semvpr.errors import SemvprError
+
+MAX_KMEANS_FEATURES = 50_000  # NetVLAD's recipe: cluster a 50k random sample of training local features
+
+
+def l2_normalise_np(feats: Tensor | np.ndarray) -> np.ndarray:
+    """(N,D) features as a contiguous float32 array with unit rows."""
+    arr = feats.detach().float().cpu().numpy() if isinstance(feats, Tensor) else np.asarray(feats, np.float32)
+    arr = np.ascontiguousarray(arr, dtype=np.float32).copy()
+    faiss.normalize_L2(arr)
+    return arr
+
+
+def subsample(feats: np.ndarray, limit: int, seed: int) -> np.ndarray:
+    """At most ``limit`` rows, drawn without replacement with a seeded generator."""
+    if len(feats) <= limit:
+        return feats
+    idx = np.random.default_rng(seed).choice(len(feats), limit, replace=False)
+    return feats[np.sort(idx)]
+
+
+def spherical_kmeans(feats: np.ndarray, k: int, seed: int, niter: int = 50) -> np.ndarray:
+    """(k,D) unit centroids of unit-norm float32 ``feats`` with seeded faiss k-means."""
+    if len(feats) < k:
+        raise SemvprError(f"k-means needs at least {k} local features for {k} clusters, got {len(feats)}; "
+                          "use more cluster-init images or fewer clusters")
+    # Use every (already subsampled) point and silence faiss' "too few points" warning on tiny sets.
+    km = faiss.Kmeans(feats.shape[1], k, niter=niter, seed=seed, spherical=True, verbose=False,
+                      max_points_per_centroid=1 << 30, min_points_per_centroid=1)
+    km.train(feats, init_centroids=kmeans_pp_seeds(feats, k, seed))
+    return km.centroids.copy()
+
+
+def kmeans_pp_seeds(feats: np.ndarray, k: int, seed: int) -> np.ndarray:
+    """k-means++ seeding (D² sampling); faiss' random seeding merged separated clusters in ~40 % of seeds."""
+    rng = np.random.default_rng(seed)
+    sq = (feats.astype(np.float64) ** 2).sum(1)
+    chosen = [int(rng.integers(len(feats)))]
+    dist = np.full(len(feats), np.inf)
+    for _ in range(k):
+        c = feats[chosen[-1]]
+        dist = np.minimum(dist, np.maximum(sq + sq[chosen[-1]] - 2.0 * (feats @ c), 0.0))
+        if len(chosen) == k:
+            break
+        total = dist.sum()
+        chosen.append(int(rng.choice(len(feats), p=dist / total)) if total > 0 else int(rng.integers(len(feats))))
+    return np.ascontiguousarray(feats[chosen], dtype=np.float32)
+
+
+def alpha_from_features(feats: np.ndarray, centroids: np.ndarray) -> float:
+    """α = −log(0.01) / mean gap between the best and second-best assignment logit (2x·c − ‖c‖²)."""
+    # The gap is taken on the logit the conv computes (= the squared-distance gap; 2× the dot gap for unit
+    # centroids), so at init the nearest centroid gets on average 100× the weight of the second nearest.
+    logits = 2.0 * feats @ centroids.T - (centroids**2).sum(1)[None]
+    top2 = -np.sort(-logits, axis=1)[:, :2]
+    gap = float(np.mean(top2[:, 0] - top2[:, 1]))
+    if not gap > 0:
+        raise SemvprError("cannot set NetVLAD α: all local features are equidistant to their two nearest centroids")
+    return -math.log(0.01) / gap
+
+
+def vlad_aggregate(x: Tensor, weights: Tensor, centroids: Tensor) -> Tensor:
+    """Intra- and L2-normalised Σ_i w_ik·(x_i − c_k) for x (B,D,h,w), weights (B,K,h,w), centroids (K,D)."""
+    b, d = x.shape[:2]
+    xf = x.reshape(b, d, -1)
+    wf = weights.reshape(b, weights.shape[1], -1)
+    vlad = torch.bmm(wf, xf.transpose(1, 2)) - wf.sum(-1, keepdim=True) * centroids[None]
+    vlad = F.normalize(vlad, dim=2)
+    return F.normalize(vlad.flatten(1), dim=1)
+
+
+def _check_mask(x: Tensor, mask: Tensor | None) -> Tensor | None:
+    if mask is None:
+        return None
+    if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != x.shape[-2:] or mask.shape[0] not in (1, x.shape[0]):
+        raise ValueError(f"mask must be (B,1,h,w) on the feature grid {tuple(x.shape[-2:])}, got {tuple(mask.shape)}")
+    return mask.float()
+
+
+class NetVLAD(nn.Module):
+    """NetVLAD layer: (B,D,h,w) local features [+ mask] → (B,K·D) L2-normalised descriptor."""
+
+    def __init__(self, num_clusters: int = 64, dim: int = 512) -> None:
+        super().__init__()
+        self.num_clusters, self.dim = num_clusters, dim
+        self.centroids = nn.Parameter(torch.empty(num_clusters, dim))
+        self.conv = nn.Conv2d(dim, num_clusters, kernel_size=1, bias=True)
+        self.register_buffer("alpha", torch.tensor(0.0))
+        # Random unit centroids until init_from_features; α=1 keeps the softmax soft and untrained-safe.
+        gen = torch.Generator().manual_seed(0)
+        self.set_centroids(F.normalize(torch.randn(num_clusters, dim, generator=gen), dim=1), alpha=1.0)
+
+    @property
+    def output_dim(self) -> int:
+        """Descriptor length K·D."""
+        return self.num_clusters * self.dim
+
+    @torch.no_grad()
+    def set_centroids(self, centroids: Tensor, alpha: float) -> None:
+        """Set centroids and the assignment conv to w = 2α·c, b = −α‖c‖²."""
+        c = centroids.to(self.centroids.device, torch.float32)
+        self.centroids.copy_(c)
+        self.conv.weight.copy_((2.0 * alpha * c)[:, :, None, None])
+        self.conv.bias.copy_(-alpha * (c**2).sum(1))
+        self.alpha.fill_(alpha)
+
+    def init_from_features(self, feats: Tensor | np.ndarray, seed: int = 0, niter: int = 50) -> float:
+        """Spherical k-means on ≤50k L2-normalised (N,D) local features; sets centroids and α, returns α."""
+        arr = subsample(self._features(feats), MAX_KMEANS_FEATURES, seed)
+        centroids = spherical_kmeans(arr, self.num_clusters, seed, niter)
+        alpha = alpha_from_features(arr, centroids)
+        self.set_centroids(torch.from_numpy(centroids), alpha)
+        return alpha
+
+    def _features(self, feats: Tensor | np.ndarray) -> np.ndarray:
+        if feats.ndim != 2 or feats.shape[1] != self.dim:
+            raise ValueError(f"expected (N,{self.dim}) local features, got {tuple(feats.shape)}")
+        return l2_normalise_np(feats)
+
+    def _prepare(self, x: Tensor) -> Tensor:
+        return F.normalize(x.float(), dim=1)
+
+    def _weights(self, x: Tensor) -> Tensor:
+        """Per-location, per-cluster contribution weights (B,K,h,w) of normalised features."""
+        return F.softmax(self.conv(x), dim=1)
+
+    def assignment(self, x: Tensor) -> Tensor:
+        """Soft-assignment a_k(x_i), (B,K,h,w)."""
+        with torch.autocast(x.device.type, enabled=False):
+            return F.softmax(self.conv(self._prepare(x)), dim=1)
+
+    def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
+        """(B,D,h,w) features and optional (B,1,h,w) contribution weights → (B,K·D) descriptor."""
+        mask = _check_mask(x, mask)
+        with torch.autocast(x.device.type, enabled=False):
+            x = self._prepare(x)
+            weights = self._weights(x)
+            if mask is not None:
+                weights = weights * mask
+            return vlad_aggregate(x, weights, self.centroids.float())
+
+
+def netvlad_loop_reference(x: Tensor, centroids: Tensor, alpha: float, mask: Tensor | None = None) -> Tensor:
+    """Naive NetVLAD with a Python loop over clusters (tests and benchmark baseline only)."""
+    x = F.normalize(x.float(), dim=1)
+    logits = torch.stack([2 * alpha * torch.einsum("bdhw,d->bhw", x, c) - alpha * c.dot(c) for c in centroids], 1)
+    assign = F.softmax(logits, dim=1)
+    m = torch.ones_like(x[:, :1]) if mask is None else mask.float()
+    parts = []
+    for k, c in enumerate(centroids):
+        residual = x - c[None, :, None, None]
+        v = (residual * assign[:, k : k + 1] * m).sum(dim=(2, 3))
+        parts.append(F.normalize(v, dim=1))
+    return F.normalize(torch.cat(parts, dim=1), dim=1)
+
+
+class PCAWhitening(nn.Module):
+    """PCA + whitening + L2, fitted on database descriptors (NetVLAD's 4096-D reduction)."""
+
+    def __init__(self, in_dim: int, out_dim: int, eps: float = 1e-9) -> None:
+        super().__init__()
+        self.in_dim, self.out_dim, self.eps = in_dim, out_dim, eps
+        self.register_buffer("mean", torch.zeros(in_dim))
+        self.register_buffer("projection", torch.eye(out_dim, in_dim))
+
+    @torch.no_grad()
+    def fit(self, db: Tensor | np.ndarray) -> PCAWhitening:
+        """Fit mean and whitened top-``out_dim`` principal directions on (N,in_dim) descriptors."""
+        x = torch.as_tensor(np.asarray(db) if not isinstance(db, Tensor) else db).float().cpu()
+        n = x.shape[0]
+        if x.ndim != 2 or x.shape[1] != self.in_dim:
+            raise ValueError(f"expected (N,{self.in_dim}) descriptors, got {tuple(x.shape)}")
+        if self.out_dim > min(n - 1, self.in_dim):
+            raise SemvprError(f"PCA whitening to {self.out_dim} dims needs more than {self.out_dim} database "
+                              f"descriptors of at least that width, got {n}×{self.in_dim}; lower the PCA dimension")
+        mean = x.mean(0)
+        xc = x - mean
+        # Eigen-decompose the smaller Gram matrix (N×N when N < D): same spectrum, far cheaper than a D×D SVD.
+        if n < self.in_dim:
+            evals, evecs = torch.linalg.eigh((xc @ xc.T).double())
+            evals, evecs = evals.flip(0)[: self.out_dim], evecs.flip(1)[:, : self.out_dim]
+            dirs = (xc.T.double() @ evecs) / evals.clamp_min(1e-30).sqrt()  # (D,out) unit principal axes
+        else:
+            evals, evecs = torch.linalg.eigh((xc.T @ xc).double())
+            evals, dirs = evals.flip(0)[: self.out_dim], evecs.flip(1)[:, : self.out_dim]
+        scale = (evals.clamp_min(0) / (n - 1) + self.eps).rsqrt()
+        self.mean.copy_(mean)
+        self.projection.copy_((dirs * scale[None]).T.float())
+        return self
+
+    def forward(self, x: Tensor) -> Tensor:
+        """(B,in_dim) → (B,out_dim) whitened, L2-normalised."""
+        return F.normalize((x.float() - self.mean) @ self.projection.T, dim=1)
