@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from semvpr.errors import SemvprError
+from semvpr.metrics import positives_within
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 #: MSLS convention (mapillary_sls): these train_val cities form the validation split.
@@ -53,14 +53,7 @@ class PlaceSet:
         """Per query: database indices within `radius` metres, nearest first."""
         if len(self.db_utm) == 0:
             return [np.zeros(0, dtype=np.int64) for _ in range(len(self.q_utm))]
-        tree = cKDTree(self.db_utm)
-        out = []
-        for q, hits in zip(self.q_utm, tree.query_ball_point(self.q_utm, r=radius)):
-            idx = np.asarray(hits, dtype=np.int64)
-            dist = np.linalg.norm(self.db_utm[idx] - q, axis=1)
-            # Stable sort so ties keep database order: results are reproducible across runs.
-            out.append(idx[np.argsort(dist, kind="stable")])
-        return out
+        return positives_within(self.db_utm, self.q_utm, radius)
 
     def summary(self) -> str:
         """Short human-readable description: counts and UTM extent."""
