@@ -173,7 +173,7 @@ def init_aggregator(cfg: DictConfig, aggregator: nn.Module, backbone: nn.Module,
     assert semantic.labels_dir is not None
     grid = grid_size(backbone, tuple(cfg.data.image_size))
     static = static_grid(semantic.labels_dir, list(train.db_paths), grid,
-                         list(cfg.teacher.static_names))
+                         list(cfg.teacher.static_classes))
     is_static = static[where[:, 0], where[:, 1]] >= 0.5
     counts = aggregator.init_semantic(feats[is_static], feats[~is_static], seed=cfg.seed)
     return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}

@@ -21,6 +21,7 @@ from semvpr.build import (backbone_key, backbone_name, build_backbone, build_mas
                           build_semantic, Semantic)
 from semvpr.errors import SemvprError
 from semvpr.features import cached_place_features
+from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever
 from semvpr.train import CONF_DIR, evaluate_features, write_json
 
@@ -31,7 +32,7 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, Any], DictConfig]:
     """The checkpoint's state dict and the run config saved in it."""
     path = Path(path)
     if not path.is_file():
-        raise SemvprError(f"checkpoint {path} not found (a run writes <run dir>/checkpoints/best.ckpt)")
+        raise SemvprError(f"checkpoint {path} not found (a run writes <run dir>/checkpoints/tested.ckpt)")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
         config = ckpt["hyper_parameters"]["config"]
@@ -62,7 +63,9 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
         semantic = build_semantic(trained, build_places(trained, ("train",))["train"], backbone)
     mask_source, mask_key = build_mask_source(merged, semantic)
     aggregator = instantiate(merged.filter.aggregator, dim=backbone.out_channels)
-    retriever = Retriever(backbone, aggregator, mask_source, eval_batch_size=merged.model.eval_batch_size)
+    whitening = PCAWhitening(aggregator.output_dim, merged.model.pca_dim) if merged.model.pca_dim else None
+    retriever = Retriever(backbone, aggregator, mask_source, whitening,
+                          eval_batch_size=merged.model.eval_batch_size)
     try:
         retriever.load_state_dict(state, strict=True)
     except RuntimeError as err:

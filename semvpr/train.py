@@ -28,6 +28,7 @@ from semvpr.build import (backbone_key, backbone_name, build_backbone, build_mas
 from semvpr.errors import SemvprError
 from semvpr.features import PlaceFeatures, cached_place_features, grid_size
 from semvpr.mining import RetrievalDataModule
+from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever, evaluate
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
@@ -63,7 +64,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     init_info = init_aggregator(cfg, aggregator, backbone, features["train"].db, places["train"], semantic)
     timings["init_s"] = time.time() - tic
 
-    retriever = Retriever(backbone, aggregator, mask_source, instantiate(cfg.model.optimizer),
+    whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
+    retriever = Retriever(backbone, aggregator, mask_source, whitening, instantiate(cfg.model.optimizer),
                           instantiate(cfg.model.scheduler), cfg.model.margin, cfg.model.eval_batch_size,
                           config=OmegaConf.to_container(cfg, resolve=True))
     datamodule = RetrievalDataModule(
@@ -86,7 +88,15 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path)
     timings["fit_s"] = time.time() - tic
     tic = time.time()
-    trainer.test(retriever, datamodule, ckpt_path="best" if checkpoint.best_model_path else None)
+    if checkpoint.best_model_path:
+        best = torch.load(checkpoint.best_model_path, map_location="cpu", weights_only=True)
+        retriever.load_state_dict(best["state_dict"])
+    if whitening is not None:
+        retriever.fit_whitening(features["train"].db)
+    trainer.test(retriever, datamodule)
+    # The tested model (best weights, fitted whitening): what semvpr.eval should be given.
+    tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
+    trainer.save_checkpoint(tested_ckpt)
     timings["test_s"] = time.time() - tic
     tested = retriever.last_eval
 
@@ -99,7 +109,7 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
         "recalls": {str(n): v for n, v in tested["curve"].items()},
         "test_queries_without_positives": tested["num_without_positives"],
-        "best_checkpoint": checkpoint.best_model_path or None,
+        "checkpoint": str(tested_ckpt),
         "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
         "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
         "timings": timings, "wall_time_s": time.time() - start,

@@ -54,6 +54,7 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     assert [metrics["recalls"][str(n)] for n in (1, 5, 10, 20)] == [metrics[f"test/R@{n}"] for n in (1, 5, 10, 20)]
     assert (trained_run / "checkpoints" / "last.ckpt").is_file()
     assert (trained_run / "checkpoints" / "best.ckpt").is_file()
+    assert metrics["checkpoint"] == str(trained_run / "checkpoints" / "tested.ckpt")
     assert list((trained_run / "csv").rglob("metrics.csv"))
     assert list((trained_run / "tensorboard").rglob("events.out.tfevents.*"))
     retrievals = json.loads((trained_run / "retrievals.json").read_text())
@@ -107,7 +108,7 @@ def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
 
 def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None:
     metrics = json.loads((trained_run / "metrics.json").read_text())
-    proc = _eval(cache_dir, f"ckpt={metrics['best_checkpoint']}")
+    proc = _eval(cache_dir, f"ckpt={metrics['checkpoint']}")
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)
@@ -119,3 +120,12 @@ def test_eval_rejects_checkpoint_of_another_backbone(cache_dir: Path, trained_ru
     assert proc.stderr.strip().count("\n") == 0 and "backbone=vgg16" in proc.stderr
     missing = _eval(cache_dir, f"ckpt={trained_run / 'nope.ckpt'}")
     assert missing.returncode == 2 and "not found" in missing.stderr
+
+
+def test_pca_whitening_is_fitted_and_travels_with_the_checkpoint(cache_dir: Path, tmp_path: Path) -> None:
+    metrics = run_job(tiny_config(cache_dir, "filter=none", "model.pca_dim=16"), tmp_path)
+    state = torch.load(metrics["checkpoint"], weights_only=True)["state_dict"]
+    assert state["whitening.projection"].shape == (16, 8 * 512) and bool(state["whitening_fitted"])
+    proc = _eval(cache_dir, f"ckpt={metrics['checkpoint']}")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1])["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)

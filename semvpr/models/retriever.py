@@ -31,6 +31,7 @@ class Retriever(L.LightningModule):
         backbone: nn.Module,
         aggregator: nn.Module,
         mask_source: nn.Module | None = None,
+        whitening: nn.Module | None = None,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
         margin: float = 0.1,
@@ -41,6 +42,9 @@ class Retriever(L.LightningModule):
         # The resolved run config travels in the checkpoint so eval can rebuild the components.
         self.save_hyperparameters({"config": config})
         self.backbone, self.aggregator, self.mask_source = backbone, aggregator, mask_source
+        # PCA whitening is fitted on database descriptors after training and used from then on.
+        self.whitening = whitening
+        self.register_buffer("whitening_fitted", torch.tensor(False))
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.eval_batch_size = eval_batch_size
         # NetVLAD's loss: L2 distances, margin sqrt(m), summed over negatives, mean over queries.
@@ -52,7 +56,17 @@ class Retriever(L.LightningModule):
     def describe(self, trunk: Tensor, mask: Tensor | None) -> Tensor:
         """Global descriptors from cached frozen-trunk outputs and grid masks."""
         local = self.backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
-        return self.aggregator(local, mask)
+        desc = self.aggregator(local, mask)
+        if self.whitening is not None and bool(self.whitening_fitted):
+            desc = self.whitening(desc)
+        return desc
+
+    def fit_whitening(self, db: FeatureStore) -> None:
+        """Fit the PCA-whitening layer on (unwhitened) database descriptors."""
+        assert self.whitening is not None
+        self.whitening_fitted.fill_(False)
+        self.whitening.fit(self.describe_store(db))
+        self.whitening_fitted.fill_(True)
 
     def forward(self, images: Tensor) -> Tensor:
         """Full pipeline on [0,1] images (no labels, so not for the oracle mask)."""
@@ -117,6 +131,9 @@ class Retriever(L.LightningModule):
         desc = torch.cat(self._outputs).numpy()
         self._outputs.clear()
         n_db = len(features.db)
+        if len(desc) != n_db + len(features.q):
+            # fast_dev_run / limit_*_batches saw part of the set; recall needs all of it.
+            desc = np.concatenate([self.describe_store(features.db), self.describe_store(features.q)])
         result = evaluate(desc[:n_db], desc[n_db:], features.places.positives(25.0))
         for n, value in result["recalls"].items():
             self.log(f"{stage}/R@{n}", value, prog_bar=n in (1, 5))

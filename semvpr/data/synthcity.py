@@ -1,0 +1,216 @@
+"""SynthCity: procedural street routes with pixel labels in the @UTM@ and Cityscapes layouts.
+
+Each route is a long strip of facades (``synthcity_render``). The database traversal captures it
+every 5 m; the query traversal at random positions, at another time of day, with other vehicles
+and people. Everything is a pure function of (preset, seed, GENERATOR_VERSION).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from semvpr.artifacts import build_once
+from semvpr.data.classes import train_ids_to_label_ids
+from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
+from semvpr.errors import SemvprError, exit_on_user_error
+
+GENERATOR_VERSION = 1
+DB_STEP_M = 5.0
+ZONE, LETTER = "17", "T"
+EAST0, NORTH0, ROUTE_SPACING_M = 580_000.0, 4_470_000.0, 1_000.0  # one northing line per route
+DATES = ("20240612", "20241119")  # database / query traversal timestamps
+JPEG_QUALITY = 90
+
+
+@dataclass(frozen=True)
+class SplitSpec:
+    """Routes of one split and how many captures each route gets."""
+
+    routes: int
+    db_per_route: int  # database spacing is DB_STEP_M, so this also sets the route length
+    q_per_route: int
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Image size, difficulty and split sizes of one SynthCity variant."""
+
+    render: RenderSpec
+    vpr: dict[str, SplitSpec]
+    seg: dict[str, SplitSpec]  # Cityscapes-format captures on their own routes (db_per_route = length/5 m)
+    dynamic_bounds: tuple[float, float]  # acceptable mean measured dynamic fraction (checked by tests)
+
+
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset(RenderSpec(64, 80), {"train": SplitSpec(1, 24, 16), "val": SplitSpec(1, 12, 12),
+                                        "test": SplitSpec(1, 24, 24)},
+                   {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)}, (0.25, 0.6)),
+    "default": Preset(RenderSpec(120, 160), {"train": SplitSpec(3, 200, 134), "val": SplitSpec(1, 200, 200),
+                                             "test": SplitSpec(3, 200, 350)},
+                      {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)}, (0.35, 0.5)),
+}  # fmt: skip
+
+
+def get_preset(preset: str, coverage: float | None = None, lighting: float | None = None) -> Preset:
+    """Preset by name, with optional difficulty overrides (dynamic coverage, lighting change)."""
+    if preset not in PRESETS:
+        raise SemvprError(f"unknown SynthCity preset {preset!r}; choose one of {sorted(PRESETS)}")
+    p = PRESETS[preset]
+    for name, value in (("coverage", coverage), ("lighting", lighting)):
+        if value is not None and not 0.0 <= value <= 1.0:
+            raise SemvprError(f"SynthCity {name}={value} is outside [0, 1]")
+    render = dataclasses.replace(p.render, coverage=p.render.coverage if coverage is None else coverage,
+                                 lighting=p.render.lighting if lighting is None else lighting)
+    return dataclasses.replace(p, render=render)
+
+
+def utm_name(east: float, north: float, timestamp: str, note: str) -> str:
+    """VPR-datasets-downloader name: 14 '@'-separated fields, empty ones allowed."""
+    fields = [f"{east:.2f}", f"{north:.2f}", ZONE, LETTER, "", "", "", "", "", "", "", "", timestamp, note]
+    return "@" + "@".join(fields) + "@.jpg"
+
+
+def _save(img: np.ndarray, path: Path, **kw: object) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(img).save(path, **kw)
+
+
+def _routes(p: Preset) -> list[tuple[str, str, int, SplitSpec]]:
+    """(kind, split, global route id, spec) for every route; ids fix seeds and northing lines."""
+    out, rid = [], 0
+    for kind, splits in (("vpr", p.vpr), ("seg", p.seg)):
+        for split, spec in splits.items():
+            for _ in range(spec.routes):
+                out.append((kind, split, rid, spec))
+                rid += 1
+    return out
+
+
+def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
+             lighting: float | None = None) -> dict:
+    """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics."""
+    p = get_preset(preset, coverage, lighting)
+    spec = p.render
+    pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]))
+    routes = _routes(p)
+    total = sum(s.db_per_route + s.q_per_route if k == "vpr" else s.q_per_route for k, _, _, s in routes)
+    fractions: dict[str, list[tuple[float, float]]] = {}
+    with tqdm(total=total, desc=f"SynthCity {preset} seed {seed}", unit="img", disable=None) as bar:
+        for kind, split, rid, s in routes:
+            length = s.db_per_route * DB_STEP_M
+            pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec)
+            q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
+            if kind == "vpr":
+                captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
+                captures += [(x, 1, i) for i, x in enumerate(q_x)]
+            else:
+                captures = [(x, i % 2, i) for i, x in enumerate(q_x)]
+            for x, trav, i in captures:
+                rng = np.random.default_rng([seed, GENERATOR_VERSION, rid, trav, i])
+                img, label = render_capture(pano, float(x), rng, spec, pool, query=trav == 1)
+                key = f"{'seg-' if kind == 'seg' else ''}{split}"
+                fractions.setdefault(key, []).append(
+                    (float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
+                if kind == "vpr":
+                    sub = "queries" if trav else "database"
+                    name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav],
+                                    f"r{rid}{sub[0]}{i:04d}")
+                    _save(img, root / "images" / split / sub / name, format="JPEG", quality=JPEG_QUALITY)
+                    _save(label, root / "labels" / split / sub / (name[:-4] + ".png"), format="PNG")
+                else:
+                    city = f"route{rid}"
+                    stem = f"{city}_{rid:06d}_{i:06d}"
+                    _save(img, root / "seg" / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png", format="PNG")
+                    _save(train_ids_to_label_ids(label),
+                          root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
+                bar.update()
+    stats = {"preset": preset, "seed": seed, "version": GENERATOR_VERSION,
+             "coverage_target": spec.coverage, "lighting": spec.lighting,
+             "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
+             "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
+             "images": {k: len(v) for k, v in fractions.items()}}
+    (root / "stats.json").write_text(json.dumps(stats, indent=1, sort_keys=True))
+    return stats
+
+
+def _key(preset: str, seed: int, coverage: float | None, lighting: float | None) -> dict:
+    r = get_preset(preset, coverage, lighting).render
+    return {"preset": preset, "seed": int(seed), "version": GENERATOR_VERSION,
+            "coverage": r.coverage, "lighting": r.lighting}
+
+
+def ensure_synthcity(cache_dir: str | Path, preset: str = "default", seed: int = 0,
+                     coverage: float | None = None, lighting: float | None = None) -> Path:
+    """Dataset root in the artifact cache, generated on first use (kind "synthcity")."""
+    key = _key(preset, seed, coverage, lighting)
+    return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), coverage, lighting))
+
+
+def read_split(preset: str, seed: int, cache_dir: str | Path, split: str,
+               coverage: float | None = None, lighting: float | None = None):
+    """PlaceSet of one VPR split (train/val/test), with the trainId label maps attached."""
+    from semvpr.data.places import read_utm_folder
+
+    if split not in get_preset(preset).vpr:
+        raise SemvprError(f"SynthCity has no VPR split {split!r}; choose one of {sorted(get_preset(preset).vpr)}")
+    root = ensure_synthcity(cache_dir, preset, seed, coverage, lighting)
+    places = read_utm_folder(root, split)
+
+    def labels(paths: tuple[Path, ...]) -> tuple[Path, ...]:
+        return tuple(root / "labels" / split / p.parent.name / f"{p.stem}.png" for p in paths)
+
+    return dataclasses.replace(places, name=f"synthcity-{preset}-s{seed}/{split}",
+                               db_labels=labels(places.db_paths), q_labels=labels(places.q_paths))
+
+
+def read_segmentation(preset: str, seed: int, cache_dir: str | Path, split: str,
+                      coverage: float | None = None, lighting: float | None = None):
+    """SegmentationSet (Cityscapes format) of the separate segmentation routes (train/val)."""
+    from semvpr.data.segmentation import read_cityscapes
+
+    if split not in get_preset(preset).seg:
+        raise SemvprError(f"SynthCity has no segmentation split {split!r}; choose one of {sorted(get_preset(preset).seg)}")
+    return read_cityscapes(ensure_synthcity(cache_dir, preset, seed, coverage, lighting) / "seg", split)
+
+
+@exit_on_user_error
+def main(argv: list[str] | None = None) -> None:
+    """CLI: generate a SynthCity dataset into a new directory."""
+    ap = argparse.ArgumentParser(prog="python -m semvpr.data.synthcity", description=main.__doc__)
+    ap.add_argument("--out", required=True, type=Path, help="new (or empty) output directory")
+    ap.add_argument("--preset", default="default", choices=sorted(PRESETS))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--coverage", type=float, default=None, help="target measured dynamic pixel fraction")
+    ap.add_argument("--lighting", type=float, default=None, help="lighting change between traversals, 0..1")
+    args = ap.parse_args(argv)
+    out: Path = args.out
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise SemvprError(f"--out {out} already exists and is not an empty directory; choose a new path or remove it")
+    get_preset(args.preset, args.coverage, args.lighting)  # validate before creating anything
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        stats = generate(tmp, args.preset, args.seed, args.coverage, args.lighting)
+        if out.exists():
+            out.rmdir()
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    print(f"wrote {sum(stats['images'].values())} images to {out} "
+          f"(measured dynamic fraction {stats['dynamic_fraction']})")
+
+
+if __name__ == "__main__":
+    main()

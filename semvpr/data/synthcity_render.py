@@ -1,0 +1,413 @@
+"""SynthCity drawing: a static street panorama per route, then per-capture crops with a dynamic layer."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+(ROAD, SIDEWALK, BUILDING, WALL, FENCE, POLE, LIGHT, SIGN, VEG, TERRAIN, SKY,
+ PERSON, RIDER, CAR, TRUCK, BUS, TRAIN, MOTORCYCLE, BICYCLE) = range(19)  # Cityscapes trainIds
+DYNAMIC_MIN = SKY  # trainIds >= 10 are dynamic / uninformative (classes.DYNAMIC_NAMES)
+CAM_H, FACADE_D = 1.6, 15.0  # camera height and facade distance (m): near objects look bigger
+TEX_PPM = 6.5  # texture pixels per metre of facade plane
+MAX_OBJECT_FRAC = (0.6, 0.65)  # (height, width) cap of one object, as a fraction of the frame
+OVERSHOOT = 0.03  # an object may push the dynamic fraction at most this far past its target
+
+Z_TOP, Z_BOT = 36.0, -6.0  # vertical extent of the panorama, metres in the facade plane
+VIEW_BOTTOM = -4.4  # lowest visible ground line (camera 1.6 m high, facade 15 m, near road 4 m)
+
+FACADES = np.array([[.80, .72, .60], [.62, .30, .22], [.55, .55, .56], [.88, .86, .80],
+                    [.45, .33, .25], [.60, .72, .80], [.65, .78, .60], [.90, .80, .45],
+                    [.75, .55, .50], [.35, .38, .42]], np.float32)  # fmt: skip
+VIVID = np.array([[.9, .1, .1], [.1, .3, .9], [.95, .8, .1], [.1, .7, .2], [.9, .4, .05],
+                  [.6, .1, .7], [.05, .7, .8], [.95, .95, .95]], np.float32)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    """Camera geometry and difficulty knobs shared by every capture of a dataset."""
+
+    height: int
+    width: int
+    view_m: float = 24.0  # facade width seen by one capture
+    coverage: float = 0.42  # target MEASURED dynamic (trainId >= 10) pixel fraction
+    lighting: float = 0.5  # 0 = same light for both traversals, 1 = strong gain/gamma/cast change
+    jitter_m: float = 3.0
+    scale_jitter: float = 0.1
+    pitch_m: float = 4.0  # vertical view shift range; larger = more sky, less road
+
+    @property
+    def pano_ppm(self) -> float:
+        """Panorama pixels per metre: slightly finer than the captures so crops never upsample much."""
+        return 1.2 * self.width / self.view_m
+
+
+@dataclass(frozen=True)
+class Panorama:
+    """Static world of one route: colour and trainId of the facade plane, column 0 at ``x0`` metres."""
+
+    rgb: np.ndarray  # (R, C, 3) float32
+    label: np.ndarray  # (R, C) uint8
+    x0: float
+    ppm: float
+
+
+class _Canvas:
+    """Panorama under construction with metre-based drawing primitives."""
+
+    def __init__(self, x0: float, x1: float, ppm: float) -> None:
+        self.x0, self.ppm = x0, ppm
+        rows, cols = int((Z_TOP - Z_BOT) * ppm), int((x1 - x0) * ppm)
+        self.rgb = np.empty((rows, cols, 3), np.float32)
+        self.rgb[:] = (0.6, 0.7, 0.9)
+        self.label = np.full((rows, cols), SKY, np.uint8)
+
+    def row(self, z: float) -> int:
+        return int(np.clip(round((Z_TOP - z) * self.ppm), 0, self.label.shape[0]))
+
+    def col(self, x: float) -> int:
+        return int(np.clip(round((x - self.x0) * self.ppm), 0, self.label.shape[1]))
+
+    def box(self, x0: float, x1: float, z0: float, z1: float) -> tuple[slice, slice]:
+        return slice(self.row(z1), self.row(z0)), slice(self.col(x0), self.col(x1))
+
+    def rect(self, x0: float, x1: float, z0: float, z1: float, color, cls: int) -> None:
+        rs, cs = self.box(x0, x1, z0, z1)
+        self.rgb[rs, cs] = color
+        self.label[rs, cs] = cls
+
+    def ellipse(self, xc: float, zc: float, rx: float, rz: float, color, cls: int, rng) -> None:
+        rs, cs = self.box(xc - rx, xc + rx, zc - rz, zc + rz)
+        if rs.stop <= rs.start or cs.stop <= cs.start:
+            return
+        zz = (Z_TOP - (np.arange(rs.start, rs.stop) + 0.5) / self.ppm - zc) / rz
+        xx = (self.x0 + (np.arange(cs.start, cs.stop) + 0.5) / self.ppm - xc) / rx
+        inside = zz[:, None] ** 2 + xx[None, :] ** 2 <= 1.0
+        shade = color * (0.75 + 0.5 * rng.random(inside.shape + (1,), dtype=np.float32))
+        self.rgb[rs, cs] = np.where(inside[..., None], shade, self.rgb[rs, cs])
+        self.label[rs, cs] = np.where(inside, cls, self.label[rs, cs])
+
+
+def _building(cv: _Canvas, rng: np.random.Generator, x0: float, x1: float, h: float) -> None:
+    """Facade with a window grid, a ground floor (shop front with sign, or door) and a cornice."""
+    base = FACADES[rng.integers(len(FACADES))] * rng.uniform(0.85, 1.1)
+    rs, cs = cv.box(x0, x1, 0.0, h)
+    cv.rect(x0, x1, 0.0, h, base, BUILDING)
+    rr, cc = np.arange(rs.stop - rs.start)[:, None], np.arange(cs.stop - cs.start)[None, :]
+    if rng.random() < 0.35:  # brick courses: fine horizontal texture unique to this facade
+        period = max(2, int(rng.uniform(0.3, 0.6) * cv.ppm))
+        cv.rgb[rs, cs] *= np.where(rr % period == 0, 0.8, 1.0)[..., None]
+    floor_h, col_w = rng.uniform(2.8, 3.8), rng.uniform(1.8, 3.4)
+    fy, fx = max(3, int(floor_h * cv.ppm)), max(3, int(col_w * cv.ppm))
+    wy0, wy1 = int(fy * rng.uniform(0.2, 0.35)), int(fy * rng.uniform(0.65, 0.85))
+    wx0 = int(fx * rng.uniform(0.15, 0.3))
+    wx1 = max(wx0 + 1, int(fx * rng.uniform(0.6, 0.85)))
+    # Rows counted from the ground up so floors line up with the street.
+    up = (rs.stop - rs.start - 1) - rr
+    win = ((up % fy) >= fy - wy1) & ((up % fy) < fy - wy0) & ((cc % fx) >= wx0) & ((cc % fx) < wx1)
+    win &= (up >= fy) & (cc >= fx // 3) & (cc < cc.shape[1] - fx // 3)
+    glass = np.array([0.15, 0.2, 0.3], np.float32) * rng.uniform(0.6, 2.0, 3).astype(np.float32)
+    # Per-window brightness (lit rooms, curtains) makes each facade distinctive.
+    lit = rng.uniform(0.6, 1.9, (up.max() // fy + 2, cc.shape[1] // fx + 2)).astype(np.float32)
+    tint = lit[up // fy, cc // fx][..., None] * glass
+    cv.rgb[rs, cs] = np.where(win[..., None], np.clip(tint, 0, 1), cv.rgb[rs, cs])
+    g = min(floor_h, h) * 0.9
+    if rng.random() < 0.5:  # shop front: display window and a vivid sign band
+        cv.rect(x0 + 0.6, x1 - 0.6, 0.2, g * 0.62, glass * 1.4, BUILDING)
+        sign = VIVID[rng.integers(len(VIVID))]
+        cv.rect(x0 + 0.4, x1 - 0.4, g * 0.68, g * 0.95, sign, BUILDING)
+        srs, scs = cv.box(x0 + 0.8, x1 - 0.8, g * 0.74, g * 0.89)
+        letters = (np.arange(scs.stop - scs.start) % max(2, int(0.45 * cv.ppm))) < int(0.3 * cv.ppm)
+        cv.rgb[srs, scs] = np.where(letters[None, :, None], 1.0 - sign, cv.rgb[srs, scs])
+    else:
+        d = rng.uniform(x0 + 0.5, max(x0 + 0.6, x1 - 1.8))
+        cv.rect(d, d + 1.2, 0.0, min(2.3, g), np.float32([0.3, 0.2, 0.12]) * rng.uniform(0.5, 1.5), BUILDING)
+    cv.rect(x0, x1, h - 0.4, h, base * 0.6, BUILDING)
+
+
+def _gap(cv: _Canvas, rng: np.random.Generator, x0: float, x1: float) -> None:
+    """Space between buildings: a distant building or sky, behind a wall, fence or hedge on a lawn."""
+    if rng.random() < 0.5:
+        cv.rect(x0, x1, 0.0, rng.uniform(8, 30), FACADES[rng.integers(len(FACADES))] * 0.8 + 0.15, BUILDING)
+    cv.rect(x0, x1, 0.0, 0.5, [0.35, 0.55, 0.2], TERRAIN)
+    kind, top = rng.integers(3), rng.uniform(1.2, 2.6)
+    if kind == 0:
+        cv.rect(x0, x1, 0.3, top, np.float32([0.7, 0.68, 0.62]) * rng.uniform(0.7, 1.1), WALL)
+    elif kind == 1:
+        rs, cs = cv.box(x0, x1, 0.3, top)
+        bars = (np.arange(cs.stop - cs.start) % max(2, int(0.3 * cv.ppm))) == 0
+        bars[:1] = True
+        bars = bars[None, :] | (np.arange(rs.stop - rs.start)[:, None] == 0)
+        cv.rgb[rs, cs] = np.where(bars[..., None], np.float32(0.2), cv.rgb[rs, cs])
+        cv.label[rs, cs] = np.where(bars, FENCE, cv.label[rs, cs])
+    else:
+        cv.ellipse((x0 + x1) / 2, 0.6, (x1 - x0) / 2, top - 0.3, np.float32([0.2, 0.45, 0.15]), VEG, rng)
+
+
+def build_panorama(rng: np.random.Generator, length_m: float, spec: RenderSpec) -> Panorama:
+    """Draw the static street of one route: ground bands, buildings, gaps, trees, poles and signs."""
+    margin = spec.view_m * (1 + spec.scale_jitter) / 2 + spec.jitter_m + 2.0
+    cv = _Canvas(-margin, length_m + margin, spec.pano_ppm)
+    end = length_m + margin
+    x = -margin
+    while x < end:
+        if rng.random() < 0.3:
+            w = rng.uniform(1.5, 5.0)
+            _gap(cv, rng, x, x + w)
+            x += w
+        w, kind = rng.uniform(6.0, 22.0), rng.random()
+        h = rng.uniform(4, 10) if kind < 0.35 else rng.uniform(10, 17) if kind < 0.75 else rng.uniform(17, 32)
+        _building(cv, rng, x, x + w, h)
+        x += w
+    cv.rect(-margin, end, -0.8, 0.0, [0.62, 0.6, 0.57], SIDEWALK)
+    cv.rect(-margin, end, Z_BOT, -0.8, [0.28, 0.28, 0.3], ROAD)
+    cv.rect(-margin, end, -0.95, -0.8, [0.75, 0.75, 0.72], SIDEWALK)  # curb
+    rs, cs = cv.box(-margin, end, -2.9, -2.6)
+    dash = ((np.arange(cs.stop - cs.start) / cv.ppm) % 9.0) < 3.0
+    cv.rgb[rs, cs] = np.where(dash[None, :, None], np.float32(0.9), cv.rgb[rs, cs])
+    x = -margin + rng.uniform(0, 10)
+    while x < end:  # street furniture along the curb
+        kind = rng.random()
+        if kind < 0.45:
+            cv.rect(x - 0.15, x + 0.15, -0.6, 3.0, [0.3, 0.22, 0.15], VEG)
+            cv.ellipse(x, rng.uniform(4.0, 6.5), rng.uniform(1.4, 2.8), rng.uniform(1.4, 2.6),
+                       np.float32([0.2, 0.5, 0.18]) * rng.uniform(0.7, 1.3), VEG, rng)
+        else:
+            top = rng.uniform(4.5, 8.0)
+            cv.rect(x - 0.1, x + 0.1, -0.6, top, [0.45, 0.45, 0.48], POLE)
+            if kind < 0.75:
+                z = rng.uniform(2.2, 3.2)
+                cv.rect(x - 0.35, x + 0.35, z, z + 0.7, VIVID[rng.integers(len(VIVID))], SIGN)
+                cv.rect(x - 0.2, x + 0.2, z + 0.2, z + 0.5, [0.95, 0.95, 0.95], SIGN)
+            elif kind < 0.88:
+                cv.rect(x - 0.2, x + 0.2, top - 1.1, top, [0.1, 0.1, 0.1], LIGHT)
+                lamp = rng.integers(3)
+                cv.rect(x - 0.1, x + 0.1, top - 0.95 + 0.33 * lamp, top - 0.75 + 0.33 * lamp,
+                        [[0.1, 1, 0.2], [1, 0.8, 0], [1, 0.1, 0.1]][lamp], LIGHT)
+        x += rng.uniform(6.0, 22.0)
+    # Static grain: fixed per route, so it is part of the place, not of the capture.
+    cv.rgb += rng.normal(0, 0.03, cv.rgb.shape[:2] + (1,)).astype(np.float32)
+    return Panorama(np.clip(cv.rgb, 0, 1), cv.label, cv.x0, cv.ppm)
+
+
+def _sky(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Weather-tinted sky with clouds, drawn fresh per capture (sky is not part of the place)."""
+    top, bottom = [([.25, .45, .85], [.65, .78, .95]), ([.55, .57, .6], [.78, .78, .8]),
+                   ([.45, .35, .6], [.95, .6, .35]), ([.35, .55, .8], [.85, .85, .8])][rng.integers(4)]
+    t = np.linspace(0, 1, h, dtype=np.float32)[:, None, None]
+    sky = (1 - t) * np.float32(top) + t * np.float32(bottom) + rng.uniform(-0.08, 0.08, 3).astype(np.float32)
+    clouds = np.clip(bilinear_noise(rng, h, w, 4, 6) * rng.uniform(0.3, 1.2), 0, 1)[..., None]
+    return np.broadcast_to(sky, (h, w, 3)) * (1 - clouds) + 0.92 * clouds
+
+
+def render_capture(pano: Panorama, x: float, rng: np.random.Generator, spec: RenderSpec,
+                   pool: np.ndarray, query: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One capture around route position ``x``: (H,W,3) uint8 image and (H,W) uint8 trainIds."""
+    h, w = spec.height, spec.width
+    ppm = w / (spec.view_m * (1 + rng.uniform(-spec.scale_jitter, spec.scale_jitter)))
+    xc = x + rng.uniform(-spec.jitter_m, spec.jitter_m)
+    z_top = VIEW_BOTTOM + rng.uniform(0, spec.pitch_m) + h / ppm
+    cols = np.clip(((xc + (np.arange(w) + 0.5 - w / 2) / ppm - pano.x0) * pano.ppm).astype(int),
+                   0, pano.label.shape[1] - 1)
+    rows = np.clip(((Z_TOP - z_top + (np.arange(h) + 0.5) / ppm) * pano.ppm).astype(int),
+                   0, pano.label.shape[0] - 1)
+    rgb = pano.rgb[rows[:, None], cols[None, :]]
+    label = pano.label[rows[:, None], cols[None, :]]
+    rgb = np.where((label == SKY)[..., None], _sky(rng, h, w), rgb).astype(np.float32)
+    target = float(np.clip(spec.coverage + rng.normal(0, 0.07), 0.05, 0.9))
+    add_dynamic_objects(rgb, label, rng, pool, ppm, z_top, target)
+    # Lighting: the query traversal is at another time of day; the database one varies a little.
+    d = spec.lighting * (1.0 if query else 0.25)
+    gain = rng.uniform(1 - 0.5 * d, 1 + 0.3 * d)
+    gamma = np.exp(rng.uniform(-0.4 * d, 0.4 * d))
+    cast = rng.uniform(-0.12 * d, 0.12 * d, 3).astype(np.float32)
+    rgb = gain * np.clip(rgb, 0, 1) ** gamma + cast
+    rgb += rng.normal(0, 0.01 + 0.03 * d, rgb.shape).astype(np.float32)
+    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), label
+
+
+def bilinear_noise(rng: np.random.Generator, h: int, w: int, gh: int, gw: int) -> np.ndarray:
+    """Smooth (h,w) noise in [0,1]: a coarse (gh+1,gw+1) random grid, bilinearly upsampled."""
+    grid = rng.random((gh + 1, gw + 1), dtype=np.float32)
+    y, x = np.linspace(0, gh, h, dtype=np.float32), np.linspace(0, gw, w, dtype=np.float32)
+    y0, x0 = np.minimum(y.astype(int), gh - 1), np.minimum(x.astype(int), gw - 1)
+    fy, fx = (y - y0)[:, None], (x - x0)[None, :]
+    top = grid[y0][:, x0] * (1 - fx) + grid[y0][:, x0 + 1] * fx
+    bot = grid[y0 + 1][:, x0] * (1 - fx) + grid[y0 + 1][:, x0 + 1] * fx
+    return top * (1 - fy) + bot * fy
+
+
+def _vivid(rng: np.random.Generator) -> np.ndarray:
+    """A saturated random colour (hue wheel)."""
+    hue = np.clip(np.abs((rng.random() * 6 + np.array([0.0, 4.0, 2.0])) % 6 - 3) - 1, 0, 1)
+    s, v = rng.uniform(0.7, 1.0), rng.uniform(0.7, 1.0)
+    return (v * (1 - s + s * hue)).astype(np.float32)
+
+
+def make_texture_pool(rng: np.random.Generator, n: int = 12, th: int = 48, tw: int = 96) -> np.ndarray:
+    """Vivid vehicle/clothing textures shared by the whole dataset, so one livery shows up at many places."""
+    yy, xx = np.mgrid[0:th, 0:tw].astype(np.float32)
+    pool = np.empty((n, th, tw, 3), np.float32)
+    for i in range(n):
+        a, b, c = _vivid(rng), _vivid(rng), _vivid(rng)
+        kind = i % 5
+        if kind == 0:  # stripes at a random angle
+            ang, per = rng.uniform(0, np.pi), rng.uniform(4, 16)
+            t = ((xx * np.cos(ang) + yy * np.sin(ang)) / per) % 3
+            tex = np.where((t < 1)[..., None], a, np.where((t < 2)[..., None], b, c))
+        elif kind == 1:  # checker
+            cell = int(rng.integers(4, 12))
+            tex = np.where((((yy // cell) + (xx // cell)) % 2 == 0)[..., None], a, b)
+        elif kind == 2:  # dots
+            per = rng.uniform(6, 14)
+            d = ((yy % per) - per / 2) ** 2 + ((xx % per) - per / 2) ** 2
+            tex = np.where((d < (per / 3) ** 2)[..., None], a, b)
+        elif kind == 3:  # advertising wrap: big ellipses on a background
+            tex = np.broadcast_to(a, (th, tw, 3)).copy()
+            for _ in range(3):
+                cy, cx, ry, rx = rng.uniform(0, th), rng.uniform(0, tw), rng.uniform(4, th), rng.uniform(6, tw / 2)
+                tex[((yy - cy) / ry) ** 2 + ((xx - cx) / rx) ** 2 < 1] = _vivid(rng)
+        else:  # solid paint with a highlight band
+            tex = np.broadcast_to(a, (th, tw, 3)) * (0.8 + 0.3 * (np.abs(yy - th * 0.4) < th * 0.1))[..., None]
+        pool[i] = tex
+    return np.clip(pool, 0, 1)
+
+
+def _uv(ph: int, pw: int) -> tuple[np.ndarray, np.ndarray]:
+    return (np.arange(ph) + 0.5)[:, None] / ph, (np.arange(pw) + 0.5)[None, :] / pw
+
+
+def _disc(ph: int, pw: int, cu: float, cv: float, r_px: float, inner: float = 0.0) -> np.ndarray:
+    """Disc (or ring when ``inner`` > 0) of radius ``r_px`` at fractional centre (cu, cv) of a patch."""
+    yy, xx = np.mgrid[0:ph, 0:pw]
+    d = np.hypot(yy + 0.5 - cv * ph, xx + 0.5 - cu * pw)
+    return (d <= r_px) & (d >= inner * r_px)
+
+
+def _tex(pool: np.ndarray, rng: np.random.Generator, ph: int, pw: int, ppm: float) -> np.ndarray:
+    """A pool texture tiled at a fixed metric scale: one livery looks the same on any vehicle, anywhere."""
+    t = pool[rng.integers(len(pool))]
+    step = TEX_PPM / ppm
+    rows = ((np.arange(ph) + rng.integers(t.shape[0])) * step).astype(int) % t.shape[0]
+    cols = ((np.arange(pw) + rng.integers(t.shape[1])) * step).astype(int) % t.shape[1]
+    return t[rows][:, cols]
+
+
+def _vehicle(cls: int, ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray, ppm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Car / bus / truck side view: textured body, dark glass, wheels; returns (rgb, shape mask)."""
+    v, u = _uv(ph, pw)
+    rgb = _tex(pool, rng, ph, pw, ppm).copy()
+    glass = np.float32([0.12, 0.15, 0.2])
+    if cls == CAR:
+        slope = (0.42 - v) / 0.42
+        cabin = (v <= 0.42) & (u > 0.22 + 0.12 * slope) & (u < 0.8 - 0.1 * slope)
+        shape = ((v > 0.42) & (v < 0.9)) | cabin
+        win = cabin & (v > 0.1) & (np.abs(u - 0.52) > 0.02) & (u > 0.27) & (u < 0.76)
+        wheels = (0.2, 0.8)
+    elif cls == BUS:
+        shape = np.broadcast_to(v < 0.9, (ph, pw))
+        win = (v > 0.12) & (v < 0.45) & ((u * 9) % 1 > 0.12)
+        wheels = (0.13, 0.87)
+    else:
+        shape = ((u < 0.74) & (v < 0.88)) | ((u > 0.76) & (v > 0.3) & (v < 0.9))
+        win = (u > 0.8) & (v > 0.35) & (v < 0.55)
+        wheels = (0.15, 0.4, 0.86)
+    rgb[win] = glass
+    r = 0.12 * ph if cls != CAR else 0.13 * ph
+    for cu in wheels:
+        wheel = _disc(ph, pw, cu, 1 - r / ph, r)
+        rgb[wheel], shape = np.float32(0.08), shape | wheel
+    if rng.random() < 0.5:  # driving the other way
+        rgb, shape = rgb[:, ::-1], shape[:, ::-1]
+    return rgb, shape
+
+
+def _person(ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray, ppm: float,
+            seated: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Pedestrian (or seated rider): head, textured torso, legs."""
+    v, u = _uv(ph, pw)
+    head = ((u - 0.5) / 0.3) ** 2 + ((v - 0.08) / 0.08) ** 2 <= 1
+    torso = (v > 0.15) & (v <= (0.7 if seated else 0.55)) & (u > 0.08) & (u < 0.92)
+    legs = (v > 0.55) & (u > 0.15) & (u < 0.85) & ((u < 0.45) | (u > 0.55) | seated)
+    rgb = np.empty((ph, pw, 3), np.float32)
+    rgb[:] = _vivid(rng) * rng.uniform(0.2, 0.6)
+    rgb[torso] = _tex(pool, rng, ph, pw, ppm)[torso]
+    rgb[head] = np.float32([0.85, 0.65, 0.5]) * rng.uniform(0.5, 1.1)
+    return rgb, head | torso | legs
+
+
+def _two_wheeler(ph: int, pw: int, rng: np.random.Generator, motor: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Bicycle (rings and a frame) or motorcycle (filled body) side view."""
+    v, u = _uv(ph, pw)
+    r = min(0.22 * pw, 0.45 * ph)
+    shape = _disc(ph, pw, 0.2, 1 - r / ph, r, 0.0 if motor else 0.7)
+    shape |= _disc(ph, pw, 0.8, 1 - r / ph, r, 0.0 if motor else 0.7)
+    frame = (v > 0.35) & (v < 0.8) & (u > 0.25) & (u < 0.75)
+    shape |= frame if motor else frame & (np.abs(v - 0.4 - 0.4 * np.abs(u - 0.5)) < 0.12)
+    rgb = np.empty((ph, pw, 3), np.float32)
+    rgb[:] = _vivid(rng) if motor else np.float32(0.15)
+    return rgb, shape
+
+
+def _paste(rgb, label, zbuf, prgb, shape, cls: int, top: int, left: int, depth: float, commit: bool = True) -> int:
+    """Composite a patch at (top, left) where it is nearer than what is there; returns new dynamic pixels."""
+    h, w = label.shape
+    r0, c0 = max(top, 0), max(left, 0)
+    r1, c1 = min(top + shape.shape[0], h), min(left + shape.shape[1], w)
+    if r1 <= r0 or c1 <= c0:
+        return 0
+    m = shape[r0 - top:r1 - top, c0 - left:c1 - left] & (zbuf[r0:r1, c0:c1] > depth)
+    new = int((m & (label[r0:r1, c0:c1] < DYNAMIC_MIN)).sum())
+    if commit:
+        rgb[r0:r1, c0:c1][m] = prgb[r0 - top:r1 - top, c0 - left:c1 - left][m]
+        label[r0:r1, c0:c1][m] = cls
+        zbuf[r0:r1, c0:c1][m] = depth
+    return new
+
+
+# kind, probability, depth range (m), length (m), height (m). Mostly big, near vehicles: whole feature
+# cells then show only a (shared, misleading) livery, which is what a static mask can remove.
+_KINDS = ((CAR, 0.35, (4.0, 7.0), (4.0, 4.9), (1.4, 1.6)), (BUS, 0.25, (5.0, 8.0), (10.0, 12.0), (3.0, 3.4)),
+          (TRUCK, 0.2, (5.0, 8.0), (7.0, 10.0), (2.8, 3.6)), (PERSON, 0.12, (9.0, 13.0), (0.5, 0.65), (1.6, 1.9)),
+          (RIDER, 0.08, (7.0, 9.0), (1.6, 2.0), (1.0, 1.15)))  # fmt: skip
+
+
+def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top: float, h: int, w: int):
+    """One random road user as (depth, parts); a part is (rgb, shape, trainId, top, left)."""
+    probs = np.array([k[1] for k in _KINDS])
+    cls, _, depth, length, height = _KINDS[rng.choice(len(_KINDS), p=probs / probs.sum())]
+    d = rng.uniform(*depth)
+    k = FACADE_D / d
+    # Caps keep one bus from covering most of the frame (coverage must stay controllable).
+    pw = max(2, round(min(rng.uniform(*length) * k * ppm, MAX_OBJECT_FRAC[1] * w)))
+    ph = max(3, round(min(rng.uniform(*height) * k * ppm, MAX_OBJECT_FRAC[0] * h)))
+    ground = round((z_top - CAM_H * (1 - k)) * ppm)  # image row where the object meets the road
+    left = round(w / 2 + rng.uniform(-0.5, 0.5) * (w + pw)) - pw // 2
+    if cls in (CAR, BUS, TRUCK):
+        return d, [(*_vehicle(cls, ph, pw, rng, pool, ppm), cls, ground - ph, left)]
+    if cls == PERSON:
+        return d, [(*_person(ph, pw, rng, pool, ppm), cls, ground - ph, left)]
+    motor = rng.random() < 0.3
+    rh, rw = round(1.5 / 1.05 * ph), max(2, round(pw * 0.35))
+    return d, [(*_two_wheeler(ph, pw, rng, motor), MOTORCYCLE if motor else BICYCLE, ground - ph, left),
+               (*_person(rh, rw, rng, pool, ppm, seated=True), RIDER, ground - round(0.45 * ph) - rh,
+                left + round(0.3 * pw))]
+
+
+def add_dynamic_objects(rgb: np.ndarray, label: np.ndarray, rng: np.random.Generator, pool: np.ndarray,
+                        ppm: float, z_top: float, target: float, max_objects: int = 12, tries: int = 30) -> None:
+    """Add road users (in place) until the MEASURED dynamic pixel fraction reaches ``target``."""
+    h, w = label.shape
+    zbuf = np.full((h, w), 99.0, np.float32)  # static scene is at ~15 m: anything nearer occludes it
+    dyn, limit = int((label >= DYNAMIC_MIN).sum()), (target + OVERSHOOT) * label.size
+    placed = 0
+    for _ in range(tries):
+        if placed >= max_objects or dyn >= target * label.size:
+            break
+        d, parts = _sample_object(rng, pool, ppm, z_top, h, w)
+        new = sum(_paste(rgb, label, zbuf, *part, d, commit=False) for part in parts)
+        if new == 0 or dyn + new > limit:  # would overshoot: try a smaller or better-placed one
+            continue
+        for part in parts:
+            _paste(rgb, label, zbuf, *part, d)
+        dyn, placed = int((label >= DYNAMIC_MIN).sum()), placed + 1

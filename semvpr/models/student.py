@@ -1,0 +1,198 @@
+"""U-Net student: a small decoder over the frozen backbone prefix that predicts static vs not-static."""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, OmegaConf
+from PIL import Image
+from torch import Tensor, nn
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from semvpr.artifacts import build_once
+from semvpr.data.classes import IGNORE, STATIC_NAMES, static_lut
+from semvpr.errors import SemvprError
+from semvpr.pseudolabels import label_path
+
+VERSION = 1
+
+
+def _block(cin: int, cout: int) -> nn.Sequential:
+    """conv3x3-BN-ReLU twice: the U-Net unit."""
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+        nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+    )  # fmt: skip
+
+
+class Student(nn.Module):
+    """Decoder from the deepest chosen frozen feature up through shallower skips to static logits."""
+
+    def __init__(
+        self, frozen_channels: Sequence[int], frozen_strides: Sequence[int],
+        strides: Sequence[int] = (4, 8, 16), width: int = 64,
+    ) -> None:  # fmt: skip
+        super().__init__()
+        self.config = {"frozen_channels": list(frozen_channels), "frozen_strides": list(frozen_strides),
+                       "strides": list(strides), "width": width}  # fmt: skip
+        # The deepest frozen output of each wanted stride (ResNet's stem and layer1 share none; VGG's do not).
+        chosen = {s: i for i, s in enumerate(frozen_strides) if s in set(strides)}
+        if not chosen:
+            raise SemvprError(
+                f"student.strides={list(strides)} match none of the backbone's frozen feature strides "
+                f"{list(frozen_strides)}; pick some of those"
+            )
+        self.skip_indices = [chosen[s] for s in sorted(chosen)]  # shallow → deep
+        self.out_stride = min(chosen)
+        chans = [frozen_channels[i] for i in self.skip_indices]
+        self.bottom = _block(chans[-1], width)
+        self.ups = nn.ModuleList(_block(width + c, width) for c in reversed(chans[:-1]))
+        self.head = nn.Conv2d(width, 1, 1)
+
+    def forward(self, skips: Sequence[Tensor]) -> Tensor:
+        """Static-vs-not logits (B,1,H/s,W/s) at the shallowest chosen stride, from ``forward_frozen`` outputs."""
+        return self.decode([skips[i] for i in self.skip_indices])
+
+    def decode(self, chosen: Sequence[Tensor]) -> Tensor:
+        """Logits from just the chosen features (shallow → deep), e.g. a cache of them."""
+        feats = [f.float() for f in chosen]
+        h = self.bottom(feats[-1])
+        for f, block in zip(reversed(feats[:-1]), self.ups):
+            h = F.interpolate(h, size=f.shape[-2:], mode="bilinear", align_corners=False)
+            h = block(torch.cat([h, f], 1))
+        return self.head(h)
+
+    def static_prob(self, skips: Sequence[Tensor], out_hw: Sequence[int] | None = None) -> Tensor:
+        """Sigmoid of the logits, optionally resized (bilinear) to ``out_hw``."""
+        prob = torch.sigmoid(self.forward(skips).float())
+        if out_hw is not None:
+            prob = F.interpolate(prob, size=tuple(out_hw), mode="bilinear", align_corners=False)
+        return prob
+
+
+def backbone_identity(backbone: nn.Module) -> dict[str, Any]:
+    """Class, split and a hash of the frozen prefix's weights (covers seed and weight source exactly)."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(backbone.state_dict().items()):
+        if name.startswith("units."):
+            unit = int(name.split(".")[1])
+            if unit >= backbone.split:
+                continue  # the trainable part changes during retriever training; the student never sees it
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return {"class": type(backbone).__name__, "train_from": getattr(backbone, "train_from", None),
+            "frozen": digest.hexdigest()[:16]}  # fmt: skip
+
+
+@torch.no_grad()
+def cache_skips(
+    backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
+    batch_size: int, num_workers: int,
+) -> list[Tensor]:  # fmt: skip
+    """The chosen frozen features of every image, in bf16 (the trunk is frozen: compute them once)."""
+    from semvpr.data.datamodule import ImageDataset
+
+    device = next(backbone.parameters()).device
+    loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
+    out: list[list[Tensor]] = [[] for _ in indices]
+    backbone.eval()
+    with torch.autocast(device.type, dtype=torch.bfloat16):
+        for images, _ in tqdm(loader, desc="student features", unit="batch", disable=None):
+            skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
+            for level, i in enumerate(indices):
+                out[level].append(skips[i].to(torch.bfloat16).contiguous())
+    return [torch.cat(level) for level in out]
+
+
+def load_targets(paths: Sequence[Path], label_dir: Path, image_size: Sequence[int], lut: np.ndarray) -> Tensor:
+    """(N,H,W) uint8 binary static targets from trainId PNGs (255 = ignore)."""
+    maps = []
+    for p in paths:
+        ids = np.asarray(Image.open(label_path(label_dir, p)))
+        if ids.shape != tuple(image_size):
+            raise SemvprError(f"pseudo-label {label_path(label_dir, p)} is {ids.shape}, expected {tuple(image_size)}")
+        maps.append(np.where(ids == IGNORE, IGNORE, lut[ids].astype(np.uint8)))
+    return torch.from_numpy(np.stack(maps))
+
+
+def binary_iou(prob: Tensor, target: Tensor) -> float:
+    """IoU of the static class: prob ≥ 0.5 vs target == 1, ignoring 255."""
+    valid = target != IGNORE
+    pred, gt = (prob >= 0.5) & valid, (target == 1) & valid
+    return float((pred & gt).sum()) / max(1, int((pred | gt).sum()))
+
+
+def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: DictConfig) -> dict[str, float]:
+    """Train the decoder on cached features with masked BCE at image resolution; returns final metrics."""
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    n, bs = len(targets), int(cfg.batch_size)
+    steps = max(1, cfg.epochs * math.ceil(n / bs))
+    opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=steps, pct_start=0.1)
+    device = student.head.weight.device
+    student.train()
+    inter = union = 0
+    bar = tqdm(total=steps, desc="student", unit="step", disable=None)
+    for epoch in range(cfg.epochs):
+        order = torch.randperm(n, generator=gen)
+        inter = union = 0
+        for start in range(0, n, bs):
+            idx = order[start : start + bs]
+            target = targets[idx].to(device).long()
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bool(cfg.bf16)):
+                logits = student.decode([s[idx].to(device) for s in skips])
+            logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)[:, 0]
+            valid = target != IGNORE
+            loss = F.binary_cross_entropy_with_logits(logits[valid], target[valid].float())
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            pred, gt = (logits >= 0) & valid, (target == 1) & valid
+            inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
+            bar.update()
+            bar.set_postfix(loss=f"{loss.item():.3f}")
+    bar.close()
+    student.eval()
+    return {"train/loss": float(loss.item()), "train/iou_vs_labels": inter / max(1, union)}
+
+
+def build_student(
+    cfg_student: Mapping[str, Any], backbone: nn.Module, image_paths: Sequence[str | Path],
+    label_dir: str | Path, image_size: Sequence[int], cache_dir: str | Path,
+) -> Student:  # fmt: skip
+    """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode."""
+    cfg = cfg_student if isinstance(cfg_student, DictConfig) else OmegaConf.create(dict(cfg_student))
+    paths, label_dir = [Path(p) for p in image_paths], Path(label_dir)
+    size = [int(image_size[0]), int(image_size[1])]
+    frozen = (list(backbone.frozen_channels), list(backbone.frozen_strides))
+    key = {"version": VERSION, "student": OmegaConf.to_container(cfg, resolve=True),
+           "backbone": backbone_identity(backbone), "labels": label_dir.name, "image_size": size}  # fmt: skip
+
+    def build(out: Path) -> None:
+        torch.manual_seed(int(cfg.seed))
+        student = Student(*frozen, strides=list(cfg.strides), width=int(cfg.width))
+        start = time.perf_counter()
+        targets = load_targets(paths, label_dir, size, static_lut(tuple(cfg.get("static_classes", STATIC_NAMES))))
+        skips = cache_skips(backbone, student.skip_indices, paths, size, int(cfg.batch_size), int(cfg.num_workers))
+        student.to(next(backbone.parameters()).device)
+        metrics = fit_student(student, skips, targets, cfg)
+        metrics["train_seconds"] = time.perf_counter() - start
+        torch.save(student.cpu().state_dict(), out / "student.pt")
+        (out / "student.json").write_text(json.dumps(student.config))
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+
+    art = build_once(cache_dir, "student", key, build)
+    student = Student(**json.loads((art / "student.json").read_text()))
+    student.load_state_dict(torch.load(art / "student.pt", weights_only=True, map_location="cpu"))
+    student.artifact = art  # type: ignore[attr-defined]  # for the benchmark / logs: metrics.json lives here
+    return student.to(next(backbone.parameters()).device).eval()

@@ -1,0 +1,270 @@
+"""Mask2Former teacher: a pretrained HF checkpoint (inference only) or a small one trained here."""
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
+from torchmetrics.classification import MulticlassJaccardIndex
+from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig
+
+from semvpr.artifacts import build_once, config_hash
+from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
+from semvpr.errors import SemvprError
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def _norm_name(name: str) -> str:
+    """Canonical class name, so 'traffic_light' / 'Traffic Light' match Cityscapes 'traffic light'."""
+    return name.lower().replace("_", " ").replace("-", " ").strip()
+
+
+def targets_from_train_ids(
+    train_ids: Tensor, train_to_model: Tensor
+) -> tuple[list[Tensor], list[Tensor]]:
+    """Per-image Mask2Former targets: one binary mask and one class index per present class."""
+    mask_labels, class_labels = [], []
+    for ids in train_ids:
+        model_ids = train_to_model[ids.long().clamp(0, 255)]  # ignore / unknown classes → -1
+        classes = model_ids.unique()
+        classes = classes[classes >= 0]
+        mask_labels.append((model_ids[None] == classes[:, None, None]).float())
+        class_labels.append(classes)
+    return mask_labels, class_labels
+
+
+class Teacher(L.LightningModule):
+    """Mask2Former semantic segmenter that speaks Cityscapes trainIds and a static probability."""
+
+    def __init__(
+        self,
+        model: Mask2FormerForUniversalSegmentation,
+        image_mean: Sequence[float] = IMAGENET_MEAN,
+        image_std: Sequence[float] = IMAGENET_STD,
+        static_names: Sequence[str] = STATIC_NAMES,
+        dynamic_names: Sequence[str] = DYNAMIC_NAMES,
+        inference_size: Sequence[int] | None = None,
+        lr: float = 1e-3,
+        weight_decay: float = 0.05,
+        warmup_steps: int = 50,
+        bf16: bool = True,
+    ) -> None:
+        super().__init__()
+        self.model = model
+        self.id2label = {int(k): str(v) for k, v in model.config.id2label.items()}
+        self.inference_size = tuple(inference_size) if inference_size else None
+        self.lr, self.weight_decay, self.warmup_steps, self.bf16 = lr, weight_decay, warmup_steps, bf16
+        self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
+        names = {_norm_name(n): i for i, n in enumerate(TRAIN_ID_NAMES)}
+        model_to_train = [names.get(_norm_name(self.id2label[i]), IGNORE) for i in range(len(self.id2label))]
+        if all(t == IGNORE for t in model_to_train):
+            raise SemvprError(
+                f"teacher classes {sorted(self.id2label.values())[:5]}... share no name with the 19 "
+                "Cityscapes classes; use a Cityscapes-trained Mask2Former checkpoint"
+            )
+        train_to_model = torch.full((256,), -1, dtype=torch.long)
+        for m, t in enumerate(model_to_train):
+            if t != IGNORE and train_to_model[t] < 0:
+                train_to_model[t] = m
+        static = {_norm_name(n) for n in static_names}
+        dynamic = {_norm_name(n) for n in dynamic_names}
+        model_names = [_norm_name(self.id2label[i]) for i in range(len(self.id2label))]
+        self.register_buffer("model_to_train", torch.tensor(model_to_train), persistent=False)
+        self.register_buffer("train_to_model", train_to_model, persistent=False)
+        self.register_buffer("static_weight", torch.tensor([float(n in static) for n in model_names]), persistent=False)
+        # Binary target per trainId: 1 static, 0 dynamic, ignore for classes in neither list.
+        binary = torch.full((256,), IGNORE, dtype=torch.long)
+        for t, n in enumerate(TRAIN_ID_NAMES):
+            binary[t] = 1 if n in static else 0 if n in dynamic else IGNORE
+        self.register_buffer("binary_lut", binary, persistent=False)
+        self.register_buffer("mean", torch.tensor(image_mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(image_std).view(1, 3, 1, 1), persistent=False)
+        self.val_miou = MulticlassJaccardIndex(len(TRAIN_ID_NAMES), ignore_index=IGNORE, average="macro")
+        self.val_binary = MulticlassJaccardIndex(2, ignore_index=IGNORE, average="none")
+
+    def _pixels(self, images: Tensor) -> Tensor:
+        """Normalise [0,1] RGB the way the checkpoint was trained, at the inference size."""
+        x = (images.to(self.mean.device, torch.float32) - self.mean) / self.std
+        if self.inference_size and tuple(x.shape[-2:]) != self.inference_size:
+            x = F.interpolate(x, size=self.inference_size, mode="bilinear", align_corners=False)
+        return x
+
+    def semantic_scores(self, images: Tensor) -> Tensor:
+        """Mask2Former semantic scores (B,C,h,w) at mask resolution: softmax(class)[..., :-1] ⊗ sigmoid(mask)."""
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            out = self.model(pixel_values=self._pixels(images))
+        classes = out.class_queries_logits.float().softmax(-1)[..., :-1]
+        return torch.einsum("bqc,bqhw->bchw", classes, out.masks_queries_logits.float().sigmoid())
+
+    @torch.no_grad()
+    def predict_train_ids(self, images: Tensor) -> Tensor:
+        """(B,H,W) long Cityscapes trainIds at the input size (255 where the class has no trainId)."""
+        scores = F.interpolate(self.semantic_scores(images), size=images.shape[-2:], mode="bilinear", align_corners=False)
+        return self.model_to_train[scores.argmax(1)]
+
+    @torch.no_grad()
+    def static_prob(self, images: Tensor) -> Tensor:
+        """(B,1,H,W) probability that a pixel is a static class, at the input size."""
+        scores = self.semantic_scores(images)
+        # The scores are not normalised over classes (mask sigmoids overlap), so take the static share.
+        share = torch.einsum("bchw,c->bhw", scores, self.static_weight) / scores.sum(1).clamp_min(1e-6)
+        prob = F.interpolate(share[:, None], size=images.shape[-2:], mode="bilinear", align_corners=False)
+        return prob.clamp(0.0, 1.0)
+
+    def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+        """Mask2Former loss (Hungarian-matched CE + mask BCE + dice) on trainId maps."""
+        images, train_ids = batch
+        mask_labels, class_labels = targets_from_train_ids(train_ids, self.train_to_model)
+        loss = self.model(pixel_values=self._pixels(images), mask_labels=mask_labels, class_labels=class_labels).loss
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(images))
+        return loss
+
+    def validation_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> None:
+        """Accumulate 19-class and static/dynamic IoU on held-out images."""
+        images, train_ids = batch
+        pred = self.predict_train_ids(images)
+        self.val_miou.update(pred, train_ids)
+        self.val_binary.update(self.binary_lut[pred], self.binary_lut[train_ids.long().clamp(0, 255)])
+
+    def on_validation_epoch_end(self) -> None:
+        """Log val/mIoU, val/static_iou and val/dynamic_iou."""
+        binary = self.val_binary.compute()
+        self.log_dict({"val/mIoU": self.val_miou.compute(), "val/static_iou": binary[1], "val/dynamic_iou": binary[0]},
+                      prog_bar=True)
+        self.val_miou.reset()
+        self.val_binary.reset()
+
+    def configure_optimizers(self) -> Any:
+        """AdamW with linear warm-up then cosine decay per step (from-scratch transformers need warm-up)."""
+        opt = torch.optim.AdamW(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+        warm = min(self.warmup_steps, total // 2)
+
+        def factor(step: int) -> float:
+            if step < warm:
+                return (step + 1) / warm
+            return 0.5 * (1 + math.cos(math.pi * (step - warm) / max(1, total - warm)))
+
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}
+
+
+def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegmentation:
+    """A small randomly initialised Mask2Former (Swin backbone) for the 19 Cityscapes classes."""
+    c = dict(cfg_model)
+    swin = SwinConfig(
+        embed_dim=c["embed_dim"], depths=list(c["depths"]), num_heads=list(c["num_heads"]),
+        window_size=c["window_size"], drop_path_rate=0.0,
+        out_features=[f"stage{i + 1}" for i in range(len(c["depths"]))],
+    )  # fmt: skip
+    dim = c["hidden_dim"]
+    config = Mask2FormerConfig(
+        backbone_config=swin, feature_size=dim, mask_feature_size=dim, hidden_dim=dim,
+        encoder_feedforward_dim=2 * dim, dim_feedforward=2 * dim, num_attention_heads=c["num_attention_heads"],
+        encoder_layers=c["encoder_layers"], decoder_layers=c["decoder_layers"], num_queries=c["num_queries"],
+        train_num_points=c["train_num_points"],
+        id2label=dict(enumerate(TRAIN_ID_NAMES)), label2id={n: i for i, n in enumerate(TRAIN_ID_NAMES)},
+    )  # fmt: skip
+    return Mask2FormerForUniversalSegmentation(config)
+
+
+def _teacher_kwargs(cfg: DictConfig) -> dict[str, Any]:
+    """Teacher constructor arguments shared by the pretrained and embedded paths."""
+    return {
+        "static_names": list(cfg.static_classes), "dynamic_names": list(cfg.dynamic_classes),
+        "inference_size": cfg.get("inference_size"), "lr": cfg.train.lr, "weight_decay": cfg.train.weight_decay,
+        "warmup_steps": cfg.train.warmup_steps, "bf16": cfg.train.bf16,
+    }  # fmt: skip
+
+
+def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
+    """Load a Mask2Former checkpoint (HF id from the local cache, or a directory) without the network."""
+    from huggingface_hub.constants import HF_HUB_CACHE
+    from transformers import AutoImageProcessor
+
+    path = Path(checkpoint).expanduser()
+    local = path.is_dir() or checkpoint.startswith((".", "/", "~"))
+    source = str(path) if local else checkpoint
+    where = f"directory {path}" if local else f"the Hugging Face cache {HF_HUB_CACHE}"
+    try:
+        model = Mask2FormerForUniversalSegmentation.from_pretrained(source, local_files_only=True)
+    except (OSError, ValueError):
+        raise SemvprError(
+            f"teacher checkpoint '{checkpoint}' is not available offline (looked in {where}); download it on "
+            f"a machine with internet into HF_HOME (`hf download {checkpoint}`) and copy that cache here, "
+            "or set teacher.checkpoint=null to train the embedded teacher"
+        ) from None
+    try:
+        processor = AutoImageProcessor.from_pretrained(source, local_files_only=True)
+        mean, std = processor.image_mean, processor.image_std
+    except (OSError, ValueError):
+        mean, std = IMAGENET_MEAN, IMAGENET_STD  # weights without a processor config: HF's Mask2Former default
+    return Teacher(model, image_mean=mean, image_std=std, **kwargs)
+
+
+def dataset_identity(seg: Any) -> str:
+    """Hash of a SegmentationSet's file names and sizes (cheap, and survives moving the data)."""
+    files = [(p.name, p.stat().st_size) for p in (*seg.images, *seg.labels)]
+    return config_hash(files)
+
+
+def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
+    """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
+    from lightning.pytorch.loggers import CSVLogger
+
+    from semvpr.data.datamodule import SegmentationDataModule
+
+    L.seed_everything(cfg.train.seed, workers=True, verbose=False)
+    teacher = Teacher(embedded_model(cfg.model), **_teacher_kwargs(cfg))
+    data = SegmentationDataModule(
+        seg_train, seg_val, image_size=tuple(cfg.image_size), batch_size=cfg.train.batch_size,
+        num_workers=cfg.train.num_workers, augment=cfg.train.augment, label_ids=True, seed=cfg.train.seed,
+    )  # fmt: skip
+    trainer = L.Trainer(
+        accelerator="auto", devices=1, precision="bf16-mixed" if cfg.train.bf16 else "32-true",
+        max_epochs=cfg.train.epochs, check_val_every_n_epoch=cfg.train.val_every, num_sanity_val_steps=0,
+        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False, enable_model_summary=False,
+        log_every_n_steps=10, default_root_dir=out,
+    )  # fmt: skip
+    start = time.perf_counter()
+    trainer.fit(teacher, datamodule=data)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    metrics["train_seconds"] = time.perf_counter() - start
+    torch.save(teacher.model.state_dict(), out / "model.pt")
+    (out / "config.json").write_text(teacher.model.config.to_json_string())
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+
+
+def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, cache_dir: str | Path) -> Teacher:
+    """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
+    cfg = cfg_teacher if isinstance(cfg_teacher, DictConfig) else OmegaConf.create(dict(cfg_teacher))
+    if cfg.checkpoint:
+        teacher = load_pretrained(str(cfg.checkpoint), **_teacher_kwargs(cfg))
+        revision = getattr(teacher.model.config, "_commit_hash", None)
+        teacher.teacher_key = f"pretrained-{config_hash([str(cfg.checkpoint), revision, cfg.get('inference_size')])}"
+    else:
+        if seg_train is None or seg_val is None:
+            raise SemvprError("teacher.checkpoint=null trains the embedded teacher, which needs data.segmentation "
+                              "train and val sets (Cityscapes format); set them or give a pretrained checkpoint")
+        # Only what changes the weights: class lists, labelling batch size etc. must not retrain it.
+        key = {
+            "version": 1, "image_size": list(cfg.image_size), "model": OmegaConf.to_container(cfg.model),
+            "train": OmegaConf.to_container(cfg.train), "train_set": dataset_identity(seg_train),
+            "val_set": dataset_identity(seg_val),
+        }  # fmt: skip
+        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(cfg, seg_train, seg_val, tmp))
+        model = Mask2FormerForUniversalSegmentation(Mask2FormerConfig.from_json_file(art / "config.json"))
+        model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
+        teacher = Teacher(model, **_teacher_kwargs(cfg))
+        teacher.teacher_key = art.name
+    teacher.eval().requires_grad_(False)
+    return teacher
