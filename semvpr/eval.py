@@ -52,8 +52,8 @@ def model_config(cfg: DictConfig, trained: DictConfig, explicit: set[str]) -> Di
     return merged
 
 
-def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
-    """Recall@1/5/10/20 of the checkpoint on cfg.data's test split."""
+def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig, Any]:
+    """The checkpoint's retriever (eval mode), its merged config and its mask-cache key."""
     state, trained = load_checkpoint(cfg.ckpt)
     merged = model_config(cfg, trained, set(explicit))
     backbone = build_backbone(merged)
@@ -71,6 +71,13 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     except RuntimeError as err:
         raise SemvprError(f"checkpoint {cfg.ckpt} does not fit backbone={backbone_name(merged)} "
                           f"filter={merged.filter.name}: {str(err).splitlines()[0]}") from None
+    return retriever.eval(), merged, mask_key
+
+
+def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
+    """Recall@1/5/10/20 of the checkpoint on cfg.data's test split."""
+    retriever, merged, mask_key = load_retriever(cfg, explicit)
+    backbone, mask_source = retriever.backbone, retriever.mask_source
     test = build_places(merged, ("test",))["test"]
     features = cached_place_features(test, backbone, backbone_key(merged), mask_source, mask_key,
                                      merged.data.image_size, merged.paths.cache_dir,

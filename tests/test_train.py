@@ -129,3 +129,24 @@ def test_pca_whitening_is_fitted_and_travels_with_the_checkpoint(cache_dir: Path
     proc = _eval(cache_dir, f"ckpt={metrics['checkpoint']}")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout.strip().splitlines()[-1])["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)
+
+
+def test_localize_matches_the_cached_pipeline(cache_dir: Path, trained_run: Path, tmp_path: Path) -> None:
+    retrievals = json.loads((trained_run / "retrievals.json").read_text())["queries"][:3]
+    queries = tmp_path / "queries"
+    queries.mkdir()
+    for i, item in enumerate(retrievals):
+        (queries / f"q{i}.jpg").write_bytes(Path(item["query"]).read_bytes())
+    proc = subprocess.run(
+        [sys.executable, "-m", "semvpr.localize", "experiment=tiny", f"paths.cache_dir={cache_dir}",
+         f"ckpt={trained_run / 'checkpoints' / 'tested.ckpt'}", f"queries={queries}", "top_k=3",
+         f"hydra.run.dir={tmp_path / 'out'}"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "out" / "localize.json").read_text())
+    # Images through the full pipeline retrieve what the cached-feature evaluation retrieved.
+    assert [r["matches"][0]["path"] for r in results] == [item["topk"][0]["path"] for item in retrievals]
+    empty = subprocess.run(
+        [sys.executable, "-m", "semvpr.localize", "experiment=tiny", f"paths.cache_dir={cache_dir}",
+         f"ckpt={trained_run / 'checkpoints' / 'tested.ckpt'}", f"queries={tmp_path / 'none'}"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert empty.returncode == 2 and "does not exist" in empty.stderr

@@ -1,0 +1,91 @@
+"""Localise query images: ``python -m semvpr.localize ckpt=PATH queries=DIR [data=...] [top_k=5]``.
+
+Each image in DIR is described with the checkpoint's full pipeline (backbone, mask, aggregator)
+and matched against the database of ``data``'s test split. Prints, per query, the top-k database
+images with their UTM and descriptor distance; writes ``localize.json`` in the run directory.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+from torch.utils.data import DataLoader
+
+from semvpr.build import backbone_key, build_places
+from semvpr.data.datamodule import ImageDataset
+from semvpr.errors import SemvprError
+from semvpr.eval import load_retriever
+from semvpr.features import autocast_context, cached_place_features
+from semvpr.metrics import knn
+from semvpr.train import CONF_DIR, write_json
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
+
+
+def query_images(folder: str | Path) -> list[Path]:
+    """Image files of a folder, sorted; one clear error if there are none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SemvprError(f"query folder {folder} does not exist (queries=DIR)")
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not paths:
+        raise SemvprError(f"no .jpg/.png images in {folder}")
+    return paths
+
+
+@torch.no_grad()
+def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str, Any]]:
+    """Top-k database matches (path, UTM, distance) for every query image."""
+    retriever, merged, mask_key = load_retriever(cfg, explicit)
+    if merged.filter.mask == "oracle":
+        raise SemvprError("filter=oracle needs ground-truth labels and cannot localise new images")
+    places = build_places(merged, ("test",))["test"]
+    db = cached_place_features(places, retriever.backbone, backbone_key(merged), retriever.mask_source,
+                               mask_key, merged.data.image_size, merged.paths.cache_dir,
+                               merged.model.eval_batch_size, merged.data.num_workers).db
+    db_desc = retriever.describe_store(db)
+    paths = query_images(cfg.queries)
+    loader = DataLoader(ImageDataset(paths, tuple(merged.data.image_size)), batch_size=merged.model.eval_batch_size)
+    with autocast_context():
+        q_desc = np.concatenate([retriever(images).float().numpy() for images, _ in loader])
+    top = knn(db_desc, q_desc, int(cfg.top_k))
+    out = []
+    for path, row, desc in zip(paths, top, q_desc):
+        dist = np.linalg.norm(db_desc[row] - desc[None], axis=1)
+        out.append({"query": str(path), "matches": [
+            {"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(), "distance": float(d)}
+            for j, d in zip(row, dist)]})
+    return out
+
+
+@hydra.main(config_path=CONF_DIR, config_name="localize", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    explicit = {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
+    try:
+        results = localize(cfg, explicit)
+    except SemvprError as err:
+        print(f"semvpr: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    output = Path(HydraConfig.get().runtime.output_dir) / "localize.json"
+    write_json(output, results)
+    for result in results:
+        best = result["matches"][0]
+        print(f"{Path(result['query']).name}: {Path(best['path']).name} "
+              f"(E {best['utm'][0]:.1f}, N {best['utm'][1]:.1f}, d={best['distance']:.3f})")
+    print(json.dumps({"queries": len(results), "top_k": int(cfg.top_k), "output": str(output)}))
+
+
+def main() -> None:
+    """Console entry point."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()
