@@ -65,9 +65,15 @@ def extract(
     batch_size: int = 32,
     num_workers: int = 2,
     desc: str = "features",
+    trunk: bool = True,
 ) -> FeatureStore:
-    """One frozen pass over the images: trunk outputs (bf16) and, with a mask source, grid masks."""
+    """One pass over the images: trunk outputs (bf16) and, with a mask source, grid masks.
+
+    With ``trunk=False`` only the masks are computed, and the backbone runs only if the mask
+    source reads its features; the returned store then holds an empty trunk.
+    """
     grid = grid_size(backbone, image_size)
+    run_backbone = trunk or (mask_source is not None and mask_source.needs_features)
     loader = DataLoader(ImageDataset(list(paths), tuple(image_size)), batch_size=batch_size,
                         num_workers=num_workers)
     trunks, masks = [], []
@@ -75,12 +81,13 @@ def extract(
     for images, index in tqdm(loader, desc=desc, unit="batch", leave=False):
         images = images.contiguous(memory_format=torch.channels_last)
         with autocast_context():
-            outs = backbone.forward_frozen(images)
+            outs = backbone.forward_frozen(images) if run_backbone else []
             if mask_source is not None:
                 labels = [label_paths[i] for i in index] if label_paths is not None else None
                 masks.append(pool_to_grid(mask_source(images, outs, labels), grid))
-        trunks.append(outs[-1].to(torch.bfloat16))
-    return FeatureStore(torch.cat(trunks), torch.cat(masks) if masks else None)
+        if trunk:
+            trunks.append(outs[-1].to(torch.bfloat16))
+    return FeatureStore(torch.cat(trunks) if trunks else torch.empty(0), torch.cat(masks) if masks else None)
 
 
 def cached_place_features(
@@ -108,7 +115,7 @@ def cached_place_features(
                                     ("q", places.q_paths, places.q_labels)):
             stores[side] = extract(backbone, mask_source if "masks" in missing else None, paths,
                                    labels, image_size, batch_size, num_workers,
-                                   desc=f"{places.name} {side}")
+                                   desc=f"{places.name} {side}", trunk="trunk" in missing)
     for kind in missing:
         field = "trunk" if kind == "trunk" else "mask"
 

@@ -22,6 +22,9 @@ from semvpr.errors import SemvprError
 class MaskSource(Protocol):
     """Gives the static probability (B,1,H,W) of a batch; any resolution, pooled later."""
 
+    #: Whether it reads the backbone's features (else the frozen pass can be skipped for it).
+    needs_features: bool
+
     def __call__(
         self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None
     ) -> Tensor: ...
@@ -36,6 +39,8 @@ def pool_to_grid(static_prob: Tensor, grid_hw: tuple[int, int], threshold: float
 class TeacherMask(nn.Module):
     """Static probability from the Mask2Former teacher, run on the images themselves."""
 
+    needs_features = False
+
     def __init__(self, teacher: nn.Module) -> None:
         super().__init__()
         self.teacher = teacher.eval().requires_grad_(False)
@@ -48,6 +53,8 @@ class TeacherMask(nn.Module):
 class StudentMask(nn.Module):
     """Static probability from the U-Net student over the backbone's own multi-scale features."""
 
+    needs_features = True
+
     def __init__(self, student: nn.Module) -> None:
         super().__init__()
         self.student = student.eval().requires_grad_(False)
@@ -59,6 +66,8 @@ class StudentMask(nn.Module):
 
 class OracleMask(nn.Module):
     """Ground-truth static map read from SynthCity's label PNGs (upper bound; never in training data)."""
+
+    needs_features = False
 
     def __init__(self, static_names: Sequence[str] = STATIC_NAMES) -> None:
         super().__init__()
