@@ -11,6 +11,8 @@ DYNAMIC_MIN = SKY  # trainIds >= 10 are dynamic / uninformative (classes.DYNAMIC
 CAM_H, FACADE_D = 1.6, 15.0  # camera height and facade distance (m): near objects look bigger
 TEX_PPM = 6.5  # texture pixels per metre of facade plane
 MAX_OBJECT_FRAC = (0.6, 0.65)  # (height, width) cap of one object, as a fraction of the frame
+COVERAGE_SPREAD = 0.07  # per-capture std of the coverage target
+QUEUE = False
 OVERSHOOT = 0.03  # an object may push the dynamic fraction at most this far past its target
 
 Z_TOP, Z_BOT = 36.0, -6.0  # vertical extent of the panorama, metres in the facade plane
@@ -111,6 +113,19 @@ def _building(cv: _Canvas, rng: np.random.Generator, x0: float, x1: float, h: fl
     lit = rng.uniform(0.6, 1.9, (up.max() // fy + 2, cc.shape[1] // fx + 2)).astype(np.float32)
     tint = lit[up // fy, cc // fx][..., None] * glass
     cv.rgb[rs, cs] = np.where(win[..., None], np.clip(tint, 0, 1), cv.rgb[rs, cs])
+    # Upper-floor details, so a facade stays recognisable when traffic hides its ground floor.
+    if rng.random() < 0.4:  # storeys painted in alternating colours
+        odd = ((up // fy) % 2 == 1) & ~win
+        cv.rgb[rs, cs] = np.where(odd[..., None], base * rng.uniform(0.6, 1.3, 3).astype(np.float32), cv.rgb[rs, cs])
+    if rng.random() < 0.4:  # balconies / flower boxes under the windows
+        sill = ((up % fy) >= fy - wy0) & ((up % fy) < fy - wy0 + max(1, fy // 6))
+        sill = sill & ((cc % fx) >= wx0 - 1) & ((cc % fx) <= wx1) & (up >= fy) & (up < up.max() - fy // 2)
+        cv.rgb[rs, cs] = np.where(sill[..., None], _vivid(rng) * rng.uniform(0.5, 1.0), cv.rgb[rs, cs])
+    if h > 9 and rng.random() < 0.35:  # mural or billboard
+        bw = min(x1 - x0 - 1.0, rng.uniform(3.0, 8.0))
+        bx, bz = rng.uniform(x0 + 0.5, x1 - 0.5 - bw), rng.uniform(4.0, h - 4.0)
+        for j, c in enumerate([_vivid(rng) for _ in range(3)]):
+            cv.rect(bx + j * bw / 3, bx + (j + 1) * bw / 3, bz, bz + rng.uniform(1.5, 3.0), c, BUILDING)
     g = min(floor_h, h) * 0.9
     if rng.random() < 0.5:  # shop front: display window and a vivid sign band
         cv.rect(x0 + 0.6, x1 - 0.6, 0.2, g * 0.62, glass * 1.4, BUILDING)
@@ -190,14 +205,23 @@ def build_panorama(rng: np.random.Generator, length_m: float, spec: RenderSpec) 
     return Panorama(np.clip(cv.rgb, 0, 1), cv.label, cv.x0, cv.ppm)
 
 
+# Weather: (top, bottom) sky colour ranges; a capture draws uniformly inside one of them.
+WEATHERS = (((.15, .35, .75), (.35, .55, .95), (.6, .72, .9), (.8, .88, 1.)),  # clear
+            ((.45, .45, .48), (.8, .8, .84), (.55, .55, .58), (.9, .9, .92)),  # overcast
+            ((.12, .14, .2), (.3, .32, .4), (.3, .32, .36), (.5, .52, .56)),  # storm
+            ((.25, .2, .45), (.45, .35, .65), (.85, .45, .2), (1., .7, .4)),  # sunset
+            ((.7, .68, .55), (.85, .82, .7), (.85, .8, .65), (.98, .95, .85)))  # haze
+
+
 def _sky(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
-    """Weather-tinted sky with clouds, drawn fresh per capture (sky is not part of the place)."""
-    top, bottom = [([.25, .45, .85], [.65, .78, .95]), ([.55, .57, .6], [.78, .78, .8]),
-                   ([.45, .35, .6], [.95, .6, .35]), ([.35, .55, .8], [.85, .85, .8])][rng.integers(4)]
+    """Weather-tinted sky with high-contrast clouds, drawn fresh per capture (sky is not part of the place)."""
+    tlo, thi, blo, bhi = (np.float32(c) for c in WEATHERS[rng.integers(len(WEATHERS))])
+    top, bottom = rng.uniform(tlo, thi).astype(np.float32), rng.uniform(blo, bhi).astype(np.float32)
     t = np.linspace(0, 1, h, dtype=np.float32)[:, None, None]
-    sky = (1 - t) * np.float32(top) + t * np.float32(bottom) + rng.uniform(-0.08, 0.08, 3).astype(np.float32)
-    clouds = np.clip(bilinear_noise(rng, h, w, 4, 6) * rng.uniform(0.3, 1.2), 0, 1)[..., None]
-    return np.broadcast_to(sky, (h, w, 3)) * (1 - clouds) + 0.92 * clouds
+    sky = (1 - t) * top + t * bottom
+    cover = (bilinear_noise(rng, h, w, 6, 8) - rng.uniform(0.2, 0.7)) * rng.uniform(1.5, 4.0)
+    clouds = np.clip(cover, 0, 1)[..., None]
+    return sky * (1 - clouds) + np.float32(rng.uniform(0.3, 1.0)) * clouds
 
 
 def render_capture(pano: Panorama, x: float, rng: np.random.Generator, spec: RenderSpec,
@@ -214,7 +238,7 @@ def render_capture(pano: Panorama, x: float, rng: np.random.Generator, spec: Ren
     rgb = pano.rgb[rows[:, None], cols[None, :]]
     label = pano.label[rows[:, None], cols[None, :]]
     rgb = np.where((label == SKY)[..., None], _sky(rng, h, w), rgb).astype(np.float32)
-    target = float(np.clip(spec.coverage + rng.normal(0, 0.07), 0.05, 0.9))
+    target = float(np.clip(spec.coverage + rng.normal(0, COVERAGE_SPREAD), 0.05, 0.9))
     add_dynamic_objects(rgb, label, rng, pool, ppm, z_top, target)
     # Lighting: the query traversal is at another time of day; the database one varies a little.
     d = spec.lighting * (1.0 if query else 0.25)
@@ -372,7 +396,8 @@ _KINDS = ((CAR, 0.35, (4.0, 7.0), (4.0, 4.9), (1.4, 1.6)), (BUS, 0.25, (5.0, 8.0
           (RIDER, 0.08, (7.0, 9.0), (1.6, 2.0), (1.0, 1.15)))  # fmt: skip
 
 
-def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top: float, h: int, w: int):
+def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top: float, h: int, w: int,
+                   cursor: float | None = None):
     """One random road user as (depth, parts); a part is (rgb, shape, trainId, top, left)."""
     probs = np.array([k[1] for k in _KINDS])
     cls, _, depth, length, height = _KINDS[rng.choice(len(_KINDS), p=probs / probs.sum())]
@@ -382,7 +407,10 @@ def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top
     pw = max(2, round(min(rng.uniform(*length) * k * ppm, MAX_OBJECT_FRAC[1] * w)))
     ph = max(3, round(min(rng.uniform(*height) * k * ppm, MAX_OBJECT_FRAC[0] * h)))
     ground = round((z_top - CAM_H * (1 - k)) * ppm)  # image row where the object meets the road
-    left = round(w / 2 + rng.uniform(-0.5, 0.5) * (w + pw)) - pw // 2
+    if cursor is None:
+        left = round(w / 2 + rng.uniform(-0.5, 0.5) * (w + pw)) - pw // 2
+    else:
+        left = round(cursor - rng.uniform(0.0, 0.3) * pw)
     if cls in (CAR, BUS, TRUCK):
         return d, [(*_vehicle(cls, ph, pw, rng, pool, ppm), cls, ground - ph, left)]
     if cls == PERSON:
@@ -400,11 +428,15 @@ def add_dynamic_objects(rgb: np.ndarray, label: np.ndarray, rng: np.random.Gener
     h, w = label.shape
     zbuf = np.full((h, w), 99.0, np.float32)  # static scene is at ~15 m: anything nearer occludes it
     dyn, limit = int((label >= DYNAMIC_MIN).sum()), (target + OVERSHOOT) * label.size
-    placed = 0
+    placed, cursor = 0, -rng.uniform(0, 0.3) * w
     for _ in range(tries):
         if placed >= max_objects or dyn >= target * label.size:
             break
-        d, parts = _sample_object(rng, pool, ppm, z_top, h, w)
+        d, parts = _sample_object(rng, pool, ppm, z_top, h, w, cursor if QUEUE else None)
+        if QUEUE:
+            cursor = max(cursor, parts[0][4] + parts[0][1].shape[1] + rng.uniform(0, 0.1) * w)
+            if cursor > w:
+                cursor = -rng.uniform(0, 0.2) * w
         new = sum(_paste(rgb, label, zbuf, *part, d, commit=False) for part in parts)
         if new == 0 or dyn + new > limit:  # would overshoot: try a smaller or better-placed one
             continue

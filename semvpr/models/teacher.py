@@ -231,7 +231,7 @@ def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
     )  # fmt: skip
     trainer = L.Trainer(
         accelerator="auto", devices=1, precision="bf16-mixed" if cfg.train.bf16 else "32-true",
-        max_epochs=cfg.train.epochs, check_val_every_n_epoch=cfg.train.val_every, num_sanity_val_steps=0,
+        max_epochs=cfg.train.epochs, check_val_every_n_epoch=cfg.train.val_every or cfg.train.epochs, num_sanity_val_steps=0,
         logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False, enable_model_summary=False,
         log_every_n_steps=10, default_root_dir=out,
     )  # fmt: skip
@@ -258,7 +258,8 @@ def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, 
         # Only what changes the weights: class lists, labelling batch size etc. must not retrain it.
         key = {
             "version": 1, "image_size": list(cfg.image_size), "model": OmegaConf.to_container(cfg.model),
-            "train": OmegaConf.to_container(cfg.train), "train_set": dataset_identity(seg_train),
+            "train": {k: v for k, v in OmegaConf.to_container(cfg.train).items() if k != "val_every"},
+            "train_set": dataset_identity(seg_train),
             "val_set": dataset_identity(seg_val),
         }  # fmt: skip
         art = build_once(cache_dir, "teacher", key, lambda tmp: _train(cfg, seg_train, seg_val, tmp))

@@ -1,0 +1,93 @@
+"""Pseudo-label cache: one PNG per image, built once, resumable after an interruption."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from semvpr.artifacts import artifact_dir
+from semvpr.errors import SemvprError
+from semvpr.pseudolabels import label_path, pseudo_labels
+
+SIZE = (16, 20)
+
+
+class CountingTeacher:
+    """Labels pixels by brightness (road 0 / car 13) and counts the images it saw; can fail on cue."""
+
+    device = torch.device("cpu")
+
+    def __init__(self, fail_after: int | None = None) -> None:
+        self.seen = 0
+        self.fail_after = fail_after
+
+    def predict_train_ids(self, images: torch.Tensor) -> torch.Tensor:
+        if self.fail_after is not None and self.seen + len(images) > self.fail_after:
+            raise KeyboardInterrupt("simulated kill")
+        self.seen += len(images)
+        assert images.shape[-2:] == SIZE
+        return torch.where(images.mean(1) > 0.5, 13, 0).long()
+
+
+def make_images(root: Path, n: int = 10) -> list[Path]:
+    """Half-bright, half-dark images at a size other than SIZE (so labelling must resize)."""
+    root.mkdir(parents=True)
+    paths = []
+    for i in range(n):
+        img = np.zeros((32, 40, 3), np.uint8)
+        img[:, : 4 * (i + 1)] = 255
+        paths.append(root / f"@{i:03d}@img@.png")
+        Image.fromarray(img).save(paths[-1])
+    return paths
+
+
+def test_labels_every_image_once(tmp_path: Path) -> None:
+    paths = make_images(tmp_path / "img")
+    teacher = CountingTeacher()
+    out = pseudo_labels(teacher, "teacher-abc", paths, SIZE, tmp_path / "cache", batch_size=4, num_workers=0)
+    assert teacher.seen == len(paths)
+    assert sorted(p.name for p in out.glob("*.png")) == sorted(f"{p.stem}.png" for p in paths)
+    assert not list(out.glob(".*"))  # no temp files left behind
+    first = np.asarray(Image.open(label_path(out, paths[4])))
+    assert first.shape == SIZE and set(np.unique(first)) == {0, 13}
+    assert (first[:, :10] == 13).all() and (first[:, 12:] == 0).all()  # 20 of 40 columns bright → 10 of 20
+
+    again = CountingTeacher()
+    assert pseudo_labels(again, "teacher-abc", paths, SIZE, tmp_path / "cache", num_workers=0) == out
+    assert again.seen == 0
+    other = pseudo_labels(CountingTeacher(), "teacher-xyz", paths, SIZE, tmp_path / "cache", num_workers=0)
+    assert other != out  # a different teacher gets its own labels
+
+
+def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
+    paths = make_images(tmp_path / "img")
+    key_args = ("teacher-abc", paths, SIZE, tmp_path / "cache")
+    with pytest.raises(KeyboardInterrupt):
+        pseudo_labels(CountingTeacher(fail_after=4), *key_args, batch_size=2, num_workers=0)
+    final = artifact_dir(tmp_path / "cache", "labels", _key(paths))
+    assert not final.exists()  # a partial run never counts as complete
+    partial = [d for d in (tmp_path / "cache").iterdir() if d.name.endswith(".partial")]
+    assert len(partial) == 1 and len(list(partial[0].glob("*.png"))) == 4
+
+    resumed = CountingTeacher()
+    out = pseudo_labels(resumed, *key_args, batch_size=2, num_workers=0)
+    assert out == final and resumed.seen == len(paths) - 4
+    assert len(list(out.glob("*.png"))) == len(paths)
+    assert not partial[0].exists()
+
+
+def _key(paths: list[Path]) -> dict:
+    """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
+    from semvpr.pseudolabels import VERSION, image_list_identity
+
+    return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths), "image_size": list(SIZE)}
+
+
+def test_clashing_stems_are_a_user_error(tmp_path: Path) -> None:
+    a = make_images(tmp_path / "a", 2)
+    b = make_images(tmp_path / "b", 2)
+    with pytest.raises(SemvprError, match="share"):
+        pseudo_labels(CountingTeacher(), "t", a + b, SIZE, tmp_path / "cache", num_workers=0)

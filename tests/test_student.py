@@ -1,0 +1,108 @@
+"""U-Net student: shapes, skip choice, backbone identity, and a short fit that clearly beats chance."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from PIL import Image
+
+from semvpr.errors import SemvprError
+from semvpr.models import student as student_mod
+from semvpr.models.backbones import VGG16Backbone
+from semvpr.models.student import Student, backbone_identity, build_student
+
+SIZE = (32, 48)
+
+
+@pytest.fixture(scope="module")
+def backbone() -> VGG16Backbone:
+    torch.manual_seed(0)
+    return VGG16Backbone(weights="none", train_from="conv5")
+
+
+def tiny_cfg() -> OmegaConf:
+    """The shipped student config, shrunk for a seconds-long fit."""
+    cfg = OmegaConf.load(Path(__file__).parents[1] / "conf/student/unet.yaml")
+    cfg.static_classes = ["road", "building"]
+    cfg.update(width=16, epochs=20, batch_size=8, num_workers=0, lr=1e-2)
+    return cfg
+
+
+def test_shapes_and_skip_choice(backbone: VGG16Backbone) -> None:
+    student = Student(backbone.frozen_channels, backbone.frozen_strides, strides=(4, 8, 16), width=8)
+    assert [backbone.frozen_strides[i] for i in student.skip_indices] == [4, 8, 16]
+    with torch.no_grad():
+        skips = backbone.forward_frozen(torch.rand(2, 3, *SIZE))
+        logits = student(skips)
+        prob = student.static_prob(skips, out_hw=SIZE)
+    assert logits.shape == (2, 1, SIZE[0] // 4, SIZE[1] // 4)
+    assert prob.shape == (2, 1, *SIZE) and prob.min() >= 0 and prob.max() <= 1
+    assert Student(backbone.frozen_channels, backbone.frozen_strides, strides=(8,), width=8)(skips).shape[-2:] == (4, 6)
+
+
+def test_strides_the_backbone_lacks_are_a_user_error(backbone: VGG16Backbone) -> None:
+    with pytest.raises(SemvprError, match="frozen feature strides"):
+        Student(backbone.frozen_channels, backbone.frozen_strides, strides=(32,))
+
+
+def test_backbone_identity_tracks_only_the_frozen_prefix(backbone: VGG16Backbone) -> None:
+    before = backbone_identity(backbone)
+    with torch.no_grad():
+        backbone.units[-1][0].weight.add_(1.0)  # conv5: trainable, irrelevant to the student
+        assert backbone_identity(backbone) == before
+        backbone.units[0][0].weight.add_(1.0)  # conv1: frozen, changes every skip
+        assert backbone_identity(backbone) != before
+        backbone.units[0][0].weight.sub_(1.0)
+        backbone.units[-1][0].weight.sub_(1.0)
+
+
+def toy_set(root: Path, n: int, seed: int) -> tuple[list[Path], list[np.ndarray]]:
+    """Red 'cars' (trainId 13) on a grey 'road' (0), with a strip of ignore; images and trainId maps."""
+    rng = np.random.default_rng(seed)
+    root.mkdir(parents=True, exist_ok=True)
+    paths, maps = [], []
+    for i in range(n):
+        ids = np.zeros(SIZE, np.uint8)
+        y, x = rng.integers(0, SIZE[0] // 2), rng.integers(0, SIZE[1] // 2)
+        ids[y : y + SIZE[0] // 2, x : x + SIZE[1] // 2] = 13
+        img = np.where(ids[..., None] == 13, [200, 30, 30], [110, 110, 110]).astype(np.float32)
+        img = np.clip(img + rng.normal(0, 10, img.shape), 0, 255).astype(np.uint8)
+        ids[0, :] = 255
+        paths.append(root / f"s{seed}_{i:03d}.png")
+        Image.fromarray(img).save(paths[-1])
+        maps.append(ids)
+    return paths, maps
+
+
+def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    paths, maps = toy_set(tmp_path / "img", 24, seed=0)
+    labels = tmp_path / "labels-abc"
+    labels.mkdir()
+    for p, ids in zip(paths, maps):
+        Image.fromarray(ids).save(labels / f"{p.stem}.png")
+    student = build_student(tiny_cfg(), backbone, paths, labels, SIZE, tmp_path / "cache")
+    assert not student.training
+
+    test_paths, test_maps = toy_set(tmp_path / "test", 8, seed=1)
+    from semvpr.data.segmentation import load_image
+
+    images = torch.stack([load_image(p) for p in test_paths])
+    with torch.no_grad():
+        pred = student.static_prob(backbone.forward_frozen(images), out_hw=SIZE)[:, 0] >= 0.5
+    target = torch.from_numpy(np.stack(test_maps))
+    valid = target != 255
+    static = (target == 0) & valid
+    accuracy = (pred == static)[valid].float().mean().item()
+    majority = max(static[valid].float().mean().item(), 1 - static[valid].float().mean().item())
+    iou = ((pred & static).sum() / (pred & valid | static).sum()).item()
+    assert accuracy > majority + 0.1 and accuracy > 0.9, (accuracy, majority)
+    assert iou > 0.85, iou
+
+    monkeypatch.setattr(student_mod, "fit_student", lambda *a: pytest.fail("trained twice"))
+    again = build_student(tiny_cfg(), backbone, paths, labels, SIZE, tmp_path / "cache")
+    for a, b in zip(student.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)

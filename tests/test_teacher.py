@@ -1,0 +1,158 @@
+"""Mask2Former teacher: training signal, post-processing, name mapping, offline loading, build cache."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from PIL import Image
+
+from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, train_ids_to_label_ids
+from semvpr.data.segmentation import read_cityscapes
+from semvpr.errors import SemvprError
+from semvpr.models import teacher as teacher_mod
+from semvpr.models.teacher import Teacher, build_teacher, embedded_model, targets_from_train_ids
+
+TINY_MODEL = {"embed_dim": 16, "depths": [1, 1, 1, 1], "num_heads": [1, 1, 2, 2], "window_size": 4,
+              "hidden_dim": 32, "num_attention_heads": 2, "encoder_layers": 1, "decoder_layers": 2,
+              "num_queries": 8, "train_num_points": 256}  # fmt: skip
+
+
+def tiny_cfg(**over: object) -> OmegaConf:
+    """A teacher config small enough to train in seconds."""
+    cfg = OmegaConf.load(Path(__file__).parents[1] / "conf/teacher/mask2former.yaml")
+    cfg.image_size = [32, 48]
+    cfg.model = TINY_MODEL
+    cfg.train.update(epochs=1, batch_size=2, num_workers=0, warmup_steps=1, augment=False)
+    cfg.merge_with(over)
+    return cfg
+
+
+def scene(rng: np.random.Generator, h: int = 32, w: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Sky over building over road, with a car: colour tells the class."""
+    ids = np.full((h, w), 10, np.uint8)
+    ids[h // 4 :] = 2
+    ids[h // 2 :] = 0
+    x = int(rng.integers(0, w // 2))
+    ids[h // 2 : h // 2 + h // 4, x : x + w // 3] = 13
+    colours = {10: (70, 130, 180), 2: (90, 90, 90), 0: (128, 64, 128), 13: (0, 0, 200)}
+    img = np.zeros((h, w, 3), np.float32)
+    for c, col in colours.items():
+        img[ids == c] = col
+    img += rng.normal(0, 8, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8), ids
+
+
+def batch(n: int = 2, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Images (n,3,32,48) in [0,1] and trainIds (n,32,48)."""
+    rng = np.random.default_rng(seed)
+    imgs, ids = zip(*(scene(rng) for _ in range(n)))
+    return torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float() / 255, torch.from_numpy(np.stack(ids)).long()
+
+
+def write_cityscapes(root: Path, n_train: int = 6, n_val: int = 2) -> None:
+    """A Cityscapes-format folder (leftImg8bit / gtFine labelIds) of the toy scenes."""
+    rng = np.random.default_rng(1)
+    for split, n in (("train", n_train), ("val", n_val)):
+        for d in ("leftImg8bit", "gtFine"):
+            (root / d / split / "toy").mkdir(parents=True)
+        for i in range(n):
+            img, ids = scene(rng)
+            Image.fromarray(img).save(root / "leftImg8bit" / split / "toy" / f"toy_{i:06d}_000019_leftImg8bit.png")
+            Image.fromarray(train_ids_to_label_ids(ids)).save(
+                root / "gtFine" / split / "toy" / f"toy_{i:06d}_000019_gtFine_labelIds.png"
+            )
+
+
+def test_targets_one_mask_per_present_class() -> None:
+    ids = torch.tensor([[[0, 0, 13], [IGNORE, 10, 13]]])
+    masks, classes = targets_from_train_ids(ids, Teacher(embedded_model(TINY_MODEL)).train_to_model)
+    assert classes[0].tolist() == [0, 10, 13]
+    assert masks[0].shape == (3, 2, 3)
+    assert masks[0].sum().item() == 5  # the ignored pixel belongs to no mask
+
+
+def test_loss_decreases_on_a_fixed_batch() -> None:
+    torch.manual_seed(0)
+    teacher = Teacher(embedded_model(TINY_MODEL))
+    images, ids = batch(2)
+    masks, classes = targets_from_train_ids(ids, teacher.train_to_model)
+    opt = torch.optim.AdamW(teacher.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(10):
+        loss = teacher.model(pixel_values=teacher._pixels(images), mask_labels=masks, class_labels=classes).loss
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3]), losses
+
+
+def test_post_processing_shapes_and_ranges() -> None:
+    teacher = Teacher(embedded_model(TINY_MODEL)).eval()
+    images = torch.rand(3, 3, 37, 53)  # not a multiple of the patch or window size
+    ids = teacher.predict_train_ids(images)
+    prob = teacher.static_prob(images)
+    assert ids.shape == (3, 37, 53) and ids.dtype == torch.long
+    assert set(ids.unique().tolist()) <= set(range(len(TRAIN_ID_NAMES)))
+    assert prob.shape == (3, 1, 37, 53)
+    assert prob.min() >= 0 and prob.max() <= 1
+
+
+def test_classes_map_to_train_ids_by_name() -> None:
+    model = embedded_model(TINY_MODEL)
+    model.config.id2label = {0: "car", 1: "Road", 2: "traffic_light", 3: "banana"}
+    teacher = Teacher(model)
+    assert teacher.model_to_train.tolist() == [13, 0, 6, IGNORE]
+    assert teacher.static_weight.tolist() == [0.0, 1.0, 1.0, 0.0]
+    assert teacher.train_to_model[13].item() == 0 and teacher.train_to_model[1].item() == -1
+
+
+@pytest.mark.parametrize("checkpoint", ["no-such-org/mask2former-nowhere", "/no/such/dir/mask2former"])
+def test_missing_offline_checkpoint_is_one_line_error(checkpoint: str, tmp_path: Path) -> None:
+    with pytest.raises(SemvprError) as err:
+        build_teacher(tiny_cfg(checkpoint=checkpoint), None, None, tmp_path)
+    msg = str(err.value)
+    assert "\n" not in msg and checkpoint in msg and "teacher.checkpoint=null" in msg
+    if checkpoint.startswith("/"):
+        assert "directory /no/such/dir/mask2former" in msg
+    else:
+        from huggingface_hub.constants import HF_HUB_CACHE
+
+        assert str(HF_HUB_CACHE) in msg
+
+
+def test_pretrained_directory_loads_with_its_processor(tmp_path: Path) -> None:
+    from transformers import Mask2FormerImageProcessor
+
+    torch.manual_seed(0)
+    model = embedded_model(TINY_MODEL)
+    model.save_pretrained(tmp_path / "ckpt")
+    Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(tmp_path / "ckpt")
+    teacher = build_teacher(tiny_cfg(checkpoint=str(tmp_path / "ckpt")), None, None, tmp_path / "cache")
+    assert teacher.teacher_key.startswith("pretrained-")
+    assert torch.allclose(teacher.mean.flatten(), torch.tensor([0.5] * 3))
+    reference = Teacher(model, image_mean=[0.5] * 3, image_std=[0.25] * 3).eval()
+    images = torch.rand(2, 3, 32, 48)
+    assert torch.equal(teacher.predict_train_ids(images), reference.predict_train_ids(images))
+    assert not (tmp_path / "cache").exists()  # nothing trained or cached for a pretrained teacher
+
+
+def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    write_cityscapes(tmp_path / "cs")
+    train, val = read_cityscapes(tmp_path / "cs", "train"), read_cityscapes(tmp_path / "cs", "val")
+    first = build_teacher(tiny_cfg(), train, val, tmp_path / "cache")
+    art = tmp_path / "cache" / first.teacher_key
+    assert (art / "model.pt").is_file() and (art / "config.json").is_file()
+    metrics = (art / "metrics.json").read_text()
+    assert "val/static_iou" in metrics and "val/mIoU" in metrics
+    assert not any(p.name.startswith(".") for p in (tmp_path / "cache").iterdir())  # no temp dirs left
+
+    monkeypatch.setattr(teacher_mod, "_train", lambda *a: pytest.fail("trained twice"))
+    second = build_teacher(tiny_cfg(), train, val, tmp_path / "cache")
+    assert second.teacher_key == first.teacher_key
+    images = batch(2, seed=5)[0]
+    assert torch.equal(first.static_prob(images), second.static_prob(images))
+    assert not second.training and not any(p.requires_grad for p in second.parameters())
