@@ -12,7 +12,9 @@ import torch
 
 from semvpr.errors import SemvprError
 from semvpr.train import run_job
-from tests.helpers import tiny_config
+from hydra import compose, initialize_config_dir
+
+from tests.helpers import CONF_DIR, tiny_config
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -61,8 +63,13 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     assert len(retrievals["queries"]) == 8 and len(retrievals["queries"][0]["topk"]) == 5
 
 
-def test_training_beats_kmeans_only_model(cache_dir: Path, tmp_path: Path) -> None:
-    metrics = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=6"), tmp_path)
+@pytest.mark.slow
+def test_training_beats_kmeans_only_model(tmp_path: Path) -> None:
+    # The tiny preset's 24 test queries are too few to resolve the gain; this uses the default
+    # preset (about 5 minutes on 2 cores; measured 27.8 -> 33.6 R@1 for seed 0).
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[f"paths.cache_dir={tmp_path / 'cache'}", "filter=none"])
+    metrics = run_job(cfg, tmp_path / "run")
     assert metrics["test/R@1"] > metrics["untrained/test/R@1"], metrics
 
 
@@ -72,8 +79,11 @@ def test_resume_from_last_checkpoint(cache_dir: Path, trained_run: Path, tmp_pat
     first = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
     run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), run_dir)
     resumed = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
-    assert (first["epoch"], resumed["epoch"]) == (0, 1)
+    assert resumed["epoch"] > first["epoch"]
     assert resumed["global_step"] > first["global_step"]
+    # The resumed run trained only the remaining epoch: its own log starts at epoch 1.
+    resumed_log = sorted((run_dir / "csv").rglob("metrics.csv"))[-1].read_text().splitlines()
+    assert all(line.split(",")[0] != "0" for line in resumed_log[1:])
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(cache_dir: Path, tmp_path: Path,
