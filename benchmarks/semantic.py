@@ -7,6 +7,7 @@ ground truth (the GT is read here only, never by training). Artifacts go to a fr
 stage is timed from scratch; SynthCity itself is generated once into --data-cache.
 
     python benchmarks/semantic.py [--preset default] [--seed 0] [--data-cache outputs/cache] [--eval-images 400]
+                                  [--threads N]
 
 Last line: ``teacher_s=.. teacher_miou=.. teacher_static_iou=.. label_img_s=.. student_s=..
 student_iou_teacher=.. student_iou_gt=..``
@@ -98,7 +99,11 @@ def main() -> None:
     ap.add_argument("--data-cache", default="outputs/cache", help="where SynthCity is generated (once)")
     ap.add_argument("--backbone-seed", type=int, default=0)
     ap.add_argument("--eval-images", type=int, default=400, help="held-out test images to score the student on")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads (default: torch's); 1 is far faster while other jobs load the cores")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
 
     train = read_split(args.preset, args.seed, args.data_cache, "train")
     test = read_split(args.preset, args.seed, args.data_cache, "test")
