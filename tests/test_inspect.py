@@ -3,14 +3,17 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
 from semvpr.data.inspect import main
+from tests.test_places import write_dbstruct
 
 REPO = Path(__file__).resolve().parents[1]
 MINIMAL_DATA = """\
@@ -84,3 +87,39 @@ def test_repo_conf_folder_dataset(tmp_path: Path, capsys: pytest.CaptureFixture[
     main(["data=folder", f"data.root={root}"])
     out = capsys.readouterr()
     assert json.loads(out.out.strip().splitlines()[-1])["queries_with_positives"] == 2, out.err
+
+
+@pytest.mark.parametrize(("case", "expected"), [
+    ("malformed_name", r"IMG_0001\.jpg: not an @UTM@ image name"),
+    ("empty_split", r"images/test/queries: no queries images"),
+    ("mat_lacks_field", r"pitts30k_test\.mat: dbStruct lacks field 'utmQ'"),
+    ("mat_empty_split", r"pitts30k_test\.mat: empty split \(0 database, 1 query names\)"),
+])
+def test_bad_dataset_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                        case: str, expected: str) -> None:
+    """Each broken dataset gives exit 2 and one `semvpr: error:` line naming the problem."""
+    root = tmp_path / "data"
+    if case.startswith("mat"):
+        (root / "datasets").mkdir(parents=True)
+        names, utm = (["a.jpg"], np.zeros((1, 2)))
+        db_names, db_utm = ([], np.zeros((0, 2))) if case == "mat_empty_split" else (names, utm)
+        write_dbstruct(root / "datasets" / "pitts30k_test.mat", db_names, db_utm, names, utm,
+                       drop="utmQ" if case == "mat_lacks_field" else None)
+        overrides = ["data=pitts30k", f"data.root={root}"]
+    else:
+        make_folder(root)
+        queries = root / "images" / "test" / "queries"
+        if case == "malformed_name":
+            Image.new("RGB", (4, 4)).save(queries / "IMG_0001.jpg")
+        else:
+            for p in queries.iterdir():
+                p.unlink()
+        overrides = ["data=folder", f"data.root={root}"]
+    with pytest.raises(SystemExit) as exc:
+        main(overrides)
+    assert exc.value.code == 2
+    out = capsys.readouterr()
+    err = out.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("semvpr: error: "), out.err
+    assert re.search(expected, err[0]), err[0]
+    assert out.out == ""

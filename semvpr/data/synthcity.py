@@ -24,7 +24,7 @@ from semvpr.data.classes import train_ids_to_label_ids
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries)
 DB_STEP_M = 5.0
 ZONE, LETTER = "17", "T"
 EAST0, NORTH0, ROUTE_SPACING_M = 580_000.0, 4_470_000.0, 1_000.0  # one northing line per route
@@ -54,10 +54,10 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     "tiny": Preset(RenderSpec(64, 80), {"train": SplitSpec(1, 24, 16), "val": SplitSpec(1, 12, 12),
                                         "test": SplitSpec(1, 24, 24)},
-                   {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)}, (0.25, 0.6)),
+                   {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)}, (0.45, 0.7)),
     "default": Preset(RenderSpec(120, 160), {"train": SplitSpec(3, 200, 134), "val": SplitSpec(1, 200, 200),
                                              "test": SplitSpec(3, 200, 350)},
-                      {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)}, (0.35, 0.5)),
+                      {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)}, (0.5, 0.65)),
 }  # fmt: skip
 
 
@@ -101,7 +101,7 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
     """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics."""
     p = get_preset(preset, coverage, lighting)
     spec = p.render
-    pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]))
+    pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
     routes = _routes(p)
     total = sum(s.db_per_route + s.q_per_route if k == "vpr" else s.q_per_route for k, _, _, s in routes)
     fractions: dict[str, list[tuple[float, float]]] = {}
@@ -135,7 +135,7 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
                           root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
                 bar.update()
     stats = {"preset": preset, "seed": seed, "version": GENERATOR_VERSION,
-             "coverage_target": spec.coverage, "lighting": spec.lighting,
+             "coverage_target": spec.coverage, "lighting": spec.lighting, "liveries": spec.liveries,
              "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
              "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
              "images": {k: len(v) for k, v in fractions.items()}}

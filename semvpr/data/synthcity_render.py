@@ -32,8 +32,11 @@ class RenderSpec:
     height: int
     width: int
     view_m: float = 24.0  # facade width seen by one capture
-    coverage: float = 0.42  # target MEASURED dynamic (trainId >= 10) pixel fraction
-    lighting: float = 0.5  # 0 = same light for both traversals, 1 = strong gain/gamma/cast change
+    # Calibrated (benchmarks/calibrate_synthcity.py): with these three an oracle static mask gains
+    # >= 10 R@1 points. Fewer liveries = the same vehicle look at more places = more misleading.
+    coverage: float = 0.64  # target MEASURED dynamic (trainId >= 10) pixel fraction (~0.58 reached)
+    lighting: float = 0.25  # 0 = same light for both traversals, 1 = strong gain/gamma/cast change
+    liveries: int = 3  # vehicle/clothing textures shared by the whole dataset
     jitter_m: float = 3.0
     scale_jitter: float = 0.1
     pitch_m: float = 4.0  # vertical view shift range; larger = more sky, less road
@@ -268,7 +271,7 @@ def _vivid(rng: np.random.Generator) -> np.ndarray:
     return (v * (1 - s + s * hue)).astype(np.float32)
 
 
-def make_texture_pool(rng: np.random.Generator, n: int = 12, th: int = 48, tw: int = 96) -> np.ndarray:
+def make_texture_pool(rng: np.random.Generator, n: int, th: int = 48, tw: int = 96) -> np.ndarray:
     """Vivid vehicle/clothing textures shared by the whole dataset, so one livery shows up at many places."""
     yy, xx = np.mgrid[0:th, 0:tw].astype(np.float32)
     pool = np.empty((n, th, tw, 3), np.float32)

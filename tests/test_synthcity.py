@@ -1,0 +1,355 @@
+"""SynthCity generator: determinism, layouts, label sanity, cache reuse and the CLI's error handling.
+
+All tests share one tiny-preset dataset built through the artifact cache (module fixture); the
+numbers they check come from PRESETS["tiny"], so they hold whatever sizes the preset is tuned to.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import semvpr.data.synthcity as synthcity
+from semvpr.artifacts import artifact_dir
+from semvpr.data.classes import TRAIN_ID_NAMES, TRAIN_TO_LABEL, label_ids_to_train_ids
+from semvpr.data.places import parse_utm_name
+from semvpr.data.segmentation import read_cityscapes
+from semvpr.data.synthcity import (DATES, DB_STEP_M, PRESETS, ensure_synthcity, generate, get_preset, main,
+                                   read_segmentation, read_split)
+from semvpr.errors import SemvprError
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = PRESETS["tiny"]
+DYNAMIC_MIN = TRAIN_ID_NAMES.index("sky")  # trainIds >= 10 are dynamic / uninformative
+
+
+def tree(root: Path, skip: tuple[str, ...] = ("key.json",)) -> dict[str, str]:
+    """Relative path → sha256 of every file under ``root`` (``skip``: top-level names left out)."""
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and p.relative_to(root).parts[0] not in skip}
+
+
+def ids(path: Path) -> np.ndarray:
+    return np.asarray(Image.open(path))
+
+
+def vpr_images(root: Path, split: str, sub: str) -> list[Path]:
+    return sorted((root / "images" / split / sub).glob("*.jpg"))
+
+
+def label_of(root: Path, image: Path) -> Path:
+    return root / "labels" / image.parent.parent.name / image.parent.name / f"{image.stem}.png"
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def dataset(cache_dir: Path) -> Path:
+    """The tiny preset, seed 0, generated once into the artifact cache."""
+    return ensure_synthcity(cache_dir, "tiny", 0)
+
+
+# --- determinism -------------------------------------------------------------------------------
+
+
+def test_same_seed_is_byte_identical(dataset: Path, tmp_path: Path) -> None:
+    again = tmp_path / "again"
+    again.mkdir()
+    stats = generate(again, "tiny", 0)
+    first, second = tree(dataset), tree(again)
+    assert sorted(first) == sorted(second) and len(first) > 100
+    assert first == second
+    assert stats == json.loads((dataset / "stats.json").read_text())
+
+
+def test_other_seed_gives_other_images(dataset: Path, tmp_path: Path) -> None:
+    other = tmp_path / "seed1"
+    other.mkdir()
+    generate(other, "tiny", 1)
+    # Database captures sit at fixed route positions, so their names repeat; their pixels must not.
+    db0, db1 = vpr_images(dataset, "test", "database"), vpr_images(other, "test", "database")
+    assert [p.name for p in db0] == [p.name for p in db1]
+    for a, b in zip(db0, db1):
+        assert a.read_bytes() != b.read_bytes(), a.name
+    # Query positions are random per seed.
+    q0, q1 = ({p.name for p in vpr_images(root, "test", "queries")} for root in (dataset, other))
+    assert q0 != q1
+    assert json.loads((other / "stats.json").read_text())["seed"] == 1
+
+
+# --- layout ------------------------------------------------------------------------------------
+
+
+def test_vpr_layout_counts_names_and_labels(dataset: Path) -> None:
+    assert {p.name for p in dataset.iterdir()} == {"images", "labels", "seg", "stats.json", "key.json"}
+    assert sorted(p.name for p in (dataset / "images").iterdir()) == sorted(TINY.vpr)
+    for split, spec in TINY.vpr.items():
+        for sub, per_route, date in (("database", spec.db_per_route, DATES[0]),
+                                     ("queries", spec.q_per_route, DATES[1])):
+            images = vpr_images(dataset, split, sub)
+            assert len(images) == spec.routes * per_route, (split, sub)
+            assert len(list((dataset / "labels" / split / sub).iterdir())) == len(images)
+            for image in images:
+                fields = image.name.split("@")
+                assert len(fields) == 16 and fields[13] == date, image.name
+                east, north = parse_utm_name(image)
+                assert np.isfinite([east, north]).all()
+                with Image.open(image) as img:
+                    assert img.format == "JPEG" and img.mode == "RGB"
+                    assert img.size == (TINY.render.width, TINY.render.height)
+                    size = img.size
+                with Image.open(label_of(dataset, image)) as lab:
+                    assert lab.format == "PNG" and lab.mode == "L" and lab.size == size, image.name
+
+
+def route_positions(root: Path, split: str, sub: str) -> dict[float, np.ndarray]:
+    """Northing line → sorted eastings of one split's images."""
+    utm = np.array([parse_utm_name(p) for p in vpr_images(root, split, sub)])
+    return {float(n): np.sort(utm[utm[:, 1] == n, 0]) for n in np.unique(utm[:, 1])}
+
+
+def test_routes_disjoint_and_database_every_5m(dataset: Path) -> None:
+    lines: dict[str, set[float]] = {}
+    for split, spec in TINY.vpr.items():
+        db, q = route_positions(dataset, split, "database"), route_positions(dataset, split, "queries")
+        assert len(db) == spec.routes and set(q) == set(db), split
+        lines[split] = set(db)
+        for north, east in db.items():
+            assert len(east) == spec.db_per_route
+            np.testing.assert_allclose(np.diff(east), DB_STEP_M, atol=0.011)
+            assert DB_STEP_M == pytest.approx(5.0)
+            # Queries fall along the same stretch, each within half a step of a database image.
+            gaps = np.abs(q[north][:, None] - east[None, :]).min(1)
+            assert len(q[north]) == spec.q_per_route and gaps.max() <= DB_STEP_M / 2 + 0.011
+    splits = sorted(lines)
+    for i, a in enumerate(splits):
+        for b in splits[i + 1:]:
+            assert not lines[a] & lines[b], (a, b)
+            # Far beyond any positive radius: no cross-split positives.
+            assert min(abs(x - y) for x in lines[a] for y in lines[b]) > 100.0
+
+
+def test_segmentation_layout(dataset: Path) -> None:
+    seg = dataset / "seg"
+    assert sorted(p.name for p in (seg / "leftImg8bit").iterdir()) == sorted(TINY.seg)
+    assert sorted(p.name for p in (seg / "gtFine").iterdir()) == sorted(TINY.seg)
+    for split, spec in TINY.seg.items():
+        pairs = read_cityscapes(seg, split)
+        assert len(pairs) == spec.routes * spec.q_per_route
+        assert len(list((seg / "gtFine" / split).rglob("*.png"))) == len(pairs)
+        for image, label in zip(pairs.images, pairs.labels):
+            with Image.open(image) as img, Image.open(label) as lab:
+                assert img.mode == "RGB" and lab.mode == "L" and img.size == lab.size
+                assert img.size == (TINY.render.width, TINY.render.height)
+    val = TINY.seg["val"]
+    assert len(read_segmentation("tiny", 0, dataset.parent, "val")) == val.routes * val.q_per_route
+
+
+# --- labels and statistics ---------------------------------------------------------------------
+
+
+def test_labels_are_valid_train_ids(dataset: Path) -> None:
+    seen: set[int] = set()
+    for label in (dataset / "labels").rglob("*.png"):
+        arr = ids(label)
+        assert arr.max() < len(TRAIN_ID_NAMES), label
+        seen |= set(np.unique(arr).tolist())
+    # Both a static street and road users are drawn.
+    assert {TRAIN_ID_NAMES.index(n) for n in ("road", "building", "sky", "car")} <= seen
+    for label in (dataset / "seg" / "gtFine").rglob("*_gtFine_labelIds.png"):
+        arr = ids(label)
+        assert set(np.unique(arr).tolist()) <= set(TRAIN_TO_LABEL), label
+        assert label_ids_to_train_ids(arr).max() < len(TRAIN_ID_NAMES), label
+
+
+def measured(labels: list[np.ndarray]) -> tuple[float, float]:
+    """Mean dynamic and mean sky fraction over label maps (trainIds)."""
+    sky = TRAIN_ID_NAMES.index("sky")
+    return (float(np.mean([(a >= DYNAMIC_MIN).mean() for a in labels])),
+            float(np.mean([(a == sky).mean() for a in labels])))
+
+
+def test_dynamic_fraction_in_bounds_and_stats_agree(dataset: Path) -> None:
+    stats = json.loads((dataset / "stats.json").read_text())
+    assert (stats["preset"], stats["seed"], stats["version"]) == ("tiny", 0, synthcity.GENERATOR_VERSION)
+    assert stats["coverage_target"] == TINY.render.coverage and stats["lighting"] == TINY.render.lighting
+    queries = [ids(label_of(dataset, p)) for p in vpr_images(dataset, "test", "queries")]
+    lo, hi = TINY.dynamic_bounds
+    assert lo <= measured(queries)[0] <= hi
+    for split in TINY.vpr:  # stats keys: VPR split (database + queries), "seg-<split>"
+        labels = [ids(label_of(dataset, p)) for sub in ("database", "queries")
+                  for p in vpr_images(dataset, split, sub)]
+        dyn, sky = measured(labels)
+        assert stats["images"][split] == len(labels)
+        assert stats["dynamic_fraction"][split] == pytest.approx(dyn, abs=1e-3)
+        assert stats["sky_fraction"][split] == pytest.approx(sky, abs=1e-3)
+    for split in TINY.seg:
+        pairs = read_cityscapes(dataset / "seg", split)
+        dyn, sky = measured([label_ids_to_train_ids(ids(p)) for p in pairs.labels])
+        assert stats["images"][f"seg-{split}"] == len(pairs)
+        assert stats["dynamic_fraction"][f"seg-{split}"] == pytest.approx(dyn, abs=1e-3)
+        assert stats["sky_fraction"][f"seg-{split}"] == pytest.approx(sky, abs=1e-3)
+    assert set(stats["images"]) == set(TINY.vpr) | {f"seg-{s}" for s in TINY.seg}
+
+
+# --- place sets --------------------------------------------------------------------------------
+
+
+def test_read_split_labels_and_query_differs_from_its_database_image(dataset: Path) -> None:
+    places = read_split("tiny", 0, dataset.parent, "test")
+    spec = TINY.vpr["test"]
+    assert places.name == "synthcity-tiny-s0/test"
+    assert len(places.db_paths) == spec.routes * spec.db_per_route
+    assert len(places.q_paths) == spec.routes * spec.q_per_route
+    assert places.db_labels is not None and places.q_labels is not None
+    for image, label in zip(places.db_paths + places.q_paths, places.db_labels + places.q_labels):
+        assert label.is_file() and label.stem == image.stem and label.parent.name == image.parent.name
+    for qi, pos in enumerate(places.positives()):
+        assert len(pos) > 0, places.q_paths[qi].name
+        di = int(pos[0])
+        assert np.linalg.norm(places.q_utm[qi] - places.db_utm[di]) <= DB_STEP_M / 2 + 0.011
+        q_img = np.asarray(Image.open(places.q_paths[qi]), np.float32)
+        d_img = np.asarray(Image.open(places.db_paths[di]), np.float32)
+        assert np.abs(q_img - d_img).mean() > 2.0  # another time of day, other traffic
+        q_dyn, d_dyn = ids(places.q_labels[qi]) >= DYNAMIC_MIN, ids(places.db_labels[di]) >= DYNAMIC_MIN
+        assert (q_dyn != d_dyn).any()
+    with pytest.raises(SemvprError, match="no VPR split 'seg'"):
+        read_split("tiny", 0, dataset.parent, "seg")
+    with pytest.raises(SemvprError, match="no segmentation split 'test'"):
+        read_segmentation("tiny", 0, dataset.parent, "test")
+
+
+# --- cache -------------------------------------------------------------------------------------
+
+
+def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    before = tree(dataset, skip=())
+    mtimes = {p: p.stat().st_mtime_ns for p in dataset.rglob("*")}
+
+    def regenerate(*args: object, **kwargs: object) -> dict:
+        raise AssertionError("generated again")
+
+    monkeypatch.setattr(synthcity, "generate", regenerate)
+    assert ensure_synthcity(cache_dir, "tiny", 0) == dataset
+    # Spelling out the preset's own coverage is the same dataset.
+    assert ensure_synthcity(cache_dir, "tiny", 0, coverage=TINY.render.coverage) == dataset
+    assert tree(dataset, skip=()) == before and {p: p.stat().st_mtime_ns for p in dataset.rglob("*")} == mtimes
+    assert json.loads((dataset / "key.json").read_text()) == {
+        "preset": "tiny", "seed": 0, "version": synthcity.GENERATOR_VERSION,
+        "coverage": TINY.render.coverage, "lighting": TINY.render.lighting}
+    # Another seed or coverage is another artifact; a failed build leaves nothing in the cache.
+    assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 1, None, None)) != dataset
+    assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 0, 0.2, None)) != dataset
+    with pytest.raises(AssertionError, match="generated again"):
+        ensure_synthcity(cache_dir, "tiny", 1)
+    assert [p.name for p in cache_dir.iterdir()] == [dataset.name]
+
+
+def test_get_preset_overrides_and_bad_values() -> None:
+    p = get_preset("tiny", coverage=0.2, lighting=0.0)
+    assert (p.render.coverage, p.render.lighting) == (0.2, 0.0) and p.vpr == TINY.vpr
+    assert get_preset("tiny") == TINY
+    with pytest.raises(SemvprError, match=r"unknown SynthCity preset 'huge'.*tiny"):
+        get_preset("huge")
+    with pytest.raises(SemvprError, match=r"lighting=-0\.1 is outside \[0, 1\]"):
+        get_preset("tiny", lighting=-0.1)
+
+
+# --- CLI ---------------------------------------------------------------------------------------
+
+
+def one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith("semvpr: error: "), err
+    return lines[0]
+
+
+def test_cli_writes_dataset_identical_to_generate(dataset: Path, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "new" / "city"  # parent does not exist yet
+    main(["--out", str(out), "--preset", "tiny", "--seed", "0"])
+    printed = capsys.readouterr().out.strip().splitlines()
+    total = sum(json.loads((dataset / "stats.json").read_text())["images"].values())
+    assert len(printed) == 1 and printed[0].startswith(f"wrote {total} images to {out}")
+    assert "dynamic fraction" in printed[0]
+    assert tree(out) == tree(dataset)
+    assert [p.name for p in out.parent.iterdir()] == ["city"]  # no .tmp- sibling left
+    empty = tmp_path / "empty"  # an existing empty directory is accepted too
+    empty.mkdir()
+    main(["--out", str(empty), "--preset", "tiny", "--seed", "0"])
+    assert tree(empty) == tree(dataset)
+
+
+def test_cli_refuses_non_empty_out(tmp_path: Path) -> None:
+    """Subprocess: the real entry point prints one line, no traceback, and touches nothing."""
+    out = tmp_path / "taken"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run([sys.executable, "-m", "semvpr.data.synthcity", "--out", str(out), "--preset", "tiny"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    line = one_error_line(proc.stderr)
+    assert "--out" in line and str(out) in line and "not an empty directory" in line
+    assert proc.stdout == ""
+    assert tree(out) == {"keep.txt": hashlib.sha256(b"precious").hexdigest()}
+    assert [p.name for p in tmp_path.iterdir()] == ["taken"]
+
+
+def test_cli_out_is_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "file.txt"
+    out.write_text("x")
+    with pytest.raises(SystemExit) as exc:
+        main(["--out", str(out), "--preset", "tiny"])
+    assert exc.value.code == 2
+    assert str(out) in one_error_line(capsys.readouterr().err)
+    assert out.read_text() == "x" and [p.name for p in tmp_path.iterdir()] == ["file.txt"]
+
+
+def test_cli_bad_preset_is_argparse_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--out", str(tmp_path / "x"), "--preset", "huge"])
+    assert exc.value.code == 2
+    assert "invalid choice: 'huge'" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("flag", "value"), [("--coverage", "1.5"), ("--lighting", "-0.5")])
+def test_cli_out_of_range_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], flag: str, value: str) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--out", str(tmp_path / "x"), "--preset", "tiny", flag, value])
+    assert exc.value.code == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"{flag[2:]}={float(value)}" in line and "[0, 1]" in line
+    assert list(tmp_path.iterdir()) == []  # validated before anything is created
+
+
+@pytest.mark.parametrize("error", [SemvprError("disk full"), KeyboardInterrupt()])
+def test_cli_failure_mid_generation_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture[str],
+                                                   error: BaseException) -> None:
+    def half_then_fail(root: Path, *args: object) -> dict:
+        (root / "images").mkdir()
+        (root / "images" / "partial.jpg").write_bytes(b"\xff\xd8")
+        raise error
+
+    monkeypatch.setattr(synthcity, "generate", half_then_fail)
+    out = tmp_path / "parent" / "city"
+    with pytest.raises(SystemExit if isinstance(error, SemvprError) else KeyboardInterrupt) as exc:
+        main(["--out", str(out), "--preset", "tiny"])
+    if isinstance(error, SemvprError):
+        assert exc.value.code == 2
+        assert one_error_line(capsys.readouterr().err) == "semvpr: error: disk full"
+    assert not out.exists()
+    assert list(out.parent.iterdir()) == []  # the .tmp- directory is gone
