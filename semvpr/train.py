@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -147,9 +149,24 @@ def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retri
     os.replace(tmp, run_dir / "maps.npz")
 
 
+class Interrupted(BaseException):
+    """SIGTERM / SIGINT: stop the job and the whole sweep; not a job failure."""
+
+
+def _interrupt(signum: int, _frame: object) -> None:
+    raise Interrupted(f"stopped by {signal.Signals(signum).name}")
+
+
 def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str, Any]:
-    """Run a job and always leave a metrics.json; in a sweep a failure never stops the others."""
+    """Run a job and always leave a metrics.json; in a sweep a failure never stops the others.
+
+    A signal (scheduler pre-emption, ``kill``, Ctrl-C) raises :class:`Interrupted` instead: it is
+    not recorded as a failed job and it ends the sweep. Lightning composes its own SIGTERM handler
+    with this one during ``fit``.
+    """
     run_dir.mkdir(parents=True, exist_ok=True)
+    signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
+    previous = {sig: signal.signal(sig, _interrupt) for sig in signals}
     try:
         metrics = fit_and_test(cfg, run_dir)
     except Exception as err:  # noqa: BLE001 - every failure is recorded for the report
@@ -161,6 +178,9 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
             print(f"semvpr: job failed ({run_dir}): {message}", file=sys.stderr)
             return {"status": "failed"}
         raise
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     write_json(run_dir / "metrics.json", metrics)
     summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@")}
     print(json.dumps({"run_dir": str(run_dir), **summary}))

@@ -2,17 +2,23 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from semvpr import train
 from semvpr.errors import SemvprError
 from semvpr.train import run_job
-from hydra import compose, initialize_config_dir
 
 from tests.helpers import CONF_DIR, tiny_config
 
@@ -107,6 +113,20 @@ def test_failed_job_in_sweep_is_recorded_not_raised(cache_dir: Path, tmp_path: P
     written = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["status"] == written["status"] == "failed"
     assert "model.num_clusters=0" in written["error"]
+
+
+def test_signal_stops_the_sweep_instead_of_recording_a_failure(tmp_path: Path, monkeypatch) -> None:
+    def killed(cfg, run_dir):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler interrupts this sleep
+        raise AssertionError("SIGTERM was ignored")
+
+    monkeypatch.setattr(train, "fit_and_test", killed)
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(train.Interrupted, match="SIGTERM"):
+        run_job(OmegaConf.create({"seed": 0}), tmp_path, multirun=True)
+    assert not (tmp_path / "metrics.json").exists()
+    assert signal.getsignal(signal.SIGTERM) is before  # handler restored
 
 
 def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
