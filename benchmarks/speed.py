@@ -1,7 +1,8 @@
-"""Speed ratios measured in one run: VGG16 extraction vs bf16 roofline, vectorised vs loop NetVLAD, Recall@N at Pitts30k scale.
+"""Speed ratios measured in one run: VGG16 extraction vs bf16 roofline, vectorised vs loop NetVLAD,
+SRAL vs NetVLAD, Recall@N at Pitts30k scale.
 
 python benchmarks/speed.py [--batch 16] [--reps 3]
-Last line: extract_roofline_ratio=<r> aggregate_speedup=<s> recall_pitts30k_s=<t>
+Last line: extract_roofline_ratio=<r> aggregate_speedup=<s> sral_cost=<c> recall_pitts30k_s=<t>
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import torch
 from semvpr.metrics import knn, positives_within, recall_result
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.netvlad import NetVLAD, netvlad_loop_reference
+from semvpr.models.sral import SRAL
 
 REPO = Path(__file__).resolve().parents[1]
 PITTS = REPO.parent / "shared" / "realdata" / "pitts30k_test.npz"
@@ -95,6 +97,26 @@ def bench_aggregate(batch: int, reps: int) -> float:
     return speedups[0]
 
 
+def bench_sral(batch: int, reps: int) -> float:
+    """SRAL (K=32, S=4 shadows) vs NetVLAD (K=32) forward, with a mask, at the 7x10 and 30x40 grids.
+
+    Returns SRAL's time over NetVLAD's at 7x10 (the cost of the shadow centroids and attention).
+    """
+    torch.manual_seed(0)
+    vlad, sral = NetVLAD(32, 512).eval(), SRAL(32, 512, num_shadows=4).eval()
+    costs = []
+    with torch.inference_mode():
+        for b, h, w in ((batch, 7, 10), (max(1, batch // 4), 30, 40)):
+            x = torch.relu(torch.randn(b, 512, h, w))
+            mask = (torch.rand(b, 1, h, w) > 0.3).float()
+            t_vlad = best_time(lambda: vlad(x, mask), reps)
+            t_sral = best_time(lambda: sral(x, mask), reps)
+            costs.append(t_sral / t_vlad)
+            print(f"sral: K=32 S=4 D=512 batch {b} grid {h}x{w}: NetVLAD {t_vlad * 1e3:.1f} ms, "
+                  f"SRAL {t_sral * 1e3:.1f} ms (x{costs[-1]:.2f}); {b / t_sral:.0f} maps/s")
+    return costs[0]
+
+
 def pitts30k_utms() -> tuple[np.ndarray, np.ndarray, str]:
     """Pitts30k-test UTMs from ../shared/realdata when present, else a synthetic route of the same size."""
     if PITTS.is_file():
@@ -133,7 +155,7 @@ def bench_recall(dim: int = 4096) -> float:
 
 
 def main() -> None:
-    """Run the three measurements and print the summary line."""
+    """Run the four measurements and print the summary line."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=16, help="images per extraction batch")
     parser.add_argument("--agg-batch", type=int, default=32, help="feature maps per aggregation batch")
@@ -142,8 +164,10 @@ def main() -> None:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     ratio = bench_extract(args.batch, args.reps)
     speedup = bench_aggregate(args.agg_batch, args.reps)
+    sral_cost = bench_sral(args.agg_batch, args.reps)
     seconds = bench_recall()
-    print(f"extract_roofline_ratio={ratio:.2f} aggregate_speedup={speedup:.2f} recall_pitts30k_s={seconds:.2f}")
+    print(f"extract_roofline_ratio={ratio:.2f} aggregate_speedup={speedup:.2f} sral_cost={sral_cost:.2f} "
+          f"recall_pitts30k_s={seconds:.2f}")
 
 
 if __name__ == "__main__":

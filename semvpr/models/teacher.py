@@ -58,12 +58,13 @@ class Teacher(L.LightningModule):
         weight_decay: float = 0.05,
         warmup_steps: int = 50,
         bf16: bool = True,
+        flip: bool = False,
     ) -> None:
         super().__init__()
         self.model = model
         self.id2label = {int(k): str(v) for k, v in model.config.id2label.items()}
         self.inference_size = tuple(inference_size) if inference_size else None
-        self.lr, self.weight_decay, self.warmup_steps, self.bf16 = lr, weight_decay, warmup_steps, bf16
+        self.lr, self.weight_decay, self.warmup_steps, self.bf16, self.flip = lr, weight_decay, warmup_steps, bf16, flip
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
         names = {_norm_name(n): i for i, n in enumerate(TRAIN_ID_NAMES)}
         model_to_train = [names.get(_norm_name(self.id2label[i]), IGNORE) for i in range(len(self.id2label))]
@@ -124,6 +125,11 @@ class Teacher(L.LightningModule):
     def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
         """Mask2Former loss (Hungarian-matched CE + mask BCE + dice) on trainId maps."""
         images, train_ids = batch
+        if self.flip:
+            # Street scenes are left-right symmetric; a batch-level flip is free, unlike per-sample kornia.
+            mirror = torch.rand(len(images), device=images.device) < 0.5
+            images = torch.where(mirror[:, None, None, None], images.flip(-1), images)
+            train_ids = torch.where(mirror[:, None, None], train_ids.flip(-1), train_ids)
         mask_labels, class_labels = targets_from_train_ids(train_ids, self.train_to_model)
         loss = self.model(pixel_values=self._pixels(images), mask_labels=mask_labels, class_labels=class_labels).loss
         self.log("train/loss", loss, prog_bar=True, batch_size=len(images))
@@ -182,7 +188,7 @@ def _teacher_kwargs(cfg: DictConfig) -> dict[str, Any]:
     return {
         "static_names": list(cfg.static_classes), "dynamic_names": list(cfg.dynamic_classes),
         "inference_size": cfg.get("inference_size"), "lr": cfg.train.lr, "weight_decay": cfg.train.weight_decay,
-        "warmup_steps": cfg.train.warmup_steps, "bf16": cfg.train.bf16,
+        "warmup_steps": cfg.train.warmup_steps, "bf16": cfg.train.bf16, "flip": cfg.train.get("flip", False),
     }  # fmt: skip
 
 
