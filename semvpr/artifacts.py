@@ -2,18 +2,26 @@
 
 An artifact lives in ``<cache_dir>/<kind>-<hash>/``. It is built in a temporary sibling directory
 and renamed when complete, so a directory with the final name is always a finished artifact.
+Builders of the same artifact are serialised by an advisory lock (``flock`` on
+``<cache_dir>/.locks/<kind>-<hash>.lock``; lock files are kept, as deleting them would race), so jobs of a parallel sweep (e.g. a SLURM array via hydra-submitit-launcher on a
+shared file system) build it once: the first takes the lock, the others wait and reuse its result.
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
 import shutil
 import uuid
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
+
+
+LOCK_DIR = ".locks"
 
 
 def config_hash(key: Any, length: int = 12) -> str:
@@ -46,7 +54,27 @@ def build_once(
     final = artifact_dir(cache_dir, kind, key)
     if final.is_dir():
         return final
-    final.parent.mkdir(parents=True, exist_ok=True)
+    (final.parent / LOCK_DIR).mkdir(parents=True, exist_ok=True)
+    with _exclusive(final.parent / LOCK_DIR / f"{final.name}.lock"):
+        if final.is_dir():  # another job built it while we waited for the lock
+            return final
+        _build_into(final, key, build, resumable)
+    return final
+
+
+@contextmanager
+def _exclusive(lock_path: Path) -> Iterator[None]:
+    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free)."""
+    with open(lock_path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable: bool) -> None:
+    """Run ``build`` in a temporary sibling of ``final`` and rename it into place on success."""
     suffix = "partial" if resumable else f"tmp-{uuid.uuid4().hex[:8]}"
     tmp = final.parent / f".{final.name}.{suffix}"
     tmp.mkdir(exist_ok=resumable)
@@ -55,15 +83,8 @@ def build_once(
         if isinstance(key, (DictConfig, ListConfig)):
             key = OmegaConf.to_container(key, resolve=True)
         (tmp / "key.json").write_text(json.dumps(key, sort_keys=True, indent=1, default=str))
-        try:
-            os.rename(tmp, final)
-        except OSError:
-            # Another job finished the same artifact first; theirs is equally valid.
-            if not final.is_dir():
-                raise
-            shutil.rmtree(tmp, ignore_errors=True)
+        os.rename(tmp, final)
     except BaseException:
         if not resumable:
             shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return final

@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 
 import semvpr.data.synthcity as synthcity
-from semvpr.artifacts import artifact_dir
+from semvpr.artifacts import LOCK_DIR, artifact_dir
 from semvpr.data.classes import TRAIN_ID_NAMES, TRAIN_TO_LABEL, label_ids_to_train_ids
 from semvpr.data.places import parse_utm_name
 from semvpr.data.segmentation import read_cityscapes
@@ -252,7 +252,7 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
     assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 0, 0.2, None)) != dataset
     with pytest.raises(AssertionError, match="generated again"):
         ensure_synthcity(cache_dir, "tiny", 1)
-    assert [p.name for p in cache_dir.iterdir()] == [dataset.name]
+    assert [p.name for p in cache_dir.iterdir() if p.name != LOCK_DIR] == [dataset.name]
 
 
 def test_get_preset_overrides_and_bad_values() -> None:
