@@ -61,6 +61,9 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         cfg.paths.cache_dir, cfg.model.eval_batch_size, cfg.data.num_workers) for split in places}
     timings["features_s"] = time.time() - tic
 
+    # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
+    # same numbers whether its artifacts were built just now or read from the cache.
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     tic = time.time()
     aggregator = instantiate(cfg.filter.aggregator, dim=backbone.out_channels)
     init_info = init_aggregator(cfg, aggregator, backbone, features["train"].db, places["train"], semantic)
@@ -128,8 +131,9 @@ def evaluate_features(retriever: Retriever, features: PlaceFeatures) -> dict[str
 @torch.no_grad()
 def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retriever: Retriever,
                       predictions: np.ndarray, num_queries: int) -> None:
-    """Top-k retrievals and attention / mask maps of the first test queries (same for every run)."""
-    idx = np.arange(min(num_queries, len(places.q_paths)))
+    """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
+    over the query traversal (the same queries for every run, so the report can compare filters)."""
+    idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
     positives = places.positives(25.0)
     queries = []
     for i in idx:
