@@ -266,6 +266,7 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
                 ax.set_title(f"#{c + 1}" + (f" · {dist:.0f} m" if math.isfinite(dist) else ""), fontsize=8)
                 if c == 0:
                     ax.set_ylabel(sweep.label(f), fontsize=9)
-    fig.suptitle(f"Top-{k} retrievals per filter ({bb}; green = correct, red = wrong)")
+    fig.suptitle(f"Top-{k} retrievals per filter ({bb}; green = correct, red = wrong)\n"
+                 "queries where the filters disagree most on the top-1")
     _save(fig, out)
     return None

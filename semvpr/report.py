@@ -211,6 +211,30 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
+def _paired_gains(sweep: Sweep, backbone: str) -> str | None:
+    """R@1 of each filter minus `none` with the same seed, summarised; None without a `none` run.
+
+    Runs with the same seed share the backbone init and the data, so the per-seed difference is
+    the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
+    """
+    none = {j.seed: j.recall(1) for j in sweep.jobs_of("none", backbone) if j.ok}
+    none = {seed: r for seed, r in none.items() if math.isfinite(r)}
+    if not none:
+        return None if any(j.ok for f in sweep.filters for j in sweep.jobs_of(f, backbone)) else ""
+    parts = []
+    for f in sweep.filters:
+        if f == "none":
+            continue
+        diffs = [j.recall(1) - none[j.seed] for j in sweep.jobs_of(f, backbone)
+                 if j.ok and j.seed in none and math.isfinite(j.recall(1))]
+        if diffs:
+            mean, std = mean_std(diffs)
+            spread = f" ± {_fmt(std)}" if math.isfinite(std) else ""
+            better = sum(d > 0 for d in diffs)
+            parts.append(f"{sweep.label(f)} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)")
+    return ", ".join(parts)
+
+
 def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str | None]) -> str:
     """Human-readable report: table, R@1 gains over `none`, failed jobs, figures."""
     n_ok = sum(j.ok for j in sweep.jobs)
@@ -225,16 +249,12 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
                    f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |")
     out.append("")
     for bb in sweep.backbones:
-        base = {r["filter"]: r["R@1"][0] for r in rows if r["backbone"] == bb}
-        others = [f for f in base if f != "none" and math.isfinite(base[f])]
-        if not others:
-            continue
-        if not math.isfinite(base.get("none", math.nan)):
+        gains = _paired_gains(sweep, bb)
+        if gains is None:
             out += [f"**R@1 gain over `none` ({bb}):** no finished `none` run to compare with.", ""]
-            continue
-        gains = ", ".join(f"{sweep.label(f)} {_fmt(base[f] - base['none'], signed=True)}" for f in others)
-        out.append(f"**R@1 gain over `none` ({bb}):** {gains}")
-        out.append("")  # separate paragraphs, one line per backbone when rendered
+        elif gains:
+            out += [f"**R@1 gain over `none` ({bb})**, per seed (same backbone init and data), then "
+                    f"mean ± std: {gains}", ""]
     failed = [j for j in sweep.jobs if not j.ok]
     if failed:
         out += ["## Failed jobs", ""]
