@@ -38,13 +38,15 @@ from semvpr.pseudolabels import pseudo_labels
 REPO = Path(__file__).resolve().parents[1]
 
 
-def load_cfg(image_size: list[int]) -> OmegaConf:
-    """The shipped teacher and student configs, with the data image size they interpolate."""
-    return OmegaConf.create({
+def load_cfg(image_size: list[int], overrides: list[str]) -> OmegaConf:
+    """The shipped teacher and student configs, with the data image size they interpolate, plus
+    dotted overrides (e.g. ``teacher.train.epochs=12``)."""
+    cfg = OmegaConf.create({
         "data": {"image_size": image_size},
         "teacher": OmegaConf.load(REPO / "conf/teacher/mask2former.yaml"),
         "student": OmegaConf.load(REPO / "conf/student/unet.yaml"),
     })  # fmt: skip
+    return OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))
 
 
 class StaticIoU:
@@ -101,6 +103,7 @@ def main() -> None:
     ap.add_argument("--eval-images", type=int, default=400, help="held-out test images to score the student on")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch threads (default: torch's); 1 is far faster while other jobs load the cores")
+    ap.add_argument("overrides", nargs="*", help="config overrides, e.g. teacher.train.epochs=12")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -110,7 +113,7 @@ def main() -> None:
     seg_train = read_segmentation(args.preset, args.seed, args.data_cache, "train")
     seg_val = read_segmentation(args.preset, args.seed, args.data_cache, "val")
     size = Image.open(train.db_paths[0]).size[::-1]
-    cfg = load_cfg(list(size))
+    cfg = load_cfg(list(size), args.overrides)
     lut = torch.full((256,), IGNORE, dtype=torch.long)
     lut[: len(TRAIN_ID_NAMES)] = torch.from_numpy(static_lut(tuple(cfg.teacher.static_classes))[: len(TRAIN_ID_NAMES)]).long()
     print(f"cpu threads={torch.get_num_threads()} load={os.getloadavg()[0]:.1f} seg train/val={len(seg_train)}/{len(seg_val)}")
