@@ -39,11 +39,13 @@ def trained_run(cache_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
     return run_dir
 
 
-@pytest.mark.parametrize("filter_name", ["none", "attention", "unet", "mask2former", "oracle"])
-def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: str) -> None:
-    cfg = tiny_config(cache_dir, f"filter={filter_name}", "+trainer.fast_dev_run=true")
+@pytest.mark.parametrize("filter_name,backbone", [("none", "vgg16"), ("attention", "vgg16"), ("unet", "vgg16"),
+                                                  ("mask2former", "vgg16"), ("oracle", "vgg16"),
+                                                  ("unet", "resnet50")])
+def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: str, backbone: str) -> None:
+    cfg = tiny_config(cache_dir, f"filter={filter_name}", f"backbone={backbone}", "+trainer.fast_dev_run=true")
     metrics = run_job(cfg, tmp_path)
-    assert metrics["filter"] == filter_name
+    assert metrics["filter"] == filter_name and metrics["backbone"] == backbone
     assert 0.0 <= metrics["test/R@1"] <= metrics["test/R@5"] <= metrics["test/R@20"] <= 100.0
     maps = np.load(tmp_path / "maps.npz")
     if filter_name != "none":

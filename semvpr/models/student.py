@@ -92,7 +92,8 @@ def backbone_identity(backbone: nn.Module) -> dict[str, Any]:
             if unit >= backbone.split:
                 continue  # the trainable part changes during retriever training; the student never sees it
         digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+        # reshape(-1): 0-dim buffers (BatchNorm's num_batches_tracked) cannot be viewed as bytes
+        digest.update(tensor.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
     return {"class": type(backbone).__name__, "train_from": getattr(backbone, "train_from", None),
             "frozen": digest.hexdigest()[:16]}  # fmt: skip
 
