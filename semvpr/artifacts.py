@@ -3,8 +3,9 @@
 An artifact lives in ``<cache_dir>/<kind>-<hash>/``. It is built in a temporary sibling directory
 and renamed when complete, so a directory with the final name is always a finished artifact.
 Builders of the same artifact are serialised by an advisory lock (``flock`` on
-``<cache_dir>/.locks/<kind>-<hash>.lock``; lock files are kept, as deleting them would race), so jobs of a parallel sweep (e.g. a SLURM array via hydra-submitit-launcher on a
-shared file system) build it once: the first takes the lock, the others wait and reuse its result.
+``<cache_dir>/.locks/<kind>-<hash>.lock``; lock files are kept, as deleting them would race), so
+the jobs of a parallel sweep (e.g. hydra-submitit-launcher on a shared file system) build it once:
+the first takes the lock, the others wait and then reuse its result.
 """
 from __future__ import annotations
 

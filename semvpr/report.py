@@ -212,7 +212,8 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
 
 
 def _paired_gains(sweep: Sweep, backbone: str) -> str | None:
-    """R@1 of each filter minus `none` with the same seed, summarised; None without a `none` run.
+    """R@1 of each filter minus `none` with the same seed, summarised; None when other filters
+    finished but `none` did not, "" when there is nothing to compare.
 
     Runs with the same seed share the backbone init and the data, so the per-seed difference is
     the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
