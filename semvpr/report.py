@@ -218,8 +218,7 @@ def _paired_gains(sweep: Sweep, backbone: str) -> str | None:
     Runs with the same seed share the backbone init and the data, so the per-seed difference is
     the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
     """
-    none = {j.seed: j.recall(1) for j in sweep.jobs_of("none", backbone) if j.ok}
-    none = {seed: r for seed, r in none.items() if math.isfinite(r)}
+    none = {j.seed: j.recall(1) for j in sweep.jobs_of("none", backbone) if j.ok and math.isfinite(j.recall(1))}
     if not none:
         return None if any(j.ok for f in sweep.filters for j in sweep.jobs_of(f, backbone)) else ""
     parts = []
