@@ -108,3 +108,58 @@ def test_weights_from_path(tmp_path: Path, vgg: VGG16Backbone) -> None:
         VGG16Backbone(weights=tmp_path / "bad.pth")
     with pytest.raises(SemvprError, match="train_from"):
         VGG16Backbone(train_from="conv9")
+
+
+
+def _imagenet_normalise(x: torch.Tensor) -> torch.Tensor:
+    """What the references' input transform does (our backbones normalise inside forward)."""
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    return (x - mean) / std
+
+
+def test_vgg16_cut_matches_the_references() -> None:
+    # pytorch-NetVlad and the VPR benchmark: layers = list(vgg16().features.children())[:-2], i.e. up
+    # to conv5_3 without its ReLU and pool5; they train layers[-5:] (conv5_1 … conv5_3).
+    layers = list(torchvision.models.vgg16().features.children())[:-2]
+    assert len(layers) == 29 and isinstance(layers[-1], torch.nn.Conv2d)
+    reference = torch.nn.Sequential(*layers).eval()
+    ours = VGG16Backbone(weights="none", train_from="conv5").eval()
+    # Load the reference's weights by torchvision index: the two agree on every layer's position.
+    ours.load_state_dict(_vgg_units_state(reference.state_dict()))
+    x = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        expected, out = reference(_imagenet_normalise(x)), ours(x)[-1]
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-5)
+    assert (out < 0).any()  # before the ReLU: signed local features
+    trainable = sum(p.numel() for p in ours.parameters() if p.requires_grad)
+    assert trainable == sum(p.numel() for layer in layers[-5:] for p in layer.parameters())
+
+
+def _vgg_units_state(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """torchvision features.<i>.* names → our units.<unit>.<offset>.* names (unit ranges by index)."""
+    starts = (0, 4, 5, 9, 10, 16, 17, 23, 24)
+    out = {}
+    for key, value in state.items():
+        index, rest = key.split(".", 1)
+        unit = max(u for u, s in enumerate(starts) if s <= int(index))
+        out[f"units.{unit}.{int(index) - starts[unit]}.{rest}"] = value
+    return out
+
+
+def test_resnet50_cut_matches_the_benchmark() -> None:
+    # deep-visual-geo-localization-benchmark, backbone=resnet50conv4: list(resnet50().children())[:-3]
+    # (conv1, bn1, relu, maxpool, layer1, layer2, layer3); children before layer3 frozen.
+    resnet = torchvision.models.resnet50().eval()
+    reference = torch.nn.Sequential(*list(resnet.children())[:-3]).eval()
+    ours = ResNet50Backbone(stage="layer3", weights="none", train_from="layer3").eval()
+    prefixes = {"conv1.": "units.0.0.", "bn1.": "units.0.1.", "layer1.": "units.2.", "layer2.": "units.3.",
+                "layer3.": "units.4."}
+    state = {prefixes[p] + k[len(p):]: v for k, v in resnet.state_dict().items()
+             for p in prefixes if k.startswith(p)}
+    ours.load_state_dict(state, strict=True)
+    x = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        torch.testing.assert_close(ours(x)[-1], reference(_imagenet_normalise(x)), rtol=1e-5, atol=1e-5)
+    trainable = {n.split(".")[1] for n, p in ours.named_parameters() if p.requires_grad}
+    assert trainable == {"4"}  # layer3 only, as the benchmark's resnet50conv4

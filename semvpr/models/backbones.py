@@ -28,8 +28,10 @@ VGG16_UNITS: tuple[tuple[str, int, int, bool], ...] = (
     ("conv4", 512, 8, True), ("pool4", 512, 16, False),
     ("conv5", 512, 16, True),
 )
-# torchvision vgg16().features index ranges of the units above; conv5 stops after conv5_3's ReLU (no pool5).
-VGG16_SLICES = ((0, 4), (4, 5), (5, 9), (9, 10), (10, 16), (16, 17), (17, 23), (23, 24), (24, 30))
+# torchvision vgg16().features index ranges of the units above. conv5 stops at conv5_3 *before* its
+# ReLU (index 28), as pytorch-NetVlad and the VPR benchmark cut it (`features[:-2]`): NetVLAD then sees
+# signed local features. The other scale outputs (the student's skips) end after their ReLU.
+VGG16_SLICES = ((0, 4), (4, 5), (5, 9), (9, 10), (10, 16), (16, 17), (17, 23), (23, 24), (24, 29))
 RESNET50_UNITS: tuple[tuple[str, int, int, bool], ...] = (
     ("conv1", 64, 2, True), ("maxpool", 64, 4, False),
     ("layer1", 256, 4, True), ("layer2", 512, 8, True),
@@ -147,7 +149,7 @@ class Backbone(nn.Module):
 
 
 class VGG16Backbone(Backbone):
-    """torchvision VGG16 features cut after conv5_3's ReLU: 512 channels, stride 16."""
+    """torchvision VGG16 features cut at conv5_3 before its ReLU (``features[:-2]``): 512 channels, stride 16."""
 
     def __init__(self, weights: str | Path = "none", train_from: str | None = "conv5") -> None:
         # Only the conv trunk: building torchvision's 103M-parameter classifier would dominate start-up time.
@@ -160,7 +162,7 @@ class VGG16Backbone(Backbone):
         state = _load_state_dict("vgg16", weights)
         if state is not None:
             _load_into(model, state, prefix="features.", arch="vgg16", source=weights)
-        feats = list(model.features.children())[:30]  # drop pool5
+        feats = list(model.features.children())[:29]  # drop conv5_3's ReLU and pool5
         units = [(name, nn.Sequential(*feats[a:b])) for (name, *_), (a, b) in zip(VGG16_UNITS, VGG16_SLICES)]
         super().__init__(units, VGG16_UNITS, train_from)
 
