@@ -33,6 +33,7 @@ from semvpr.data.synthcity import read_segmentation, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import build_student
 from semvpr.models.teacher import build_teacher
+from semvpr.precision import autocast
 from semvpr.pseudolabels import pseudo_labels
 
 REPO = Path(__file__).resolve().parents[1]
@@ -82,7 +83,7 @@ def student_scores(student, backbone, teacher, paths, label_paths, size, lut) ->
     """Static IoU of the student vs the teacher and vs GT, and of the teacher vs GT, on held-out images."""
     scores = {"student_teacher": StaticIoU(), "student_gt": StaticIoU(), "teacher_gt": StaticIoU()}
     for images, index in DataLoader(ImageDataset(paths, size), batch_size=32):
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast("cpu"):
             skips = backbone.forward_frozen(images.contiguous(memory_format=torch.channels_last))
         pred = student.static_prob(skips, out_hw=size)[:, 0] >= 0.5
         from_teacher = lut[teacher.predict_train_ids(images)]
@@ -127,7 +128,7 @@ def main() -> None:
 
         images = list(train.db_paths) + list(train.q_paths)
         start = time.perf_counter()
-        labels = pseudo_labels(teacher, teacher.teacher_key, images, size, cache,
+        labels = pseudo_labels(teacher, teacher.teacher_key, images, size, cache, train.root,
                                batch_size=int(cfg.teacher.predict_batch_size))
         label_img_s = len(images) / (time.perf_counter() - start)
         print(f"pseudo-labels: {len(images)} images, {label_img_s:.1f} img/s")
@@ -135,7 +136,7 @@ def main() -> None:
         torch.manual_seed(args.backbone_seed)
         backbone = VGG16Backbone(weights="none", train_from="conv5").eval()
         start = time.perf_counter()
-        student = build_student(cfg.student, backbone, images, labels, size, cache)
+        student = build_student(cfg.student, backbone, images, labels, train.root, size, cache)
         student_s = time.perf_counter() - start
         n = min(args.eval_images, len(test.db_paths))
         scores = student_scores(student, backbone, teacher, test.db_paths[:n], test.db_labels[:n], size, lut)

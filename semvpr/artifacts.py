@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 
@@ -31,6 +32,16 @@ def config_hash(key: Any, length: int = 12) -> str:
         key = OmegaConf.to_container(key, resolve=True)
     text = json.dumps(key, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def state_hash(state: dict[str, Any], length: int = 16) -> str:
+    """Stable hash of a state dict's names and tensor bytes (identifies weights exactly)."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(state.items()):
+        digest.update(name.encode())
+        # reshape(-1): 0-dim buffers (BatchNorm's num_batches_tracked) cannot be viewed as bytes
+        digest.update(tensor.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()[:length]
 
 
 def artifact_dir(cache_dir: str | Path, kind: str, key: Any) -> Path:

@@ -1,13 +1,14 @@
-"""Build a run's components from its config: place sets, backbone, semantic artifacts, retriever.
+"""Build a run's components from its config: place sets, backbone, semantic artifacts, mask source.
 
 Shared by ``semvpr.train`` and ``semvpr.eval`` so both construct exactly the same model. Teacher,
 pseudo-labels, student and feature caches come from the artifact cache (built on first use).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -17,11 +18,16 @@ from omegaconf.errors import MissingMandatoryValue
 from PIL import Image
 from torch import Tensor, nn
 
+from semvpr.artifacts import config_hash, state_hash
 from semvpr.data.classes import static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, unwrap_user_error
-from semvpr.features import FeatureStore, autocast_context, grid_size
+from semvpr.features import STORAGES, FeatureStore, grid_size
 from semvpr.models.masks import OracleMask, StudentMask, TeacherMask
+from semvpr.precision import autocast
+from semvpr.pseudolabels import label_path
+
+MASK_SOURCES = ("none", "teacher", "student", "oracle")
 
 
 @dataclass
@@ -29,10 +35,9 @@ class Semantic:
     """Semantic artifacts a filter needs: teacher, its pseudo-labels of the train images, student."""
 
     teacher: nn.Module | None = None
-    teacher_key: Any = None
     labels_dir: Path | None = None
+    labels_root: Path | None = None
     student: nn.Module | None = None
-    student_key: Any = None
 
 
 def instantiate_node(node: Any, **kwargs: Any) -> Any:
@@ -49,22 +54,22 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
         raise
 
 
-def backbone_name(cfg: DictConfig) -> str:
-    """Short backbone name for tables (vgg16, resnet50) from its class."""
-    return cfg.backbone._target_.rsplit(".", 1)[-1].removesuffix("Backbone").lower()
-
-
 def check_config(cfg: DictConfig) -> None:
     """Reject config values that would fail deep inside training with a cryptic error."""
     if cfg.filter.mask not in MASK_SOURCES:
-        raise SemvprError(f"filter.mask={cfg.filter.mask!r} is not one of {sorted(MASK_SOURCES)}")
+        raise SemvprError(f"filter.mask={cfg.filter.mask!r} is not one of {list(MASK_SOURCES)}")
     if cfg.filter.init not in ("kmeans", "semantic"):
         raise SemvprError(f"filter.init={cfg.filter.init!r} must be 'kmeans' or 'semantic'")
-    for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features"):
+    for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features",
+                "init_per_image", "cache_refresh"):
         if int(cfg.model[key]) < 1:
             raise SemvprError(f"model.{key}={cfg.model[key]} must be a positive integer")
+    if cfg.model.get("queries_per_epoch") is not None and int(cfg.model.queries_per_epoch) < 1:
+        raise SemvprError(f"model.queries_per_epoch={cfg.model.queries_per_epoch} must be positive (or null = all)")
     if len(cfg.data.image_size) != 2:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
+    if cfg.features.storage not in STORAGES:
+        raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
 
 
 def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
@@ -77,15 +82,14 @@ def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "te
     return places
 
 
-def build_backbone(cfg: DictConfig) -> nn.Module:
-    """The backbone with the run seed's random init (or its pretrained weights)."""
+def build_backbone(cfg: DictConfig, pretrained: bool = True) -> nn.Module:
+    """The backbone with the run seed's random init, or its pretrained weights (``pretrained``;
+    eval skips them: the checkpoint carries every weight)."""
     torch.manual_seed(cfg.seed)
-    return instantiate_node(cfg.backbone).to(memory_format=torch.channels_last)
-
-
-def backbone_key(cfg: DictConfig) -> dict:
-    """What determines the backbone's frozen weights (for caching its outputs)."""
-    return {"backbone": OmegaConf.to_container(cfg.backbone, resolve=True), "seed": cfg.seed}
+    node = {k: v for k, v in OmegaConf.to_container(cfg.backbone, resolve=True).items() if k != "name"}
+    if not pretrained:
+        node["weights"] = "none"
+    return instantiate_node(node).to(memory_format=torch.channels_last)
 
 
 def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Semantic:
@@ -104,60 +108,68 @@ def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Sem
     teacher = build_teacher(cfg.teacher, seg_train, seg_val, cfg.paths.cache_dir)
     images = list(train.db_paths) + list(train.q_paths)
     labels_dir = pseudo_labels(teacher, teacher.teacher_key, images, tuple(cfg.data.image_size),
-                               cfg.paths.cache_dir)
-    semantic = Semantic(teacher, teacher.teacher_key, labels_dir)
+                               cfg.paths.cache_dir, train.root)
+    semantic = Semantic(teacher, labels_dir, train.root)
     if cfg.filter.mask == "student":
-        semantic.student = build_student(cfg.student, backbone, images, labels_dir,
+        semantic.student = build_student(cfg.student, backbone, images, labels_dir, train.root,
                                          tuple(cfg.data.image_size), cfg.paths.cache_dir)
-        semantic.student_key = {"student": OmegaConf.to_container(cfg.student, resolve=True),
-                                "backbone": backbone_key(cfg), "labels": labels_dir.name}
     return semantic
 
 
-MASK_SOURCES: dict[str, Callable[[Semantic], tuple[nn.Module | None, Any]]] = {
-    "none": lambda s: (None, None),
-    "teacher": lambda s: (TeacherMask(s.teacher), {"teacher": s.teacher_key}),
-    "student": lambda s: (StudentMask(s.student), s.student_key),
-    "oracle": lambda s: (OracleMask(), "oracle"),
-}
+def build_mask_source(cfg: DictConfig, backbone: nn.Module, semantic: Semantic | None = None) -> nn.Module | None:
+    """The filter's mask source: trained (from ``semantic``), or untrained for weights to be loaded into."""
+    mask = cfg.filter.mask
+    if mask == "none":
+        return None
+    if mask == "oracle":
+        return OracleMask(list(cfg.teacher.static_classes))
+    if mask == "teacher":
+        from semvpr.models.teacher import teacher_architecture
+
+        return TeacherMask(semantic.teacher if semantic is not None else teacher_architecture(cfg.teacher))
+    from semvpr.models.student import student_architecture
+
+    return StudentMask(semantic.student if semantic is not None else student_architecture(cfg.student, backbone))
 
 
-def build_mask_source(cfg: DictConfig, semantic: Semantic) -> tuple[nn.Module | None, Any]:
-    """The filter's mask source and the key that identifies its output (for the mask cache)."""
-    return MASK_SOURCES[cfg.filter.mask](semantic)
+def mask_key(mask_source: nn.Module | None, cfg: DictConfig) -> str | None:
+    """What a mask source's output depends on: its weights (and, for the oracle, the class list)."""
+    if mask_source is None:
+        return None
+    return config_hash([type(mask_source).__name__, state_hash(mask_source.state_dict()),
+                        list(cfg.teacher.static_classes)])
 
 
 @torch.no_grad()
-def sample_local_features(backbone: nn.Module, store: FeatureStore, max_features: int,
-                          seed: int) -> tuple[Tensor, Tensor]:
-    """Random local features (N,D) of a store's images, and their (image, location) indices."""
+def sample_local_features(backbone: nn.Module, store: FeatureStore, max_features: int, per_image: int,
+                          seed: int, batch_size: int = 16) -> tuple[Tensor, Tensor]:
+    """NetVLAD's k-means sample: ``per_image`` random locations of each of ``max_features / per_image``
+    random images (all of them when fewer). Returns (N,D) features and their (image, location) indices."""
     rng = np.random.default_rng(seed)
-    order = rng.permutation(len(store))
+    num_images = min(len(store), math.ceil(max_features / per_image))
+    images = np.sort(rng.choice(len(store), num_images, replace=False))
+    device = next(backbone.parameters()).device
     feats, where = [], []
-    total = 0
-    for start in range(0, len(order), 32):
-        idx = torch.from_numpy(order[start : start + 32])
-        with autocast_context():
-            local = backbone.forward_trainable(store.trunk[idx].contiguous(memory_format=torch.channels_last))
-        local = local.float().flatten(2).transpose(1, 2)  # (B, h*w, D)
-        feats.append(local.reshape(-1, local.shape[-1]))
-        loc = torch.arange(local.shape[1]).repeat(len(idx))
-        where.append(torch.stack([idx.repeat_interleave(local.shape[1]), loc], dim=1))
-        total += feats[-1].shape[0]
-        if total >= max_features:
-            break
-    feats_t, where_t = torch.cat(feats), torch.cat(where)
-    keep = torch.from_numpy(rng.permutation(len(feats_t))[:max_features])
-    return feats_t[keep], where_t[keep]
+    for start in range(0, len(images), batch_size):
+        idx = images[start : start + batch_size]
+        trunk = store.trunk_of(idx, backbone).to(device).float()
+        with autocast(device):
+            local = backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
+        local = local.float().flatten(2).transpose(1, 2).cpu()  # (B, h*w, D)
+        for image, grid in zip(idx, local):
+            loc = np.sort(rng.choice(len(grid), min(per_image, len(grid)), replace=False))
+            feats.append(grid[torch.from_numpy(loc)])
+            where.append(torch.from_numpy(np.stack([np.full(len(loc), image), loc], axis=1)))
+    return torch.cat(feats), torch.cat(where)
 
 
-def static_grid(labels_dir: Path, image_paths: list[Path], grid: tuple[int, int],
+def static_grid(labels_dir: Path, root: Path, image_paths: list[Path], grid: tuple[int, int],
                 static_names: list[str]) -> Tensor:
     """Static fraction of each feature-grid cell (N,h*w) from pseudo-label PNGs."""
     lut = torch.from_numpy(static_lut(tuple(static_names)))
     maps = []
     for path in image_paths:
-        label = torch.from_numpy(np.asarray(Image.open(labels_dir / f"{path.stem}.png"))).long()
+        label = torch.from_numpy(np.asarray(Image.open(label_path(labels_dir, path, root)))).long()
         maps.append(lut[label])
     pooled = torch.nn.functional.adaptive_avg_pool2d(torch.stack(maps)[:, None], grid)
     return pooled.flatten(1)
@@ -166,14 +178,17 @@ def static_grid(labels_dir: Path, image_paths: list[Path], grid: tuple[int, int]
 def init_aggregator(cfg: DictConfig, aggregator: nn.Module, backbone: nn.Module, train_db: FeatureStore,
                     train: PlaceSet, semantic: Semantic) -> dict:
     """k-means (NetVLAD) or semantic-constrained (SRAL) initialisation; returns what was used."""
-    feats, where = sample_local_features(backbone, train_db, int(cfg.model.init_features), cfg.seed)
+    feats, where = sample_local_features(backbone, train_db, int(cfg.model.init_features),
+                                         int(cfg.model.init_per_image), cfg.seed)
     if cfg.filter.init == "kmeans":
         alpha = aggregator.init_from_features(feats, seed=cfg.seed)
         return {"init": "kmeans", "features": len(feats), "alpha": float(alpha)}
-    assert semantic.labels_dir is not None
+    assert semantic.labels_dir is not None and semantic.labels_root is not None
     grid = grid_size(backbone, tuple(cfg.data.image_size))
-    static = static_grid(semantic.labels_dir, list(train.db_paths), grid,
+    used = np.unique(where[:, 0].numpy())
+    static = static_grid(semantic.labels_dir, semantic.labels_root, [train.db_paths[i] for i in used], grid,
                          list(cfg.teacher.static_classes))
-    is_static = static[where[:, 0], where[:, 1]] >= 0.5
+    row = torch.from_numpy(np.searchsorted(used, where[:, 0].numpy()))
+    is_static = static[row, where[:, 1]] >= 0.5
     counts = aggregator.init_semantic(feats[is_static], feats[~is_static], seed=cfg.seed)
     return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}

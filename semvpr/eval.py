@@ -1,8 +1,11 @@
 """Evaluate a checkpoint on any place set: ``python -m semvpr.eval ckpt=PATH [data=... data.root=...]``.
 
-The model is rebuilt from the configuration stored in the checkpoint (its semantic artifacts come
-from the artifact cache, rebuilt deterministically if absent), then the weights are loaded.
-Prints the recalls; the last line is one JSON object.
+The model is rebuilt from the checkpoint's record, validated against the project's own configs
+(``semvpr.checkpoint``: nothing stored in the file is ever run), and its weights are loaded; the
+data comes from this invocation. Images are streamed through the whole model once; only the
+descriptors are cached (memory-mapped, kind ``descriptors``), so memory does not grow with the
+dataset. Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and, where some query
+has no positive, over queries with positives (MSLS); the last line is one JSON object.
 """
 from __future__ import annotations
 
@@ -12,94 +15,93 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import torch
+import numpy as np
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from semvpr.build import (backbone_key, backbone_name, build_backbone, build_mask_source, build_places,
-                          build_semantic, Semantic)
+from semvpr.artifacts import build_once, state_hash
+from semvpr.build import build_backbone, build_mask_source, build_places, instantiate_node
+from semvpr.checkpoint import model_config, read_checkpoint
+from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError
-from semvpr.features import cached_place_features
 from semvpr.models.netvlad import PCAWhitening
-from semvpr.models.retriever import Retriever
-from semvpr.train import CONF_DIR, evaluate_features, write_json
-
-MODEL_KEYS = ("backbone", "filter", "model", "teacher", "student", "seed")
+from semvpr.models.retriever import Retriever, evaluate
+from semvpr.train import CONF_DIR, write_json
 
 
-def load_checkpoint(path: str | Path) -> tuple[dict[str, Any], DictConfig]:
-    """The checkpoint's state dict and the run config saved in it."""
-    path = Path(path)
-    if not path.is_file():
-        raise SemvprError(f"checkpoint {path} not found (a run writes <run dir>/checkpoints/tested.ckpt)")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        config = ckpt["hyper_parameters"]["config"]
-    except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
-        raise SemvprError(f"{path} is not a semvpr checkpoint ({type(err).__name__}: {err})") from None
-    return ckpt["state_dict"], OmegaConf.create(config)
-
-
-def model_config(cfg: DictConfig, trained: DictConfig, explicit: set[str]) -> DictConfig:
-    """The checkpoint's model config with this invocation's data and paths."""
-    for key in explicit & {"backbone", "filter"}:
-        if OmegaConf.to_container(cfg[key]) != OmegaConf.to_container(trained[key]):
-            raise SemvprError(
-                f"checkpoint {cfg.ckpt} was trained with backbone={backbone_name(trained)} "
-                f"filter={trained.filter.name}; drop the {key}= override (the model comes from the checkpoint)")
-    merged = OmegaConf.merge(trained, {"data": cfg.data, "paths": cfg.paths, "ckpt": cfg.ckpt})
-    return merged
-
-
-def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig, Any]:
-    """The checkpoint's retriever (eval mode), its merged config and its mask-cache key."""
-    state, trained = load_checkpoint(cfg.ckpt)
-    merged = model_config(cfg, trained, set(explicit))
-    backbone = build_backbone(merged)
-    # The semantic artifacts belong to the training run: rebuild them from its own data config.
-    semantic = Semantic()
-    if trained.filter.mask in ("teacher", "student"):
-        semantic = build_semantic(trained, build_places(trained, ("train",))["train"], backbone)
-    mask_source, mask_key = build_mask_source(merged, semantic)
-    aggregator = instantiate(merged.filter.aggregator, dim=backbone.out_channels)
+def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig]:
+    """The checkpoint ``cfg.ckpt`` as a retriever in eval mode, and the config it was rebuilt with."""
+    state, record = read_checkpoint(cfg.ckpt)
+    merged = model_config(record, cfg, where=f"checkpoint {cfg.ckpt}")
+    for group in sorted(explicit & {"backbone", "filter"}):
+        if cfg[group].name != merged[group].name:
+            raise SemvprError(f"checkpoint {cfg.ckpt} was trained with backbone={merged.backbone.name} "
+                              f"filter={merged.filter.name}; drop the {group}= override (the model comes from the checkpoint)")
+    backbone = build_backbone(merged, pretrained=False)
+    aggregator = instantiate_node(merged.filter.aggregator, dim=backbone.out_channels)
     whitening = PCAWhitening(aggregator.output_dim, merged.model.pca_dim) if merged.model.pca_dim else None
-    retriever = Retriever(backbone, aggregator, mask_source, whitening,
-                          eval_batch_size=merged.model.eval_batch_size)
+    retriever = Retriever(backbone, aggregator, build_mask_source(merged, backbone), whitening,
+                          eval_batch_size=merged.model.eval_batch_size, num_workers=merged.data.num_workers,
+                          record=record)
     try:
         retriever.load_state_dict(state, strict=True)
     except RuntimeError as err:
-        raise SemvprError(f"checkpoint {cfg.ckpt} does not fit backbone={backbone_name(merged)} "
+        raise SemvprError(f"checkpoint {cfg.ckpt} does not fit backbone={merged.backbone.name} "
                           f"filter={merged.filter.name}: {str(err).splitlines()[0]}") from None
-    return retriever.eval(), merged, mask_key
+    return retriever.eval(), merged
+
+
+def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: DictConfig) -> np.ndarray:
+    """Descriptors of a place set's database or queries (memory-mapped), computed once per model and data."""
+    paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
+    key = {"model": state_hash(retriever.state_dict()), "images": [places.relative(p) for p in paths],
+           "image_size": list(cfg.data.image_size)}
+    dim = retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim
+
+    def build(tmp: Path) -> None:
+        out = np.lib.format.open_memmap(tmp / "descriptors.npy", mode="w+", dtype=np.float32, shape=(len(paths), dim))
+        retriever.describe_images(paths, labels, cfg.data.image_size, out, desc=f"{places.name} {side}")
+        out.flush()
+
+    folder = build_once(cfg.paths.cache_dir, "descriptors", key, build)
+    desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
+    if desc.shape != (len(paths), dim) or desc.dtype != np.float32:
+        raise SemvprError(f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
+                          f"float32[{len(paths)}, {dim}]; delete it to rebuild")
+    return desc
 
 
 def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split."""
-    retriever, merged, mask_key = load_retriever(cfg, explicit)
-    backbone, mask_source = retriever.backbone, retriever.mask_source
+    retriever, merged = load_retriever(cfg, explicit)
     test = build_places(merged, ("test",))["test"]
-    features = cached_place_features(test, backbone, backbone_key(merged), mask_source, mask_key,
-                                     merged.data.image_size, merged.paths.cache_dir,
-                                     merged.model.eval_batch_size, merged.data.num_workers)
-    result = evaluate_features(retriever, features)
-    return {"checkpoint": str(cfg.ckpt), "data": merged.data.name, "filter": merged.filter.name,
-            "backbone": backbone_name(merged), "database": len(test.db_paths), "queries": len(test.q_paths),
-            "queries_without_positives": result["num_without_positives"],
-            **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()}}
+    result = evaluate(place_descriptors(retriever, test, "db", merged), place_descriptors(retriever, test, "q", merged),
+                      test.positives(25.0))
+    out = {"checkpoint": str(cfg.ckpt), "data": merged.data.name, "filter": merged.filter.name,
+           "backbone": merged.backbone.name, "database": len(test.db_paths), "queries": len(test.q_paths),
+           "queries_without_positives": result["num_without_positives"],
+           **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()}}
+    if result["num_without_positives"]:
+        out.update({f"test/R@{n}_pos": round(v, 2) for n, v in result["recalls_pos"].items()})
+    return out
+
+
+def explicit_keys() -> set[str]:
+    """Config keys this invocation overrode on the command line."""
+    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
 
 
 @hydra.main(config_path=CONF_DIR, config_name="eval", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    explicit = {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
     try:
-        result = evaluate_checkpoint(cfg, explicit)
+        result = evaluate_checkpoint(cfg, explicit_keys())
     except SemvprError as err:
         print(f"semvpr: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     write_json(Path(HydraConfig.get().runtime.output_dir) / "eval.json", result)
     for n in (1, 5, 10, 20):
-        print(f"R@{n:<2d} {result[f'test/R@{n}']:6.2f}")
+        pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""
+        print(f"R@{n:<2d} {result[f'test/R@{n}']:6.2f}{pos}")
     print(json.dumps(result))
 
 

@@ -1,35 +1,109 @@
-"""Frozen-trunk feature cache: what the frozen backbone prefix and the mask source give per image.
+"""What the frozen networks give per image: the frozen trunk's output and the static grid mask.
 
-Below ``backbone.train_from`` nothing learns, so its output (and the static mask, which depends
-only on the image and frozen networks) is computed once per image and reused by every epoch, by
-mining, and by every sweep job with the same backbone and data (artifact kinds ``trunk``/``masks``).
+Below ``backbone.train_from`` nothing learns, so the frozen prefix's output (the *trunk* features)
+and the mask (which depends only on the image and frozen networks) are computed once per image and
+reused by every epoch, by mining and by every sweep job with the same frozen weights (artifact kinds
+``trunk`` / ``masks``, ``.npy`` files written batch by batch, never gathered in RAM).
+
+How the trunk cache is held is chosen by its size (``features.storage``, DESIGN §9: at 480x640 a
+VGG16 pool4 map is 1.2 MB in bf16, Pitts30k's three splits ~64 GB):
+
+- ``ram``: it fits ``features.ram_gb``: read into memory;
+- ``disk``: it fits ``features.disk_gb`` and the free disk: memory-mapped, pages read on demand;
+- ``stream``: neither: nothing is cached but the masks; images go through the frozen prefix at
+  every use, as pytorch-NetVlad does (mining keeps only descriptors).
+
+The three give the same features; only speed and memory differ.
 """
 from __future__ import annotations
 
+import math
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from semvpr.artifacts import artifact_dir, build_once
 from semvpr.data.datamodule import ImageDataset
 from semvpr.data.places import PlaceSet
+from semvpr.data.segmentation import load_image
+from semvpr.errors import SemvprError
 from semvpr.models.masks import pool_to_grid
+from semvpr.precision import autocast
+
+STORAGES = ("auto", "ram", "disk", "stream")
+#: Trunk features are bf16 wherever they come from (cache or stream), so every path gives the same
+#: descriptors, and the cache is half the size.
+TRUNK_DTYPE = torch.bfloat16
+GiB = 2**30
 
 
 @dataclass
 class FeatureStore:
-    """Cached frozen-trunk outputs (N,C,h',w') and grid masks (N,1,h,w) of one image list."""
+    """Per-image inputs of the trainable part for one image list.
 
-    trunk: Tensor
+    ``trunk`` (N,C,h',w') bf16 in RAM or memory-mapped, or None when streamed (then items are
+    images and the module runs the frozen prefix); ``mask`` (N,1,h,w) grid masks or None.
+    """
+
+    paths: tuple[Path, ...]
+    image_size: tuple[int, int]
+    trunk: Tensor | None
     mask: Tensor | None
 
     def __len__(self) -> int:
-        return len(self.trunk)
+        return len(self.paths)
+
+    @property
+    def streams(self) -> bool:
+        """Whether items are images (the frozen prefix runs at every use)."""
+        return self.trunk is None
+
+    def item(self, i: int) -> dict[str, Tensor]:
+        """{"trunk": (C,h',w')} or {"image": (3,H,W)}, plus "mask" ((1,h,w) or empty)."""
+        x = {"image": load_image(self.paths[i], self.image_size)} if self.trunk is None else {"trunk": self.trunk[i]}
+        x["mask"] = self.mask[i].float() if self.mask is not None else torch.empty(0)
+        return x
+
+    @torch.no_grad()
+    def trunk_of(self, index: Sequence[int], backbone: nn.Module) -> Tensor:
+        """Trunk features of a few images (cached rows, or the frozen prefix on the images)."""
+        if self.trunk is not None:
+            return torch.stack([self.trunk[int(i)] for i in index])
+        images = torch.stack([load_image(self.paths[int(i)], self.image_size) for i in index])
+        device = next(backbone.parameters()).device
+        with autocast(device):
+            out = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))[-1]
+        return out.to(TRUNK_DTYPE)
+
+
+class StoreDataset(Dataset):
+    """The items of a feature store (optionally a subset of it)."""
+
+    def __init__(self, store: FeatureStore, index: Sequence[int] | None = None) -> None:
+        self.store = store
+        self.index = list(range(len(store))) if index is None else [int(i) for i in index]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: int) -> dict[str, Tensor]:
+        return self.store.item(self.index[i])
+
+
+def store_loader(store: FeatureStore, batch_size: int, num_workers: int,
+                 index: Sequence[int] | None = None) -> DataLoader:
+    """Batches of a store in order; decoding workers only where images are streamed."""
+    workers = num_workers if store.streams else 0
+    return DataLoader(StoreDataset(store, index), batch_size=batch_size, num_workers=workers,
+                      persistent_workers=False)
 
 
 @dataclass
@@ -41,56 +115,82 @@ class PlaceFeatures:
     q: FeatureStore
 
 
-def autocast_context(device: torch.device | str = "cpu") -> torch.autocast:
-    """bf16 autocast where the device supports it (AMX CPUs, recent GPUs), else a no-op autocast."""
-    device_type = torch.device(device).type
-    enabled = device_type == "cuda" or torch.backends.mkldnn.is_available()
-    return torch.autocast(device_type=device_type, dtype=torch.bfloat16, enabled=enabled)
-
-
 @torch.no_grad()
 def grid_size(backbone: nn.Module, image_size: Sequence[int]) -> tuple[int, int]:
     """Local-feature grid (h, w) of the backbone at this image size."""
-    probe = torch.zeros(1, 3, *image_size)
+    probe = torch.zeros(1, 3, *image_size, device=next(backbone.parameters()).device)
     return tuple(backbone(probe)[-1].shape[-2:])  # type: ignore[return-value]
 
 
 @torch.no_grad()
-def extract(
-    backbone: nn.Module,
-    mask_source: nn.Module | None,
-    paths: Sequence[Path],
-    label_paths: Sequence[Path] | None,
-    image_size: Sequence[int],
-    batch_size: int = 32,
-    num_workers: int = 2,
-    desc: str = "features",
-    trunk: bool = True,
-) -> FeatureStore:
-    """One pass over the images: trunk outputs (bf16) and, with a mask source, grid masks.
+def trunk_shape(backbone: nn.Module, image_size: Sequence[int]) -> tuple[int, int, int]:
+    """(C, h', w') of the frozen prefix's output at this image size."""
+    probe = torch.zeros(1, 3, *image_size, device=next(backbone.parameters()).device)
+    return tuple(backbone.forward_frozen(probe)[-1].shape[1:])  # type: ignore[return-value]
 
-    With ``trunk=False`` only the masks are computed, and the backbone runs only if the mask
-    source reads its features; the returned store then holds an empty trunk.
-    """
+
+def choose_storage(setting: str, trunk_bytes: int, cache_dir: str | Path, ram_gb: float, disk_gb: float,
+                   cached: bool = False) -> str:
+    """``ram`` / ``disk`` / ``stream`` for a trunk cache of ``trunk_bytes`` (see the module docstring)."""
+    if setting not in STORAGES:
+        raise SemvprError(f"features.storage={setting!r} is not one of {list(STORAGES)}")
+    if setting != "auto":
+        return setting
+    if trunk_bytes <= ram_gb * GiB:
+        return "ram"
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    # An existing cache needs no room; a new one must leave 10 % of the disk free.
+    usage = shutil.disk_usage(cache_dir)
+    room = math.inf if cached else usage.free - 0.1 * usage.total
+    return "disk" if trunk_bytes <= min(disk_gb * GiB, room) else "stream"
+
+
+@torch.no_grad()
+def _extract(backbone: nn.Module, mask_source: nn.Module | None, paths: Sequence[Path],
+             labels: Sequence[Path] | None, image_size: tuple[int, int], trunk_out: np.ndarray | None,
+             mask_out: np.ndarray | None, batch_size: int, num_workers: int, desc: str) -> None:
+    """One pass over the images, writing trunk outputs (bf16 bits) and grid masks into the arrays."""
     grid = grid_size(backbone, image_size)
-    run_backbone = trunk or (mask_source is not None and mask_source.needs_features)
-    loader = DataLoader(ImageDataset(list(paths), tuple(image_size)), batch_size=batch_size,
-                        num_workers=num_workers)
-    trunks, masks = [], []
+    device = next(backbone.parameters()).device
+    run_backbone = trunk_out is not None or (mask_source is not None and mask_source.needs_features)
+    loader = DataLoader(ImageDataset(list(paths), image_size), batch_size=batch_size, num_workers=num_workers)
     backbone.eval()
-    for images, index in tqdm(loader, desc=desc, unit="batch", leave=False):
-        images = images.contiguous(memory_format=torch.channels_last)
-        with autocast_context():
+    for images, index in tqdm(loader, desc=desc, unit="batch", leave=False, disable=None):
+        images = images.to(device).contiguous(memory_format=torch.channels_last)
+        rows = slice(int(index[0]), int(index[-1]) + 1)
+        with autocast(device):
             outs = backbone.forward_frozen(images) if run_backbone else []
-            if mask_source is not None:
-                labels = [label_paths[i] for i in index] if label_paths is not None else None
-                masks.append(pool_to_grid(mask_source(images, outs, labels), grid))
-        if trunk:
-            trunks.append(outs[-1].to(torch.bfloat16))
-    return FeatureStore(torch.cat(trunks) if trunks else torch.empty(0), torch.cat(masks) if masks else None)
+            if mask_out is not None:
+                batch_labels = [labels[i] for i in index] if labels is not None else None
+                mask_out[rows] = pool_to_grid(mask_source(images, outs, batch_labels), grid).cpu().numpy()
+        if trunk_out is not None:
+            trunk_out[rows] = outs[-1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
 
 
-def cached_place_features(
+def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndarray:
+    """Memory-map a cached array, checking it is what its key says (a cache may come from elsewhere)."""
+    try:
+        arr = np.load(path, mmap_mode="c", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SemvprError(f"feature cache {path} is unreadable ({err}); delete {what} to rebuild it") from None
+    if arr.shape != shape or arr.dtype != np.dtype(dtype):
+        raise SemvprError(f"feature cache {path} holds {arr.dtype}{list(arr.shape)}, expected "
+                          f"{np.dtype(dtype)}{list(shape)}; delete {what} to rebuild it")
+    return arr
+
+
+def _data_key(places: PlaceSet, size: tuple[int, int]) -> dict[str, Any]:
+    return {"db": [places.relative(p) for p in places.db_paths],
+            "q": [places.relative(p) for p in places.q_paths], "image_size": list(size)}
+
+
+def trunk_cached(places: PlaceSet, backbone_key: Any, image_size: Sequence[int], cache_dir: str | Path) -> bool:
+    """Whether this place set's trunk cache exists already."""
+    size = (int(image_size[0]), int(image_size[1]))
+    return artifact_dir(cache_dir, "trunk", {"backbone": backbone_key, "data": _data_key(places, size)}).is_dir()
+
+
+def place_features(
     places: PlaceSet,
     backbone: nn.Module,
     backbone_key: Any,
@@ -98,38 +198,71 @@ def cached_place_features(
     mask_key: Any,
     image_size: Sequence[int],
     cache_dir: str | Path,
+    storage: str,
     batch_size: int = 32,
     num_workers: int = 2,
 ) -> PlaceFeatures:
-    """Trunk features and masks of a place set, from the artifact cache or computed once."""
-    data_key = {"db": [str(p) for p in places.db_paths], "q": [str(p) for p in places.q_paths],
-                "image_size": list(image_size)}
+    """Feature stores of a place set: trunk (unless streamed) and masks from the cache, built once."""
+    size = (int(image_size[0]), int(image_size[1]))
+    if storage not in ("ram", "disk", "stream"):
+        raise SemvprError(f"feature storage {storage!r} must be ram, disk or stream (choose_storage decides 'auto')")
+    data_key = _data_key(places, size)
     trunk_key = {"backbone": backbone_key, "data": data_key}
-    kinds = {"trunk": trunk_key}
+    sides = {"db": (places.db_paths, places.db_labels), "q": (places.q_paths, places.q_labels)}
+    shape = trunk_shape(backbone, size)
+    grid = grid_size(backbone, size)
+    kinds: dict[str, tuple[Any, tuple[int, ...], Any]] = {}
+    if storage != "stream":
+        kinds["trunk"] = (trunk_key, shape, np.uint16)
     if mask_source is not None:
-        kinds["masks"] = {"mask": mask_key, "trunk": trunk_key}
-    missing = [k for k, key in kinds.items() if not artifact_dir(cache_dir, k, key).is_dir()]
-    stores: dict[str, FeatureStore] = {}
+        kinds["masks"] = ({"mask": mask_key, "data": data_key}, (1, *grid), np.float16)
+    missing = [k for k, (key, _, _) in kinds.items() if not artifact_dir(cache_dir, k, key).is_dir()]
     if missing:
-        for side, paths, labels in (("db", places.db_paths, places.db_labels),
-                                    ("q", places.q_paths, places.q_labels)):
-            stores[side] = extract(backbone, mask_source if "masks" in missing else None, paths,
-                                   labels, image_size, batch_size, num_workers,
-                                   desc=f"{places.name} {side}", trunk="trunk" in missing)
-    for kind in missing:
-        field = "trunk" if kind == "trunk" else "mask"
-
-        def save(tmp: Path, field: str = field) -> None:
-            for side, store in stores.items():
-                torch.save(getattr(store, field), tmp / f"{side}.pt")
-
-        build_once(cache_dir, kind, kinds[kind], save)
-    loaded = {side: FeatureStore(_load(cache_dir, "trunk", trunk_key, side),
-                                 _load(cache_dir, "masks", kinds["masks"], side)
-                                 if "masks" in kinds else None)
-              for side in ("db", "q")}
-    return PlaceFeatures(places, loaded["db"], loaded["q"])
+        _build(missing, kinds, sides, backbone, mask_source, size, cache_dir, batch_size, num_workers, places.name)
+    stores = {}
+    for side, (paths, _) in sides.items():
+        arrays = {kind: _open(artifact_dir(cache_dir, kind, key) / f"{side}.npy", (len(paths), *per_image), dtype,
+                              artifact_dir(cache_dir, kind, key))
+                  for kind, (key, per_image, dtype) in kinds.items()}
+        trunk = None
+        if "trunk" in arrays:
+            held = np.array(arrays["trunk"]) if storage == "ram" else arrays["trunk"]
+            trunk = torch.from_numpy(held).view(torch.bfloat16)
+        mask = torch.from_numpy(arrays["masks"]) if "masks" in arrays else None
+        stores[side] = FeatureStore(tuple(paths), size, trunk, mask)
+    return PlaceFeatures(places, stores["db"], stores["q"])
 
 
-def _load(cache_dir: str | Path, kind: str, key: Any, side: str) -> Tensor:
-    return torch.load(artifact_dir(cache_dir, kind, key) / f"{side}.pt", weights_only=True)
+def _build(missing: list[str], kinds: dict[str, tuple[Any, tuple[int, ...], Any]],
+           sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]], backbone: nn.Module,
+           mask_source: nn.Module | None, size: tuple[int, int], cache_dir: str | Path, batch_size: int,
+           num_workers: int, name: str) -> None:
+    """Build the missing caches in one pass per side; each lands under its final name only when whole."""
+    def compute(dirs: dict[str, Path]) -> None:
+        for side, (paths, labels) in sides.items():
+            outs = {k: np.lib.format.open_memmap(d / f"{side}.npy", mode="w+", dtype=kinds[k][2],
+                                                 shape=(len(paths), *kinds[k][1])) for k, d in dirs.items()}
+            _extract(backbone, mask_source if "masks" in outs else None, paths, labels, size, outs.get("trunk"),
+                     outs.get("masks"), batch_size, num_workers, f"{name} {side}")
+            for arr in outs.values():
+                arr.flush()
+
+    # The first kind's build computes the others in the same pass into a scratch dir; theirs then
+    # only move the files in (or compute alone if a parallel job built the first kind meanwhile).
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(dir=cache_dir, prefix=".features-"))
+    try:
+        first, *rest = missing
+        for kind in rest:
+            (scratch / kind).mkdir()
+        build_once(cache_dir, first, kinds[first][0], lambda tmp: compute({first: tmp, **{k: scratch / k for k in rest}}))
+        for kind in rest:
+            def adopt(tmp: Path, kind: str = kind) -> None:
+                if all((scratch / kind / f"{side}.npy").is_file() for side in sides):
+                    for side in sides:
+                        shutil.move(scratch / kind / f"{side}.npy", tmp / f"{side}.npy")
+                else:
+                    compute({kind: tmp})
+            build_once(cache_dir, kind, kinds[kind][0], adopt)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)

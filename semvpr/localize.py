@@ -1,8 +1,9 @@
 """Localise query images: ``python -m semvpr.localize ckpt=PATH queries=DIR [data=...] [top_k=5]``.
 
 Each image in DIR is described with the checkpoint's full pipeline (backbone, mask, aggregator)
-and matched against the database of ``data``'s test split. Prints, per query, the top-k database
-images with their UTM and descriptor distance; writes ``localize.json`` in the run directory.
+and matched against the database of ``data``'s test split (its descriptors cached as in
+``semvpr.eval``). Prints, per query, the top-k database images with their UTM and descriptor
+distance; writes ``localize.json`` in the run directory.
 """
 from __future__ import annotations
 
@@ -13,16 +14,12 @@ from typing import Any
 
 import hydra
 import numpy as np
-import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
-from torch.utils.data import DataLoader
 
-from semvpr.build import backbone_key, build_places
-from semvpr.data.datamodule import ImageDataset
+from semvpr.build import build_places
 from semvpr.errors import SemvprError
-from semvpr.eval import load_retriever
-from semvpr.features import autocast_context, cached_place_features
+from semvpr.eval import explicit_keys, load_retriever, place_descriptors
 from semvpr.metrics import knn
 from semvpr.train import CONF_DIR, write_json
 
@@ -40,21 +37,16 @@ def query_images(folder: str | Path) -> list[Path]:
     return paths
 
 
-@torch.no_grad()
 def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str, Any]]:
     """Top-k database matches (path, UTM, distance) for every query image."""
-    retriever, merged, mask_key = load_retriever(cfg, explicit)
+    paths = query_images(cfg.queries)
+    retriever, merged = load_retriever(cfg, explicit)
     if merged.filter.mask == "oracle":
         raise SemvprError("filter=oracle needs ground-truth labels and cannot localise new images")
     places = build_places(merged, ("test",))["test"]
-    db = cached_place_features(places, retriever.backbone, backbone_key(merged), retriever.mask_source,
-                               mask_key, merged.data.image_size, merged.paths.cache_dir,
-                               merged.model.eval_batch_size, merged.data.num_workers).db
-    db_desc = retriever.describe_store(db)
-    paths = query_images(cfg.queries)
-    loader = DataLoader(ImageDataset(paths, tuple(merged.data.image_size)), batch_size=merged.model.eval_batch_size)
-    with autocast_context():
-        q_desc = np.concatenate([retriever(images).float().numpy() for images, _ in loader])
+    db_desc = place_descriptors(retriever, places, "db", merged)
+    q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
+    retriever.describe_images(paths, None, merged.data.image_size, q_desc, desc="queries")
     top = knn(db_desc, q_desc, int(cfg.top_k))
     out = []
     for path, row, desc in zip(paths, top, q_desc):
@@ -67,9 +59,8 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
 
 @hydra.main(config_path=CONF_DIR, config_name="localize", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
-    explicit = {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
     try:
-        results = localize(cfg, explicit)
+        results = localize(cfg, explicit_keys())
     except SemvprError as err:
         print(f"semvpr: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None

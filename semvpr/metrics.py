@@ -1,10 +1,16 @@
 """Retrieval evaluation: positives by UTM radius, faiss kNN, Recall@N.
 
-Recall@N is the percentage of queries *that have at least one positive* whose top-N retrievals
-contain a positive (as in pytorch-NetVlad / the VPR benchmarks; Pitts30k-test has none without).
-Queries without any positive are excluded from the denominator and counted separately:
-``recall_result`` returns a ``RecallResult`` with that count; ``recall_at_n`` / ``recall_curve``
-are the dict-only shortcuts.
+Two denominators, because the references differ:
+
+- ``R@N`` (the project's headline number): percentage of **all** queries whose top-N retrievals
+  contain a positive. pytorch-NetVlad and the VPR benchmark divide by the number of queries, so a
+  query without any positive counts as a miss.
+- ``R@N_pos``: percentage of the queries **with at least one positive** (mapillary_sls's official
+  evaluation drops queries without positives before scoring).
+
+They differ only where some query has no database image within the radius (none does in
+Pitts30k-test or SynthCity). ``recall_result`` returns both with the query counts;
+``recall_at_n`` / ``recall_curve`` are the all-queries shortcuts.
 """
 from __future__ import annotations
 
@@ -22,9 +28,10 @@ DEFAULT_NS = (1, 5, 10, 20)
 
 @dataclass(frozen=True)
 class RecallResult:
-    """Recall@N in percent over the ``num_queries`` queries with positives."""
+    """Recall@N in percent over all queries (``recalls``) and over those with positives."""
 
     recalls: dict[int, float]
+    recalls_pos: dict[int, float]
     num_queries: int
     num_without_positives: int
 
@@ -48,14 +55,28 @@ def _unit_float32(x: np.ndarray) -> np.ndarray:
     return arr
 
 
-def knn(db: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
-    """(M, min(k,N)) database indices nearest to each query, exact L2 on L2-normalised descriptors."""
+def knn(db: np.ndarray, q: np.ndarray, k: int, chunk_bytes: int = 1 << 30) -> np.ndarray:
+    """(M, min(k,N)) database indices nearest to each query, exact L2 on L2-normalised descriptors.
+
+    The database is searched in chunks of at most ``chunk_bytes`` (it may be a memory-mapped
+    array larger than RAM); per-chunk top-k lists are merged, ties keeping the lower index.
+    """
     if db.ndim != 2 or q.ndim != 2 or db.shape[1] != q.shape[1]:
         raise ValueError(f"db and queries must be (N,D) and (M,D) with the same D, got {db.shape} and {q.shape}")
-    index = faiss.IndexFlatL2(db.shape[1])
-    index.add(_unit_float32(db))
-    _, idx = index.search(_unit_float32(q), min(k, db.shape[0]))
-    return idx.astype(np.int64)
+    k = min(k, db.shape[0])
+    queries = _unit_float32(q)
+    rows = max(k, chunk_bytes // (4 * db.shape[1]))
+    best_d = np.empty((len(q), 0), np.float32)
+    best_i = np.empty((len(q), 0), np.int64)
+    for start in range(0, db.shape[0], rows):
+        index = faiss.IndexFlatL2(db.shape[1])
+        index.add(_unit_float32(db[start : start + rows]))
+        dist, idx = index.search(queries, min(k, index.ntotal))
+        best_d = np.concatenate([best_d, dist], axis=1)
+        best_i = np.concatenate([best_i, idx.astype(np.int64) + start], axis=1)
+        order = np.argsort(best_d, axis=1, kind="stable")[:, :k]
+        best_d, best_i = np.take_along_axis(best_d, order, 1), np.take_along_axis(best_i, order, 1)
+    return best_i
 
 
 def first_hit_ranks(predictions: np.ndarray, positives: Sequence[np.ndarray]) -> np.ndarray:
@@ -87,13 +108,16 @@ def recall_result(predictions: np.ndarray, positives: Sequence[np.ndarray],
     if valid.size == 0:
         raise SemvprError("no query has a database image within the positive radius; check the UTM coordinates "
                           "of the test set (or the radius)")
-    recalls = {n: float(100.0 * np.mean(valid < n)) for n in ns}
-    return RecallResult(recalls=recalls, num_queries=int(valid.size), num_without_positives=int((ranks < 0).sum()))
+    # A query without positives has rank -1 and never counts as a hit.
+    hits = {n: int(np.count_nonzero(valid < n)) for n in ns}
+    return RecallResult(recalls={n: 100.0 * h / len(ranks) for n, h in hits.items()},
+                        recalls_pos={n: 100.0 * h / valid.size for n, h in hits.items()},
+                        num_queries=int(len(ranks)), num_without_positives=int((ranks < 0).sum()))
 
 
 def recall_at_n(predictions: np.ndarray, positives: Sequence[np.ndarray],
                 ns: Iterable[int] = DEFAULT_NS) -> dict[int, float]:
-    """{N: Recall@N in percent}; queries without positives are excluded (see ``recall_result`` for the count)."""
+    """{N: Recall@N in percent of all queries} (``recall_result`` also gives the MSLS denominator)."""
     return recall_result(predictions, positives, ns).recalls
 
 

@@ -1,4 +1,9 @@
-"""Pseudo-label cache: the teacher labels every training image once, as trainId PNGs named by image stem."""
+"""Pseudo-label cache: the teacher labels every training image once, as trainId PNGs.
+
+A label is stored at the image's path relative to its dataset root (``<rel path>.png``), never by
+file stem alone: stems repeat within a dataset (Pitts30k: ``000/000546_pitch1_yaw1.jpg`` is a
+database image, ``queries_real/000/000546_pitch1_yaw1.jpg`` a query).
+"""
 from __future__ import annotations
 
 import os
@@ -14,45 +19,52 @@ from tqdm import tqdm
 
 from semvpr.artifacts import build_once, config_hash
 from semvpr.errors import SemvprError
+from semvpr.precision import autocast
 
-VERSION = 1
-
-
-def label_path(label_dir: str | Path, image: str | Path) -> Path:
-    """Where the pseudo-label of ``image`` lives in a labels directory."""
-    return Path(label_dir) / f"{Path(image).stem}.png"
+VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
 
 
-def image_list_identity(paths: Sequence[Path]) -> str:
-    """Hash of the (sorted) image names and byte sizes: the same images give the same labels."""
-    return config_hash(sorted((p.name, p.stat().st_size) for p in paths))
+def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Path:
+    """Where the pseudo-label of ``image`` (under dataset ``root``) lives in a labels directory."""
+    try:
+        rel = Path(image).relative_to(root)
+    except ValueError:
+        raise SemvprError(f"image {image} is not under the dataset root {root}") from None
+    return Path(label_dir) / rel.parent / f"{rel.name}.png"
+
+
+def image_list_identity(paths: Sequence[Path], root: Path) -> str:
+    """Hash of the (sorted) relative paths and byte sizes: the same images give the same labels."""
+    return config_hash(sorted((p.relative_to(root).as_posix(), p.stat().st_size) for p in paths))
 
 
 def _write_png(ids: np.ndarray, final: Path) -> None:
     """Write a uint8 trainId PNG under a temporary name, then rename, so a kill never leaves half a file."""
+    final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.name}.tmp")
     Image.fromarray(ids.astype(np.uint8)).save(tmp, format="PNG")
     os.replace(tmp, final)
 
 
 def _label_missing(
-    teacher: Any, paths: Sequence[Path], image_size: tuple[int, int], out: Path, batch_size: int, num_workers: int
+    teacher: Any, paths: Sequence[Path], root: Path, image_size: tuple[int, int], out: Path, batch_size: int,
+    num_workers: int,
 ) -> None:
     """Label the images whose PNG is not in ``out`` yet (a resumed run skips the finished ones)."""
     from semvpr.data.datamodule import ImageDataset
 
-    todo = [p for p in paths if not label_path(out, p).is_file()]
+    todo = [p for p in paths if not label_path(out, p, root).is_file()]
     bar = tqdm(total=len(paths), initial=len(paths) - len(todo), desc="pseudo-labels", unit="img", disable=None)
     if not todo:
         bar.close()
         return
     device = getattr(teacher, "device", torch.device("cpu"))
     loader = DataLoader(ImageDataset(todo, image_size), batch_size=batch_size, num_workers=num_workers)
-    with bar, torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
+    with bar, torch.no_grad(), autocast(device):
         for images, index in loader:
             ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
             for i, k in enumerate(index.tolist()):
-                _write_png(ids[i], label_path(out, todo[k]))
+                _write_png(ids[i], label_path(out, todo[k], root))
             bar.update(len(index))
 
 
@@ -62,24 +74,23 @@ def pseudo_labels(
     paths: Sequence[str | Path],
     image_size: Sequence[int],
     cache_dir: str | Path,
+    root: str | Path,
     *,
     batch_size: int = 16,
     num_workers: int = 2,
 ) -> Path:
-    """Directory of one trainId PNG per image (``<stem>.png``, at ``image_size``), built once and resumable."""
-    paths = [Path(p) for p in paths]
+    """Directory of one trainId PNG per image (at ``image_size``, see ``label_path``), built once and resumable."""
+    root = Path(root)
+    paths = list(dict.fromkeys(Path(p) for p in paths))  # each image once, first-seen order
     if not paths:
         raise SemvprError("pseudo-labels: no images given to label")
-    stems: dict[str, Path] = {}
     for p in paths:
-        if p.stem in stems and stems[p.stem] != p:
-            raise SemvprError(f"pseudo-labels are named by image stem, but {stems[p.stem]} and {p} share '{p.stem}'")
-        stems[p.stem] = p
-    paths = list(stems.values())
+        label_path("", p, root)  # every image must sit under the root: fail before any work
     size = (int(image_size[0]), int(image_size[1]))
-    key = {"version": VERSION, "teacher": teacher_key, "images": image_list_identity(paths), "image_size": list(size)}
+    key = {"version": VERSION, "teacher": teacher_key, "images": image_list_identity(paths, root),
+           "image_size": list(size)}
     return build_once(
         cache_dir, "labels", key,
-        lambda out: _label_missing(teacher, paths, size, out, batch_size, num_workers),
+        lambda out: _label_missing(teacher, paths, root, size, out, batch_size, num_workers),
         resumable=True,
     )  # fmt: skip

@@ -25,13 +25,15 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.build import (backbone_key, backbone_name, build_backbone, build_mask_source, build_places,
-                          build_semantic, check_config, init_aggregator)
+from semvpr.build import (build_backbone, build_mask_source, build_places, build_semantic, check_config,
+                          init_aggregator, mask_key)
+from semvpr.checkpoint import record_of
 from semvpr.errors import SemvprError
-from semvpr.features import PlaceFeatures, cached_place_features, grid_size
+from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
 from semvpr.mining import RetrievalDataModule
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever, evaluate
+from semvpr.precision import lightning_precision
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
@@ -52,13 +54,15 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     backbone = build_backbone(cfg)
     tic = time.time()
     semantic = build_semantic(cfg, places["train"], backbone)
-    mask_source, mask_key = build_mask_source(cfg, semantic)
+    mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = time.time() - tic
 
     tic = time.time()
-    features = {split: cached_place_features(
-        places[split], backbone, backbone_key(cfg), mask_source, mask_key, cfg.data.image_size,
-        cfg.paths.cache_dir, cfg.model.eval_batch_size, cfg.data.num_workers) for split in places}
+    storage = feature_storage(cfg, backbone, places)
+    features = {split: place_features(
+        places[split], backbone, backbone.frozen_identity(), mask_source, mask_key(mask_source, cfg),
+        cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers)
+        for split in places}
     timings["features_s"] = time.time() - tic
 
     # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
@@ -72,13 +76,13 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
     retriever = Retriever(backbone, aggregator, mask_source, whitening, instantiate(cfg.model.optimizer),
                           instantiate(cfg.model.scheduler), cfg.model.margin, cfg.model.eval_batch_size,
-                          config=OmegaConf.to_container(cfg, resolve=True))
+                          cfg.data.num_workers, record=record_of(cfg))
     datamodule = RetrievalDataModule(
         features["train"], features["val"], features["test"], cfg.model.batch_size,
-        cfg.model.eval_batch_size, cfg.model.cache_refresh, cfg.seed,
-        positive_radius=cfg.model.positive_radius, negative_radius=cfg.model.negative_radius,
-        num_negatives=cfg.model.num_negatives, negative_candidates=cfg.model.negative_candidates,
-        margin=cfg.model.margin)
+        cfg.model.eval_batch_size, cfg.model.cache_refresh, cfg.seed, cfg.model.queries_per_epoch,
+        cfg.data.num_workers, positive_radius=cfg.model.positive_radius,
+        negative_radius=cfg.model.negative_radius, num_negatives=cfg.model.num_negatives,
+        negative_candidates=cfg.model.negative_candidates, margin=cfg.model.margin)
 
     tic = time.time()
     untrained = evaluate_features(retriever, features["test"])
@@ -87,8 +91,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
     checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
                                  mode="max", save_last=True, auto_insert_metric_name=False)
-    trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers,
-                                     callbacks=[checkpoint])
+    trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, callbacks=[checkpoint],
+                                     precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
     tic = time.time()
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path)
     timings["fit_s"] = time.time() - tic
@@ -106,31 +110,60 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     tested = retriever.last_eval
 
     write_figure_data(run_dir, places["test"], features["test"], retriever, tested["predictions"],
-                      int(cfg.num_figure_queries))
+                      int(cfg.num_figure_queries), cfg.filter.mask)
     metrics: dict[str, Any] = {
-        "status": "ok", "error": None, "filter": cfg.filter.name, "backbone": backbone_name(cfg),
+        "status": "ok", "error": None, "filter": cfg.filter.name, "backbone": cfg.backbone.name,
         "seed": int(cfg.seed), "data": cfg.data.name,
         **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
+        **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
         "recalls": {str(n): v for n, v in tested["curve"].items()},
         "test_queries_without_positives": tested["num_without_positives"],
+        "feature_storage": storage,
         "checkpoint": str(tested_ckpt),
         "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
+        "best/val/R@1": best_val_r1(run_dir),
         "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
         "timings": timings, "wall_time_s": time.time() - start,
     }
     return metrics
 
 
+def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
+    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.features)."""
+    per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
+    images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
+    cached = all(trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir)
+                 for p in places.values())
+    storage = choose_storage(cfg.features.storage, per_image * images, cfg.paths.cache_dir,
+                             float(cfg.features.ram_gb), float(cfg.features.disk_gb), cached)
+    print(f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
+          file=sys.stderr)
+    return storage
+
+
+def best_val_r1(run_dir: Path) -> float | None:
+    """Validation R@1 of the epoch whose checkpoint was kept (the val/R@5 maximum), from the CSV log."""
+    import csv
+
+    rows = []
+    for log in (run_dir / "csv").rglob("metrics.csv"):
+        with log.open(newline="") as fh:
+            rows += [r for r in csv.DictReader(fh) if r.get("val/R@1") and r.get("val/R@5")]
+    if not rows:
+        return None
+    return float(max(rows, key=lambda r: float(r["val/R@5"]))["val/R@1"])
+
+
 def evaluate_features(retriever: Retriever, features: PlaceFeatures) -> dict[str, Any]:
-    """Recall of the retriever on cached features, outside the Lightning loop."""
+    """Recall of the retriever on a place set's feature stores, outside the Lightning loop."""
     return evaluate(retriever.describe_store(features.db), retriever.describe_store(features.q),
                     features.places.positives(25.0))
 
 
 @torch.no_grad()
 def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retriever: Retriever,
-                      predictions: np.ndarray, num_queries: int) -> None:
+                      predictions: np.ndarray, num_queries: int, mask_name: str) -> None:
     """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
     over the query traversal (the same queries for every run, so the report can compare filters)."""
     idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
@@ -142,12 +175,12 @@ def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retri
         queries.append({"query": str(places.q_paths[i]), "utm": places.q_utm[i].tolist(), "topk": topk})
     write_json(run_dir / "retrievals.json", {"queries": queries})
     arrays: dict[str, np.ndarray] = {"query_index": idx, "image_paths": np.array([str(places.q_paths[i]) for i in idx])}
-    trunk = features.q.trunk[torch.from_numpy(idx)]
-    local = retriever.backbone.forward_trainable(trunk.float().contiguous(memory_format=torch.channels_last))
+    trunk = features.q.trunk_of(idx, retriever.backbone).float().to(retriever.device)
+    local = retriever.backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
     if hasattr(retriever.aggregator, "attention"):
-        arrays["attention"] = retriever.aggregator.attention(local.float())[:, 0].float().numpy()
+        arrays["attention"] = retriever.aggregator.attention(local.float())[:, 0].float().cpu().numpy()
     if features.q.mask is not None:
-        arrays[retriever.hparams["config"]["filter"]["mask"]] = features.q.mask[torch.from_numpy(idx), 0].numpy()
+        arrays[mask_name] = features.q.mask[torch.from_numpy(idx), 0].float().numpy()
     tmp = run_dir / ".maps.tmp.npz"
     np.savez(tmp, **arrays)
     os.replace(tmp, run_dir / "maps.npz")
@@ -177,7 +210,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         write_json(run_dir / "metrics.json", {
             "status": "failed", "error": f"{type(err).__name__}: {message}",
-            "filter": cfg.filter.get("name"), "backbone": backbone_name(cfg), "seed": int(cfg.seed)})
+            "filter": cfg.filter.get("name"), "backbone": cfg.backbone.get("name"), "seed": int(cfg.seed)})
         if multirun:
             print(f"semvpr: job failed ({run_dir}): {message}", file=sys.stderr)
             return {"status": "failed"}
@@ -186,7 +219,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     write_json(run_dir / "metrics.json", metrics)
-    summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@")}
+    summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@") and not k.endswith("_pos")}
     print(json.dumps({"run_dir": str(run_dir), **summary}))
     return metrics
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
@@ -14,3 +15,24 @@ def tiny_config(cache_dir: Path, *overrides: str, config_name: str = "train") ->
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return compose(config_name=config_name,
                        overrides=["experiment=tiny", f"paths.cache_dir={cache_dir}", *overrides])
+
+
+def config(*overrides: str, config_name: str = "train") -> DictConfig:
+    """The project's config with these overrides."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name=config_name, overrides=list(overrides))
+
+
+def write_checkpoint(cfg: DictConfig, path: Path) -> dict[str, torch.Tensor]:
+    """Write an untrained model's checkpoint as a run does (Lightning's state_dict + hyper_parameters)."""
+    from semvpr.build import build_backbone, build_mask_source, instantiate_node
+    from semvpr.checkpoint import record_of
+    from semvpr.models.netvlad import PCAWhitening
+    from semvpr.models.retriever import Retriever
+
+    backbone = build_backbone(cfg)
+    aggregator = instantiate_node(cfg.filter.aggregator, dim=backbone.out_channels)
+    whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
+    retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), whitening, record=record_of(cfg))
+    torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams), "epoch": 0}, path)
+    return retriever.state_dict()

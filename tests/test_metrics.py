@@ -18,10 +18,13 @@ def test_recall_hand_made_case() -> None:
     ])
     positives = [np.array([1]), np.array([0, 9]), np.array([7]), np.array([], np.int64), np.array([3, 0])]
     res = recall_result(predictions, positives, ns=(1, 2, 4, 5))
-    assert res.num_queries == 4 and res.num_without_positives == 1
-    assert res.recalls == {1: 25.0, 2: 50.0, 4: 75.0, 5: 75.0}
-    assert recall_at_n(predictions, positives, ns=(1, 5)) == {1: 25.0, 5: 75.0}
-    assert recall_curve(predictions, positives, max_n=5) == {1: 25.0, 2: 50.0, 3: 50.0, 4: 75.0, 5: 75.0}
+    assert res.num_queries == 5 and res.num_without_positives == 1
+    # pytorch-NetVlad / the benchmark: hits over all 5 queries (the one without positives is a miss).
+    assert res.recalls == {1: 20.0, 2: 40.0, 4: 60.0, 5: 60.0}
+    # mapillary_sls: hits over the 4 queries that have a positive.
+    assert res.recalls_pos == {1: 25.0, 2: 50.0, 4: 75.0, 5: 75.0}
+    assert recall_at_n(predictions, positives, ns=(1, 5)) == {1: 20.0, 5: 60.0}
+    assert recall_curve(predictions, positives, max_n=5) == {1: 20.0, 2: 40.0, 3: 40.0, 4: 60.0, 5: 60.0}
     with pytest.raises(ValueError, match="Recall@20"):
         recall_at_n(predictions, positives)
     with pytest.raises(SemvprError, match="no query"):
@@ -48,3 +51,11 @@ def test_positives_within_radius_sorted() -> None:
     pos = positives_within(db, q, radius=25.0)
     np.testing.assert_array_equal(pos[0], [0, 4, 1, 2])
     assert pos[1].size == 0
+
+
+def test_knn_in_database_chunks_equals_one_pass() -> None:
+    rng = np.random.default_rng(1)
+    db, q = rng.standard_normal((250, 16)).astype(np.float32), rng.standard_normal((30, 16))
+    whole = knn(db, q, 9)
+    # 40 rows per chunk: seven chunks, merged.
+    np.testing.assert_array_equal(knn(db, q, 9, chunk_bytes=40 * 4 * 16), whole)

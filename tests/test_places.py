@@ -127,6 +127,23 @@ def test_read_dbstruct_mat(tmp_path: Path) -> None:
     assert read_dbstruct_mat(mat, root, name="p30k").name == "p30k"
 
 
+def test_dbstruct_query_with_a_database_stem_resolves_to_the_query(tmp_path: Path) -> None:
+    # Real Pitts30k-test names: 003/003504_pitch1_yaw1.jpg is a database image and, under
+    # queries_real/, a query image; the .mat lists both names without the prefix.
+    root = tmp_path / "pitts"
+    name = "003/003504_pitch1_yaw1.jpg"
+    write_jpg(root / name)
+    write_jpg(root / "queries_real" / name)
+    utm = np.array([[585000.0, 4477000.0]])
+    write_dbstruct(tmp_path / "pitts30k_test.mat", [name], utm, [name], utm)
+    places = read_dbstruct_mat(tmp_path / "pitts30k_test.mat", root)
+    assert places.db_paths == (root / name,) and places.q_paths == (root / "queries_real" / name,)
+    assert places.relative(places.db_paths[0]) != places.relative(places.q_paths[0])
+    # Lists that carry the prefix (gsv-cities, some re-exports) resolve under the root as they are.
+    write_dbstruct(tmp_path / "prefixed.mat", [name], utm, [f"queries_real/{name}"], utm)
+    assert read_dbstruct_mat(tmp_path / "prefixed.mat", root).q_paths == (root / "queries_real" / name,)
+
+
 def test_read_dbstruct_mat_bad_inputs(tmp_path: Path) -> None:
     names, utm = ["a.jpg"], np.zeros((1, 2))
     mat = tmp_path / "broken.mat"
@@ -144,43 +161,84 @@ def test_read_dbstruct_mat_bad_inputs(tmp_path: Path) -> None:
         read_dbstruct_mat(tmp_path / "junk.mat", tmp_path)
 
 
-def write_msls_side(folder: Path, rows: list[tuple[str, float, float]],
+def write_msls_side(folder: Path, rows: list[tuple[str, float, float, bool, bool]],
                     columns: str = "easting,northing") -> None:
+    """One side of a city in the official MSLS layout (mapillary_sls README): postprocessed.csv with
+    UTMs, raw.csv with the panorama flag, subtask_index.csv, seq_info.csv, all indexed by frame.
+    A row is (key, easting, northing, is_panorama, in the 'all' subtask)."""
     folder.mkdir(parents=True, exist_ok=True)
-    lines = [f",key,lat,lon,{columns},night,view_direction"]
-    lines += [f"{i},{k},55.6,12.5,{e},{n},False,Forward" for i, (k, e, n) in enumerate(rows)]
-    (folder / "postprocessed.csv").write_text("\n".join(lines) + "\n")
+    post = [f",key,utm_zone,{columns},night,control_panel,view_direction,unique_cluster"]
+    post += [f"{i},{k},32U,{e},{n},False,False,Forward,{i}" for i, (k, e, n, _, _) in enumerate(rows)]
+    raw = [",key,lon,lat,ca,captured_at,pano"]
+    raw += [f"{i},{k},12.5,55.6,90.0,1500000000000,{pano}" for i, (k, _, _, pano, _) in enumerate(rows)]
+    sub = [",key,all,s2w,w2s,o2n,n2o,d2n,n2d"]
+    sub += [f"{i},{k},{all_},False,False,False,False,False,False" for i, (k, _, _, _, all_) in enumerate(rows)]
+    seq = [",key,frame_number,sequence_key"] + [f"{i},{k},{i},seq0" for i, (k, *_) in enumerate(rows)]
+    for name, lines in (("postprocessed", post), ("raw", raw), ("subtask_index", sub), ("seq_info", seq)):
+        (folder / f"{name}.csv").write_text("\n".join(lines) + "\n")
+    (folder / "images").mkdir(exist_ok=True)
 
 
 def make_msls(root: Path) -> Path:
     tv = root / "train_val"
-    write_msls_side(tv / "cph" / "database", [("c_db0", 100.0, 0.0), ("c_db1", 300.0, 0.0)])
-    write_msls_side(tv / "cph" / "query", [("c_q0", 105.0, 0.0)])
-    write_msls_side(tv / "london" / "database", [("l_db0", 100.0, 0.0)])  # same UTM numbers, other zone
-    write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0)])
-    write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0)])
-    write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0)])
+    write_msls_side(tv / "cph" / "database", [("c_db0", 100.0, 0.0, False, True), ("c_db1", 300.0, 0.0, False, True),
+                                             ("c_pano", 100.0, 1.0, True, True)])
+    write_msls_side(tv / "cph" / "query", [("c_q0", 105.0, 0.0, False, True), ("c_q_other", 300.0, 2.0, False, False)])
+    # Same UTM numbers as cph, in another zone.
+    write_msls_side(tv / "london" / "database", [("l_db0", 100.0, 0.0, False, True), ("l_pano", 100.0, 0.0, True, True)])
+    write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0, False, True), ("l_qpano", 101.0, 0.0, True, True)])
+    write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0, False, True)])
+    write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)])
+    # An official test city: images and subtask index only, no ground truth.
+    for side in ("database", "query"):
+        folder = root / "test" / "miami" / side
+        folder.mkdir(parents=True)
+        (folder / "subtask_index.csv").write_text(",key,all\n0,m0,True\n")
     return root
 
 
-def test_read_msls(tmp_path: Path) -> None:
+def test_read_msls_follows_the_official_splits(tmp_path: Path) -> None:
     root = make_msls(tmp_path / "msls")
     val = read_msls(root, "val")
-    assert len(val.db_paths) == 3 and len(val.q_paths) == 2
+    # Official val cities, panoramas excluded, query frames outside the subtask dropped.
+    assert [p.name for p in val.db_paths] == ["c_db0.jpg", "c_db1.jpg", "s_db0.jpg"]
+    assert [p.name for p in val.q_paths] == ["c_q0.jpg", "s_q0.jpg"]
     assert val.db_paths[0] == root / "train_val" / "cph" / "database" / "images" / "c_db0.jpg"
     assert [p.tolist() for p in val.positives()] == [[0], [2]]
+    with pytest.raises(SemvprError, match="empty MSLS split 'val'"):
+        read_msls(root, "val", subtask="s2w")  # no frame of the fixture is in the summer-to-winter subtask
+    # Train: the official train cities only (london here), never the val ones; no subtask filter.
     train = read_msls(root, "train")
-    assert [p.name for p in train.q_paths] == ["l_q0.jpg"]
-    both = read_msls(root, "train", cities=["cph", "london"])
+    assert [p.name for p in train.db_paths] == ["l_db0.jpg"] and [p.name for p in train.q_paths] == ["l_q0.jpg"]
+    everything = read_msls(root, "train", cities=["cph", "london"])
+    assert [p.name for p in everything.q_paths] == ["c_q0.jpg", "c_q_other.jpg", "l_q0.jpg"]
     # Same (east, north) in two cities must not make them positives of each other.
-    assert [p.tolist() for p in both.positives()] == [[0], [2]]
+    assert [p.tolist() for p in everything.positives()] == [[0], [1], [2]]
+    with_panos = read_msls(root, "train", exclude_panos=False)
+    assert [p.name for p in with_panos.db_paths] == ["l_db0.jpg", "l_pano.jpg"]
+
+
+def test_msls_config_trains_on_train_cities_and_tests_on_val_cities(tmp_path: Path) -> None:
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    root = make_msls(tmp_path / "msls")
+    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["data=msls", f"data.root={root}"])
+    train, val, test = (instantiate(cfg.data[s]) for s in ("train", "val", "test"))
+    assert {p.parts[-4] for p in train.db_paths} == {"london"}
+    assert {p.parts[-4] for p in val.db_paths} == {p.parts[-4] for p in test.db_paths} == {"cph", "sf"}
 
 
 def test_read_msls_bad_inputs(tmp_path: Path) -> None:
-    with pytest.raises(SemvprError, match=r"train_val not found.*data\.root="):
+    with pytest.raises(SemvprError, match=r"train_val.*not found.*data\.root="):
         read_msls(tmp_path / "none", "train")
     root = make_msls(tmp_path / "msls")
-    write_msls_side(root / "train_val" / "sf" / "query", [("s_q0", 5.0, 6.0)], columns="utm_x,utm_y")
+    with pytest.raises(SemvprError, match=r"'miami' has no ground truth.*val cities"):
+        read_msls(root, "test")
+    with pytest.raises(SemvprError, match="city folder 'nowhere' not found"):
+        read_msls(root, "val", cities=["nowhere"])
+    write_msls_side(root / "train_val" / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)], columns="utm_x,utm_y")
     with pytest.raises(SemvprError, match=r"sf/query/postprocessed\.csv: missing column.*easting"):
         read_msls(root, "val")
     with pytest.raises(SemvprError, match="split 'dev' unknown"):

@@ -47,27 +47,28 @@ def make_images(root: Path, n: int = 10) -> list[Path]:
 def test_labels_every_image_once(tmp_path: Path) -> None:
     paths = make_images(tmp_path / "img")
     teacher = CountingTeacher()
-    out = pseudo_labels(teacher, "teacher-abc", paths, SIZE, tmp_path / "cache", batch_size=4, num_workers=0)
+    root = tmp_path / "img"
+    out = pseudo_labels(teacher, "teacher-abc", paths, SIZE, tmp_path / "cache", root, batch_size=4, num_workers=0)
     assert teacher.seen == len(paths)
-    assert sorted(p.name for p in out.glob("*.png")) == sorted(f"{p.stem}.png" for p in paths)
+    assert sorted(p.name for p in out.glob("*.png")) == sorted(f"{p.name}.png" for p in paths)
     assert not list(out.glob(".*"))  # no temp files left behind
-    first = np.asarray(Image.open(label_path(out, paths[4])))
+    first = np.asarray(Image.open(label_path(out, paths[4], root)))
     assert first.shape == SIZE and set(np.unique(first)) == {0, 13}
     assert (first[:, :10] == 13).all() and (first[:, 12:] == 0).all()  # 20 of 40 columns bright → 10 of 20
 
     again = CountingTeacher()
-    assert pseudo_labels(again, "teacher-abc", paths, SIZE, tmp_path / "cache", num_workers=0) == out
+    assert pseudo_labels(again, "teacher-abc", paths, SIZE, tmp_path / "cache", root, num_workers=0) == out
     assert again.seen == 0
-    other = pseudo_labels(CountingTeacher(), "teacher-xyz", paths, SIZE, tmp_path / "cache", num_workers=0)
+    other = pseudo_labels(CountingTeacher(), "teacher-xyz", paths, SIZE, tmp_path / "cache", root, num_workers=0)
     assert other != out  # a different teacher gets its own labels
 
 
 def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
     paths = make_images(tmp_path / "img")
-    key_args = ("teacher-abc", paths, SIZE, tmp_path / "cache")
+    key_args = ("teacher-abc", paths, SIZE, tmp_path / "cache", tmp_path / "img")
     with pytest.raises(KeyboardInterrupt):
         pseudo_labels(CountingTeacher(fail_after=4), *key_args, batch_size=2, num_workers=0)
-    final = artifact_dir(tmp_path / "cache", "labels", _key(paths))
+    final = artifact_dir(tmp_path / "cache", "labels", _key(paths, tmp_path / "img"))
     assert not final.exists()  # a partial run never counts as complete
     partial = [d for d in (tmp_path / "cache").iterdir() if d.name.endswith(".partial")]
     assert len(partial) == 1 and len(list(partial[0].glob("*.png"))) == 4
@@ -79,15 +80,50 @@ def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
     assert not partial[0].exists()
 
 
-def _key(paths: list[Path]) -> dict:
+def _key(paths: list[Path], root: Path) -> dict:
     """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
     from semvpr.pseudolabels import VERSION, image_list_identity
 
-    return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths), "image_size": list(SIZE)}
+    return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths, root),
+            "image_size": list(SIZE)}
 
 
-def test_clashing_stems_are_a_user_error(tmp_path: Path) -> None:
-    a = make_images(tmp_path / "a", 2)
-    b = make_images(tmp_path / "b", 2)
-    with pytest.raises(SemvprError, match="share"):
-        pseudo_labels(CountingTeacher(), "t", a + b, SIZE, tmp_path / "cache", num_workers=0)
+# Real Pitts30k-test names (pytorch-NetVlad layout): the same stem as a database and as a query
+# image (288 stems do; ../shared/realdata/pitts30k_test_{db,q}Images.npy).
+PITTS_PAIRS = [("003/003504_pitch1_yaw1.jpg", "queries_real/003/003504_pitch1_yaw1.jpg"),
+               ("003/003504_pitch1_yaw2.jpg", "queries_real/003/003504_pitch1_yaw2.jpg")]
+REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
+
+
+def _write_named(root: Path, names: list[str]) -> list[Path]:
+    """Images at the given relative paths, bright where the name is a query (so labels differ)."""
+    paths = []
+    for name in names:
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.full((32, 40, 3), 255 if name.startswith("queries") else 0, np.uint8)).save(path)
+        paths.append(path)
+    return paths
+
+
+def test_same_stem_in_database_and_queries_gets_two_labels(tmp_path: Path) -> None:
+    root = tmp_path / "pitts30k"
+    paths = _write_named(root, [n for pair in PITTS_PAIRS for n in pair])
+    assert len({p.stem for p in paths}) == len(paths) // 2  # the stems do collide
+    teacher = CountingTeacher()
+    out = pseudo_labels(teacher, "t", paths, SIZE, tmp_path / "cache", root, num_workers=0)
+    assert teacher.seen == len(paths)
+    for db, q in PITTS_PAIRS:
+        db_label, q_label = label_path(out, root / db, root), label_path(out, root / q, root)
+        assert db_label != q_label
+        assert (np.asarray(Image.open(db_label)) == 0).all() and (np.asarray(Image.open(q_label)) == 13).all()
+    with pytest.raises(SemvprError, match="not under the dataset root"):
+        pseudo_labels(CountingTeacher(), "t", paths, SIZE, tmp_path / "cache", root / "003", num_workers=0)
+
+
+@pytest.mark.skipif(not (REALDATA / "pitts30k_test_qImages.npy").is_file(), reason="../shared/realdata absent")
+def test_label_paths_of_the_real_pitts30k_test_lists_are_unique() -> None:
+    root = Path("/data/pitts30k")
+    names = [*np.load(REALDATA / "pitts30k_test_dbImages.npy"), *np.load(REALDATA / "pitts30k_test_qImages.npy")]
+    assert len({Path(n).stem for n in names}) == len(names) - 288
+    assert len({label_path("labels", root / n, root) for n in names}) == len(names)

@@ -12,7 +12,7 @@ from PIL import Image
 from semvpr.errors import SemvprError
 from semvpr.models import student as student_mod
 from semvpr.models.backbones import VGG16Backbone
-from semvpr.models.student import Student, backbone_identity, build_student
+from semvpr.models.student import Student, build_student
 
 SIZE = (32, 48)
 
@@ -49,12 +49,12 @@ def test_strides_the_backbone_lacks_are_a_user_error(backbone: VGG16Backbone) ->
 
 
 def test_backbone_identity_tracks_only_the_frozen_prefix(backbone: VGG16Backbone) -> None:
-    before = backbone_identity(backbone)
+    before = backbone.frozen_identity()
     with torch.no_grad():
         backbone.units[-1][0].weight.add_(1.0)  # conv5: trainable, irrelevant to the student
-        assert backbone_identity(backbone) == before
+        assert backbone.frozen_identity() == before
         backbone.units[0][0].weight.add_(1.0)  # conv1: frozen, changes every skip
-        assert backbone_identity(backbone) != before
+        assert backbone.frozen_identity() != before
         backbone.units[0][0].weight.sub_(1.0)
         backbone.units[-1][0].weight.sub_(1.0)
 
@@ -83,8 +83,8 @@ def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path:
     labels = tmp_path / "labels-abc"
     labels.mkdir()
     for p, ids in zip(paths, maps):
-        Image.fromarray(ids).save(labels / f"{p.stem}.png")
-    student = build_student(tiny_cfg(), backbone, paths, labels, SIZE, tmp_path / "cache")
+        Image.fromarray(ids).save(labels / f"{p.name}.png")
+    student = build_student(tiny_cfg(), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
     assert not student.training
 
     test_paths, test_maps = toy_set(tmp_path / "test", 8, seed=1)
@@ -103,6 +103,6 @@ def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path:
     assert iou > 0.85, iou
 
     monkeypatch.setattr(student_mod, "fit_student", lambda *a: pytest.fail("trained twice"))
-    again = build_student(tiny_cfg(), backbone, paths, labels, SIZE, tmp_path / "cache")
+    again = build_student(tiny_cfg(), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
     for a, b in zip(student.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,8 +12,14 @@ from semvpr.errors import SemvprError
 from semvpr.metrics import positives_within
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-#: MSLS convention (mapillary_sls): these train_val cities form the validation split.
-MSLS_VAL_CITIES = ("cph", "sf")
+#: The official MSLS cities of each split (mapillary_sls, ``default_cities``).
+MSLS_CITIES: dict[str, tuple[str, ...]] = {
+    "train": ("trondheim", "london", "boston", "melbourne", "amsterdam", "helsinki", "tokyo", "toronto",
+              "saopaulo", "moscow", "zurich", "paris", "bangkok", "budapest", "austin", "berlin", "ottawa",
+              "phoenix", "goa", "amman", "nairobi", "manila"),
+    "val": ("cph", "sf"),
+    "test": ("miami", "athens", "buenosaires", "stockholm", "bengaluru", "kampala"),
+}  # fmt: skip
 #: dbStruct fields in the order MATLAB writes them (Pitts250k/30k, Tokyo 24/7).
 DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages",
                    "numQueries", "posDistThr", "posDistSqThr", "nonTrivPosDistSqThr")  # fmt: skip
@@ -30,6 +37,10 @@ class PlaceSet:
     q_utm: np.ndarray
     db_labels: tuple[Path, ...] | None = None
     q_labels: tuple[Path, ...] | None = None
+    #: Dataset root: per-image artifacts are keyed by the image path relative to it, since file
+    #: stems repeat (Pitts30k has the same stem as a database and as a query image). None = the
+    #: deepest folder holding every image of the set.
+    root: Path | None = None
 
     def __post_init__(self) -> None:
         # Normalise here so every reader (and hand-built sets) gets the same types and checks.
@@ -48,6 +59,15 @@ class PlaceSet:
             if labels is not None and len(labels) != len(paths):
                 raise SemvprError(f"place set {self.name!r}: {len(paths)} images but "
                                   f"{len(labels)} {field}")
+        images = self.db_paths + self.q_paths
+        root = Path(self.root) if self.root is not None else common_root(images)
+        if any(not p.is_relative_to(root) for p in images):
+            root = common_root(images)  # e.g. queries under a separate query_root
+        object.__setattr__(self, "root", root)
+
+    def relative(self, path: Path) -> str:
+        """Key of one of the set's images: its path relative to the dataset root, POSIX style."""
+        return Path(path).relative_to(self.root).as_posix()
 
     def positives(self, radius: float = 25.0) -> list[np.ndarray]:
         """Per query: database indices within `radius` metres, nearest first."""
@@ -64,6 +84,11 @@ class PlaceSet:
                 lines.append(f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
                              f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)")
         return "\n".join(lines)
+
+
+def common_root(paths: tuple[Path, ...] | list[Path]) -> Path:
+    """Deepest folder holding every path (``Path()`` for none)."""
+    return Path(os.path.commonpath([str(p.parent) for p in paths])) if paths else Path()
 
 
 def parse_utm_name(path: str | Path) -> tuple[float, float]:
@@ -105,6 +130,7 @@ def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
     name = base.parent.name if base.name == "images" else base.name
     return PlaceSet(
         name=f"{name}/{split}",
+        root=base,
         db_paths=tuple(paths["database"]),
         q_paths=tuple(paths["queries"]),
         db_utm=np.array([parse_utm_name(p) for p in paths["database"]], dtype=np.float64),
@@ -182,12 +208,15 @@ def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | 
         raise SemvprError(f"image root {image_root} does not exist; set data.root=... to the folder "
                           f"holding the images listed in {mat_path.name}")
     db_root = _resolve_root(db_names, [image_root], mat_path, "database")
-    # pytorch-NetVlad joins Pitts query names onto <root>/queries_real; other releases keep the prefix.
+    # pytorch-NetVlad joins Pitts query names onto <root>/queries_real; other releases (Tokyo 24/7,
+    # lists with the prefix) resolve under the root. queries_real first: a query stem may also be a
+    # database image's (288 in Pitts30k-test), and <root>/<name> would then find the database image.
     q_candidates = ([Path(query_root).expanduser()] if query_root
-                    else [image_root, image_root / "queries_real"])
+                    else [image_root / "queries_real", image_root])
     q_root = _resolve_root(q_names, q_candidates, mat_path, "query")
     return PlaceSet(
         name=name or f"{mat_path.stem}" + (f"/{which[0]}" if which and which[0] else ""),
+        root=image_root,
         db_paths=tuple(db_root / n for n in db_names),
         q_paths=tuple(q_root / n for n in q_names),
         db_utm=db_utm,
@@ -195,63 +224,104 @@ def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | 
     )
 
 
-def _read_msls_side(folder: Path) -> tuple[list[Path], list[tuple[float, float]]]:
-    csv_path = folder / "postprocessed.csv"
-    if not csv_path.is_file():
-        raise SemvprError(f"{csv_path} not found; MSLS needs <city>/{{query,database}}/postprocessed.csv")
-    with csv_path.open(newline="") as fh:
+def _read_csv(path: Path, required: tuple[str, ...]) -> list[dict[str, str]]:
+    """Rows of an MSLS csv (its unnamed first column is the frame index, as pandas writes it)."""
+    if not path.is_file():
+        raise SemvprError(f"{path} not found; MSLS needs <city>/{{query,database}}/{path.name}")
+    with path.open(newline="") as fh:
         reader = csv.DictReader(fh)
         columns = set(reader.fieldnames or ())
-        missing = [c for c in ("key", "easting", "northing") if c not in columns]
+        missing = [c for c in required if c not in columns]
         if missing:
-            raise SemvprError(f"{csv_path}: missing column(s) {missing} (found {sorted(columns)})")
-        paths, utm = [], []
-        for row in reader:
-            try:
-                utm.append((float(row["easting"]), float(row["northing"])))
-            except (TypeError, ValueError):
-                raise SemvprError(f"{csv_path}: bad easting/northing in row key={row['key']!r}") from None
-            paths.append(folder / "images" / f"{row['key']}.jpg")
+            raise SemvprError(f"{path}: missing column(s) {missing} (found {sorted(columns)})")
+        return list(reader)
+
+
+def _frame(row: dict[str, str], position: int) -> int:
+    """Frame index of a row: the csv's unnamed index column, else its position."""
+    try:
+        return int(row[""]) if row.get("") not in (None, "") else position
+    except ValueError:
+        return position
+
+
+def _flag(value: str | None) -> bool:
+    return str(value).strip().lower() in ("true", "1")
+
+
+def _read_msls_side(folder: Path, subtask: str | None, exclude_panos: bool) -> tuple[list[Path], list[tuple[float, float]]]:
+    """Images and UTMs of one city side, filtered as mapillary_sls does (panoramas, val subtask)."""
+    rows = _read_csv(folder / "postprocessed.csv", ("key", "easting", "northing"))
+    keep: set[int] | None = None
+    if exclude_panos:
+        raw = _read_csv(folder / "raw.csv", ("pano",))
+        keep = {_frame(r, i) for i, r in enumerate(raw) if not _flag(r["pano"])}
+    if subtask is not None:
+        index = _read_csv(folder / "subtask_index.csv", (subtask,))
+        chosen = {_frame(r, i) for i, r in enumerate(index) if _flag(r[subtask])}
+        keep = chosen if keep is None else keep & chosen
+    paths, utm = [], []
+    for position, row in enumerate(rows):
+        if keep is not None and _frame(row, position) not in keep:
+            continue
+        try:
+            utm.append((float(row["easting"]), float(row["northing"])))
+        except (TypeError, ValueError):
+            raise SemvprError(f"{folder / 'postprocessed.csv'}: bad easting/northing in row key={row['key']!r}") from None
+        paths.append(folder / "images" / f"{row['key']}.jpg")
     return paths, utm
 
 
-def read_msls(root: str | Path, split: str, cities: list[str] | None = None) -> PlaceSet:
-    """Read Mapillary SLS: train/val from train_val/<city> (val: cph, sf), test from test/<city>."""
+def _msls_city_dir(root: Path, city: str) -> Path:
+    """A city's folder: train_val/<city> or test/<city>."""
+    for sub in ("train_val", "test"):
+        if (root / sub / city).is_dir():
+            return root / sub / city
+    raise SemvprError(f"MSLS city folder {city!r} not found under {root / 'train_val'} or {root / 'test'}")
+
+
+def read_msls(root: str | Path, split: str, cities: list[str] | None = None, subtask: str = "all",
+              exclude_panos: bool = True) -> PlaceSet:
+    """Read Mapillary SLS following mapillary_sls: official cities per split, panoramas excluded,
+    and for ``split="val"`` only the frames of ``subtask`` (subtask_index.csv; "all" by default).
+
+    The official test cities have no public ground truth (their results come from the Codalab
+    server); the benchmarks report the val cities (cph, sf), which is what ``data=msls`` tests on.
+    """
     root = Path(root).expanduser()
-    if split not in ("train", "val", "test"):
-        raise SemvprError(f"MSLS split {split!r} unknown; use train, val or test")
-    sub = root / ("test" if split == "test" else "train_val")
-    if not sub.is_dir():
-        raise SemvprError(f"MSLS folder {sub} not found; set data.root=... to the folder holding "
-                          f"train_val/ and test/")
+    if split not in MSLS_CITIES:
+        raise SemvprError(f"MSLS split {split!r} unknown; use one of {sorted(MSLS_CITIES)}")
+    if not (root / "train_val").is_dir() and not (root / "test").is_dir():
+        raise SemvprError(f"MSLS folders {root / 'train_val'} / {root / 'test'} not found; set data.root=... "
+                          f"to the folder holding train_val/ and test/")
     if cities is None:
-        available = sorted(p.name for p in sub.iterdir() if p.is_dir())
-        if split == "val":
-            cities = [c for c in available if c in MSLS_VAL_CITIES]
-        elif split == "train":
-            cities = [c for c in available if c not in MSLS_VAL_CITIES]
-        else:
-            cities = available
-    if not cities:
-        raise SemvprError(f"{sub}: no cities for MSLS split {split!r}")
+        cities = [c for c in MSLS_CITIES[split]
+                  if (root / "train_val" / c).is_dir() or (root / "test" / c).is_dir()]
+        if not cities:
+            raise SemvprError(f"{root}: none of the official MSLS {split} cities {list(MSLS_CITIES[split])} "
+                              f"is there; pass data.cities.<split>=[...]")
     db_paths: list[Path] = []
     q_paths: list[Path] = []
     db_utm: list[tuple[float, float]] = []
     q_utm: list[tuple[float, float]] = []
     for i, city in enumerate(cities):
-        if not (sub / city).is_dir():
-            raise SemvprError(f"MSLS city folder {sub / city} not found")
+        folder = _msls_city_dir(root, city)
+        if not (folder / "query" / "postprocessed.csv").is_file() and (folder / "query").is_dir():
+            raise SemvprError(f"MSLS city {city!r} has no ground truth ({folder / 'query' / 'postprocessed.csv'} "
+                              f"missing): the official test cities are scored on the MSLS server; evaluate "
+                              f"on the val cities (cph, sf) as the benchmarks do")
         # Cities sit in different UTM zones whose (east, north) ranges overlap; shifting each
         # city's easting by 10,000 km keeps radius searches from ever pairing two cities.
         shift = i * 1e7
-        paths, utm = _read_msls_side(sub / city / "database")
+        side_subtask = subtask if split == "val" else None
+        paths, utm = _read_msls_side(folder / "database", side_subtask, exclude_panos)
         db_paths += paths
         db_utm += [(e + shift, n) for e, n in utm]
-        paths, utm = _read_msls_side(sub / city / "query")
+        paths, utm = _read_msls_side(folder / "query", side_subtask, exclude_panos)
         q_paths += paths
         q_utm += [(e + shift, n) for e, n in utm]
     if not db_paths or not q_paths:
-        raise SemvprError(f"{sub}: empty MSLS split {split!r} for cities {cities} "
+        raise SemvprError(f"{root}: empty MSLS split {split!r} for cities {cities} "
                           f"({len(db_paths)} database, {len(q_paths)} queries)")
     return PlaceSet(name=f"msls/{split}", db_paths=tuple(db_paths), q_paths=tuple(q_paths),
-                    db_utm=np.array(db_utm).reshape(-1, 2), q_utm=np.array(q_utm).reshape(-1, 2))
+                    db_utm=np.array(db_utm).reshape(-1, 2), q_utm=np.array(q_utm).reshape(-1, 2), root=root)

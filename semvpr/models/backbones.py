@@ -10,11 +10,13 @@ the trainable part starts at the pool4 output. ``train_from=None`` freezes the w
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import torch
 import torchvision
 from torch import Tensor, nn
 
+from semvpr.artifacts import state_hash
 from semvpr.errors import SemvprError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -146,6 +148,13 @@ class Backbone(nn.Module):
         for unit in self.units[self.split:]:
             h = unit(h)
         return h
+
+    def frozen_identity(self) -> dict[str, Any]:
+        """Class, split and a hash of the frozen prefix's weights: what its outputs depend on
+        (covers seed and weight source exactly; the trainable part changes during training)."""
+        frozen = {k: v for k, v in self.state_dict().items()
+                  if not k.startswith("units.") or int(k.split(".")[1]) < self.split}
+        return {"class": type(self).__name__, "train_from": self.train_from, "frozen": state_hash(frozen)}
 
 
 class VGG16Backbone(Backbone):

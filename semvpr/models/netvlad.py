@@ -158,20 +158,6 @@ class NetVLAD(nn.Module):
             return vlad_aggregate(x, weights, self.centroids.float())
 
 
-def netvlad_loop_reference(x: Tensor, centroids: Tensor, alpha: float, mask: Tensor | None = None) -> Tensor:
-    """Naive NetVLAD with a Python loop over clusters (tests and benchmark baseline only)."""
-    x = F.normalize(x.float(), dim=1)
-    logits = torch.stack([2 * alpha * torch.einsum("bdhw,d->bhw", x, c) - alpha * c.dot(c) for c in centroids], 1)
-    assign = F.softmax(logits, dim=1)
-    m = torch.ones_like(x[:, :1]) if mask is None else mask.float()
-    parts = []
-    for k, c in enumerate(centroids):
-        residual = x - c[None, :, None, None]
-        v = (residual * assign[:, k : k + 1] * m).sum(dim=(2, 3))
-        parts.append(F.normalize(v, dim=1))
-    return F.normalize(torch.cat(parts, dim=1), dim=1)
-
-
 class PCAWhitening(nn.Module):
     """PCA + whitening + L2, fitted on database descriptors (NetVLAD's 4096-D reduction)."""
 

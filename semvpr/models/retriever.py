@@ -6,6 +6,7 @@ evaluation work on their cached outputs through :meth:`Retriever.describe`.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import lightning as L
@@ -13,12 +14,14 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
+from tqdm import tqdm
 
+from semvpr.data.datamodule import ImageDataset
 from semvpr.errors import SemvprError
-from semvpr.features import FeatureStore, PlaceFeatures, autocast_context, grid_size
+from semvpr.features import TRUNK_DTYPE, FeatureStore, PlaceFeatures, grid_size, store_loader
 from semvpr.metrics import knn, recall_result
-from semvpr.mining import StoreDataset
 from semvpr.models.masks import pool_to_grid
+from semvpr.precision import autocast
 
 RECALL_NS = (1, 5, 10, 20)
 
@@ -36,30 +39,42 @@ class Retriever(L.LightningModule):
         scheduler: Callable[..., Any] | None = None,
         margin: float = 0.1,
         eval_batch_size: int = 64,
-        config: dict | None = None,
+        num_workers: int = 0,
+        record: dict | None = None,
     ) -> None:
         super().__init__()
-        # The resolved run config travels in the checkpoint so eval can rebuild the components.
-        self.save_hyperparameters({"config": config})
+        # What eval needs to rebuild the model: config choices and plain values (semvpr.checkpoint),
+        # never code or _target_s; Lightning stores it in the checkpoint's "hyper_parameters".
+        self.save_hyperparameters(record or {})
         self.backbone, self.aggregator, self.mask_source = backbone, aggregator, mask_source
         # PCA whitening is fitted on database descriptors after training and used from then on.
         self.whitening = whitening
         self.register_buffer("whitening_fitted", torch.tensor(False))
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
-        self.eval_batch_size = eval_batch_size
-        # NetVLAD's loss: L2 distances, margin sqrt(m), summed over negatives, mean over queries.
-        self.loss_fn = nn.TripletMarginLoss(margin=margin**0.5, p=2, reduction="none")
+        self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
+        self.margin = margin
         self._outputs: list[Tensor] = []
         self.last_eval: dict[str, np.ndarray] = {}
 
     # ----------------------------------------------------------------- descriptors
     def describe(self, trunk: Tensor, mask: Tensor | None) -> Tensor:
-        """Global descriptors from cached frozen-trunk outputs and grid masks."""
-        local = self.backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
+        """Global descriptors from frozen-trunk outputs and grid masks."""
+        # float(): trunk features are stored in bf16; autocast (where native) takes them back down.
+        local = self.backbone.forward_trainable(trunk.float().contiguous(memory_format=torch.channels_last))
         desc = self.aggregator(local, mask)
         if self.whitening is not None and bool(self.whitening_fitted):
             desc = self.whitening(desc)
         return desc
+
+    def describe_batch(self, batch: dict[str, Tensor]) -> Tensor:
+        """Descriptors of a feature-store batch: cached trunk rows, or images through the frozen prefix."""
+        if "image" in batch:
+            with torch.no_grad():
+                trunk = self.backbone.forward_frozen(batch["image"].contiguous(memory_format=torch.channels_last))[-1]
+                trunk = trunk.to(TRUNK_DTYPE)
+        else:
+            trunk = batch["trunk"]
+        return self.describe(trunk, _mask_or_none(batch["mask"], self.device))
 
     def fit_whitening(self, db: FeatureStore) -> None:
         """Fit the PCA-whitening layer on (unwhitened) database descriptors."""
@@ -68,37 +83,47 @@ class Retriever(L.LightningModule):
         self.whitening.fit(self.describe_store(db))
         self.whitening_fitted.fill_(True)
 
-    def forward(self, images: Tensor) -> Tensor:
-        """Full pipeline on [0,1] images (no labels, so not for the oracle mask)."""
-        outs = self.backbone.forward_frozen(images)
+    def forward(self, images: Tensor, label_paths: Sequence[Path] | None = None) -> Tensor:
+        """Full pipeline on [0,1] images (the oracle mask also needs their label maps)."""
+        outs = self.backbone.forward_frozen(images.contiguous(memory_format=torch.channels_last))
         mask = None
         if self.mask_source is not None:
             grid = grid_size(self.backbone, images.shape[-2:])
-            mask = pool_to_grid(self.mask_source(images, outs, None), grid)
-        return self.describe(outs[-1], mask)
+            mask = pool_to_grid(self.mask_source(images, outs, label_paths), grid)
+        return self.describe(outs[-1].to(TRUNK_DTYPE), mask)
 
     @torch.no_grad()
-    def describe_store(self, store: FeatureStore) -> np.ndarray:
-        """Descriptors of a whole feature store (eval mode, bf16 autocast), float32 numpy."""
+    def describe_images(self, paths: Sequence[Path], labels: Sequence[Path] | None, image_size: Sequence[int],
+                        out: np.ndarray, desc: str = "descriptors") -> None:
+        """Descriptors of image files in one pass (decoding in workers), written into ``out`` (N,D)."""
+        self.eval()
+        loader = DataLoader(ImageDataset(list(paths), tuple(image_size)), batch_size=self.eval_batch_size,
+                            num_workers=self.num_workers, pin_memory=self.device.type == "cuda")
+        with autocast(self.device):
+            for images, index in tqdm(loader, desc=desc, unit="batch", leave=False, disable=None):
+                batch_labels = [labels[i] for i in index] if labels is not None else None
+                rows = slice(int(index[0]), int(index[-1]) + 1)
+                out[rows] = self(images.to(self.device), batch_labels).float().cpu().numpy()
+
+    @torch.no_grad()
+    def describe_store(self, store: FeatureStore, index: Sequence[int] | None = None) -> np.ndarray:
+        """Descriptors of a feature store (or of its rows ``index``), eval mode, as float32 numpy."""
         was_training = self.training
         self.eval()
-        loader = DataLoader(StoreDataset(store), batch_size=self.eval_batch_size)
         out = []
-        with autocast_context(self.device):
-            for trunk, mask in loader:
-                out.append(self.describe(trunk.to(self.device), _mask_or_none(mask, self.device)).float())
+        with autocast(self.device):
+            for batch in store_loader(store, self.eval_batch_size, self.num_workers, index):
+                batch = {k: v.to(self.device) for k, v in batch.items()}
+                out.append(self.describe_batch(batch).float().cpu())
         self.train(was_training)
-        return torch.cat(out).cpu().numpy()
+        return torch.cat(out).numpy()
 
     # ------------------------------------------------------------------- training
-    def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
-        trunk, mask = batch
-        b, t = trunk.shape[:2]
-        desc = self.describe(trunk.flatten(0, 1), _mask_or_none(mask.flatten(0, 1) if mask.numel() else mask, self.device))
-        desc = desc.view(b, t, -1)
-        q, p, n = desc[:, :1], desc[:, 1:2], desc[:, 2:]
-        loss = self.loss_fn(q.expand_as(n).flatten(0, 1), p.expand_as(n).flatten(0, 1), n.flatten(0, 1))
-        loss = loss.view(b, -1).mean(dim=1).mean()
+    def training_step(self, batch: dict[str, Tensor] | None, batch_idx: int) -> Tensor | None:
+        if batch is None:
+            return None  # no query of this batch had a violating negative (pytorch-NetVlad skips it too)
+        loss = triplet_loss(self.describe_batch(batch), batch["tuples"], self.margin)
+        b = len(batch["tuples"])
         if not torch.isfinite(loss):
             raise SemvprError(
                 f"training loss became {loss.item()} at epoch {self.current_epoch} step "
@@ -116,8 +141,8 @@ class Retriever(L.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer)}
 
     # ----------------------------------------------------------------- evaluation
-    def validation_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> None:
-        self._outputs.append(self.describe(batch[0], _mask_or_none(batch[1], self.device)).float().cpu())
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._outputs.append(self.describe_batch(batch).float().cpu())
 
     test_step = validation_step
 
@@ -137,12 +162,16 @@ class Retriever(L.LightningModule):
         result = evaluate(desc[:n_db], desc[n_db:], features.places.positives(25.0))
         for n, value in result["recalls"].items():
             self.log(f"{stage}/R@{n}", value, prog_bar=n in (1, 5))
+        if result["num_without_positives"]:
+            for n, value in result["recalls_pos"].items():
+                self.log(f"{stage}/R@{n}_pos", value)
         self.last_eval = result
 
 
 def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray],
              max_n: int = 20) -> dict[str, Any]:
-    """Top-k retrieval and Recall@1..max_n (percent) of queries with at least one positive."""
+    """Top-k retrieval and Recall@1..max_n in percent: of all queries (``recalls``, ``curve``, as
+    pytorch-NetVlad and the benchmark) and of queries with a positive (``recalls_pos``, as MSLS)."""
     k = min(max_n, len(db_desc))
     predictions = knn(db_desc, q_desc, k)
     result = recall_result(predictions, positives, ns=tuple(range(1, k + 1)))
@@ -150,7 +179,27 @@ def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.nda
     curve = {n: result.recalls[min(n, k)] for n in range(1, max_n + 1)}
     return {"predictions": predictions, "curve": curve,
             "recalls": {n: curve[n] for n in RECALL_NS},
+            "recalls_pos": {n: result.recalls_pos[min(n, k)] for n in RECALL_NS},
             "num_without_positives": result.num_without_positives}
+
+
+def triplet_loss(desc: Tensor, tuples: Tensor, margin: float, eps: float = 1e-6) -> Tensor:
+    """NetVLAD's loss: max(0, d(q,p) − d(q,n) + sqrt(margin)) on L2 distances (as
+    ``nn.TripletMarginLoss``), averaged over every (query, negative) pair of the batch, as
+    pytorch-NetVlad divides by the number of negatives. ``tuples`` (T, 2+N) holds each tuple's rows
+    of ``desc``: query, positive, negatives, -1 padded.
+
+    Every row is gathered once: a query repeated per negative would make the backward pass
+    accumulate into one row from several threads, whose order (and last bits) vary run to run.
+    """
+    q, p = desc[tuples[:, 0]], desc[tuples[:, 1]]
+    valid = tuples[:, 2:] >= 0
+    negatives = desc.new_zeros(*valid.shape, desc.shape[1])
+    negatives[valid] = desc[tuples[:, 2:][valid]]
+    d_pos = (q - p + eps).norm(dim=1)
+    d_neg = (q[:, None] - negatives + eps).norm(dim=2)
+    pairs = torch.relu(d_pos[:, None] - d_neg + margin**0.5)
+    return pairs[valid].sum() / valid.sum()
 
 
 def _mask_or_none(mask: Tensor, device: torch.device) -> Tensor | None:

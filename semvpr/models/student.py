@@ -1,7 +1,6 @@
 """U-Net student: a small decoder over the frozen backbone prefix that predicts static vs not-static."""
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -21,6 +20,7 @@ from tqdm import tqdm
 from semvpr.artifacts import build_once
 from semvpr.data.classes import IGNORE, STATIC_NAMES, static_lut
 from semvpr.errors import SemvprError
+from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
 
 VERSION = 1
@@ -42,8 +42,6 @@ class Student(nn.Module):
         strides: Sequence[int] = (4, 8, 16), width: int = 64,
     ) -> None:  # fmt: skip
         super().__init__()
-        self.config = {"frozen_channels": list(frozen_channels), "frozen_strides": list(frozen_strides),
-                       "strides": list(strides), "width": width}  # fmt: skip
         # The deepest frozen output of each wanted stride (ResNet's stem and layer1 share none; VGG's do not).
         chosen = {s: i for i, s in enumerate(frozen_strides) if s in set(strides)}
         if not chosen:
@@ -83,21 +81,6 @@ class Student(nn.Module):
         return prob
 
 
-def backbone_identity(backbone: nn.Module) -> dict[str, Any]:
-    """Class, split and a hash of the frozen prefix's weights (covers seed and weight source exactly)."""
-    digest = hashlib.sha256()
-    for name, tensor in sorted(backbone.state_dict().items()):
-        if name.startswith("units."):
-            unit = int(name.split(".")[1])
-            if unit >= backbone.split:
-                continue  # the trainable part changes during retriever training; the student never sees it
-        digest.update(name.encode())
-        # reshape(-1): 0-dim buffers (BatchNorm's num_batches_tracked) cannot be viewed as bytes
-        digest.update(tensor.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
-    return {"class": type(backbone).__name__, "train_from": getattr(backbone, "train_from", None),
-            "frozen": digest.hexdigest()[:16]}  # fmt: skip
-
-
 @torch.no_grad()
 def cache_skips(
     backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
@@ -110,7 +93,7 @@ def cache_skips(
     loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
     out: list[list[Tensor]] = [[] for _ in indices]
     # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
-    with torch.autocast(device.type, dtype=torch.bfloat16):
+    with autocast(device):
         for images, _ in tqdm(loader, desc="student features", unit="batch", disable=None):
             skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
             for level, i in enumerate(indices):
@@ -118,13 +101,14 @@ def cache_skips(
     return [torch.cat(level) for level in out]
 
 
-def load_targets(paths: Sequence[Path], label_dir: Path, image_size: Sequence[int], lut: np.ndarray) -> Tensor:
+def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size: Sequence[int],
+                 lut: np.ndarray) -> Tensor:
     """(N,H,W) uint8 binary static targets from trainId PNGs (255 = ignore)."""
     maps = []
     for p in paths:
-        ids = np.asarray(Image.open(label_path(label_dir, p)))
+        ids = np.asarray(Image.open(label_path(label_dir, p, root)))
         if ids.shape != tuple(image_size):
-            raise SemvprError(f"pseudo-label {label_path(label_dir, p)} is {ids.shape}, expected {tuple(image_size)}")
+            raise SemvprError(f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}")
         maps.append(np.where(ids == IGNORE, IGNORE, lut[ids].astype(np.uint8)))
     return torch.from_numpy(np.stack(maps))
 
@@ -146,7 +130,7 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: Dic
         for start in range(0, n, bs):
             idx = order[start : start + bs]
             target = targets[idx].to(device).long()
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bool(cfg.bf16)):
+            with autocast(device, enabled=bool(cfg.bf16)):
                 logits = student.decode([s[idx].to(device) for s in skips])
             logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)[:, 0]
             valid = target != IGNORE
@@ -164,37 +148,47 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: Dic
     return {"train/loss": float(loss.item()), "train/iou_vs_labels": inter / max(1, union)}
 
 
+def student_architecture(cfg_student: Mapping[str, Any], backbone: nn.Module) -> Student:
+    """An untrained student for this config over this backbone's frozen features."""
+    return Student(backbone.frozen_channels, backbone.frozen_strides, strides=list(cfg_student["strides"]),
+                   width=int(cfg_student["width"]))
+
+
 def build_student(
     cfg_student: Mapping[str, Any], backbone: nn.Module, image_paths: Sequence[str | Path],
-    label_dir: str | Path, image_size: Sequence[int], cache_dir: str | Path,
+    label_dir: str | Path, root: str | Path, image_size: Sequence[int], cache_dir: str | Path,
 ) -> Student:  # fmt: skip
     """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode."""
     cfg = cfg_student if isinstance(cfg_student, DictConfig) else OmegaConf.create(dict(cfg_student))
-    paths, label_dir = [Path(p) for p in image_paths], Path(label_dir)
+    paths, label_dir, root = [Path(p) for p in image_paths], Path(label_dir), Path(root)
     if cfg.get("max_images") and len(paths) > cfg.max_images:
         # The frozen trunk pass dominates the cost; a fixed random subset is plenty for a small decoder.
         keep = torch.randperm(len(paths), generator=torch.Generator().manual_seed(int(cfg.seed)))[: cfg.max_images]
         paths = [paths[i] for i in sorted(keep.tolist())]
     size = [int(image_size[0]), int(image_size[1])]
-    frozen = (list(backbone.frozen_channels), list(backbone.frozen_strides))
     key = {"version": VERSION, "student": OmegaConf.to_container(cfg, resolve=True),
-           "backbone": backbone_identity(backbone), "labels": label_dir.name, "image_size": size}  # fmt: skip
+           "backbone": backbone.frozen_identity(), "labels": label_dir.name, "image_size": size}  # fmt: skip
 
     def build(out: Path) -> None:
         torch.manual_seed(int(cfg.seed))
-        student = Student(*frozen, strides=list(cfg.strides), width=int(cfg.width))
+        student = student_architecture(cfg, backbone)
         start = time.perf_counter()
-        targets = load_targets(paths, label_dir, size, static_lut(tuple(cfg.get("static_classes", STATIC_NAMES))))
+        targets = load_targets(paths, label_dir, root, size,
+                               static_lut(tuple(cfg.get("static_classes", STATIC_NAMES))))
         skips = cache_skips(backbone, student.skip_indices, paths, size, int(cfg.batch_size), int(cfg.num_workers))
         student.to(next(backbone.parameters()).device)
         metrics = fit_student(student, skips, targets, cfg)
         metrics["train_seconds"] = time.perf_counter() - start
         torch.save(student.cpu().state_dict(), out / "student.pt")
-        (out / "student.json").write_text(json.dumps(student.config))
         (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
 
     art = build_once(cache_dir, "student", key, build)
-    student = Student(**json.loads((art / "student.json").read_text()))
-    student.load_state_dict(torch.load(art / "student.pt", weights_only=True, map_location="cpu"))
+    # The architecture comes from the config, only weights from the (possibly shared) cache.
+    student = student_architecture(cfg, backbone)
+    try:
+        student.load_state_dict(torch.load(art / "student.pt", weights_only=True, map_location="cpu"))
+    except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
+        raise SemvprError(f"student cache {art} does not hold this student's weights ({type(err).__name__}); "
+                          f"delete it to rebuild") from None
     student.artifact = art  # type: ignore[attr-defined]  # for the benchmark / logs: metrics.json lives here
     return student.to(next(backbone.parameters()).device).eval()

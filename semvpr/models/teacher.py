@@ -19,6 +19,7 @@ from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation,
 from semvpr.artifacts import build_once, config_hash
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.errors import SemvprError
+from semvpr.precision import autocast, lightning_precision
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -102,7 +103,7 @@ class Teacher(L.LightningModule):
 
     def semantic_scores(self, images: Tensor) -> Tensor:
         """Mask2Former semantic scores (B,C,h,w) at mask resolution: softmax(class)[..., :-1] ⊗ sigmoid(mask)."""
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+        with autocast(self.device, enabled=self.bf16):
             out = self.model(pixel_values=self._pixels(images))
         classes = out.class_queries_logits.float().softmax(-1)[..., :-1]
         return torch.einsum("bqc,bqhw->bchw", classes, out.masks_queries_logits.float().sigmoid())
@@ -230,13 +231,15 @@ def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
     from semvpr.data.datamodule import SegmentationDataModule
 
     L.seed_everything(cfg.train.seed, workers=True, verbose=False)
+    accelerator = "gpu" if torch.cuda.is_available() else "cpu"
     teacher = Teacher(embedded_model(cfg.model), **_teacher_kwargs(cfg))
     data = SegmentationDataModule(
         seg_train, seg_val, image_size=tuple(cfg.image_size), batch_size=cfg.train.batch_size,
         num_workers=cfg.train.num_workers, augment=cfg.train.augment, label_ids=True, seed=cfg.train.seed,
     )  # fmt: skip
     trainer = L.Trainer(
-        accelerator="auto", devices=1, precision="bf16-mixed" if cfg.train.bf16 else "32-true",
+        accelerator=accelerator, devices=1,
+        precision=lightning_precision("bf16-mixed" if cfg.train.bf16 else "32-true", accelerator),
         max_epochs=cfg.train.epochs, check_val_every_n_epoch=cfg.train.val_every or cfg.train.epochs, num_sanity_val_steps=0,
         logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False, enable_model_summary=False,
         log_every_n_steps=10, default_root_dir=out,
@@ -250,14 +253,22 @@ def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
 
 
-def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, cache_dir: str | Path) -> Teacher:
-    """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
+def teacher_architecture(cfg_teacher: Mapping[str, Any]) -> Teacher:
+    """The teacher this config describes: a pretrained checkpoint, or the embedded model untrained."""
     cfg = cfg_teacher if isinstance(cfg_teacher, DictConfig) else OmegaConf.create(dict(cfg_teacher))
     if cfg.checkpoint:
         teacher = load_pretrained(str(cfg.checkpoint), **_teacher_kwargs(cfg))
         revision = getattr(teacher.model.config, "_commit_hash", None)
         teacher.teacher_key = f"pretrained-{config_hash([str(cfg.checkpoint), revision, cfg.get('inference_size')])}"
-    else:
+        return teacher
+    return Teacher(embedded_model(cfg.model), **_teacher_kwargs(cfg))
+
+
+def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, cache_dir: str | Path) -> Teacher:
+    """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
+    cfg = cfg_teacher if isinstance(cfg_teacher, DictConfig) else OmegaConf.create(dict(cfg_teacher))
+    teacher = teacher_architecture(cfg)
+    if not cfg.checkpoint:
         if seg_train is None or seg_val is None:
             raise SemvprError("teacher.checkpoint=null trains the embedded teacher, which needs data.segmentation "
                               "train and val sets (Cityscapes format); set them or give a pretrained checkpoint")
@@ -269,9 +280,12 @@ def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, 
             "val_set": dataset_identity(seg_val),
         }  # fmt: skip
         art = build_once(cache_dir, "teacher", key, lambda tmp: _train(cfg, seg_train, seg_val, tmp))
-        model = Mask2FormerForUniversalSegmentation(Mask2FormerConfig.from_json_file(art / "config.json"))
-        model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
-        teacher = Teacher(model, **_teacher_kwargs(cfg))
+        # The architecture comes from the config, only weights from the (possibly shared) cache.
+        try:
+            teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
+        except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
+            raise SemvprError(f"teacher cache {art} does not hold this teacher's weights ({type(err).__name__}); "
+                              f"delete it to rebuild") from None
         teacher.teacher_key = art.name
     teacher.eval().requires_grad_(False)
     return teacher

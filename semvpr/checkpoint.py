@@ -1,0 +1,142 @@
+"""A checkpoint is data: what it records about the model, and how eval rebuilds a config from it.
+
+Researchers exchange checkpoints, so nothing read from one is ever run. ``torch.load`` uses
+``weights_only=True``, and the model is never rebuilt by instantiating ``_target_``s stored in the
+file: a checkpoint records *choices* (the config group options, e.g. ``backbone=vgg16``,
+``filter=unet``) and plain hyper-parameter values. Eval loads the project's own group files for
+those choices (which alone supply every ``_target_``) and checks each stored value against them:
+known keys only, the same kind of value, no interpolations, no keys starting with ``_``. Anything
+else is refused with one line naming the key, before anything is built or written.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from semvpr.errors import SemvprError
+
+FORMAT = 2
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+#: Config groups that define the model; each group file names itself in its ``name`` key.
+GROUPS = ("backbone", "filter", "model", "teacher", "student")
+#: Training-only nodes: not recorded (eval never builds an optimizer).
+TRAINING_ONLY = {"model": ("optimizer", "scheduler")}
+_CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
+
+
+def record_of(cfg: DictConfig) -> dict[str, Any]:
+    """What a checkpoint records about a run's model: format, group choices, plain values, seed."""
+    config: dict[str, Any] = {}
+    for group in GROUPS:
+        node = OmegaConf.to_container(cfg[group], resolve=True)
+        assert isinstance(node, dict)
+        for key in TRAINING_ONLY.get(group, ()):
+            node.pop(key, None)
+        config[group] = _plain(node)
+    return {"format": FORMAT, "choices": {g: str(cfg[g].name) for g in GROUPS},
+            "config": config, "seed": int(cfg.seed)}
+
+
+def _plain(node: Any) -> Any:
+    """The node without ``_``-keys (targets come from the project's configs, never from a file)."""
+    if isinstance(node, dict):
+        return {k: _plain(v) for k, v in node.items() if not str(k).startswith("_")}
+    if isinstance(node, list):
+        return [_plain(v) for v in node]
+    return node
+
+
+def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The state dict and the model record of a semvpr checkpoint (weights-only load)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SemvprError(f"checkpoint {path} not found (a run writes <run dir>/checkpoints/tested.ckpt)")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
+        raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}: {str(err).splitlines()[0]})") from None
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
+        raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
+    record = ckpt.get("hyper_parameters")
+    if not isinstance(record, dict) or record.get("format") != FORMAT:
+        if isinstance(record, dict) and "config" in record and "format" not in record:
+            raise SemvprError(f"{path} was written by an older semvpr (checkpoint format 1: it stores Hydra "
+                              "_target_s, and its VGG16 features were cut after conv5_3's ReLU); it cannot be "
+                              "loaded safely or faithfully: retrain it with this version")
+        raise SemvprError(f"{path} is not a semvpr checkpoint of format {FORMAT} (no model record)")
+    return ckpt["state_dict"], record
+
+
+def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpoint") -> DictConfig:
+    """``base`` (the invocation's config: data, paths, ...) with the recorded model, validated.
+
+    Each group is replaced by the project's own file for the recorded choice; the recorded values
+    are then checked against that file (see the module docstring) and applied.
+    """
+    choices, config = record.get("choices"), record.get("config")
+    if not isinstance(choices, dict) or not isinstance(config, dict):
+        raise SemvprError(f"{where}: model record lacks 'choices' / 'config'")
+    unknown = sorted(set(choices) - set(GROUPS)) or sorted(set(config) - set(GROUPS))
+    if unknown:
+        raise SemvprError(f"{where}: '{unknown[0]}' is not a model config group ({', '.join(GROUPS)})")
+    cfg = base.copy()
+    for group in GROUPS:
+        choice = choices.get(group)
+        options = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+        if not isinstance(choice, str) or not _CHOICE.match(choice) or choice not in options:
+            raise SemvprError(f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}")
+        cfg[group] = OmegaConf.load(CONF_DIR / group / f"{choice}.yaml")
+    seed = record.get("seed")
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise SemvprError(f"{where}: seed={seed!r} is not an integer")
+    cfg.seed = seed
+    for group in GROUPS:
+        stored = config.get(group, {})
+        schema = OmegaConf.to_container(cfg[group], resolve=True)
+        for key in TRAINING_ONLY.get(group, ()):
+            schema.pop(key, None)  # type: ignore[union-attr]
+        _check(stored, schema, f"{where}: {group}")
+        cfg[group] = OmegaConf.merge(cfg[group], stored)
+    return cfg
+
+
+def _check(stored: Any, schema: Any, path: str) -> None:
+    """Refuse a stored value that the project's config could not have produced."""
+    if isinstance(stored, dict):
+        if not isinstance(schema, dict):
+            raise SemvprError(f"{path} is a mapping where the project's config has {schema!r}")
+        for key, value in stored.items():
+            if not isinstance(key, str) or key.startswith("_"):
+                raise SemvprError(f"{path}.{key} is refused: keys such as _target_ are never read from a checkpoint")
+            if key not in schema:
+                raise SemvprError(f"{path}.{key} is not a key of the project's config")
+            _check(value, schema[key], f"{path}.{key}")
+    elif isinstance(stored, list):
+        if schema is not None and not isinstance(schema, list):
+            raise SemvprError(f"{path} is a list where the project's config has {schema!r}")
+        for i, value in enumerate(stored):
+            if isinstance(value, (dict, list)):
+                raise SemvprError(f"{path}[{i}] is not a plain value")
+            _check(value, None, f"{path}[{i}]")
+    else:
+        if isinstance(stored, str) and "${" in stored:
+            raise SemvprError(f"{path}={stored!r} is refused: interpolations are never read from a checkpoint")
+        if not _same_kind(stored, schema):
+            raise SemvprError(f"{path}={stored!r} has the wrong type (the project's config has {schema!r})")
+
+
+def _same_kind(value: Any, schema: Any) -> bool:
+    """Whether a plain stored value may replace the config's value (null accepts any plain value)."""
+    if value is not None and not isinstance(value, (bool, int, float, str)):
+        return False
+    if schema is None or value is None:
+        return True
+    if isinstance(schema, bool) or isinstance(value, bool):
+        return isinstance(schema, bool) and isinstance(value, bool)
+    if isinstance(schema, float):
+        return isinstance(value, (int, float))
+    return type(value) is type(schema)

@@ -1,0 +1,109 @@
+"""A checkpoint is data: genuine ones load for every filter and backbone; hostile ones run nothing."""
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+import torch
+
+from semvpr.errors import SemvprError
+from semvpr.eval import load_retriever
+
+from tests.helpers import tiny_config, write_checkpoint
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("filter_name,backbone", [
+    ("none", "vgg16"), ("attention", "vgg16"), ("unet", "vgg16"), ("mask2former", "vgg16"), ("oracle", "vgg16"),
+    ("unet", "resnet50"), ("mask2former", "resnet50")])
+def test_genuine_checkpoints_load(tmp_path: Path, filter_name: str, backbone: str) -> None:
+    trained = tiny_config(tmp_path, f"filter={filter_name}", f"backbone={backbone}", "model.pca_dim=4", "seed=3")
+    state = write_checkpoint(trained, tmp_path / "run.ckpt")
+    # Eval's own config: the defaults (vgg16, none, seed 0) and another dataset size.
+    cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[48,64]", config_name="eval")
+    retriever, merged = load_retriever(cfg)
+    assert (merged.filter.name, merged.backbone.name, merged.seed) == (filter_name, backbone, 3)
+    assert list(merged.data.image_size) == [48, 64] and merged.model.pca_dim == 4
+    loaded = retriever.state_dict()
+    assert loaded.keys() == state.keys() and all(torch.equal(loaded[k], state[k]) for k in state)
+
+
+def _set(path: str, value: Any) -> Callable[[dict], None]:
+    def edit(record: dict) -> None:
+        *parents, leaf = path.split(".")
+        node = record
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    return edit
+
+
+@pytest.fixture(scope="module")
+def genuine_record(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    tmp = tmp_path_factory.mktemp("genuine")
+    write_checkpoint(tiny_config(tmp, "filter=none"), tmp / "run.ckpt")
+    ckpt = torch.load(tmp / "run.ckpt", weights_only=True)
+    return ckpt["state_dict"], ckpt["hyper_parameters"]
+
+
+def _hostile(tmp_path: Path, genuine_record: tuple[dict, dict], edit: Callable[[dict], None]) -> Path:
+    state, record = genuine_record
+    record = copy.deepcopy(record)
+    edit(record)
+    path = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": record}, path)
+    return path
+
+
+SENTINEL_TEXT = "untouched"
+
+
+@pytest.mark.parametrize("edit,message", [
+    # A stored _target_ naming one of semvpr's own JSON writers (it overwrote a file before this change).
+    (lambda s: _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": s, "obj": "pwned"}),
+     r"backbone\._target_ is refused"),
+    (lambda s: _set("config.filter.aggregator._target_", "torch.save"), r"filter\.aggregator\._target_ is refused"),
+    (lambda s: _set("config.teacher.checkpoint", "${oc.env:HOME}"), r"teacher\.checkpoint=.*interpolations"),
+    (lambda s: _set("config.model.evil", 1), r"model\.evil is not a key"),
+    (lambda s: _set("config.model.num_clusters", "32"), r"model\.num_clusters='32' has the wrong type"),
+    (lambda s: _set("config.teacher.model", {"embed_dim": {"_target_": "numpy.save", "file": s}}),
+     r"teacher\.model\.embed_dim is a mapping"),
+    (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
+    (lambda s: _set("seed", "0"), r"seed='0' is not an integer"),
+])
+def test_hostile_checkpoints_are_refused_before_anything_runs(tmp_path: Path, genuine_record: tuple[dict, dict],
+                                                             edit: Callable, message: str) -> None:
+    sentinel = tmp_path / "sentinel.json"
+    sentinel.write_text(SENTINEL_TEXT)
+    path = _hostile(tmp_path, genuine_record, edit(str(sentinel)))
+    cfg = tiny_config(tmp_path, f"+ckpt={path}", config_name="eval")
+    with pytest.raises(SemvprError, match=message) as err:
+        load_retriever(cfg)
+    assert "\n" not in str(err.value)
+    assert sentinel.read_text() == SENTINEL_TEXT
+
+
+def test_old_format_checkpoint_is_refused_with_how_to_fix(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    state, _ = genuine_record
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": {"config": {"backbone": {"_target_": "x"}}}}, path)
+    with pytest.raises(SemvprError, match="older semvpr.*retrain it"):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={path}", config_name="eval"))
+
+
+def test_cli_refuses_a_hostile_checkpoint_with_one_line(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    sentinel = tmp_path / "sentinel.json"
+    sentinel.write_text(SENTINEL_TEXT)
+    path = _hostile(tmp_path, genuine_record,
+                    _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": str(sentinel), "obj": 1}))
+    proc = subprocess.run([sys.executable, "-m", "semvpr.eval", "experiment=tiny", f"paths.cache_dir={tmp_path}",
+                           f"ckpt={path}", f"hydra.run.dir={tmp_path / 'out'}"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "_target_ is refused" in proc.stderr
+    assert sentinel.read_text() == SENTINEL_TEXT

@@ -1,0 +1,110 @@
+"""A checkpoint evaluates and localises on every supported dataset family, whatever it was trained on."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from PIL import Image
+
+from semvpr.eval import evaluate_checkpoint
+from semvpr.localize import localize
+
+from tests.helpers import config, tiny_config, write_checkpoint
+
+SIZE = ["data.image_size=[32,48]", "data.num_workers=0"]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A SynthCity-configured checkpoint (its data config has keys no other dataset knows)."""
+    tmp = tmp_path_factory.mktemp("ckpt")
+    write_checkpoint(tiny_config(tmp, "filter=attention"), tmp / "tested.ckpt")
+    return tmp / "tested.ckpt"
+
+
+def _image(path: Path, seed: int) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.random.default_rng(seed).integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(path)
+
+
+def _utm(i: int) -> tuple[float, float]:
+    return 585000.0 + 100.0 * i, 4477000.0
+
+
+def make_folder(root: Path, n: int = 6) -> Path:
+    """@UTM@ layout; query i is database image i again (same place, same pixels)."""
+    for i in range(n):
+        e, north = _utm(i)
+        name = f"@{e:.2f}@{north:.2f}@17@T@@@@@@@@@@@.jpg"
+        _image(root / "images" / "test" / "database" / name, i)
+        _image(root / "images" / "test" / "queries" / name, i)
+    return root
+
+
+def _dbstruct(path: Path, which: str, db: list[str], q: list[str]) -> None:
+    utm_db = np.array([_utm(i) for i in range(len(db))]).T
+    utm_q = np.array([_utm(i) for i in range(len(q))]).T
+    fields = [("whichSet", which), ("dbImageFns", np.array(db, dtype=object)[:, None]), ("utmDb", utm_db),
+              ("qImageFns", np.array(q, dtype=object)[:, None]), ("utmQ", utm_q), ("numImages", len(db)),
+              ("numQueries", len(q)), ("posDistThr", 25), ("posDistSqThr", 625), ("nonTrivPosDistSqThr", 100)]
+    record = np.empty((1, 1), dtype=[(name, object) for name, _ in fields])
+    for name, value in fields:
+        record[0, 0][name] = value
+    path.parent.mkdir(parents=True, exist_ok=True)
+    scipy.io.savemat(path, {"dbStruct": record})
+
+
+def make_pitts(root: Path, mat: str = "pitts30k_test", n: int = 6) -> Path:
+    """pytorch-NetVlad layout: db names under root, query names under root/queries_real, same stems."""
+    names = [f"000/{i:06d}_pitch1_yaw1.jpg" for i in range(n)]
+    for i, name in enumerate(names):
+        _image(root / name, i)
+        _image(root / "queries_real" / name, i)
+    _dbstruct(root / "datasets" / f"{mat}.mat", "test", names, names)
+    return root
+
+
+def make_msls(root: Path, n: int = 6) -> Path:
+    from tests.test_places import write_msls_side
+
+    for city, offset in (("cph", 0), ("sf", 100)):
+        rows = [(f"{city}{i}", *_utm(i), False, True) for i in range(n // 2)]
+        for side in ("database", "query"):
+            write_msls_side(root / "train_val" / city / side, rows)
+            for i in range(n // 2):
+                _image(root / "train_val" / city / side / "images" / f"{city}{i}.jpg", offset + i)
+    return root
+
+
+FAMILIES = {
+    "folder": (make_folder, ["data=folder"]),
+    "pitts30k": (make_pitts, ["data=pitts30k"]),
+    "tokyo247": (lambda root: make_pitts(root, "tokyo247"), ["data=tokyo247"]),
+    "msls": (make_msls, ["data=msls"]),
+}
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_checkpoint_evaluates_on_each_dataset_family(checkpoint: Path, tmp_path: Path, family: str) -> None:
+    make, overrides = FAMILIES[family]
+    root = make(tmp_path / family)
+    cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
+                 *SIZE, config_name="eval")
+    result = evaluate_checkpoint(cfg)
+    assert (result["data"], result["filter"], result["database"], result["queries"]) == (family, "attention", 6, 6)
+    # Each query is its place's database image again: any model must retrieve it first.
+    assert result["test/R@1"] == 100.0
+
+
+def test_checkpoint_localises_against_another_dataset(checkpoint: Path, tmp_path: Path) -> None:
+    root = make_pitts(tmp_path / "pitts")
+    queries = tmp_path / "queries"
+    for i in (4, 1):
+        _image(queries / f"q{i}.jpg", i)  # the pixels of database images 4 and 1
+    cfg = config("data=pitts30k", f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
+                 f"queries={queries}", "top_k=3", *SIZE, config_name="localize")
+    results = localize(cfg)
+    assert [Path(r["matches"][0]["path"]).name for r in results] == ["000001_pitch1_yaw1.jpg", "000004_pitch1_yaw1.jpg"]
+    assert results[0]["matches"][0]["utm"] == list(_utm(1)) and len(results[0]["matches"]) == 3

@@ -1,0 +1,111 @@
+"""Frozen-trunk feature stores: storage chosen by size, caches read as data, NetVLAD's k-means sample."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from semvpr.build import sample_local_features
+from semvpr.errors import SemvprError
+from semvpr.features import GiB, FeatureStore, choose_storage, place_features
+from semvpr.models.backbones import VGG16Backbone
+
+torch.set_num_threads(2)
+
+
+def test_storage_is_chosen_by_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    from semvpr import features
+
+    def disk(free_gib: float) -> None:
+        usage = shutil._ntuple_diskusage(500 * GiB, 500 * GiB - free_gib * GiB, free_gib * GiB)
+        monkeypatch.setattr(features.shutil, "disk_usage", lambda _: usage)
+
+    # Pitts30k at 480x640: ~52k images x 1.2 MB of bf16 pool4 maps = 59.5 GiB; SynthCity ~0.2 GiB.
+    pitts = 52_000 * 512 * 30 * 40 * 2
+    disk(free_gib=300)  # room: 300 GiB free minus 10 % of the disk
+    assert choose_storage("auto", 200 * 2**20, tmp_path, ram_gb=8, disk_gb=100) == "ram"
+    assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=100) == "disk"
+    assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=50) == "stream"  # over the disk budget
+    assert choose_storage("auto", pitts, tmp_path, ram_gb=64, disk_gb=100) == "ram"
+    disk(free_gib=100)  # 50 GiB of room: too little for Pitts30k unless it is already cached
+    assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=1000) == "stream"
+    assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=1000, cached=True) == "disk"
+    assert choose_storage("stream", 1, tmp_path, ram_gb=8, disk_gb=100) == "stream"
+    with pytest.raises(SemvprError, match="features.storage='gpu'"):
+        choose_storage("gpu", 1, tmp_path, ram_gb=8, disk_gb=100)
+
+
+@pytest.fixture(scope="module")
+def backbone() -> VGG16Backbone:
+    torch.manual_seed(0)
+    return VGG16Backbone(weights="none", train_from="conv5").eval()
+
+
+def _places(root: Path, n: int = 6):
+    from PIL import Image
+
+    from semvpr.data.places import PlaceSet
+
+    rng = np.random.default_rng(0)
+    paths = []
+    for side in ("database", "queries"):
+        (root / side).mkdir(parents=True, exist_ok=True)
+        for i in range(n):
+            paths.append(root / side / f"{i}.jpg")
+            Image.fromarray(rng.integers(0, 255, (40, 56, 3), dtype=np.uint8)).save(paths[-1])
+    utm = np.stack([np.arange(n) * 5.0, np.zeros(n)], 1)
+    return PlaceSet("toy", tuple(paths[:n]), tuple(paths[n:]), utm, utm)
+
+
+def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16Backbone) -> None:
+    places = _places(tmp_path / "img")
+    stores = {s: place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48),
+                                tmp_path / "cache", s, batch_size=4, num_workers=0) for s in ("ram", "disk", "stream")}
+    assert stores["stream"].db.trunk is None and stores["stream"].db.streams
+    ram, disk = stores["ram"].db.trunk, stores["disk"].db.trunk
+    assert torch.equal(ram, disk) and ram.dtype == torch.bfloat16 and ram.shape == (6, 512, 2, 3)
+    streamed = stores["stream"].db.trunk_of(range(6), backbone)
+    assert torch.equal(streamed, ram)
+    item = stores["stream"].q.item(2)
+    assert set(item) == {"image", "mask"} and item["image"].shape == (3, 32, 48)
+    # The disk store is memory-mapped from the cache, not a copy in RAM.
+    assert disk.untyped_storage().data_ptr() != ram.untyped_storage().data_ptr()
+
+
+def test_a_foreign_or_damaged_cache_is_refused(tmp_path: Path, backbone: VGG16Backbone) -> None:
+    places = _places(tmp_path / "img")
+    place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
+                   "disk", num_workers=0)
+    (cache,) = (tmp_path / "cache").glob("trunk-*")
+    np.save(cache / "db.npy", np.zeros((6, 3), np.uint16))
+    with pytest.raises(SemvprError, match=r"holds uint16\[6, 3\].*delete .*trunk-"):
+        place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
+                       "disk", num_workers=0)
+    np.save(cache / "db.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(SemvprError, match="unreadable"):  # never unpickled
+        place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
+                       "disk", num_workers=0)
+
+
+def test_kmeans_sample_takes_a_few_locations_of_many_images(backbone: VGG16Backbone) -> None:
+    n, c, h, w = 40, 512, 3, 4
+    store = FeatureStore(tuple(f"i{k}" for k in range(n)), (48, 64),
+                         torch.arange(n, dtype=torch.float32).view(n, 1, 1, 1).expand(n, c, h, w).to(torch.bfloat16),
+                         None)
+    frozen = VGG16Backbone(weights="none", train_from=None).eval()  # identity trainable part
+    feats, where = sample_local_features(frozen, store, max_features=50, per_image=5, seed=0)
+    # NetVLAD: max_features / per_image images, per_image random locations each.
+    assert feats.shape == (50, c) and where.shape == (50, 2)
+    images = where[:, 0]
+    assert len(images.unique()) == 10 and (images.bincount()[images.unique()] == 5).all()
+    assert torch.equal(feats[:, 0], images.float())  # each feature comes from the image it says
+    for image in images.unique():
+        locations = where[images == image, 1]
+        assert len(locations.unique()) == 5 and locations.max() < h * w
+    # Fewer locations than asked: all of them; more images than exist: all images.
+    feats, where = sample_local_features(frozen, store, max_features=10**6, per_image=100, seed=0)
+    assert len(where) == n * h * w and len(where[:, 0].unique()) == n
