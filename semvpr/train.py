@@ -90,8 +90,13 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
     checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
-                                 mode="max", save_last=True, auto_insert_metric_name=False)
-    trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, callbacks=[checkpoint],
+                                 mode="max", auto_insert_metric_name=False)
+    # last.ckpt after every epoch (ModelCheckpoint's save_last only refreshes it when the best
+    # changes, so a killed run would resume from an older epoch).
+    latest = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
+                             enable_version_counter=False)
+    trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers,
+                                     callbacks=[checkpoint, latest],
                                      precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
     tic = time.time()
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path)

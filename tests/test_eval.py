@@ -43,9 +43,11 @@ def make_folder(root: Path, n: int = 6) -> Path:
     return root
 
 
-def _dbstruct(path: Path, which: str, db: list[str], q: list[str]) -> None:
-    utm_db = np.array([_utm(i) for i in range(len(db))]).T
-    utm_q = np.array([_utm(i) for i in range(len(q))]).T
+def _dbstruct(path: Path, which: str, db: list[str], q: list[str], db_utm: list | None = None,
+              q_utm: list | None = None) -> None:
+    """A Pitts/Tokyo dbStruct .mat (fields in MATLAB's order); place i at _utm(i) unless given."""
+    utm_db = np.array(db_utm or [_utm(i) for i in range(len(db))]).T
+    utm_q = np.array(q_utm or [_utm(i) for i in range(len(q))]).T
     fields = [("whichSet", which), ("dbImageFns", np.array(db, dtype=object)[:, None]), ("utmDb", utm_db),
               ("qImageFns", np.array(q, dtype=object)[:, None]), ("utmQ", utm_q), ("numImages", len(db)),
               ("numQueries", len(q)), ("posDistThr", 25), ("posDistSqThr", 625), ("nonTrivPosDistSqThr", 100)]
