@@ -23,7 +23,7 @@ from semvpr.data.classes import static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, unwrap_user_error
 from semvpr.features import STORAGES, FeatureStore, grid_size
-from semvpr.models.masks import OracleMask, StudentMask, TeacherMask
+from semvpr.models.masks import WEIGHTINGS, ClassWeights, MaskSource, OracleMask, StudentMask, TeacherMask
 from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
 
@@ -70,6 +70,12 @@ def check_config(cfg: DictConfig) -> None:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
     if cfg.features.storage not in STORAGES:
         raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
+    weighting = cfg.filter.get("weights", "binary")
+    if weighting not in WEIGHTINGS:
+        raise SemvprError(f"filter.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+    if weighting == "learned" and cfg.filter.mask == "none":
+        raise SemvprError(f"filter={cfg.filter.name} has no mask to weight; filter.weights=learned needs "
+                          "filter=unet, mask2former or oracle")
 
 
 def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
@@ -116,20 +122,29 @@ def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Sem
     return semantic
 
 
-def build_mask_source(cfg: DictConfig, backbone: nn.Module, semantic: Semantic | None = None) -> nn.Module | None:
+def build_mask_source(cfg: DictConfig, backbone: nn.Module, semantic: Semantic | None = None) -> MaskSource | None:
     """The filter's mask source: trained (from ``semantic``), or untrained for weights to be loaded into."""
     mask = cfg.filter.mask
     if mask == "none":
         return None
+    static = list(cfg.teacher.static_classes)
     if mask == "oracle":
-        return OracleMask(list(cfg.teacher.static_classes))
+        return OracleMask(static)
     if mask == "teacher":
         from semvpr.models.teacher import teacher_architecture
 
-        return TeacherMask(semantic.teacher if semantic is not None else teacher_architecture(cfg.teacher))
+        return TeacherMask(semantic.teacher if semantic is not None else teacher_architecture(cfg.teacher), static)
     from semvpr.models.student import student_architecture
 
-    return StudentMask(semantic.student if semantic is not None else student_architecture(cfg.student, backbone))
+    return StudentMask(semantic.student if semantic is not None else student_architecture(cfg.student, backbone),
+                       static)
+
+
+def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
+    """Learned per-class weights (filter.weights=learned), else None."""
+    if cfg.filter.get("weights", "binary") != "learned":
+        return None
+    return ClassWeights(list(cfg.teacher.static_classes), float(cfg.model.class_weights.init_logit))
 
 
 def mask_key(mask_source: nn.Module | None, cfg: DictConfig) -> str | None:

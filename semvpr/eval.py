@@ -20,7 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
-from semvpr.build import build_backbone, build_mask_source, build_places, instantiate_node
+from semvpr.build import build_backbone, build_class_weights, build_mask_source, build_places, instantiate_node
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError
@@ -42,7 +42,7 @@ def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[R
     whitening = PCAWhitening(aggregator.output_dim, merged.model.pca_dim) if merged.model.pca_dim else None
     retriever = Retriever(backbone, aggregator, build_mask_source(merged, backbone), whitening,
                           eval_batch_size=merged.model.eval_batch_size, num_workers=merged.data.num_workers,
-                          record=record)
+                          record=record, class_weights=build_class_weights(merged))
     try:
         retriever.load_state_dict(state, strict=True)
     except RuntimeError as err:

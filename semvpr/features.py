@@ -35,7 +35,7 @@ from semvpr.data.datamodule import ImageDataset
 from semvpr.data.places import PlaceSet
 from semvpr.data.segmentation import load_image
 from semvpr.errors import SemvprError
-from semvpr.models.masks import pool_to_grid
+from semvpr.models.masks import NUM_CLASSES, MaskSource
 from semvpr.precision import autocast
 
 STORAGES = ("auto", "ram", "disk", "stream")
@@ -50,7 +50,8 @@ class FeatureStore:
     """Per-image inputs of the trainable part for one image list.
 
     ``trunk`` (N,C,h',w') bf16 in RAM or memory-mapped, or None when streamed (then items are
-    images and the module runs the frozen prefix); ``mask`` (N,1,h,w) grid masks or None.
+    images and the module runs the frozen prefix); ``mask`` the grid masks or None: (N,1,h,w)
+    binary, or (N,C,h,w) class probabilities for learned class weights (semvpr.models.masks).
     """
 
     paths: tuple[Path, ...]
@@ -146,7 +147,7 @@ def choose_storage(setting: str, trunk_bytes: int, cache_dir: str | Path, ram_gb
 
 
 @torch.no_grad()
-def _extract(backbone: nn.Module, mask_source: nn.Module | None, paths: Sequence[Path],
+def _extract(backbone: nn.Module, mask_source: MaskSource | None, weighting: str, paths: Sequence[Path],
              labels: Sequence[Path] | None, image_size: tuple[int, int], trunk_out: np.ndarray | None,
              mask_out: np.ndarray | None, batch_size: int, num_workers: int, desc: str) -> None:
     """One pass over the images, writing trunk outputs (bf16 bits) and grid masks into the arrays."""
@@ -162,7 +163,7 @@ def _extract(backbone: nn.Module, mask_source: nn.Module | None, paths: Sequence
             outs = backbone.forward_frozen(images) if run_backbone else []
             if mask_out is not None:
                 batch_labels = [labels[i] for i in index] if labels is not None else None
-                mask_out[rows] = pool_to_grid(mask_source(images, outs, batch_labels), grid).cpu().numpy()
+                mask_out[rows] = mask_source.grid_mask(images, outs, batch_labels, grid, weighting).cpu().numpy()
         if trunk_out is not None:
             trunk_out[rows] = outs[-1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
 
@@ -194,13 +195,14 @@ def place_features(
     places: PlaceSet,
     backbone: nn.Module,
     backbone_key: Any,
-    mask_source: nn.Module | None,
+    mask_source: MaskSource | None,
     mask_key: Any,
     image_size: Sequence[int],
     cache_dir: str | Path,
     storage: str,
     batch_size: int = 32,
     num_workers: int = 2,
+    weighting: str = "binary",
 ) -> PlaceFeatures:
     """Feature stores of a place set: trunk (unless streamed) and masks from the cache, built once."""
     size = (int(image_size[0]), int(image_size[1]))
@@ -215,10 +217,12 @@ def place_features(
     if storage != "stream":
         kinds["trunk"] = (trunk_key, shape, np.uint16)
     if mask_source is not None:
-        kinds["masks"] = ({"mask": mask_key, "data": data_key}, (1, *grid), np.float16)
+        channels = 1 if weighting == "binary" else NUM_CLASSES
+        kinds["masks"] = ({"mask": mask_key, "weighting": weighting, "data": data_key}, (channels, *grid), np.float16)
     missing = [k for k, (key, _, _) in kinds.items() if not artifact_dir(cache_dir, k, key).is_dir()]
     if missing:
-        _build(missing, kinds, sides, backbone, mask_source, size, cache_dir, batch_size, num_workers, places.name)
+        _build(missing, kinds, sides, backbone, mask_source, weighting, size, cache_dir, batch_size, num_workers,
+               places.name)
     stores = {}
     for side, (paths, _) in sides.items():
         arrays = {kind: _open(artifact_dir(cache_dir, kind, key) / f"{side}.npy", (len(paths), *per_image), dtype,
@@ -235,15 +239,15 @@ def place_features(
 
 def _build(missing: list[str], kinds: dict[str, tuple[Any, tuple[int, ...], Any]],
            sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]], backbone: nn.Module,
-           mask_source: nn.Module | None, size: tuple[int, int], cache_dir: str | Path, batch_size: int,
-           num_workers: int, name: str) -> None:
+           mask_source: MaskSource | None, weighting: str, size: tuple[int, int], cache_dir: str | Path,
+           batch_size: int, num_workers: int, name: str) -> None:
     """Build the missing caches in one pass per side; each lands under its final name only when whole."""
     def compute(dirs: dict[str, Path]) -> None:
         for side, (paths, labels) in sides.items():
             outs = {k: np.lib.format.open_memmap(d / f"{side}.npy", mode="w+", dtype=kinds[k][2],
                                                  shape=(len(paths), *kinds[k][1])) for k, d in dirs.items()}
-            _extract(backbone, mask_source if "masks" in outs else None, paths, labels, size, outs.get("trunk"),
-                     outs.get("masks"), batch_size, num_workers, f"{name} {side}")
+            _extract(backbone, mask_source if "masks" in outs else None, weighting, paths, labels, size,
+                     outs.get("trunk"), outs.get("masks"), batch_size, num_workers, f"{name} {side}")
             for arr in outs.values():
                 arr.flush()
 

@@ -270,3 +270,35 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
                  "queries where the filters disagree most on the top-1")
     _save(fig, out)
     return None
+
+
+def class_weights(sweep: Sweep, out: Path) -> str | None:
+    """Learned per-class weights (mean ± std over seeds) per mask source and backbone; else a skip reason."""
+    from semvpr.report import LEARNED, filter_rank, mean_std
+
+    runs: dict[tuple[str, str], list[dict[str, float]]] = {}
+    for job in sweep.jobs:
+        if job.ok and isinstance(job.metrics.get("class_weights"), dict):
+            runs.setdefault((job.backbone, job.filter), []).append(job.metrics["class_weights"])
+    if not runs:
+        return "no run learned class weights (filter.weights=learned)"
+    cells = sorted(runs, key=lambda c: (c[0], filter_rank(c[1])))
+    classes = list(runs[cells[0]][0])
+    fig = _new_figure(max(8.0, 0.55 * len(classes)), 3.6)
+    ax = fig.add_subplot()
+    width = 0.8 / len(cells)
+    x = np.arange(len(classes))
+    for i, cell in enumerate(cells):
+        stats = [mean_std([float(w[name]) for w in runs[cell] if name in w]) for name in classes]
+        means = [m for m, _ in stats]
+        stds = [s if math.isfinite(s) else 0.0 for _, s in stats]
+        ax.bar(x + (i - (len(cells) - 1) / 2) * width, means, width, yerr=stds, capsize=2,
+               label=f"{cell[1].removesuffix(LEARNED)} ({cell[0]}, {len(runs[cell])} seeds)")
+    ax.set_xticks(x, classes, rotation=45, ha="right", fontsize=8)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("learned weight w_c")
+    ax.axvline(9.5, color="0.6", lw=0.8, ls="--")  # static classes (trainIds 0-9) | the rest
+    ax.legend(fontsize=8, ncol=min(3, len(cells)))
+    ax.set_title("Which classes matter for place recognition: learned class weights (start 0.98 | 0.02)")
+    _save(fig, out)
+    return None

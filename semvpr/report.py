@@ -61,7 +61,7 @@ class Sweep:
 
     def label(self, name: str) -> str:
         """Display name of a filter."""
-        return f"{name} (upper bound)" if name in UPPER_BOUNDS else name
+        return f"{name} (upper bound)" if name.removesuffix(LEARNED) in UPPER_BOUNDS else name
 
     def jobs_of(self, filter_: str, backbone: str, needs: str | None = None) -> list[Job]:
         """Jobs of one cell, ok runs first then by seed, optionally only those holding file `needs`."""
@@ -81,11 +81,16 @@ class Sweep:
         return None
 
 
-def filter_rank(name: str) -> tuple[int, str]:
-    """Sort key placing none, attention, unet, mask2former first and upper bounds last."""
-    if name in FILTER_ORDER:
-        return FILTER_ORDER.index(name), ""
-    return len(FILTER_ORDER) + (name in UPPER_BOUNDS), name
+LEARNED = "+learned"  # a filter run with filter.weights=learned is reported as "<filter>+learned"
+
+
+def filter_rank(name: str) -> tuple[int, str, bool]:
+    """Sort key placing none, attention, unet, mask2former first and upper bounds last, each filter's
+    learned-weights variant right after it."""
+    base, learned = name.removesuffix(LEARNED), name.endswith(LEARNED)
+    if base in FILTER_ORDER:
+        return FILTER_ORDER.index(base), "", learned
+    return len(FILTER_ORDER) + (base in UPPER_BOUNDS), base, learned
 
 
 def _error_line(error: object) -> str:
@@ -98,7 +103,7 @@ def _hydra_facts(job_dir: Path) -> dict[str, str]:
     """filter / backbone / seed of a job from its .hydra files (for jobs that died before metrics.json)."""
     # lowest priority: the dir name itself, Hydra's override_dirname "backbone=vgg16,filter=unet,seed=1"
     facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(","))
-             if k in ("filter", "backbone", "seed") and v}
+             if k in ("filter", "backbone", "seed", "filter.weights") and v}
     hydra_dir = job_dir / ".hydra"
     try:
         if (hydra_dir / "config.yaml").is_file():
@@ -114,7 +119,7 @@ def _hydra_facts(job_dir: Path) -> dict[str, str]:
         if (hydra_dir / "overrides.yaml").is_file():
             for item in OmegaConf.load(hydra_dir / "overrides.yaml"):
                 key, _, value = str(item).lstrip("+~").partition("=")
-                if key in ("filter", "backbone", "seed"):
+                if key in ("filter", "backbone", "seed", "filter.weights"):
                     facts[key] = value
     except Exception:  # a damaged .hydra dir only costs us labels, never the report
         pass
@@ -146,8 +151,11 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         seed = int(seed) if seed is not None else None
     except ValueError:
         seed = None
-    return Job(job_dir, name, str(metrics.get("filter") or facts.get("filter") or "?"),
-               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics)
+    filter_ = str(metrics.get("filter") or facts.get("filter") or "?")
+    if (metrics.get("weights") or facts.get("filter.weights")) == "learned":
+        filter_ += LEARNED
+    return Job(job_dir, name, filter_, str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error,
+               metrics)
 
 
 def load_sweep(sweep_dir: Path) -> Sweep:
@@ -211,6 +219,22 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
+def _r1_by_seed(sweep: Sweep, filter_: str, backbone: str) -> dict[int | None, float]:
+    """Test R@1 of one cell's finished runs, by seed."""
+    return {j.seed: j.recall(1) for j in sweep.jobs_of(filter_, backbone) if j.ok and math.isfinite(j.recall(1))}
+
+
+def _paired_summary(sweep: Sweep, filter_: str, backbone: str, reference: dict[int | None, float]) -> str | None:
+    """"<filter> +g ± s (better in k of n seeds)" for R@1 minus the reference's with the same seed."""
+    diffs = [r1 - reference[seed] for seed, r1 in _r1_by_seed(sweep, filter_, backbone).items() if seed in reference]
+    if not diffs:
+        return None
+    mean, std = mean_std(diffs)
+    spread = f" ± {_fmt(std)}" if math.isfinite(std) else ""
+    better = sum(d > 0 for d in diffs)
+    return f"{sweep.label(filter_)} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
+
+
 def _paired_gains(sweep: Sweep, backbone: str) -> str | None:
     """R@1 of each filter minus `none` with the same seed, summarised; None when other filters
     finished but `none` did not, "" when there is nothing to compare.
@@ -218,21 +242,39 @@ def _paired_gains(sweep: Sweep, backbone: str) -> str | None:
     Runs with the same seed share the backbone init and the data, so the per-seed difference is
     the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
     """
-    none = {j.seed: j.recall(1) for j in sweep.jobs_of("none", backbone) if j.ok and math.isfinite(j.recall(1))}
+    none = _r1_by_seed(sweep, "none", backbone)
     if not none:
         return None if any(j.ok for f in sweep.filters for j in sweep.jobs_of(f, backbone)) else ""
-    parts = []
-    for f in sweep.filters:
-        if f == "none":
-            continue
-        diffs = [j.recall(1) - none[j.seed] for j in sweep.jobs_of(f, backbone)
-                 if j.ok and j.seed in none and math.isfinite(j.recall(1))]
-        if diffs:
-            mean, std = mean_std(diffs)
-            spread = f" ± {_fmt(std)}" if math.isfinite(std) else ""
-            better = sum(d > 0 for d in diffs)
-            parts.append(f"{sweep.label(f)} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)")
-    return ", ".join(parts)
+    parts = [_paired_summary(sweep, f, backbone, none) for f in sweep.filters if f != "none"]
+    return ", ".join(p for p in parts if p)
+
+
+def _learned_gains(sweep: Sweep, backbone: str) -> str:
+    """R@1 of each learned-weights filter minus its binary filter with the same seed."""
+    parts = [_paired_summary(sweep, f, backbone, _r1_by_seed(sweep, f.removesuffix(LEARNED), backbone))
+             for f in sweep.filters if f.endswith(LEARNED)]
+    return ", ".join(p for p in parts if p)
+
+
+def _class_weight_table(sweep: Sweep) -> list[str]:
+    """Markdown table of the learned class weights, mean ± std over seeds, one column per filter."""
+    cells = {(j.backbone, j.filter): [] for j in sweep.jobs if j.ok and isinstance(j.metrics.get("class_weights"), dict)}
+    if not cells:
+        return []
+    for j in sweep.jobs:
+        if (j.backbone, j.filter) in cells and j.ok:
+            cells[(j.backbone, j.filter)].append(j.metrics["class_weights"])
+    columns = sorted(cells, key=lambda c: (c[0], filter_rank(c[1])))
+    classes = list(next(iter(cells.values()))[0])
+    out = ["## Learned class weights", "",
+           "w_c = sigmoid(θ_c) after training (start: 0.98 static classes, 0.02 the others), mean ± std over seeds.", "",
+           "| class | " + " | ".join(f"{f.removesuffix(LEARNED)} ({bb})" for bb, f in columns) + " |",
+           "|---|" + "---:|" * len(columns)]
+    for name in classes:
+        stats = [mean_std([float(w[name]) for w in cells[c] if name in w]) for c in columns]
+        out.append(f"| {name} | " + " | ".join(f"{m:.2f} ± {s:.2f}" if math.isfinite(s) else f"{m:.2f}"
+                                              for m, s in stats) + " |")
+    return out + [""]
 
 
 def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str | None]) -> str:
@@ -255,6 +297,11 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
         elif gains:
             out += [f"**R@1 gain over `none` ({bb})**, per seed (same backbone init and data), then "
                     f"mean ± std: {gains}", ""]
+        learned = _learned_gains(sweep, bb)
+        if learned:
+            out += [f"**R@1 gain of learned class weights over the binary filter ({bb})**, paired by seed: "
+                    f"{learned}", ""]
+    out += _class_weight_table(sweep)
     failed = [j for j in sweep.jobs if not j.ok]
     if failed:
         out += ["## Failed jobs", ""]
@@ -280,8 +327,11 @@ def write_report(sweep_dir: Path) -> Path:
     sweep = load_sweep(Path(sweep_dir))
     rows = _rows(sweep)
     figures: dict[str, str | None] = {}
-    for fname, draw in (("recall_at_n.png", plots.recall_curves), ("figure3.png", plots.figure3),
-                        ("retrievals.png", plots.retrievals)):
+    drawings = [("recall_at_n.png", plots.recall_curves), ("figure3.png", plots.figure3),
+                ("retrievals.png", plots.retrievals)]
+    if any(isinstance(j.metrics.get("class_weights"), dict) for j in sweep.jobs):
+        drawings.append(("class_weights.png", plots.class_weights))
+    for fname, draw in drawings:
         try:
             figures[fname] = draw(sweep, sweep.dir / fname)
         except Exception as err:  # one broken figure must not cost the table

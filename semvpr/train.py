@@ -25,8 +25,8 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.build import (build_backbone, build_mask_source, build_places, build_semantic, check_config,
-                          init_aggregator, mask_key)
+from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, build_semantic,
+                          check_config, init_aggregator, mask_key)
 from semvpr.checkpoint import record_of
 from semvpr.errors import SemvprError
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
@@ -61,8 +61,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     storage = feature_storage(cfg, backbone, places)
     features = {split: place_features(
         places[split], backbone, backbone.frozen_identity(), mask_source, mask_key(mask_source, cfg),
-        cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers)
-        for split in places}
+        cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers,
+        weighting=cfg.filter.get("weights", "binary")) for split in places}
     timings["features_s"] = time.time() - tic
 
     # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
@@ -74,9 +74,11 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     timings["init_s"] = time.time() - tic
 
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
+    class_weights = build_class_weights(cfg)
     retriever = Retriever(backbone, aggregator, mask_source, whitening, instantiate(cfg.model.optimizer),
                           instantiate(cfg.model.scheduler), cfg.model.margin, cfg.model.eval_batch_size,
-                          cfg.data.num_workers, record=record_of(cfg))
+                          cfg.data.num_workers, record=record_of(cfg), class_weights=class_weights,
+                          class_weights_lr=float(cfg.model.class_weights.lr))
     datamodule = RetrievalDataModule(
         features["train"], features["val"], features["test"], cfg.model.batch_size,
         cfg.model.eval_batch_size, cfg.model.cache_refresh, cfg.seed, cfg.model.queries_per_epoch,
@@ -118,6 +120,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                       int(cfg.num_figure_queries), cfg.filter.mask)
     metrics: dict[str, Any] = {
         "status": "ok", "error": None, "filter": cfg.filter.name, "backbone": cfg.backbone.name,
+        "weights": retriever.weighting,
+        "class_weights": class_weights.named_weights() if class_weights is not None else None,
         "seed": int(cfg.seed), "data": cfg.data.name,
         **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
         **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
@@ -185,7 +189,10 @@ def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retri
     if hasattr(retriever.aggregator, "attention"):
         arrays["attention"] = retriever.aggregator.attention(local.float())[:, 0].float().cpu().numpy()
     if features.q.mask is not None:
-        arrays[mask_name] = features.q.mask[torch.from_numpy(idx), 0].float().numpy()
+        mask = features.q.mask[torch.from_numpy(idx)].float()
+        if retriever.class_weights is not None:  # class probabilities → the learned weight map
+            mask = retriever.class_weights(mask.to(retriever.device)).cpu()
+        arrays[mask_name] = mask[:, 0].numpy()
     tmp = run_dir / ".maps.tmp.npz"
     np.savez(tmp, **arrays)
     os.replace(tmp, run_dir / "maps.npz")

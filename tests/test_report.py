@@ -185,3 +185,24 @@ def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
     (md,) = tmp_path.glob("multiruns/*/*/results.md")
     assert "| vgg16 | unet | 41.5 ± 0.7 |" in md.read_text()
     assert "**R@1 gain over `none` (vgg16)**" in proc.stdout and "unet +10.0 ± 0.0 (better in 2 of 2 seeds)" in proc.stdout
+
+
+def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
+    from semvpr.data.classes import TRAIN_ID_NAMES
+
+    for seed, (binary, learned, w_veg) in {1: (40.0, 43.0, 0.3), 2: (44.0, 43.0, 0.5)}.items():
+        for filter_, r1 in (("oracle", binary), ("oracle+learned", learned)):
+            metrics = _metrics("oracle", seed, r1)
+            if filter_.endswith("learned"):
+                metrics["weights"] = "learned"
+                metrics["class_weights"] = {n: (w_veg if n == "vegetation" else 0.9) for n in TRAIN_ID_NAMES}
+            _job(tmp_path, f"filter=oracle,filter.weights={filter_.partition('+')[2] or 'binary'},seed={seed}", metrics)
+    text = write_report(tmp_path).read_text()
+    rows = [ln.split("|")[2].strip() for ln in text.splitlines() if ln.startswith("| vgg16 |")]
+    assert rows == ["oracle (upper bound)", "oracle+learned (upper bound)"]
+    assert ("**R@1 gain of learned class weights over the binary filter (vgg16)**, paired by seed: "
+            "oracle+learned (upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)") in text
+    assert "| vegetation | 0.40 ± 0.14 |" in text and "| road | 0.90 ± 0.00 |" in text
+    assert "](class_weights.png)" in text
+    with Image.open(tmp_path / "class_weights.png") as im:
+        assert im.format == "PNG" and im.width > 400

@@ -37,9 +37,11 @@ def test_shapes_and_skip_choice(backbone: VGG16Backbone) -> None:
     with torch.no_grad():
         skips = backbone.forward_frozen(torch.rand(2, 3, *SIZE))
         logits = student(skips)
+        classes = student.class_prob(skips, out_hw=SIZE)
         prob = student.static_prob(skips, out_hw=SIZE)
-    assert logits.shape == (2, 1, SIZE[0] // 4, SIZE[1] // 4)
-    assert prob.shape == (2, 1, *SIZE) and prob.min() >= 0 and prob.max() <= 1
+    assert logits.shape == (2, 19, SIZE[0] // 4, SIZE[1] // 4)
+    torch.testing.assert_close(classes.sum(1), torch.ones(2, *SIZE))
+    assert prob.shape == (2, 1, *SIZE) and prob.min() >= 0 and prob.max() <= 1 + 1e-6
     assert Student(backbone.frozen_channels, backbone.frozen_strides, strides=(8,), width=8)(skips).shape[-2:] == (4, 6)
 
 
@@ -106,3 +108,24 @@ def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path:
     again = build_student(tiny_cfg(), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
     for a, b in zip(student.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
+
+
+def test_multi_class_student_static_sum_is_its_binary_mask(backbone: VGG16Backbone) -> None:
+    from semvpr.models.masks import StudentMask, pool_to_grid
+
+    torch.manual_seed(0)
+    static = ["road", "sidewalk", "building"]
+    student = Student(backbone.frozen_channels, backbone.frozen_strides, width=8, static_names=static).eval()
+    images = torch.rand(2, 3, *SIZE)
+    with torch.no_grad():
+        skips = backbone.forward_frozen(images)
+        classes = student.class_prob(skips, out_hw=SIZE)
+        mask = StudentMask(student, static)
+        binary = mask.grid_mask(images, skips, None, (2, 3), "binary")
+        learned = mask.grid_mask(images, skips, None, (2, 3), "learned")
+    by_hand = classes[:, 0] + classes[:, 1] + classes[:, 2]  # road, sidewalk, building are trainIds 0..2
+    torch.testing.assert_close(student.static_prob(skips, out_hw=SIZE)[:, 0], by_hand)
+    assert torch.equal(binary, pool_to_grid(by_hand[:, None], (2, 3)))
+    assert learned.shape == (2, 19, 2, 3)
+    torch.testing.assert_close(learned[:, :3].sum(1, keepdim=True),
+                               torch.nn.functional.adaptive_avg_pool2d(by_hand[:, None], (2, 3)))

@@ -95,11 +95,29 @@ def test_post_processing_shapes_and_ranges() -> None:
     teacher = Teacher(embedded_model(TINY_MODEL)).eval()
     images = torch.rand(3, 3, 37, 53)  # not a multiple of the patch or window size
     ids = teacher.predict_train_ids(images)
-    prob = teacher.static_prob(images)
+    prob = teacher.class_prob(images)
     assert ids.shape == (3, 37, 53) and ids.dtype == torch.long
     assert set(ids.unique().tolist()) <= set(range(len(TRAIN_ID_NAMES)))
-    assert prob.shape == (3, 1, 37, 53)
+    assert prob.shape == (3, len(TRAIN_ID_NAMES), 37, 53)
     assert prob.min() >= 0 and prob.max() <= 1
+    torch.testing.assert_close(prob.sum(1), torch.ones(3, 37, 53), rtol=1e-4, atol=1e-4)  # all 19 classes known
+
+
+def test_static_map_is_the_static_classes_share_of_the_scores() -> None:
+    # The binary filter's input, re-derived from Mask2Former's semantic scores: Σ static scores / Σ scores.
+    from semvpr.models.masks import TeacherMask
+
+    torch.manual_seed(0)
+    teacher = Teacher(embedded_model(TINY_MODEL)).eval()
+    images = torch.rand(2, 3, 32, 48)
+    with torch.no_grad():
+        scores = teacher.semantic_scores(images)
+        static = torch.tensor([n in ("road", "building") for n in TRAIN_ID_NAMES], dtype=torch.float32)
+        share = (scores * static[None, :, None, None]).sum(1, keepdim=True) / scores.sum(1, keepdim=True)
+        expected = torch.nn.functional.interpolate(share, size=(32, 48), mode="bilinear", align_corners=False)
+        mask = TeacherMask(teacher, ["road", "building"])
+        got = mask.static_prob(mask(images, [], None))
+    torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
 
 
 def test_classes_map_to_train_ids_by_name() -> None:
@@ -107,7 +125,7 @@ def test_classes_map_to_train_ids_by_name() -> None:
     model.config.id2label = {0: "car", 1: "Road", 2: "traffic_light", 3: "banana"}
     teacher = Teacher(model)
     assert teacher.model_to_train.tolist() == [13, 0, 6, IGNORE]
-    assert teacher.static_weight.tolist() == [0.0, 1.0, 1.0, 0.0]
+    assert teacher.to_train.argmax(1)[:3].tolist() == [13, 0, 6] and teacher.to_train[3].sum() == 0
     assert teacher.train_to_model[13].item() == 0 and teacher.train_to_model[1].item() == -1
 
 
@@ -155,5 +173,5 @@ def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytes
     second = build_teacher(tiny_cfg(), train, val, tmp_path / "cache")
     assert second.teacher_key == first.teacher_key
     images = batch(2, seed=5)[0]
-    assert torch.equal(first.static_prob(images), second.static_prob(images))
+    assert torch.equal(first.class_prob(images), second.class_prob(images))
     assert not second.training and not any(p.requires_grad for p in second.parameters())

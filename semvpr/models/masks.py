@@ -1,13 +1,19 @@
-"""Mask sources: a static-probability map per image, pooled to the feature grid as a binary filter.
+"""Mask sources: per-class probabilities of each pixel, reduced to a weight map on the feature grid.
 
-A mask is a per-location weight (B,1,h,w) on the local-feature grid (DESIGN §3): the segmenter's
-static map at image resolution, area-pooled to the grid and thresholded at 0.5. The aggregator
-uses it to weight each location's contribution, never to zero features.
+Every source (teacher, student, oracle) gives Cityscapes-class probabilities (B,C,H,W) at image
+resolution. On the local-feature grid (DESIGN §3) they become either
+
+- ``binary``: the static classes' probabilities summed per pixel, area-pooled and thresholded at
+  0.5, one channel (the seed paper's filter); or
+- ``learned``: the class probabilities area-pooled to the grid (C channels), which
+  :class:`ClassWeights` turns into Σ_c p_c·w_c with one learnable weight per class.
+
+The aggregator uses the result to weight each location's contribution, never to zero features.
 """
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -15,19 +21,11 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor, nn
 
-from semvpr.data.classes import STATIC_NAMES, static_lut
+from semvpr.data.classes import IGNORE, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 from semvpr.errors import SemvprError
 
-
-class MaskSource(Protocol):
-    """Gives the static probability (B,1,H,W) of a batch; any resolution, pooled later."""
-
-    #: Whether it reads the backbone's features (else the frozen pass can be skipped for it).
-    needs_features: bool
-
-    def __call__(
-        self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None
-    ) -> Tensor: ...
+NUM_CLASSES = len(TRAIN_ID_NAMES)
+WEIGHTINGS = ("binary", "learned")
 
 
 def pool_to_grid(static_prob: Tensor, grid_hw: tuple[int, int], threshold: float = 0.5) -> Tensor:
@@ -36,45 +34,95 @@ def pool_to_grid(static_prob: Tensor, grid_hw: tuple[int, int], threshold: float
     return (pooled >= threshold).float()
 
 
-class TeacherMask(nn.Module):
-    """Static probability from the Mask2Former teacher, run on the images themselves."""
+class MaskSource(nn.Module):
+    """Gives class probabilities (B,C,H,W) of a batch; ``grid_mask`` reduces them to the grid."""
 
-    needs_features = False
+    #: Whether it reads the backbone's features (else the frozen pass can be skipped for it).
+    needs_features: bool = False
 
-    def __init__(self, teacher: nn.Module) -> None:
+    def __init__(self, static_names: Sequence[str] = STATIC_NAMES) -> None:
         super().__init__()
+        # Derived from the config, so not part of the state dict.
+        self.register_buffer("static_weight", torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES]),
+                             persistent=False)
+
+    def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
+        raise NotImplementedError
+
+    def static_prob(self, class_prob: Tensor) -> Tensor:
+        """Probability of a static class, (B,1,H,W)."""
+        return torch.einsum("bchw,c->bhw", class_prob.float(), self.static_weight)[:, None]
+
+    def grid_mask(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None,
+                  grid_hw: tuple[int, int], weighting: str = "binary") -> Tensor:
+        """The mask the aggregator reads: (B,1,h,w) binary, or (B,C,h,w) pooled class probabilities."""
+        class_prob = self(images, skips, label_paths)
+        if weighting == "binary":
+            return pool_to_grid(self.static_prob(class_prob), grid_hw)
+        if weighting == "learned":
+            return F.adaptive_avg_pool2d(class_prob.float(), grid_hw)
+        raise SemvprError(f"filter.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+
+
+class TeacherMask(MaskSource):
+    """Class probabilities from the Mask2Former teacher, run on the images themselves."""
+
+    def __init__(self, teacher: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
+        super().__init__(static_names)
         self.teacher = teacher.eval().requires_grad_(False)
 
     @torch.no_grad()
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
-        return self.teacher.static_prob(images)
+        return self.teacher.class_prob(images)
 
 
-class StudentMask(nn.Module):
-    """Static probability from the U-Net student over the backbone's own multi-scale features."""
+class StudentMask(MaskSource):
+    """Class probabilities from the U-Net student over the backbone's own multi-scale features."""
 
     needs_features = True
 
-    def __init__(self, student: nn.Module) -> None:
-        super().__init__()
+    def __init__(self, student: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
+        super().__init__(static_names)
         self.student = student.eval().requires_grad_(False)
 
     @torch.no_grad()
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
-        return self.student.static_prob(skips)
+        return self.student.class_prob(skips, out_hw=images.shape[-2:])
 
 
-class OracleMask(nn.Module):
-    """Ground-truth static map read from SynthCity's label PNGs (upper bound; never in training data)."""
-
-    needs_features = False
-
-    def __init__(self, static_names: Sequence[str] = STATIC_NAMES) -> None:
-        super().__init__()
-        self.lut = static_lut(tuple(static_names))
+class OracleMask(MaskSource):
+    """One-hot ground-truth classes from SynthCity's label PNGs (upper bound; never in training data)."""
 
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         if label_paths is None:
             raise SemvprError("filter=oracle needs ground-truth label maps; only SynthCity provides them")
-        maps = [self.lut[np.asarray(Image.open(p))] for p in label_paths]
-        return torch.from_numpy(np.stack(maps))[:, None]
+        labels = torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in label_paths]).astype(np.int64))
+        one_hot = F.one_hot(labels.clamp(max=NUM_CLASSES), NUM_CLASSES + 1)[..., :NUM_CLASSES]  # ignore → zeros
+        assert IGNORE >= NUM_CLASSES
+        return one_hot.permute(0, 3, 1, 2).float().to(images.device)
+
+
+class ClassWeights(nn.Module):
+    """Σ_c p_c·w_c per grid location, w_c = sigmoid(θ_c) learned with the triplet loss.
+
+    Initialised at the binary filter's values as far as a sigmoid allows: θ_c = +init_logit for
+    static classes (w ≈ 0.98 for 4) and −init_logit for the others (w ≈ 0.02).
+    """
+
+    def __init__(self, static_names: Sequence[str] = STATIC_NAMES, init_logit: float = 4.0) -> None:
+        super().__init__()
+        static = torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES]) > 0
+        self.theta = nn.Parameter(torch.where(static, init_logit, -init_logit))
+
+    @property
+    def weights(self) -> Tensor:
+        """w_c in (0, 1), one per Cityscapes class."""
+        return torch.sigmoid(self.theta)
+
+    def forward(self, class_prob: Tensor) -> Tensor:
+        """(B,C,h,w) pooled class probabilities → (B,1,h,w) contribution weights."""
+        return torch.einsum("bchw,c->bhw", class_prob.float(), self.weights)[:, None]
+
+    def named_weights(self) -> dict[str, float]:
+        """{class name: w_c} for reports."""
+        return {name: float(w) for name, w in zip(TRAIN_ID_NAMES, self.weights.detach().cpu())}

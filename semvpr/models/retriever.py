@@ -20,7 +20,7 @@ from semvpr.data.datamodule import ImageDataset
 from semvpr.errors import SemvprError
 from semvpr.features import TRUNK_DTYPE, FeatureStore, PlaceFeatures, grid_size, store_loader
 from semvpr.metrics import knn, recall_result
-from semvpr.models.masks import pool_to_grid
+from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.precision import autocast
 
 RECALL_NS = (1, 5, 10, 20)
@@ -33,7 +33,7 @@ class Retriever(L.LightningModule):
         self,
         backbone: nn.Module,
         aggregator: nn.Module,
-        mask_source: nn.Module | None = None,
+        mask_source: MaskSource | None = None,
         whitening: nn.Module | None = None,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
@@ -41,12 +41,16 @@ class Retriever(L.LightningModule):
         eval_batch_size: int = 64,
         num_workers: int = 0,
         record: dict | None = None,
+        class_weights: ClassWeights | None = None,
+        class_weights_lr: float | None = None,
     ) -> None:
         super().__init__()
         # What eval needs to rebuild the model: config choices and plain values (semvpr.checkpoint),
         # never code or _target_s; Lightning stores it in the checkpoint's "hyper_parameters".
         self.save_hyperparameters(record or {})
         self.backbone, self.aggregator, self.mask_source = backbone, aggregator, mask_source
+        # Learned per-class weights turn the cached class probabilities into the mask (filter.weights=learned).
+        self.class_weights, self.class_weights_lr = class_weights, class_weights_lr
         # PCA whitening is fitted on database descriptors after training and used from then on.
         self.whitening = whitening
         self.register_buffer("whitening_fitted", torch.tensor(False))
@@ -61,6 +65,8 @@ class Retriever(L.LightningModule):
         """Global descriptors from frozen-trunk outputs and grid masks."""
         # float(): trunk features are stored in bf16; autocast (where native) takes them back down.
         local = self.backbone.forward_trainable(trunk.float().contiguous(memory_format=torch.channels_last))
+        if self.class_weights is not None and mask is not None:
+            mask = self.class_weights(mask)
         desc = self.aggregator(local, mask)
         if self.whitening is not None and bool(self.whitening_fitted):
             desc = self.whitening(desc)
@@ -89,7 +95,7 @@ class Retriever(L.LightningModule):
         mask = None
         if self.mask_source is not None:
             grid = grid_size(self.backbone, images.shape[-2:])
-            mask = pool_to_grid(self.mask_source(images, outs, label_paths), grid)
+            mask = self.mask_source.grid_mask(images, outs, label_paths, grid, self.weighting)
         return self.describe(outs[-1].to(TRUNK_DTYPE), mask)
 
     @torch.no_grad()
@@ -131,11 +137,21 @@ class Retriever(L.LightningModule):
         self.log("train/loss", loss, prog_bar=True, batch_size=b)
         return loss
 
+    @property
+    def weighting(self) -> str:
+        """How the mask source's class probabilities become the mask: binary or learned."""
+        return "binary" if self.class_weights is None else "learned"
+
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
             raise SemvprError("the retriever was built without an optimizer (model.optimizer)")
-        params = [p for p in self.parameters() if p.requires_grad]
-        optimizer = self.optimizer_factory(params)
+        own = {id(p) for p in self.class_weights.parameters()} if self.class_weights is not None else set()
+        groups: list[dict[str, Any]] = [{"params": [p for p in self.parameters() if p.requires_grad and id(p) not in own]}]
+        if own:
+            # A few logits that must travel several units: their own learning rate.
+            groups.append({"params": list(self.class_weights.parameters()), "lr": self.class_weights_lr,
+                           "weight_decay": 0.0})
+        optimizer = self.optimizer_factory(groups)
         if self.scheduler_factory is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer)}

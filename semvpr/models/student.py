@@ -1,4 +1,8 @@
-"""U-Net student: a small decoder over the frozen backbone prefix that predicts static vs not-static."""
+"""U-Net student: a small decoder over the frozen backbone prefix that predicts the teacher's classes.
+
+It learns the Cityscapes classes of the teacher's pseudo-labels (cross-entropy, 19 outputs); its
+static map is the sum of the static classes' probabilities, which is what the binary filter reads.
+"""
 from __future__ import annotations
 
 import json
@@ -19,11 +23,12 @@ from tqdm import tqdm
 
 from semvpr.artifacts import build_once
 from semvpr.data.classes import IGNORE, STATIC_NAMES, static_lut
+from semvpr.models.masks import NUM_CLASSES
 from semvpr.errors import SemvprError
 from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
 
-VERSION = 1
+VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
@@ -35,13 +40,15 @@ def _block(cin: int, cout: int) -> nn.Sequential:
 
 
 class Student(nn.Module):
-    """Decoder from the deepest chosen frozen feature up through shallower skips to static logits."""
+    """Decoder from the deepest chosen frozen feature up through shallower skips to class logits."""
 
     def __init__(
         self, frozen_channels: Sequence[int], frozen_strides: Sequence[int],
-        strides: Sequence[int] = (4, 8, 16), width: int = 64,
+        strides: Sequence[int] = (4, 8, 16), width: int = 64, static_names: Sequence[str] = STATIC_NAMES,
     ) -> None:  # fmt: skip
         super().__init__()
+        self.register_buffer("static_weight", torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES]),
+                             persistent=False)
         # The deepest frozen output of each wanted stride (ResNet's stem and layer1 share none; VGG's do not).
         chosen = {s: i for i, s in enumerate(frozen_strides) if s in set(strides)}
         if not chosen:
@@ -58,10 +65,10 @@ class Student(nn.Module):
         )
         self.bottom = _block(width, width)
         self.ups = nn.ModuleList(_block(2 * width, width) for _ in chans[:-1])
-        self.head = nn.Conv2d(width, 1, 1)
+        self.head = nn.Conv2d(width, NUM_CLASSES, 1)
 
     def forward(self, skips: Sequence[Tensor]) -> Tensor:
-        """Static-vs-not logits (B,1,H/s,W/s) at the shallowest chosen stride, from ``forward_frozen`` outputs."""
+        """Class logits (B,C,H/s,W/s) at the shallowest chosen stride, from ``forward_frozen`` outputs."""
         return self.decode([skips[i] for i in self.skip_indices])
 
     def decode(self, chosen: Sequence[Tensor]) -> Tensor:
@@ -73,11 +80,16 @@ class Student(nn.Module):
             h = block(torch.cat([h, f], 1))
         return self.head(h)
 
-    def static_prob(self, skips: Sequence[Tensor], out_hw: Sequence[int] | None = None) -> Tensor:
-        """Sigmoid of the logits, optionally resized (bilinear) to ``out_hw``."""
-        prob = torch.sigmoid(self.forward(skips).float())
+    def class_prob(self, skips: Sequence[Tensor], out_hw: Sequence[int] | None = None) -> Tensor:
+        """Softmax over the classes (B,C,·,·), optionally resized (bilinear) to ``out_hw``."""
+        prob = torch.softmax(self.forward(skips).float(), dim=1)
         if out_hw is not None:
             prob = F.interpolate(prob, size=tuple(out_hw), mode="bilinear", align_corners=False)
+        return prob
+
+    def static_prob(self, skips: Sequence[Tensor], out_hw: Sequence[int] | None = None) -> Tensor:
+        """Σ of the static classes' probabilities (B,1,·,·), optionally resized to ``out_hw``."""
+        prob = torch.einsum("bchw,c->bhw", self.class_prob(skips, out_hw), self.static_weight)[:, None]
         return prob
 
 
@@ -101,20 +113,20 @@ def cache_skips(
     return [torch.cat(level) for level in out]
 
 
-def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size: Sequence[int],
-                 lut: np.ndarray) -> Tensor:
-    """(N,H,W) uint8 binary static targets from trainId PNGs (255 = ignore)."""
+def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size: Sequence[int]) -> Tensor:
+    """(N,H,W) uint8 trainId targets from pseudo-label PNGs (255 = ignore)."""
     maps = []
     for p in paths:
         ids = np.asarray(Image.open(label_path(label_dir, p, root)))
         if ids.shape != tuple(image_size):
             raise SemvprError(f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}")
-        maps.append(np.where(ids == IGNORE, IGNORE, lut[ids].astype(np.uint8)))
+        maps.append(np.where(ids < NUM_CLASSES, ids, IGNORE).astype(np.uint8))
     return torch.from_numpy(np.stack(maps))
 
 
 def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: DictConfig) -> dict[str, float]:
-    """Train the decoder on cached features with masked BCE at image resolution; returns final metrics."""
+    """Train the decoder on cached features with cross-entropy at image resolution; returns final metrics
+    (the static-map IoU against the labels' static map is tracked, as that is what the filter uses)."""
     gen = torch.Generator().manual_seed(int(cfg.seed))
     n, bs = len(targets), int(cfg.batch_size)
     steps = max(1, cfg.epochs * math.ceil(n / bs))
@@ -132,14 +144,15 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: Dic
             target = targets[idx].to(device).long()
             with autocast(device, enabled=bool(cfg.bf16)):
                 logits = student.decode([s[idx].to(device) for s in skips])
-            logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)[:, 0]
-            valid = target != IGNORE
-            loss = F.binary_cross_entropy_with_logits(logits[valid], target[valid].float())
+            logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)
+            loss = F.cross_entropy(logits, target, ignore_index=IGNORE)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             sched.step()
-            pred, gt = (logits >= 0) & valid, (target == 1) & valid
+            valid = target != IGNORE
+            static = torch.einsum("bchw,c->bhw", logits.detach().softmax(1), student.static_weight)
+            pred, gt = (static >= 0.5) & valid, (student.static_weight[target.clamp(max=NUM_CLASSES - 1)] > 0) & valid
             inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
             bar.update()
             bar.set_postfix(loss=f"{loss.item():.3f}")
@@ -151,7 +164,7 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: Dic
 def student_architecture(cfg_student: Mapping[str, Any], backbone: nn.Module) -> Student:
     """An untrained student for this config over this backbone's frozen features."""
     return Student(backbone.frozen_channels, backbone.frozen_strides, strides=list(cfg_student["strides"]),
-                   width=int(cfg_student["width"]))
+                   width=int(cfg_student["width"]), static_names=list(cfg_student.get("static_classes", STATIC_NAMES)))
 
 
 def build_student(
@@ -173,8 +186,7 @@ def build_student(
         torch.manual_seed(int(cfg.seed))
         student = student_architecture(cfg, backbone)
         start = time.perf_counter()
-        targets = load_targets(paths, label_dir, root, size,
-                               static_lut(tuple(cfg.get("static_classes", STATIC_NAMES))))
+        targets = load_targets(paths, label_dir, root, size)
         skips = cache_skips(backbone, student.skip_indices, paths, size, int(cfg.batch_size), int(cfg.num_workers))
         student.to(next(backbone.parameters()).device)
         metrics = fit_student(student, skips, targets, cfg)

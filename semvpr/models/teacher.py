@@ -80,10 +80,14 @@ class Teacher(L.LightningModule):
                 train_to_model[t] = m
         static = {_norm_name(n) for n in static_names}
         dynamic = {_norm_name(n) for n in dynamic_names}
-        model_names = [_norm_name(self.id2label[i]) for i in range(len(self.id2label))]
         self.register_buffer("model_to_train", torch.tensor(model_to_train), persistent=False)
         self.register_buffer("train_to_model", train_to_model, persistent=False)
-        self.register_buffer("static_weight", torch.tensor([float(n in static) for n in model_names]), persistent=False)
+        # Model class → Cityscapes trainId as a matrix, to sum class probabilities into trainIds.
+        to_train = torch.zeros(len(model_to_train), len(TRAIN_ID_NAMES))
+        for m, t in enumerate(model_to_train):
+            if t != IGNORE:
+                to_train[m, t] = 1.0
+        self.register_buffer("to_train", to_train, persistent=False)
         # Binary target per trainId: 1 static, 0 dynamic, ignore for classes in neither list.
         binary = torch.full((256,), IGNORE, dtype=torch.long)
         for t, n in enumerate(TRAIN_ID_NAMES):
@@ -115,13 +119,14 @@ class Teacher(L.LightningModule):
         return self.model_to_train[scores.argmax(1)]
 
     @torch.no_grad()
-    def static_prob(self, images: Tensor) -> Tensor:
-        """(B,1,H,W) probability that a pixel is a static class, at the input size."""
+    def class_prob(self, images: Tensor) -> Tensor:
+        """(B,19,H,W) probability of each Cityscapes class at the input size (model classes without
+        a trainId get none of it)."""
         scores = self.semantic_scores(images)
-        # The scores are not normalised over classes (mask sigmoids overlap), so take the static share.
-        share = torch.einsum("bchw,c->bhw", scores, self.static_weight) / scores.sum(1).clamp_min(1e-6)
-        prob = F.interpolate(share[:, None], size=images.shape[-2:], mode="bilinear", align_corners=False)
-        return prob.clamp(0.0, 1.0)
+        # The scores are not normalised over classes (mask sigmoids overlap): take each class's share.
+        share = scores / scores.sum(1, keepdim=True).clamp_min(1e-6)
+        prob = torch.einsum("bmhw,mc->bchw", share, self.to_train)
+        return F.interpolate(prob, size=images.shape[-2:], mode="bilinear", align_corners=False).clamp(0.0, 1.0)
 
     def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
         """Mask2Former loss (Hungarian-matched CE + mask BCE + dice) on trainId maps."""

@@ -1,0 +1,69 @@
+"""Mask sources' grid masks: binary is the seed's filter; learned class weights get gradients and move."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
+from semvpr.models.masks import ClassWeights, OracleMask, pool_to_grid
+from semvpr.models.netvlad import NetVLAD
+from semvpr.models.retriever import triplet_loss
+
+
+def _labels(tmp_path: Path, n: int = 2) -> list[Path]:
+    rng = np.random.default_rng(0)
+    paths = []
+    for i in range(n):
+        ids = rng.choice([0, 2, 8, 10, 13, 255], size=(24, 32)).astype(np.uint8)
+        paths.append(tmp_path / f"{i}.png")
+        Image.fromarray(ids).save(paths[-1])
+    return paths
+
+
+def test_binary_oracle_is_the_thresholded_static_fraction(tmp_path: Path) -> None:
+    paths = _labels(tmp_path)
+    ids = np.stack([np.asarray(Image.open(p)) for p in paths])
+    # The seed's filter, by hand: static pixels (trainIds 0..9) area-pooled to the grid, >= 0.5.
+    static = torch.from_numpy(((ids < 10)).astype(np.float32))[:, None]
+    expected = (torch.nn.functional.adaptive_avg_pool2d(static, (3, 4)) >= 0.5).float()
+    oracle = OracleMask(STATIC_NAMES)
+    images = torch.zeros(2, 3, 24, 32)
+    assert torch.equal(oracle.grid_mask(images, [], paths, (3, 4), "binary"), expected)
+    classes = oracle.grid_mask(images, [], paths, (3, 4), "learned")
+    assert classes.shape == (2, len(TRAIN_ID_NAMES), 3, 4)
+    # Class fractions per cell; ignore pixels (255) belong to no class.
+    known = torch.from_numpy((ids != 255).astype(np.float32))[:, None]
+    torch.testing.assert_close(classes.sum(1, keepdim=True), torch.nn.functional.adaptive_avg_pool2d(known, (3, 4)))
+
+
+def test_class_weights_start_binary_and_weight_each_location() -> None:
+    weights = ClassWeights(STATIC_NAMES, init_logit=4.0)
+    w = weights.weights
+    assert (w[:10] > 0.98).all() and (w[10:] < 0.02).all()
+    probs = torch.zeros(1, len(TRAIN_ID_NAMES), 1, 2)
+    probs[0, 2, 0, 0] = 1.0  # a building cell
+    probs[0, 8, 0, 1], probs[0, 13, 0, 1] = 0.5, 0.5  # half vegetation, half car
+    out = weights(probs)
+    torch.testing.assert_close(out[0, 0, 0], torch.stack([w[2], 0.5 * w[8] + 0.5 * w[13]]))
+    assert weights.named_weights()["building"] == float(w[2])
+
+
+def test_learned_class_weights_receive_gradients_and_move() -> None:
+    torch.manual_seed(0)
+    layer = NetVLAD(num_clusters=4, dim=16)
+    layer.init_from_features(torch.randn(500, 16), seed=0)
+    weights = ClassWeights(STATIC_NAMES, init_logit=2.0)
+    local = torch.randn(6, 16, 3, 4)
+    probs = torch.softmax(torch.randn(6, len(TRAIN_ID_NAMES), 3, 4), dim=1)
+    tuples = torch.tensor([[0, 1, 2, 3], [4, 5, -1, -1]])
+    start = weights.theta.detach().clone()
+    optimizer = torch.optim.Adam(weights.parameters(), lr=0.05)
+    for _ in range(5):
+        optimizer.zero_grad()
+        triplet_loss(layer(local, weights(probs)), tuples, margin=0.1).backward()
+        assert weights.theta.grad is not None and weights.theta.grad.abs().sum() > 0
+        optimizer.step()
+    assert (weights.theta - start).abs().max() > 0.1
