@@ -23,7 +23,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, build_semantic,
                           check_config, init_aggregator, mask_key)

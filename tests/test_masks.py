@@ -8,7 +8,7 @@ import torch
 from PIL import Image
 
 from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
-from semvpr.models.masks import ClassWeights, OracleMask, pool_to_grid
+from semvpr.models.masks import ClassWeights, OracleMask
 from semvpr.models.netvlad import NetVLAD
 from semvpr.models.retriever import triplet_loss
 
