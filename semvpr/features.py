@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -116,18 +117,34 @@ class PlaceFeatures:
     q: FeatureStore
 
 
+_SHAPES: weakref.WeakKeyDictionary[nn.Module, dict[tuple[int, int], tuple[tuple[int, ...], ...]]] = (
+    weakref.WeakKeyDictionary())
+
+
 @torch.no_grad()
+def _shapes(backbone: nn.Module, image_size: Sequence[int]) -> tuple[tuple[int, ...], ...]:
+    """(frozen output (C,h',w'), local features (C,h,w)) at this image size, probed once per backbone."""
+    size = (int(image_size[0]), int(image_size[1]))
+    known = _SHAPES.setdefault(backbone, {})
+    if size not in known:
+        # Eval mode: a probe in train mode would move BatchNorm statistics of a trainable ResNet stage.
+        was_training = backbone.training
+        backbone.eval()
+        probe = torch.zeros(1, 3, *size, device=next(backbone.parameters()).device)
+        frozen = backbone.forward_frozen(probe)[-1]
+        known[size] = (tuple(frozen.shape[1:]), tuple(backbone.forward_trainable(frozen).shape[1:]))
+        backbone.train(was_training)
+    return known[size]
+
+
 def grid_size(backbone: nn.Module, image_size: Sequence[int]) -> tuple[int, int]:
     """Local-feature grid (h, w) of the backbone at this image size."""
-    probe = torch.zeros(1, 3, *image_size, device=next(backbone.parameters()).device)
-    return tuple(backbone(probe)[-1].shape[-2:])  # type: ignore[return-value]
+    return _shapes(backbone, image_size)[1][-2:]  # type: ignore[return-value]
 
 
-@torch.no_grad()
 def trunk_shape(backbone: nn.Module, image_size: Sequence[int]) -> tuple[int, int, int]:
     """(C, h', w') of the frozen prefix's output at this image size."""
-    probe = torch.zeros(1, 3, *image_size, device=next(backbone.parameters()).device)
-    return tuple(backbone.forward_frozen(probe)[-1].shape[1:])  # type: ignore[return-value]
+    return _shapes(backbone, image_size)[0]  # type: ignore[return-value]
 
 
 def choose_storage(setting: str, trunk_bytes: int, cache_dir: str | Path, ram_gb: float, disk_gb: float,

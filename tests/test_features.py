@@ -109,3 +109,14 @@ def test_kmeans_sample_takes_a_few_locations_of_many_images(backbone: VGG16Backb
     # Fewer locations than asked: all of them; more images than exist: all images.
     feats, where = sample_local_features(frozen, store, max_features=10**6, per_image=100, seed=0)
     assert len(where) == n * h * w and len(where[:, 0].unique()) == n
+
+
+def test_shape_probes_leave_batchnorm_statistics_alone() -> None:
+    from semvpr.features import grid_size, trunk_shape
+    from semvpr.models.backbones import ResNet50Backbone
+
+    backbone = ResNet50Backbone(train_from="layer3")  # layer3 trainable, in train mode
+    before = {k: v.clone() for k, v in backbone.state_dict().items()}
+    assert grid_size(backbone, (64, 96)) == (4, 6) and trunk_shape(backbone, (64, 96)) == (512, 8, 12)
+    assert backbone.units[4].training
+    assert all(torch.equal(before[k], v) for k, v in backbone.state_dict().items())
