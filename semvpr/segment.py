@@ -28,6 +28,7 @@ from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
 from semvpr.errors import SemvprError
 from semvpr.segeval import score_student, score_teacher, student_prob, teacher_outputs
+from semvpr.segmetrics import binary_pred
 from semvpr.train import CONF_DIR, write_json
 
 SPLITS = ("train", "val", "test")
@@ -104,10 +105,10 @@ def figure_rows(cfg: DictConfig, seg: SegmentationSet, teacher: Any,
         size = ids.shape
         image = load_image(seg.images[i], cfg.seg.image_size)[None]
         masks = {"gt": np.where(ids == IGNORE, np.nan, lut[np.clip(ids, 0, 255)])}
-        masks["teacher"] = (teacher_outputs(teacher, image, size)[1][0, 0] >= 0.5).float().numpy()
+        masks["teacher"] = binary_pred(teacher_outputs(teacher, image, size)[1][0, 0]).float().numpy()
         for name, (student, backbone) in students.items():
             prob = student_prob(student, backbone, image, size, bool(cfg.student.bf16))
-            masks[name] = (prob[0, 0] >= 0.5).float().numpy()
+            masks[name] = binary_pred(prob[0, 0]).float().numpy()
         native = (load_image(seg.images[i]).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         rows.append((native, seg.images[i].name, masks))
     return rows
@@ -122,8 +123,6 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     start = time.time()
     check_config(cfg)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
     sets = {split: instantiate_node(cfg.seg[split]) for split in SPLITS}
     size = [int(v) for v in cfg.seg.image_size]
     classes = dataset_classes(sets["train"])
@@ -204,6 +203,8 @@ def one_line(err: SemvprError) -> str:
 @hydra.main(config_path=CONF_DIR, config_name="segment", version_base="1.3")
 def _hydra_main(cfg: DictConfig) -> None:
     try:
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))  # process-wide, so here and not in run()
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         print(json.dumps(summary(run(cfg, run_dir), run_dir)))
     except SemvprError as err:
