@@ -104,3 +104,16 @@ def test_cli_bad_root_one_line_exit_2(tmp_path: Path) -> None:
     assert proc.stderr.strip().splitlines() == [
         f"semvpr: error: CamVid root {tmp_path / 'nowhere'} is not a directory; set seg.root to the folder "
         "holding train/, trainannot/ and train.txt (SegNet layout)"]
+
+
+@pytest.mark.slow
+def test_vpr_run_uses_the_saved_teacher(segment_run: tuple[Path, DictConfig], tmp_path: Path) -> None:
+    from semvpr.train import run_job
+    from tests.helpers import tiny_config
+
+    run_dir, _ = segment_run
+    cfg = tiny_config(tmp_path / "cache", "filter=mask2former", f"teacher.checkpoint={run_dir / 'teacher'}",
+                      "+trainer.fast_dev_run=true")
+    metrics = run_job(cfg, tmp_path / "vpr")
+    assert metrics["status"] == "ok" and 0.0 <= metrics["test/R@1"] <= 100.0
+    assert not list((tmp_path / "cache").glob("teacher-*"))  # nothing trained: the saved teacher was used
