@@ -89,13 +89,18 @@ def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "te
 
 
 def build_backbone(cfg: DictConfig, pretrained: bool = True) -> nn.Module:
-    """The backbone with the run seed's random init, or its pretrained weights (``pretrained``;
-    eval skips them: the checkpoint carries every weight)."""
-    torch.manual_seed(cfg.seed)
-    node = {k: v for k, v in OmegaConf.to_container(cfg.backbone, resolve=True).items() if k != "name"}
+    """The run's backbone (see ``instantiate_backbone``)."""
+    return instantiate_backbone(cfg.backbone, int(cfg.seed), pretrained)
+
+
+def instantiate_backbone(node: DictConfig, seed: int, pretrained: bool = True) -> nn.Module:
+    """A backbone config node with the seed's random init, or its pretrained weights (``pretrained``;
+    eval skips them: the checkpoint carries every weight); channels_last."""
+    torch.manual_seed(seed)
+    args = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items() if k != "name"}
     if not pretrained:
-        node["weights"] = "none"
-    return instantiate_node(node).to(memory_format=torch.channels_last)
+        args["weights"] = "none"
+    return instantiate_node(args).to(memory_format=torch.channels_last)
 
 
 def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Semantic:

@@ -302,3 +302,30 @@ def class_weights(sweep: Sweep, out: Path) -> str | None:
     ax.set_title("Which classes matter for place recognition: learned class weights (start 0.98 | 0.02)")
     _save(fig, out)
     return None
+
+
+def mask_figure(rows: list[tuple[np.ndarray, str, dict[str, np.ndarray]]], columns: dict[str, str], out: Path,
+                title: str) -> None:
+    """Figure 3 on a segmentation set: per image a row of the image and binary static masks (bright = static)
+    over the faded image; a mask's NaN pixels (unlabelled) show the image only."""
+    fig = _new_figure(2.6 * (1 + len(columns)), 2.2 * len(rows) + 0.8)
+    axes = fig.subplots(len(rows), 1 + len(columns), squeeze=False)
+    for r, (img, name, masks) in enumerate(rows):
+        h, w = img.shape[:2]
+        axes[r, 0].imshow(img)
+        axes[r, 0].set_ylabel(name[:28], fontsize=8)
+        for c, key in enumerate(columns, start=1):
+            ax = axes[r, c]
+            if key not in masks:
+                _na(ax)
+                continue
+            ax.imshow(img.mean(axis=2), cmap="gray", extent=(0, w, h, 0))
+            ax.imshow(masks[key].astype(np.float32), cmap="magma", vmin=0.0, vmax=1.0, extent=(0, w, h, 0),
+                      alpha=0.7, interpolation="nearest")
+        for ax in axes[r]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    for c, heading in enumerate(["image", *columns.values()]):
+        axes[0, c].set_title(heading, fontsize=10)
+    fig.suptitle(title)
+    _save(fig, out)

@@ -65,7 +65,7 @@ class SegmentationDataset(Dataset):
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         image, ids = load_pair(self.data.images[index], self.data.labels[index], self.image_size,
-                               from_label_ids=self.label_ids)
+                               from_label_ids=self.label_ids, lut=self.data.label_lut)
         if self._aug is not None:
             image, mask = self._aug(image[None], ids[None, None].float())
             image = image[0].clamp_(0.0, 1.0)
@@ -85,7 +85,8 @@ def split_set(data: SegmentationSet, val_fraction: float,
 
     def pick(idx: list[int]) -> SegmentationSet:
         idx = sorted(idx)
-        return SegmentationSet(tuple(data.images[i] for i in idx), tuple(data.labels[i] for i in idx))
+        return SegmentationSet(tuple(data.images[i] for i in idx), tuple(data.labels[i] for i in idx),
+                               label_lut=data.label_lut)
 
     return pick(order[n_val:]), pick(order[:n_val])
 

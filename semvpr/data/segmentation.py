@@ -1,6 +1,7 @@
 """Cityscapes-format segmentation sets and the image / label loaders every module shares."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,16 +18,22 @@ LABEL_SUFFIX = "_gtFine_labelIds.png"
 
 @dataclass(frozen=True)
 class SegmentationSet:
-    """Paired images and Cityscapes labelIds PNGs (same order)."""
+    """Paired images and label PNGs (same order): Cityscapes labelIds, or the set's own ids via ``label_lut``."""
 
     images: tuple[Path, ...]
     labels: tuple[Path, ...]
+    #: 256 entries, label-map id → trainId (255 ignore), for sets not in Cityscapes ids (e.g. CamVid).
+    label_lut: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "images", tuple(Path(p) for p in self.images))
         object.__setattr__(self, "labels", tuple(Path(p) for p in self.labels))
         if len(self.images) != len(self.labels):
             raise SemvprError(f"segmentation set has {len(self.images)} images but {len(self.labels)} labels")
+        if self.label_lut is not None:
+            object.__setattr__(self, "label_lut", tuple(int(v) for v in self.label_lut))
+            if len(self.label_lut) != 256:
+                raise SemvprError(f"label_lut has {len(self.label_lut)} entries; it maps all 256 8-bit ids")
 
     def __len__(self) -> int:
         return len(self.images)
@@ -81,8 +88,10 @@ def load_image(path: str | Path, size: tuple[int, int] | list[int] | None = None
 
 
 def load_train_ids(path: str | Path, size: tuple[int, int] | list[int] | None = None, *,
-                   from_label_ids: bool, image: str | Path | None = None) -> torch.Tensor:
-    """(H,W) long trainIds from a labelIds PNG (from_label_ids=True) or a trainId PNG; nearest resize."""
+                   from_label_ids: bool, image: str | Path | None = None,
+                   lut: Sequence[int] | None = None) -> torch.Tensor:
+    """(H,W) long trainIds from a labelIds PNG (from_label_ids=True), a trainId PNG, or any ids via ``lut``
+    (256 entries; overrides from_label_ids); nearest resize."""
     path = Path(path)
     if image is not None:
         check_pair(image, path)
@@ -93,7 +102,9 @@ def load_train_ids(path: str | Path, size: tuple[int, int] | list[int] | None = 
     if hw is not None and img.size != (hw[1], hw[0]):
         img = img.resize((hw[1], hw[0]), Image.NEAREST)  # nearest: ids must never be blended
     ids = np.asarray(img).astype(np.int64)
-    if from_label_ids:
+    if lut is not None:
+        ids = np.where((ids >= 0) & (ids < 256), np.asarray(lut, dtype=np.int64)[np.clip(ids, 0, 255)], IGNORE)
+    elif from_label_ids:
         ids = np.where((ids >= 0) & (ids < 256), LABEL_TO_TRAIN_LUT[np.clip(ids, 0, 255)], IGNORE)
     else:
         # Anything that is not a trainId would crash a cross-entropy with ignore_index=255.
@@ -118,6 +129,6 @@ def check_pair(image: str | Path, label: str | Path) -> None:
 
 
 def load_pair(image: str | Path, label: str | Path, size: tuple[int, int] | list[int] | None = None, *,
-              from_label_ids: bool) -> tuple[torch.Tensor, torch.Tensor]:
+              from_label_ids: bool, lut: Sequence[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Image (3,H,W) and trainIds (H,W), after checking their native sizes agree."""
-    return load_image(image, size), load_train_ids(label, size, from_label_ids=from_label_ids, image=image)
+    return load_image(image, size), load_train_ids(label, size, from_label_ids=from_label_ids, image=image, lut=lut)

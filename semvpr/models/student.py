@@ -96,16 +96,17 @@ class Student(nn.Module):
 @torch.no_grad()
 def cache_skips(
     backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
-    batch_size: int, num_workers: int,
+    batch_size: int, num_workers: int, bf16: bool = True,
 ) -> list[Tensor]:  # fmt: skip
-    """The chosen frozen features of every image, in bf16 (the trunk is frozen: compute them once)."""
+    """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once);
+    ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower)."""
     from semvpr.data.datamodule import ImageDataset
 
     device = next(backbone.parameters()).device
     loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
     out: list[list[Tensor]] = [[] for _ in indices]
     # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
-    with autocast(device):
+    with autocast(device, enabled=bf16):
         for images, _ in tqdm(loader, desc="student features", unit="batch", disable=None):
             skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
             for level, i in enumerate(indices):
@@ -187,7 +188,8 @@ def build_student(
         student = student_architecture(cfg, backbone)
         start = time.perf_counter()
         targets = load_targets(paths, label_dir, root, size)
-        skips = cache_skips(backbone, student.skip_indices, paths, size, int(cfg.batch_size), int(cfg.num_workers))
+        skips = cache_skips(backbone, student.skip_indices, paths, size, int(cfg.batch_size), int(cfg.num_workers),
+                            bf16=bool(cfg.bf16))
         student.to(next(backbone.parameters()).device)
         metrics = fit_student(student, skips, targets, cfg)
         metrics["train_seconds"] = time.perf_counter() - start

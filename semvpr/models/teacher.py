@@ -224,9 +224,10 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
 
 
 def dataset_identity(seg: Any) -> str:
-    """Hash of a SegmentationSet's file names and sizes (cheap, and survives moving the data)."""
+    """Hash of a SegmentationSet's file names and sizes (cheap, and survives moving the data) and label table."""
     files = [(p.name, p.stat().st_size) for p in (*seg.images, *seg.labels)]
-    return config_hash(files)
+    lut = getattr(seg, "label_lut", None)  # the same PNGs read with another id table are other targets
+    return config_hash(files if lut is None else [files, list(lut)])
 
 
 def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:

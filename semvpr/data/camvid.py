@@ -1,0 +1,65 @@
+"""CamVid in the SegNet layout (``{split}/``, ``{split}annot/``, ``{split}.txt``), labels mapped to Cityscapes trainIds."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
+from semvpr.data.segmentation import SegmentationSet, check_pair
+from semvpr.errors import SemvprError
+
+#: SegNet's 11 CamVid classes by label index; index 11 is Unlabelled (ignored).
+CAMVID_NAMES: tuple[str, ...] = (
+    "Sky", "Building", "Pole", "Road", "Pavement", "Tree", "SignSymbol", "Fence", "Car", "Pedestrian", "Bicyclist",
+)  # fmt: skip
+
+#: CamVid class → Cityscapes class. Bus and truck are folded into Car in this version; a Bicyclist
+#: label covers rider and bicycle, and rider is the closer Cityscapes class (both are moving classes).
+CAMVID_TO_CITYSCAPES: dict[str, str] = {
+    "Sky": "sky", "Building": "building", "Pole": "pole", "Road": "road", "Pavement": "sidewalk",
+    "Tree": "vegetation", "SignSymbol": "traffic sign", "Fence": "fence", "Car": "car",
+    "Pedestrian": "person", "Bicyclist": "rider",
+}  # fmt: skip
+
+
+def camvid_lut() -> tuple[int, ...]:
+    """256-entry CamVid label index → Cityscapes trainId table (Unlabelled and unknown ids → 255)."""
+    lut = [IGNORE] * 256
+    for index, name in enumerate(CAMVID_NAMES):
+        lut[index] = TRAIN_ID_NAMES.index(CAMVID_TO_CITYSCAPES[name])
+    return tuple(lut)
+
+
+def _listed(root: Path, entry: str) -> Path:
+    """A split-list path under ``root``: SegNet's lists hold absolute paths (/SegNet/CamVid/train/x.png),
+    so only the last two components (folder and file) are kept."""
+    path = Path(entry)
+    return root / path.parent.name / path.name
+
+
+def read_camvid(root: str | Path, split: str) -> SegmentationSet:
+    """The image / label pairs listed in ``<root>/<split>.txt``, checked to exist and to agree in size."""
+    root = Path(root).expanduser()
+    if not root.is_dir():
+        raise SemvprError(f"CamVid root {root} is not a directory; set seg.root to the folder holding "
+                          f"{split}/, {split}annot/ and {split}.txt (SegNet layout)")
+    listing = root / f"{split}.txt"
+    if not listing.is_file():
+        raise SemvprError(f"CamVid split list {listing} not found; seg.root must hold {split}.txt with lines "
+                          f"'{split}/<name>.png {split}annot/<name>.png' (SegNet layout)")
+    images, labels = [], []
+    for number, line in enumerate(listing.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        entries = line.split()
+        if len(entries) != 2:
+            raise SemvprError(f"{listing}:{number}: expected '<image> <label map>', got {line.strip()!r}")
+        image, label = (_listed(root, e) for e in entries)
+        for path, what in ((image, "image"), (label, "label map")):
+            if not path.is_file():
+                raise SemvprError(f"{listing}:{number}: {what} {path} is missing")
+        check_pair(image, label)  # headers only: a wrong or truncated file fails here, named, not in a worker
+        images.append(image)
+        labels.append(label)
+    if not images:
+        raise SemvprError(f"CamVid split list {listing} lists no images")
+    return SegmentationSet(images=tuple(images), labels=tuple(labels), label_lut=camvid_lut())

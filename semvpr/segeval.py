@@ -1,0 +1,109 @@
+"""Run the teacher and a student over a segmentation set and score them against its labels.
+
+Models see the images at their input size; predictions are resized to each label map's native
+size (CamVid 360x480) before scoring, so a lower input resolution is paid for in the scores.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from semvpr.data.classes import static_lut
+from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
+from semvpr.precision import autocast
+from semvpr.segmetrics import Confusion, binary_pred, class_scores, mask_scores
+
+
+class ScoringDataset(Dataset):
+    """(image at the model's input size, trainIds at the label's native size, index)."""
+
+    def __init__(self, seg: SegmentationSet, image_size: Sequence[int]) -> None:
+        self.seg, self.image_size = seg, [int(v) for v in image_size]
+
+    def __len__(self) -> int:
+        return len(self.seg)
+
+    def __getitem__(self, index: int) -> tuple[Tensor, Tensor, int]:
+        image, label = self.seg.images[index], self.seg.labels[index]
+        ids = load_train_ids(label, from_label_ids=True, image=image, lut=self.seg.label_lut)
+        return load_image(image, self.image_size), ids, index
+
+
+def _collate(batch: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, list[Tensor], list[int]]:
+    """Stack images; keep label maps as a list (native sizes may differ between images)."""
+    images, labels, index = zip(*batch)
+    return torch.stack(images), list(labels), list(index)
+
+
+def loader(seg: SegmentationSet, image_size: Sequence[int], batch_size: int, num_workers: int) -> DataLoader:
+    """Batches of :class:`ScoringDataset` in the set's order."""
+    return DataLoader(ScoringDataset(seg, image_size), batch_size=batch_size, num_workers=num_workers,
+                      collate_fn=_collate)
+
+
+@torch.no_grad()
+def teacher_outputs(teacher: nn.Module, images: Tensor, size: Sequence[int],
+                    static_names: Sequence[str]) -> tuple[Tensor, Tensor]:
+    """trainIds (B,H,W) and static probability (B,1,H,W) at ``size`` from one forward pass.
+
+    The same post-processing as ``Teacher.predict_train_ids`` / ``class_prob`` summed over the
+    static classes (what the binary filter reads), but the scores are resized once to the label
+    size (one pass instead of two, no resize of a resized map).
+    """
+    scores = teacher.semantic_scores(images)
+    static = torch.from_numpy(static_lut(tuple(static_names))[: teacher.to_train.shape[1]]).to(scores.device)
+    share = torch.einsum("bmhw,mc,c->bhw", scores, teacher.to_train, static) / scores.sum(1).clamp_min(1e-6)
+    scores = F.interpolate(scores, size=tuple(size), mode="bilinear", align_corners=False)
+    prob = F.interpolate(share[:, None], size=tuple(size), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+    return teacher.model_to_train[scores.argmax(1)], prob
+
+
+@torch.no_grad()
+def student_prob(student: nn.Module, backbone: nn.Module, images: Tensor, size: Sequence[int],
+                 bf16: bool) -> Tensor:
+    """Student static probability (B,1,H,W) at ``size`` from the backbone's frozen features."""
+    x = images.to(next(backbone.parameters()).device).contiguous(memory_format=torch.channels_last)
+    with autocast(x.device, enabled=bf16):
+        skips = backbone.forward_frozen(x)
+    return student.static_prob(skips, out_hw=size)
+
+
+def _by_size(labels: list[Tensor]) -> dict[tuple[int, ...], list[int]]:
+    """Batch positions grouped by label size (usually one group)."""
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for i, label in enumerate(labels):
+        groups.setdefault(tuple(label.shape), []).append(i)
+    return groups
+
+
+def score_teacher(teacher: nn.Module, seg: SegmentationSet, image_size: Sequence[int], classes: Sequence[int],
+                  static_names: Sequence[str], batch_size: int = 8, num_workers: int = 2) -> dict[str, Any]:
+    """Class-map scores (mIoU over ``classes``, per-class IoU) and binary-mask scores of the teacher."""
+    class_conf, mask_conf = Confusion(), Confusion(2)
+    for images, labels, _ in tqdm(loader(seg, image_size, batch_size, num_workers), desc="teacher scores",
+                                  unit="batch", disable=None):
+        for size, pos in _by_size(labels).items():
+            ids, prob = teacher_outputs(teacher, images[pos], size, static_names)
+            target = torch.stack([labels[i] for i in pos])
+            class_conf.update(ids, target)
+            mask_conf.update(binary_pred(prob[:, 0]), target)
+    return {**class_scores(class_conf.counts, classes), **mask_scores(mask_conf.counts, static_names)}
+
+
+def score_student(student: nn.Module, backbone: nn.Module, seg: SegmentationSet, image_size: Sequence[int],
+                  static_names: Sequence[str], bf16: bool, batch_size: int = 8,
+                  num_workers: int = 2) -> dict[str, Any]:
+    """Binary-mask scores of a student (static vs not) against the labels."""
+    conf = Confusion(2)
+    for images, labels, _ in tqdm(loader(seg, image_size, batch_size, num_workers), desc="student scores",
+                                  unit="batch", disable=None):
+        for size, pos in _by_size(labels).items():
+            prob = student_prob(student, backbone, images[pos], size, bf16)
+            conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))
+    return mask_scores(conf.counts, static_names)

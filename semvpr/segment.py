@@ -1,0 +1,225 @@
+"""Segmenters on a segmentation set: ``python -m semvpr.segment seg=camvid seg.root=DIR [overrides]``.
+
+Trains the embedded Mask2Former teacher on the set's train split (cached; its settings were chosen
+on val), scores it on val and test and saves it in Hugging Face format (``<run dir>/teacher``, for
+``teacher.checkpoint=``); labels the train images with it and trains one U-Net student per entry of
+``backbones`` on those pseudo-labels, scored against the ground truth. Writes ``results.json``,
+``figure_masks.png`` and CSV / TensorBoard logs into ``outputs/segment/<date>/<time>``; the last
+stdout line is a JSON summary.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from semvpr.build import instantiate_backbone, instantiate_node
+from semvpr.data.places import common_root
+from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
+from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
+from semvpr.errors import SemvprError
+from semvpr.segeval import score_student, score_teacher, student_prob, teacher_outputs
+from semvpr.segmetrics import binary_pred
+from semvpr.train import CONF_DIR, write_json
+
+SPLITS = ("train", "val", "test")
+#: Keys of the last stdout line, per model.
+SUMMARY_KEYS = ("miou", "dynamic_iou", "nonstatic_iou", "static_removed", "train_s")
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Reject values that would fail late with a cryptic error."""
+    if OmegaConf.is_missing(cfg.seg, "root"):
+        raise SemvprError(f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid")
+    if len(cfg.seg.image_size) != 2:
+        raise SemvprError(f"seg.image_size={list(cfg.seg.image_size)} must be [H, W]")
+    if not cfg.backbones:
+        raise SemvprError("backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)")
+
+
+def dataset_classes(seg: SegmentationSet) -> list[int]:
+    """trainIds the set's labels can hold: mIoU is averaged over these (CamVid has 11 of the 19)."""
+    if seg.label_lut is None:
+        return list(range(len(TRAIN_ID_NAMES)))
+    return sorted({v for v in seg.label_lut if v != IGNORE})
+
+
+def save_teacher(teacher: Any, out: Path, image_size: list[int]) -> None:
+    """Hugging Face format (config.json, model.safetensors, preprocessor_config.json), renamed into place when complete."""
+    from transformers import Mask2FormerImageProcessor
+
+    tmp = out.with_name(f".{out.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    teacher.model.save_pretrained(tmp)
+    Mask2FormerImageProcessor(
+        image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist(),
+        size={"height": image_size[0], "width": image_size[1]}, ignore_index=IGNORE, do_reduce_labels=False,
+    ).save_pretrained(tmp)  # fmt: skip
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+
+
+def replay_log(csv_path: Path, loggers: list[Any], prefix: str) -> None:
+    """Copy a cached artifact's training curve (Lightning CSV) into this run's loggers under ``prefix``."""
+    if not csv_path.is_file():
+        return
+    with csv_path.open() as handle:
+        for row in csv.DictReader(handle):
+            values = {f"{prefix}/{k}": float(v) for k, v in row.items() if k not in ("epoch", "step") and v}
+            for logger in loggers:
+                logger.log_metrics(values, step=int(row["step"]))
+
+
+def log_scores(loggers: list[Any], name: str, split: str, scores: dict[str, Any]) -> None:
+    """Scalar scores as ``<split>/<model>/<metric>`` (per-class IoU as ``.../iou_<class>``)."""
+    values = {f"{split}/{name}/{k}": float(v) for k, v in scores.items() if isinstance(v, (int, float))}
+    values.update({f"{split}/{name}/iou_{c}": float(v) for c, v in scores.get("class_iou", {}).items()})
+    for logger in loggers:
+        logger.log_metrics(values, step=0)
+
+
+def frozen_backbone(node: DictConfig, seed: int) -> torch.nn.Module:
+    """A frozen trunk with the seed's random init (or its weights), channels_last, eval mode."""
+    return instantiate_backbone(node, seed).eval()
+
+
+@torch.no_grad()
+def figure_rows(cfg: DictConfig, seg: SegmentationSet, teacher: Any,
+                students: dict[str, tuple[Any, Any]]) -> list[tuple[np.ndarray, str, dict[str, np.ndarray]]]:
+    """Image, ground-truth static mask and each model's binary mask for test images spread over the split."""
+    lut = static_lut(tuple(cfg.teacher.static_classes))
+    idx = np.unique(np.linspace(0, len(seg) - 1, int(cfg.num_figure_images)).round().astype(int))
+    rows = []
+    for i in idx.tolist():
+        ids = load_train_ids(seg.labels[i], from_label_ids=True, lut=seg.label_lut).numpy()
+        size = ids.shape
+        image = load_image(seg.images[i], cfg.seg.image_size)[None]
+        masks = {"gt": np.where(ids == IGNORE, np.nan, lut[np.clip(ids, 0, 255)])}
+        masks["teacher"] = binary_pred(teacher_outputs(teacher, image, size, list(cfg.teacher.static_classes))[1][0, 0]
+                                       ).float().numpy()
+        for name, (student, backbone) in students.items():
+            prob = student_prob(student, backbone, image, size, bool(cfg.student.bf16))
+            masks[name] = binary_pred(prob[0, 0]).float().numpy()
+        native = (load_image(seg.images[i]).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+        rows.append((native, seg.images[i].name, masks))
+    return rows
+
+
+def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Teacher, pseudo-labels, students, scores, figure; returns what results.json holds."""
+    from semvpr.models.student import build_student
+    from semvpr.models.teacher import build_teacher
+    from semvpr.plots import mask_figure
+    from semvpr.pseudolabels import pseudo_labels
+
+    start = time.time()
+    check_config(cfg)
+    sets = {split: instantiate_node(cfg.seg[split]) for split in SPLITS}
+    size = [int(v) for v in cfg.seg.image_size]
+    classes = dataset_classes(sets["train"])
+    static_names = list(cfg.teacher.static_classes)
+    workers, batch = int(cfg.seg.num_workers), int(cfg.eval_batch_size)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    loggers = [instantiate_node(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
+
+    tic = time.time()
+    teacher = build_teacher(cfg.teacher, sets["train"], sets["val"], cfg.paths.cache_dir)
+    build_s = time.time() - tic
+    artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
+    trained = json.loads((artifact / "metrics.json").read_text())
+    replay_log(artifact / "logs" / "metrics.csv", loggers, "teacher")
+    save_teacher(teacher, run_dir / "teacher", size)
+    results: dict[str, Any] = {"teacher": {"train_s": trained["train_seconds"], "build_s": build_s,
+                                           "checkpoint": str(run_dir / "teacher")}}
+    for split in ("val", "test"):
+        scores = score_teacher(teacher, sets[split], size, classes, static_names, batch, workers)
+        log_scores(loggers, "teacher", split, scores)
+        results["teacher"][split] = scores
+    results["teacher"].update(results["teacher"].pop("test"))  # test scores at the top level, val under "val"
+
+    tic = time.time()
+    root = common_root(list(sets["train"].images))
+    labels = pseudo_labels(teacher, teacher.teacher_key, list(sets["train"].images), size, cfg.paths.cache_dir, root,
+                           batch_size=int(cfg.teacher.predict_batch_size), num_workers=workers)
+    results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
+
+    students = {}
+    for name, node in cfg.backbones.items():
+        backbone = frozen_backbone(node, int(cfg.seed))
+        tic = time.time()
+        student = build_student(cfg.student, backbone, list(sets["train"].images), labels, root, size,
+                                cfg.paths.cache_dir)
+        entry: dict[str, Any] = {"backbone": name, "weights": str(node.get("weights", "none")),
+                                 "build_s": time.time() - tic}
+        fitted = json.loads((student.artifact / "metrics.json").read_text())
+        entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
+        for split in ("val", "test"):
+            scores = score_student(student, backbone, sets[split], size, static_names, bool(cfg.student.bf16),
+                                   batch, workers)
+            log_scores(loggers, f"student_{name}", split, scores)
+            entry[split] = scores
+        entry.update(entry.pop("test"))
+        results[f"student_{name}"] = entry
+        students[f"student_{name}"] = (student, backbone)
+
+    columns = {"gt": "ground truth\n(bright = static)", "teacher": "teacher mask",
+               **{k: f"student mask\n({k.removeprefix('student_')})" for k in students}}
+    mask_figure(figure_rows(cfg, sets["test"], teacher, students), columns, run_dir / "figure_masks.png",
+                f"{cfg.seg.name} test: static masks (bright = kept, dark = removed; unlabelled = image only)")
+    for logger in loggers:
+        logger.finalize("success")
+    results.update({
+        "dataset": {"name": cfg.seg.name, "root": str(cfg.seg.root), "image_size": size,
+                    "classes": [TRAIN_ID_NAMES[c] for c in classes], **{s: len(sets[s]) for s in SPLITS}},
+        "scored_on": "test (val under each model's 'val')", "threads": torch.get_num_threads(),
+        "config": OmegaConf.to_container(cfg, resolve=True), "wall_time_s": time.time() - start,
+    })  # fmt: skip
+    write_json(run_dir / "results.json", results)
+    return results
+
+
+def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
+    """The last stdout line: run dir and the headline test numbers per model."""
+    line: dict[str, Any] = {"run_dir": str(run_dir)}
+    for model, entry in results.items():
+        if model == "teacher" or model.startswith("student_"):
+            line.update({f"{model}/{k}": round(float(entry[k]), 3) for k in SUMMARY_KEYS if k in entry})
+    return line
+
+
+def one_line(err: SemvprError) -> str:
+    """The user-facing line of an error; one raised in a DataLoader worker arrives wrapped in its traceback."""
+    lines = [line for line in str(err).splitlines() if line.strip()]
+    return lines[-1].removeprefix(f"{SemvprError.__module__}.{SemvprError.__name__}: ") if lines else repr(err)
+
+
+@hydra.main(config_path=CONF_DIR, config_name="segment", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    try:
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))  # process-wide, so here and not in run()
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+        print(json.dumps(summary(run(cfg, run_dir), run_dir)))
+    except SemvprError as err:
+        # SystemExit passes through Hydra's own error reporting, which would print a traceback.
+        print(f"semvpr: error: {one_line(err)}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def main() -> None:
+    """Console entry point; user errors become one line on stderr and exit code 2."""
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()
