@@ -5,6 +5,7 @@ numbers they check come from PRESETS["tiny"], so they hold whatever sizes the pr
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -17,17 +18,21 @@ import pytest
 from PIL import Image
 
 import semvpr.data.synthcity as synthcity
+import semvpr.data.synthcity_render as render
 from semvpr.artifacts import LOCK_DIR, artifact_dir
 from semvpr.data.classes import TRAIN_ID_NAMES, TRAIN_TO_LABEL, label_ids_to_train_ids
 from semvpr.data.places import parse_utm_name
 from semvpr.data.segmentation import read_cityscapes
 from semvpr.data.synthcity import (DATES, DB_STEP_M, PRESETS, ensure_synthcity, generate, get_preset, main,
                                    read_segmentation, read_split)
+from semvpr.data.synthcity_ground import FACADE_D, build_ground, ground_distance, make_ground_pool
 from semvpr.errors import SemvprError
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = PRESETS["tiny"]
 DYNAMIC_MIN = TRAIN_ID_NAMES.index("sky")  # trainIds >= 10 are dynamic / uninformative
+ROAD, BUILDING, POLE, SIGN, VEG, TERRAIN = (TRAIN_ID_NAMES.index(n) for n in
+                                            ("road", "building", "pole", "traffic sign", "vegetation", "terrain"))
 
 
 def tree(root: Path, skip: tuple[str, ...] = ("key.json",)) -> dict[str, str]:
@@ -164,8 +169,9 @@ def test_labels_are_valid_train_ids(dataset: Path) -> None:
         arr = ids(label)
         assert arr.max() < len(TRAIN_ID_NAMES), label
         seen |= set(np.unique(arr).tolist())
-    # Both a static street and road users are drawn.
-    assert {TRAIN_ID_NAMES.index(n) for n in ("road", "building", "sky", "car")} <= seen
+    # Both a static street (with the v3 classes of different value) and road users are drawn.
+    names = ("road", "sidewalk", "building", "pole", "traffic sign", "vegetation", "sky", "car")
+    assert {TRAIN_ID_NAMES.index(n) for n in names} <= seen
     for label in (dataset / "seg" / "gtFine").rglob("*_gtFine_labelIds.png"):
         arr = ids(label)
         assert set(np.unique(arr).tolist()) <= set(TRAIN_TO_LABEL), label
@@ -200,6 +206,107 @@ def test_dynamic_fraction_in_bounds_and_stats_agree(dataset: Path) -> None:
         assert stats["dynamic_fraction"][f"seg-{split}"] == pytest.approx(dyn, abs=1e-3)
         assert stats["sky_fraction"][f"seg-{split}"] == pytest.approx(sky, abs=1e-3)
     assert set(stats["images"]) == set(TINY.vpr) | {f"seg-{s}" for s in TINY.seg}
+    every = [ids(label_of(dataset, p)) for split in TINY.vpr for sub in ("database", "queries")
+             for p in vpr_images(dataset, split, sub)]
+    counts = np.bincount(np.concatenate([a.ravel() for a in every]), minlength=len(TRAIN_ID_NAMES))
+    assert list(stats["class_fraction"]) == sorted(TRAIN_ID_NAMES)
+    for i, name in enumerate(TRAIN_ID_NAMES):
+        assert stats["class_fraction"][name] == pytest.approx(counts[i] / counts.sum(), abs=1e-4), name
+    # Enough vegetation and road for their weights to matter.
+    assert stats["class_fraction"]["vegetation"] > 0.03 and stats["class_fraction"]["road"] > 0.04
+
+
+# --- static classes of different value (generator v3) ----------------------------------------
+
+
+def chromaticity(root: Path, sub: str, cls: int) -> np.ndarray:
+    """Mean (r, g, b) / (r + g + b) of one class's pixels over every VPR image of one traversal."""
+    per_image = []
+    for image in (p for split in TINY.vpr for p in vpr_images(root, split, sub)):
+        rgb, mask = np.asarray(Image.open(image), np.float32), ids(label_of(root, image)) == cls
+        if mask.sum() >= 20:
+            per_image.append((rgb[mask] / (rgb[mask].sum(-1, keepdims=True) + 1e-6)).mean(0))
+    assert len(per_image) >= 10, (sub, cls)
+    return np.mean(per_image, 0)
+
+
+def test_vegetation_changes_between_traversals_buildings_do_not(dataset: Path) -> None:
+    """June database vs November queries: foliage turns from green to autumn colours; facades keep theirs."""
+    june, november = chromaticity(dataset, "database", VEG), chromaticity(dataset, "queries", VEG)
+    assert june[1] > 0.45 and november[1] < june[1] - 0.15 and november[0] > june[0] + 0.15
+    facade = chromaticity(dataset, "database", BUILDING) - chromaticity(dataset, "queries", BUILDING)
+    assert np.abs(facade).max() < 0.02  # only the (moderate) lighting change
+
+
+def still_spec() -> render.RenderSpec:
+    """The tiny preset's camera without jitter, pitch or lighting change: renders differ only by the world."""
+    return dataclasses.replace(TINY.render, jitter_m=0.0, scale_jitter=0.0, pitch_m=0.0, lighting=0.0)
+
+
+@pytest.fixture(scope="module")
+def street() -> render.Panorama:
+    """One 200 m route of the tiny preset's street."""
+    return render.build_panorama(np.random.default_rng(5), 200.0, TINY.render, make_ground_pool(np.random.default_rng(6)))
+
+
+def test_same_pose_both_traversals_differ_only_in_vegetation(street: render.Panorama,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """Facades, poles and signs are world-fixed and identical in both traversals; only foliage colours change."""
+    monkeypatch.setattr(render, "add_dynamic_objects", lambda *args, **kwargs: None)
+    pool, spec = render.make_texture_pool(np.random.default_rng(0), 3), still_spec()
+    furniture, foliage, changed = 0, 0, 0
+    for i, x in enumerate(np.arange(10.0, 190.0, 6.0)):
+        (img0, lab0), (img1, lab1) = (render.render_capture(street, float(x), np.random.default_rng(i), spec, pool,
+                                                            query=q) for q in (False, True))
+        assert (lab0 == lab1).all(), x  # a crown keeps its outline (and label) when its leaves fall
+        seasonal = np.isin(lab0, (VEG, TERRAIN))
+        assert (img0[~seasonal] == img1[~seasonal]).all(), x
+        furniture += int(np.isin(lab0, (POLE, SIGN)).sum())
+        diff = np.abs(img0[seasonal].astype(int) - img1[seasonal].astype(int)).max(-1)
+        foliage, changed = foliage + int(seasonal.sum()), changed + int((diff > 40).sum())
+    assert furniture > 50  # the comparison covered poles and signs
+    assert changed > 0.8 * foliage > 0
+
+
+def best_shift(a: np.ndarray, b: np.ndarray, rows: slice, valid: np.ndarray, max_shift: int) -> int:
+    """Shift s (pixels) minimising the mean |a[:, j + s] - b[:, j]| over rows where ``valid`` holds in both."""
+    errors = []
+    for s in range(max_shift + 1):
+        ok = valid[rows, s:] & valid[rows, :valid.shape[1] - s]
+        diff = np.abs(a[rows, s:].astype(np.float32) - b[rows, :b.shape[1] - s].astype(np.float32)).mean(-1)
+        errors.append(diff[ok].mean() if ok.sum() > 20 else np.inf)
+    return int(np.argmin(errors))
+
+
+def test_ground_is_seen_in_perspective(street: render.Panorama, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Moving the camera by dx shifts facades by dx·ppm pixels and the near road FACADE_D / d times more."""
+    monkeypatch.setattr(render, "add_dynamic_objects", lambda *args, **kwargs: None)
+    pool, spec, dx = render.make_texture_pool(np.random.default_rng(0), 3), still_spec(), 1.5
+    ppm = spec.width / spec.view_m
+    h = spec.height
+    near = ground_distance(render.VIEW_BOTTOM + 0.5 / ppm)  # what the bottom row sees
+    for i, x in enumerate((40.0, 90.0, 140.0)):
+        (a, la), (b, lb) = (render.render_capture(street, x + off, np.random.default_rng(i), spec, pool, query=False)
+                            for off in (0.0, dx))
+        static = (la < DYNAMIC_MIN) & (lb < DYNAMIC_MIN)
+        assert (la[h - 3:] == ROAD).mean() > 0.9
+        assert abs(best_shift(a, b, slice(h // 3, h // 2), static, 40) - dx * ppm) <= 1, x
+        assert abs(best_shift(a, b, slice(h - 2, h), static, 40) - dx * ppm * FACADE_D / near) <= 3, x
+
+
+def test_ground_patterns_repeat_across_routes_facades_do_not() -> None:
+    """Perceptual aliasing: two routes share many identical stretches of road, and no facade column."""
+    pool = make_ground_pool(np.random.default_rng(1))
+    a, b = (build_ground(np.random.default_rng(r), -20.0, 300.0, pool) for r in (2, 3))
+    road = int((a.label == ROAD).sum())
+
+    def columns(rgb: np.ndarray) -> set[bytes]:
+        return {rgb[:, c].tobytes() for c in range(rgb.shape[1])}
+
+    shared = columns(a.rgb[:road]) & columns(b.rgb[:road])
+    assert len(shared) > 0.1 * len(columns(a.rgb[:road]))
+    facades = [render.build_panorama(np.random.default_rng(r), 300.0, TINY.render, pool).rgb[0] for r in (2, 3)]
+    assert not columns(facades[0]) & columns(facades[1])
 
 
 # --- place sets --------------------------------------------------------------------------------

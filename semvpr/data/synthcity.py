@@ -1,8 +1,9 @@
 """SynthCity: procedural street routes with pixel labels in the @UTM@ and Cityscapes layouts.
 
-Each route is a long strip of facades (``synthcity_render``). The database traversal captures it
-every 5 m; the query traversal at random positions, at another time of day, with other vehicles
-and people. Everything is a pure function of (preset, seed, GENERATOR_VERSION).
+Each route is a long strip of facades (``synthcity_render``) over a road seen in perspective
+(``synthcity_ground``). The database traversal captures it every 5 m in June; the query traversal
+at random positions in November (autumn foliage), at another time of day, with other vehicles and
+people. Everything is a pure function of (preset, seed, GENERATOR_VERSION).
 """
 from __future__ import annotations
 
@@ -20,11 +21,16 @@ from PIL import Image
 from tqdm import tqdm
 
 from semvpr.artifacts import build_once
-from semvpr.data.classes import train_ids_to_label_ids
+from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
+from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
 
-GENERATOR_VERSION = 2  # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries)
+# 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
+# 3: static classes of different value: seasonal vegetation (June database, November queries), ground in
+#    perspective paved from a city-wide pool, signs designed per place; per-class pixel fractions in stats;
+#    coverage 0.78, lighting 0.1 (calibrated on val).
+GENERATOR_VERSION = 3
 DB_STEP_M = 5.0
 ZONE, LETTER = "17", "T"
 EAST0, NORTH0, ROUTE_SPACING_M = 580_000.0, 4_470_000.0, 1_000.0  # one northing line per route
@@ -55,7 +61,7 @@ PRESETS: dict[str, Preset] = {
     "tiny": Preset(RenderSpec(64, 80), {"train": SplitSpec(1, 24, 16), "val": SplitSpec(1, 12, 12),
                                         "test": SplitSpec(1, 24, 24)},
                    {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)}, (0.45, 0.7)),
-    "default": Preset(RenderSpec(120, 160), {"train": SplitSpec(3, 200, 134), "val": SplitSpec(1, 200, 200),
+    "default": Preset(RenderSpec(120, 160), {"train": SplitSpec(3, 200, 134), "val": SplitSpec(3, 150, 200),
                                              "test": SplitSpec(3, 200, 350)},
                       {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)}, (0.5, 0.65)),
 }  # fmt: skip
@@ -102,13 +108,15 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
     p = get_preset(preset, coverage, lighting)
     spec = p.render
     pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
+    ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
     routes = _routes(p)
     total = sum(s.db_per_route + s.q_per_route if k == "vpr" else s.q_per_route for k, _, _, s in routes)
     fractions: dict[str, list[tuple[float, float]]] = {}
+    class_pixels = np.zeros(len(TRAIN_ID_NAMES), np.int64)  # over every VPR capture
     with tqdm(total=total, desc=f"SynthCity {preset} seed {seed}", unit="img", disable=None) as bar:
         for kind, split, rid, s in routes:
             length = s.db_per_route * DB_STEP_M
-            pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec)
+            pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec, ground_pool)
             q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
             if kind == "vpr":
                 captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
@@ -122,6 +130,7 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
                 fractions.setdefault(key, []).append(
                     (float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
                 if kind == "vpr":
+                    class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[:len(TRAIN_ID_NAMES)]
                     sub = "queries" if trav else "database"
                     name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav],
                                     f"r{rid}{sub[0]}{i:04d}")
@@ -138,7 +147,8 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
              "coverage_target": spec.coverage, "lighting": spec.lighting, "liveries": spec.liveries,
              "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
              "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
-             "images": {k: len(v) for k, v in fractions.items()}}
+             "images": {k: len(v) for k, v in fractions.items()},
+             "class_fraction": {n: round(float(c / class_pixels.sum()), 4) for n, c in zip(TRAIN_ID_NAMES, class_pixels)}}
     (root / "stats.json").write_text(json.dumps(stats, indent=1, sort_keys=True))
     return stats
 
