@@ -6,6 +6,7 @@ pseudo-labels, student and feature caches come from the artifact cache (built on
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
 
 MASK_SOURCES = ("none", "teacher", "student", "oracle")
+MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at the least, per cluster
 
 
 @dataclass
@@ -209,6 +211,22 @@ def init_aggregator(cfg: DictConfig, aggregator: nn.Module, backbone: nn.Module,
     static = static_grid(semantic.labels_dir, semantic.labels_root, [train.db_paths[i] for i in used], grid,
                          list(cfg.teacher.static_classes))
     row = torch.from_numpy(np.searchsorted(used, where[:, 0].numpy()))
-    is_static = static[row, where[:, 1]] >= 0.5
+    is_static = static_locations(static[row, where[:, 1]], MIN_STATIC_PER_CLUSTER * aggregator.num_clusters)
     counts = aggregator.init_semantic(feats[is_static], feats[~is_static], seed=cfg.seed)
     return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}
+
+
+
+def static_locations(fraction: Tensor, at_least: int) -> Tensor:
+    """Which sampled locations the semantic init treats as static: those whose static fraction is >= 0.5,
+    or, where the labels call fewer than ``at_least`` static (a weak teacher), the ``at_least`` most static
+    ones (said on stderr), so the init degrades towards k-means instead of failing."""
+    is_static = fraction >= 0.5
+    at_least = min(at_least, len(fraction))
+    if int(is_static.sum()) >= at_least:
+        return is_static
+    print(f"semvpr: the teacher's labels call only {int(is_static.sum())} of {len(fraction)} k-means sample "
+          f"locations static; the semantic init uses the {at_least} most static ones", file=sys.stderr)
+    is_static = torch.zeros_like(is_static)
+    is_static[torch.argsort(fraction, descending=True, stable=True)[:at_least]] = True
+    return is_static

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr.build import sample_local_features
+from semvpr.build import sample_local_features, static_locations
 from semvpr.errors import SemvprError
 from semvpr.features import GiB, FeatureStore, choose_storage, place_features
 from semvpr.models.backbones import VGG16Backbone
@@ -109,6 +109,19 @@ def test_kmeans_sample_takes_a_few_locations_of_many_images(backbone: VGG16Backb
     # Fewer locations than asked: all of them; more images than exist: all images.
     feats, where = sample_local_features(frozen, store, max_features=10**6, per_image=100, seed=0)
     assert len(where) == n * h * w and len(where[:, 0].unique()) == n
+
+
+def test_semantic_init_takes_static_locations_or_the_most_static_of_a_weak_teacher(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    fraction = torch.tensor([0.9, 0.1, 0.5, 0.49, 0.0, 1.0, 0.3, 0.2])
+    # Enough static locations: exactly those >= 0.5, nothing said.
+    assert static_locations(fraction, 3).tolist() == [True, False, True, False, False, True, False, False]
+    assert capsys.readouterr().err == ""
+    # A teacher calling too few static (here 3 of 8, 5 needed): the 5 most static, and a line saying so.
+    assert static_locations(fraction, 5).tolist() == [True, False, True, True, False, True, True, False]
+    assert "only 3 of 8" in capsys.readouterr().err
+    # None static at all (a teacher that labels everything dynamic) and more needed than sampled: all of them.
+    assert static_locations(torch.zeros(4), 10).tolist() == [True] * 4
 
 
 def test_shape_probes_leave_batchnorm_statistics_alone() -> None:
