@@ -101,7 +101,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                                      callbacks=[checkpoint, latest],
                                      precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
     tic = time.time()
-    trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path)
+    # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
+    trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
     tic = time.time()
     if checkpoint.best_model_path:
