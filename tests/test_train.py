@@ -84,7 +84,7 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
 @pytest.mark.slow
 def test_training_beats_kmeans_only_model(tmp_path: Path) -> None:
     # The tiny preset's 24 test queries are too few to resolve the gain; this uses the default
-    # preset (about 100 s on 2 cores; measured 33.6 -> 39.8 R@1 for seed 0 on SynthCity v2).
+    # preset (a few minutes on 2 cores; measured 21.9 -> 29.9 R@1 for seed 0 on SynthCity v3).
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(config_name="train", overrides=[f"paths.cache_dir={tmp_path / 'cache'}", "filter=none"])
     metrics = run_job(cfg, tmp_path / "run")
