@@ -216,7 +216,6 @@ def init_aggregator(cfg: DictConfig, aggregator: nn.Module, backbone: nn.Module,
     return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}
 
 
-
 def static_locations(fraction: Tensor, at_least: int) -> Tensor:
     """Which sampled locations the semantic init treats as static: those whose static fraction is >= 0.5,
     or, where the labels call fewer than ``at_least`` static (a weak teacher), the ``at_least`` most static

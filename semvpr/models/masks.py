@@ -28,6 +28,16 @@ NUM_CLASSES = len(TRAIN_ID_NAMES)
 WEIGHTINGS = ("binary", "learned")
 
 
+def static_vector(static_names: Sequence[str]) -> Tensor:
+    """(C,) 1 for static classes, 0 for the others."""
+    return torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES])
+
+
+def weighted_classes(class_prob: Tensor, weights: Tensor) -> Tensor:
+    """Σ_c p_c·w_c of (B,C,H,W) class probabilities, as (B,1,H,W)."""
+    return torch.einsum("bchw,c->bhw", class_prob.float(), weights)[:, None]
+
+
 def pool_to_grid(static_prob: Tensor, grid_hw: tuple[int, int], threshold: float = 0.5) -> Tensor:
     """Area-pool a static probability map to the feature grid and binarise it."""
     pooled = F.adaptive_avg_pool2d(static_prob.float(), grid_hw)
@@ -43,15 +53,14 @@ class MaskSource(nn.Module):
     def __init__(self, static_names: Sequence[str] = STATIC_NAMES) -> None:
         super().__init__()
         # Derived from the config, so not part of the state dict.
-        self.register_buffer("static_weight", torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES]),
-                             persistent=False)
+        self.register_buffer("static_weight", static_vector(static_names), persistent=False)
 
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         raise NotImplementedError
 
     def static_prob(self, class_prob: Tensor) -> Tensor:
         """Probability of a static class, (B,1,H,W)."""
-        return torch.einsum("bchw,c->bhw", class_prob.float(), self.static_weight)[:, None]
+        return weighted_classes(class_prob, self.static_weight)
 
     def grid_mask(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None,
                   grid_hw: tuple[int, int], weighting: str = "binary") -> Tensor:
@@ -111,7 +120,7 @@ class ClassWeights(nn.Module):
 
     def __init__(self, static_names: Sequence[str] = STATIC_NAMES, init_logit: float = 4.0) -> None:
         super().__init__()
-        static = torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES]) > 0
+        static = static_vector(static_names) > 0
         self.theta = nn.Parameter(torch.where(static, init_logit, -init_logit))
 
     @property
@@ -121,7 +130,7 @@ class ClassWeights(nn.Module):
 
     def forward(self, class_prob: Tensor) -> Tensor:
         """(B,C,h,w) pooled class probabilities → (B,1,h,w) contribution weights."""
-        return torch.einsum("bchw,c->bhw", class_prob.float(), self.weights)[:, None]
+        return weighted_classes(class_prob, self.weights)
 
     def named_weights(self) -> dict[str, float]:
         """{class name: w_c} for reports."""
