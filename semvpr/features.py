@@ -82,7 +82,8 @@ class FeatureStore:
         images = torch.stack([load_image(self.paths[int(i)], self.image_size) for i in index])
         device = next(backbone.parameters()).device
         with autocast(device):
-            out = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))[-1]
+            out = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last),
+                                          keep_scales=False)[-1]
         return out.to(TRUNK_DTYPE)
 
 
@@ -131,7 +132,7 @@ def _shapes(backbone: nn.Module, image_size: Sequence[int]) -> tuple[tuple[int, 
         was_training = backbone.training
         backbone.eval()
         probe = torch.zeros(1, 3, *size, device=next(backbone.parameters()).device)
-        frozen = backbone.forward_frozen(probe)[-1]
+        frozen = backbone.forward_frozen(probe, keep_scales=False)[-1]
         known[size] = (tuple(frozen.shape[1:]), tuple(backbone.forward_trainable(frozen).shape[1:]))
         backbone.train(was_training)
     return known[size]
@@ -170,19 +171,24 @@ def _extract(backbone: nn.Module, mask_source: MaskSource | None, weighting: str
     """One pass over the images, writing trunk outputs (bf16 bits) and grid masks into the arrays."""
     grid = grid_size(backbone, image_size)
     device = next(backbone.parameters()).device
-    run_backbone = trunk_out is not None or (mask_source is not None and mask_source.needs_features)
+    keep = mask_source is not None and mask_source.needs_features
+    run_backbone = trunk_out is not None or keep
+    # Chunks of images whose frozen-prefix activations (and kept skips) fit the backbone's budget.
+    step = backbone.images_per_forward(image_size, keep_scales=keep)
     loader = DataLoader(ImageDataset(list(paths), image_size), batch_size=batch_size, num_workers=num_workers)
     backbone.eval()
-    for images, index in tqdm(loader, desc=desc, unit="batch", leave=False, disable=None):
-        images = images.to(device).contiguous(memory_format=torch.channels_last)
-        rows = slice(int(index[0]), int(index[-1]) + 1)
-        with autocast(device):
-            outs = backbone.forward_frozen(images) if run_backbone else []
-            if mask_out is not None:
-                batch_labels = [labels[i] for i in index] if labels is not None else None
-                mask_out[rows] = mask_source.grid_mask(images, outs, batch_labels, grid, weighting).cpu().numpy()
-        if trunk_out is not None:
-            trunk_out[rows] = outs[-1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
+    for batch, index in tqdm(loader, desc=desc, unit="batch", leave=False, disable=None):
+        for start in range(0, len(index), step):
+            images = batch[start:start + step].to(device).contiguous(memory_format=torch.channels_last)
+            first = int(index[start])
+            rows = slice(first, first + len(images))
+            with autocast(device):
+                outs = backbone.forward_frozen(images, keep_scales=keep) if run_backbone else []
+                if mask_out is not None:
+                    chunk_labels = [labels[int(i)] for i in index[start:start + step]] if labels is not None else None
+                    mask_out[rows] = mask_source.grid_mask(images, outs, chunk_labels, grid, weighting).cpu().numpy()
+            if trunk_out is not None:
+                trunk_out[rows] = outs[-1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
 
 
 def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndarray:

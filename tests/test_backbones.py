@@ -163,3 +163,38 @@ def test_resnet50_cut_matches_the_benchmark() -> None:
         torch.testing.assert_close(ours(x)[-1], reference(_imagenet_normalise(x)), rtol=1e-5, atol=1e-5)
     trainable = {n.split(".")[1] for n, p in ours.named_parameters() if p.requires_grad}
     assert trainable == {"4"}  # layer3 only, as the benchmark's resnet50conv4
+
+
+def _first_unit_batches(model) -> list[int]:
+    """Records the batch size of every pass through the trunk's first unit."""
+    seen: list[int] = []
+    model.units[0].register_forward_hook(lambda _m, args, _out: seen.append(args[0].shape[0]))
+    return seen
+
+
+def test_large_batches_run_in_chunks_with_the_same_outputs(monkeypatch: pytest.MonkeyPatch) -> None:
+    import semvpr.models.backbones as backbones
+
+    model = VGG16Backbone(weights="none", train_from="conv5").eval().to(memory_format=torch.channels_last)
+    x = torch.rand(5, 3, 48, 64).contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        whole = model.forward_frozen(x)
+    # Per 48x64 image, derived from VGG16's layout (not from the module): the widest frozen activation
+    # is conv1 (64 channels at stride 1), counted 4x; the kept outputs are conv1..conv4 and pool4.
+    kept = 64 + 128 / 2**2 + 256 / 4**2 + 512 / 8**2 + 512 / 16**2
+    per_image = 4 * (4 * 64 + kept) * 48 * 64
+    monkeypatch.setattr(backbones, "FORWARD_BYTES", int(2.5 * per_image))
+    assert model.images_per_forward((48, 64)) == 2
+    assert model.images_per_forward((48, 64), keep_scales=False) == int(2.5 * per_image // (4 * 4 * 64 * 48 * 64))
+    seen = _first_unit_batches(model)
+    with torch.no_grad():
+        chunked = model.forward_frozen(x)
+        assert seen == [2, 2, 1]
+        for a, b in zip(chunked, whole, strict=True):
+            # oneDNN may pick another kernel for another batch size: equal up to float rounding.
+            torch.testing.assert_close(a, b)
+        last = model.forward_frozen(x, keep_scales=False)
+    assert len(last) == 1
+    torch.testing.assert_close(last[0], whole[-1])
+    monkeypatch.setattr(backbones, "FORWARD_BYTES", 1)
+    assert model.images_per_forward((48, 64)) == 1  # never zero images per pass

@@ -110,3 +110,35 @@ def test_checkpoint_localises_against_another_dataset(checkpoint: Path, tmp_path
     results = localize(cfg)
     assert [Path(r["matches"][0]["path"]).name for r in results] == ["000001_pitch1_yaw1.jpg", "000004_pitch1_yaw1.jpg"]
     assert results[0]["matches"][0]["utm"] == list(_utm(1)) and len(results[0]["matches"]) == 3
+
+
+@pytest.mark.parametrize("filter_name", ["attention", "unet"])
+def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                  filter_name: str) -> None:
+    """The eval pipeline (trunk, mask, NetVLAD) takes its batch a few images at a time, so its
+    activation memory does not grow with the batch; descriptors are those of one whole-batch pass."""
+    import semvpr.models.backbones as backbones
+    from semvpr.build import build_places
+    from semvpr.eval import load_retriever, place_descriptors
+    from semvpr.features import grid_size
+
+    write_checkpoint(tiny_config(tmp_path, f"filter={filter_name}"), tmp_path / "model.ckpt")
+    root = make_folder(tmp_path / "folder", n=5)
+
+    def descriptors(cache: str) -> tuple[np.ndarray, list[int]]:
+        cfg = config("data=folder", f"data.root={root}", f"+ckpt={tmp_path / 'model.ckpt'}",
+                     f"paths.cache_dir={tmp_path / cache}", "model.eval_batch_size=5", *SIZE, config_name="eval")
+        retriever, merged = load_retriever(cfg)
+        grid_size(retriever.backbone, merged.data.image_size)  # the once-per-size shape probe, before counting
+        seen: list[int] = []
+        retriever.backbone.units[0].register_forward_hook(lambda _m, args, _out: seen.append(args[0].shape[0]))
+        return np.array(place_descriptors(retriever, build_places(merged, ("test",))["test"], "db", merged)), seen
+
+    whole, seen = descriptors("whole")
+    assert seen == [5]
+    monkeypatch.setattr(backbones, "FORWARD_BYTES", 1)  # one image per pass
+    chunked, seen = descriptors("chunked")
+    assert seen == [1, 1, 1, 1, 1]
+    # Up to float rounding (another batch size may take another oneDNN kernel; NetVLAD's soft
+    # assignment amplifies it): entries are ~1e-2, a misplaced image would differ by that much.
+    np.testing.assert_allclose(chunked, whole, rtol=0, atol=1e-4)

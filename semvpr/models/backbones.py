@@ -10,7 +10,7 @@ the trainable part starts at the pool4 output. ``train_from=None`` freezes the w
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 import torchvision
@@ -21,6 +21,10 @@ from semvpr.errors import SemvprError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+# Activation memory one frozen-prefix pass may use: larger batches run in chunks of images (a conv
+# trunk's throughput does not depend on the batch on a CPU: VGG16 at 480x640, 2 cores, fp32, 0.63
+# images/s at batch 2, 0.61 at 24). Without it, an eval batch of 24 at 480x640 peaked at 11 GB.
+FORWARD_BYTES = 2 * 2**30
 
 # (unit name, output channels, output stride, is scale output) — widths come from here, never from probing.
 VGG16_UNITS: tuple[tuple[str, int, int, bool], ...] = (
@@ -105,6 +109,10 @@ class Backbone(nn.Module):
             frozen.append((prev[1], prev[2]))
         self.frozen_channels = tuple(c for c, _ in frozen)
         self.frozen_strides = tuple(s for _, s in frozen)
+        # fp32 values per input pixel: the widest frozen activation (x4: its input, output and
+        # oneDNN's workspace, measured peak ~3x), and the outputs kept for the caller.
+        widest = max((c / s**2 for _, c, s, _ in table[: self.split]), default=3.0)
+        self._values_per_pixel = 4 * widest, sum(c / s**2 for c, s in frozen)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         for unit in self.units[: self.split]:
@@ -131,13 +139,28 @@ class Backbone(nn.Module):
                 outs.append(h)
         return outs
 
-    def forward_frozen(self, x: Tensor) -> list[Tensor]:
-        """Scale outputs inside the frozen prefix; [-1] is the input of the trainable part."""
+    def images_per_forward(self, hw: Sequence[int], keep_scales: bool = True) -> int:
+        """How many images of size ``hw`` one frozen pass takes within ``FORWARD_BYTES`` (at least 1)."""
+        transient, kept = self._values_per_pixel
+        per_image = 4 * (transient + (kept if keep_scales else 0.0)) * int(hw[0]) * int(hw[1])
+        return max(1, int(FORWARD_BYTES // per_image))
+
+    def forward_frozen(self, x: Tensor, keep_scales: bool = True) -> list[Tensor]:
+        """Scale outputs inside the frozen prefix; [-1] is the input of the trainable part.
+
+        ``keep_scales=False`` returns only that last output (the earlier ones are freed as the pass
+        goes). Batches larger than ``images_per_forward`` run in chunks (the same outputs up to float
+        rounding: oneDNN may choose another kernel for another batch size).
+        """
+        n = self.images_per_forward(x.shape[-2:], keep_scales)
+        if len(x) > n:
+            parts = [self.forward_frozen(chunk, keep_scales) for chunk in x.split(n)]
+            return [torch.cat(level) for level in zip(*parts)]
         h = self._normalise(x)
         outs = []
         for unit, scale in zip(self.units[: self.split], self.is_scale[: self.split]):
             h = unit(h)
-            if scale:
+            if scale and keep_scales:
                 outs.append(h)
         if not outs or not self.is_scale[self.split - 1]:
             outs.append(h)

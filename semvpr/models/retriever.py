@@ -76,7 +76,8 @@ class Retriever(L.LightningModule):
         """Descriptors of a feature-store batch: cached trunk rows, or images through the frozen prefix."""
         if "image" in batch:
             with torch.no_grad():
-                trunk = self.backbone.forward_frozen(batch["image"].contiguous(memory_format=torch.channels_last))[-1]
+                trunk = self.backbone.forward_frozen(batch["image"].contiguous(memory_format=torch.channels_last),
+                                                     keep_scales=False)[-1]
                 trunk = trunk.to(TRUNK_DTYPE)
         else:
             trunk = batch["trunk"]
@@ -90,8 +91,14 @@ class Retriever(L.LightningModule):
         self.whitening_fitted.fill_(True)
 
     def forward(self, images: Tensor, label_paths: Sequence[Path] | None = None) -> Tensor:
-        """Full pipeline on [0,1] images (the oracle mask also needs their label maps)."""
-        outs = self.backbone.forward_frozen(images.contiguous(memory_format=torch.channels_last))
+        """Full pipeline on [0,1] images (the oracle mask also needs their label maps), in chunks of
+        images whose frozen-prefix activations fit ``FORWARD_BYTES`` (memory does not grow with the batch)."""
+        keep = self.mask_source is not None and self.mask_source.needs_features
+        step = self.backbone.images_per_forward(images.shape[-2:], keep_scales=keep)
+        if len(images) > step:
+            return torch.cat([self(images[i:i + step], None if label_paths is None else label_paths[i:i + step])
+                              for i in range(0, len(images), step)])
+        outs = self.backbone.forward_frozen(images.contiguous(memory_format=torch.channels_last), keep_scales=keep)
         mask = None
         if self.mask_source is not None:
             grid = grid_size(self.backbone, images.shape[-2:])
