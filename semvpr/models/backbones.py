@@ -109,8 +109,9 @@ class Backbone(nn.Module):
             frozen.append((prev[1], prev[2]))
         self.frozen_channels = tuple(c for c, _ in frozen)
         self.frozen_strides = tuple(s for _, s in frozen)
-        # fp32 values per input pixel: the widest frozen activation (x4: its input, output and
-        # oneDNN's workspace, measured peak ~3x), and the outputs kept for the caller.
+        # fp32 values per input pixel: the widest frozen activation x4 (its input, output and oneDNN's
+        # workspace; VGG16 at 480x640, batch 24 measured ~2x conv1's output per image), and the
+        # outputs kept for the caller.
         widest = max((c / s**2 for _, c, s, _ in table[: self.split]), default=3.0)
         self._values_per_pixel = 4 * widest, sum(c / s**2 for c, s in frozen)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
