@@ -14,10 +14,12 @@ reported once, elsewhere) with four NetVLAD contribution weights on the feature 
 The benchmark is useful when the binary oracle gains >= 10 R@1 points over none, the weighted oracle
 a further >= 3, and unmasked R@1 is 20-80 %.
 
-    python benchmarks/calibrate_synthcity.py [--preset default] [--seed 0] [--model-seed 0 1 2]
+    python benchmarks/calibrate_synthcity.py [--preset default] [--seed 0 1 2] [--model-seed 0 1 2]
         [--weight vegetation=0.3 ...] [--cache-dir outputs/cache]
 
-One line per model seed, then the last line (val numbers, mean over model seeds):
+One line per (dataset seed, model seed), the gains' mean ± std over dataset seeds when there are
+several (a generator change should be judged over several draws of the city: one draw's gain
+moves by several points with the draw), then the last line (val numbers, mean over all seeds):
 ``none_R@1=<x> oracle_R@1=<y> weighted_R@1=<z> gain=<y-x> weighted_gain=<z-y>`` (percent).
 """
 from __future__ import annotations
@@ -146,7 +148,7 @@ def parse_weight(text: str) -> tuple[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="default")
-    ap.add_argument("--seed", type=int, default=0, help="dataset seed")
+    ap.add_argument("--seed", type=int, nargs="+", default=[0], help="dataset seeds (each its own city)")
     ap.add_argument("--model-seed", type=int, nargs="+", default=[0], help="seeds of the random VGG16 init")
     ap.add_argument("--split", default="val", choices=("val", "test"), help="test only to report, once")
     ap.add_argument("--weight", type=parse_weight, action="append", default=[],
@@ -163,35 +165,45 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.time()
-    data = (args.preset, args.seed, args.cache_dir)
-    root = ensure_synthcity(args.cache_dir, args.preset, args.seed, args.coverage, args.lighting)
-    split = read_split(*data, args.split, args.coverage, args.lighting)
-    train = read_split(*data, "train", args.coverage, args.lighting)
-    stats = json.loads((root / "stats.json").read_text())
     weights = {**CLASS_WEIGHTS, **dict(args.weight)}
-    n = sum(len(p) > 0 for p in split.positives(25.0))
-    print(f"dataset {root} ({time.time() - t0:.1f}s): measured dynamic fraction {stats['dynamic_fraction']}, "
-          f"sky {stats['sky_fraction']}")
-    print(f"{args.split}: {len(split.db_paths)} database, {n} queries with positives (one std-error of R@1 "
-          f"~ {100 * np.sqrt(0.25 / n):.1f} points); class weights {weights}")
     lut = class_weight_lut(weights)
-    runs = []
-    for seed in args.model_seed:
-        hits = calibrate(split, train, seed, args.clusters, args.init_images, lut, args.bf16)
-        runs.append(hits)
-        for v in VARIANTS:
-            print(f"  model seed {seed} {v:>15}: " + "  ".join(f"R@{k}={100 * h.mean():.1f}" for k, h in hits[v].items()))
-        print(f"  model seed {seed} paired R@1 differences (± std-error over queries): "
-              f"oracle−none {paired(hits['none'][1], hits['oracle'][1])}, "
-              f"weighted−oracle {paired(hits['oracle'][1], hits['oracle_weighted'][1])}, "
-              f"weighted−soft {paired(hits['oracle_soft'][1], hits['oracle_weighted'][1])} "
-              f"({time.time() - t0:.0f}s)")
-    r1 = {v: float(np.mean([100 * h[v][1].mean() for h in runs])) for v in VARIANTS}
-    print(f"{args.split}, mean over model seeds {args.model_seed}: "
-          + "  ".join(f"{v} R@1={r:.1f}" for v, r in r1.items()) + f"; total {time.time() - t0:.0f}s")
-    none, oracle, weighted = r1["none"], r1["oracle"], r1["oracle_weighted"]
-    print(f"none_R@1={none:.1f} oracle_R@1={oracle:.1f} weighted_R@1={weighted:.1f} "
-          f"gain={oracle - none:.1f} weighted_gain={weighted - oracle:.1f}")
+    r1: dict[int, dict[str, float]] = {}  # dataset seed → variant → R@1 mean over model seeds
+    for data_seed in args.seed:
+        data = (args.preset, data_seed, args.cache_dir)
+        root = ensure_synthcity(args.cache_dir, args.preset, data_seed, args.coverage, args.lighting)
+        split = read_split(*data, args.split, args.coverage, args.lighting)
+        train = read_split(*data, "train", args.coverage, args.lighting)
+        stats = json.loads((root / "stats.json").read_text())
+        n = sum(len(p) > 0 for p in split.positives(25.0))
+        print(f"dataset seed {data_seed}: {root} ({time.time() - t0:.1f}s): measured dynamic fraction "
+              f"{stats['dynamic_fraction']}, sky {stats['sky_fraction']}")
+        print(f"{args.split}: {len(split.db_paths)} database, {n} queries with positives (one std-error of R@1 "
+              f"~ {100 * np.sqrt(0.25 / n):.1f} points); class weights {weights}")
+        runs = []
+        for seed in args.model_seed:
+            hits = calibrate(split, train, seed, args.clusters, args.init_images, lut, args.bf16)
+            runs.append(hits)
+            tag = f"  data seed {data_seed} model seed {seed}"
+            for v in VARIANTS:
+                print(f"{tag} {v:>15}: " + "  ".join(f"R@{k}={100 * h.mean():.1f}" for k, h in hits[v].items()))
+            print(f"{tag} paired R@1 differences (± std-error over queries): "
+                  f"oracle−none {paired(hits['none'][1], hits['oracle'][1])}, "
+                  f"weighted−oracle {paired(hits['oracle'][1], hits['oracle_weighted'][1])}, "
+                  f"weighted−soft {paired(hits['oracle_soft'][1], hits['oracle_weighted'][1])} "
+                  f"({time.time() - t0:.0f}s)")
+        r1[data_seed] = {v: float(np.mean([100 * h[v][1].mean() for h in runs])) for v in VARIANTS}
+        print(f"{args.split}, data seed {data_seed}, mean over model seeds {args.model_seed}: "
+              + "  ".join(f"{v} R@1={r:.1f}" for v, r in r1[data_seed].items()))
+    gain = np.array([r["oracle"] - r["none"] for r in r1.values()])
+    weighted_gain = np.array([r["oracle_weighted"] - r["oracle"] for r in r1.values()])
+    if len(r1) > 1:
+        print(f"over dataset seeds {args.seed}: gain {gain.mean():.1f} ± {gain.std(ddof=1):.1f} "
+              f"({', '.join(f'{g:+.1f}' for g in gain)}), weighted_gain {weighted_gain.mean():.1f} ± "
+              f"{weighted_gain.std(ddof=1):.1f} ({', '.join(f'{g:+.1f}' for g in weighted_gain)}); "
+              f"total {time.time() - t0:.0f}s")
+    mean = {v: float(np.mean([r[v] for r in r1.values()])) for v in VARIANTS}
+    print(f"none_R@1={mean['none']:.1f} oracle_R@1={mean['oracle']:.1f} weighted_R@1={mean['oracle_weighted']:.1f} "
+          f"gain={gain.mean():.1f} weighted_gain={weighted_gain.mean():.1f}")
 
 
 if __name__ == "__main__":
