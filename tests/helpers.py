@@ -36,3 +36,10 @@ def write_checkpoint(cfg: DictConfig, path: Path) -> dict[str, torch.Tensor]:
     retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), whitening, record=record_of(cfg))
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams), "epoch": 0}, path)
     return retriever.state_dict()
+
+
+def record_first_unit_batches(backbone) -> list[int]:
+    """The batch size of every pass through a backbone's first unit, appended as they happen."""
+    seen: list[int] = []
+    backbone.units[0].register_forward_hook(lambda _m, args, _out: seen.append(args[0].shape[0]))
+    return seen

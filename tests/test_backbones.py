@@ -9,6 +9,7 @@ import torchvision
 
 from semvpr.errors import SemvprError
 from semvpr.models.backbones import ResNet50Backbone, VGG16Backbone
+from tests.helpers import record_first_unit_batches
 
 torch.set_num_threads(2)
 
@@ -165,13 +166,6 @@ def test_resnet50_cut_matches_the_benchmark() -> None:
     assert trainable == {"4"}  # layer3 only, as the benchmark's resnet50conv4
 
 
-def _first_unit_batches(model) -> list[int]:
-    """Records the batch size of every pass through the trunk's first unit."""
-    seen: list[int] = []
-    model.units[0].register_forward_hook(lambda _m, args, _out: seen.append(args[0].shape[0]))
-    return seen
-
-
 def test_large_batches_run_in_chunks_with_the_same_outputs(monkeypatch: pytest.MonkeyPatch) -> None:
     import semvpr.models.backbones as backbones
 
@@ -186,7 +180,7 @@ def test_large_batches_run_in_chunks_with_the_same_outputs(monkeypatch: pytest.M
     monkeypatch.setattr(backbones, "FORWARD_BYTES", int(2.5 * per_image))
     assert model.images_per_forward((48, 64)) == 2
     assert model.images_per_forward((48, 64), keep_scales=False) == int(2.5 * per_image // (4 * 4 * 64 * 48 * 64))
-    seen = _first_unit_batches(model)
+    seen = record_first_unit_batches(model)
     with torch.no_grad():
         chunked = model.forward_frozen(x)
         assert seen == [2, 2, 1]

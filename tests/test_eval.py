@@ -11,7 +11,7 @@ from PIL import Image
 from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
 
-from tests.helpers import config, tiny_config, write_checkpoint
+from tests.helpers import config, record_first_unit_batches, tiny_config, write_checkpoint
 
 SIZE = ["data.image_size=[32,48]", "data.num_workers=0"]
 
@@ -130,8 +130,7 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
                      f"paths.cache_dir={tmp_path / cache}", "model.eval_batch_size=5", *SIZE, config_name="eval")
         retriever, merged = load_retriever(cfg)
         grid_size(retriever.backbone, merged.data.image_size)  # the once-per-size shape probe, before counting
-        seen: list[int] = []
-        retriever.backbone.units[0].register_forward_hook(lambda _m, args, _out: seen.append(args[0].shape[0]))
+        seen = record_first_unit_batches(retriever.backbone)
         return np.array(place_descriptors(retriever, build_places(merged, ("test",))["test"], "db", merged)), seen
 
     whole, seen = descriptors("whole")
