@@ -15,7 +15,7 @@ The benchmark is useful when the binary oracle gains >= 10 R@1 points over none,
 a further >= 3, and unmasked R@1 is 20-80 %.
 
     python benchmarks/calibrate_synthcity.py [--preset default] [--seed 0 1 2] [--model-seed 0 1 2]
-        [--weight vegetation=0.3 ...] [--cache-dir outputs/cache]
+        [--weight vegetation=0.3 ...] [--render pitch_m=8 ...] [--cache-dir outputs/cache]
 
 One line per (dataset seed, model seed), the gains' mean ± std over dataset seeds when there are
 several (a generator change should be judged over several draws of the city: one draw's gain
@@ -38,7 +38,7 @@ from PIL import Image
 
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
-from semvpr.data.synthcity import ensure_synthcity, read_split
+from semvpr.data.synthcity import ensure_synthcity, parse_knob, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.masks import pool_to_grid
 from semvpr.models.netvlad import NetVLAD
@@ -154,8 +154,8 @@ def main() -> None:
     ap.add_argument("--weight", type=parse_weight, action="append", default=[],
                     help="override one class weight of the weighted oracle, e.g. vegetation=0.5")
     ap.add_argument("--cache-dir", default="outputs/cache")
-    ap.add_argument("--coverage", type=float, default=None)
-    ap.add_argument("--lighting", type=float, default=None)
+    ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
+                    help="SynthCity difficulty knob to override (repeatable), e.g. pitch_m=8")
     ap.add_argument("--clusters", type=int, default=32)
     ap.add_argument("--init-images", type=int, default=300, help="train database images for k-means")
     ap.add_argument("--threads", type=int, default=2)
@@ -166,13 +166,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     t0 = time.time()
     weights = {**CLASS_WEIGHTS, **dict(args.weight)}
+    render = dict(args.render)
     lut = class_weight_lut(weights)
     r1: dict[int, dict[str, float]] = {}  # dataset seed → variant → R@1 mean over model seeds
     for data_seed in args.seed:
-        data = (args.preset, data_seed, args.cache_dir)
-        root = ensure_synthcity(args.cache_dir, args.preset, data_seed, args.coverage, args.lighting)
-        split = read_split(*data, args.split, args.coverage, args.lighting)
-        train = read_split(*data, "train", args.coverage, args.lighting)
+        root = ensure_synthcity(args.cache_dir, args.preset, data_seed, render)
+        split = read_split(args.preset, data_seed, args.cache_dir, args.split, render)
+        train = read_split(args.preset, data_seed, args.cache_dir, "train", render)
         stats = json.loads((root / "stats.json").read_text())
         n = sum(len(p) > 0 for p in split.positives(25.0))
         print(f"dataset seed {data_seed}: {root} ({time.time() - t0:.1f}s): measured dynamic fraction "

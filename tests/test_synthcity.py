@@ -188,7 +188,7 @@ def measured(labels: list[np.ndarray]) -> tuple[float, float]:
 def test_dynamic_fraction_in_bounds_and_stats_agree(dataset: Path) -> None:
     stats = json.loads((dataset / "stats.json").read_text())
     assert (stats["preset"], stats["seed"], stats["version"]) == ("tiny", 0, synthcity.GENERATOR_VERSION)
-    assert stats["coverage_target"] == TINY.render.coverage and stats["lighting"] == TINY.render.lighting
+    assert stats["render"] == dataclasses.asdict(TINY.render)
     queries = [ids(label_of(dataset, p)) for p in vpr_images(dataset, "test", "queries")]
     lo, hi = TINY.dynamic_bounds
     assert lo <= measured(queries)[0] <= hi
@@ -348,28 +348,54 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
 
     monkeypatch.setattr(synthcity, "generate", regenerate)
     assert ensure_synthcity(cache_dir, "tiny", 0) == dataset
-    # Spelling out the preset's own coverage is the same dataset.
-    assert ensure_synthcity(cache_dir, "tiny", 0, coverage=TINY.render.coverage) == dataset
+    # Spelling out the preset's own knobs is the same dataset.
+    assert ensure_synthcity(cache_dir, "tiny", 0, {"coverage": TINY.render.coverage, "liveries": 3.0}) == dataset
     assert tree(dataset, skip=()) == before and {p: p.stat().st_mtime_ns for p in dataset.rglob("*")} == mtimes
     assert json.loads((dataset / "key.json").read_text()) == {
-        "preset": "tiny", "seed": 0, "version": synthcity.GENERATOR_VERSION,
-        "coverage": TINY.render.coverage, "lighting": TINY.render.lighting}
-    # Another seed or coverage is another artifact; a failed build leaves nothing in the cache.
-    assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 1, None, None)) != dataset
-    assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 0, 0.2, None)) != dataset
+        "preset": "tiny", "seed": 0, "version": synthcity.GENERATOR_VERSION, "render": dataclasses.asdict(TINY.render)}
+    # Another seed or any other knob is another artifact; a failed build leaves nothing in the cache.
+    assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 1, None)) != dataset
+    for knob in ({"coverage": 0.2}, {"pitch_m": 8.0}, {"liveries": 2}):
+        assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 0, knob)) != dataset, knob
     with pytest.raises(AssertionError, match="generated again"):
         ensure_synthcity(cache_dir, "tiny", 1)
     assert [p.name for p in cache_dir.iterdir() if p.name != LOCK_DIR] == [dataset.name]
 
 
+def test_config_render_knobs_make_another_dataset(dataset: Path, cache_dir: Path) -> None:
+    """``+data.render.<knob>=`` reaches the readers: a dataset generated with that knob, keyed by it."""
+    from semvpr.build import instantiate_node
+    from tests.helpers import tiny_config
+
+    default = instantiate_node(tiny_config(cache_dir).data.test)
+    assert default.root.parent == dataset  # <dataset>/images
+    steep = instantiate_node(tiny_config(cache_dir, "+data.render.pitch_m=0.5").data.test)
+    root = steep.root.parent
+    assert root != dataset and json.loads((root / "key.json").read_text())["render"]["pitch_m"] == 0.5
+    assert json.loads((root / "stats.json").read_text())["render"]["pitch_m"] == 0.5
+    assert len(steep.q_paths) == len(default.q_paths)
+    with pytest.raises(SemvprError, match="no render knob 'sky'"):
+        instantiate_node(tiny_config(cache_dir, "+data.render.sky=1").data.test)
+
+
 def test_get_preset_overrides_and_bad_values() -> None:
-    p = get_preset("tiny", coverage=0.2, lighting=0.0)
-    assert (p.render.coverage, p.render.lighting) == (0.2, 0.0) and p.vpr == TINY.vpr
-    assert get_preset("tiny") == TINY
+    p = get_preset("tiny", {"coverage": 0.2, "lighting": 0, "pitch_m": 8, "liveries": 2.0})
+    assert (p.render.coverage, p.render.lighting, p.render.pitch_m, p.render.liveries) == (0.2, 0.0, 8.0, 2)
+    assert type(p.render.liveries) is int and p.vpr == TINY.vpr
+    assert (p.render.height, p.render.width, p.render.season) == (TINY.render.height, TINY.render.width, TINY.render.season)
+    assert get_preset("tiny") == get_preset("tiny", {}) == TINY
     with pytest.raises(SemvprError, match=r"unknown SynthCity preset 'huge'.*tiny"):
         get_preset("huge")
     with pytest.raises(SemvprError, match=r"lighting=-0\.1 is outside \[0, 1\]"):
-        get_preset("tiny", lighting=-0.1)
+        get_preset("tiny", {"lighting": -0.1})
+    with pytest.raises(SemvprError, match=r"no render knob 'height'.*pitch_m"):
+        get_preset("tiny", {"height": 480})
+    with pytest.raises(SemvprError, match=r"liveries=2\.5 must be a int"):
+        get_preset("tiny", {"liveries": 2.5})
+    with pytest.raises(SemvprError, match=r"liveries=0 must be >= 1"):
+        get_preset("tiny", {"liveries": 0})
+    with pytest.raises(SemvprError, match=r"pitch_m=-1\.0 must be >= 0"):
+        get_preset("tiny", {"pitch_m": -1})
 
 
 # --- CLI ---------------------------------------------------------------------------------------
@@ -432,13 +458,14 @@ def test_cli_bad_preset_is_argparse_error(tmp_path: Path, capsys: pytest.Capture
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize(("flag", "value"), [("--coverage", "1.5"), ("--lighting", "-0.5")])
-def test_cli_out_of_range_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], flag: str, value: str) -> None:
+@pytest.mark.parametrize(("knob", "expected"), [("coverage=1.5", "coverage=1.5 is outside [0, 1]"),
+                                               ("lighting=-0.5", "lighting=-0.5 is outside [0, 1]"),
+                                               ("sky=0.5", "no render knob 'sky'")])
+def test_cli_bad_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], knob: str, expected: str) -> None:
     with pytest.raises(SystemExit) as exc:
-        main(["--out", str(tmp_path / "x"), "--preset", "tiny", flag, value])
+        main(["--out", str(tmp_path / "x"), "--preset", "tiny", "--render", knob])
     assert exc.value.code == 2
-    line = one_error_line(capsys.readouterr().err)
-    assert f"{flag[2:]}={float(value)}" in line and "[0, 1]" in line
+    assert expected in one_error_line(capsys.readouterr().err)
     assert list(tmp_path.iterdir()) == []  # validated before anything is created
 
 

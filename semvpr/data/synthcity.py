@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import uuid
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,17 +68,31 @@ PRESETS: dict[str, Preset] = {
 }  # fmt: skip
 
 
-def get_preset(preset: str, coverage: float | None = None, lighting: float | None = None) -> Preset:
-    """Preset by name, with optional difficulty overrides (dynamic coverage, lighting change)."""
+#: RenderSpec knobs a dataset may override (difficulty); the image size comes with the preset.
+KNOBS = tuple(f.name for f in dataclasses.fields(RenderSpec) if f.name not in ("height", "width"))
+UNIT_KNOBS = ("coverage", "lighting", "season")  # fractions in [0, 1]
+
+
+def get_preset(preset: str, render: Mapping[str, float] | None = None) -> Preset:
+    """Preset by name, with RenderSpec difficulty knobs overridden (e.g. ``{"pitch_m": 8.0}``)."""
     if preset not in PRESETS:
         raise SemvprError(f"unknown SynthCity preset {preset!r}; choose one of {sorted(PRESETS)}")
     p = PRESETS[preset]
-    for name, value in (("coverage", coverage), ("lighting", lighting)):
-        if value is not None and not 0.0 <= value <= 1.0:
+    changes: dict[str, float | int] = {}
+    for name, value in (render or {}).items():
+        if name not in KNOBS:
+            raise SemvprError(f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)}")
+        default = getattr(p.render, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                isinstance(default, int) and not float(value).is_integer()):
+            raise SemvprError(f"SynthCity {name}={value!r} must be a {type(default).__name__}")
+        value = type(default)(value)
+        if name in UNIT_KNOBS and not 0.0 <= value <= 1.0:
             raise SemvprError(f"SynthCity {name}={value} is outside [0, 1]")
-    render = dataclasses.replace(p.render, coverage=p.render.coverage if coverage is None else coverage,
-                                 lighting=p.render.lighting if lighting is None else lighting)
-    return dataclasses.replace(p, render=render)
+        if value < 0 or (name == "liveries" and value < 1):
+            raise SemvprError(f"SynthCity {name}={value} must be {'>= 1' if name == 'liveries' else '>= 0'}")
+        changes[name] = value
+    return dataclasses.replace(p, render=dataclasses.replace(p.render, **changes))
 
 
 def utm_name(east: float, north: float, timestamp: str, note: str) -> str:
@@ -102,10 +117,9 @@ def _routes(p: Preset) -> list[tuple[str, str, int, SplitSpec]]:
     return out
 
 
-def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
-             lighting: float | None = None) -> dict:
+def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | None = None) -> dict:
     """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics."""
-    p = get_preset(preset, coverage, lighting)
+    p = get_preset(preset, render)
     spec = p.render
     pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
     ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
@@ -144,7 +158,7 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
                           root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
                 bar.update()
     stats = {"preset": preset, "seed": seed, "version": GENERATOR_VERSION,
-             "coverage_target": spec.coverage, "lighting": spec.lighting, "liveries": spec.liveries,
+             "render": dataclasses.asdict(spec),
              "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
              "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
              "images": {k: len(v) for k, v in fractions.items()},
@@ -153,27 +167,26 @@ def generate(root: Path, preset: str, seed: int, coverage: float | None = None,
     return stats
 
 
-def _key(preset: str, seed: int, coverage: float | None, lighting: float | None) -> dict:
-    r = get_preset(preset, coverage, lighting).render
+def _key(preset: str, seed: int, render: Mapping[str, float] | None) -> dict:
+    """Cache key: the preset, seed, generator version and every effective render knob."""
     return {"preset": preset, "seed": int(seed), "version": GENERATOR_VERSION,
-            "coverage": r.coverage, "lighting": r.lighting}
+            "render": dataclasses.asdict(get_preset(preset, render).render)}
 
 
 def ensure_synthcity(cache_dir: str | Path, preset: str = "default", seed: int = 0,
-                     coverage: float | None = None, lighting: float | None = None) -> Path:
+                     render: Mapping[str, float] | None = None) -> Path:
     """Dataset root in the artifact cache, generated on first use (kind "synthcity")."""
-    key = _key(preset, seed, coverage, lighting)
-    return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), coverage, lighting))
+    key = _key(preset, seed, render)
+    return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), render))
 
 
-def read_split(preset: str, seed: int, cache_dir: str | Path, split: str,
-               coverage: float | None = None, lighting: float | None = None):
+def read_split(preset: str, seed: int, cache_dir: str | Path, split: str, render: Mapping[str, float] | None = None):
     """PlaceSet of one VPR split (train/val/test), with the trainId label maps attached."""
     from semvpr.data.places import read_utm_folder
 
     if split not in get_preset(preset).vpr:
         raise SemvprError(f"SynthCity has no VPR split {split!r}; choose one of {sorted(get_preset(preset).vpr)}")
-    root = ensure_synthcity(cache_dir, preset, seed, coverage, lighting)
+    root = ensure_synthcity(cache_dir, preset, seed, render)
     places = read_utm_folder(root, split)
 
     def labels(paths: tuple[Path, ...]) -> tuple[Path, ...]:
@@ -184,13 +197,22 @@ def read_split(preset: str, seed: int, cache_dir: str | Path, split: str,
 
 
 def read_segmentation(preset: str, seed: int, cache_dir: str | Path, split: str,
-                      coverage: float | None = None, lighting: float | None = None):
+                      render: Mapping[str, float] | None = None):
     """SegmentationSet (Cityscapes format) of the separate segmentation routes (train/val)."""
     from semvpr.data.segmentation import read_cityscapes
 
     if split not in get_preset(preset).seg:
         raise SemvprError(f"SynthCity has no segmentation split {split!r}; choose one of {sorted(get_preset(preset).seg)}")
-    return read_cityscapes(ensure_synthcity(cache_dir, preset, seed, coverage, lighting) / "seg", split)
+    return read_cityscapes(ensure_synthcity(cache_dir, preset, seed, render) / "seg", split)
+
+
+def parse_knob(text: str) -> tuple[str, float]:
+    """``knob=value`` from the command line (validated by ``get_preset``)."""
+    name, _, value = text.partition("=")
+    try:
+        return name, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected <knob>=<number>, got {text!r}") from None
 
 
 @exit_on_user_error
@@ -200,18 +222,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", required=True, type=Path, help="new (or empty) output directory")
     ap.add_argument("--preset", default="default", choices=sorted(PRESETS))
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--coverage", type=float, default=None, help="target measured dynamic pixel fraction")
-    ap.add_argument("--lighting", type=float, default=None, help="lighting change between traversals, 0..1")
+    ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
+                    help=f"override a difficulty knob (repeatable), one of {', '.join(KNOBS)}")
     args = ap.parse_args(argv)
     out: Path = args.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SemvprError(f"--out {out} already exists and is not an empty directory; choose a new path or remove it")
-    get_preset(args.preset, args.coverage, args.lighting)  # validate before creating anything
+    render = dict(args.render)
+    get_preset(args.preset, render)  # validate before creating anything
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
-        stats = generate(tmp, args.preset, args.seed, args.coverage, args.lighting)
+        stats = generate(tmp, args.preset, args.seed, render)
         if out.exists():
             out.rmdir()
         os.rename(tmp, out)
