@@ -51,6 +51,7 @@ class RenderSpec:
     # binary mask now keeps seasonal vegetation and aliased ground), per-class weighted oracle
     # (vegetation, terrain, road, sidewalk at 0) +7.9 over binary. coverage 0.64 / lighting 0.15 gave
     # +5.9 / +7.8, 0.70 / 0.10 gave +7.6 / +8.5. Fewer liveries = the same vehicle look at more places.
+    # Every other knob tried, over three draws of the city: experiments/synthcity-calibration.
     coverage: float = 0.78  # target dynamic (trainId >= 10) pixel fraction; object caps hold it to ~0.57 measured
     lighting: float = 0.1  # 0 = same light for both traversals, 1 = strong gain/gamma/cast change
     liveries: int = 3  # vehicle/clothing textures shared by the whole dataset
