@@ -390,10 +390,15 @@ def test_get_preset_overrides_and_bad_values() -> None:
         get_preset("tiny", {"lighting": -0.1})
     with pytest.raises(SemvprError, match=r"no render knob 'height'.*pitch_m"):
         get_preset("tiny", {"height": 480})
-    with pytest.raises(SemvprError, match=r"liveries=2\.5 must be a int"):
+    with pytest.raises(SemvprError, match=r"liveries=2\.5 must be a whole number"):
         get_preset("tiny", {"liveries": 2.5})
-    with pytest.raises(SemvprError, match=r"liveries=0 must be >= 1"):
+    with pytest.raises(SemvprError, match=r"pitch_m='steep' must be a number"):
+        get_preset("tiny", {"pitch_m": "steep"})
+    with pytest.raises(SemvprError, match=r"liveries=0 must be > 0"):
         get_preset("tiny", {"liveries": 0})
+    with pytest.raises(SemvprError, match=r"view_m=0\.0 must be > 0"):
+        get_preset("tiny", {"view_m": 0})
+    assert get_preset("tiny", {"pitch_m": 0, "jitter_m": 0}).render.pitch_m == 0.0
     with pytest.raises(SemvprError, match=r"pitch_m=-1\.0 must be >= 0"):
         get_preset("tiny", {"pitch_m": -1})
 

@@ -71,6 +71,7 @@ PRESETS: dict[str, Preset] = {
 #: RenderSpec knobs a dataset may override (difficulty); the image size comes with the preset.
 KNOBS = tuple(f.name for f in dataclasses.fields(RenderSpec) if f.name not in ("height", "width"))
 UNIT_KNOBS = ("coverage", "lighting", "season")  # fractions in [0, 1]
+POSITIVE_KNOBS = ("view_m", "liveries")  # the others may be 0 (no jitter, no pitch range)
 
 
 def get_preset(preset: str, render: Mapping[str, float] | None = None) -> Preset:
@@ -85,12 +86,12 @@ def get_preset(preset: str, render: Mapping[str, float] | None = None) -> Preset
         default = getattr(p.render, name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or (
                 isinstance(default, int) and not float(value).is_integer()):
-            raise SemvprError(f"SynthCity {name}={value!r} must be a {type(default).__name__}")
+            raise SemvprError(f"SynthCity {name}={value!r} must be {'a whole' if isinstance(default, int) else 'a'} number")
         value = type(default)(value)
         if name in UNIT_KNOBS and not 0.0 <= value <= 1.0:
             raise SemvprError(f"SynthCity {name}={value} is outside [0, 1]")
-        if value < 0 or (name == "liveries" and value < 1):
-            raise SemvprError(f"SynthCity {name}={value} must be {'>= 1' if name == 'liveries' else '>= 0'}")
+        if value < 0 or (name in POSITIVE_KNOBS and value == 0):
+            raise SemvprError(f"SynthCity {name}={value} must be {'> 0' if name in POSITIVE_KNOBS else '>= 0'}")
         changes[name] = value
     return dataclasses.replace(p, render=dataclasses.replace(p.render, **changes))
 
