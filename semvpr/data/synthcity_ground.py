@@ -148,7 +148,7 @@ def build_ground(rng: np.random.Generator, x0: float, x1: float, pool: GroundPoo
     x = rng.uniform(0, 8.0)
     while x < x1 - x0:  # marks at fixed places along the street, drawn from the shared pool
         if rng.random() < 0.08:  # zebra crossing: 0.5 m stripes across the whole road, the same everywhere
-            cs = slice(_px(x), _px(x + rng.uniform(3.0, 4.0)))
+            cs = slice(_px(x), min(_px(x + rng.uniform(3.0, 4.0)), rgb.shape[1]))  # cut at the route's end
             stripes = ((np.arange(cs.start, cs.stop) + c0) % _px(1.0)) < _px(0.5)
             rgb[:curb, cs] = np.where(stripes[None, :, None], np.float32(0.93), rgb[:curb, cs])
             x += rng.uniform(6.0, 12.0)
