@@ -15,7 +15,8 @@ The benchmark is useful when the binary oracle gains >= 10 R@1 points over none,
 a further >= 3, and unmasked R@1 is 20-80 %.
 
     python benchmarks/calibrate_synthcity.py [--preset default] [--seed 0 1 2] [--model-seed 0 1 2]
-        [--weight vegetation=0.3 ...] [--render pitch_m=8 ...] [--cache-dir outputs/cache]
+        [--weight vegetation=0.3 ...] [--render pitch_m=8 ...] [--image-size 180 240]
+        [--cache-dir outputs/cache]
 
 One line per (dataset seed, model seed), the gains' mean ± std over dataset seeds when there are
 several (a generator change should be judged over several draws of the city: one draw's gain
@@ -156,6 +157,7 @@ def main() -> None:
     ap.add_argument("--cache-dir", default="outputs/cache")
     ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
                     help="SynthCity difficulty knob to override (repeatable), e.g. pitch_m=8")
+    ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="draw the city at H x W")
     ap.add_argument("--clusters", type=int, default=32)
     ap.add_argument("--init-images", type=int, default=300, help="train database images for k-means")
     ap.add_argument("--threads", type=int, default=2)
@@ -170,9 +172,9 @@ def main() -> None:
     lut = class_weight_lut(weights)
     r1: dict[int, dict[str, float]] = {}  # dataset seed → variant → R@1 mean over model seeds
     for data_seed in args.seed:
-        root = ensure_synthcity(args.cache_dir, args.preset, data_seed, render)
-        split = read_split(args.preset, data_seed, args.cache_dir, args.split, render)
-        train = read_split(args.preset, data_seed, args.cache_dir, "train", render)
+        root = ensure_synthcity(args.cache_dir, args.preset, data_seed, render, args.image_size)
+        split = read_split(args.preset, data_seed, args.cache_dir, args.split, render, args.image_size)
+        train = read_split(args.preset, data_seed, args.cache_dir, "train", render, args.image_size)
         stats = json.loads((root / "stats.json").read_text())
         n = sum(len(p) > 0 for p in split.positives(25.0))
         print(f"dataset seed {data_seed}: {root} ({time.time() - t0:.1f}s): measured dynamic fraction "

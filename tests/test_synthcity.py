@@ -359,6 +359,7 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
     assert ensure_synthcity(cache_dir, "tiny", 0) == dataset
     # Spelling out the preset's own knobs is the same dataset.
     assert ensure_synthcity(cache_dir, "tiny", 0, {"coverage": TINY.render.coverage, "liveries": 3.0}) == dataset
+    assert ensure_synthcity(cache_dir, "tiny", 0, None, [TINY.render.height, TINY.render.width]) == dataset
     assert tree(dataset, skip=()) == before and {p: p.stat().st_mtime_ns for p in dataset.rglob("*")} == mtimes
     assert json.loads((dataset / "key.json").read_text()) == {
         "preset": "tiny", "seed": 0, "version": synthcity.GENERATOR_VERSION, "render": dataclasses.asdict(TINY.render)}
@@ -366,6 +367,7 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
     assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 1, None)) != dataset
     for knob in ({"coverage": 0.2}, {"pitch_m": 8.0}, {"liveries": 2}):
         assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 0, knob)) != dataset, knob
+    assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 0, None, [48, 72])) != dataset
     with pytest.raises(AssertionError, match="generated again"):
         ensure_synthcity(cache_dir, "tiny", 1)
     assert [p.name for p in cache_dir.iterdir() if p.name != LOCK_DIR] == [dataset.name]
@@ -387,6 +389,26 @@ def test_config_render_knobs_make_another_dataset(dataset: Path, cache_dir: Path
         instantiate_node(tiny_config(cache_dir, "+data.render.sky=1").data.test)
 
 
+def test_config_image_size_draws_the_city_at_that_size(dataset: Path, cache_dir: Path) -> None:
+    """``data.image_size`` is the size the city is drawn at (not an upsampling of the preset's images)."""
+    from semvpr.build import instantiate_node
+    from tests.helpers import tiny_config
+
+    cfg = tiny_config(cache_dir, "data.image_size=[48,72]")
+    small = instantiate_node(cfg.data.test)
+    root = small.root.parent
+    assert root != dataset and json.loads((root / "key.json").read_text())["render"] == {
+        **dataclasses.asdict(TINY.render), "height": 48, "width": 72}
+    for image in (small.q_paths[0], small.db_paths[-1]):
+        assert Image.open(image).size == (72, 48)
+        assert ids(label_of(root, image)).shape == (48, 72)
+    seg = instantiate_node(cfg.data.segmentation.train)
+    assert Image.open(seg.images[0]).size == (72, 48) and seg.images[0].is_relative_to(root)
+    assert len(small.q_paths) == len(instantiate_node(tiny_config(cache_dir).data.test).q_paths)
+    with pytest.raises(SemvprError, match=r"image_size=\[16, 72\] must be \[height, width\], whole numbers >= 32"):
+        instantiate_node(tiny_config(cache_dir, "data.image_size=[16,72]").data.test)
+
+
 def test_get_preset_overrides_and_bad_values() -> None:
     p = get_preset("tiny", {"coverage": 0.2, "lighting": 0, "pitch_m": 8, "liveries": 2.0})
     assert (p.render.coverage, p.render.lighting, p.render.pitch_m, p.render.liveries) == (0.2, 0.0, 8.0, 2)
@@ -397,8 +419,14 @@ def test_get_preset_overrides_and_bad_values() -> None:
         get_preset("huge")
     with pytest.raises(SemvprError, match=r"lighting=-0\.1 is outside \[0, 1\]"):
         get_preset("tiny", {"lighting": -0.1})
-    with pytest.raises(SemvprError, match=r"no render knob 'height'.*pitch_m"):
+    with pytest.raises(SemvprError, match=r"no render knob 'height'.*pitch_m.*image size"):
         get_preset("tiny", {"height": 480})
+    big = get_preset("tiny", {"pitch_m": 8}, [96, 128])
+    assert (big.render.height, big.render.width, big.render.pitch_m) == (96, 128, 8.0)
+    assert get_preset("tiny", None, [TINY.render.height, TINY.render.width]) == TINY
+    for size in ([64], [64, 80, 3], [64.0, 80], [64, 31], [True, 80]):
+        with pytest.raises(SemvprError, match=r"must be \[height, width\], whole numbers >= 32"):
+            get_preset("tiny", None, size)
     with pytest.raises(SemvprError, match=r"liveries=2\.5 must be a whole number"):
         get_preset("tiny", {"liveries": 2.5})
     with pytest.raises(SemvprError, match=r"pitch_m='steep' must be a number"):
@@ -472,12 +500,13 @@ def test_cli_bad_preset_is_argparse_error(tmp_path: Path, capsys: pytest.Capture
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize(("knob", "expected"), [("coverage=1.5", "coverage=1.5 is outside [0, 1]"),
-                                               ("lighting=-0.5", "lighting=-0.5 is outside [0, 1]"),
-                                               ("sky=0.5", "no render knob 'sky'")])
-def test_cli_bad_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], knob: str, expected: str) -> None:
+@pytest.mark.parametrize(("args", "expected"), [(["--render", "coverage=1.5"], "coverage=1.5 is outside [0, 1]"),
+                                               (["--render", "lighting=-0.5"], "lighting=-0.5 is outside [0, 1]"),
+                                               (["--render", "sky=0.5"], "no render knob 'sky'"),
+                                               (["--image-size", "8", "8"], "image_size=[8, 8] must be")])
+def test_cli_bad_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], expected: str) -> None:
     with pytest.raises(SystemExit) as exc:
-        main(["--out", str(tmp_path / "x"), "--preset", "tiny", "--render", knob])
+        main(["--out", str(tmp_path / "x"), "--preset", "tiny", *args])
     assert exc.value.code == 2
     assert expected in one_error_line(capsys.readouterr().err)
     assert list(tmp_path.iterdir()) == []  # validated before anything is created

@@ -13,7 +13,7 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,17 +72,26 @@ PRESETS: dict[str, Preset] = {
 KNOBS = tuple(f.name for f in dataclasses.fields(RenderSpec) if f.name not in ("height", "width"))
 UNIT_KNOBS = ("coverage", "lighting", "season")  # fractions in [0, 1]
 POSITIVE_KNOBS = ("view_m", "liveries")  # the others may be 0 (no jitter, no pitch range)
+MIN_SIDE = 32  # pixels: VGG16 and ResNet50 reduce by 16 / 32 before their last stage
 
 
-def get_preset(preset: str, render: Mapping[str, float] | None = None) -> Preset:
-    """Preset by name, with RenderSpec difficulty knobs overridden (e.g. ``{"pitch_m": 8.0}``)."""
+def get_preset(preset: str, render: Mapping[str, float] | None = None,
+               image_size: Sequence[int] | None = None) -> Preset:
+    """Preset by name, with RenderSpec difficulty knobs overridden (e.g. ``{"pitch_m": 8.0}``) and the
+    images drawn at ``image_size`` ([H, W]; None = the preset's own size)."""
     if preset not in PRESETS:
         raise SemvprError(f"unknown SynthCity preset {preset!r}; choose one of {sorted(PRESETS)}")
     p = PRESETS[preset]
     changes: dict[str, float | int] = {}
+    if image_size is not None:
+        size = list(image_size)
+        if len(size) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= MIN_SIDE for v in size):
+            raise SemvprError(f"SynthCity image_size={size!r} must be [height, width], whole numbers >= {MIN_SIDE}")
+        changes["height"], changes["width"] = size
     for name, value in (render or {}).items():
         if name not in KNOBS:
-            raise SemvprError(f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)}")
+            raise SemvprError(f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)} "
+                              "(the image size is data.image_size, --image-size on the command line)")
         default = getattr(p.render, name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or (
                 isinstance(default, int) and not float(value).is_integer()):
@@ -118,9 +127,10 @@ def _routes(p: Preset) -> list[tuple[str, str, int, SplitSpec]]:
     return out
 
 
-def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | None = None) -> dict:
+def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | None = None,
+             image_size: Sequence[int] | None = None) -> dict:
     """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics."""
-    p = get_preset(preset, render)
+    p = get_preset(preset, render, image_size)
     spec = p.render
     pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
     ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
@@ -168,26 +178,29 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
     return stats
 
 
-def _key(preset: str, seed: int, render: Mapping[str, float] | None) -> dict:
-    """Cache key: the preset, seed, generator version and every effective render knob."""
+def _key(preset: str, seed: int, render: Mapping[str, float] | None,
+         image_size: Sequence[int] | None = None) -> dict:
+    """Cache key: the preset, seed, generator version and every effective render setting (size included)."""
     return {"preset": preset, "seed": int(seed), "version": GENERATOR_VERSION,
-            "render": dataclasses.asdict(get_preset(preset, render).render)}
+            "render": dataclasses.asdict(get_preset(preset, render, image_size).render)}
 
 
 def ensure_synthcity(cache_dir: str | Path, preset: str = "default", seed: int = 0,
-                     render: Mapping[str, float] | None = None) -> Path:
+                     render: Mapping[str, float] | None = None, image_size: Sequence[int] | None = None) -> Path:
     """Dataset root in the artifact cache, generated on first use (kind "synthcity")."""
-    key = _key(preset, seed, render)
-    return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), render))
+    key = _key(preset, seed, render, image_size)
+    return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), render, image_size))
 
 
-def read_split(preset: str, seed: int, cache_dir: str | Path, split: str, render: Mapping[str, float] | None = None):
-    """PlaceSet of one VPR split (train/val/test), with the trainId label maps attached."""
+def read_split(preset: str, seed: int, cache_dir: str | Path, split: str, render: Mapping[str, float] | None = None,
+               image_size: Sequence[int] | None = None):
+    """PlaceSet of one VPR split (train/val/test), with the trainId label maps attached; the city is
+    drawn at ``image_size`` (``data.image_size``), so the loader never resamples it."""
     from semvpr.data.places import read_utm_folder
 
     if split not in get_preset(preset).vpr:
         raise SemvprError(f"SynthCity has no VPR split {split!r}; choose one of {sorted(get_preset(preset).vpr)}")
-    root = ensure_synthcity(cache_dir, preset, seed, render)
+    root = ensure_synthcity(cache_dir, preset, seed, render, image_size)
     places = read_utm_folder(root, split)
 
     def labels(paths: tuple[Path, ...]) -> tuple[Path, ...]:
@@ -198,13 +211,13 @@ def read_split(preset: str, seed: int, cache_dir: str | Path, split: str, render
 
 
 def read_segmentation(preset: str, seed: int, cache_dir: str | Path, split: str,
-                      render: Mapping[str, float] | None = None):
+                      render: Mapping[str, float] | None = None, image_size: Sequence[int] | None = None):
     """SegmentationSet (Cityscapes format) of the separate segmentation routes (train/val)."""
     from semvpr.data.segmentation import read_cityscapes
 
     if split not in get_preset(preset).seg:
         raise SemvprError(f"SynthCity has no segmentation split {split!r}; choose one of {sorted(get_preset(preset).seg)}")
-    return read_cityscapes(ensure_synthcity(cache_dir, preset, seed, render) / "seg", split)
+    return read_cityscapes(ensure_synthcity(cache_dir, preset, seed, render, image_size) / "seg", split)
 
 
 def parse_knob(text: str) -> tuple[str, float]:
@@ -225,17 +238,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
                     help=f"override a difficulty knob (repeatable), one of {', '.join(KNOBS)}")
+    ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="image size (default: the preset's)")
     args = ap.parse_args(argv)
     out: Path = args.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SemvprError(f"--out {out} already exists and is not an empty directory; choose a new path or remove it")
     render = dict(args.render)
-    get_preset(args.preset, render)  # validate before creating anything
+    get_preset(args.preset, render, args.image_size)  # validate before creating anything
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
-        stats = generate(tmp, args.preset, args.seed, render)
+        stats = generate(tmp, args.preset, args.seed, render, args.image_size)
         if out.exists():
             out.rmdir()
         os.rename(tmp, out)
