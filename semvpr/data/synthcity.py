@@ -63,7 +63,7 @@ PRESETS: dict[str, Preset] = {
                                         "test": SplitSpec(1, 24, 24)},
                    {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)}, (0.45, 0.7)),
     # 180x240: at 120x160 a conv5_3 cell sees the whole frame, and the binary oracle's calibration gain
-    # stays below +10 whatever the scene (experiments/synthcity-calibration).
+    # stayed below +10 with every scene knob tried (experiments/synthcity-calibration).
     "default": Preset(RenderSpec(180, 240), {"train": SplitSpec(3, 200, 134), "val": SplitSpec(3, 150, 200),
                                              "test": SplitSpec(3, 200, 350)},
                       {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)}, (0.5, 0.65)),
@@ -74,7 +74,7 @@ PRESETS: dict[str, Preset] = {
 KNOBS = tuple(f.name for f in dataclasses.fields(RenderSpec) if f.name not in ("height", "width"))
 UNIT_KNOBS = ("coverage", "lighting", "season")  # fractions in [0, 1]
 POSITIVE_KNOBS = ("view_m", "liveries")  # the others may be 0 (no jitter, no pitch range)
-MIN_SIDE = 32  # pixels: VGG16 and ResNet50 reduce by 16 / 32 before their last stage
+MIN_SIDE = 32  # pixels: both trunks (VGG16 conv5_3, ResNet50 layer3) reduce by 16, so >= 2x2 feature cells
 
 
 def get_preset(preset: str, render: Mapping[str, float] | None = None,
