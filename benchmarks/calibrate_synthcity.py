@@ -39,7 +39,7 @@ from PIL import Image
 
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
-from semvpr.data.synthcity import ensure_synthcity, parse_knob, read_split
+from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.masks import pool_to_grid
 from semvpr.models.netvlad import NetVLAD
@@ -155,9 +155,7 @@ def main() -> None:
     ap.add_argument("--weight", type=parse_weight, action="append", default=[],
                     help="override one class weight of the weighted oracle, e.g. vegetation=0.5")
     ap.add_argument("--cache-dir", default="outputs/cache")
-    ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
-                    help="SynthCity difficulty knob to override (repeatable), e.g. pitch_m=8")
-    ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="draw the city at H x W")
+    add_render_arguments(ap)
     ap.add_argument("--clusters", type=int, default=32)
     ap.add_argument("--init-images", type=int, default=300, help="train database images for k-means")
     ap.add_argument("--threads", type=int, default=2)

@@ -231,6 +231,14 @@ def parse_knob(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"expected <knob>=<number>, got {text!r}") from None
 
 
+def add_render_arguments(ap: argparse.ArgumentParser) -> None:
+    """``--render KNOB=VALUE`` (repeatable, into ``args.render``) and ``--image-size H W``: what
+    ``get_preset`` takes as ``dict(args.render)`` and ``args.image_size``."""
+    ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
+                    help=f"override a difficulty knob (repeatable), one of {', '.join(KNOBS)}")
+    ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="image size (default: the preset's)")
+
+
 @exit_on_user_error
 def main(argv: list[str] | None = None) -> None:
     """CLI: generate a SynthCity dataset into a new directory."""
@@ -238,9 +246,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", required=True, type=Path, help="new (or empty) output directory")
     ap.add_argument("--preset", default="default", choices=sorted(PRESETS))
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
-                    help=f"override a difficulty knob (repeatable), one of {', '.join(KNOBS)}")
-    ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="image size (default: the preset's)")
+    add_render_arguments(ap)
     args = ap.parse_args(argv)
     out: Path = args.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
