@@ -20,10 +20,18 @@ def exit_on_user_error(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except SemvprError as err:
-            print(f"semvpr: error: {err}", file=sys.stderr)
+            # Raised inside a Hydra task, SystemExit passes through Hydra's own error reporting,
+            # which would print a traceback.
+            print(f"semvpr: error: {one_line(err)}", file=sys.stderr)
             raise SystemExit(2) from None
 
     return wrapper  # type: ignore[return-value]
+
+
+def one_line(err: SemvprError) -> str:
+    """The user-facing line of an error; one raised in a DataLoader worker arrives wrapped in its traceback."""
+    lines = [line for line in str(err).splitlines() if line.strip()]
+    return lines[-1].removeprefix(f"{SemvprError.__module__}.{SemvprError.__name__}: ") if lines else repr(err)
 
 
 def unwrap_user_error(err: BaseException) -> SemvprError | None:

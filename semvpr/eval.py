@@ -10,7 +10,6 @@ has no positive, over queries with positives (MSLS); the last line is one JSON o
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +22,11 @@ from semvpr.artifacts import build_once, state_hash
 from semvpr.build import build_backbone, build_class_weights, build_mask_source, build_places, instantiate_node
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
-from semvpr.errors import SemvprError
+from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.models.netvlad import PCAWhitening
+from semvpr.metrics import RECALL_NS
 from semvpr.models.retriever import Retriever, evaluate
-from semvpr.train import CONF_DIR, write_json
+from semvpr.io import CONF_DIR, write_json
 
 
 def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig]:
@@ -92,14 +92,11 @@ def explicit_keys() -> set[str]:
 
 
 @hydra.main(config_path=CONF_DIR, config_name="eval", version_base="1.3")
+@exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
-    try:
-        result = evaluate_checkpoint(cfg, explicit_keys())
-    except SemvprError as err:
-        print(f"semvpr: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+    result = evaluate_checkpoint(cfg, explicit_keys())
     write_json(Path(HydraConfig.get().runtime.output_dir) / "eval.json", result)
-    for n in (1, 5, 10, 20):
+    for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""
         print(f"R@{n:<2d} {result[f'test/R@{n}']:6.2f}{pos}")
     print(json.dumps(result))

@@ -8,7 +8,6 @@ distance; writes ``localize.json`` in the run directory.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +17,10 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from semvpr.build import build_places
-from semvpr.errors import SemvprError
+from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.eval import explicit_keys, load_retriever, place_descriptors
 from semvpr.metrics import knn
-from semvpr.train import CONF_DIR, write_json
+from semvpr.io import CONF_DIR, write_json
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
@@ -58,12 +57,9 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
 
 
 @hydra.main(config_path=CONF_DIR, config_name="localize", version_base="1.3")
+@exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
-    try:
-        results = localize(cfg, explicit_keys())
-    except SemvprError as err:
-        print(f"semvpr: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+    results = localize(cfg, explicit_keys())
     output = Path(HydraConfig.get().runtime.output_dir) / "localize.json"
     write_json(output, results)
     for result in results:

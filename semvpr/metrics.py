@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from semvpr.errors import SemvprError
 
-DEFAULT_NS = (1, 5, 10, 20)
+RECALL_NS = (1, 5, 10, 20)  # the cut-offs every table reports
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ def first_hit_ranks(predictions: np.ndarray, positives: Sequence[np.ndarray]) ->
 
 
 def recall_result(predictions: np.ndarray, positives: Sequence[np.ndarray],
-                  ns: Iterable[int] = DEFAULT_NS) -> RecallResult:
+                  ns: Iterable[int] = RECALL_NS) -> RecallResult:
     """Recall@N (percent) for each N in ``ns`` plus the query counts behind it."""
     ns = tuple(int(n) for n in ns)
     if max(ns) > np.asarray(predictions).shape[1]:
@@ -116,7 +116,7 @@ def recall_result(predictions: np.ndarray, positives: Sequence[np.ndarray],
 
 
 def recall_at_n(predictions: np.ndarray, positives: Sequence[np.ndarray],
-                ns: Iterable[int] = DEFAULT_NS) -> dict[int, float]:
+                ns: Iterable[int] = RECALL_NS) -> dict[int, float]:
     """{N: Recall@N in percent of all queries} (``recall_result`` also gives the MSLS denominator)."""
     return recall_result(predictions, positives, ns).recalls
 

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import zipfile
 from functools import lru_cache
 from pathlib import Path
@@ -12,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+
+from semvpr.io import atomic_file
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -37,9 +38,8 @@ def _new_figure(width: float, height: float) -> Figure:
 
 def _save(fig: Figure, out: Path) -> None:
     """Save a PNG via a temp name and rename."""
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    fig.savefig(tmp, format="png", dpi=100)
-    os.replace(tmp, out)
+    with atomic_file(out) as fh:
+        fig.savefig(fh, format="png", dpi=100)
 
 
 @lru_cache(maxsize=256)

@@ -6,7 +6,6 @@ database image, ``queries_real/000/000546_pitch1_yaw1.jpg`` a query).
 """
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from tqdm import tqdm
 
 from semvpr.artifacts import build_once, config_hash
 from semvpr.errors import SemvprError
+from semvpr.io import atomic_file
 from semvpr.precision import autocast
 
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
@@ -40,10 +40,8 @@ def image_list_identity(paths: Sequence[Path], root: Path) -> str:
 
 def _write_png(ids: np.ndarray, final: Path) -> None:
     """Write a uint8 trainId PNG under a temporary name, then rename, so a kill never leaves half a file."""
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.tmp")
-    Image.fromarray(ids.astype(np.uint8)).save(tmp, format="PNG")
-    os.replace(tmp, final)
+    with atomic_file(final) as fh:
+        Image.fromarray(ids.astype(np.uint8)).save(fh, format="PNG")
 
 
 def _label_missing(

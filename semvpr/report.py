@@ -17,8 +17,9 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.io import write_text
+from semvpr.metrics import RECALL_NS
 
-NS = (1, 5, 10, 20)
 FILTER_ORDER = ("none", "attention", "unet", "mask2former")
 UPPER_BOUNDS = frozenset({"oracle"})  # ground-truth masks: a ceiling to read against, not a competitor
 
@@ -190,7 +191,7 @@ def _rows(sweep: Sweep) -> list[dict[str, Any]]:
             ok = [j for j in jobs if j.ok]
             row: dict[str, Any] = {"filter": f, "backbone": bb, "n": len(ok), "failed": len(jobs) - len(ok),
                                    "seeds": sorted(j.seed for j in ok if j.seed is not None)}
-            for n in NS:
+            for n in RECALL_NS:
                 row[f"R@{n}"] = mean_std([j.recall(n) for j in ok])
             walls = [float(j.metrics["wall_time_s"]) for j in ok if isinstance(j.metrics.get("wall_time_s"), (int, float))]
             row["wall_time_s"] = mean_std(walls)[0]
@@ -208,12 +209,12 @@ def _fmt(x: float, signed: bool = False) -> str:
 def _csv_text(rows: list[dict[str, Any]]) -> str:
     """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing."""
     buf = io.StringIO()
-    cols = ["filter", "backbone", "n", "seeds"] + [f"R@{n}_{s}" for n in NS for s in ("mean", "std")] + ["wall_time_s", "failed"]
+    cols = ["filter", "backbone", "n", "seeds"] + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")] + ["wall_time_s", "failed"]
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
     num = lambda x: "" if not math.isfinite(x) else f"{x:.4f}"  # noqa: E731
     for r in rows:
-        stats = [num(v) for n in NS for v in r[f"R@{n}"]]
+        stats = [num(v) for n in RECALL_NS for v in r[f"R@{n}"]]
         writer.writerow([r["filter"], r["backbone"], r["n"], " ".join(map(str, r["seeds"])), *stats,
                          num(r["wall_time_s"]), r["failed"]])
     return buf.getvalue()
@@ -286,7 +287,7 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
            "| backbone | filter | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
            "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
     for r in rows:
-        cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in NS]
+        cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in RECALL_NS]
         out.append(f"| {r['backbone']} | {sweep.label(r['filter'])} | {' | '.join(cells)} | {r['n']} | "
                    f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |")
     out.append("")
@@ -313,13 +314,6 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
     return "\n".join(out).rstrip() + "\n"
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write via a temp name and rename, so a reader never sees half a file."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
 def write_report(sweep_dir: Path) -> Path:
     """Write results.csv, results.md and the figures into sweep_dir; return the results.md path."""
     from semvpr import plots  # matplotlib is only needed here, not to import the callback
@@ -336,9 +330,9 @@ def write_report(sweep_dir: Path) -> Path:
             figures[fname] = draw(sweep, sweep.dir / fname)
         except Exception as err:  # one broken figure must not cost the table
             figures[fname] = f"{type(err).__name__}: {err}"
-    atomic_write_text(sweep.dir / "results.csv", _csv_text(rows))
+    write_text(sweep.dir / "results.csv", _csv_text(rows))
     md = sweep.dir / "results.md"
-    atomic_write_text(md, _markdown(sweep, rows, figures))
+    write_text(md, _markdown(sweep, rows, figures))
     return md
 
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import csv
 import json
-import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -27,10 +25,10 @@ from semvpr.build import instantiate_backbone, instantiate_node
 from semvpr.data.places import common_root
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
-from semvpr.errors import SemvprError
+from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.io import CONF_DIR, atomic_dir, write_json
 from semvpr.segeval import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmetrics import binary_pred
-from semvpr.train import CONF_DIR, write_json
 
 SPLITS = ("train", "val", "test")
 #: Keys of the last stdout line, per model.
@@ -58,15 +56,12 @@ def save_teacher(teacher: Any, out: Path, image_size: list[int]) -> None:
     """Hugging Face format (config.json, model.safetensors, preprocessor_config.json), renamed into place when complete."""
     from transformers import Mask2FormerImageProcessor
 
-    tmp = out.with_name(f".{out.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    teacher.model.save_pretrained(tmp)
-    Mask2FormerImageProcessor(
-        image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist(),
-        size={"height": image_size[0], "width": image_size[1]}, ignore_index=IGNORE, do_reduce_labels=False,
-    ).save_pretrained(tmp)  # fmt: skip
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
+    with atomic_dir(out) as tmp:
+        teacher.model.save_pretrained(tmp)
+        Mask2FormerImageProcessor(
+            image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist(),
+            size={"height": image_size[0], "width": image_size[1]}, ignore_index=IGNORE, do_reduce_labels=False,
+        ).save_pretrained(tmp)  # fmt: skip
 
 
 def replay_log(csv_path: Path, loggers: list[Any], prefix: str) -> None:
@@ -197,23 +192,13 @@ def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
     return line
 
 
-def one_line(err: SemvprError) -> str:
-    """The user-facing line of an error; one raised in a DataLoader worker arrives wrapped in its traceback."""
-    lines = [line for line in str(err).splitlines() if line.strip()]
-    return lines[-1].removeprefix(f"{SemvprError.__module__}.{SemvprError.__name__}: ") if lines else repr(err)
-
-
 @hydra.main(config_path=CONF_DIR, config_name="segment", version_base="1.3")
+@exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
-    try:
-        if cfg.threads:
-            torch.set_num_threads(int(cfg.threads))  # process-wide, so here and not in run()
-        run_dir = Path(HydraConfig.get().runtime.output_dir)
-        print(json.dumps(summary(run(cfg, run_dir), run_dir)))
-    except SemvprError as err:
-        # SystemExit passes through Hydra's own error reporting, which would print a traceback.
-        print(f"semvpr: error: {one_line(err)}", file=sys.stderr)
-        raise SystemExit(2) from None
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))  # process-wide, so here and not in run()
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    print(json.dumps(summary(run(cfg, run_dir), run_dir)))
 
 
 def main() -> None:

@@ -7,7 +7,6 @@ model, fit with triplet mining, test the best checkpoint, and write ``metrics.js
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import threading
@@ -28,21 +27,13 @@ from omegaconf import DictConfig
 from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, build_semantic,
                           check_config, init_aggregator, mask_key)
 from semvpr.checkpoint import record_of
-from semvpr.errors import SemvprError
+from semvpr.errors import exit_on_user_error
+from semvpr.io import CONF_DIR, atomic_file, write_json
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
 from semvpr.mining import RetrievalDataModule
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever, evaluate
 from semvpr.precision import lightning_precision
-
-CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
-
-
-def write_json(path: Path, obj: Any) -> None:
-    """Write JSON atomically (temp name, then rename)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1, default=float))
-    os.replace(tmp, path)
 
 
 def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -194,9 +185,8 @@ def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retri
         if retriever.class_weights is not None:  # class probabilities → the learned weight map
             mask = retriever.class_weights(mask.to(retriever.device)).cpu()
         arrays[mask_name] = mask[:, 0].numpy()
-    tmp = run_dir / ".maps.tmp.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, run_dir / "maps.npz")
+    with atomic_file(run_dir / "maps.npz") as fh:
+        np.savez(fh, **arrays)
 
 
 class Interrupted(BaseException):
@@ -238,14 +228,10 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 
 
 @hydra.main(config_path=CONF_DIR, config_name="train", version_base="1.3")
+@exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
     hydra_cfg = HydraConfig.get()
-    try:
-        run_job(cfg, Path(hydra_cfg.runtime.output_dir), multirun=hydra_cfg.mode == RunMode.MULTIRUN)
-    except SemvprError as err:
-        # SystemExit passes through Hydra's own error reporting, which would print a traceback.
-        print(f"semvpr: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+    run_job(cfg, Path(hydra_cfg.runtime.output_dir), multirun=hydra_cfg.mode == RunMode.MULTIRUN)
 
 
 def main() -> None:

@@ -13,11 +13,11 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.errors import SemvprError
+from semvpr.errors import SemvprError, one_line
 from semvpr.models.teacher import build_teacher
 from semvpr.models.masks import TeacherMask
 from semvpr.segeval import teacher_outputs
-from semvpr.segment import one_line, run
+from semvpr.segment import run
 from tests.camvid_fixture import write_camvid
 from tests.helpers import CONF_DIR
 

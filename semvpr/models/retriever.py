@@ -19,11 +19,10 @@ from tqdm import tqdm
 from semvpr.data.datamodule import ImageDataset
 from semvpr.errors import SemvprError
 from semvpr.features import TRUNK_DTYPE, FeatureStore, PlaceFeatures, grid_size, store_loader
-from semvpr.metrics import knn, recall_result
+from semvpr.metrics import RECALL_NS, knn, recall_result
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.precision import autocast
 
-RECALL_NS = (1, 5, 10, 20)
 
 
 class Retriever(L.LightningModule):
