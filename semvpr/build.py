@@ -191,7 +191,7 @@ def static_grid(labels_dir: Path, root: Path, image_paths: list[Path], grid: tup
     lut = torch.from_numpy(static_lut(tuple(static_names)))
     maps = []
     for path in image_paths:
-        label = torch.from_numpy(np.asarray(Image.open(label_path(labels_dir, path, root)))).long()
+        label = torch.from_numpy(np.array(Image.open(label_path(labels_dir, path, root)))).long()
         maps.append(lut[label])
     pooled = torch.nn.functional.adaptive_avg_pool2d(torch.stack(maps)[:, None], grid)
     return pooled.flatten(1)

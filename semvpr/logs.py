@@ -1,0 +1,160 @@
+"""What a run prints: semvpr's own stage lines, and none of the known harmless third-party noise.
+
+Long stages (dataset generation, teacher and student training, pseudo-labels, trunk and mask
+caching, retriever epochs) report through :class:`Progress` or :class:`EpochLines`: plain lines on
+stderr with counts, elapsed time and an ETA, whether or not stderr is a terminal (a sweep's log
+file gets the same lines as a console). :func:`quiet_third_party` hides what Lightning and its
+dependencies repeat in every job and that says nothing about the run: adverts, device banners,
+warnings about settings semvpr makes on purpose (a frozen trunk in eval mode, short epochs).
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+import warnings
+from collections.abc import Iterable, Iterator
+from typing import Any, TextIO, TypeVar
+
+import lightning as L
+
+T = TypeVar("T")
+
+# Informational lines Lightning logs once per Trainer (so once per job of a sweep).
+NOISE_LINES = (
+    "💡 Tip:",                        # litlogger / litmodels adverts
+    "GPU available:", "TPU available:", "HPU available:",
+    "Using bfloat16 Automatic Mixed Precision", "Using 16bit Automatic Mixed Precision",
+    "`Trainer.fit` stopped:",         # semvpr's epoch lines say when training ends
+    "Loading `train_dataloader` to estimate number of stepping batches",
+)
+# Warnings about settings semvpr makes on purpose, with the reason each is harmless.
+NOISE_WARNINGS = (
+    r"Found \d+ module\(s\) in eval mode",   # the frozen trunk stays in eval mode (fixed BatchNorm)
+    r"The number of training batches \(\d+\) is smaller than the logging interval",  # short CPU epochs
+    r"Precision .* is not supported by the model summary",
+    r"`isinstance\(treespec, LeafSpec\)` is deprecated",  # Lightning on newer torch
+    r".*does not have many workers which may be a bottleneck",  # num_workers=0 on purpose (tiny sets)
+)
+
+
+class _DropNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.getMessage()).startswith(NOISE_LINES)
+
+
+_FILTER = _DropNoise()
+
+
+def quiet_third_party() -> None:
+    """Hide the known harmless third-party lines and warnings (idempotent; other output is kept)."""
+    for name in ("lightning.pytorch", "lightning.pytorch.utilities.rank_zero", "lightning.fabric",
+                 "lightning.fabric.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if _FILTER not in logger.filters:
+            logger.addFilter(_FILTER)
+        for handler in logger.handlers:
+            if _FILTER not in handler.filters:
+                handler.addFilter(_FILTER)
+    for pattern in NOISE_WARNINGS:
+        warnings.filterwarnings("ignore", message=pattern)
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0.0, seconds)
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+class Progress:
+    """Stage lines for a count-based stage: a first line, one at most every ``every_s`` seconds with
+    the count, rate and ETA, and a last line with the total time.
+
+    ``semvpr: pseudo-labels: 120/402 images (3.1/s, 39 s elapsed, ETA 1.5 min)``
+    """
+
+    def __init__(self, stage: str, total: int, unit: str = "images", every_s: float = 30.0,
+                 stream: TextIO | None = None, done: int = 0) -> None:
+        self.stage, self.total, self.unit, self.every_s = stage, int(total), unit, float(every_s)
+        self.stream = stream
+        self.start = time.monotonic()
+        self.initial = self.count = int(done)
+        self.last = self.start
+        self._print(f"{self.count}/{self.total} {self.unit}" + (" (cached)" if done and done >= total else ""))
+
+    def _print(self, text: str) -> None:
+        print(f"semvpr: {self.stage}: {text}", file=self.stream or sys.stderr, flush=True)
+
+    def update(self, n: int = 1) -> None:
+        """Count ``n`` more units; print a line when ``every_s`` has passed since the last."""
+        self.count += int(n)
+        now = time.monotonic()
+        if now - self.last >= self.every_s and self.count < self.total:
+            self.last = now
+            self._print(self.status(now))
+
+    def status(self, now: float | None = None) -> str:
+        """``count/total unit (rate, elapsed, ETA)`` at ``now``."""
+        elapsed = (time.monotonic() if now is None else now) - self.start
+        rate = (self.count - self.initial) / elapsed if elapsed > 0 else 0.0
+        eta = (self.total - self.count) / rate if rate > 0 else float("nan")
+        eta_text = _duration(eta) if eta == eta else "?"
+        return (f"{self.count}/{self.total} {self.unit} ({rate:.1f}/s, {_duration(elapsed)} elapsed, "
+                f"ETA {eta_text})")
+
+    def close(self) -> None:
+        """The last line: how many units in how long."""
+        if self.count > self.initial or self.initial < self.total:
+            self._print(f"{self.count}/{self.total} {self.unit} in {_duration(time.monotonic() - self.start)}")
+
+
+def progress(items: Iterable[T], stage: str, total: int, unit: str = "images", every_s: float = 30.0,
+             size: Any = None) -> Iterator[T]:
+    """Iterate ``items`` with stage lines; ``size(item)`` counts units per item (default 1)."""
+    bar = Progress(stage, total, unit, every_s)
+    for item in items:
+        yield item
+        bar.update(size(item) if size is not None else 1)
+    bar.close()
+
+
+class EpochLines(L.Callback):
+    """One line per epoch of a Lightning fit: the epoch, the logged metrics, elapsed time and ETA.
+
+    ``semvpr: retriever: epoch 2/4: train/loss 0.231, val/R@1 31.2, val/R@5 52.0 (1.2 min elapsed, ETA 1.2 min)``
+    """
+
+    def __init__(self, stage: str, keys: tuple[str, ...] = ("train/loss", "val/R@1", "val/R@5"),
+                 stream: TextIO | None = None) -> None:
+        self.stage, self.keys, self.stream = stage, keys, stream
+        self.start = 0.0
+        self.first_epoch = 0
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.start = time.monotonic()
+        self.first_epoch = trainer.current_epoch
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # Runs after the epoch's validation, so val metrics of this epoch are in callback_metrics.
+        if trainer.sanity_checking or not trainer.is_global_zero:
+            return
+        epoch, total = trainer.current_epoch + 1, trainer.max_epochs
+        metrics = trainer.callback_metrics
+        shown = ", ".join(f"{k} {float(metrics[k]):.3g}" for k in self.keys if k in metrics)
+        elapsed = time.monotonic() - self.start
+        done = epoch - self.first_epoch
+        eta = elapsed / done * (total - epoch) if total and total > 0 and done > 0 else None
+        timing = f"{_duration(elapsed)} elapsed" + (f", ETA {_duration(eta)}" if eta is not None else "")
+        print(f"semvpr: {self.stage}: epoch {epoch}/{total if total and total > 0 else '?'}"
+              f"{': ' + shown if shown else ''} ({timing})", file=self.stream or sys.stderr, flush=True)
+
+
+def trainer_kwargs(stage: str, callbacks: Iterable[L.Callback] = ()) -> dict[str, Any]:
+    """Trainer arguments for a semvpr fit: no progress bar or model summary (both repeat in every job
+    of a sweep), :class:`EpochLines` after ``callbacks``; the known noise hidden."""
+    quiet_third_party()
+    return {"enable_progress_bar": False, "enable_model_summary": False,
+            "callbacks": [*callbacks, EpochLines(stage)]}

@@ -1,0 +1,94 @@
+"""semvpr's stage lines and the hiding of known third-party noise."""
+from __future__ import annotations
+
+import io
+import logging
+import re
+import warnings
+from types import SimpleNamespace
+
+import pytest
+
+from semvpr import logs
+
+
+def test_progress_lines_have_count_rate_and_eta(monkeypatch: pytest.MonkeyPatch) -> None:
+    clock = iter([0.0, 10.0, 20.0, 40.0, 100.0])
+    monkeypatch.setattr(logs.time, "monotonic", lambda: next(clock))
+    out = io.StringIO()
+    bar = logs.Progress("pseudo-labels", 100, every_s=15, stream=out)  # start: t=0
+    bar.update(10)  # t=10: under every_s, no line
+    bar.update(10)  # t=20: 20 images in 20 s -> 1.0/s, 80 left -> ETA 80 s
+    bar.update(20)  # t=40: 40 in 40 s, 20 s since the last line -> a line, ETA 60 s
+    bar.close()     # t=100
+    lines = out.getvalue().splitlines()
+    assert lines == [
+        "semvpr: pseudo-labels: 0/100 images",
+        "semvpr: pseudo-labels: 20/100 images (1.0/s, 20 s elapsed, ETA 80 s)",
+        "semvpr: pseudo-labels: 40/100 images (1.0/s, 40 s elapsed, ETA 60 s)",
+        "semvpr: pseudo-labels: 40/100 images in 1.7 min",
+    ]
+
+
+def test_progress_says_when_everything_was_cached() -> None:
+    out = io.StringIO()
+    bar = logs.Progress("trunk features", 5, done=5, stream=out)
+    bar.close()
+    assert out.getvalue().splitlines() == ["semvpr: trunk features: 5/5 images (cached)"]
+
+
+def test_epoch_lines_show_metrics_and_eta(monkeypatch: pytest.MonkeyPatch) -> None:
+    clock = iter([0.0, 30.0])
+    monkeypatch.setattr(logs.time, "monotonic", lambda: next(clock))
+    out = io.StringIO()
+    cb = logs.EpochLines("retriever", stream=out)
+    trainer = SimpleNamespace(current_epoch=0, max_epochs=4, sanity_checking=False, is_global_zero=True,
+                              callback_metrics={"train/loss": 0.25, "val/R@1": 31.25})
+    cb.on_fit_start(trainer, None)  # type: ignore[arg-type]
+    cb.on_train_epoch_end(trainer, None)  # type: ignore[arg-type]
+    assert out.getvalue().strip() == ("semvpr: retriever: epoch 1/4: train/loss 0.25, val/R@1 31.2 "
+                                      "(30 s elapsed, ETA 1.5 min)")
+
+
+def test_known_noise_is_hidden_and_the_rest_kept(caplog: pytest.LogCaptureFixture) -> None:
+    logs.quiet_third_party()
+    logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    with caplog.at_level(logging.INFO, logger="lightning.pytorch.utilities.rank_zero"):
+        logger.info("💡 Tip: For seamless cloud logging and experiment tracking, try installing litlogger")
+        logger.info("GPU available: False, used: False")
+        logger.info("Something the user should see")
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages == ["Something the user should see"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        logs.quiet_third_party()  # filters go in front of the "default" one
+        warnings.warn("Found 38 module(s) in eval mode at the start of training.", UserWarning)
+        warnings.warn("a real problem", UserWarning)
+    assert [str(w.message) for w in caught] == ["a real problem"]
+
+
+def test_a_trainer_built_with_trainer_kwargs_prints_only_stage_lines(tmp_path, capfd: pytest.CaptureFixture[str]) -> None:
+    import lightning as L
+    import torch
+    from torch.utils.data import DataLoader, TensorDataset
+
+    class Tiny(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.lin = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, _):  # type: ignore[no-untyped-def]
+            loss = self.lin(batch[0]).pow(2).mean()
+            self.log("train/loss", loss)
+            return loss
+
+        def configure_optimizers(self):  # type: ignore[no-untyped-def]
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    data = DataLoader(TensorDataset(torch.randn(8, 2)), batch_size=4)
+    trainer = L.Trainer(max_epochs=2, logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
+                        accelerator="cpu", **logs.trainer_kwargs("tiny"))
+    trainer.fit(Tiny(), data)
+    captured = capfd.readouterr()
+    lines = [line for line in (captured.out + captured.err).splitlines() if line.strip()]
+    assert len(lines) == 2 and all(re.match(r"semvpr: tiny: epoch [12]/2: train/loss ", line) for line in lines), lines
