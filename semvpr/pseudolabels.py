@@ -14,11 +14,11 @@ import numpy as np
 import torch
 from PIL import Image
 from torch.utils.data import DataLoader
-from tqdm import tqdm
 
 from semvpr.artifacts import build_once, config_hash
 from semvpr.errors import SemvprError
 from semvpr.io import atomic_file
+from semvpr.logs import Progress
 from semvpr.precision import autocast
 
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
@@ -52,18 +52,18 @@ def _label_missing(
     from semvpr.data.datamodule import ImageDataset
 
     todo = [p for p in paths if not label_path(out, p, root).is_file()]
-    bar = tqdm(total=len(paths), initial=len(paths) - len(todo), desc="pseudo-labels", unit="img", disable=None)
+    bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
     if not todo:
-        bar.close()
         return
     device = getattr(teacher, "device", torch.device("cpu"))
     loader = DataLoader(ImageDataset(todo, image_size), batch_size=batch_size, num_workers=num_workers)
-    with bar, torch.no_grad(), autocast(device):
+    with torch.no_grad(), autocast(device):
         for images, index in loader:
             ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
             for i, k in enumerate(index.tolist()):
                 _write_png(ids[i], label_path(out, todo[k], root))
             bar.update(len(index))
+    bar.close()
 
 
 def pseudo_labels(

@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from tqdm import tqdm
 
 from semvpr.artifacts import build_once
 from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.logs import Progress
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
 # 3: static classes of different value: seasonal vegetation (June database, November queries), ground in
@@ -140,36 +140,37 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
     total = sum(s.db_per_route + s.q_per_route if k == "vpr" else s.q_per_route for k, _, _, s in routes)
     fractions: dict[str, list[tuple[float, float]]] = {}
     class_pixels = np.zeros(len(TRAIN_ID_NAMES), np.int64)  # over every VPR capture
-    with tqdm(total=total, desc=f"SynthCity {preset} seed {seed}", unit="img", disable=None) as bar:
-        for kind, split, rid, s in routes:
-            length = s.db_per_route * DB_STEP_M
-            pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec, ground_pool)
-            q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
+    bar = Progress(f"SynthCity {preset} seed {seed}", total)
+    for kind, split, rid, s in routes:
+        length = s.db_per_route * DB_STEP_M
+        pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec, ground_pool)
+        q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
+        if kind == "vpr":
+            captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
+            captures += [(x, 1, i) for i, x in enumerate(q_x)]
+        else:
+            captures = [(x, i % 2, i) for i, x in enumerate(q_x)]
+        for x, trav, i in captures:
+            rng = np.random.default_rng([seed, GENERATOR_VERSION, rid, trav, i])
+            img, label = render_capture(pano, float(x), rng, spec, pool, query=trav == 1)
+            key = f"{'seg-' if kind == 'seg' else ''}{split}"
+            fractions.setdefault(key, []).append(
+                (float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
             if kind == "vpr":
-                captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
-                captures += [(x, 1, i) for i, x in enumerate(q_x)]
+                class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[:len(TRAIN_ID_NAMES)]
+                sub = "queries" if trav else "database"
+                name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav],
+                                f"r{rid}{sub[0]}{i:04d}")
+                _save(img, root / "images" / split / sub / name, format="JPEG", quality=JPEG_QUALITY)
+                _save(label, root / "labels" / split / sub / (name[:-4] + ".png"), format="PNG")
             else:
-                captures = [(x, i % 2, i) for i, x in enumerate(q_x)]
-            for x, trav, i in captures:
-                rng = np.random.default_rng([seed, GENERATOR_VERSION, rid, trav, i])
-                img, label = render_capture(pano, float(x), rng, spec, pool, query=trav == 1)
-                key = f"{'seg-' if kind == 'seg' else ''}{split}"
-                fractions.setdefault(key, []).append(
-                    (float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
-                if kind == "vpr":
-                    class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[:len(TRAIN_ID_NAMES)]
-                    sub = "queries" if trav else "database"
-                    name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav],
-                                    f"r{rid}{sub[0]}{i:04d}")
-                    _save(img, root / "images" / split / sub / name, format="JPEG", quality=JPEG_QUALITY)
-                    _save(label, root / "labels" / split / sub / (name[:-4] + ".png"), format="PNG")
-                else:
-                    city = f"route{rid}"
-                    stem = f"{city}_{rid:06d}_{i:06d}"
-                    _save(img, root / "seg" / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png", format="PNG")
-                    _save(train_ids_to_label_ids(label),
-                          root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
-                bar.update()
+                city = f"route{rid}"
+                stem = f"{city}_{rid:06d}_{i:06d}"
+                _save(img, root / "seg" / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png", format="PNG")
+                _save(train_ids_to_label_ids(label),
+                      root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
+            bar.update()
+    bar.close()
     stats = {"preset": preset, "seed": seed, "version": GENERATOR_VERSION,
              "render": dataclasses.asdict(spec),
              "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
