@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.errors import SemvprError
+from semvpr.models.aggregator import Aggregator, check_weights
 
 MAX_KMEANS_FEATURES = 50_000  # NetVLAD's recipe: cluster a 50k random sample of training local features
 
@@ -87,16 +88,14 @@ def vlad_aggregate(x: Tensor, weights: Tensor, centroids: Tensor) -> Tensor:
     return F.normalize(vlad.flatten(1), dim=1)
 
 
-def _check_mask(x: Tensor, mask: Tensor | None) -> Tensor | None:
-    if mask is None:
-        return None
-    if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != x.shape[-2:] or mask.shape[0] not in (1, x.shape[0]):
-        raise ValueError(f"mask must be (B,1,h,w) on the feature grid {tuple(x.shape[-2:])}, got {tuple(mask.shape)}")
-    return mask.float()
+class NetVLAD(Aggregator):
+    """NetVLAD layer: (B,D,h,w) local features [+ mask] → (B,K·D) L2-normalised descriptor.
 
+    The mask scales each location's soft-assignment mass (features are never zeroed); initialised by
+    k-means on a sample of training local features.
+    """
 
-class NetVLAD(nn.Module):
-    """NetVLAD layer: (B,D,h,w) local features [+ mask] → (B,K·D) L2-normalised descriptor."""
+    init_sample = "features"
 
     def __init__(self, num_clusters: int = 64, dim: int = 512) -> None:
         super().__init__()
@@ -130,6 +129,11 @@ class NetVLAD(nn.Module):
         self.set_centroids(torch.from_numpy(centroids), alpha)
         return alpha
 
+    def init_from_sample(self, feats: Tensor, static: Tensor | None, seed: int) -> dict[str, float | int | str]:
+        """k-means / α initialisation from the sampled local features (labels unused)."""
+        alpha = self.init_from_features(feats, seed=seed)
+        return {"init": "kmeans", "features": len(feats), "alpha": float(alpha)}
+
     def _features(self, feats: Tensor | np.ndarray) -> np.ndarray:
         if feats.ndim != 2 or feats.shape[1] != self.dim:
             raise ValueError(f"expected (N,{self.dim}) local features, got {tuple(feats.shape)}")
@@ -149,7 +153,7 @@ class NetVLAD(nn.Module):
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
         """(B,D,h,w) features and optional (B,1,h,w) contribution weights → (B,K·D) descriptor."""
-        mask = _check_mask(x, mask)
+        mask = check_weights(x, mask)
         with torch.autocast(x.device.type, enabled=False):
             x = self._prepare(x)
             weights = self._weights(x)

@@ -30,7 +30,13 @@ from semvpr.models.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_feat
 FAR_SHADOW = -4.0  # shadow = −4·c_k when there are no dynamic features: never wins against the representative
 
 class SRAL(NetVLAD):
-    """NetVLAD with per-cluster shadow centroids that down-weight features near dynamic content."""
+    """NetVLAD with per-cluster shadow centroids that down-weight features near dynamic content.
+
+    The mask enters as in NetVLAD (it scales each location's assignment mass); initialised from a
+    sample of local features labelled static / dynamic by the teacher's pseudo-labels.
+    """
+
+    init_sample = "labelled"
 
     def __init__(self, num_clusters: int = 64, dim: int = 512, num_shadows: int = 4) -> None:
         super().__init__(num_clusters, dim)
@@ -65,6 +71,12 @@ class SRAL(NetVLAD):
         """Σ_k a_k β_k per location, (B,1,h,w) in [0,1]."""
         with torch.autocast(x.device.type, enabled=False):
             return self._weights(self._prepare(x)).sum(1, keepdim=True).clamp(0.0, 1.0)
+
+    def init_from_sample(self, feats: Tensor, static: Tensor | None, seed: int) -> dict[str, float | int | str]:
+        """Semantic-constrained init: ``static`` (N,) marks the static locations of ``feats``."""
+        assert static is not None, "SRAL's init needs the sample's static labels"
+        counts = self.init_semantic(feats[static], feats[~static], seed=seed)
+        return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}
 
     def init_from_features(self, feats: Tensor | np.ndarray, seed: int = 0, niter: int = 50) -> float:
         """Representatives from unlabelled features; shadows at the antipodes (no semantics available)."""
