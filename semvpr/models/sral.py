@@ -11,7 +11,8 @@ and shadow logits l_kj(x) = 2α x·s_kj − α‖s_kj‖² (a second conv, same 
 
 A feature close to a shadow (e.g. a car) keeps its cluster assignment a_k but gets a small β_k, so it
 barely contributes; attention(x) = Σ_k a_k β_k ∈ [0,1]. With S = 0, β ≡ 1 and SRAL is NetVLAD exactly.
-Semantic-constrained init: k-means on static-class features → representatives (+ NetVLAD's α); k-means
+Semantic-constrained init: k-means on static-class features → representatives (+ NetVLAD's α, and
+the clusters' raw means as residual centroids, as NetVLAD); k-means
 on dynamic-class features → min(K·S, N_dynamic) shadow candidates; each cluster takes the S candidates
 nearest its representative. Without enough dynamic features (fewer than S) the shadows start "far":
 s_kj = −4·c_k, outside the unit sphere, so l_kj ≤ −8α < −3α ≤ l_k for unit features; β ≈ 1 and SRAL
@@ -24,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, spherical_kmeans,
-                                   subsample)
+from semvpr.models.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, cluster_means,
+                                   spherical_kmeans, subsample)
 
 FAR_SHADOW = -4.0  # shadow = −4·c_k when there are no dynamic features: never wins against the representative
 
@@ -88,7 +89,7 @@ class SRAL(NetVLAD):
         static = subsample(self._features(static_feats), MAX_KMEANS_FEATURES, seed)
         reps = spherical_kmeans(static, self.num_clusters, seed, niter)
         alpha = alpha_from_features(static, reps)
-        self.set_centroids(torch.from_numpy(reps), alpha)
+        self.set_centroids(torch.from_numpy(reps), alpha, torch.from_numpy(cluster_means(static, reps)))
         num_dynamic = 0 if dynamic_feats is None else len(dynamic_feats)
         num_candidates = 0
         if self.num_shadows and num_dynamic >= self.num_shadows:
