@@ -140,7 +140,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 
 def run_labels(cfg: DictConfig) -> dict[str, Any]:
-    """What the report groups a run by: aggregator, mask, its weighting, backbone, seed (and the preset)."""
+    """What the report groups a run by: aggregator, mask, its weighting, backbone, seed; ``filter`` is
+    the preset the config started from (an explicit aggregator= or mask= may have replaced its choices)."""
     return {"aggregator": cfg.aggregator.get("name"), "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
             "mask": cfg.mask.get("name"), "weights": cfg.mask.get("weights"),
             "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)), "backbone": cfg.backbone.get("name"),
