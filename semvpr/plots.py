@@ -177,7 +177,7 @@ def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
     (whichever the sweep's runs wrote); else a skip reason."""
     keys = sorted({k for job in sweep.jobs if (job.dir / "maps.npz").is_file()
                    for k in (_maps(job.dir / "maps.npz") or {}) if k not in MAP_META},
-                  key=lambda k: (k != ATTENTION, k))
+                  key=lambda k: (k != ATTENTION, k in sweep.upper_bounds, k))  # upper bounds last
     # the backbone whose runs fill the most columns; sorted order breaks ties
     candidates = [(bb, {key: _map_source(sweep, bb, key) for key in keys}) for bb in sweep.backbones]
     bb, sources = max(candidates, key=lambda c: sum(v is not None for v in c[1].values()))
