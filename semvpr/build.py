@@ -1,4 +1,5 @@
-"""Build a run's components from its config: place sets, backbone, semantic artifacts, mask source.
+"""Build a run's components from its config: place sets, backbone, semantic artifacts, mask source,
+aggregator (from ``conf/aggregator``, against :class:`semvpr.models.aggregator.Aggregator`).
 
 Shared by ``semvpr.train`` and ``semvpr.eval`` so both construct exactly the same model. Teacher,
 pseudo-labels, student and feature caches come from the artifact cache (built on first use).
@@ -13,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 from PIL import Image
@@ -24,6 +25,7 @@ from semvpr.data.classes import static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, unwrap_user_error
 from semvpr.features import STORAGES, FeatureStore, grid_size
+from semvpr.models.aggregator import Aggregator
 from semvpr.models.masks import WEIGHTINGS, ClassWeights, MaskSource, OracleMask, StudentMask, TeacherMask
 from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
@@ -34,7 +36,7 @@ MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at 
 
 @dataclass
 class Semantic:
-    """Semantic artifacts a filter needs: teacher, its pseudo-labels of the train images, student."""
+    """Semantic artifacts a run needs: teacher, its pseudo-labels of the train images, student."""
 
     teacher: nn.Module | None = None
     labels_dir: Path | None = None
@@ -58,10 +60,8 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
 
 def check_config(cfg: DictConfig) -> None:
     """Reject config values that would fail deep inside training with a cryptic error."""
-    if cfg.filter.mask not in MASK_SOURCES:
-        raise SemvprError(f"filter.mask={cfg.filter.mask!r} is not one of {list(MASK_SOURCES)}")
-    if cfg.filter.init not in ("kmeans", "semantic"):
-        raise SemvprError(f"filter.init={cfg.filter.init!r} must be 'kmeans' or 'semantic'")
+    if cfg.mask.name not in MASK_SOURCES:
+        raise SemvprError(f"mask.name={cfg.mask.name!r} is not one of {list(MASK_SOURCES)}")
     for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features",
                 "init_per_image", "cache_refresh"):
         if int(cfg.model[key]) < 1:
@@ -72,12 +72,12 @@ def check_config(cfg: DictConfig) -> None:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
     if cfg.features.storage not in STORAGES:
         raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
-    weighting = cfg.filter.get("weights", "binary")
+    weighting = cfg.mask.weights
     if weighting not in WEIGHTINGS:
-        raise SemvprError(f"filter.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
-    if weighting == "learned" and cfg.filter.mask == "none":
-        raise SemvprError(f"filter={cfg.filter.name} has no mask to weight; filter.weights=learned needs "
-                          "filter=unet, mask2former or oracle")
+        raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+    if weighting == "learned" and cfg.mask.name == "none":
+        raise SemvprError("mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
+                          "mask=student, teacher or oracle (filter=unet, mask2former or oracle)")
 
 
 def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
@@ -106,8 +106,8 @@ def instantiate_backbone(node: DictConfig, seed: int, pretrained: bool = True) -
 
 
 def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Semantic:
-    """Teacher, pseudo-labels and student, as far as the filter needs them."""
-    needs_labels = cfg.filter.init == "semantic" or cfg.filter.mask in ("teacher", "student")
+    """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask need them."""
+    needs_labels = aggregator_class(cfg).init_sample == "labelled" or cfg.mask.name in ("teacher", "student")
     if not needs_labels:
         return Semantic()
     from semvpr.models.student import build_student
@@ -123,15 +123,15 @@ def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Sem
     labels_dir = pseudo_labels(teacher, teacher.teacher_key, images, tuple(cfg.data.image_size),
                                cfg.paths.cache_dir, train.root)
     semantic = Semantic(teacher, labels_dir, train.root)
-    if cfg.filter.mask == "student":
+    if cfg.mask.name == "student":
         semantic.student = build_student(cfg.student, backbone, images, labels_dir, train.root,
                                          tuple(cfg.data.image_size), cfg.paths.cache_dir)
     return semantic
 
 
 def build_mask_source(cfg: DictConfig, backbone: nn.Module, semantic: Semantic | None = None) -> MaskSource | None:
-    """The filter's mask source: trained (from ``semantic``), or untrained for weights to be loaded into."""
-    mask = cfg.filter.mask
+    """The run's mask source: trained (from ``semantic``), or untrained for weights to be loaded into."""
+    mask = cfg.mask.name
     if mask == "none":
         return None
     static = list(cfg.teacher.static_classes)
@@ -148,8 +148,8 @@ def build_mask_source(cfg: DictConfig, backbone: nn.Module, semantic: Semantic |
 
 
 def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
-    """Learned per-class weights (filter.weights=learned), else None."""
-    if cfg.filter.get("weights", "binary") != "learned":
+    """Learned per-class weights (mask.weights=learned), else None."""
+    if cfg.mask.weights != "learned":
         return None
     return ClassWeights(list(cfg.teacher.static_classes), float(cfg.model.class_weights.init_logit))
 
@@ -197,23 +197,44 @@ def static_grid(labels_dir: Path, root: Path, image_paths: list[Path], grid: tup
     return pooled.flatten(1)
 
 
-def init_aggregator(cfg: DictConfig, aggregator: nn.Module, backbone: nn.Module, train_db: FeatureStore,
+def aggregator_class(cfg: DictConfig) -> type[Aggregator]:
+    """The class ``aggregator.module`` names (not instantiated: its init needs are read before building)."""
+    cls = get_class(cfg.aggregator.module._target_)
+    if not (isinstance(cls, type) and issubclass(cls, Aggregator)):
+        raise SemvprError(f"aggregator={cfg.aggregator.name}: {cfg.aggregator.module._target_} is not a "
+                          "semvpr.models.aggregator.Aggregator")
+    return cls
+
+
+def build_aggregator(cfg: DictConfig, backbone: nn.Module) -> Aggregator:
+    """The run's aggregator for the backbone's channels. An aggregator on a fixed grid (a ``grid`` key)
+    left null gets the backbone's grid at data.image_size, written into ``cfg`` so that the checkpoint
+    records the grid it was built for."""
+    node = cfg.aggregator.module
+    if "grid" in node and node.grid is None:
+        node.grid = list(grid_size(backbone, tuple(cfg.data.image_size)))
+    aggregator_class(cfg)
+    return instantiate_node(node, dim=backbone.out_channels)
+
+
+def init_aggregator(cfg: DictConfig, aggregator: Aggregator, backbone: nn.Module, train_db: FeatureStore,
                     train: PlaceSet, semantic: Semantic) -> dict:
-    """k-means (NetVLAD) or semantic-constrained (SRAL) initialisation; returns what was used."""
+    """The aggregator's initialisation from a sample of training local features (NetVLAD's recipe),
+    labelled static / dynamic by the teacher where it asks for labels; returns what was used."""
+    if aggregator.init_sample == "none":
+        return {"init": "none"}
     feats, where = sample_local_features(backbone, train_db, int(cfg.model.init_features),
                                          int(cfg.model.init_per_image), cfg.seed)
-    if cfg.filter.init == "kmeans":
-        alpha = aggregator.init_from_features(feats, seed=cfg.seed)
-        return {"init": "kmeans", "features": len(feats), "alpha": float(alpha)}
+    if aggregator.init_sample == "features":
+        return aggregator.init_from_sample(feats, None, cfg.seed)
     assert semantic.labels_dir is not None and semantic.labels_root is not None
     grid = grid_size(backbone, tuple(cfg.data.image_size))
     used = np.unique(where[:, 0].numpy())
     static = static_grid(semantic.labels_dir, semantic.labels_root, [train.db_paths[i] for i in used], grid,
                          list(cfg.teacher.static_classes))
     row = torch.from_numpy(np.searchsorted(used, where[:, 0].numpy()))
-    is_static = static_locations(static[row, where[:, 1]], MIN_STATIC_PER_CLUSTER * aggregator.num_clusters)
-    counts = aggregator.init_semantic(feats[is_static], feats[~is_static], seed=cfg.seed)
-    return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}
+    is_static = static_locations(static[row, where[:, 1]], MIN_STATIC_PER_CLUSTER * int(cfg.aggregator.module.num_clusters))
+    return aggregator.init_from_sample(feats, is_static, cfg.seed)
 
 
 def static_locations(fraction: Tensor, at_least: int) -> Tensor:

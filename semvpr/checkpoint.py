@@ -3,10 +3,14 @@
 Researchers exchange checkpoints, so nothing read from one is ever run. ``torch.load`` uses
 ``weights_only=True``, and the model is never rebuilt by instantiating ``_target_``s stored in the
 file: a checkpoint records *choices* (the config group options, e.g. ``backbone=vgg16``,
-``filter=unet``) and plain hyper-parameter values. Eval loads the project's own group files for
+``aggregator=sral``, ``mask=student``) and plain hyper-parameter values. Eval loads the project's own group files for
 those choices (which alone supply every ``_target_``) and checks each stored value against them:
 known keys only, the same kind of value, no interpolations, no keys starting with ``_``. Anything
 else is refused with one line naming the key, before anything is built or written.
+
+Checkpoints written before the aggregator and the mask were groups of their own record a ``filter``
+choice (SRAL + student for ``unet``, ...); they are read as the aggregator and mask that the
+project's filter preset selects, with the filter's recorded ``weights``.
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from semvpr.errors import SemvprError
 FORMAT = 2
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 #: Config groups that define the model; each group file names itself in its ``name`` key.
-GROUPS = ("backbone", "filter", "model", "teacher", "student")
+GROUPS = ("backbone", "aggregator", "mask", "model", "teacher", "student")
 #: Training-only nodes: not recorded (eval never builds an optimizer).
 TRAINING_ONLY = {"model": ("optimizer", "scheduler")}
 _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
@@ -80,6 +84,8 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
     choices, config = record.get("choices"), record.get("config")
     if not isinstance(choices, dict) or not isinstance(config, dict):
         raise SemvprError(f"{where}: model record lacks 'choices' / 'config'")
+    if "filter" in choices and "aggregator" not in choices:
+        choices, config = _from_filter(choices, config, where)
     unknown = sorted(set(choices) - set(GROUPS)) or sorted(set(config) - set(GROUPS))
     if unknown:
         raise SemvprError(f"{where}: '{unknown[0]}' is not a model config group ({', '.join(GROUPS)})")
@@ -102,6 +108,21 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
         _check(stored, schema, f"{where}: {group}")
         cfg[group] = OmegaConf.merge(cfg[group], stored)
     return cfg
+
+
+def _from_filter(choices: dict[str, Any], config: dict[str, Any], where: str) -> tuple[dict, dict]:
+    """A record naming a ``filter`` preset, as the aggregator and mask choices the preset selects."""
+    choices, config = dict(choices), dict(config)
+    choice = choices.pop("filter")
+    stored = config.pop("filter", {})
+    options = sorted(p.stem for p in (CONF_DIR / "filter").glob("*.yaml"))
+    if not isinstance(choice, str) or choice not in options or not isinstance(stored, dict):
+        raise SemvprError(f"{where}: choices.filter={choice!r} is not one of the project's filter presets {options}")
+    for entry in OmegaConf.load(CONF_DIR / "filter" / f"{choice}.yaml").get("defaults", []):
+        for key, value in entry.items():  # "override /aggregator": "sral"
+            choices[key.split("/")[-1]] = value
+    config["mask"] = {"weights": stored.get("weights", "binary")}
+    return choices, config
 
 
 def _check(stored: Any, schema: Any, path: str) -> None:

@@ -19,7 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
-from semvpr.build import build_backbone, build_class_weights, build_mask_source, build_places, instantiate_node
+from semvpr.build import build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, exit_on_user_error
@@ -29,16 +29,22 @@ from semvpr.models.retriever import Retriever, evaluate
 from semvpr.io import CONF_DIR, write_json
 
 
+#: Command-line group choices that would change the model, and the groups each one sets.
+MODEL_OVERRIDES = {"backbone": ("backbone",), "aggregator": ("aggregator",), "mask": ("mask",),
+                   "filter": ("aggregator", "mask")}
+
+
 def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig]:
     """The checkpoint ``cfg.ckpt`` as a retriever in eval mode, and the config it was rebuilt with."""
     state, record = read_checkpoint(cfg.ckpt)
     merged = model_config(record, cfg, where=f"checkpoint {cfg.ckpt}")
-    for group in sorted(explicit & {"backbone", "filter"}):
-        if cfg[group].name != merged[group].name:
-            raise SemvprError(f"checkpoint {cfg.ckpt} was trained with backbone={merged.backbone.name} "
-                              f"filter={merged.filter.name}; drop the {group}= override (the model comes from the checkpoint)")
+    trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
+    for override in sorted(explicit & set(MODEL_OVERRIDES)):
+        if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):
+            raise SemvprError(f"checkpoint {cfg.ckpt} was trained with {trained}; drop the {override}= override "
+                              "(the model comes from the checkpoint)")
     backbone = build_backbone(merged, pretrained=False)
-    aggregator = instantiate_node(merged.filter.aggregator, dim=backbone.out_channels)
+    aggregator = build_aggregator(merged, backbone)
     whitening = PCAWhitening(aggregator.output_dim, merged.model.pca_dim) if merged.model.pca_dim else None
     retriever = Retriever(backbone, aggregator, build_mask_source(merged, backbone), whitening,
                           eval_batch_size=merged.model.eval_batch_size, num_workers=merged.data.num_workers,
@@ -46,8 +52,7 @@ def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[R
     try:
         retriever.load_state_dict(state, strict=True)
     except RuntimeError as err:
-        raise SemvprError(f"checkpoint {cfg.ckpt} does not fit backbone={merged.backbone.name} "
-                          f"filter={merged.filter.name}: {str(err).splitlines()[0]}") from None
+        raise SemvprError(f"checkpoint {cfg.ckpt} does not fit {trained}: {str(err).splitlines()[0]}") from None
     return retriever.eval(), merged
 
 
@@ -77,8 +82,8 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     test = build_places(merged, ("test",))["test"]
     result = evaluate(place_descriptors(retriever, test, "db", merged), place_descriptors(retriever, test, "q", merged),
                       test.positives(25.0))
-    out = {"checkpoint": str(cfg.ckpt), "data": merged.data.name, "filter": merged.filter.name,
-           "backbone": merged.backbone.name, "database": len(test.db_paths), "queries": len(test.q_paths),
+    out = {"checkpoint": str(cfg.ckpt), "data": merged.data.name, "aggregator": merged.aggregator.name,
+           "mask": merged.mask.name, "backbone": merged.backbone.name, "database": len(test.db_paths), "queries": len(test.q_paths),
            "queries_without_positives": result["num_without_positives"],
            **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()}}
     if result["num_without_positives"]:

@@ -40,8 +40,8 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
     """Top-k database matches (path, UTM, distance) for every query image."""
     paths = query_images(cfg.queries)
     retriever, merged = load_retriever(cfg, explicit)
-    if merged.filter.mask == "oracle":
-        raise SemvprError("filter=oracle needs ground-truth labels and cannot localise new images")
+    if merged.mask.name == "oracle":
+        raise SemvprError("mask=oracle needs ground-truth labels and cannot localise new images")
     places = build_places(merged, ("test",))["test"]
     db_desc = place_descriptors(retriever, places, "db", merged)
     q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)

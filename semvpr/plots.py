@@ -1,4 +1,5 @@
-"""Sweep-report figures: Recall@N curves, the seed paper's Figure 3 (attention / masks), top-k retrievals."""
+"""Sweep-report figures: Recall@N curves, R@1 per aggregator and mask, the seed paper's Figure 3
+(attention / masks), top-k retrievals, learned class weights."""
 from __future__ import annotations
 
 import json
@@ -19,13 +20,10 @@ if TYPE_CHECKING:
 
     from semvpr.report import Job, Sweep
 
-# Figure-3 columns: (maps.npz array, filter jobs to take it from in preference order, column title).
-MAP_COLUMNS = (
-    ("attention", ("attention", "unet", "mask2former"), "SRAL attention\n(per-image scaled)"),
-    ("teacher", ("mask2former",), "teacher mask\n(bright = static)"),
-    ("student", ("unet",), "student mask\n(bright = static)"),
-    ("oracle", ("oracle",), "oracle mask (labels)\n(bright = static)"),
-)
+# maps.npz: "attention" (the aggregator's own map, if it has one), one array per mask source named
+# after it, and these bookkeeping arrays.
+ATTENTION = "attention"
+MAP_META = ("query_index", "image_paths")
 OK_COLOUR, WRONG_COLOUR = "#1a9850", "#d73027"
 
 
@@ -77,11 +75,11 @@ def _curve(recalls: Any) -> dict[int, float]:
 
 
 def recall_curves(sweep: Sweep, out: Path) -> str | None:
-    """Recall@N curves (mean over seeds, ±1 std band) per filter, one panel per backbone; else a skip reason."""
+    """Recall@N curves (mean over seeds, ±1 std band) per sweep row, one panel per backbone; else a skip reason."""
     panels = []
     for bb in sweep.backbones:
         lines = []
-        for f in sweep.filters:
+        for f in sweep.cells:
             curves = [c for c in (_curve(j.metrics.get("recalls")) for j in sweep.jobs_of(f, bb) if j.ok) if c]
             ns = sorted(set.intersection(*(set(c) for c in curves))) if curves else []
             if ns:
@@ -95,7 +93,7 @@ def recall_curves(sweep: Sweep, out: Path) -> str | None:
         for f, ns, ys in lines:
             mean = ys.mean(axis=0)
             (line,) = ax.plot(ns, mean, marker="o", ms=3, ls="--" if sweep.label(f) != f else "-",
-                              color=f"C{sweep.filters.index(f) % 10}",  # same colour per filter in every panel
+                              color=f"C{sweep.cells.index(f) % 10}",  # same colour per row in every panel
                               label=f"{sweep.label(f)} (n={len(ys)})")
             if len(ys) > 1:
                 std = ys.std(axis=0, ddof=1)
@@ -106,7 +104,43 @@ def recall_curves(sweep: Sweep, out: Path) -> str | None:
         ax.set_xticks([n for n in (1, 5, 10, 15, 20, 25, 50, 100) if n <= top])  # the reported N, not 2.5 steps
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right", fontsize=9)
-    fig.suptitle("Recall@N per filter (mean over seeds, band = ±1 std)")
+    fig.suptitle("Recall@N per aggregator · mask (mean over seeds, band = ±1 std)")
+    _save(fig, out)
+    return None
+
+
+def matrix_bars(sweep: Sweep, out: Path) -> str | None:
+    """Grouped bars of test R@1 (mean ± std over seeds): one group per aggregator, one bar per mask,
+    one panel per backbone; else a skip reason."""
+    from semvpr.report import cell_name, mean_std
+
+    panels = []
+    for bb in sweep.backbones:
+        bars = {(a, m): [j.recall(1) for j in sweep.jobs_of(cell_name(a, m), bb) if j.ok]
+                for a in sweep.aggregators for m in sweep.masks}
+        bars = {k: v for k, v in bars.items() if any(math.isfinite(x) for x in v)}
+        if bars:
+            panels.append((bb, bars))
+    if not panels:
+        return "no finished run recorded test R@1"
+    masks = sweep.masks
+    fig = _new_figure(max(6.0, 1.4 * len(sweep.aggregators) * len(panels) + 1.5), 4.3)
+    for ax, (bb, bars) in zip(fig.subplots(1, len(panels), squeeze=False)[0], panels):
+        aggs = [a for a in sweep.aggregators if any(k[0] == a for k in bars)]
+        width = 0.8 / len(masks)
+        for i, m in enumerate(masks):
+            xs = [x for x, a in enumerate(aggs) if (a, m) in bars]
+            if not xs:
+                continue
+            stats = [mean_std(bars[(aggs[x], m)]) for x in xs]
+            ax.bar(np.array(xs) + (i - (len(masks) - 1) / 2) * width, [mu for mu, _ in stats], width,
+                   yerr=[sd if math.isfinite(sd) else 0.0 for _, sd in stats], capsize=2,
+                   color=f"C{i % 10}", label=sweep.label(m))
+        ax.set_xticks(range(len(aggs)), aggs)
+        ax.set(title=f"backbone: {bb}", ylabel="test R@1 (%)", ylim=(0, 100))
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=8, title="mask", title_fontsize=8)
+    fig.suptitle("R@1 per aggregator and mask (mean over seeds, bar = ±1 std)")
     _save(fig, out)
     return None
 
@@ -120,10 +154,9 @@ def _maps(path: Path) -> dict[str, np.ndarray] | None:
         return None
 
 
-def _map_source(sweep: Sweep, backbone: str, key: str, prefer: tuple[str, ...]) -> tuple[Job, dict] | None:
-    """The first job (preferred filters first, ok runs and low seeds first) whose maps.npz has array `key`."""
-    order = list(prefer) + [f for f in sweep.filters if f not in prefer]
-    for f in order:
+def _map_source(sweep: Sweep, backbone: str, key: str) -> tuple[Job, dict] | None:
+    """The first job (rows in reading order, ok runs and low seeds first) whose maps.npz has array `key`."""
+    for f in sweep.cells:
         for job in sweep.jobs_of(f, backbone, needs="maps.npz"):
             maps = _maps(job.dir / "maps.npz")
             if maps and key in maps and "query_index" in maps:
@@ -140,15 +173,18 @@ def _image_of(sources: Any, qi: int) -> str | None:
 
 
 def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
-    """Seed Figure 3: per query a row of image, SRAL attention, teacher mask, student mask; else a skip reason."""
+    """Seed Figure 3: per query a row of image, the aggregator's attention and each mask source's mask
+    (whichever the sweep's runs wrote); else a skip reason."""
+    keys = sorted({k for job in sweep.jobs if (job.dir / "maps.npz").is_file()
+                   for k in (_maps(job.dir / "maps.npz") or {}) if k not in MAP_META},
+                  key=lambda k: (k != ATTENTION, k in sweep.upper_bounds, k))  # upper bounds last
     # the backbone whose runs fill the most columns; sorted order breaks ties
-    candidates = [(bb, {key: _map_source(sweep, bb, key, prefer) for key, prefer, _ in MAP_COLUMNS})
-                  for bb in sweep.backbones]
+    candidates = [(bb, {key: _map_source(sweep, bb, key) for key in keys}) for bb in sweep.backbones]
     bb, sources = max(candidates, key=lambda c: sum(v is not None for v in c[1].values()))
     if not any(sources.values()):
-        return "no job wrote maps.npz with attention / teacher / student arrays"
-    # oracle is an extra column, shown only when a run provided it; the seed's three always show (n/a if absent)
-    cols = [(key, title, sources[key]) for key, _, title in MAP_COLUMNS if key != "oracle" or sources[key]]
+        return "no job wrote maps.npz with attention or mask arrays"
+    cols = [(key, "attention\n(per-image scaled)" if key == ATTENTION else f"{key} mask\n(bright = static)",
+             sources[key]) for key in keys if sources[key]]
     first = next(s for s in sources.values() if s)
     queries = [int(q) for q in first[1]["query_index"][:max_queries]]
     fig = _new_figure(2.6 * (1 + len(cols)), 2.2 * len(queries) + 0.8)
@@ -171,22 +207,22 @@ def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
                 _na(ax)
             else:
                 m = src[1][key][idx].astype(np.float32)
-                lo, hi = (float(m.min()), float(m.max())) if key == "attention" else (0.0, 1.0)
+                lo, hi = (float(m.min()), float(m.max())) if key == ATTENTION else (0.0, 1.0)
                 h, w = img.shape[:2] if img is not None else m.shape
                 if img is not None:  # faded image underneath so one sees *what* is kept
                     ax.imshow(img.mean(axis=2), cmap="gray", extent=(0, w, h, 0))
                 # feature-grid map stretched over the image extent; nearest keeps binary masks crisp
                 ax.imshow(m, cmap="magma", vmin=lo, vmax=max(hi, lo + 1e-6), extent=(0, w, h, 0),
                           alpha=0.7 if img is not None else 1.0,
-                          interpolation="bilinear" if key == "attention" else "nearest")
+                          interpolation="bilinear" if key == ATTENTION else "nearest")
                 ax.set_xticks([])
                 ax.set_yticks([])
             if r == len(queries) - 1:
-                ax.set_xlabel(f"from {src[0].filter}, seed {'?' if src[0].seed is None else src[0].seed}" if src else "no run wrote it", fontsize=8)
+                ax.set_xlabel(f"from {src[0].cell}, seed {'?' if src[0].seed is None else src[0].seed}" if src else "no run wrote it", fontsize=8)
         if r == 0:
             for c, title in enumerate(["image"] + [t for _, t, _ in cols]):
                 axes[0, c].set_title(title, fontsize=10)
-    fig.suptitle(f"Figure 3: SRAL attention and static masks ({bb})")
+    fig.suptitle(f"Figure 3: attention and static masks ({bb})")
     _save(fig, out)
     return None
 
@@ -209,32 +245,32 @@ def _retrievals(job: Job) -> dict[str, dict]:
 
 
 def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str | None:
-    """Per query a block: query image and each filter's top-k, framed green (correct) / red; else a skip reason."""
+    """Per query a block: query image and each row's top-k, framed green (correct) / red; else a skip reason."""
     candidates = []
     for bb in sweep.backbones:
-        per_filter: dict[str, dict[str, dict]] = {}
-        for f in sweep.filters:
+        per_row: dict[str, dict[str, dict]] = {}
+        for f in sweep.cells:
             for job in sweep.jobs_of(f, bb, needs="retrievals.json"):
                 if entries := _retrievals(job):
-                    per_filter[f] = entries
+                    per_row[f] = entries
                     break
-        candidates.append((bb, per_filter))
-    bb, per_filter = max(candidates, key=lambda c: len(c[1]))  # the backbone covering most filters
-    if not per_filter:
+        candidates.append((bb, per_row))
+    bb, per_row = max(candidates, key=lambda c: len(c[1]))  # the backbone covering most rows
+    if not per_row:
         return "no job wrote retrievals.json"
-    order = list(dict.fromkeys(q for entries in per_filter.values() for q in entries))
+    order = list(dict.fromkeys(q for entries in per_row.values() for q in entries))
 
-    def disagreement(q: str) -> int:  # queries where filters differ on top-1 say the most about filtering
-        tops = {bool(e[q]["topk"][0].get("correct")) for e in per_filter.values() if q in e and e[q].get("topk")}
+    def disagreement(q: str) -> int:  # queries where the runs differ on top-1 say the most
+        tops = {bool(e[q]["topk"][0].get("correct")) for e in per_row.values() if q in e and e[q].get("topk")}
         return -len(tops)
 
     queries = sorted(order, key=disagreement)[:max_queries]
-    filters = list(per_filter)
-    fig = _new_figure(2.0 * (k + 1.4), 1.45 * len(queries) * len(filters) + 0.7)
-    grid = fig.add_gridspec(len(queries) * len(filters), k + 1, width_ratios=[1.4] + [1.0] * k)
+    rows = list(per_row)
+    fig = _new_figure(2.0 * (k + 1.4), 1.45 * len(queries) * len(rows) + 0.7)
+    grid = fig.add_gridspec(len(queries) * len(rows), k + 1, width_ratios=[1.4] + [1.0] * k)
     for b, q in enumerate(queries):
-        r0 = b * len(filters)
-        ax = fig.add_subplot(grid[r0:r0 + len(filters), 0])
+        r0 = b * len(rows)
+        ax = fig.add_subplot(grid[r0:r0 + len(rows), 0])
         img = _thumb(sweep.image_path(q))
         if img is None:
             _na(ax, "query n/a")
@@ -243,8 +279,8 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
             ax.set_xticks([])
             ax.set_yticks([])
         ax.set_title(f"query: {Path(q).name[:24]}", fontsize=8)
-        for i, f in enumerate(filters):
-            entry = per_filter[f].get(q, {})
+        for i, f in enumerate(rows):
+            entry = per_row[f].get(q, {})
             for c in range(k):
                 ax = fig.add_subplot(grid[r0 + i, c + 1])
                 hits = entry.get("topk") or []
@@ -266,23 +302,23 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
                 ax.set_title(f"#{c + 1}" + (f" · {dist:.0f} m" if math.isfinite(dist) else ""), fontsize=8)
                 if c == 0:
                     ax.set_ylabel(sweep.label(f), fontsize=9)
-    fig.suptitle(f"Top-{k} retrievals per filter ({bb}; green = correct, red = wrong)\n"
-                 "queries where the filters disagree most on the top-1")
+    fig.suptitle(f"Top-{k} retrievals per aggregator · mask ({bb}; green = correct, red = wrong)\n"
+                 "queries where the runs disagree most on the top-1")
     _save(fig, out)
     return None
 
 
 def class_weights(sweep: Sweep, out: Path) -> str | None:
     """Learned per-class weights (mean ± std over seeds) per mask source and backbone; else a skip reason."""
-    from semvpr.report import LEARNED, filter_rank, mean_std
+    from semvpr.report import LEARNED, mean_std
 
     runs: dict[tuple[str, str], list[dict[str, float]]] = {}
     for job in sweep.jobs:
         if job.ok and isinstance(job.metrics.get("class_weights"), dict):
-            runs.setdefault((job.backbone, job.filter), []).append(job.metrics["class_weights"])
+            runs.setdefault((job.backbone, job.cell), []).append(job.metrics["class_weights"])
     if not runs:
-        return "no run learned class weights (filter.weights=learned)"
-    cells = sorted(runs, key=lambda c: (c[0], filter_rank(c[1])))
+        return "no run learned class weights (mask.weights=learned)"
+    cells = sorted(runs, key=lambda c: (c[0], sweep.cells.index(c[1])))
     classes = list(runs[cells[0]][0])
     fig = _new_figure(max(8.0, 0.55 * len(classes)), 3.6)
     ax = fig.add_subplot()

@@ -20,8 +20,8 @@ from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.io import write_text
 from semvpr.metrics import RECALL_NS
 
-FILTER_ORDER = ("none", "attention", "unet", "mask2former")
-UPPER_BOUNDS = frozenset({"oracle"})  # ground-truth masks: a ceiling to read against, not a competitor
+LEARNED = "+learned"  # a mask run with mask.weights=learned is reported as "<mask>+learned"
+NO_MASK = "none"  # the mask choice every other mask is paired against
 
 
 @dataclass
@@ -30,12 +30,18 @@ class Job:
 
     dir: Path
     name: str
-    filter: str
+    aggregator: str
+    mask: str  # the mask choice, with LEARNED appended for learned class weights
     backbone: str
     seed: int | None
     ok: bool
     error: str
     metrics: dict[str, Any]
+
+    @property
+    def cell(self) -> str:
+        """The table row this run belongs to (besides its backbone): aggregator · mask."""
+        return cell_name(self.aggregator, self.mask)
 
     def recall(self, n: int) -> float:
         """Test Recall@n in percent (nan when the run did not record it)."""
@@ -43,9 +49,18 @@ class Job:
         return float(value) if isinstance(value, (int, float)) else math.nan
 
 
+def cell_name(aggregator: str, mask: str) -> str:
+    """Display key of an (aggregator, mask) pair."""
+    return f"{aggregator} · {mask}"
+
+
 @dataclass
 class Sweep:
-    """All jobs of one sweep directory, with the orderings the table and figures share."""
+    """All jobs of one sweep directory, with the orderings the tables and figures share.
+
+    Runs are grouped by what they recorded (aggregator, mask, mask weighting, backbone), never by
+    a name known here: the baseline aggregator and the upper-bound masks are flags in metrics.json.
+    """
 
     dir: Path
     jobs: list[Job]
@@ -56,17 +71,43 @@ class Sweep:
         return sorted({j.backbone for j in self.jobs}, key=lambda b: (b == "?", b))
 
     @property
-    def filters(self) -> list[str]:
-        """Filters in reading order: the seed's four, then extras, upper bounds last."""
-        return sorted({j.filter for j in self.jobs}, key=filter_rank)
+    def baseline(self) -> str | None:
+        """The aggregator a run recorded as the baseline (conf/aggregator: baseline: true), if any ran."""
+        names = sorted({j.aggregator for j in self.jobs if j.metrics.get("baseline_aggregator") is True})
+        return names[0] if names else None
 
-    def label(self, name: str) -> str:
-        """Display name of a filter."""
-        return f"{name} (upper bound)" if name.removesuffix(LEARNED) in UPPER_BOUNDS else name
+    @property
+    def upper_bounds(self) -> frozenset[str]:
+        """Masks recorded as upper bounds (ground truth: a ceiling to read against, not a competitor)."""
+        return frozenset(j.mask.removesuffix(LEARNED) for j in self.jobs if j.metrics.get("mask_upper_bound") is True)
 
-    def jobs_of(self, filter_: str, backbone: str, needs: str | None = None) -> list[Job]:
-        """Jobs of one cell, ok runs first then by seed, optionally only those holding file `needs`."""
-        jobs = [j for j in self.jobs if j.filter == filter_ and j.backbone == backbone]
+    @property
+    def aggregators(self) -> list[str]:
+        """The baseline aggregator first, then the others alphabetically, unknown last."""
+        return sorted({j.aggregator for j in self.jobs}, key=lambda a: (a != self.baseline, a == "?", a))
+
+    @property
+    def masks(self) -> list[str]:
+        """No mask first, upper bounds last, each mask's learned-weights variant right after it."""
+        bounds = self.upper_bounds
+        return sorted({j.mask for j in self.jobs}, key=lambda m: (
+            m.removesuffix(LEARNED) != NO_MASK, m.removesuffix(LEARNED) in bounds, m == "?",
+            m.removesuffix(LEARNED), m.endswith(LEARNED)))
+
+    @property
+    def cells(self) -> list[str]:
+        """Rows in reading order: aggregators outer, masks inner."""
+        present = {j.cell for j in self.jobs}
+        return [c for a in self.aggregators for m in self.masks if (c := cell_name(a, m)) in present]
+
+    def label(self, cell: str) -> str:
+        """Display name of a row."""
+        mask = cell.rpartition(" · ")[2].removesuffix(LEARNED)
+        return f"{cell} (upper bound)" if mask in self.upper_bounds else cell
+
+    def jobs_of(self, cell: str, backbone: str, needs: str | None = None) -> list[Job]:
+        """Jobs of one row, ok runs first then by seed, optionally only those holding file `needs`."""
+        jobs = [j for j in self.jobs if j.cell == cell and j.backbone == backbone]
         jobs = [j for j in jobs if needs is None or (j.dir / needs).is_file()]
         return sorted(jobs, key=lambda j: (not j.ok, j.seed if j.seed is not None else math.inf, j.name))
 
@@ -82,46 +123,33 @@ class Sweep:
         return None
 
 
-LEARNED = "+learned"  # a filter run with filter.weights=learned is reported as "<filter>+learned"
-
-
-def filter_rank(name: str) -> tuple[int, str, bool]:
-    """Sort key placing none, attention, unet, mask2former first and upper bounds last, each filter's
-    learned-weights variant right after it."""
-    base, learned = name.removesuffix(LEARNED), name.endswith(LEARNED)
-    if base in FILTER_ORDER:
-        return FILTER_ORDER.index(base), "", learned
-    return len(FILTER_ORDER) + (base in UPPER_BOUNDS), base, learned
-
-
 def _error_line(error: object) -> str:
     """The telling line of an error: a traceback ends with the exception, so take the last line."""
     lines = [ln.strip() for ln in str(error or "").splitlines() if ln.strip()]
     return lines[-1][:200] if lines else ""
 
 
+FACT_KEYS = ("aggregator", "mask", "backbone", "seed", "mask.weights")
+
+
 def _hydra_facts(job_dir: Path) -> dict[str, str]:
-    """filter / backbone / seed of a job from its .hydra files (for jobs that died before metrics.json)."""
-    # lowest priority: the dir name itself, Hydra's override_dirname "backbone=vgg16,filter=unet,seed=1"
-    facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(","))
-             if k in ("filter", "backbone", "seed", "filter.weights") and v}
+    """aggregator / mask / backbone / seed of a job from its .hydra files (for jobs that died before
+    metrics.json): the composed choices, so a filter preset counts as the aggregator and mask it chose."""
+    # lowest priority: the dir name itself, Hydra's override_dirname "aggregator=gem,mask=student,seed=1"
+    facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(",")) if k in FACT_KEYS and v}
     hydra_dir = job_dir / ".hydra"
     try:
         if (hydra_dir / "config.yaml").is_file():
-            seed = OmegaConf.select(OmegaConf.load(hydra_dir / "config.yaml"), "seed", default=None,
-                                    throw_on_resolution_failure=False)
-            if seed is not None:
-                facts["seed"] = str(seed)
+            config = OmegaConf.load(hydra_dir / "config.yaml")
+            for key in ("seed", "mask.weights"):
+                value = OmegaConf.select(config, key, default=None, throw_on_resolution_failure=False)
+                if value is not None:
+                    facts[key] = str(value)
         if (hydra_dir / "hydra.yaml").is_file():
             choices = OmegaConf.select(OmegaConf.load(hydra_dir / "hydra.yaml"), "hydra.runtime.choices")
-            for key in ("filter", "backbone"):
+            for key in ("aggregator", "mask", "backbone"):
                 if choices is not None and choices.get(key) is not None:
                     facts[key] = str(choices.get(key))
-        if (hydra_dir / "overrides.yaml").is_file():
-            for item in OmegaConf.load(hydra_dir / "overrides.yaml"):
-                key, _, value = str(item).lstrip("+~").partition("=")
-                if key in ("filter", "backbone", "seed", "filter.weights"):
-                    facts[key] = value
     except Exception:  # a damaged .hydra dir only costs us labels, never the report
         pass
     return facts
@@ -152,11 +180,11 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         seed = int(seed) if seed is not None else None
     except ValueError:
         seed = None
-    filter_ = str(metrics.get("filter") or facts.get("filter") or "?")
-    if (metrics.get("weights") or facts.get("filter.weights")) == "learned":
-        filter_ += LEARNED
-    return Job(job_dir, name, filter_, str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error,
-               metrics)
+    mask = str(metrics.get("mask") or facts.get("mask") or "?")
+    if (metrics.get("weights") or facts.get("mask.weights")) == "learned":
+        mask += LEARNED
+    return Job(job_dir, name, str(metrics.get("aggregator") or facts.get("aggregator") or "?"), mask,
+               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics)
 
 
 def load_sweep(sweep_dir: Path) -> Sweep:
@@ -181,15 +209,16 @@ def mean_std(values: list[float]) -> tuple[float, float]:
 
 
 def _rows(sweep: Sweep) -> list[dict[str, Any]]:
-    """One aggregated row per (backbone, filter), backbones outer, filters in reading order."""
+    """One aggregated row per (backbone, aggregator, mask), backbones outer, rows in reading order."""
     rows = []
     for bb in sweep.backbones:
-        for f in sweep.filters:
-            jobs = sweep.jobs_of(f, bb)
+        for cell in sweep.cells:
+            jobs = sweep.jobs_of(cell, bb)
             if not jobs:
                 continue
             ok = [j for j in jobs if j.ok]
-            row: dict[str, Any] = {"filter": f, "backbone": bb, "n": len(ok), "failed": len(jobs) - len(ok),
+            row: dict[str, Any] = {"cell": cell, "aggregator": jobs[0].aggregator, "mask": jobs[0].mask,
+                                   "backbone": bb, "n": len(ok), "failed": len(jobs) - len(ok),
                                    "seeds": sorted(j.seed for j in ok if j.seed is not None)}
             for n in RECALL_NS:
                 row[f"R@{n}"] = mean_std([j.recall(n) for j in ok])
@@ -209,67 +238,103 @@ def _fmt(x: float, signed: bool = False) -> str:
 def _csv_text(rows: list[dict[str, Any]]) -> str:
     """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing."""
     buf = io.StringIO()
-    cols = ["filter", "backbone", "n", "seeds"] + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")] + ["wall_time_s", "failed"]
+    cols = (["aggregator", "mask", "backbone", "n", "seeds"] + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")]
+            + ["wall_time_s", "failed"])
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
     num = lambda x: "" if not math.isfinite(x) else f"{x:.4f}"  # noqa: E731
     for r in rows:
         stats = [num(v) for n in RECALL_NS for v in r[f"R@{n}"]]
-        writer.writerow([r["filter"], r["backbone"], r["n"], " ".join(map(str, r["seeds"])), *stats,
+        writer.writerow([r["aggregator"], r["mask"], r["backbone"], r["n"], " ".join(map(str, r["seeds"])), *stats,
                          num(r["wall_time_s"]), r["failed"]])
     return buf.getvalue()
 
 
-def _r1_by_seed(sweep: Sweep, filter_: str, backbone: str) -> dict[int | None, float]:
-    """Test R@1 of one cell's finished runs, by seed."""
-    return {j.seed: j.recall(1) for j in sweep.jobs_of(filter_, backbone) if j.ok and math.isfinite(j.recall(1))}
+def _r1_by_seed(sweep: Sweep, cell: str, backbone: str) -> dict[int | None, float]:
+    """Test R@1 of one row's finished runs, by seed."""
+    return {j.seed: j.recall(1) for j in sweep.jobs_of(cell, backbone) if j.ok and math.isfinite(j.recall(1))}
 
 
-def _paired_summary(sweep: Sweep, filter_: str, backbone: str, reference: dict[int | None, float]) -> str | None:
-    """"<filter> +g ± s (better in k of n seeds)" for R@1 minus the reference's with the same seed."""
-    diffs = [r1 - reference[seed] for seed, r1 in _r1_by_seed(sweep, filter_, backbone).items() if seed in reference]
+def _paired_summary(sweep: Sweep, cell: str, backbone: str, reference: dict[int | None, float],
+                    label: str | None = None) -> str | None:
+    """"<row> +g ± s (better in k of n seeds)" for R@1 minus the reference's with the same seed.
+
+    Runs with the same seed share the backbone init and the data, so the per-seed difference is
+    the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
+    """
+    diffs = [r1 - reference[seed] for seed, r1 in _r1_by_seed(sweep, cell, backbone).items() if seed in reference]
     if not diffs:
         return None
     mean, std = mean_std(diffs)
     spread = f" ± {_fmt(std)}" if math.isfinite(std) else ""
     better = sum(d > 0 for d in diffs)
-    return f"{sweep.label(filter_)} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
+    return f"{label or sweep.label(cell)} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
 
 
-def _paired_gains(sweep: Sweep, backbone: str) -> str | None:
-    """R@1 of each filter minus `none` with the same seed, summarised; None when other filters
-    finished but `none` did not, "" when there is nothing to compare.
-
-    Runs with the same seed share the backbone init and the data, so the per-seed difference is
-    the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
-    """
-    none = _r1_by_seed(sweep, "none", backbone)
-    if not none:
-        return None if any(j.ok for f in sweep.filters for j in sweep.jobs_of(f, backbone)) else ""
-    parts = [_paired_summary(sweep, f, backbone, none) for f in sweep.filters if f != "none"]
+def _join(parts: list[str | None]) -> str:
     return ", ".join(p for p in parts if p)
+
+
+def _baseline_gains(sweep: Sweep, backbone: str) -> str | None:
+    """R@1 of every row minus the baseline aggregator without a mask, same seed; None when other rows
+    finished but that reference did not, "" when there is nothing to compare."""
+    if sweep.baseline is None:
+        return ""
+    reference = cell_name(sweep.baseline, NO_MASK)
+    base = _r1_by_seed(sweep, reference, backbone)
+    if not base:
+        return None if any(j.ok for c in sweep.cells for j in sweep.jobs_of(c, backbone)) else ""
+    return _join([_paired_summary(sweep, c, backbone, base) for c in sweep.cells if c != reference])
+
+
+def _mask_gains(sweep: Sweep, backbone: str, aggregator: str) -> str:
+    """R@1 of each mask minus no mask, same aggregator and seed (binary weights against binary)."""
+    none = _r1_by_seed(sweep, cell_name(aggregator, NO_MASK), backbone)
+    parts = [_paired_summary(sweep, cell_name(aggregator, m), backbone, none, label=sweep.label(m))
+             for m in sweep.masks if m != NO_MASK]
+    return _join(parts) if none else ""
 
 
 def _learned_gains(sweep: Sweep, backbone: str) -> str:
-    """R@1 of each learned-weights filter minus its binary filter with the same seed."""
-    parts = [_paired_summary(sweep, f, backbone, _r1_by_seed(sweep, f.removesuffix(LEARNED), backbone))
-             for f in sweep.filters if f.endswith(LEARNED)]
-    return ", ".join(p for p in parts if p)
+    """R@1 of each learned-weights row minus the same row with binary weights, same seed."""
+    return _join([_paired_summary(sweep, c, backbone, _r1_by_seed(sweep, c.removesuffix(LEARNED), backbone))
+                  for c in sweep.cells if c.endswith(LEARNED)])
+
+
+def _matrix(sweep: Sweep, backbone: str) -> list[str]:
+    """Aggregator rows × mask columns of R@1 / R@5 mean ± std, then each mask's paired gain over none."""
+    aggregators = [a for a in sweep.aggregators if any(j.aggregator == a and j.backbone == backbone for j in sweep.jobs)]
+    masks = [m for m in sweep.masks if any(j.mask == m and j.backbone == backbone for j in sweep.jobs)]
+    out = [f"## Aggregator × mask ({backbone})", "", "R@1 / R@5 in %, mean ± std over seeds.", "",
+           "| aggregator | " + " | ".join(sweep.label(m) for m in masks) + " |", "|---|" + "---:|" * len(masks)]
+    for a in aggregators:
+        cells = []
+        for m in masks:
+            ok = [j for j in sweep.jobs_of(cell_name(a, m), backbone) if j.ok]
+            stats = [mean_std([j.recall(n) for j in ok]) for n in (1, 5)]
+            cells.append(" / ".join(f"{_fmt(mu)} ± {_fmt(sd)}" for mu, sd in stats) if ok else "–")
+        out.append(f"| {a} | " + " | ".join(cells) + " |")
+    out.append("")
+    gains = [(a, _mask_gains(sweep, backbone, a)) for a in aggregators]
+    if any(g for _, g in gains):
+        out += ["**R@1 gain of each mask over `none`, same aggregator**, paired by seed, mean ± std:", ""]
+        out += [f"- {a}: {g}" for a, g in gains if g] + [""]
+    return out
 
 
 def _class_weight_table(sweep: Sweep) -> list[str]:
-    """Markdown table of the learned class weights, mean ± std over seeds, one column per filter."""
-    cells = {(j.backbone, j.filter): [] for j in sweep.jobs if j.ok and isinstance(j.metrics.get("class_weights"), dict)}
+    """Markdown table of the learned class weights, mean ± std over seeds, one column per row of the sweep."""
+    cells = {(j.backbone, j.cell): [] for j in sweep.jobs if j.ok and isinstance(j.metrics.get("class_weights"), dict)}
     if not cells:
         return []
     for j in sweep.jobs:
-        if (j.backbone, j.filter) in cells and j.ok:
-            cells[(j.backbone, j.filter)].append(j.metrics["class_weights"])
-    columns = sorted(cells, key=lambda c: (c[0], filter_rank(c[1])))
+        if (j.backbone, j.cell) in cells and j.ok:
+            cells[(j.backbone, j.cell)].append(j.metrics["class_weights"])
+    columns = sorted(cells, key=lambda c: (c[0], sweep.cells.index(c[1])))
     classes = list(next(iter(cells.values()))[0])
     out = ["## Learned class weights", "",
            "w_c = sigmoid(θ_c) after training (start: 0.98 static classes, 0.02 the others), mean ± std over seeds.", "",
-           "| class | " + " | ".join(f"{f.removesuffix(LEARNED)} ({bb})" for bb, f in columns) + " |",
+           "| class | " + " | ".join(f"{c.removesuffix(LEARNED)} ({bb})" for bb, c in columns) + " |",
            "|---|" + "---:|" * len(columns)]
     for name in classes:
         stats = [mean_std([float(w[name]) for w in cells[c] if name in w]) for c in columns]
@@ -279,34 +344,36 @@ def _class_weight_table(sweep: Sweep) -> list[str]:
 
 
 def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str | None]) -> str:
-    """Human-readable report: table, R@1 gains over `none`, failed jobs, figures."""
+    """Human-readable report: table, matrix, paired R@1 gains, failed jobs, figures."""
     n_ok = sum(j.ok for j in sweep.jobs)
     out = ["# semvpr sweep results", "",
            f"Sweep `{sweep.dir}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
            "Recall@N in %, mean ± sample std over seeds.", "",
-           "| backbone | filter | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
+           "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
            "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
     for r in rows:
         cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in RECALL_NS]
-        out.append(f"| {r['backbone']} | {sweep.label(r['filter'])} | {' | '.join(cells)} | {r['n']} | "
+        out.append(f"| {r['backbone']} | {sweep.label(r['cell'])} | {' | '.join(cells)} | {r['n']} | "
                    f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |")
     out.append("")
+    reference = f"`{cell_name(sweep.baseline, NO_MASK)}`" if sweep.baseline else ""
     for bb in sweep.backbones:
-        gains = _paired_gains(sweep, bb)
+        gains = _baseline_gains(sweep, bb)
         if gains is None:
-            out += [f"**R@1 gain over `none` ({bb}):** no finished `none` run to compare with.", ""]
+            out += [f"**R@1 gain over {reference} ({bb}):** no finished {reference} run to compare with.", ""]
         elif gains:
-            out += [f"**R@1 gain over `none` ({bb})**, per seed (same backbone init and data), then "
+            out += [f"**R@1 gain over {reference} ({bb})**, per seed (same backbone init and data), then "
                     f"mean ± std: {gains}", ""]
         learned = _learned_gains(sweep, bb)
         if learned:
-            out += [f"**R@1 gain of learned class weights over the binary filter ({bb})**, paired by seed: "
-                    f"{learned}", ""]
+            out += [f"**R@1 gain of learned class weights over binary weights ({bb})**, paired by seed: {learned}", ""]
+    for bb in sweep.backbones:
+        out += _matrix(sweep, bb)
     out += _class_weight_table(sweep)
     failed = [j for j in sweep.jobs if not j.ok]
     if failed:
         out += ["## Failed jobs", ""]
-        out += [f"- `{j.name}` ({j.filter}, {j.backbone}, seed {j.seed if j.seed is not None else '?'}): {j.error}"
+        out += [f"- `{j.name}` ({j.cell}, {j.backbone}, seed {j.seed if j.seed is not None else '?'}): {j.error}"
                 for j in failed]
     out += ["", "## Figures", ""] if failed else ["## Figures", ""]
     for fname, skipped in figures.items():  # blank-line separated so each image renders as its own block
@@ -321,8 +388,8 @@ def write_report(sweep_dir: Path) -> Path:
     sweep = load_sweep(Path(sweep_dir))
     rows = _rows(sweep)
     figures: dict[str, str | None] = {}
-    drawings = [("recall_at_n.png", plots.recall_curves), ("figure3.png", plots.figure3),
-                ("retrievals.png", plots.retrievals)]
+    drawings = [("recall_at_n.png", plots.recall_curves), ("r1_by_aggregator.png", plots.matrix_bars),
+                ("figure3.png", plots.figure3), ("retrievals.png", plots.retrievals)]
     if any(isinstance(j.metrics.get("class_weights"), dict) for j in sweep.jobs):
         drawings.append(("class_weights.png", plots.class_weights))
     for fname, draw in drawings:
@@ -339,7 +406,7 @@ def write_report(sweep_dir: Path) -> Path:
 def print_summary(md: Path) -> None:
     """Print where the report is and its table."""
     print(f"semvpr report: {md}")
-    print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith(("|", "**R@1"))))
+    print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith(("|", "**R@1", "- "))))
 
 
 class ReportCallback(Callback):

@@ -1,6 +1,6 @@
-"""Training entry point: ``python -m semvpr.train [overrides]`` (sweeps: ``-m filter=a,b``).
+"""Training entry point: ``python -m semvpr.train [overrides]`` (sweeps: ``-m aggregator=a,b mask=c,d``).
 
-One job: build what the filter needs (cached), k-means/semantic init, evaluate the untrained
+One job: build what the aggregator and mask need (cached), init the aggregator, evaluate the untrained
 model, fit with triplet mining, test the best checkpoint, and write ``metrics.json``,
 ``retrievals.json`` and ``maps.npz`` into the run directory for the sweep-end report.
 """
@@ -24,8 +24,8 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig
 
-from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, build_semantic,
-                          check_config, init_aggregator, mask_key)
+from semvpr.build import (build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
+                          build_semantic, check_config, init_aggregator, mask_key)
 from semvpr.checkpoint import record_of
 from semvpr.errors import exit_on_user_error
 from semvpr.io import CONF_DIR, atomic_file, write_json
@@ -53,14 +53,14 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     features = {split: place_features(
         places[split], backbone, backbone.frozen_identity(), mask_source, mask_key(mask_source, cfg),
         cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers,
-        weighting=cfg.filter.get("weights", "binary")) for split in places}
+        weighting=cfg.mask.weights) for split in places}
     timings["features_s"] = time.time() - tic
 
     # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
     # same numbers whether its artifacts were built just now or read from the cache.
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     tic = time.time()
-    aggregator = instantiate(cfg.filter.aggregator, dim=backbone.out_channels)
+    aggregator = build_aggregator(cfg, backbone)
     init_info = init_aggregator(cfg, aggregator, backbone, features["train"].db, places["train"], semantic)
     timings["init_s"] = time.time() - tic
 
@@ -109,12 +109,12 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     tested = retriever.last_eval
 
     write_figure_data(run_dir, places["test"], features["test"], retriever, tested["predictions"],
-                      int(cfg.num_figure_queries), cfg.filter.mask)
+                      int(cfg.num_figure_queries), cfg.mask.name)
     metrics: dict[str, Any] = {
-        "status": "ok", "error": None, "filter": cfg.filter.name, "backbone": cfg.backbone.name,
-        "weights": retriever.weighting,
+        "status": "ok", "error": None, **run_labels(cfg),
+        "descriptor_dim": retriever.whitening.out_dim if whitening is not None else aggregator.output_dim,
         "class_weights": class_weights.named_weights() if class_weights is not None else None,
-        "seed": int(cfg.seed), "data": cfg.data.name,
+        "data": cfg.data.name,
         **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
         **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
@@ -128,6 +128,15 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "timings": timings, "wall_time_s": time.time() - start,
     }
     return metrics
+
+
+def run_labels(cfg: DictConfig) -> dict[str, Any]:
+    """What the report groups a run by: aggregator, mask, its weighting, backbone, seed; ``filter`` is
+    the preset the config started from (an explicit aggregator= or mask= may have replaced its choices)."""
+    return {"aggregator": cfg.aggregator.get("name"), "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
+            "mask": cfg.mask.get("name"), "weights": cfg.mask.get("weights"),
+            "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)), "backbone": cfg.backbone.get("name"),
+            "filter": cfg.filter.get("name"), "seed": int(cfg.seed)}
 
 
 def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
@@ -166,7 +175,7 @@ def evaluate_features(retriever: Retriever, features: PlaceFeatures) -> dict[str
 def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retriever: Retriever,
                       predictions: np.ndarray, num_queries: int, mask_name: str) -> None:
     """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
-    over the query traversal (the same queries for every run, so the report can compare filters)."""
+    over the query traversal (the same queries for every run, so the report can compare runs)."""
     idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
     positives = places.positives(25.0)
     queries = []
@@ -178,8 +187,9 @@ def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retri
     arrays: dict[str, np.ndarray] = {"query_index": idx, "image_paths": np.array([str(places.q_paths[i]) for i in idx])}
     trunk = features.q.trunk_of(idx, retriever.backbone).float().to(retriever.device)
     local = retriever.backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
-    if hasattr(retriever.aggregator, "attention"):
-        arrays["attention"] = retriever.aggregator.attention(local.float())[:, 0].float().cpu().numpy()
+    attention = retriever.aggregator.attention(local.float())
+    if attention is not None:
+        arrays["attention"] = attention[:, 0].float().cpu().numpy()
     if features.q.mask is not None:
         mask = features.q.mask[torch.from_numpy(idx)].float()
         if retriever.class_weights is not None:  # class probabilities → the learned weight map
@@ -212,8 +222,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     except Exception as err:  # noqa: BLE001 - every failure is recorded for the report
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         write_json(run_dir / "metrics.json", {
-            "status": "failed", "error": f"{type(err).__name__}: {message}",
-            "filter": cfg.filter.get("name"), "backbone": cfg.backbone.get("name"), "seed": int(cfg.seed)})
+            "status": "failed", "error": f"{type(err).__name__}: {message}", **run_labels(cfg)})
         if multirun:
             print(f"semvpr: job failed ({run_dir}): {message}", file=sys.stderr)
             return {"status": "failed"}

@@ -25,15 +25,16 @@ def config(*overrides: str, config_name: str = "train") -> DictConfig:
 
 def write_checkpoint(cfg: DictConfig, path: Path) -> dict[str, torch.Tensor]:
     """Write an untrained model's checkpoint as a run does (Lightning's state_dict + hyper_parameters)."""
-    from semvpr.build import build_backbone, build_mask_source, instantiate_node
+    from semvpr.build import build_aggregator, build_backbone, build_class_weights, build_mask_source
     from semvpr.checkpoint import record_of
     from semvpr.models.netvlad import PCAWhitening
     from semvpr.models.retriever import Retriever
 
     backbone = build_backbone(cfg)
-    aggregator = instantiate_node(cfg.filter.aggregator, dim=backbone.out_channels)
+    aggregator = build_aggregator(cfg, backbone)
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), whitening, record=record_of(cfg))
+    retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), whitening, record=record_of(cfg),
+                          class_weights=build_class_weights(cfg))
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams), "epoch": 0}, path)
     return retriever.state_dict()
 

@@ -1,4 +1,4 @@
-"""A checkpoint is data: genuine ones load for every filter and backbone; hostile ones run nothing."""
+"""A checkpoint is data: genuine ones load for every aggregator, mask and backbone; hostile ones run nothing."""
 from __future__ import annotations
 
 import copy
@@ -27,7 +27,9 @@ def test_genuine_checkpoints_load(tmp_path: Path, filter_name: str, backbone: st
     # Eval's own config: the defaults (vgg16, none, seed 0) and another dataset size.
     cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[48,64]", config_name="eval")
     retriever, merged = load_retriever(cfg)
-    assert (merged.filter.name, merged.backbone.name, merged.seed) == (filter_name, backbone, 3)
+    preset = tiny_config(tmp_path, f"filter={filter_name}")
+    assert (merged.aggregator.name, merged.mask.name) == (preset.aggregator.name, preset.mask.name)
+    assert (merged.backbone.name, merged.seed) == (backbone, 3)
     assert list(merged.data.image_size) == [48, 64] and merged.model.pca_dim == 4
     loaded = retriever.state_dict()
     assert loaded.keys() == state.keys() and all(torch.equal(loaded[k], state[k]) for k in state)
@@ -67,7 +69,7 @@ SENTINEL_TEXT = "untouched"
     # A stored _target_ naming one of semvpr's own JSON writers (it overwrote a file before this change).
     (lambda s: _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": s, "obj": "pwned"}),
      r"backbone\._target_ is refused"),
-    (lambda s: _set("config.filter.aggregator._target_", "torch.save"), r"filter\.aggregator\._target_ is refused"),
+    (lambda s: _set("config.aggregator.module._target_", "torch.save"), r"aggregator\.module\._target_ is refused"),
     (lambda s: _set("config.teacher.checkpoint", "${oc.env:HOME}"), r"teacher\.checkpoint=.*interpolations"),
     (lambda s: _set("config.model.evil", 1), r"model\.evil is not a key"),
     (lambda s: _set("config.model.num_clusters", "32"), r"model\.num_clusters='32' has the wrong type"),
@@ -107,3 +109,31 @@ def test_cli_refuses_a_hostile_checkpoint_with_one_line(tmp_path: Path, genuine_
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "_target_ is refused" in proc.stderr
     assert sentinel.read_text() == SENTINEL_TEXT
+
+
+def test_filter_record_loads_as_the_presets_aggregator_and_mask(tmp_path: Path) -> None:
+    trained = tiny_config(tmp_path, "filter=unet", "filter.weights=learned")
+    state = write_checkpoint(trained, tmp_path / "new.ckpt")
+    record = torch.load(tmp_path / "new.ckpt", weights_only=True)["hyper_parameters"]
+    # The record as written when the filter bundled aggregator and mask.
+    choices = {k: v for k, v in record["choices"].items() if k not in ("aggregator", "mask")}
+    config = {k: v for k, v in record["config"].items() if k not in ("aggregator", "mask")}
+    old = {**record, "choices": {**choices, "filter": "unet"},
+           "config": {**config, "filter": {"name": "unet", "aggregator": {"num_clusters": 8, "num_shadows": 4},
+                                           "init": "semantic", "mask": "student", "weights": "learned"}}}
+    torch.save({"state_dict": state, "hyper_parameters": old}, tmp_path / "old.ckpt")
+    retriever, merged = load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'old.ckpt'}", config_name="eval"))
+    assert (merged.aggregator.name, merged.mask.name, merged.mask.weights) == ("sral", "student", "learned")
+    assert retriever.class_weights is not None
+
+
+def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Path) -> None:
+    trained = tiny_config(tmp_path, "aggregator=mixvpr")
+    state = write_checkpoint(trained, tmp_path / "run.ckpt")
+    assert trained.aggregator.module.grid is not None  # filled in from the backbone's grid, recorded
+    cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[96,128]", config_name="eval")
+    retriever, merged = load_retriever(cfg)
+    assert list(merged.aggregator.module.grid) == list(trained.aggregator.module.grid)
+    assert all(torch.equal(retriever.state_dict()[k], state[k]) for k in state)
+    with torch.no_grad():  # a larger feature grid than trained: pooled to the recorded one
+        assert retriever(torch.rand(2, 3, 96, 128)).shape == (2, retriever.aggregator.output_dim)

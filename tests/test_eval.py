@@ -95,7 +95,8 @@ def test_checkpoint_evaluates_on_each_dataset_family(checkpoint: Path, tmp_path:
     cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
                  *SIZE, config_name="eval")
     result = evaluate_checkpoint(cfg)
-    assert (result["data"], result["filter"], result["database"], result["queries"]) == (family, "attention", 6, 6)
+    assert (result["data"], result["aggregator"], result["mask"], result["database"], result["queries"]) == (
+        family, "sral", "none", 6, 6)
     # Each query is its place's database image again: any model must retrieve it first.
     assert result["test/R@1"] == 100.0
 

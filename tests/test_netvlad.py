@@ -22,16 +22,18 @@ def layer() -> NetVLAD:
     return net
 
 
-def published_netvlad(x: np.ndarray, centroids: np.ndarray, alpha: float, mask: np.ndarray | None = None) -> np.ndarray:
+def published_netvlad(x: np.ndarray, weight: np.ndarray, bias: np.ndarray, centroids: np.ndarray,
+                      mask: np.ndarray | None = None) -> np.ndarray:
     """NetVLAD as Arandjelović et al. (CVPR'16) define it, written from the paper in float64 NumPy:
-    L2-normalise each local descriptor; soft-assign with a 1x1 conv of weight w_k = 2αc_k and bias
-    b_k = −α‖c_k‖² followed by a softmax over k; V(j,k) = Σ_i a_k(x_i)(x_i(j) − c_k(j)) (here each
-    location's term times its mask weight); intra-normalise each V(:,k); L2-normalise the whole."""
+    L2-normalise each local descriptor; soft-assign with a 1x1 conv of weights w_k and biases b_k
+    (decoupled from the centroids c_k, initialised as w_k = 2αĉ_k, b_k = −α‖ĉ_k‖²) followed by a
+    softmax over k; V(j,k) = Σ_i a_k(x_i)(x_i(j) − c_k(j)) (here each location's term times its mask
+    weight); intra-normalise each V(:,k); L2-normalise the whole."""
     b, d, h, w = x.shape
     local = x.reshape(b, d, h * w).transpose(0, 2, 1).astype(np.float64)  # (B, N, D)
     local = local / np.linalg.norm(local, axis=2, keepdims=True)
     c = centroids.astype(np.float64)
-    logits = local @ (2 * alpha * c).T - alpha * (c**2).sum(1)  # (B, N, K)
+    logits = local @ weight.astype(np.float64).T + bias.astype(np.float64)  # (B, N, K)
     logits -= logits.max(2, keepdims=True)
     assign = np.exp(logits) / np.exp(logits).sum(2, keepdims=True)
     weight = np.ones((b, h * w)) if mask is None else mask.reshape(b, h * w).astype(np.float64)
@@ -47,12 +49,13 @@ def published_netvlad(x: np.ndarray, centroids: np.ndarray, alpha: float, mask: 
 def test_matches_the_published_formula(layer: NetVLAD) -> None:
     x = torch.randn(3, 32, 5, 7)  # signed, like conv5_3 before its ReLU
     mask = (torch.rand(3, 1, 5, 7) > 0.4).float() * torch.rand(3, 1, 5, 7)
-    c, a = layer.centroids.detach().numpy(), float(layer.alpha)
+    params = (layer.conv.weight[:, :, 0, 0].detach().numpy(), layer.conv.bias.detach().numpy(),
+              layer.centroids.detach().numpy())
     with torch.no_grad():
         out, masked = layer(x), layer(x, mask)
     assert out.shape == (3, 8 * 32)
-    np.testing.assert_allclose(out.numpy(), published_netvlad(x.numpy(), c, a), rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(masked.numpy(), published_netvlad(x.numpy(), c, a, mask.numpy()), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(out.numpy(), published_netvlad(x.numpy(), *params), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(masked.numpy(), published_netvlad(x.numpy(), *params, mask.numpy()), rtol=1e-4, atol=1e-5)
     assign = layer.assignment(x)
     assert assign.shape == (3, 8, 5, 7)
     torch.testing.assert_close(assign.sum(1), torch.ones(3, 5, 7))
@@ -89,16 +92,22 @@ def test_init_recovers_separated_clusters() -> None:
     feats = np.concatenate([c + 0.05 * rng.standard_normal((300, 16)) for c in centres]).astype(np.float32)
     net = NetVLAD(num_clusters=4, dim=16)
     alpha = net.init_from_features(torch.from_numpy(feats), seed=1)
-    cent = net.centroids.detach().numpy()
-    assert np.allclose(np.sort(np.abs(cent @ np.eye(16)[:4].T).max(1)), 1.0, atol=0.01)
-    assert sorted((cent @ np.eye(16)[:4].T).argmax(1).tolist()) == [0, 1, 2, 3]
-    # α by hand: logits 2x·c − ‖c‖² of the normalised features, mean gap between best and second best.
+    # The assignment conv holds 2α·ĉ_k for unit centroids ĉ_k, one per blob.
+    unit = (net.conv.weight[:, :, 0, 0] / (2 * float(net.alpha))).detach().numpy()
+    assert np.allclose(np.linalg.norm(unit, axis=1), 1.0, atol=1e-5)
+    assert np.allclose(np.sort((unit @ np.eye(16)[:4].T).max(1)), 1.0, atol=0.01)
+    assert sorted((unit @ np.eye(16)[:4].T).argmax(1).tolist()) == [0, 1, 2, 3]
+    # α by hand: logits 2x·ĉ − ‖ĉ‖² of the normalised features, mean gap between best and second best.
     x = feats / np.linalg.norm(feats, axis=1, keepdims=True)
-    logits = np.sort(2 * x @ cent.T - (cent**2).sum(1), axis=1)
+    logits = np.sort(2 * x @ unit.T - (unit**2).sum(1), axis=1)
     assert alpha == pytest.approx(-math.log(0.01) / np.mean(logits[:, -1] - logits[:, -2]), rel=1e-4)
     assert float(net.alpha) == pytest.approx(alpha)
-    torch.testing.assert_close(net.conv.weight[:, :, 0, 0], 2 * alpha * net.centroids)
-    torch.testing.assert_close(net.conv.bias, -alpha * (net.centroids**2).sum(1))
+    torch.testing.assert_close(net.conv.bias, -alpha * torch.ones(4), rtol=1e-5, atol=1e-4 * alpha)
+    # Residual centroids: the raw means of each blob's normalised features (pytorch-NetVlad), norm < 1.
+    blob = np.repeat(np.arange(4), 300)
+    means = np.stack([x[blob == (unit @ np.eye(16)[:4].T).argmax(1)[k]].mean(0) for k in range(4)])
+    np.testing.assert_allclose(net.centroids.detach().numpy(), means, atol=1e-5)
+    assert (np.linalg.norm(means, axis=1) < 0.999).all()
 
 
 def test_alpha_exact_case() -> None:

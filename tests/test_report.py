@@ -30,10 +30,23 @@ def _png(path: Path, colour: tuple[int, int, int]) -> Path:
     return path
 
 
-def _metrics(filter_: str, seed: int, r1: float, backbone: str = "vgg16") -> dict:
-    m = {"status": "ok", "error": None, "filter": filter_, "backbone": backbone, "seed": seed,
-         "wall_time_s": 10.0 * seed, "recalls": {str(n): min(100.0, r1 + n - 1) for n in range(1, 21)},
-         "overrides": f"filter={filter_},seed={seed}"}
+# The seed's filter presets as the (aggregator, mask) they select, and their display rows.
+PRESETS = {"none": ("netvlad", "none"), "attention": ("sral", "none"), "unet": ("sral", "student"),
+           "mask2former": ("sral", "teacher"), "oracle": ("sral", "oracle")}
+ROW = {f: f"{a} · {m}" for f, (a, m) in PRESETS.items()}
+
+
+def _labels(filter_: str, aggregator: str | None = None, mask: str | None = None) -> dict:
+    """What a run records to be grouped by (semvpr.train.run_labels)."""
+    aggregator = aggregator or PRESETS[filter_][0]
+    mask = mask or PRESETS[filter_][1]
+    return {"aggregator": aggregator, "baseline_aggregator": aggregator == "netvlad", "mask": mask,
+            "mask_upper_bound": mask == "oracle", "weights": "binary", "filter": filter_}
+
+
+def _metrics(filter_: str, seed: int, r1: float, backbone: str = "vgg16", **labels: str) -> dict:
+    m = {"status": "ok", "error": None, **_labels(filter_, **labels), "backbone": backbone, "seed": seed,
+         "wall_time_s": 10.0 * seed, "recalls": {str(n): min(100.0, r1 + n - 1) for n in range(1, 21)}}
     m.update({f"test/R@{n}": r1 + n - 1 for n in NS})
     return m
 
@@ -67,22 +80,23 @@ def sweep(tmp_path: Path) -> Path:
         topk = [{"path": str(d), "utm": [float(i), 0.0], "correct": i == 0 and f != "none"} for i, d in enumerate(dbs)]
         (job / "retrievals.json").write_text(json.dumps(
             {"queries": [{"query": str(q), "utm": [0.0, 0.0], "topk": topk} for q in queries]}))
-    _job(sweep, "filter=unet,seed=3", {"status": "failed", "filter": "unet", "backbone": "vgg16", "seed": 3,
+    _job(sweep, "filter=unet,seed=3", {"status": "failed", **_labels("unet"), "backbone": "vgg16", "seed": 3,
                                        "error": "Traceback (most recent call last):\n  File x\nRuntimeError: out of memory"})
     crashed = _job(sweep, "filter=mask2former,seed=3", None)
     (crashed / ".hydra" / "overrides.yaml").write_text("- filter=mask2former\n- seed=3\n")
-    (crashed / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    choices:\n      backbone: vgg16\n")
+    (crashed / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    choices:\n      backbone: vgg16\n"
+                                                   "      aggregator: sral\n      mask: teacher\n      filter: mask2former\n")
     return sweep
 
 
 def _csv_rows(sweep: Path) -> dict[str, dict[str, str]]:
     with open(sweep / "results.csv", newline="") as fh:
-        return {r["filter"]: r for r in csv.DictReader(fh)}
+        return {f"{r['aggregator']} · {r['mask']}": r for r in csv.DictReader(fh)}
 
 
 def test_csv_means_and_sample_stds(sweep: Path) -> None:
     write_report(sweep)
-    rows = _csv_rows(sweep)
+    rows = {f: _csv_rows(sweep)[row] for f, row in ROW.items()}
     assert float(rows["none"]["R@1_mean"]) == pytest.approx(42.0)
     assert float(rows["none"]["R@1_std"]) == pytest.approx(2.8284, abs=1e-4)  # ddof=1 of 40, 44
     assert float(rows["mask2former"]["R@20_mean"]) == pytest.approx(72.0)
@@ -99,21 +113,24 @@ def test_markdown_order_gains_failures_and_figures(sweep: Path) -> None:
     assert md == sweep / "results.md"
     text = md.read_text()
     table = [ln for ln in text.splitlines() if ln.startswith("| vgg16 |")]
-    assert [ln.split("|")[2].strip() for ln in table] == ["none", "attention", "unet", "mask2former",
-                                                          "oracle (upper bound)"]
+    assert [ln.split("|")[2].strip() for ln in table] == ["netvlad · none", "sral · none", "sral · student",
+                                                          "sral · teacher", "sral · oracle (upper bound)"]
     assert "| 42.0 ± 2.8 | 46.0 ± 2.8 | 51.0 ± 2.8 | 61.0 ± 2.8 | 2 | 1, 2 | 0 | 15.0 |" in table[0]
     assert "| 70.0 ± – |" in table[4]
     # Paired by seed: attention 38-40, 40-44; the oracle has seed 1 only (70-40), not 70-mean(none).
-    assert ("**R@1 gain over `none` (vgg16)**, per seed (same backbone init and data), then mean ± std: "
-            "attention −3.0 ± 1.4 (better in 0 of 2 seeds), unet +7.0 ± 1.4 (better in 2 of 2 seeds), "
-            "mask2former +11.0 ± 1.4 (better in 2 of 2 seeds), oracle (upper bound) +30.0 (better in 1 of 1 seeds)"
-            ) in text
+    assert ("**R@1 gain over `netvlad · none` (vgg16)**, per seed (same backbone init and data), then mean ± std: "
+            "sral · none −3.0 ± 1.4 (better in 0 of 2 seeds), sral · student +7.0 ± 1.4 (better in 2 of 2 seeds), "
+            "sral · teacher +11.0 ± 1.4 (better in 2 of 2 seeds), sral · oracle (upper bound) +30.0 "
+            "(better in 1 of 1 seeds)") in text
+    # the same aggregator without a mask: student 48-38, 50-40; teacher 50-38, 56-40; oracle 70-38
+    assert ("- sral: student +10.0 ± 0.0 (better in 2 of 2 seeds), teacher +14.0 ± 2.8 (better in 2 of 2 seeds), "
+            "oracle (upper bound) +32.0 (better in 1 of 1 seeds)") in text
     failed = [ln for ln in text.splitlines() if ln.startswith("- `filter=")]
     assert len(failed) == 2
     assert any("filter=unet,seed=3" in ln and ln.endswith("RuntimeError: out of memory") for ln in failed)
     assert any("filter=mask2former,seed=3" in ln and "vgg16" in ln and ln.endswith("no metrics.json") for ln in failed)
     assert "skipped" not in text
-    for name in ("recall_at_n.png", "figure3.png", "retrievals.png"):
+    for name in ("recall_at_n.png", "r1_by_aggregator.png", "figure3.png", "retrievals.png"):
         assert f"]({name})" in text
         with Image.open(sweep / name) as im:
             assert im.format == "PNG" and im.width > 200 and im.height > 200
@@ -128,8 +145,8 @@ def test_missing_inputs_skip_figures_with_note(tmp_path: Path) -> None:
     assert "- `figure3.png` skipped: no job wrote maps.npz" in text
     assert "- `retrievals.png` skipped: no job wrote retrievals.json" in text
     assert "](recall_at_n.png)" in text and (tmp_path / "recall_at_n.png").stat().st_size > 0
-    assert "**R@1 gain over `none` (resnet50):** no finished `none` run" in text
-    assert "| resnet50 | unet | 30.0 ± – |" in text
+    assert "**R@1 gain over `netvlad · none` (resnet50):** no finished `netvlad · none` run" in text
+    assert "| resnet50 | sral · student | 30.0 ± – |" in text
 
 
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
@@ -146,7 +163,7 @@ def test_callback_resolves_relative_sweep_dir(sweep: Path, capsys: pytest.Captur
     cfg = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep.relative_to(root))}, "runtime": {"cwd": str(root)}}})
     ReportCallback().on_multirun_end(cfg)
     out = capsys.readouterr().out
-    assert str(sweep / "results.md") in out and "| vgg16 | none | 42.0 ± 2.8 |" in out
+    assert str(sweep / "results.md") in out and "| vgg16 | netvlad · none | 42.0 ± 2.8 |" in out
     # a report failure is one stderr line, never an exception that would hide the sweep's results
     bad = OmegaConf.create({"hydra": {"sweep": {"dir": str(root / "nope")}}})
     ReportCallback().on_multirun_end(bad)
@@ -163,15 +180,16 @@ def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
 
         @hydra.main(version_base=None, config_path=".", config_name="cfg")
         def main(cfg):
-            r1 = 30.0 + 10 * (cfg.filter == "unet") + cfg.seed
-            m = {"status": "ok", "filter": cfg.filter, "backbone": "vgg16", "seed": cfg.seed, "wall_time_s": 1.0}
+            r1 = 30.0 + 10 * (cfg.mask == "student") + cfg.seed
+            m = {"status": "ok", "aggregator": "gem", "baseline_aggregator": False, "mask": cfg.mask,
+                 "backbone": "vgg16", "seed": cfg.seed, "wall_time_s": 1.0}
             m.update({f"test/R@{n}": r1 for n in (1, 5, 10, 20)})
             Path(HydraConfig.get().runtime.output_dir, "metrics.json").write_text(json.dumps(m))
 
         main()
     """))
     (tmp_path / "cfg.yaml").write_text(textwrap.dedent("""
-        filter: none
+        mask: none
         seed: 1
         hydra:
           callbacks:
@@ -179,12 +197,12 @@ def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
           sweep: {dir: "multiruns/${now:%Y-%m-%d}/${now:%H-%M-%S}", subdir: "${hydra.job.override_dirname}"}
     """))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "app.py", "-m", "filter=none,unet", "seed=1,2"], cwd=tmp_path, env=env,
+    proc = subprocess.run([sys.executable, "app.py", "-m", "mask=none,student", "seed=1,2"], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stderr
     (md,) = tmp_path.glob("multiruns/*/*/results.md")
-    assert "| vgg16 | unet | 41.5 ± 0.7 |" in md.read_text()
-    assert "**R@1 gain over `none` (vgg16)**" in proc.stdout and "unet +10.0 ± 0.0 (better in 2 of 2 seeds)" in proc.stdout
+    assert "| vgg16 | gem · student | 41.5 ± 0.7 |" in md.read_text()
+    assert "- gem: student +10.0 ± 0.0 (better in 2 of 2 seeds)" in proc.stdout
 
 
 def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
@@ -199,10 +217,36 @@ def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
             _job(tmp_path, f"filter=oracle,filter.weights={filter_.partition('+')[2] or 'binary'},seed={seed}", metrics)
     text = write_report(tmp_path).read_text()
     rows = [ln.split("|")[2].strip() for ln in text.splitlines() if ln.startswith("| vgg16 |")]
-    assert rows == ["oracle (upper bound)", "oracle+learned (upper bound)"]
-    assert ("**R@1 gain of learned class weights over the binary filter (vgg16)**, paired by seed: "
-            "oracle+learned (upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)") in text
+    assert rows == ["sral · oracle (upper bound)", "sral · oracle+learned (upper bound)"]
+    assert ("**R@1 gain of learned class weights over binary weights (vgg16)**, paired by seed: "
+            "sral · oracle+learned (upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)") in text
     assert "| vegetation | 0.40 ± 0.14 |" in text and "| road | 0.90 ± 0.00 |" in text
     assert "](class_weights.png)" in text
     with Image.open(tmp_path / "class_weights.png") as im:
         assert im.format == "PNG" and im.width > 400
+
+
+def test_aggregator_by_mask_matrix_and_bars(tmp_path: Path) -> None:
+    # R@1 by (aggregator, mask, seed); R@5 = R@1 + 4 (see _metrics)
+    r1 = {("netvlad", "none"): (30.0, 34.0), ("netvlad", "oracle"): (35.0, 33.0),
+          ("gem", "none"): (20.0, 22.0), ("gem", "student"): (26.0, 30.0), ("gem", "oracle"): (25.0, 27.0)}
+    for (agg, mask), values in r1.items():
+        for seed, value in enumerate(values):
+            _job(tmp_path, f"aggregator={agg},mask={mask},seed={seed}",
+                 _metrics("none", seed, value, aggregator=agg, mask=mask))
+    text = write_report(tmp_path).read_text()
+    matrix = text[text.index("## Aggregator × mask (vgg16)"):]
+    lines = [ln for ln in matrix.splitlines() if ln.startswith("| ")]
+    # baseline aggregator first; no mask first, upper bounds last
+    assert lines[0] == "| aggregator | none | student | oracle (upper bound) |"
+    assert lines[1] == "| netvlad | 32.0 ± 2.8 / 36.0 ± 2.8 | – | 34.0 ± 1.4 / 38.0 ± 1.4 |"
+    assert lines[2] == "| gem | 21.0 ± 1.4 / 25.0 ± 1.4 | 28.0 ± 2.8 / 32.0 ± 2.8 | 26.0 ± 1.4 / 30.0 ± 1.4 |"
+    # paired by seed against the same aggregator without a mask: gem student 26-20, 30-22
+    assert "- netvlad: oracle (upper bound) +2.0 ± 4.2 (better in 1 of 2 seeds)" in matrix
+    assert "- gem: student +7.0 ± 1.4 (better in 2 of 2 seeds), oracle (upper bound) +5.0 ± 0.0" in matrix
+    # across aggregators, against the baseline without a mask: gem none 20-30, 22-34
+    assert "gem · none −11.0 ± 1.4 (better in 0 of 2 seeds)" in text
+    assert "](r1_by_aggregator.png)" in text
+    with Image.open(tmp_path / "r1_by_aggregator.png") as im:
+        assert im.format == "PNG" and im.width > 400
+        assert len(set(np.asarray(im.convert("L")).ravel().tolist())) > 10

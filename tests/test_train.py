@@ -17,10 +17,11 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from semvpr import train
+from semvpr.build import build_aggregator, build_backbone
 from semvpr.errors import SemvprError
 from semvpr.train import run_job
 
-from tests.helpers import CONF_DIR, tiny_config
+from tests.helpers import CONF_DIR, config, tiny_config
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -59,6 +60,31 @@ def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: 
     expected_mask = {"unet": "student", "mask2former": "teacher", "oracle": "oracle"}.get(filter_name)
     if expected_mask:
         assert set(np.unique(maps[expected_mask])) <= {0.0, 1.0}
+
+
+@pytest.mark.parametrize("aggregator,dim", [("gem", 512), ("mixvpr", 2048), ("salad", 256 + 8 * 64), ("boq", 2048)])
+def test_fast_dev_run_each_aggregator_with_a_mask(cache_dir: Path, tmp_path: Path, aggregator: str, dim: int) -> None:
+    cfg = tiny_config(cache_dir, f"aggregator={aggregator}", "mask=oracle", "model.pca_dim=8", "+trainer.fast_dev_run=true")
+    assert build_aggregator(cfg.copy(), build_backbone(cfg)).output_dim == dim
+    metrics = run_job(cfg, tmp_path)
+    # PCA whitening works on any aggregator's descriptor
+    assert (metrics["aggregator"], metrics["mask"], metrics["descriptor_dim"]) == (aggregator, "oracle", 8)
+    assert metrics["aggregator_init"] == {"init": "none"} and 0.0 <= metrics["test/R@1"] <= 100.0
+    maps = np.load(tmp_path / "maps.npz")
+    assert "attention" not in maps.files and set(np.unique(maps["oracle"])) <= {0.0, 1.0}
+
+
+def test_preset_and_explicit_choices_compose() -> None:
+    unet = config("filter=unet")
+    assert (unet.aggregator.name, unet.mask.name, unet.mask.weights) == ("sral", "student", "binary")
+    learned = config("filter=mask2former", "filter.weights=learned")
+    assert (learned.aggregator.name, learned.mask.name, learned.mask.weights) == ("sral", "teacher", "learned")
+    # an explicit group choice wins over the preset's
+    mixed = config("filter=unet", "aggregator=gem")
+    assert (mixed.aggregator.name, mixed.mask.name) == ("gem", "student")
+    plain = config("aggregator=salad", "mask=teacher", "mask.weights=learned")
+    assert (plain.aggregator.name, plain.mask.name, plain.mask.weights) == ("salad", "teacher", "learned")
+    assert (config().aggregator.name, config().mask.name) == ("netvlad", "none")
 
 
 def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:

@@ -70,7 +70,7 @@ class MaskSource(nn.Module):
             return pool_to_grid(self.static_prob(class_prob), grid_hw)
         if weighting == "learned":
             return F.adaptive_avg_pool2d(class_prob.float(), grid_hw)
-        raise SemvprError(f"filter.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+        raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
 
 
 class TeacherMask(MaskSource):
@@ -104,7 +104,7 @@ class OracleMask(MaskSource):
 
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         if label_paths is None:
-            raise SemvprError("filter=oracle needs ground-truth label maps; only SynthCity provides them")
+            raise SemvprError("mask=oracle needs ground-truth label maps; only SynthCity provides them")
         labels = torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in label_paths]).astype(np.int64))
         one_hot = F.one_hot(labels.clamp(max=NUM_CLASSES), NUM_CLASSES + 1)[..., :NUM_CLASSES]  # ignore → zeros
         assert IGNORE >= NUM_CLASSES

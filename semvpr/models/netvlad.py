@@ -1,7 +1,10 @@
 """NetVLAD aggregation (Arandjelović et al., CVPR'16), its k-means/α initialisation, and PCA whitening.
 
-Soft-assignment is a 1×1 conv initialised as w_k = 2α·c_k, b_k = −α‖c_k‖², i.e. a softmax over
-−α‖x − c_k‖² (pytorch-NetVlad "vladv2"); conv and centroids are separate learnable parameters.
+Soft-assignment is a 1×1 conv initialised as w_k = 2α·ĉ_k, b_k = −α‖ĉ_k‖², i.e. a softmax over
+−α‖x − ĉ_k‖² (pytorch-NetVlad "vladv2"), from the unit-norm k-means centroids ĉ_k (α is set on them
+too); the residuals x − c_k use the raw k-means means c_k of the clustered unit features (norm < 1),
+as Relja's addLayers.m, pytorch-NetVlad and the VPR benchmark. Conv and residual centroids are
+separate learnable parameters.
 A mask m (B,1,h,w) weights each location's contribution: V(:,k) = Σ_i m_i·a_k(x_i)·(x_i − c_k).
 The aggregation always runs in fp32 (autocast off): α is in the thousands at init, so bf16 logits
 would flip assignments.
@@ -17,6 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.errors import SemvprError
+from semvpr.models.aggregator import Aggregator, check_weights
 
 MAX_KMEANS_FEATURES = 50_000  # NetVLAD's recipe: cluster a 50k random sample of training local features
 
@@ -65,6 +69,17 @@ def kmeans_pp_seeds(feats: np.ndarray, k: int, seed: int) -> np.ndarray:
     return np.ascontiguousarray(feats[chosen], dtype=np.float32)
 
 
+def cluster_means(feats: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """(k,D) raw means of the features nearest (largest dot product) to each unit centroid; a cluster
+    without members keeps its centroid."""
+    nearest = np.argmax(feats @ centroids.T, axis=1)
+    counts = np.bincount(nearest, minlength=len(centroids)).astype(np.float64)
+    sums = np.zeros(centroids.shape, np.float64)
+    np.add.at(sums, nearest, feats.astype(np.float64))
+    means = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1.0)[:, None], centroids)
+    return means.astype(np.float32)
+
+
 def alpha_from_features(feats: np.ndarray, centroids: np.ndarray) -> float:
     """α = −log(0.01) / mean gap between the best and second-best assignment logit (2x·c − ‖c‖²)."""
     # The gap is taken on the logit the conv computes (= the squared-distance gap; 2× the dot gap for unit
@@ -87,16 +102,14 @@ def vlad_aggregate(x: Tensor, weights: Tensor, centroids: Tensor) -> Tensor:
     return F.normalize(vlad.flatten(1), dim=1)
 
 
-def _check_mask(x: Tensor, mask: Tensor | None) -> Tensor | None:
-    if mask is None:
-        return None
-    if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[-2:] != x.shape[-2:] or mask.shape[0] not in (1, x.shape[0]):
-        raise ValueError(f"mask must be (B,1,h,w) on the feature grid {tuple(x.shape[-2:])}, got {tuple(mask.shape)}")
-    return mask.float()
+class NetVLAD(Aggregator):
+    """NetVLAD layer: (B,D,h,w) local features [+ mask] → (B,K·D) L2-normalised descriptor.
 
+    The mask scales each location's soft-assignment mass (features are never zeroed); initialised by
+    k-means on a sample of training local features.
+    """
 
-class NetVLAD(nn.Module):
-    """NetVLAD layer: (B,D,h,w) local features [+ mask] → (B,K·D) L2-normalised descriptor."""
+    init_sample = "features"
 
     def __init__(self, num_clusters: int = 64, dim: int = 512) -> None:
         super().__init__()
@@ -114,21 +127,28 @@ class NetVLAD(nn.Module):
         return self.num_clusters * self.dim
 
     @torch.no_grad()
-    def set_centroids(self, centroids: Tensor, alpha: float) -> None:
-        """Set centroids and the assignment conv to w = 2α·c, b = −α‖c‖²."""
+    def set_centroids(self, centroids: Tensor, alpha: float, residual: Tensor | None = None) -> None:
+        """Set the assignment conv to w = 2α·c, b = −α‖c‖² and the residual centroids to ``residual``
+        (default: ``centroids``)."""
         c = centroids.to(self.centroids.device, torch.float32)
-        self.centroids.copy_(c)
+        self.centroids.copy_(c if residual is None else residual.to(self.centroids.device, torch.float32))
         self.conv.weight.copy_((2.0 * alpha * c)[:, :, None, None])
         self.conv.bias.copy_(-alpha * (c**2).sum(1))
         self.alpha.fill_(alpha)
 
     def init_from_features(self, feats: Tensor | np.ndarray, seed: int = 0, niter: int = 50) -> float:
-        """Spherical k-means on ≤50k L2-normalised (N,D) local features; sets centroids and α, returns α."""
+        """Spherical k-means on ≤50k L2-normalised (N,D) local features: the assignment conv and α from
+        the unit centroids, the residual centroids = the clusters' raw means; returns α."""
         arr = subsample(self._features(feats), MAX_KMEANS_FEATURES, seed)
         centroids = spherical_kmeans(arr, self.num_clusters, seed, niter)
         alpha = alpha_from_features(arr, centroids)
-        self.set_centroids(torch.from_numpy(centroids), alpha)
+        self.set_centroids(torch.from_numpy(centroids), alpha, torch.from_numpy(cluster_means(arr, centroids)))
         return alpha
+
+    def init_from_sample(self, feats: Tensor, static: Tensor | None, seed: int) -> dict[str, float | int | str]:
+        """k-means / α initialisation from the sampled local features (labels unused)."""
+        alpha = self.init_from_features(feats, seed=seed)
+        return {"init": "kmeans", "features": len(feats), "alpha": float(alpha)}
 
     def _features(self, feats: Tensor | np.ndarray) -> np.ndarray:
         if feats.ndim != 2 or feats.shape[1] != self.dim:
@@ -149,7 +169,7 @@ class NetVLAD(nn.Module):
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
         """(B,D,h,w) features and optional (B,1,h,w) contribution weights → (B,K·D) descriptor."""
-        mask = _check_mask(x, mask)
+        mask = check_weights(x, mask)
         with torch.autocast(x.device.type, enabled=False):
             x = self._prepare(x)
             weights = self._weights(x)

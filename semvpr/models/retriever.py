@@ -1,6 +1,6 @@
 """The retriever: backbone → (mask) → NetVLAD / SRAL aggregator → global descriptor.
 
-One code path for every filter (DESIGN §3): the components are built outside and injected. The
+One code path for every aggregator and mask (DESIGN §3): the components are built outside and injected. The
 frozen backbone prefix and the mask run once per image (semvpr.features); training, mining and
 evaluation work on their cached outputs through :meth:`Retriever.describe`.
 """
@@ -48,7 +48,7 @@ class Retriever(L.LightningModule):
         # never code or _target_s; Lightning stores it in the checkpoint's "hyper_parameters".
         self.save_hyperparameters(record or {})
         self.backbone, self.aggregator, self.mask_source = backbone, aggregator, mask_source
-        # Learned per-class weights turn the cached class probabilities into the mask (filter.weights=learned).
+        # Learned per-class weights turn the cached class probabilities into the mask (mask.weights=learned).
         self.class_weights, self.class_weights_lr = class_weights, class_weights_lr
         # PCA whitening is fitted on database descriptors after training and used from then on.
         self.whitening = whitening

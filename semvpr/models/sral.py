@@ -11,7 +11,8 @@ and shadow logits l_kj(x) = 2α x·s_kj − α‖s_kj‖² (a second conv, same 
 
 A feature close to a shadow (e.g. a car) keeps its cluster assignment a_k but gets a small β_k, so it
 barely contributes; attention(x) = Σ_k a_k β_k ∈ [0,1]. With S = 0, β ≡ 1 and SRAL is NetVLAD exactly.
-Semantic-constrained init: k-means on static-class features → representatives (+ NetVLAD's α); k-means
+Semantic-constrained init: k-means on static-class features → representatives (+ NetVLAD's α, and
+the clusters' raw means as residual centroids, as NetVLAD); k-means
 on dynamic-class features → min(K·S, N_dynamic) shadow candidates; each cluster takes the S candidates
 nearest its representative. Without enough dynamic features (fewer than S) the shadows start "far":
 s_kj = −4·c_k, outside the unit sphere, so l_kj ≤ −8α < −3α ≤ l_k for unit features; β ≈ 1 and SRAL
@@ -24,13 +25,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, spherical_kmeans,
-                                   subsample)
+from semvpr.models.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, cluster_means,
+                                   spherical_kmeans, subsample)
 
 FAR_SHADOW = -4.0  # shadow = −4·c_k when there are no dynamic features: never wins against the representative
 
 class SRAL(NetVLAD):
-    """NetVLAD with per-cluster shadow centroids that down-weight features near dynamic content."""
+    """NetVLAD with per-cluster shadow centroids that down-weight features near dynamic content.
+
+    The mask enters as in NetVLAD (it scales each location's assignment mass); initialised from a
+    sample of local features labelled static / dynamic by the teacher's pseudo-labels.
+    """
+
+    init_sample = "labelled"
 
     def __init__(self, num_clusters: int = 64, dim: int = 512, num_shadows: int = 4) -> None:
         super().__init__(num_clusters, dim)
@@ -66,6 +73,12 @@ class SRAL(NetVLAD):
         with torch.autocast(x.device.type, enabled=False):
             return self._weights(self._prepare(x)).sum(1, keepdim=True).clamp(0.0, 1.0)
 
+    def init_from_sample(self, feats: Tensor, static: Tensor | None, seed: int) -> dict[str, float | int | str]:
+        """Semantic-constrained init: ``static`` (N,) marks the static locations of ``feats``."""
+        assert static is not None, "SRAL's init needs the sample's static labels"
+        counts = self.init_semantic(feats[static], feats[~static], seed=seed)
+        return {"init": "semantic", **{k: (float(v) if isinstance(v, float) else v) for k, v in counts.items()}}
+
     def init_from_features(self, feats: Tensor | np.ndarray, seed: int = 0, niter: int = 50) -> float:
         """Representatives from unlabelled features; shadows at the antipodes (no semantics available)."""
         return float(self.init_semantic(feats, None, seed, niter)["alpha"])
@@ -76,7 +89,7 @@ class SRAL(NetVLAD):
         static = subsample(self._features(static_feats), MAX_KMEANS_FEATURES, seed)
         reps = spherical_kmeans(static, self.num_clusters, seed, niter)
         alpha = alpha_from_features(static, reps)
-        self.set_centroids(torch.from_numpy(reps), alpha)
+        self.set_centroids(torch.from_numpy(reps), alpha, torch.from_numpy(cluster_means(static, reps)))
         num_dynamic = 0 if dynamic_feats is None else len(dynamic_feats)
         num_candidates = 0
         if self.num_shadows and num_dynamic >= self.num_shadows:

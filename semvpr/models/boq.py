@@ -1,0 +1,86 @@
+"""BoQ: Bag-of-Queries aggregation (Ali-bey, Chaib-draa & Giguère, CVPR 2024), with a per-location mask.
+
+The (B,C,h,w) map is projected to d channels and layer-normalised into n = h·w tokens X⁰. Each of L
+blocks runs a Transformer encoder layer on the tokens (post-norm, ReLU MLP of width 4d, no dropout:
+PyTorch's ``TransformerEncoderLayer`` as the authors), then lets Q learnable queries attend to them:
+
+    X^l = Encoder(X^{l−1});   Q̂ = LN(Q + SelfAttn(Q, Q, Q));   O^l = LN(CrossAttn(Q̂, X^l, X^l)).
+
+The L·Q outputs are stacked (B, L·Q, d), a linear layer maps the L·Q axis to ``row_dim`` rows, and
+the flattened d·row_dim matrix is L2-normalised.
+
+Mask: log w_i is added to the attention logit of every key i, in the cross-attention and in the
+encoder's self-attention (otherwise a masked token would still reach the others through the
+encoder), so each softmax over locations becomes w_i·exp(s_i) / Σ_j w_j·exp(s_j). A weight of 0
+removes the location exactly (its bias is −10⁴, whose exp is 0 in float32). The authors project with
+a 3×3 convolution (ResNet); here the projection is 1×1 so that a masked location cannot leak into
+its neighbours before the attention sees the mask.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from semvpr.models.aggregator import Aggregator, check_weights, log_weights
+
+HEAD_DIM = 64  # the authors' heads: d // 64 of them
+
+
+class BoQBlock(nn.Module):
+    """Encoder layer on the tokens, then Q learnable queries cross-attending to them."""
+
+    def __init__(self, dim: int, num_queries: int) -> None:
+        super().__init__()
+        heads = max(1, dim // HEAD_DIM)
+        self.encoder = nn.TransformerEncoderLayer(dim, heads, dim_feedforward=4 * dim, dropout=0.0, batch_first=True)
+        self.queries = nn.Parameter(torch.randn(1, num_queries, dim))
+        self.self_attn = nn.MultiheadAttention(dim, heads, batch_first=True)
+        self.norm_q = nn.LayerNorm(dim)
+        self.cross_attn = nn.MultiheadAttention(dim, heads, batch_first=True)
+        self.norm_out = nn.LayerNorm(dim)
+
+    def forward(self, x: Tensor, key_bias: Tensor) -> tuple[Tensor, Tensor]:
+        """Tokens (B,n,d) and the per-key logit bias (B,n) → new tokens, query outputs (B,Q,d)."""
+        b, n, _ = x.shape
+        heads = self.cross_attn.num_heads
+        q = self.queries.expand(b, -1, -1)
+        bias = key_bias[:, None, None, :].expand(b, heads, 1, n)
+        x = self.encoder(x, src_mask=bias.expand(b, heads, n, n).reshape(b * heads, n, n))
+        q = self.norm_q(q + self.self_attn(q, q, q, need_weights=False)[0])
+        cross_bias = bias.expand(b, heads, q.shape[1], n).reshape(b * heads, q.shape[1], n)
+        out = self.cross_attn(q, x, x, attn_mask=cross_bias, need_weights=False)[0]
+        return x, self.norm_out(out)
+
+
+class BoQ(Aggregator):
+    """Bag-of-Queries: (B,C,h,w) [+ mask] → (B, proj_channels·row_dim) L2-normalised."""
+
+    def __init__(self, dim: int, proj_channels: int = 256, num_queries: int = 32, num_layers: int = 2,
+                 row_dim: int = 8) -> None:
+        super().__init__()
+        self.proj_channels, self.row_dim = proj_channels, row_dim
+        self.proj_c = nn.Conv2d(dim, proj_channels, kernel_size=1)
+        self.norm_input = nn.LayerNorm(proj_channels)
+        self.blocks = nn.ModuleList([BoQBlock(proj_channels, num_queries) for _ in range(num_layers)])
+        self.fc = nn.Linear(num_layers * num_queries, row_dim)
+
+    @property
+    def output_dim(self) -> int:
+        """Descriptor length proj_channels · row_dim."""
+        return self.proj_channels * self.row_dim
+
+    def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
+        """Tokens through the blocks with the mask as a key bias, query outputs → rows → L2."""
+        weights = check_weights(x, weights)
+        tokens = self.norm_input(self.proj_c(x).flatten(2).transpose(1, 2))   # (B, n, d)
+        b, n, _ = tokens.shape
+        # Without a mask the bias is 0 everywhere: one code path, so w ≡ 1 is the unmasked model exactly.
+        key_bias = tokens.new_zeros(b, n) if weights is None else log_weights(weights).flatten(1).expand(b, n)
+        key_bias = key_bias.to(tokens.dtype)
+        outs = []
+        for block in self.blocks:
+            tokens, out = block(tokens, key_bias)
+            outs.append(out)
+        rows = self.fc(torch.cat(outs, dim=1).transpose(1, 2))                  # (B, d, row_dim)
+        return F.normalize(rows.flatten(1), dim=1)

@@ -1,0 +1,93 @@
+"""SALAD: Sinkhorn Algorithm for Locally Aggregated Descriptors (Izquierdo & Civera, CVPR 2024),
+with a per-location mask.
+
+Each of the n locations x_i gets a local feature f_i = MLP_f(x_i) ∈ R^l and scores S_ki =
+MLP_s(x_i)_k for m clusters. A dustbin row (one learnable score z for every location) is appended
+and the (m+1)×n matrix is made a transport plan by ``iters`` log-domain Sinkhorn iterations between
+the cluster masses a = (1, …, 1, n − m) / (m + n) and the location masses b = (1, …, 1) / (m + n)
+(SuperGlue's formulation, as the authors). The plan times (m + n) gives P; the dustbin row is dropped:
+
+    V(:,k) = Σ_i P_ki f_i   (intra-normalised),   descriptor = L2[ L2(g) , V flattened ],
+
+with g = MLP_g(t) the global scene token. The authors' t is a ViT's class token; this CNN version
+takes the mask-weighted mean of the local features, t = Σ_i w_i x_i / Σ_i w_i.
+
+Mask: the weight scales each location's mass, b_i = w_i / (m + n) (log b_i = log w_i − log(m + n),
+weight 0 → mass exactly 0, so the location receives no transport); the dustbin's mass is unchanged.
+The cluster MLPs use dropout (0.3 as the authors) in training only.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from semvpr.errors import SemvprError
+from semvpr.models.aggregator import Aggregator, check_weights, log_weights
+
+HIDDEN = 512  # width of SALAD's three MLPs (the authors')
+
+
+def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Tensor:
+    """log of the transport plan of (B,M,N) scores between row masses exp(log_a) (B,M) and column
+    masses exp(log_b) (B,N), after ``iters`` alternating row/column normalisations in log space."""
+    u, v = torch.zeros_like(log_a), torch.zeros_like(log_b)
+    for _ in range(iters):
+        u = log_a - torch.logsumexp(scores + v[:, None, :], dim=2)
+        v = log_b - torch.logsumexp(scores + u[:, :, None], dim=1)
+    return scores + u[:, :, None] + v[:, None, :]
+
+
+def _mlp(conv: bool, dim: int, out: int, dropout: float) -> nn.Sequential:
+    layer = (lambda i, o: nn.Conv2d(i, o, 1)) if conv else nn.Linear
+    drop = [nn.Dropout(dropout)] if dropout > 0 else []
+    return nn.Sequential(layer(dim, HIDDEN), *drop, nn.ReLU(), layer(HIDDEN, out))
+
+
+class SALAD(Aggregator):
+    """SALAD: (B,D,h,w) [+ mask] → (B, token_dim + num_clusters·cluster_dim) L2-normalised."""
+
+    def __init__(self, dim: int, num_clusters: int = 32, cluster_dim: int = 64, token_dim: int = 256,
+                 dropout: float = 0.3, iters: int = 3) -> None:
+        super().__init__()
+        self.num_clusters, self.cluster_dim, self.token_dim, self.iters = num_clusters, cluster_dim, token_dim, iters
+        self.token_features = _mlp(False, dim, token_dim, 0.0)
+        self.cluster_features = _mlp(True, dim, cluster_dim, dropout)
+        self.score = _mlp(True, dim, num_clusters, dropout)
+        self.dust_bin = nn.Parameter(torch.tensor(1.0))
+
+    @property
+    def output_dim(self) -> int:
+        """Descriptor length token_dim + num_clusters · cluster_dim."""
+        return self.token_dim + self.num_clusters * self.cluster_dim
+
+    def assignment(self, scores: Tensor, weights: Tensor | None) -> Tensor:
+        """P (B,m,n): the Sinkhorn plan of (B,m,n) scores times (m + n), dustbin row dropped."""
+        b, m, n = scores.shape
+        if n <= m:
+            raise SemvprError(f"SALAD needs more feature locations than clusters (the dustbin's mass is n − m), "
+                              f"got {n} locations for {m} clusters; lower aggregator.num_clusters")
+        norm = -math.log(m + n)
+        log_a = scores.new_full((b, m + 1), norm)
+        log_a[:, m] = math.log(n - m) + norm
+        log_b = scores.new_full((b, n), norm)
+        if weights is not None:
+            log_b = log_b + log_weights(weights).flatten(1).expand(b, n)
+        couplings = torch.cat([scores, self.dust_bin.float().expand(b, 1, n)], dim=1)
+        return (log_sinkhorn(couplings, log_a, log_b, self.iters) - norm).exp()[:, :m]
+
+    def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
+        """Optimal-transport aggregation in fp32 (exp of log-plans)."""
+        weights = check_weights(x, weights)
+        with torch.autocast(x.device.type, enabled=False):
+            x = x.float()
+            w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
+            w = w.expand(x.shape[0], 1, *x.shape[2:])
+            token = (x * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(1e-12)
+            f = self.cluster_features(x).flatten(2)                      # (B, l, n)
+            p = self.assignment(self.score(x).flatten(2), weights)        # (B, m, n)
+            local = F.normalize(torch.einsum("bln,bmn->blm", f, p), dim=1).flatten(1)
+            g = F.normalize(self.token_features(token), dim=1)
+            return F.normalize(torch.cat([g, local], dim=1), dim=1)
