@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from semvpr.build import build_backbone, build_mask_source, instantiate_node
+from semvpr.build import build_aggregator, build_backbone, build_mask_source
 from semvpr.checkpoint import record_of
 from semvpr.models.retriever import Retriever
 from semvpr.precision import autocast
@@ -44,9 +44,9 @@ def compose(*overrides: str):
 
 def write_checkpoint(path: Path, clusters: int) -> None:
     """An untrained VGG16 + NetVLAD checkpoint in the format a run writes."""
-    cfg = compose("backbone.weights=none", f"model.num_clusters={clusters}")
+    cfg = compose("backbone=vgg16", "backbone.weights=none", f"model.num_clusters={clusters}")
     backbone = build_backbone(cfg)
-    aggregator = instantiate_node(cfg.filter.aggregator, dim=backbone.out_channels)
+    aggregator = build_aggregator(cfg, backbone)
     retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), record=record_of(cfg))
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams)}, path)
 

@@ -43,13 +43,18 @@ def sweep(rev: str, work: Path, label: str, overrides: list[str]) -> tuple[float
         wall = time.perf_counter() - t0
     finally:
         subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], check=False)
+    return wall, job_timings(sweep_dir)
+
+
+def job_timings(sweep_dir: Path) -> dict[str, dict[str, float]]:
+    """job → {stage: seconds, "job": wall_time_s} from a finished sweep's ``metrics.json`` files."""
     jobs = {}
     for path in sorted(sweep_dir.glob("*/metrics.json")):
         metrics = json.loads(path.read_text())
         if metrics.get("status", "ok") != "ok":
             raise SystemExit(f"{path}: job failed ({metrics.get('error')}); the comparison needs every job")
         jobs[path.parent.name] = {**metrics.get("timings", {}), "job": float(metrics["wall_time_s"])}
-    return wall, jobs
+    return jobs
 
 
 def describe(wall: float, jobs: dict[str, dict[str, float]]) -> str:

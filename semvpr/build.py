@@ -95,11 +95,15 @@ def build_backbone(cfg: DictConfig, pretrained: bool = True) -> nn.Module:
     return instantiate_backbone(cfg.backbone, int(cfg.seed), pretrained)
 
 
+#: Backbone config keys that are not constructor arguments.
+CONFIG_ONLY_KEYS = ("name", "paper_train_from")
+
+
 def instantiate_backbone(node: DictConfig, seed: int, pretrained: bool = True) -> nn.Module:
     """A backbone config node with the seed's random init, or its pretrained weights (``pretrained``;
     eval skips them: the checkpoint carries every weight); channels_last."""
     torch.manual_seed(seed)
-    args = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items() if k != "name"}
+    args = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items() if k not in CONFIG_ONLY_KEYS}
     if not pretrained:
         args["weights"] = "none"
     return instantiate_node(args).to(memory_format=torch.channels_last)

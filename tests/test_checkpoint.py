@@ -20,11 +20,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.mark.parametrize("filter_name,backbone", [
     ("none", "vgg16"), ("attention", "vgg16"), ("unet", "vgg16"), ("mask2former", "vgg16"), ("oracle", "vgg16"),
-    ("unet", "resnet50"), ("mask2former", "resnet50")])
+    ("unet", "resnet50"), ("mask2former", "resnet50"), ("none", "efficientnet_lite0"), ("unet", "efficientnet_lite0")])
 def test_genuine_checkpoints_load(tmp_path: Path, filter_name: str, backbone: str) -> None:
     trained = tiny_config(tmp_path, f"filter={filter_name}", f"backbone={backbone}", "model.pca_dim=4", "seed=3")
     state = write_checkpoint(trained, tmp_path / "run.ckpt")
-    # Eval's own config: the defaults (vgg16, none, seed 0) and another dataset size.
+    # Eval's own config: the defaults (efficientnet_lite0, none, seed 0) and another dataset size.
     cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[48,64]", config_name="eval")
     retriever, merged = load_retriever(cfg)
     preset = tiny_config(tmp_path, f"filter={filter_name}")

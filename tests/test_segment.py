@@ -41,9 +41,10 @@ def segment_config(*overrides: str) -> DictConfig:
 
 @pytest.fixture(scope="module")
 def segment_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, DictConfig]:
-    """One complete tiny run (teacher, pseudo-labels, VGG16 and ResNet50 students)."""
+    """One complete tiny run (teacher, pseudo-labels, EfficientNet-Lite0 and random-init VGG16 students)."""
     tmp = tmp_path_factory.mktemp("segment")
-    cfg = segment_config(f"seg.root={write_camvid(tmp / 'camvid')}", f"paths.cache_dir={tmp / 'cache'}")
+    cfg = segment_config(f"seg.root={write_camvid(tmp / 'camvid')}", f"paths.cache_dir={tmp / 'cache'}",
+                         "+backbone@backbones.vgg16=vgg16")
     run(cfg, tmp / "run")
     return tmp / "run", cfg
 
@@ -51,14 +52,14 @@ def segment_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, DictCon
 def test_run_writes_results_figure_logs_and_teacher(segment_run: tuple[Path, DictConfig]) -> None:
     run_dir, _ = segment_run
     results = json.loads((run_dir / "results.json").read_text())
-    assert set(results) >= {"teacher", "student_vgg16", "student_resnet50", "dataset", "pseudo_labels"}
+    assert set(results) >= {"teacher", "student_efficientnet_lite0", "student_vgg16", "dataset", "pseudo_labels"}
     assert results["dataset"]["train"] == 6 and results["dataset"]["test"] == 3
     assert len(results["dataset"]["classes"]) == 11 and "rider" in results["dataset"]["classes"]
     teacher = results["teacher"]
     assert 0.0 <= teacher["miou"] <= 1.0 and 0.0 <= teacher["dynamic_iou"] <= 1.0 and teacher["train_s"] > 0
     assert set(teacher["class_iou"]) == set(results["dataset"]["classes"])
     assert 0.0 <= teacher["val"]["miou"] <= 1.0 and "sky_removed" in teacher
-    for name in ("student_vgg16", "student_resnet50"):
+    for name in ("student_efficientnet_lite0", "student_vgg16"):
         student = results[name]
         assert 0.0 <= student["dynamic_iou"] <= 1.0 and student["train_s"] > 0 and "static_removed" in student["val"]
     assert (run_dir / "figure_masks.png").stat().st_size > 10_000

