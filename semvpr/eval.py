@@ -76,7 +76,7 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     retriever, merged = load_retriever(cfg, explicit)
     test = build_places(merged, ("test",))["test"]
     result = evaluate(place_descriptors(retriever, test, "db", merged), place_descriptors(retriever, test, "q", merged),
-                      test.positives(25.0))
+                      test.positives())
     out = {"checkpoint": str(cfg.ckpt), "data": merged.data.name, "filter": merged.filter.name,
            "backbone": merged.backbone.name, "database": len(test.db_paths), "queries": len(test.q_paths),
            "queries_without_positives": result["num_without_positives"],
