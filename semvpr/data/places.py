@@ -118,7 +118,7 @@ class PlaceSet:
         """Short human-readable description: counts and UTM extent."""
         lines = [f"{self.name}: {len(self.db_paths)} database, {len(self.q_paths)} queries"]
         for label, utm in (("database", self.db_utm), ("queries", self.q_utm)):
-            if len(utm):
+            if len(utm) and np.isfinite(utm).all():
                 lo, hi = utm.min(0), utm.max(0)
                 lines.append(f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
                              f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)")
