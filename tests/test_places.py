@@ -193,6 +193,9 @@ def make_msls(root: Path) -> Path:
     write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0, False, True), ("l_qpano", 101.0, 0.0, True, True)])
     write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0, False, True)])
     write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)])
+    # A training city held out for epoch selection (subtask flags False: selection does not filter).
+    write_msls_side(tv / "zurich" / "database", [("z_db0", 7.0, 7.0, False, False)])
+    write_msls_side(tv / "zurich" / "query", [("z_q0", 7.0, 8.0, False, False)])
     # An official test city: images and subtask index only, no ground truth.
     for side in ("database", "query"):
         folder = root / "test" / "miami" / side
@@ -220,9 +223,12 @@ def test_read_msls_follows_the_official_splits(tmp_path: Path) -> None:
     assert [p.tolist() for p in everything.positives(25.0)] == [[0], [1], [2]]
     with_panos = read_msls(root, "train", exclude_panos=False)
     assert [p.name for p in with_panos.db_paths] == ["l_db0.jpg", "l_pano.jpg"]
+    # Selection: the held-out training city (zurich), read as training cities are (no subtask filter).
+    selection = read_msls(root, "selection")
+    assert [p.name for p in selection.db_paths] == ["z_db0.jpg"] and [p.name for p in selection.q_paths] == ["z_q0.jpg"]
 
 
-def test_msls_config_trains_on_train_cities_and_tests_on_val_cities(tmp_path: Path) -> None:
+def test_msls_config_selects_on_held_out_train_cities_and_tests_on_val_cities(tmp_path: Path) -> None:
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
@@ -230,8 +236,9 @@ def test_msls_config_trains_on_train_cities_and_tests_on_val_cities(tmp_path: Pa
     with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["data=msls", f"data.root={root}"])
     train, val, test = (instantiate(cfg.data[s]) for s in ("train", "val", "test"))
-    assert {p.parts[-4] for p in train.db_paths} == {"london"}
-    assert {p.parts[-4] for p in val.db_paths} == {p.parts[-4] for p in test.db_paths} == {"cph", "sf"}
+    city = {name: {p.parts[-4] for p in s.db_paths + s.q_paths} for name, s in (("train", train), ("val", val), ("test", test))}
+    # Epoch selection never sees the reported cities, and neither does training.
+    assert city == {"train": {"london"}, "val": {"zurich"}, "test": {"cph", "sf"}}
 
 
 def test_read_msls_bad_inputs(tmp_path: Path) -> None:

@@ -21,6 +21,10 @@ MSLS_CITIES: dict[str, tuple[str, ...]] = {
     "val": ("cph", "sf"),
     "test": ("miami", "athens", "buenosaires", "stockholm", "bengaluru", "kampala"),
 }  # fmt: skip
+#: Training cities held out to select the epoch (split "selection"; split "train" omits them), so
+#: model selection never sees the reported val cities. A fixed choice: two mid-latitude cities on
+#: two continents.
+MSLS_SELECTION_CITIES: tuple[str, ...] = ("zurich", "ottawa")
 #: dbStruct fields in the order MATLAB writes them (Pitts250k/30k, Tokyo 24/7).
 DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages",
                    "numQueries", "posDistThr", "posDistSqThr", "nonTrivPosDistSqThr")  # fmt: skip
@@ -326,18 +330,22 @@ def read_msls(root: str | Path, split: str, cities: list[str] | None = None, sub
 
     The official test cities have no public ground truth (their results come from the Codalab
     server); the benchmarks report the val cities (cph, sf), which is what ``data=msls`` tests on.
+    ``split="selection"`` reads the training cities held out for epoch selection
+    (:data:`MSLS_SELECTION_CITIES`, as train cities are read); ``split="train"`` the others.
     """
     root = Path(root).expanduser()
-    if split not in MSLS_CITIES:
-        raise SemvprError(f"MSLS split {split!r} unknown; use one of {sorted(MSLS_CITIES)}")
+    official = {**MSLS_CITIES, "train": tuple(c for c in MSLS_CITIES["train"] if c not in MSLS_SELECTION_CITIES),
+                "selection": MSLS_SELECTION_CITIES}
+    if split not in official:
+        raise SemvprError(f"MSLS split {split!r} unknown; use one of {sorted(official)}")
     if not (root / "train_val").is_dir() and not (root / "test").is_dir():
         raise SemvprError(f"MSLS folders {root / 'train_val'} / {root / 'test'} not found; set data.root=... "
                           f"to the folder holding train_val/ and test/")
     if cities is None:
-        cities = [c for c in MSLS_CITIES[split]
+        cities = [c for c in official[split]
                   if (root / "train_val" / c).is_dir() or (root / "test" / c).is_dir()]
         if not cities:
-            raise SemvprError(f"{root}: none of the official MSLS {split} cities {list(MSLS_CITIES[split])} "
+            raise SemvprError(f"{root}: none of the MSLS {split} cities {list(official[split])} "
                               f"is there; pass data.cities.<split>=[...]")
     db_paths: list[Path] = []
     q_paths: list[Path] = []
