@@ -9,7 +9,7 @@ checkpoint is loaded as ``semvpr.eval`` loads it (weights only, record validated
 dependencies = ["torch", "torchvision", "hydra", "omegaconf"]
 
 
-def semvpr(ckpt: str, image_size: list[int] | None = None):  # noqa: ANN201 - torch.hub entry point
+def semvpr(ckpt: str, image_size: list[int] | None = None):
     """A semvpr checkpoint (``<run dir>/checkpoints/tested.ckpt``) as a descriptor model."""
     from semvpr.hub import load_model
 

@@ -22,14 +22,20 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
-from semvpr.build import build_backbone, build_class_weights, build_mask_source, build_places, instantiate_node
+from semvpr.build import (
+    build_backbone,
+    build_class_weights,
+    build_mask_source,
+    build_places,
+    instantiate_node,
+)
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, exit_on_user_error, one_line
-from semvpr.models.netvlad import PCAWhitening
-from semvpr.metrics import RECALL_NS
-from semvpr.models.retriever import Retriever, evaluate
 from semvpr.io import CONF_DIR, write_json
+from semvpr.metrics import RECALL_NS
+from semvpr.models.netvlad import PCAWhitening
+from semvpr.models.retriever import Retriever, evaluate
 
 
 def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig]:

@@ -89,8 +89,8 @@ def write_table(sweep_dir: Path) -> Path:
         return f"{value:.2f}" if isinstance(value, float) else str(value).replace("|", "\\|")
 
     lines = ["# Evaluation", "",
-             "Recall@N in percent over all queries; `published` rows: the same model family on the same "
-             "protocol, as cited (semvpr/data/published.yaml).", "",
+             ("Recall@N in percent over all queries; `published` rows: the same model family on the same "
+              "protocol, as cited (semvpr/data/published.yaml)."), "",
              "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     lines += ["| " + " | ".join(cell(row.get(c, "")) for c in COLUMNS) + " |" for row in rows]
     md = Path(sweep_dir) / "results.md"

@@ -7,7 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semvpr.data.benchmarks import load_npy, read_msls_val_npy, read_nordland, read_npy_lists, read_patchnetvlad
+from semvpr.data.benchmarks import (
+    load_npy,
+    read_msls_val_npy,
+    read_nordland,
+    read_npy_lists,
+    read_patchnetvlad,
+)
 from semvpr.errors import SemvprError
 
 # ../shared/realdata beside the checkout (or beside the folder of worktrees).

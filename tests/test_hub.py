@@ -11,7 +11,6 @@ from PIL import Image
 from torchvision.transforms.functional import to_tensor
 
 from semvpr.errors import SemvprError
-
 from tests.helpers import config, tiny_config, write_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
