@@ -237,3 +237,81 @@ def test_nordland_positives_are_a_frame_window(tmp_path: Path) -> None:
         read_nordland(tmp_path, frame_window=1)
     with pytest.raises(SemvprError, match=r"Nordland folder .*summer not found"):
         read_nordland(tmp_path, frame_window=1, database="summer")
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from tests.helpers import tiny_config, write_checkpoint
+
+    tmp = tmp_path_factory.mktemp("ckpt")
+    write_checkpoint(tiny_config(tmp, "filter=none"), tmp / "tested.ckpt")
+    return tmp / "tested.ckpt"
+
+
+def same_images_as_lists(root: Path) -> tuple[list[str], list[str]]:
+    """The database and query images of a test_eval @UTM@ folder, relative to it (query i = database i)."""
+    names = sorted(p.name for p in (root / "images" / "test" / "database").iterdir())
+    return [f"images/test/database/{n}" for n in names], [f"images/test/queries/{n}" for n in names]
+
+
+def _gsv_npy(tmp: Path, root: Path) -> list[str]:
+    db, q = same_images_as_lists(root)
+    write_lists(tmp / "gt", "tiny_test", db, q, object_array([[i] for i in range(len(q))]))
+    return ["data=gsv_npy", "data.set=tiny_test", f"data.gt_dir={tmp / 'gt'}"]
+
+
+def _msls_val(tmp: Path, root: Path) -> list[str]:
+    db, q = same_images_as_lists(root)
+    (tmp / "gt").mkdir()
+    np.save(tmp / "gt" / "msls_val_dbImages.npy", np.array(db))
+    np.save(tmp / "gt" / "msls_val_qImages.npy", np.array(["unscored.jpg", *q]))  # qIdx skips the first
+    np.save(tmp / "gt" / "msls_val_qIdx.npy", np.arange(1, len(q) + 1))
+    np.save(tmp / "gt" / "msls_val_pIdx.npy", object_array([[i] for i in range(len(q))]), allow_pickle=True)
+    return ["data=msls_val", f"data.gt_dir={tmp / 'gt'}"]
+
+
+def _patchnetvlad(tmp: Path, root: Path) -> list[str]:
+    from semvpr.data.places import parse_utm_name
+
+    db, q = same_images_as_lists(root)
+    (tmp / "db.txt").write_text("\n".join(db))
+    (tmp / "q.txt").write_text("\n".join(q))
+    utm = np.array([parse_utm_name(n) for n in db])
+    np.savez(tmp / "tiny.npz", utmDb=utm, utmQ=utm, posDistThr=np.array(25))
+    return ["data=patchnetvlad", f"data.npz={tmp / 'tiny.npz'}", f"data.db_list={tmp / 'db.txt'}", f"data.q_list={tmp / 'q.txt'}"]
+
+
+def _nordland(tmp: Path, root: Path) -> list[str]:
+    db, q = same_images_as_lists(root)
+    for i, (d, qq) in enumerate(zip(db, q)):
+        for side, name in (("ref", d), ("query", qq)):
+            (root / side).mkdir(exist_ok=True)
+            (root / side / f"{i:05d}.jpg").write_bytes((root / name).read_bytes())
+    return ["data=nordland", "data.frame_window=0"]
+
+
+@pytest.mark.parametrize("make", [_gsv_npy, _msls_val, _patchnetvlad, _nordland], ids=lambda f: f.__name__[1:])
+def test_each_benchmark_config_evaluates_a_checkpoint(checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                      make) -> None:
+    from semvpr.data import published
+    from semvpr.eval import evaluate_checkpoint
+    from tests.helpers import config
+    from tests.test_eval import SIZE, make_folder
+
+    root = make_folder(tmp_path / "city", n=4)
+    overrides = make(tmp_path, root)
+    fixture = tmp_path / "published.yaml"
+    fixture.write_text("sets:\n  msls_val: {database: 4, queries: 4, source: fixture}\nresults: []\n")
+    monkeypatch.setattr(published, "PUBLISHED", fixture)
+    published.published.cache_clear()
+    try:
+        cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
+                     *SIZE, config_name="eval")
+        result = evaluate_checkpoint(cfg)
+    finally:
+        published.published.cache_clear()
+    assert (result["database"], result["queries"]) == (4, 4)
+    # Each query is its place's database image again: any model retrieves it first.
+    assert result["test/R@1"] == 100.0 and result["queries_without_positives"] == 0
+    assert result["benchmark"] == {"gsv_npy": "tiny_test", "msls_val": "msls_val", "patchnetvlad": None,
+                                   "nordland": "nordland±0"}[result["data"]]

@@ -7,10 +7,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from semvpr.evaltable import table_rows, write_table
 from tests.helpers import tiny_config, write_checkpoint
+from tests.test_benchmarks import object_array, same_images_as_lists, write_lists
 from tests.test_eval import make_folder
 
 REPO = Path(__file__).resolve().parents[1]
@@ -19,14 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> None:
     write_checkpoint(tiny_config(tmp_path, "filter=attention"), tmp_path / "tested.ckpt")
     root = make_folder(tmp_path / "city", n=4)
-    # The same images as gsv-cities lists: query i is database image i again.
-    names = sorted(p.name for p in (root / "images" / "test" / "database").iterdir())
-    gt = np.empty(len(names), dtype=object)
-    for i in range(len(names)):
-        gt[i] = np.array([i])
-    np.save(tmp_path / "tiny_test_dbImages.npy", np.array([f"images/test/database/{n}" for n in names]))
-    np.save(tmp_path / "tiny_test_qImages.npy", np.array([f"images/test/queries/{n}" for n in names]))
-    np.save(tmp_path / "tiny_test_gt.npy", gt, allow_pickle=True)
+    db, q = same_images_as_lists(root)  # the same images as gsv-cities lists: query i is database image i again
+    write_lists(tmp_path, "tiny_test", db, q, object_array([[i] for i in range(len(q))]))
     sweep = tmp_path / "sweep"
     proc = subprocess.run(
         [sys.executable, "-m", "semvpr.eval", "-m", f"ckpt={tmp_path / 'tested.ckpt'}", "data=folder,gsv_npy",
