@@ -4,8 +4,12 @@ The model is rebuilt from the checkpoint's record, validated against the project
 (``semvpr.checkpoint``: nothing stored in the file is ever run), and its weights are loaded; the
 data comes from this invocation. Images are streamed through the whole model once; only the
 descriptors are cached (memory-mapped, kind ``descriptors``), so memory does not grow with the
-dataset. Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and, where some query
-has no positive, over queries with positives (MSLS); the last line is one JSON object.
+dataset. The positives are the place set's own (``PlaceSet.positives``: its shipped ground truth,
+or ``data.eval_radius``). Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and,
+where some query has no positive, over queries with positives (MSLS); the last line is one JSON
+object, also written as ``eval.json``. With ``-m`` over several datasets (``data=a,b``,
+``data.root=A,B``), a job's bad input fails its own row only, and ``semvpr.evaltable`` writes one
+table for the sweep.
 """
 from __future__ import annotations
 
@@ -22,13 +26,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
-from semvpr.build import (
-    build_backbone,
-    build_class_weights,
-    build_mask_source,
-    build_places,
-    instantiate_node,
-)
+from semvpr.build import build_backbone, build_class_weights, build_mask_source, build_places, instantiate_node
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, exit_on_user_error, one_line
