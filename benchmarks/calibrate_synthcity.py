@@ -35,11 +35,13 @@ import faiss
 import numpy as np
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 from PIL import Image
 
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
+from semvpr.io import CONF_DIR
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.masks import pool_to_grid
 from semvpr.models.netvlad import NetVLAD
@@ -128,7 +130,7 @@ def calibrate(split: PlaceSet, train: PlaceSet, model_seed: int, clusters: int, 
     vlad.init_from_features(init.permute(0, 2, 3, 1).reshape(-1, init.shape[1]), seed=model_seed)
     db = descriptors(vlad, features_of(trunk, split.db_paths, bf16), load_labels(split.db_labels), weights)
     q = descriptors(vlad, features_of(trunk, split.q_paths, bf16), load_labels(split.q_labels), weights)
-    positives = split.positives(25.0)
+    positives = split.positives()
     return {v: hits_at(db[v], q[v], positives) for v in VARIANTS}
 
 
@@ -172,9 +174,10 @@ def main() -> None:
     for data_seed in args.seed:
         root = ensure_synthcity(args.cache_dir, args.preset, data_seed, render, args.image_size)
         split = read_split(args.preset, data_seed, args.cache_dir, args.split, render, args.image_size)
+        split = split.with_eval_radius(OmegaConf.load(Path(CONF_DIR) / "data" / "synthcity.yaml").eval_radius)
         train = read_split(args.preset, data_seed, args.cache_dir, "train", render, args.image_size)
         stats = json.loads((root / "stats.json").read_text())
-        n = sum(len(p) > 0 for p in split.positives(25.0))
+        n = sum(len(p) > 0 for p in split.positives())
         print(f"dataset seed {data_seed}: {root} ({time.time() - t0:.1f}s): measured dynamic fraction "
               f"{stats['dynamic_fraction']}, sky {stats['sky_fraction']}")
         print(f"{args.split}: {len(split.db_paths)} database, {n} queries with positives (one std-error of R@1 "

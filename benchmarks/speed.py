@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 from torch import Tensor
 
+from semvpr.io import CONF_DIR
 from semvpr.metrics import knn, positives_within, recall_result
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.netvlad import NetVLAD
@@ -150,12 +152,12 @@ def pitts30k_utms() -> tuple[np.ndarray, np.ndarray, str]:
 
 
 def bench_recall(dim: int = 4096) -> float:
-    """Positives (25 m) + faiss kNN (k=20) + Recall@N for 10,000 db × 6,816 queries; returns seconds."""
+    """Positives (data.eval_radius of pitts30k) + faiss kNN (k=20) + Recall@N for 10,000 db × 6,816 queries; returns seconds."""
     db_utm, q_utm, source = pitts30k_utms()
     rng = np.random.default_rng(0)
     db = rng.standard_normal((len(db_utm), dim)).astype(np.float32)
     t0 = time.perf_counter()
-    positives = positives_within(db_utm, q_utm, 25.0)
+    positives = positives_within(db_utm, q_utm, OmegaConf.load(Path(CONF_DIR) / "data" / "pitts30k.yaml").eval_radius)
     t_pos = time.perf_counter() - t0
     # Queries are noisy copies of their nearest positive's descriptor; σ = √D/4 puts R@1 near 50 %, so a
     # ranking bug would show as a change in the printed recalls.

@@ -86,7 +86,7 @@ def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "te
     for split in splits:
         if cfg.data.get(split) is None:
             raise SemvprError(f"data={cfg.data.name} has no {split} split; use it for evaluation only")
-        places[split] = instantiate_node(cfg.data[split])
+        places[split] = instantiate_node(cfg.data[split]).with_eval_radius(cfg.data.get("eval_radius"))
     return places
 
 

@@ -4,29 +4,36 @@ The model is rebuilt from the checkpoint's record, validated against the project
 (``semvpr.checkpoint``: nothing stored in the file is ever run), and its weights are loaded; the
 data comes from this invocation. Images are streamed through the whole model once; only the
 descriptors are cached (memory-mapped, kind ``descriptors``), so memory does not grow with the
-dataset. Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and, where some query
-has no positive, over queries with positives (MSLS); the last line is one JSON object.
+dataset. The positives are the place set's own (``PlaceSet.positives``: its shipped ground truth,
+or ``data.eval_radius``). Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and,
+where some query has no positive, over queries with positives (MSLS); the last line is one JSON
+object, also written as ``eval.json``. With ``-m`` over several datasets (``data=a,b``,
+``data.root=A,B``), a job's bad input fails its own row only, and ``semvpr.evaltable`` writes one
+table for the sweep.
 """
 from __future__ import annotations
 
 import json
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
 from semvpr.build import build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
-from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.models.netvlad import PCAWhitening
-from semvpr.metrics import RECALL_NS
-from semvpr.models.retriever import Retriever, evaluate
+from semvpr.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.io import CONF_DIR, write_json
+from semvpr.metrics import RECALL_NS
+from semvpr.models.netvlad import PCAWhitening
+from semvpr.models.retriever import Retriever, evaluate
 
 
 #: Command-line group choices that would change the model, and the groups each one sets.
@@ -56,12 +63,17 @@ def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[R
     return retriever.eval(), merged
 
 
+def descriptor_dim(retriever: Retriever) -> int:
+    """Size of the retriever's global descriptor (after PCA-whitening, if any)."""
+    return retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim
+
+
 def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: DictConfig) -> np.ndarray:
     """Descriptors of a place set's database or queries (memory-mapped), computed once per model and data."""
     paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
     key = {"model": state_hash(retriever.state_dict()), "images": [places.relative(p) for p in paths],
            "image_size": list(cfg.data.image_size)}
-    dim = retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim
+    dim = descriptor_dim(retriever)
 
     def build(tmp: Path) -> None:
         out = np.lib.format.open_memmap(tmp / "descriptors.npy", mode="w+", dtype=np.float32, shape=(len(paths), dim))
@@ -77,17 +89,22 @@ def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: Di
 
 
 def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
-    """Recall@1/5/10/20 of the checkpoint on cfg.data's test split."""
+    """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
+    beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time."""
+    start = time.perf_counter()
     retriever, merged = load_retriever(cfg, explicit)
     test = build_places(merged, ("test",))["test"]
-    result = evaluate(place_descriptors(retriever, test, "db", merged), place_descriptors(retriever, test, "q", merged),
-                      test.positives(25.0))
-    out = {"checkpoint": str(cfg.ckpt), "data": merged.data.name, "aggregator": merged.aggregator.name,
-           "mask": merged.mask.name, "backbone": merged.backbone.name, "database": len(test.db_paths), "queries": len(test.q_paths),
+    db = place_descriptors(retriever, test, "db", merged)
+    result = evaluate(db, place_descriptors(retriever, test, "q", merged), test.positives())
+    out = {"status": "ok", "checkpoint": str(cfg.ckpt), "data": merged.data.name, "set": test.name,
+           "benchmark": merged.data.get("benchmark"), "aggregator": merged.aggregator.name, "mask": merged.mask.name,
+           "backbone": merged.backbone.name, "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
+           "database": len(test.db_paths), "queries": len(test.q_paths), "descriptor_dim": int(db.shape[1]),
            "queries_without_positives": result["num_without_positives"],
            **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()}}
     if result["num_without_positives"]:
         out.update({f"test/R@{n}_pos": round(v, 2) for n, v in result["recalls_pos"].items()})
+    out["wall_s"] = round(time.perf_counter() - start, 1)
     return out
 
 
@@ -99,8 +116,17 @@ def explicit_keys() -> set[str]:
 @hydra.main(config_path=CONF_DIR, config_name="eval", version_base="1.3")
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
-    result = evaluate_checkpoint(cfg, explicit_keys())
-    write_json(Path(HydraConfig.get().runtime.output_dir) / "eval.json", result)
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        result = evaluate_checkpoint(cfg, explicit_keys())
+    except SemvprError as err:
+        if HydraConfig.get().mode != RunMode.MULTIRUN:
+            raise
+        # In a sweep one dataset's bad input must not stop the others; the table shows the line.
+        write_json(out_dir / "eval.json", {"status": "failed", "error": one_line(err)})
+        print(f"semvpr: job failed ({out_dir}): {one_line(err)}", file=sys.stderr)
+        return
+    write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""
         print(f"R@{n:<2d} {result[f'test/R@{n}']:6.2f}{pos}")

@@ -36,7 +36,7 @@ class RecallResult:
     num_without_positives: int
 
 
-def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float = 25.0) -> list[np.ndarray]:
+def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> list[np.ndarray]:
     """Per query, the database indices within ``radius`` metres, sorted by distance (exact, float64)."""
     db = np.asarray(db_utm, np.float64)
     q = np.asarray(q_utm, np.float64)

@@ -409,6 +409,14 @@ def print_summary(md: Path) -> None:
     print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith(("|", "**R@1", "- "))))
 
 
+def sweep_dir_of(config: DictConfig) -> Path:
+    """A multirun's sweep dir (hydra.sweep.dir, relative to the launch dir)."""
+    sweep_dir = Path(str(config.hydra.sweep.dir))
+    if not sweep_dir.is_absolute():
+        sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
+    return sweep_dir
+
+
 class ReportCallback(Callback):
     """Hydra callback: write the report when a multirun ends (hydra.callbacks.report._target_)."""
 
@@ -416,9 +424,7 @@ class ReportCallback(Callback):
         """Report on config.hydra.sweep.dir; never raise, the runs' own files are the results."""
         where = "the sweep dir"
         try:
-            sweep_dir = Path(str(config.hydra.sweep.dir))
-            if not sweep_dir.is_absolute():
-                sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
+            sweep_dir = sweep_dir_of(config)
             where = str(sweep_dir)
             print_summary(write_report(sweep_dir))
         except Exception as err:

@@ -168,7 +168,7 @@ def best_val_r1(run_dir: Path) -> float | None:
 def evaluate_features(retriever: Retriever, features: PlaceFeatures) -> dict[str, Any]:
     """Recall of the retriever on a place set's feature stores, outside the Lightning loop."""
     return evaluate(retriever.describe_store(features.db), retriever.describe_store(features.q),
-                    features.places.positives(25.0))
+                    features.places.positives())
 
 
 @torch.no_grad()
@@ -177,7 +177,7 @@ def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retri
     """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
     over the query traversal (the same queries for every run, so the report can compare runs)."""
     idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
-    positives = places.positives(25.0)
+    positives = places.positives()
     queries = []
     for i in idx:
         topk = [{"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(),

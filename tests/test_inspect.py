@@ -18,6 +18,7 @@ from tests.test_places import write_dbstruct
 REPO = Path(__file__).resolve().parents[1]
 MINIMAL_DATA = """\
 root: ???
+eval_radius: 25
 test:
   _target_: semvpr.data.places.read_utm_folder
   root: ${data.root}

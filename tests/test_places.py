@@ -40,6 +40,10 @@ def test_positives_hand_made_case() -> None:
     # q0→d3 is sqrt(81+576)=25.6 m: just outside.
     assert [p.tolist() for p in pos] == [[1, 0, 2], [], [3, 0, 1]]
     assert [p.tolist() for p in places.positives(10.0)] == [[1, 0], [], [3]]
+    with pytest.raises(SemvprError, match="no evaluation ground truth: set data.eval_radius"):
+        places.positives()
+    assert [p.tolist() for p in places.with_eval_radius(10.0).positives()] == [[1, 0], [], [3]]
+    assert places.with_eval_radius(None) is places
     assert places.db_utm.dtype == np.float64 and isinstance(places.db_paths[0], Path)
 
 
@@ -65,7 +69,7 @@ def test_read_utm_folder(tmp_path: Path, use_images_dir: bool) -> None:
     # Sorted file order: "@100" < "@110" < "@150" lexicographically too.
     np.testing.assert_allclose(places.db_utm, [[100, 0], [110, 0], [150, 0]])
     np.testing.assert_allclose(places.q_utm, [[112, 3], [900, 900]])
-    assert [p.tolist() for p in places.positives()] == [[1, 0], []]
+    assert [p.tolist() for p in places.positives(25.0)] == [[1, 0], []]
     assert all(p.is_file() for p in places.db_paths + places.q_paths)
 
 
@@ -123,7 +127,7 @@ def test_read_dbstruct_mat(tmp_path: Path) -> None:
     assert places.q_paths[0] == root / "queries_real" / q_names[0]
     np.testing.assert_allclose(places.db_utm, db_utm)
     np.testing.assert_allclose(places.q_utm, q_utm)
-    assert [p.tolist() for p in places.positives()] == [[0, 1], []]
+    assert [p.tolist() for p in places.positives(25.0)] == [[0, 1], []]
     assert read_dbstruct_mat(mat, root, name="p30k").name == "p30k"
 
 
@@ -189,6 +193,9 @@ def make_msls(root: Path) -> Path:
     write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0, False, True), ("l_qpano", 101.0, 0.0, True, True)])
     write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0, False, True)])
     write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)])
+    # A training city held out for epoch selection (subtask flags False: selection does not filter).
+    write_msls_side(tv / "zurich" / "database", [("z_db0", 7.0, 7.0, False, False)])
+    write_msls_side(tv / "zurich" / "query", [("z_q0", 7.0, 8.0, False, False)])
     # An official test city: images and subtask index only, no ground truth.
     for side in ("database", "query"):
         folder = root / "test" / "miami" / side
@@ -204,7 +211,7 @@ def test_read_msls_follows_the_official_splits(tmp_path: Path) -> None:
     assert [p.name for p in val.db_paths] == ["c_db0.jpg", "c_db1.jpg", "s_db0.jpg"]
     assert [p.name for p in val.q_paths] == ["c_q0.jpg", "s_q0.jpg"]
     assert val.db_paths[0] == root / "train_val" / "cph" / "database" / "images" / "c_db0.jpg"
-    assert [p.tolist() for p in val.positives()] == [[0], [2]]
+    assert [p.tolist() for p in val.positives(25.0)] == [[0], [2]]
     with pytest.raises(SemvprError, match="empty MSLS split 'val'"):
         read_msls(root, "val", subtask="s2w")  # no frame of the fixture is in the summer-to-winter subtask
     # Train: the official train cities only (london here), never the val ones; no subtask filter.
@@ -213,12 +220,15 @@ def test_read_msls_follows_the_official_splits(tmp_path: Path) -> None:
     everything = read_msls(root, "train", cities=["cph", "london"])
     assert [p.name for p in everything.q_paths] == ["c_q0.jpg", "c_q_other.jpg", "l_q0.jpg"]
     # Same (east, north) in two cities must not make them positives of each other.
-    assert [p.tolist() for p in everything.positives()] == [[0], [1], [2]]
+    assert [p.tolist() for p in everything.positives(25.0)] == [[0], [1], [2]]
     with_panos = read_msls(root, "train", exclude_panos=False)
     assert [p.name for p in with_panos.db_paths] == ["l_db0.jpg", "l_pano.jpg"]
+    # Selection: the held-out training city (zurich), read as training cities are (no subtask filter).
+    selection = read_msls(root, "selection")
+    assert [p.name for p in selection.db_paths] == ["z_db0.jpg"] and [p.name for p in selection.q_paths] == ["z_q0.jpg"]
 
 
-def test_msls_config_trains_on_train_cities_and_tests_on_val_cities(tmp_path: Path) -> None:
+def test_msls_config_selects_on_held_out_train_cities_and_tests_on_val_cities(tmp_path: Path) -> None:
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
@@ -226,8 +236,9 @@ def test_msls_config_trains_on_train_cities_and_tests_on_val_cities(tmp_path: Pa
     with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["data=msls", f"data.root={root}"])
     train, val, test = (instantiate(cfg.data[s]) for s in ("train", "val", "test"))
-    assert {p.parts[-4] for p in train.db_paths} == {"london"}
-    assert {p.parts[-4] for p in val.db_paths} == {p.parts[-4] for p in test.db_paths} == {"cph", "sf"}
+    city = {name: {p.parts[-4] for p in s.db_paths + s.q_paths} for name, s in (("train", train), ("val", val), ("test", test))}
+    # Epoch selection never sees the reported cities, and neither does training.
+    assert city == {"train": {"london"}, "val": {"zurich"}, "test": {"cph", "sf"}}
 
 
 def test_read_msls_bad_inputs(tmp_path: Path) -> None:
@@ -243,3 +254,16 @@ def test_read_msls_bad_inputs(tmp_path: Path) -> None:
         read_msls(root, "val")
     with pytest.raises(SemvprError, match="split 'dev' unknown"):
         read_msls(root, "dev")
+
+
+def test_ground_truth_shipped_with_a_set_is_its_positives() -> None:
+    db, q = np.zeros((3, 2)), np.zeros((2, 2))  # every UTM equal: a radius would make all positive
+    places = PlaceSet("gt", ("d0", "d1", "d2"), ("q0", "q1"), db, q, ground_truth=(np.array([2]), np.array([], int)))
+    assert [p.tolist() for p in places.positives()] == [[2], []]
+    assert [p.tolist() for p in places.positives(25.0)] == [[0, 1, 2], [0, 1, 2]]
+    with pytest.raises(SemvprError, match="scored by the ground truth shipped with it"):
+        places.with_eval_radius(25.0)
+    with pytest.raises(SemvprError, match="ground truth for 1 queries, but 2 queries"):
+        PlaceSet("gt", ("d0",), ("q0", "q1"), np.zeros((1, 2)), q, ground_truth=(np.array([0]),))
+    with pytest.raises(SemvprError, match=r"ground truth of query 1 holds \[3\], not database indices in \[0, 3\)"):
+        PlaceSet("gt", ("d0", "d1", "d2"), ("q0", "q1"), db, q, ground_truth=(np.array([0]), np.array([3])))

@@ -330,7 +330,7 @@ def test_read_split_labels_and_query_differs_from_its_database_image(dataset: Pa
     assert places.db_labels is not None and places.q_labels is not None
     for image, label in zip(places.db_paths + places.q_paths, places.db_labels + places.q_labels):
         assert label.is_file() and label.stem == image.stem and label.parent.name == image.parent.name
-    for qi, pos in enumerate(places.positives()):
+    for qi, pos in enumerate(places.positives(25.0)):
         assert len(pos) > 0, places.q_paths[qi].name
         di = int(pos[0])
         assert np.linalg.norm(places.q_utm[qi] - places.db_utm[di]) <= DB_STEP_M / 2 + 0.011

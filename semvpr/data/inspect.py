@@ -30,6 +30,8 @@ def compose_place_set(config_dir: Path, config_name: str, overrides: list[str], 
         if target is None:
             raise SemvprError(f"config {config_name} has no '{node}' node to instantiate")
         places = instantiate(target)
+        if isinstance(places, PlaceSet):
+            places = places.with_eval_radius(OmegaConf.select(cfg, "data.eval_radius"))
     except Exception as err:  # hydra wraps errors raised by the target; find ours
         user = unwrap_user_error(err)
         if user is not None:
@@ -45,8 +47,8 @@ def compose_place_set(config_dir: Path, config_name: str, overrides: list[str], 
     return places
 
 
-def positive_stats(places: PlaceSet, radius: float = 25.0) -> dict[str, float | int]:
-    """The JSON summary: counts and positives within `radius` m (mean over all queries)."""
+def positive_stats(places: PlaceSet, radius: float | None = None) -> dict[str, float | int]:
+    """The JSON summary: counts and positives (the set's own, or within `radius` m; mean over all queries)."""
     counts = np.array([len(p) for p in places.positives(radius)], dtype=np.int64)
     return {
         "database": len(places.db_paths),
@@ -64,13 +66,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config-dir", type=Path, default=DEFAULT_CONFIG_DIR)
     parser.add_argument("--config-name", default="train")
     parser.add_argument("--node", default="data.test", help="config node that instantiates to a PlaceSet")
-    parser.add_argument("--radius", type=float, default=25.0, help="positive radius in metres")
+    parser.add_argument("--radius", type=float, default=None,
+                        help="positive radius in metres (default: the set's evaluation ground truth)")
     args = parser.parse_args(argv)
     places = compose_place_set(args.config_dir.expanduser().resolve(), args.config_name, args.overrides,
                                args.node)
     stats = positive_stats(places, args.radius)
     print(places.summary())
-    print(f"  queries with a database image within {args.radius:g} m: "
+    within = f"within {args.radius:g} m" if args.radius is not None else "among the evaluation positives"
+    print(f"  queries with a database image {within}: "
           f"{stats['queries_with_positives']}/{stats['queries']} (mean {stats['mean_positives']} positives)")
     print(json.dumps(stats))
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,10 @@ MSLS_CITIES: dict[str, tuple[str, ...]] = {
     "val": ("cph", "sf"),
     "test": ("miami", "athens", "buenosaires", "stockholm", "bengaluru", "kampala"),
 }  # fmt: skip
+#: Training cities held out to select the epoch (split "selection"; split "train" omits them), so
+#: model selection never sees the reported val cities. A fixed choice: two mid-latitude cities on
+#: two continents.
+MSLS_SELECTION_CITIES: tuple[str, ...] = ("zurich", "ottawa")
 #: dbStruct fields in the order MATLAB writes them (Pitts250k/30k, Tokyo 24/7).
 DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages",
                    "numQueries", "posDistThr", "posDistSqThr", "nonTrivPosDistSqThr")  # fmt: skip
@@ -41,6 +46,12 @@ class PlaceSet:
     #: stems repeat (Pitts30k has the same stem as a database and as a query image). None = the
     #: deepest folder holding every image of the set.
     root: Path | None = None
+    #: Evaluation ground truth shipped with the set's release (gsv-cities ``_gt.npy``, MSLS-val
+    #: ``pIdx``, Nordland frame windows): per query, the database indices that count as correct.
+    ground_truth: tuple[np.ndarray, ...] | None = None
+    #: Without ``ground_truth``, the database images within this many metres are the positives
+    #: (``data.eval_radius``, applied by :meth:`with_eval_radius`).
+    eval_radius: float | None = None
 
     def __post_init__(self) -> None:
         # Normalise here so every reader (and hand-built sets) gets the same types and checks.
@@ -59,6 +70,8 @@ class PlaceSet:
             if labels is not None and len(labels) != len(paths):
                 raise SemvprError(f"place set {self.name!r}: {len(paths)} images but "
                                   f"{len(labels)} {field}")
+        if self.ground_truth is not None:
+            object.__setattr__(self, "ground_truth", self._checked_ground_truth(self.ground_truth))
         images = self.db_paths + self.q_paths
         root = Path(self.root) if self.root is not None else common_root(images)
         if any(not p.is_relative_to(root) for p in images):
@@ -69,17 +82,47 @@ class PlaceSet:
         """Key of one of the set's images: its path relative to the dataset root, POSIX style."""
         return Path(path).relative_to(self.root).as_posix()
 
-    def positives(self, radius: float = 25.0) -> list[np.ndarray]:
-        """Per query: database indices within `radius` metres, nearest first."""
+    def _checked_ground_truth(self, truth: tuple[np.ndarray, ...] | list[np.ndarray]) -> tuple[np.ndarray, ...]:
+        if len(truth) != len(self.q_paths):
+            raise SemvprError(f"place set {self.name!r}: ground truth for {len(truth)} queries, "
+                              f"but {len(self.q_paths)} queries")
+        out = []
+        for i, positives in enumerate(truth):
+            idx = np.asarray(positives).ravel()
+            if idx.size and (not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0 or idx.max() >= len(self.db_paths)):
+                raise SemvprError(f"place set {self.name!r}: ground truth of query {i} holds {idx[:5].tolist()}, "
+                                  f"not database indices in [0, {len(self.db_paths)})")
+            out.append(idx.astype(np.int64))
+        return tuple(out)
+
+    def positives(self, radius: float | None = None) -> list[np.ndarray]:
+        """Per query, the database indices that count as correct: the set's ground truth, or those
+        within ``eval_radius`` metres (nearest first); ``radius`` asks for another radius instead."""
+        if radius is None and self.ground_truth is not None:
+            return list(self.ground_truth)
+        radius = self.eval_radius if radius is None else radius
+        if radius is None:
+            raise SemvprError(f"place set {self.name!r} has no evaluation ground truth: set data.eval_radius "
+                              f"(metres; 25 in the VPR benchmarks)")
         if len(self.db_utm) == 0:
             return [np.zeros(0, dtype=np.int64) for _ in range(len(self.q_utm))]
         return positives_within(self.db_utm, self.q_utm, radius)
+
+    def with_eval_radius(self, radius: float | None) -> PlaceSet:
+        """The set scored by positives within ``radius`` metres (None: as it is). A set whose release
+        ships its ground truth keeps it; a radius for it is refused."""
+        if radius is None:
+            return self
+        if self.ground_truth is not None:
+            raise SemvprError(f"place set {self.name!r} is scored by the ground truth shipped with it; "
+                              f"data.eval_radius={radius} does not apply (drop it)")
+        return dataclasses.replace(self, eval_radius=float(radius))
 
     def summary(self) -> str:
         """Short human-readable description: counts and UTM extent."""
         lines = [f"{self.name}: {len(self.db_paths)} database, {len(self.q_paths)} queries"]
         for label, utm in (("database", self.db_utm), ("queries", self.q_utm)):
-            if len(utm):
+            if len(utm) and np.isfinite(utm).all():
                 lo, hi = utm.min(0), utm.max(0)
                 lines.append(f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
                              f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)")
@@ -287,18 +330,22 @@ def read_msls(root: str | Path, split: str, cities: list[str] | None = None, sub
 
     The official test cities have no public ground truth (their results come from the Codalab
     server); the benchmarks report the val cities (cph, sf), which is what ``data=msls`` tests on.
+    ``split="selection"`` reads the training cities held out for epoch selection
+    (:data:`MSLS_SELECTION_CITIES`, as train cities are read); ``split="train"`` the others.
     """
     root = Path(root).expanduser()
-    if split not in MSLS_CITIES:
-        raise SemvprError(f"MSLS split {split!r} unknown; use one of {sorted(MSLS_CITIES)}")
+    official = {**MSLS_CITIES, "train": tuple(c for c in MSLS_CITIES["train"] if c not in MSLS_SELECTION_CITIES),
+                "selection": MSLS_SELECTION_CITIES}
+    if split not in official:
+        raise SemvprError(f"MSLS split {split!r} unknown; use one of {sorted(official)}")
     if not (root / "train_val").is_dir() and not (root / "test").is_dir():
         raise SemvprError(f"MSLS folders {root / 'train_val'} / {root / 'test'} not found; set data.root=... "
                           f"to the folder holding train_val/ and test/")
     if cities is None:
-        cities = [c for c in MSLS_CITIES[split]
+        cities = [c for c in official[split]
                   if (root / "train_val" / c).is_dir() or (root / "test" / c).is_dir()]
         if not cities:
-            raise SemvprError(f"{root}: none of the official MSLS {split} cities {list(MSLS_CITIES[split])} "
+            raise SemvprError(f"{root}: none of the MSLS {split} cities {list(official[split])} "
                               f"is there; pass data.cities.<split>=[...]")
     db_paths: list[Path] = []
     q_paths: list[Path] = []

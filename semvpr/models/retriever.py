@@ -181,7 +181,7 @@ class Retriever(L.LightningModule):
         if len(desc) != n_db + len(features.q):
             # fast_dev_run / limit_*_batches saw part of the set; recall needs all of it.
             desc = np.concatenate([self.describe_store(features.db), self.describe_store(features.q)])
-        result = evaluate(desc[:n_db], desc[n_db:], features.places.positives(25.0))
+        result = evaluate(desc[:n_db], desc[n_db:], features.places.positives())
         for n, value in result["recalls"].items():
             self.log(f"{stage}/R@{n}", value, prog_bar=n in (1, 5))
         if result["num_without_positives"]:

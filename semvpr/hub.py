@@ -1,0 +1,56 @@
+"""A semvpr checkpoint as other tools' scripts expect a VPR model (VPR-methods-evaluation style).
+
+:func:`load_model` rebuilds the checkpoint through the same trusted path as ``semvpr.eval``
+(``semvpr.checkpoint`` validates the record against the project's configs; ``eval.load_retriever``
+loads the weights) and wraps it in :class:`HubModel`: a module mapping a batch of images
+normalised with the ImageNet mean/std to L2-normalised global descriptors, with the matching
+preprocessing as ``model.transform`` (PIL image → normalised tensor) and ``model.feature_dim``.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torchvision import transforms
+
+from semvpr.errors import SemvprError
+from semvpr.eval import descriptor_dim, load_retriever
+from semvpr.io import CONF_DIR
+from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
+from semvpr.models.masks import OracleMask
+from semvpr.models.retriever import Retriever
+
+
+class HubModel(nn.Module):
+    """ImageNet-normalised images (B, 3, H, W) → L2-normalised descriptors (B, feature_dim)."""
+
+    def __init__(self, retriever: Retriever, image_size: Sequence[int] | None = None) -> None:
+        super().__init__()
+        self.retriever = retriever
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.feature_dim = descriptor_dim(retriever)
+        resize = [transforms.Resize(tuple(image_size), antialias=True)] if image_size else []
+        #: PIL image → the normalised tensor this module takes (resized to ``image_size`` if given).
+        self.transform = transforms.Compose([*resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)])
+
+    @torch.no_grad()
+    def forward(self, images: Tensor) -> Tensor:
+        """Descriptors of a normalised batch (the retriever itself takes [0, 1] images)."""
+        return F.normalize(self.retriever(images * self.std + self.mean).float(), dim=1)
+
+
+def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None) -> HubModel:
+    """The checkpoint as a :class:`HubModel` in eval mode on the CPU (move it with ``.to``)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="eval", overrides=[f"ckpt={Path(ckpt).expanduser()}"])
+    retriever, _ = load_retriever(cfg)
+    if isinstance(retriever.mask_source, OracleMask):
+        raise SemvprError(f"checkpoint {ckpt} uses mask=oracle, which needs SynthCity's ground-truth label "
+                          f"maps for every image; it cannot describe images alone")
+    return HubModel(retriever, image_size).eval()

@@ -1,0 +1,68 @@
+"""One command evaluates a checkpoint on several datasets and writes one table beside published numbers."""
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from semvpr.evaltable import table_rows, write_table
+from tests.helpers import tiny_config, write_checkpoint
+from tests.test_benchmarks import object_array, same_images_as_lists, write_lists
+from tests.test_eval import make_folder
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> None:
+    write_checkpoint(tiny_config(tmp_path, "filter=attention"), tmp_path / "tested.ckpt")
+    root = make_folder(tmp_path / "city", n=4)
+    db, q = same_images_as_lists(root)  # the same images as gsv-cities lists: query i is database image i again
+    write_lists(tmp_path, "tiny_test", db, q, object_array([[i] for i in range(len(q))]))
+    sweep = tmp_path / "sweep"
+    proc = subprocess.run(
+        [sys.executable, "-m", "semvpr.eval", "-m", f"ckpt={tmp_path / 'tested.ckpt'}", "data=folder,gsv_npy",
+         f"data.root={root},{tmp_path / 'missing'}", "++data.set=tiny_test", f"++data.gt_dir={tmp_path}",
+         "data.image_size=[32,48]", "data.num_workers=0", f"paths.cache_dir={tmp_path / 'cache'}",
+         f"hydra.sweep.dir={sweep}"],
+        cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    with (sweep / "results.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["data"], r["set"]) for r in rows if r["set"]] == [("folder", "city/test"), ("gsv_npy", "tiny_test")]
+    for row in (r for r in rows if r["set"]):
+        # Each query is its place's database image again: any model retrieves it first.
+        assert (row["R@1"], row["R@20"], row["queries"], row["database"]) == ("100.0", "100.0", "4", "4")
+        assert int(row["descriptor_dim"]) > 0 and float(row["wall_s"]) > 0
+        assert row["source"].startswith("measured: ") and "(attention)" in row["source"]
+    assert rows[2]["benchmark"] == "tiny_test"  # gsv_npy names its protocol after the set
+    failed = [r for r in rows if not r["set"]]
+    assert len(failed) == 2 and all(r["source"].startswith("failed: ") and "missing" in r["source"] for r in failed)
+    assert [r["data"] for r in failed] == [f"data={d} data.root={tmp_path / 'missing'}" for d in ("folder", "gsv_npy")]
+    md = (sweep / "results.md").read_text()
+    assert md.count("| folder | city/test |") == 1 and "semvpr eval table:" in proc.stdout
+    assert "semvpr: job failed" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def _job(sweep: Path, num: int, result: dict) -> None:
+    (sweep / str(num)).mkdir(parents=True)
+    (sweep / str(num) / "eval.json").write_text(json.dumps(result))
+
+
+def test_published_numbers_stand_beside_the_same_model_and_protocol(tmp_path: Path) -> None:
+    base = {"status": "ok", "checkpoint": "m.ckpt", "filter": "none", "backbone": "vgg16", "model": "vgg16-netvlad",
+            "database": 10000, "queries": 6816, "descriptor_dim": 32768, "wall_s": 12.5,
+            **{f"test/R@{n}": 80.0 + n / 10 for n in (1, 5, 10, 20)}}
+    _job(tmp_path, 0, {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test"})
+    _job(tmp_path, 1, {**base, "data": "tokyo247", "set": "tokyo247-test", "benchmark": "tokyo247"})
+    _job(tmp_path, 2, {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test", "model": "resnet50-gem"})
+    rows = table_rows(tmp_path)
+    assert [r["data"] for r in rows] == ["pitts30k", "published", "published", "published", "tokyo247", "pitts30k"]
+    # pytorch-NetVlad's README (vgg16): 85.2 / 94.8 / 97.0 on Pitts30k-test; R@20 not published.
+    assert [rows[1][k] for k in ("R@1", "R@5", "R@10", "R@20")] == [85.2, 94.8, 97.0, ""]
+    assert "pytorch-NetVlad" in rows[1]["source"] and rows[1]["benchmark"] == "pitts30k_test"
+    md = write_table(tmp_path).read_text()
+    assert "| pitts30k | pitts30k-test | pitts30k_test | 80.10 | 80.50 | 81.00 | 82.00 | 6816 | 10000 | 32768 | 12.50 |" in md
+    assert "| published | pitts30k-test | pitts30k_test | 85.20 | 94.80 | 97.00 |  |" in md
+    assert (tmp_path / "results.csv").read_text().count("\n") == len(rows) + 1
