@@ -7,10 +7,12 @@ model, fit with triplet mining, test the best checkpoint, and write ``metrics.js
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,22 +26,41 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig
 
-from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, build_semantic,
-                          check_config, init_aggregator, mask_key)
+from semvpr.build import (Semantic, build_backbone, build_class_weights, build_mask_source, build_places,
+                          build_semantic, check_config, init_aggregator, mask_key)
 from semvpr.checkpoint import record_of
-from semvpr.errors import exit_on_user_error
-from semvpr.io import CONF_DIR, atomic_file, write_json
+from semvpr.data.places import PlaceSet
+from semvpr.data.retrieval import RetrievalDataModule
+from semvpr.distributed import sharded
+from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.evaluation import RecallEvaluation
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
-from semvpr.mining import RetrievalDataModule
+from semvpr.io import CONF_DIR, atomic_file, write_json
+from semvpr.launch import job_ranks
+from semvpr.mining import Mining
+from semvpr.models.backbones import Backbone
+from semvpr.models.masks import MaskSource
 from semvpr.models.netvlad import PCAWhitening
-from semvpr.models.retriever import Retriever, evaluate
+from semvpr.models.retriever import Optimization, Retriever
 from semvpr.precision import lightning_precision
 
+EVAL_RADIUS = 25.0  # metres: a database image this close to a query is a correct retrieval
 
-def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Run one training job; returns the metrics written to metrics.json."""
-    start = time.time()
-    timings: dict[str, float] = {}
+
+@dataclass
+class Prepared:
+    """What a job builds (or reads from the cache) before any training: the same on every rank."""
+
+    places: dict[str, PlaceSet]
+    backbone: Backbone
+    semantic: Semantic
+    mask_source: MaskSource | None
+    features: dict[str, PlaceFeatures]
+    storage: str
+
+
+def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
+    """Place sets, backbone, the filter's semantic artifacts and the frozen-trunk features."""
     check_config(cfg)
     places = build_places(cfg)
     backbone = build_backbone(cfg)
@@ -47,7 +68,6 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     semantic = build_semantic(cfg, places["train"], backbone)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = time.time() - tic
-
     tic = time.time()
     storage = feature_storage(cfg, backbone, places)
     features = {split: place_features(
@@ -55,62 +75,119 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers,
         weighting=cfg.filter.get("weights", "binary")) for split in places}
     timings["features_s"] = time.time() - tic
+    return Prepared(places, backbone, semantic, mask_source, features, storage)
 
-    # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
-    # same numbers whether its artifacts were built just now or read from the cache.
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    tic = time.time()
-    aggregator = instantiate(cfg.filter.aggregator, dim=backbone.out_channels)
-    init_info = init_aggregator(cfg, aggregator, backbone, features["train"].db, places["train"], semantic)
-    timings["init_s"] = time.time() - tic
 
+def mining_of(cfg: DictConfig) -> Mining:
+    """The mining and batching parameters of ``cfg.model`` (``batch_size`` is the global batch)."""
+    model = cfg.model
+    return Mining(batch_size=int(model.batch_size), cache_refresh=int(model.cache_refresh),
+                  queries_per_epoch=model.queries_per_epoch, seed=int(cfg.seed),
+                  positive_radius=float(model.positive_radius), negative_radius=float(model.negative_radius),
+                  num_negatives=int(model.num_negatives), negative_candidates=int(model.negative_candidates),
+                  margin=float(model.margin))
+
+
+def build_retriever(cfg: DictConfig, job: Prepared) -> Retriever:
+    """The retriever with an uninitialised aggregator (:func:`semvpr.build.init_aggregator` fills it)."""
+    aggregator = instantiate(cfg.filter.aggregator, dim=job.backbone.out_channels)
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    class_weights = build_class_weights(cfg)
-    retriever = Retriever(backbone, aggregator, mask_source, whitening, instantiate(cfg.model.optimizer),
-                          instantiate(cfg.model.scheduler), cfg.model.margin, cfg.model.eval_batch_size,
-                          cfg.data.num_workers, record=record_of(cfg), class_weights=class_weights,
-                          class_weights_lr=float(cfg.model.class_weights.lr))
-    datamodule = RetrievalDataModule(
-        features["train"], features["val"], features["test"], cfg.model.batch_size,
-        cfg.model.eval_batch_size, cfg.model.cache_refresh, cfg.seed, cfg.model.queries_per_epoch,
-        cfg.data.num_workers, positive_radius=cfg.model.positive_radius,
-        negative_radius=cfg.model.negative_radius, num_negatives=cfg.model.num_negatives,
-        negative_candidates=cfg.model.negative_candidates, margin=cfg.model.margin)
+    optimization = Optimization(instantiate(cfg.model.optimizer), instantiate(cfg.model.scheduler),
+                                float(cfg.model.margin), float(cfg.model.class_weights.lr))
+    return Retriever(job.backbone, aggregator, job.mask_source, whitening, optimization, cfg.model.eval_batch_size,
+                     cfg.data.num_workers, record=record_of(cfg), class_weights=build_class_weights(cfg))
 
-    tic = time.time()
-    untrained = evaluate_features(retriever, features["test"])
-    timings["untrained_eval_s"] = time.time() - tic
 
+def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
+    """The configured Lightning Trainer with the run's loggers and checkpoints."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
+    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks,
+                       precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
+
+
+def world_size(trainer_cfg: DictConfig) -> int:
+    """Processes of a job: trainer.devices × trainer.num_nodes under a DDP strategy, else 1."""
+    if not str(trainer_cfg.get("strategy", "auto")).startswith("ddp"):
+        return 1
+    devices = int(trainer_cfg.devices)
+    if devices == -1:
+        devices = torch.cuda.device_count() if trainer_cfg.accelerator in ("gpu", "cuda") else os.cpu_count() or 1
+    return devices * int(trainer_cfg.get("num_nodes", 1))
+
+
+def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
+    """Run one training job; returns the metrics to write (None on the ranks other than 0)."""
+    start, timings = time.time(), {}
+    job = prepare(cfg, timings)
+    size = world_size(cfg.trainer)
+    if size > 1 and not HydraConfig.initialized():
+        raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
+    overrides = list(HydraConfig.get().overrides.task) if size > 1 else []
+    with job_ranks(int(cfg.trainer.devices), int(cfg.trainer.get("num_nodes", 1)), overrides, run_dir):
+        return train_and_test(cfg, run_dir, job, timings, start)
+
+
+def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float],
+                   start: float) -> dict[str, Any] | None:
+    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
+    retriever = build_retriever(cfg, job)
+    describe = sharded(retriever.describe_store, int(cfg.model.eval_batch_size))
+    evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe, EVAL_RADIUS)
+    # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
+    # (ModelCheckpoint's save_last only refreshes it when the best changes).
     checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
                                  mode="max", auto_insert_metric_name=False)
-    # last.ckpt after every epoch (ModelCheckpoint's save_last only refreshes it when the best
-    # changes, so a killed run would resume from an older epoch).
     latest = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
                              enable_version_counter=False)
-    trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers,
-                                     callbacks=[checkpoint, latest],
-                                     precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
+    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
+    datamodule = RetrievalDataModule(job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size),
+                                     int(cfg.data.num_workers))
+    leader = trainer.global_rank == 0
+    # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
+    # same numbers whether its artifacts were built just now or read from the cache. The other
+    # ranks skip the initialisation: DDP gives them rank 0's weights.
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    tic = time.time()
+    init_info = init_aggregator(cfg, retriever.aggregator, job.backbone, job.features["train"].db,
+                                job.places["train"], job.semantic) if leader else None
+    timings["init_s"] = time.time() - tic
+    tic = time.time()
+    untrained = evaluation.evaluate(job.features["test"]) if leader else None
+    timings["untrained_eval_s"] = time.time() - tic
     tic = time.time()
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
     tic = time.time()
+    trainer.strategy.barrier("best checkpoint written")
     if checkpoint.best_model_path:
         best = torch.load(checkpoint.best_model_path, map_location="cpu", weights_only=True)
         retriever.load_state_dict(best["state_dict"])
-    if whitening is not None:
-        retriever.fit_whitening(features["train"].db)
+    if retriever.whitening is not None:
+        retriever.fit_whitening(job.features["train"].db, describe)
     trainer.test(retriever, datamodule)
     # The tested model (best weights, fitted whitening): what semvpr.eval should be given.
     tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
     trainer.save_checkpoint(tested_ckpt)
     timings["test_s"] = time.time() - tic
-    tested = retriever.last_eval
-
-    write_figure_data(run_dir, places["test"], features["test"], retriever, tested["predictions"],
+    if not leader:
+        return None
+    tested = evaluation.results["test"]
+    write_figure_data(run_dir, job.places["test"], job.features["test"], retriever, tested["predictions"],
                       int(cfg.num_figure_queries), cfg.filter.mask)
-    metrics: dict[str, Any] = {
+    return job_metrics(cfg, retriever, job, tested, untrained, {
+        "checkpoint": str(tested_ckpt),
+        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
+        "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
+        "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
+        "timings": timings, "wall_time_s": time.time() - start})
+
+
+def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: dict[str, Any],
+                untrained: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
+    """The job's metrics.json: what ran, the test recalls (trained and untrained), and ``run``'s facts."""
+    class_weights = retriever.class_weights
+    return {
         "status": "ok", "error": None, "filter": cfg.filter.name, "backbone": cfg.backbone.name,
         "weights": retriever.weighting,
         "class_weights": class_weights.named_weights() if class_weights is not None else None,
@@ -120,14 +197,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
         "recalls": {str(n): v for n, v in tested["curve"].items()},
         "test_queries_without_positives": tested["num_without_positives"],
-        "feature_storage": storage,
-        "checkpoint": str(tested_ckpt),
-        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
-        "best/val/R@1": best_val_r1(run_dir),
-        "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
-        "timings": timings, "wall_time_s": time.time() - start,
+        "feature_storage": job.storage, **run,
     }
-    return metrics
 
 
 def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
@@ -143,32 +214,13 @@ def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> s
     return storage
 
 
-def best_val_r1(run_dir: Path) -> float | None:
-    """Validation R@1 of the epoch whose checkpoint was kept (the val/R@5 maximum), from the CSV log."""
-    import csv
-
-    rows = []
-    for log in (run_dir / "csv").rglob("metrics.csv"):
-        with log.open(newline="") as fh:
-            rows += [r for r in csv.DictReader(fh) if r.get("val/R@1") and r.get("val/R@5")]
-    if not rows:
-        return None
-    return float(max(rows, key=lambda r: float(r["val/R@5"]))["val/R@1"])
-
-
-def evaluate_features(retriever: Retriever, features: PlaceFeatures) -> dict[str, Any]:
-    """Recall of the retriever on a place set's feature stores, outside the Lightning loop."""
-    return evaluate(retriever.describe_store(features.db), retriever.describe_store(features.q),
-                    features.places.positives(25.0))
-
-
 @torch.no_grad()
 def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retriever: Retriever,
                       predictions: np.ndarray, num_queries: int, mask_name: str) -> None:
     """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
     over the query traversal (the same queries for every run, so the report can compare filters)."""
     idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
-    positives = places.positives(25.0)
+    positives = places.positives(EVAL_RADIUS)
     queries = []
     for i in idx:
         topk = [{"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(),
