@@ -55,7 +55,8 @@ def gather_rows(rows: torch.Tensor) -> torch.Tensor:
     dist.all_gather(shapes, torch.tensor(rows.shape[:2]))
     most, width = (int(max(s[i].item() for s in shapes)) for i in (0, 1))
     padded = rows.new_zeros(most, width)
-    padded[: len(rows)] = rows
+    if len(rows):
+        padded[: len(rows)] = rows
     parts = [torch.empty_like(padded) for _ in range(size)]
     dist.all_gather(parts, padded)
     return torch.cat([part[: int(s[0].item())] for part, s in zip(parts, shapes)])

@@ -45,6 +45,18 @@ def _submitit_ranks(devices: int) -> dict[str, str] | None:
             "LOCAL_RANK": str(env.local_rank), "WORLD_SIZE": str(env.num_tasks)}
 
 
+def launched_rank() -> int:
+    """This process's global rank as its launcher set it (0 where nothing did: the launching process)."""
+    for key in ("SLURM_PROCID", "RANK"):
+        if key in os.environ:
+            return int(os.environ[key])
+    if "SUBMITIT_EXECUTOR" in os.environ:
+        import submitit
+
+        return int(submitit.JobEnvironment().global_rank)
+    return int(os.environ.get("LOCAL_RANK", 0))
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

@@ -36,7 +36,7 @@ from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.evaluation import RecallEvaluation
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
 from semvpr.io import CONF_DIR, atomic_file, write_json
-from semvpr.launch import job_ranks
+from semvpr.launch import job_ranks, launched_rank
 from semvpr.mining import Mining
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
@@ -254,9 +254,12 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 
     A signal (scheduler pre-emption, ``kill``, Ctrl-C) raises :class:`Interrupted` instead: it is
     not recorded as a failed job and it ends the sweep. Lightning composes its own SIGTERM handler
-    with this one during ``fit``.
+    with this one during ``fit``. In a DDP job only rank 0 writes; the other ranks return ``{}``.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
+    if launched_rank() != 0:  # another rank of a DDP job: rank 0 writes and records failures
+        fit_and_test(cfg, run_dir)
+        return {}
     signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
     previous = {sig: signal.signal(sig, _interrupt) for sig in signals}
     try:
@@ -273,6 +276,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    assert metrics is not None  # rank 0
     write_json(run_dir / "metrics.json", metrics)
     summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@") and not k.endswith("_pos")}
     print(json.dumps({"run_dir": str(run_dir), **summary}))
