@@ -118,11 +118,11 @@ def world_size(trainer_cfg: DictConfig) -> int:
 def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
     """Run one training job; returns the metrics to write (None on the ranks other than 0)."""
     start, timings = time.time(), {}
-    job = prepare(cfg, timings)
     size = world_size(cfg.trainer)
     if size > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
     overrides = list(HydraConfig.get().overrides.task) if size > 1 else []
+    job = prepare(cfg, timings)
     with job_ranks(int(cfg.trainer.devices), int(cfg.trainer.get("num_nodes", 1)), overrides, run_dir):
         return train_and_test(cfg, run_dir, job, timings, start)
 
