@@ -7,7 +7,6 @@ model, fit with triplet mining, test the best checkpoint, and write ``metrics.js
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import threading
@@ -105,25 +104,30 @@ def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -
                        precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
 
 
-def world_size(trainer_cfg: DictConfig) -> int:
-    """Processes of a job: trainer.devices × trainer.num_nodes under a DDP strategy, else 1."""
+def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
+    """(processes per node, nodes) of a job: trainer.devices (-1: all GPUs) and trainer.num_nodes
+    under a DDP strategy; (1, 1) otherwise."""
     if not str(trainer_cfg.get("strategy", "auto")).startswith("ddp"):
-        return 1
+        return 1, 1
     devices = int(trainer_cfg.devices)
-    if devices == -1:
-        devices = torch.cuda.device_count() if trainer_cfg.accelerator in ("gpu", "cuda") else os.cpu_count() or 1
-    return devices * int(trainer_cfg.get("num_nodes", 1))
+    if devices == -1:  # Lightning's "all GPUs"
+        devices = torch.cuda.device_count()
+    return devices, int(trainer_cfg.get("num_nodes", 1))
 
 
 def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
     """Run one training job; returns the metrics to write (None on the ranks other than 0)."""
     start, timings = time.time(), {}
-    size = world_size(cfg.trainer)
-    if size > 1 and not HydraConfig.initialized():
+    devices, nodes = ranks_of(cfg.trainer)
+    if devices * nodes > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
-    overrides = list(HydraConfig.get().overrides.task) if size > 1 else []
+    overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
+    if 0 < int(cfg.model.batch_size) < devices * nodes:
+        print(f"semvpr: model.batch_size={cfg.model.batch_size} is the global batch: "
+              f"{devices * nodes - int(cfg.model.batch_size)} of the {devices * nodes} ranks idle in every step",
+              file=sys.stderr)
     job = prepare(cfg, timings)
-    with job_ranks(int(cfg.trainer.devices), int(cfg.trainer.get("num_nodes", 1)), overrides, run_dir):
+    with job_ranks(devices, nodes, overrides, run_dir):
         return train_and_test(cfg, run_dir, job, timings, start)
 
 
@@ -202,13 +206,16 @@ def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: di
 
 
 def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
-    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.features)."""
+    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.features). Under DDP
+    every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
+    ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
     per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
     images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
     cached = all(trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir)
                  for p in places.values())
     storage = choose_storage(cfg.features.storage, per_image * images, cfg.paths.cache_dir,
-                             float(cfg.features.ram_gb), float(cfg.features.disk_gb), cached)
+                             float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0], float(cfg.features.disk_gb),
+                             cached)
     print(f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
           file=sys.stderr)
     return storage

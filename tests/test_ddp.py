@@ -149,3 +149,18 @@ def test_ddp_resume_is_bit_identical_at_the_same_world_size(tmp_path: Path) -> N
     assert runs[0]["recalls"] == runs[1]["recalls"] and runs[0]["best/val/R@1"] == runs[1]["best/val/R@1"]
     weights = [torch.load(m["checkpoint"], weights_only=True)["state_dict"] for m in runs]
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+@pytest.mark.slow
+def test_submitit_local_runs_one_task_per_device(tmp_path: Path) -> None:
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    launcher = ("hydra/launcher=submitit_local", "hydra.launcher.gpus_per_node=0", "hydra.launcher.timeout_min=30")
+    _train(tmp_path, "-m", *launcher, "hydra.launcher.tasks_per_node=2", *DDP, f"hydra.sweep.dir={tmp_path / 'ok'}")
+    jobs = list((tmp_path / "ok").rglob("metrics.json"))
+    assert len(jobs) == 1 and json.loads(jobs[0].read_text())["status"] == "ok"
+    logs = "".join(p.read_text() for p in (tmp_path / "ok" / ".submitit").rglob("*_log.err"))
+    assert "GLOBAL_RANK: 1, MEMBER: 2/2" in logs
+    # One task for two devices: refused in one line, recorded as the job's failure.
+    _train(tmp_path, "-m", *launcher, "hydra.launcher.tasks_per_node=1", *DDP, f"hydra.sweep.dir={tmp_path / 'one'}")
+    failed = json.loads(next((tmp_path / "one").rglob("metrics.json")).read_text())
+    assert failed["status"] == "failed" and "tasks_per_node=2" in failed["error"]
