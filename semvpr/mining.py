@@ -15,6 +15,8 @@ Batches are ``batch_size`` consecutive queries of the sub-epoch, so a batch hold
 ``batch_size`` tuples with 1 to ``num_negatives`` negatives each; the loss averages over the
 (query, negative) pairs present. The epoch's randomness comes from ``rng(seed, epoch)`` and the
 negative cache travels in the checkpoint, so a resumed run mines what the uninterrupted one did.
+Under DDP the refresh is sharded, rank 0 mines and broadcasts, and each rank trains on its slice
+of every batch (:class:`TrainingEpoch`), with the same gradient as one process.
 """
 from __future__ import annotations
 

@@ -112,9 +112,10 @@ def test_ddp_outside_the_command_line_is_refused(tmp_path: Path) -> None:
     assert not (tmp_path / "cache").exists()  # refused before anything was built
 
 
-def _train(tmp_path: Path, *overrides: str, timeout: int = 1200) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.run([sys.executable, "-m", "semvpr.train", "experiment=tiny", f"paths.cache_dir={tmp_path / 'cache'}",
-                           *overrides], cwd=tmp_path, capture_output=True, text=True, timeout=timeout)
+def _train(tmp_path: Path, *overrides: str, multirun: bool = False) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run([sys.executable, "-m", "semvpr.train", *(["-m"] if multirun else []), "experiment=tiny",
+                           f"paths.cache_dir={tmp_path / 'cache'}", *overrides],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
@@ -124,7 +125,7 @@ DDP = ("trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2")
 
 @pytest.mark.slow
 def test_two_job_ddp_sweep_writes_one_sweep_dir_with_two_ok_jobs_and_one_report(tmp_path: Path) -> None:
-    _train(tmp_path, "-m", "seed=0,1", *DDP, f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    _train(tmp_path, "seed=0,1", *DDP, f"hydra.sweep.dir={tmp_path / 'sweep'}", multirun=True)
     assert not (tmp_path / "outputs").exists()  # no second sweep (or run) directory from another rank
     assert len(list((tmp_path / "sweep").glob("results.md"))) == 1
     jobs = sorted(p.parent for p in (tmp_path / "sweep").rglob("metrics.json"))
@@ -155,12 +156,12 @@ def test_ddp_resume_is_bit_identical_at_the_same_world_size(tmp_path: Path) -> N
 def test_submitit_local_runs_one_task_per_device(tmp_path: Path) -> None:
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     launcher = ("hydra/launcher=submitit_local", "hydra.launcher.gpus_per_node=0", "hydra.launcher.timeout_min=30")
-    _train(tmp_path, "-m", *launcher, "hydra.launcher.tasks_per_node=2", *DDP, f"hydra.sweep.dir={tmp_path / 'ok'}")
+    _train(tmp_path, *launcher, "hydra.launcher.tasks_per_node=2", *DDP, f"hydra.sweep.dir={tmp_path / 'ok'}", multirun=True)
     jobs = list((tmp_path / "ok").rglob("metrics.json"))
     assert len(jobs) == 1 and json.loads(jobs[0].read_text())["status"] == "ok"
     logs = "".join(p.read_text() for p in (tmp_path / "ok" / ".submitit").rglob("*_log.err"))
     assert "GLOBAL_RANK: 1, MEMBER: 2/2" in logs
     # One task for two devices: refused in one line, recorded as the job's failure.
-    _train(tmp_path, "-m", *launcher, "hydra.launcher.tasks_per_node=1", *DDP, f"hydra.sweep.dir={tmp_path / 'one'}")
+    _train(tmp_path, *launcher, "hydra.launcher.tasks_per_node=1", *DDP, f"hydra.sweep.dir={tmp_path / 'one'}", multirun=True)
     failed = json.loads(next((tmp_path / "one").rglob("metrics.json")).read_text())
     assert failed["status"] == "failed" and "tasks_per_node=2" in failed["error"]
