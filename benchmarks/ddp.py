@@ -19,6 +19,7 @@ import os
 import socket
 import tempfile
 import time
+import warnings
 from datetime import timedelta
 from pathlib import Path
 
@@ -67,6 +68,7 @@ def workload(args: argparse.Namespace) -> tuple[Retriever, FeatureStore, list[li
 def measure(rank: int, world: int, args: argparse.Namespace, port: int, out: str) -> None:
     """Time the refresh and the steps in this process (one rank of ``world``); rank 0 saves the result."""
     torch.set_num_threads(1)
+    warnings.filterwarnings("ignore", message=".*self.log.*")  # the step runs outside a Trainer
     if world > 1:
         dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world,
                                 timeout=timedelta(seconds=600))
