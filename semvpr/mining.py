@@ -15,21 +15,24 @@ Batches are ``batch_size`` consecutive queries of the sub-epoch, so a batch hold
 ``batch_size`` tuples with 1 to ``num_negatives`` negatives each; the loss averages over the
 (query, negative) pairs present. The epoch's randomness comes from ``rng(seed, epoch)`` and the
 negative cache travels in the checkpoint, so a resumed run mines what the uninterrupted one did.
+Under DDP the refresh is sharded, rank 0 mines and broadcasts, and each rank trains on its slice
+of every batch (:class:`TrainingEpoch`), with the same gradient as one process.
 """
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any, Callable
+from dataclasses import dataclass
+from typing import Any
 
-import lightning as L
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
-from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler
 
+from semvpr.distributed import Describe, from_rank_zero, rank_slice, world
 from semvpr.errors import SemvprError
-from semvpr.features import FeatureStore, PlaceFeatures, StoreDataset
+from semvpr.features import FeatureStore, PlaceFeatures
 
 
 def mine(
@@ -127,87 +130,81 @@ class QueryBatches(Sampler[list[int]]):
         return iter(self.batches)
 
 
-Describe = Callable[[FeatureStore, np.ndarray | None], np.ndarray]
+@dataclass(frozen=True)
+class Mining:
+    """How training tuples are mined and batched (module docstring); ``batch_size`` is the global
+    batch: under DDP each rank trains on its consecutive share of every batch's tuples."""
+
+    batch_size: int = 4
+    cache_refresh: int = 1000
+    queries_per_epoch: int | None = None
+    seed: int = 0
+    positive_radius: float = 10.0
+    negative_radius: float = 25.0
+    num_negatives: int = 10
+    negative_candidates: int = 1000
+    margin: float = 0.1
+
+    def mine(self, db_desc: np.ndarray, q_desc: np.ndarray, places: Any, query_ids: np.ndarray,
+             rng: np.random.Generator, neg_cache: np.ndarray | None) -> list[tuple[int, int, np.ndarray]]:
+        """:func:`mine` with these radii, counts and margin."""
+        return mine(db_desc, q_desc, places.db_utm, places.q_utm, query_ids, rng, neg_cache,
+                    positive_radius=self.positive_radius, negative_radius=self.negative_radius,
+                    num_negatives=self.num_negatives, negative_candidates=self.negative_candidates,
+                    margin=self.margin)
+
+
+def trainable_queries(places: Any, positive_radius: float) -> np.ndarray:
+    """Training queries with a database image within ``positive_radius`` (the others cannot be mined)."""
+    near = cKDTree(places.db_utm).query_ball_point(places.q_utm, r=positive_radius)
+    queries = np.flatnonzero([len(n) > 0 for n in near])
+    if len(queries) == 0:
+        raise SemvprError(
+            f"no training query of {places.name} has a database image within {positive_radius} m; "
+            "check the training split's UTM coordinates")
+    return queries
 
 
 class TrainingEpoch:
-    """One epoch's batches: for each sub-epoch, refresh the descriptor cache, mine, then train."""
+    """One epoch's batches: for each sub-epoch, refresh the descriptor cache, mine, then train.
 
-    def __init__(self, dm: RetrievalDataModule, epoch: int, describe: Describe) -> None:
-        self.dm, self.describe = dm, describe
-        self.rng = np.random.default_rng([dm.seed, epoch])
-        queries = self.rng.permutation(dm.trainable_queries)[: dm.queries_per_epoch]
-        self.chunks = np.array_split(queries, max(1, -(-len(queries) // dm.cache_refresh)))
+    Under DDP every rank iterates the same global batches: ``describe`` is sharded and gathered
+    (semvpr.distributed), rank 0 mines with the single-process random stream and broadcasts the
+    tuples and the negative cache, and each rank yields its slice of every global batch (see
+    :meth:`__iter__`).
+    """
+
+    def __init__(self, train: PlaceFeatures, mining: Mining, queries: np.ndarray, neg_cache: np.ndarray,
+                 epoch: int, describe: Describe, num_workers: int = 0) -> None:
+        self.train, self.mining, self.describe, self.num_workers = train, mining, describe, num_workers
+        self.neg_cache = neg_cache
+        self.num_tuples = 0
+        self.rng = np.random.default_rng([mining.seed, epoch])
+        order = self.rng.permutation(queries)[: mining.queries_per_epoch]
+        self.chunks = np.array_split(order, max(1, -(-len(order) // mining.cache_refresh)))
 
     def __len__(self) -> int:
-        return sum(-(-len(c) // self.dm.batch_size) for c in self.chunks)
+        return sum(-(-len(c) // self.mining.batch_size) for c in self.chunks)
 
-    def __iter__(self) -> Iterator[dict[str, Tensor] | None]:
-        dm, train = self.dm, self.dm.train
-        assert train is not None
+    def __iter__(self) -> Iterator[dict[str, Any] | None]:
+        """Per global batch: None if it holds no tuple (every rank skips the step, as pytorch-NetVlad
+        does), else this rank's slice with ``pairs`` = global (query, negative) pairs / world size.
+        Dividing each rank's summed loss by it makes DDP's gradient average the single-process
+        gradient; a rank whose slice is empty gets ``{"pairs": ...}`` alone and still joins the all-reduce."""
+        rank, size = world()
+        train = self.train
         for chunk in self.chunks:
-            tuples = mine(self.describe(train.db, None), self.describe(train.q, chunk), train.places.db_utm,
-                          train.places.q_utm, chunk, self.rng, dm.neg_cache, **dm.mining)
-            dm.num_tuples[-1] += len(tuples)
-            yield from DataLoader(TupleDataset(tuples, train.db, train.q),
-                                  batch_sampler=QueryBatches(chunk, tuples, dm.batch_size),
-                                  collate_fn=collate_tuples, num_workers=dm.num_workers if train.db.streams else 0)
-
-
-class RetrievalDataModule(L.LightningDataModule):
-    """Feature stores of train/val/test; training batches re-mined per sub-epoch (see module docstring)."""
-
-    def __init__(
-        self,
-        train: PlaceFeatures | None,
-        val: PlaceFeatures | None,
-        test: PlaceFeatures,
-        batch_size: int = 4,
-        eval_batch_size: int = 64,
-        cache_refresh: int = 1000,
-        seed: int = 0,
-        queries_per_epoch: int | None = None,
-        num_workers: int = 0,
-        **mining: Any,
-    ) -> None:
-        super().__init__()
-        self.train, self.val, self.test = train, val, test
-        self.batch_size, self.eval_batch_size = batch_size, eval_batch_size
-        self.cache_refresh, self.mining, self.seed = cache_refresh, mining, seed
-        self.queries_per_epoch, self.num_workers = queries_per_epoch, num_workers
-        self.num_tuples: list[int] = []
-        if train is not None:
-            near = cKDTree(train.places.db_utm).query_ball_point(train.places.q_utm, r=mining.get("positive_radius", 10.0))
-            self.trainable_queries = np.flatnonzero([len(n) > 0 for n in near])
-            if len(self.trainable_queries) == 0:
-                raise SemvprError(
-                    f"no training query of {train.places.name} has a database image within "
-                    f"{mining.get('positive_radius', 10.0)} m; check the training split's UTM coordinates")
-            self.neg_cache = np.full((len(train.q), int(mining.get("num_negatives", 10))), -1, dtype=np.int64)
-
-    def train_dataloader(self) -> TrainingEpoch:
-        self.num_tuples.append(0)
-        module = self.trainer.lightning_module
-        return TrainingEpoch(self, self.trainer.current_epoch, module.describe_store)
-
-    def val_dataloader(self) -> DataLoader:
-        assert self.val is not None
-        return self._eval_loader(self.val)
-
-    def test_dataloader(self) -> DataLoader:
-        return self._eval_loader(self.test)
-
-    def _eval_loader(self, features: PlaceFeatures) -> DataLoader:
-        # Database first, then queries: the module splits the descriptors at len(db).
-        dataset = ConcatDataset([StoreDataset(features.db), StoreDataset(features.q)])
-        workers = self.num_workers if features.db.streams else 0
-        return DataLoader(dataset, batch_size=self.eval_batch_size, num_workers=workers)
-
-    def state_dict(self) -> dict[str, Any]:
-        """The negative cache: a resumed run mines with the hard negatives of the epochs before."""
-        return {"neg_cache": torch.from_numpy(self.neg_cache.copy())} if self.train is not None else {}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        if "neg_cache" in state and self.train is not None:
-            self.neg_cache = state["neg_cache"].numpy().copy()
-
+            db_desc, q_desc = self.describe(train.db, None), self.describe(train.q, chunk)
+            if rank == 0:
+                tuples = self.mining.mine(db_desc, q_desc, train.places, chunk, self.rng, self.neg_cache)
+                shared = (tuples, self.neg_cache)
+            tuples, neg_cache = from_rank_zero(shared if rank == 0 else None)
+            self.neg_cache[:] = neg_cache
+            self.num_tuples += len(tuples)
+            batches = QueryBatches(chunk, tuples, self.mining.batch_size).batches
+            pairs = [sum(len(tuples[i][2]) for i in batch) for batch in batches]
+            loader = DataLoader(TupleDataset(tuples, train.db, train.q),
+                                batch_sampler=[batch[rank_slice(len(batch), rank, size)] for batch in batches],
+                                collate_fn=collate_tuples, num_workers=self.num_workers if train.db.streams else 0)
+            for batch, n in zip(loader, pairs):
+                yield None if n == 0 else {**(batch or {}), "pairs": n / size}

@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,22 +25,38 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig
 
-from semvpr.build import (build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
+from semvpr.build import (Semantic, build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
                           build_semantic, check_config, init_aggregator, mask_key)
 from semvpr.checkpoint import record_of
-from semvpr.errors import exit_on_user_error
-from semvpr.io import CONF_DIR, atomic_file, write_json
+from semvpr.data.places import PlaceSet
+from semvpr.data.retrieval import RetrievalDataModule
+from semvpr.distributed import sharded
+from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.evaluation import RecallEvaluation
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
-from semvpr.mining import RetrievalDataModule
+from semvpr.io import CONF_DIR, atomic_file, write_json
+from semvpr.launch import job_ranks, launched_rank
+from semvpr.mining import Mining
+from semvpr.models.backbones import Backbone
+from semvpr.models.masks import MaskSource
 from semvpr.models.netvlad import PCAWhitening
-from semvpr.models.retriever import Retriever, evaluate
+from semvpr.models.retriever import Optimization, Retriever
 from semvpr.precision import lightning_precision
 
+@dataclass
+class Prepared:
+    """What a job builds (or reads from the cache) before any training: the same on every rank."""
 
-def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Run one training job; returns the metrics written to metrics.json."""
-    start = time.time()
-    timings: dict[str, float] = {}
+    places: dict[str, PlaceSet]
+    backbone: Backbone
+    semantic: Semantic
+    mask_source: MaskSource | None
+    features: dict[str, PlaceFeatures]
+    storage: str
+
+
+def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
+    """Place sets, backbone, the filter's semantic artifacts and the frozen-trunk features."""
     check_config(cfg)
     places = build_places(cfg)
     backbone = build_backbone(cfg)
@@ -47,7 +64,6 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     semantic = build_semantic(cfg, places["train"], backbone)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = time.time() - tic
-
     tic = time.time()
     storage = feature_storage(cfg, backbone, places)
     features = {split: place_features(
@@ -55,64 +71,126 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers,
         weighting=cfg.mask.weights) for split in places}
     timings["features_s"] = time.time() - tic
+    return Prepared(places, backbone, semantic, mask_source, features, storage)
 
-    # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
-    # same numbers whether its artifacts were built just now or read from the cache.
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    tic = time.time()
-    aggregator = build_aggregator(cfg, backbone)
-    init_info = init_aggregator(cfg, aggregator, backbone, features["train"].db, places["train"], semantic)
-    timings["init_s"] = time.time() - tic
 
+def mining_of(cfg: DictConfig) -> Mining:
+    """The mining and batching parameters of ``cfg.model`` (``batch_size`` is the global batch)."""
+    model = cfg.model
+    return Mining(batch_size=int(model.batch_size), cache_refresh=int(model.cache_refresh),
+                  queries_per_epoch=model.queries_per_epoch, seed=int(cfg.seed),
+                  positive_radius=float(model.positive_radius), negative_radius=float(model.negative_radius),
+                  num_negatives=int(model.num_negatives), negative_candidates=int(model.negative_candidates),
+                  margin=float(model.margin))
+
+
+def build_retriever(cfg: DictConfig, job: Prepared) -> Retriever:
+    """The retriever with an uninitialised aggregator (:func:`semvpr.build.init_aggregator` fills it)."""
+    aggregator = build_aggregator(cfg, job.backbone)
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    class_weights = build_class_weights(cfg)
-    retriever = Retriever(backbone, aggregator, mask_source, whitening, instantiate(cfg.model.optimizer),
-                          instantiate(cfg.model.scheduler), cfg.model.margin, cfg.model.eval_batch_size,
-                          cfg.data.num_workers, record=record_of(cfg), class_weights=class_weights,
-                          class_weights_lr=float(cfg.model.class_weights.lr))
-    datamodule = RetrievalDataModule(
-        features["train"], features["val"], features["test"], cfg.model.batch_size,
-        cfg.model.eval_batch_size, cfg.model.cache_refresh, cfg.seed, cfg.model.queries_per_epoch,
-        cfg.data.num_workers, positive_radius=cfg.model.positive_radius,
-        negative_radius=cfg.model.negative_radius, num_negatives=cfg.model.num_negatives,
-        negative_candidates=cfg.model.negative_candidates, margin=cfg.model.margin)
+    optimization = Optimization(instantiate(cfg.model.optimizer), instantiate(cfg.model.scheduler),
+                                float(cfg.model.margin), float(cfg.model.class_weights.lr))
+    return Retriever(job.backbone, aggregator, job.mask_source, whitening, optimization, cfg.model.eval_batch_size,
+                     cfg.data.num_workers, record=record_of(cfg), class_weights=build_class_weights(cfg))
 
-    tic = time.time()
-    untrained = evaluate_features(retriever, features["test"])
-    timings["untrained_eval_s"] = time.time() - tic
 
+def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
+    """The configured Lightning Trainer with the run's loggers and checkpoints."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
+    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks,
+                       precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
+
+
+def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
+    """(processes per node, nodes) of a job: trainer.devices (-1: all GPUs) and trainer.num_nodes
+    under a DDP strategy; (1, 1) otherwise."""
+    if not str(trainer_cfg.get("strategy", "auto")).startswith("ddp"):
+        return 1, 1
+    devices = int(trainer_cfg.devices)
+    if devices == -1:  # Lightning's "all GPUs"
+        devices = torch.cuda.device_count()
+    return devices, int(trainer_cfg.get("num_nodes", 1))
+
+
+def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
+    """Run one training job; returns the metrics to write (None on the ranks other than 0)."""
+    start, timings = time.time(), {}
+    devices, nodes = ranks_of(cfg.trainer)
+    if devices * nodes > 1 and not HydraConfig.initialized():
+        raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
+    overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
+    if 0 < int(cfg.model.batch_size) < devices * nodes:
+        print(f"semvpr: model.batch_size={cfg.model.batch_size} is the global batch: "
+              f"{devices * nodes - int(cfg.model.batch_size)} of the {devices * nodes} ranks idle in every step",
+              file=sys.stderr)
+    job = prepare(cfg, timings)
+    with job_ranks(devices, nodes, overrides, run_dir):
+        return train_and_test(cfg, run_dir, job, timings, start)
+
+
+def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float],
+                   start: float) -> dict[str, Any] | None:
+    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
+    retriever = build_retriever(cfg, job)
+    describe = sharded(retriever.describe_store, int(cfg.model.eval_batch_size))
+    evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
+    # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
+    # (ModelCheckpoint's save_last only refreshes it when the best changes).
     checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
                                  mode="max", auto_insert_metric_name=False)
-    # last.ckpt after every epoch (ModelCheckpoint's save_last only refreshes it when the best
-    # changes, so a killed run would resume from an older epoch).
     latest = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
                              enable_version_counter=False)
-    trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers,
-                                     callbacks=[checkpoint, latest],
-                                     precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
+    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
+    datamodule = RetrievalDataModule(job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size),
+                                     int(cfg.data.num_workers))
+    leader = trainer.global_rank == 0
+    # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
+    # same numbers whether its artifacts were built just now or read from the cache. The other
+    # ranks skip the initialisation: DDP gives them rank 0's weights.
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    tic = time.time()
+    init_info = init_aggregator(cfg, retriever.aggregator, job.backbone, job.features["train"].db,
+                                job.places["train"], job.semantic) if leader else None
+    timings["init_s"] = time.time() - tic
+    tic = time.time()
+    untrained = evaluation.evaluate(job.features["test"]) if leader else None
+    timings["untrained_eval_s"] = time.time() - tic
     tic = time.time()
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
     tic = time.time()
+    trainer.strategy.barrier("best checkpoint written")
     if checkpoint.best_model_path:
         best = torch.load(checkpoint.best_model_path, map_location="cpu", weights_only=True)
         retriever.load_state_dict(best["state_dict"])
-    if whitening is not None:
-        retriever.fit_whitening(features["train"].db)
+    if retriever.whitening is not None:
+        retriever.fit_whitening(job.features["train"].db, describe)
     trainer.test(retriever, datamodule)
     # The tested model (best weights, fitted whitening): what semvpr.eval should be given.
     tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
     trainer.save_checkpoint(tested_ckpt)
     timings["test_s"] = time.time() - tic
-    tested = retriever.last_eval
-
-    write_figure_data(run_dir, places["test"], features["test"], retriever, tested["predictions"],
+    if not leader:
+        return None
+    tested = evaluation.results["test"]
+    write_figure_data(run_dir, job.places["test"], job.features["test"], retriever, tested["predictions"],
                       int(cfg.num_figure_queries), cfg.mask.name)
-    metrics: dict[str, Any] = {
+    return job_metrics(cfg, retriever, job, tested, untrained, {
+        "checkpoint": str(tested_ckpt),
+        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
+        "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
+        "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
+        "timings": timings, "wall_time_s": time.time() - start})
+
+
+def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: dict[str, Any],
+                untrained: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
+    """The job's metrics.json: what ran, the test recalls (trained and untrained), and ``run``'s facts."""
+    class_weights = retriever.class_weights
+    return {
         "status": "ok", "error": None, **run_labels(cfg),
-        "descriptor_dim": retriever.whitening.out_dim if whitening is not None else aggregator.output_dim,
+        "descriptor_dim": retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim,
         "class_weights": class_weights.named_weights() if class_weights is not None else None,
         "data": cfg.data.name,
         **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
@@ -120,14 +198,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
         "recalls": {str(n): v for n, v in tested["curve"].items()},
         "test_queries_without_positives": tested["num_without_positives"],
-        "feature_storage": storage,
-        "checkpoint": str(tested_ckpt),
-        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
-        "best/val/R@1": best_val_r1(run_dir),
-        "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
-        "timings": timings, "wall_time_s": time.time() - start,
+        "feature_storage": job.storage, **run,
     }
-    return metrics
 
 
 def run_labels(cfg: DictConfig) -> dict[str, Any]:
@@ -140,35 +212,19 @@ def run_labels(cfg: DictConfig) -> dict[str, Any]:
 
 
 def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
-    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.features)."""
+    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.features). Under DDP
+    every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
+    ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
     per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
     images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
     cached = all(trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir)
                  for p in places.values())
     storage = choose_storage(cfg.features.storage, per_image * images, cfg.paths.cache_dir,
-                             float(cfg.features.ram_gb), float(cfg.features.disk_gb), cached)
+                             float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0], float(cfg.features.disk_gb),
+                             cached)
     print(f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
           file=sys.stderr)
     return storage
-
-
-def best_val_r1(run_dir: Path) -> float | None:
-    """Validation R@1 of the epoch whose checkpoint was kept (the val/R@5 maximum), from the CSV log."""
-    import csv
-
-    rows = []
-    for log in (run_dir / "csv").rglob("metrics.csv"):
-        with log.open(newline="") as fh:
-            rows += [r for r in csv.DictReader(fh) if r.get("val/R@1") and r.get("val/R@5")]
-    if not rows:
-        return None
-    return float(max(rows, key=lambda r: float(r["val/R@5"]))["val/R@1"])
-
-
-def evaluate_features(retriever: Retriever, features: PlaceFeatures) -> dict[str, Any]:
-    """Recall of the retriever on a place set's feature stores, outside the Lightning loop."""
-    return evaluate(retriever.describe_store(features.db), retriever.describe_store(features.q),
-                    features.places.positives())
 
 
 @torch.no_grad()
@@ -212,9 +268,12 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 
     A signal (scheduler pre-emption, ``kill``, Ctrl-C) raises :class:`Interrupted` instead: it is
     not recorded as a failed job and it ends the sweep. Lightning composes its own SIGTERM handler
-    with this one during ``fit``.
+    with this one during ``fit``. In a DDP job only rank 0 writes; the other ranks return ``{}``.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
+    if launched_rank() != 0:  # another rank of a DDP job: rank 0 writes and records failures
+        fit_and_test(cfg, run_dir)
+        return {}
     signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
     previous = {sig: signal.signal(sig, _interrupt) for sig in signals}
     try:
@@ -230,6 +289,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    assert metrics is not None  # rank 0
     write_json(run_dir / "metrics.json", metrics)
     summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@") and not k.endswith("_pos")}
     print(json.dumps({"run_dir": str(run_dir), **summary}))

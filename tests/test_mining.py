@@ -107,11 +107,10 @@ def test_loss_averages_over_query_negative_pairs() -> None:
     assert loss.item() == pytest.approx(by_hand, rel=1e-4) and loss.item() == pytest.approx(reference.item(), rel=1e-6)
 
 
-def _datamodule(num_queries: int, cache_refresh: int, batch_size: int, queries_per_epoch: int | None = None):
-    """A RetrievalDataModule over 1-D 'trunk' features on a line: query i at 10 i m, database every 5 m."""
+def _line(num_queries: int):
+    """Training features on a line: query i at 10 i m, database every 5 m; the last query is far away."""
     from semvpr.data.places import PlaceSet
     from semvpr.features import PlaceFeatures
-    from semvpr.mining import RetrievalDataModule
 
     db_utm = np.stack([np.arange(0, 10 * num_queries, 5.0), np.zeros(2 * num_queries)], 1)
     q_utm = np.stack([np.arange(num_queries) * 10.0 + 1.0, np.zeros(num_queries)], 1)
@@ -119,9 +118,17 @@ def _datamodule(num_queries: int, cache_refresh: int, batch_size: int, queries_p
     places = PlaceSet("line", tuple(f"/d/db{i}.jpg" for i in range(len(db_utm))),
                       tuple(f"/d/q{i}.jpg" for i in range(num_queries)), db_utm, q_utm)
     store = lambda n: FeatureStore(tuple(f"x{i}" for i in range(n)), (1, 1), torch.zeros(n, 1, 1, 1), None)  # noqa: E731
-    train = PlaceFeatures(places, store(len(db_utm)), store(num_queries))
-    return RetrievalDataModule(train, None, train, batch_size=batch_size, cache_refresh=cache_refresh, seed=0,
-                               queries_per_epoch=queries_per_epoch)
+    return PlaceFeatures(places, store(len(db_utm)), store(num_queries))
+
+
+def _datamodule(num_queries: int, cache_refresh: int, batch_size: int, queries_per_epoch: int | None = None):
+    """A RetrievalDataModule over :func:`_line` (its describe function is never called here)."""
+    from semvpr.data.retrieval import RetrievalDataModule
+    from semvpr.mining import Mining
+
+    train = _line(num_queries)
+    mining = Mining(batch_size=batch_size, cache_refresh=cache_refresh, queries_per_epoch=queries_per_epoch)
+    return RetrievalDataModule({"train": train, "test": train}, mining, describe=None)  # type: ignore[arg-type]
 
 
 def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epochs() -> None:
@@ -136,8 +143,11 @@ def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epo
         calls.append(("db" if index is None else "q", len(store) if index is None else len(index)))
         return rng.normal(size=(len(store) if index is None else len(index), 8)).astype(np.float32)
 
-    dm.num_tuples.append(0)
-    epoch = TrainingEpoch(dm, 0, describe)
+    def epoch_of(module, epoch: int) -> TrainingEpoch:
+        return TrainingEpoch(module.features["train"], module.mining, module.trainable_queries, module.neg_cache,
+                             epoch, describe)
+
+    epoch = epoch_of(dm, 0)
     assert [len(c) for c in epoch.chunks] == [9, 8, 8]  # ceil(25 / 10) sub-epochs
     assert sorted(np.concatenate(epoch.chunks).tolist()) == list(range(25))  # each query exactly once
     assert len(epoch) == 3 + 2 + 2  # batches of 4 consecutive queries per sub-epoch
@@ -145,10 +155,10 @@ def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epo
     assert len(batches) == len(epoch)
     # A descriptor-cache refresh (whole database + the sub-epoch's queries) before each sub-epoch.
     assert calls == [("db", 52), ("q", 9), ("db", 52), ("q", 8), ("db", 52), ("q", 8)]
-    assert TrainingEpoch(dm, 1, describe).chunks[0].tolist() != epoch.chunks[0].tolist()  # reshuffled per epoch
-    assert [c.tolist() for c in TrainingEpoch(dm, 0, describe).chunks] == [c.tolist() for c in epoch.chunks]
+    assert epoch_of(dm, 1).chunks[0].tolist() != epoch.chunks[0].tolist()  # reshuffled per epoch
+    assert [c.tolist() for c in epoch_of(dm, 0).chunks] == [c.tolist() for c in epoch.chunks]
     capped = _datamodule(num_queries=26, cache_refresh=10, batch_size=4, queries_per_epoch=12)
-    assert [len(c) for c in TrainingEpoch(capped, 0, describe).chunks] == [6, 6]
+    assert [len(c) for c in epoch_of(capped, 0).chunks] == [6, 6]
 
 
 def test_negative_cache_travels_with_the_datamodule_state() -> None:

@@ -6,6 +6,7 @@ evaluation work on their cached outputs through :meth:`Retriever.describe`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -17,12 +18,23 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from semvpr.data.datamodule import ImageDataset
+from semvpr.distributed import Describe
 from semvpr.errors import SemvprError
-from semvpr.features import TRUNK_DTYPE, FeatureStore, PlaceFeatures, grid_size, store_loader
+from semvpr.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
 from semvpr.metrics import RECALL_NS, knn, recall_result
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.precision import autocast
 
+
+@dataclass(frozen=True)
+class Optimization:
+    """How the retriever trains: optimizer and scheduler factories (Hydra partials), the triplet
+    margin, and the learning rate of the learned class weights."""
+
+    optimizer: Callable[..., torch.optim.Optimizer]
+    scheduler: Callable[..., Any] | None = None
+    margin: float = 0.1
+    class_weights_lr: float | None = None
 
 
 class Retriever(L.LightningModule):
@@ -34,14 +46,11 @@ class Retriever(L.LightningModule):
         aggregator: nn.Module,
         mask_source: MaskSource | None = None,
         whitening: nn.Module | None = None,
-        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-        scheduler: Callable[..., Any] | None = None,
-        margin: float = 0.1,
+        optimization: Optimization | None = None,
         eval_batch_size: int = 64,
         num_workers: int = 0,
         record: dict | None = None,
         class_weights: ClassWeights | None = None,
-        class_weights_lr: float | None = None,
     ) -> None:
         super().__init__()
         # What eval needs to rebuild the model: config choices and plain values (semvpr.checkpoint),
@@ -49,15 +58,12 @@ class Retriever(L.LightningModule):
         self.save_hyperparameters(record or {})
         self.backbone, self.aggregator, self.mask_source = backbone, aggregator, mask_source
         # Learned per-class weights turn the cached class probabilities into the mask (mask.weights=learned).
-        self.class_weights, self.class_weights_lr = class_weights, class_weights_lr
+        self.class_weights = class_weights
         # PCA whitening is fitted on database descriptors after training and used from then on.
         self.whitening = whitening
         self.register_buffer("whitening_fitted", torch.tensor(False))
-        self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
+        self.optimization = optimization
         self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
-        self.margin = margin
-        self._outputs: list[Tensor] = []
-        self.last_eval: dict[str, np.ndarray] = {}
 
     # ----------------------------------------------------------------- descriptors
     def describe(self, trunk: Tensor, mask: Tensor | None) -> Tensor:
@@ -82,11 +88,12 @@ class Retriever(L.LightningModule):
             trunk = batch["trunk"]
         return self.describe(trunk, _mask_or_none(batch["mask"], self.device))
 
-    def fit_whitening(self, db: FeatureStore) -> None:
-        """Fit the PCA-whitening layer on (unwhitened) database descriptors."""
+    def fit_whitening(self, db: FeatureStore, describe: Describe | None = None) -> None:
+        """Fit the PCA-whitening layer on (unwhitened) database descriptors; ``describe`` (default
+        :meth:`describe_store`) is how they are computed, e.g. sharded across ranks."""
         assert self.whitening is not None
         self.whitening_fitted.fill_(False)
-        self.whitening.fit(self.describe_store(db))
+        self.whitening.fit((describe or self.describe_store)(db, None))
         self.whitening_fitted.fill_(True)
 
     def forward(self, images: Tensor, label_paths: Sequence[Path] | None = None) -> Tensor:
@@ -131,16 +138,22 @@ class Retriever(L.LightningModule):
         return torch.cat(out).numpy()
 
     # ------------------------------------------------------------------- training
-    def training_step(self, batch: dict[str, Tensor] | None, batch_idx: int) -> Tensor | None:
+    def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
+        """The triplet loss of this rank's tuples, summed and divided by ``batch["pairs"]`` (semvpr.mining:
+        the global pair count over the world size, so DDP's averaged gradient is the single-process one)."""
         if batch is None:
             return None  # no query of this batch had a violating negative (pytorch-NetVlad skips it too)
-        loss = triplet_loss(self.describe_batch(batch), batch["tuples"], self.margin)
-        b = len(batch["tuples"])
+        if "tuples" not in batch:
+            # An empty slice of a global batch: a zero loss through every trainable parameter, so that
+            # this rank's zero gradients still join DDP's all-reduce.
+            return sum(p.sum() for p in self.parameters() if p.requires_grad) * 0.0
+        assert self.optimization is not None
+        loss = triplet_loss(self.describe_batch(batch), batch["tuples"], self.optimization.margin, batch["pairs"])
         if not torch.isfinite(loss):
             raise SemvprError(
                 f"training loss became {loss.item()} at epoch {self.current_epoch} step "
                 f"{self.global_step}; the last good checkpoint is left as it was (lower model.optimizer.lr?)")
-        self.log("train/loss", loss, prog_bar=True, batch_size=b)
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["tuples"]))
         return loss
 
     @property
@@ -149,45 +162,25 @@ class Retriever(L.LightningModule):
         return "binary" if self.class_weights is None else "learned"
 
     def configure_optimizers(self) -> Any:
-        if self.optimizer_factory is None:
+        if self.optimization is None:
             raise SemvprError("the retriever was built without an optimizer (model.optimizer)")
         own = {id(p) for p in self.class_weights.parameters()} if self.class_weights is not None else set()
         groups: list[dict[str, Any]] = [{"params": [p for p in self.parameters() if p.requires_grad and id(p) not in own]}]
         if own:
             # A few logits that must travel several units: their own learning rate.
-            groups.append({"params": list(self.class_weights.parameters()), "lr": self.class_weights_lr,
+            groups.append({"params": list(self.class_weights.parameters()), "lr": self.optimization.class_weights_lr,
                            "weight_decay": 0.0})
-        optimizer = self.optimizer_factory(groups)
-        if self.scheduler_factory is None:
+        optimizer = self.optimization.optimizer(groups)
+        if self.optimization.scheduler is None:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer)}
+        return {"optimizer": optimizer, "lr_scheduler": self.optimization.scheduler(optimizer)}
 
     # ----------------------------------------------------------------- evaluation
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._outputs.append(self.describe_batch(batch).float().cpu())
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        """Descriptors of a val/test batch; semvpr.evaluation gathers them and computes recall."""
+        return self.describe_batch(batch).float().cpu()
 
     test_step = validation_step
-
-    def on_validation_epoch_end(self) -> None:
-        self._eval_epoch_end("val", self.trainer.datamodule.val)
-
-    def on_test_epoch_end(self) -> None:
-        self._eval_epoch_end("test", self.trainer.datamodule.test)
-
-    def _eval_epoch_end(self, stage: str, features: PlaceFeatures) -> None:
-        desc = torch.cat(self._outputs).numpy()
-        self._outputs.clear()
-        n_db = len(features.db)
-        if len(desc) != n_db + len(features.q):
-            # fast_dev_run / limit_*_batches saw part of the set; recall needs all of it.
-            desc = np.concatenate([self.describe_store(features.db), self.describe_store(features.q)])
-        result = evaluate(desc[:n_db], desc[n_db:], features.places.positives())
-        for n, value in result["recalls"].items():
-            self.log(f"{stage}/R@{n}", value, prog_bar=n in (1, 5))
-        if result["num_without_positives"]:
-            for n, value in result["recalls_pos"].items():
-                self.log(f"{stage}/R@{n}_pos", value)
-        self.last_eval = result
 
 
 def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray],
@@ -205,11 +198,12 @@ def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.nda
             "num_without_positives": result.num_without_positives}
 
 
-def triplet_loss(desc: Tensor, tuples: Tensor, margin: float, eps: float = 1e-6) -> Tensor:
+def triplet_loss(desc: Tensor, tuples: Tensor, margin: float, pairs: float | None = None, eps: float = 1e-6) -> Tensor:
     """NetVLAD's loss: max(0, d(q,p) − d(q,n) + sqrt(margin)) on L2 distances (as
-    ``nn.TripletMarginLoss``), averaged over every (query, negative) pair of the batch, as
-    pytorch-NetVlad divides by the number of negatives. ``tuples`` (T, 2+N) holds each tuple's rows
-    of ``desc``: query, positive, negatives, -1 padded.
+    ``nn.TripletMarginLoss``), summed over every (query, negative) pair of the batch and divided by
+    ``pairs`` (default: their number, the mean, as pytorch-NetVlad divides by the number of
+    negatives). ``tuples`` (T, 2+N) holds each tuple's rows of ``desc``: query, positive,
+    negatives, -1 padded.
 
     Every row is gathered once: a query repeated per negative would make the backward pass
     accumulate into one row from several threads, whose order (and last bits) vary run to run.
@@ -220,8 +214,8 @@ def triplet_loss(desc: Tensor, tuples: Tensor, margin: float, eps: float = 1e-6)
     negatives[valid] = desc[tuples[:, 2:][valid]]
     d_pos = (q - p + eps).norm(dim=1)
     d_neg = (q[:, None] - negatives + eps).norm(dim=2)
-    pairs = torch.relu(d_pos[:, None] - d_neg + margin**0.5)
-    return pairs[valid].sum() / valid.sum()
+    losses = torch.relu(d_pos[:, None] - d_neg + margin**0.5)[valid]
+    return losses.sum() / (valid.sum() if pairs is None else pairs)
 
 
 def _mask_or_none(mask: Tensor, device: torch.device) -> Tensor | None:

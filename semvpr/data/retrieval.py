@@ -1,0 +1,91 @@
+"""The VPR DataModule: train/val/test feature stores; training tuples re-mined per sub-epoch (semvpr.mining).
+
+Data flows one way: the descriptor function that mining needs is given at construction (the model's
+``describe_store``, sharded across ranks by semvpr.distributed), and the datamodule never reads the
+trainer's model. Val/test batches are whole eval batches over database then queries; under DDP each
+rank loads a contiguous block of them (semvpr.evaluation gathers the descriptors back in order).
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import ConcatDataset, DataLoader, Sampler
+
+from semvpr.distributed import Describe, batch_block, world
+from semvpr.features import PlaceFeatures, StoreDataset
+from semvpr.mining import Mining, TrainingEpoch, trainable_queries
+
+
+class RankBatches(Sampler[list[int]]):
+    """Batches of ``batch_size`` consecutive rows of ``n``: this rank's contiguous block of them
+    (all of them in a single process). The rank is read when iterated, inside the trainer."""
+
+    def __init__(self, n: int, batch_size: int) -> None:
+        self.n, self.batch_size = n, batch_size
+
+    def _rows(self) -> range:
+        block = batch_block(self.n, self.batch_size, *world())
+        return range(block.start, block.stop)
+
+    def __len__(self) -> int:
+        return -(-len(self._rows()) // self.batch_size)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        rows = self._rows()
+        return (list(rows[s : s + self.batch_size]) for s in range(0, len(rows), self.batch_size))
+
+
+class RetrievalDataModule(L.LightningDataModule):
+    """Feature stores of train/val/test; training batches re-mined per sub-epoch (semvpr.mining)."""
+
+    def __init__(self, features: dict[str, PlaceFeatures], mining: Mining, describe: Describe,
+                 eval_batch_size: int = 64, num_workers: int = 0) -> None:
+        super().__init__()
+        self.features, self.mining, self.describe = features, mining, describe
+        self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
+        # Tuples mined per epoch (the last epoch's count goes into metrics.json).
+        self.num_tuples: list[int] = []
+        self._epoch: TrainingEpoch | None = None
+        train = features.get("train")
+        if train is not None:
+            self.trainable_queries = trainable_queries(train.places, mining.positive_radius)
+            self.neg_cache = np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64)
+
+    def train_dataloader(self) -> TrainingEpoch:
+        self._count_tuples()
+        self._epoch = TrainingEpoch(self.features["train"], self.mining, self.trainable_queries, self.neg_cache,
+                                    self.trainer.current_epoch, self.describe, self.num_workers)
+        return self._epoch
+
+    def _count_tuples(self) -> None:
+        if self._epoch is not None:
+            self.num_tuples.append(self._epoch.num_tuples)
+
+    def teardown(self, stage: str) -> None:
+        if stage == "fit":
+            self._count_tuples()
+            self._epoch = None
+
+    def val_dataloader(self) -> DataLoader:
+        return self._eval_loader(self.features["val"])
+
+    def test_dataloader(self) -> DataLoader:
+        return self._eval_loader(self.features["test"])
+
+    def _eval_loader(self, features: PlaceFeatures) -> DataLoader:
+        # Database first, then queries: semvpr.evaluation splits the descriptors at len(db).
+        dataset = ConcatDataset([StoreDataset(features.db), StoreDataset(features.q)])
+        workers = self.num_workers if features.db.streams else 0
+        return DataLoader(dataset, batch_sampler=RankBatches(len(dataset), self.eval_batch_size), num_workers=workers)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The negative cache: a resumed run mines with the hard negatives of the epochs before."""
+        return {"neg_cache": torch.from_numpy(self.neg_cache.copy())} if "train" in self.features else {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "neg_cache" in state and "train" in self.features:
+            self.neg_cache = state["neg_cache"].numpy().copy()
