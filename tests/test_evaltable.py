@@ -35,7 +35,7 @@ def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> No
         # Each query is its place's database image again: any model retrieves it first.
         assert (row["R@1"], row["R@20"], row["queries"], row["database"]) == ("100.0", "100.0", "4", "4")
         assert int(row["descriptor_dim"]) > 0 and float(row["wall_s"]) > 0
-        assert row["source"].startswith("measured: ") and "(attention)" in row["source"]
+        assert row["source"].startswith("measured: ") and "(sral, mask=none)" in row["source"]
     assert rows[2]["benchmark"] == "tiny_test"  # gsv_npy names its protocol after the set
     failed = [r for r in rows if not r["set"]]
     assert len(failed) == 2 and all(r["source"].startswith("failed: ") and "missing" in r["source"] for r in failed)
@@ -51,7 +51,7 @@ def _job(sweep: Path, num: int, result: dict) -> None:
 
 
 def test_published_numbers_stand_beside_the_same_model_and_protocol(tmp_path: Path) -> None:
-    base = {"status": "ok", "checkpoint": "m.ckpt", "filter": "none", "backbone": "vgg16", "model": "vgg16-netvlad",
+    base = {"status": "ok", "checkpoint": "m.ckpt", "aggregator": "netvlad", "mask": "none", "backbone": "vgg16", "model": "vgg16-netvlad",
             "database": 10000, "queries": 6816, "descriptor_dim": 32768, "wall_s": 12.5,
             **{f"test/R@{n}": 80.0 + n / 10 for n in (1, 5, 10, 20)}}
     _job(tmp_path, 0, {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test"})
