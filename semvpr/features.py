@@ -29,7 +29,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
-from tqdm import tqdm
 
 from semvpr.artifacts import artifact_dir, build_once
 from semvpr.data.datamodule import ImageDataset
@@ -38,6 +37,7 @@ from semvpr.data.segmentation import load_image
 from semvpr.errors import SemvprError
 from semvpr.models.masks import NUM_CLASSES, MaskSource
 from semvpr.precision import autocast
+from semvpr.logs import progress
 
 STORAGES = ("auto", "ram", "disk", "stream")
 #: Trunk features are bf16 wherever they come from (cache or stream), so every path gives the same
@@ -177,7 +177,7 @@ def _extract(backbone: nn.Module, mask_source: MaskSource | None, weighting: str
     step = backbone.images_per_forward(image_size, keep_scales=keep)
     loader = DataLoader(ImageDataset(list(paths), image_size), batch_size=batch_size, num_workers=num_workers)
     backbone.eval()
-    for batch, index in tqdm(loader, desc=desc, unit="batch", leave=False, disable=None):
+    for batch, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
         for start in range(0, len(index), step):
             images = batch[start:start + step].to(device).contiguous(memory_format=torch.channels_last)
             first = int(index[start])

@@ -12,12 +12,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
-from tqdm import tqdm
 
 from semvpr.data.classes import static_lut
 from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
 from semvpr.precision import autocast
 from semvpr.segmetrics import Confusion, binary_pred, class_scores, mask_scores
+from semvpr.logs import progress
 
 
 class ScoringDataset(Dataset):
@@ -86,8 +86,8 @@ def score_teacher(teacher: nn.Module, seg: SegmentationSet, image_size: Sequence
                   static_names: Sequence[str], batch_size: int = 8, num_workers: int = 2) -> dict[str, Any]:
     """Class-map scores (mIoU over ``classes``, per-class IoU) and binary-mask scores of the teacher."""
     class_conf, mask_conf = Confusion(), Confusion(2)
-    for images, labels, _ in tqdm(loader(seg, image_size, batch_size, num_workers), desc="teacher scores",
-                                  unit="batch", disable=None):
+    for images, labels, _ in progress(loader(seg, image_size, batch_size, num_workers), "teacher scores",
+                                      len(seg), size=lambda b: len(b[0])):
         for size, pos in _by_size(labels).items():
             ids, prob = teacher_outputs(teacher, images[pos], size, static_names)
             target = torch.stack([labels[i] for i in pos])
@@ -101,8 +101,8 @@ def score_student(student: nn.Module, backbone: nn.Module, seg: SegmentationSet,
                   num_workers: int = 2) -> dict[str, Any]:
     """Binary-mask scores of a student (static vs not) against the labels."""
     conf = Confusion(2)
-    for images, labels, _ in tqdm(loader(seg, image_size, batch_size, num_workers), desc="student scores",
-                                  unit="batch", disable=None):
+    for images, labels, _ in progress(loader(seg, image_size, batch_size, num_workers), "student scores",
+                                      len(seg), size=lambda b: len(b[0])):
         for size, pos in _by_size(labels).items():
             prob = student_prob(student, backbone, images[pos], size, bf16)
             conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))

@@ -42,6 +42,7 @@ from semvpr.models.masks import MaskSource
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Optimization, Retriever
 from semvpr.precision import lightning_precision
+from semvpr.logs import trainer_kwargs
 
 @dataclass
 class Prepared:
@@ -97,7 +98,7 @@ def build_retriever(cfg: DictConfig, job: Prepared) -> Retriever:
 def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
     """The configured Lightning Trainer with the run's loggers and checkpoints."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
-    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks,
+    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, **trainer_kwargs("retriever", callbacks),
                        precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
 
 
@@ -166,10 +167,10 @@ def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[
         retriever.load_state_dict(best["state_dict"])
     if retriever.whitening is not None:
         retriever.fit_whitening(job.features["train"].db, describe)
-    trainer.test(retriever, datamodule)
+    trainer.test(retriever, datamodule, verbose=False)
     # The tested model (best weights, fitted whitening): what semvpr.eval should be given.
     tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
-    trainer.save_checkpoint(tested_ckpt)
+    trainer.save_checkpoint(tested_ckpt, weights_only=True)  # no optimizer state: eval needs none
     timings["test_s"] = time.time() - tic
     if not leader:
         return None

@@ -15,7 +15,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
-from tqdm import tqdm
 
 from semvpr.data.datamodule import ImageDataset
 from semvpr.distributed import Describe
@@ -24,6 +23,7 @@ from semvpr.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
 from semvpr.metrics import RECALL_NS, knn, recall_result
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.precision import autocast
+from semvpr.logs import progress
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ class Retriever(L.LightningModule):
         loader = DataLoader(ImageDataset(list(paths), tuple(image_size)), batch_size=self.eval_batch_size,
                             num_workers=self.num_workers, pin_memory=self.device.type == "cuda")
         with autocast(self.device):
-            for images, index in tqdm(loader, desc=desc, unit="batch", leave=False, disable=None):
+            for images, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
                 batch_labels = [labels[i] for i in index] if labels is not None else None
                 rows = slice(int(index[0]), int(index[-1]) + 1)
                 out[rows] = self(images.to(self.device), batch_labels).float().cpu().numpy()

@@ -19,7 +19,6 @@ from omegaconf import DictConfig, OmegaConf
 from PIL import Image
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
-from tqdm import tqdm
 
 from semvpr.artifacts import build_once
 from semvpr.data.classes import IGNORE, STATIC_NAMES, static_lut
@@ -27,6 +26,7 @@ from semvpr.models.masks import NUM_CLASSES
 from semvpr.errors import SemvprError
 from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
+from semvpr.logs import Progress, progress
 
 VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
 
@@ -107,7 +107,7 @@ def cache_skips(
     out: list[list[Tensor]] = [[] for _ in indices]
     # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
     with autocast(device, enabled=bf16):
-        for images, _ in tqdm(loader, desc="student features", unit="batch", disable=None):
+        for images, _ in progress(loader, "student features", len(paths), size=lambda b: len(b[0])):
             skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
             for level, i in enumerate(indices):
                 out[level].append(skips[i].to(torch.bfloat16).contiguous())
@@ -136,7 +136,7 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: Dic
     device = student.head.weight.device
     student.train()
     inter = union = 0
-    bar = tqdm(total=steps, desc="student", unit="step", disable=None)
+    bar = Progress("student", steps, unit="steps")
     for epoch in range(cfg.epochs):
         order = torch.randperm(n, generator=gen)
         inter = union = 0
@@ -156,7 +156,6 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: Dic
             pred, gt = (static >= 0.5) & valid, (student.static_weight[target.clamp(max=NUM_CLASSES - 1)] > 0) & valid
             inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
             bar.update()
-            bar.set_postfix(loss=f"{loss.item():.3f}")
     bar.close()
     student.eval()
     return {"train/loss": float(loss.item()), "train/iou_vs_labels": inter / max(1, union)}

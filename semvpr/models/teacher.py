@@ -24,6 +24,7 @@ from semvpr.errors import SemvprError
 from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, TIMM_EFFICIENTNET_LITE0,
                                      efficientnet_lite0_state)
 from semvpr.precision import autocast, lightning_precision
+from semvpr.logs import trainer_kwargs
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -291,8 +292,8 @@ def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
         accelerator=accelerator, devices=1,
         precision=lightning_precision("bf16-mixed" if cfg.train.bf16 else "32-true", accelerator),
         max_epochs=cfg.train.epochs, check_val_every_n_epoch=cfg.train.val_every or cfg.train.epochs, num_sanity_val_steps=0,
-        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False, enable_model_summary=False,
-        log_every_n_steps=10, default_root_dir=out,
+        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
+        log_every_n_steps=10, default_root_dir=out, **trainer_kwargs("teacher", ()),
     )  # fmt: skip
     start = time.perf_counter()
     trainer.fit(teacher, datamodule=data)
