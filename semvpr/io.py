@@ -4,6 +4,8 @@ Every file a run or a cache holds is written through :func:`atomic_file` or :fun
 the content goes to a fresh temporary name beside the target (random, created exclusively, so a
 pre-planted file or link is never followed and two writers never share one), and is renamed
 onto the target only when complete. A failed or killed write leaves no target behind.
+Per-item paths inside an artifact (one file per image) go through :func:`inside`, which refuses
+any that would leave the artifact's directory.
 """
 from __future__ import annotations
 
@@ -15,6 +17,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
+
+from semvpr.errors import SemvprError
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
@@ -61,3 +65,16 @@ def write_text(path: Path, text: str) -> None:
 def write_json(path: Path, obj: Any) -> None:
     """Write JSON atomically (numpy scalars as floats)."""
     write_text(path, json.dumps(obj, indent=1, default=float))
+
+
+def inside(base: Path, rel: str | Path) -> Path:
+    """``base / rel``, refused unless it stays inside ``base`` both as written (no absolute path, no
+    ``..``) and on disk (no symlink under ``base`` leading elsewhere)."""
+    base, rel = Path(base), Path(rel)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise SemvprError(f"{rel.as_posix()!r} would leave {base}; refusing to write there")
+    path = base / rel
+    real_base = base.resolve()
+    if not path.resolve().is_relative_to(real_base):
+        raise SemvprError(f"{path} leads outside {real_base} through a symlink; refusing to write there")
+    return path

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from semvpr.artifacts import build_once, config_hash
 from semvpr.errors import SemvprError
-from semvpr.io import atomic_file
+from semvpr.io import atomic_file, inside
 from semvpr.precision import autocast
 
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
@@ -30,7 +30,7 @@ def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Pa
         rel = Path(image).relative_to(root)
     except ValueError:
         raise SemvprError(f"image {image} is not under the dataset root {root}") from None
-    return Path(label_dir) / rel.parent / f"{rel.name}.png"
+    return inside(Path(label_dir), rel.parent / f"{rel.name}.png")
 
 
 def image_list_identity(paths: Sequence[Path], root: Path) -> str:

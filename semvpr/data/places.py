@@ -63,6 +63,10 @@ class PlaceSet:
         root = Path(self.root) if self.root is not None else common_root(images)
         if any(not p.is_relative_to(root) for p in images):
             root = common_root(images)  # e.g. queries under a separate query_root
+        # An image's key (its path below the root) names its cached artifacts: it must not climb out.
+        climbing = next((p for p in images if ".." in p.relative_to(root).parts), None)
+        if climbing is not None:
+            raise SemvprError(f"place set {self.name!r}: image {climbing} climbs out of the dataset root {root}")
         object.__setattr__(self, "root", root)
 
     def relative(self, path: Path) -> str:
@@ -101,6 +105,15 @@ def parse_utm_name(path: str | Path) -> tuple[float, float]:
     except ValueError:
         raise SemvprError(f"{path}: not an @UTM@ image name "
                           f"(expected @utm_east@utm_north@zone@...@.jpg)") from None
+
+
+def listed_image(folder: Path, name: str, source: Path) -> Path:
+    """``folder / name`` for an image name read from a list file, refused if it leaves ``folder``."""
+    rel = Path(name)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise SemvprError(f"{source}: image name {name!r} leaves the folder {folder}; names must be relative, "
+                          f"without '..'")
+    return folder / rel
 
 
 def _images_in(folder: Path) -> list[Path]:
@@ -217,8 +230,8 @@ def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | 
     return PlaceSet(
         name=name or f"{mat_path.stem}" + (f"/{which[0]}" if which and which[0] else ""),
         root=image_root,
-        db_paths=tuple(db_root / n for n in db_names),
-        q_paths=tuple(q_root / n for n in q_names),
+        db_paths=tuple(listed_image(db_root, n, mat_path) for n in db_names),
+        q_paths=tuple(listed_image(q_root, n, mat_path) for n in q_names),
         db_utm=db_utm,
         q_utm=q_utm,
     )
@@ -268,7 +281,7 @@ def _read_msls_side(folder: Path, subtask: str | None, exclude_panos: bool) -> t
             utm.append((float(row["easting"]), float(row["northing"])))
         except (TypeError, ValueError):
             raise SemvprError(f"{folder / 'postprocessed.csv'}: bad easting/northing in row key={row['key']!r}") from None
-        paths.append(folder / "images" / f"{row['key']}.jpg")
+        paths.append(listed_image(folder / "images", f"{row['key']}.jpg", folder / "postprocessed.csv"))
     return paths, utm
 
 

@@ -1,0 +1,72 @@
+"""Hostile dataset lists and caches: nothing is written outside the run and cache directories."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
+from semvpr.errors import SemvprError
+from semvpr.io import inside
+from semvpr.pseudolabels import pseudo_labels
+from tests.test_places import make_msls, write_dbstruct, write_jpg, write_msls_side
+from tests.test_pseudolabels import SIZE, CountingTeacher
+
+
+def files_under(folder: Path) -> set[Path]:
+    """Every file and link below ``folder`` (links not followed)."""
+    return {Path(d) / n for d, dirs, files in os.walk(folder) for n in files + dirs}
+
+
+def test_msls_key_climbing_out_of_the_images_folder_is_refused(tmp_path: Path) -> None:
+    root = make_msls(tmp_path / "msls")
+    write_msls_side(root / "train_val" / "sf" / "query", [("../../../../../victim", 5.0, 6.0, False, True)])
+    with pytest.raises(SemvprError, match=r"postprocessed\.csv: image name '\.\./.*victim\.jpg' leaves"):
+        read_msls(root, "val")
+
+
+@pytest.mark.parametrize("bad", ["../../victim.jpg", "/etc/victim.jpg", "000/../../victim.jpg"])
+def test_dbstruct_names_leaving_the_image_root_are_refused(tmp_path: Path, bad: str) -> None:
+    root = tmp_path / "pitts"
+    write_jpg(root / "000" / "a.jpg")
+    write_jpg(root / "queries_real" / "000" / "q.jpg")
+    utm = np.zeros((2, 2))
+    write_dbstruct(tmp_path / "p.mat", ["000/a.jpg", bad], utm, ["000/q.jpg"], utm[:1])
+    with pytest.raises(SemvprError, match=r"p\.mat: image name .*victim\.jpg.* leaves"):
+        read_dbstruct_mat(tmp_path / "p.mat", root)
+
+
+def test_a_place_set_refuses_an_image_key_that_climbs_out(tmp_path: Path) -> None:
+    root = tmp_path / "data"
+    with pytest.raises(SemvprError, match="climbs out of the dataset root"):
+        PlaceSet("x", (root / "a.jpg", root / "b" / ".." / ".." / "victim.jpg"), (root / "q.jpg",),
+                 np.zeros((2, 2)), np.zeros((1, 2)), root=root)
+    # Queries under a separate folder are fine: the root becomes their common folder.
+    ok = PlaceSet("x", (root / "a.jpg",), (tmp_path / "q" / "q.jpg",), np.zeros((1, 2)), np.zeros((1, 2)), root=root)
+    assert ok.root == tmp_path and ok.relative(ok.q_paths[0]) == "q/q.jpg"
+
+
+def test_pseudo_labels_never_land_outside_the_cache(tmp_path: Path) -> None:
+    """A textual '..' in an image path used to carry its label out of the labels directory."""
+    Image.fromarray(np.zeros((32, 40, 3), np.uint8)).save(tmp_path / "victim.png")
+    root = tmp_path / "deep" / "data"
+    root.mkdir(parents=True)
+    before = files_under(tmp_path)
+    climbing = root / "a" / ".." / ".." / ".." / "victim.png"
+    with pytest.raises(SemvprError, match="would leave"):
+        pseudo_labels(CountingTeacher(), "t", [climbing], SIZE, tmp_path / "cache", root, num_workers=0)
+    assert {p for p in files_under(tmp_path) - before if not p.is_relative_to(tmp_path / "cache")} == set()
+
+
+def test_inside_refuses_dotdot_absolute_and_symlinked_escapes(tmp_path: Path) -> None:
+    base = tmp_path / "art"
+    (base / "sub").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    os.symlink(tmp_path / "elsewhere", base / "link")
+    assert inside(base, "sub/x.png") == base / "sub" / "x.png"
+    for bad in ("../x.png", "sub/../../x.png", str(tmp_path / "x.png"), "link/x.png"):
+        with pytest.raises(SemvprError, match="refusing to write"):
+            inside(base, bad)
