@@ -21,12 +21,11 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig
 
 from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, build_semantic,
                           check_config, init_aggregator, mask_key)
-from semvpr.checkpoint import record_of
+from semvpr.checkpoint import RunCheckpoint, record_of
 from semvpr.errors import exit_on_user_error
 from semvpr.io import CONF_DIR, atomic_file, write_json
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
@@ -82,11 +81,11 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     timings["untrained_eval_s"] = time.time() - tic
 
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
-    checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
+    checkpoint = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
                                  mode="max", auto_insert_metric_name=False)
     # last.ckpt after every epoch (ModelCheckpoint's save_last only refreshes it when the best
     # changes, so a killed run would resume from an older epoch).
-    latest = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
+    latest = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
                              enable_version_counter=False)
     trainer: L.Trainer = instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers,
                                      callbacks=[checkpoint, latest],

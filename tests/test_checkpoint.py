@@ -75,6 +75,10 @@ SENTINEL_TEXT = "untouched"
      r"teacher\.model\.embed_dim is a mapping"),
     (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
     (lambda s: _set("seed", "0"), r"seed='0' is not an integer"),
+    # A stored path redirected eval to load another directory as the teacher.
+    (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
+    (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),
+    (lambda s: _set("config.teacher.checkpoint", "~/evil"), r"teacher\.checkpoint=.*names a local path"),
 ])
 def test_hostile_checkpoints_are_refused_before_anything_runs(tmp_path: Path, genuine_record: tuple[dict, dict],
                                                              edit: Callable, message: str) -> None:
@@ -107,3 +111,14 @@ def test_cli_refuses_a_hostile_checkpoint_with_one_line(tmp_path: Path, genuine_
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "_target_ is refused" in proc.stderr
     assert sentinel.read_text() == SENTINEL_TEXT
+
+
+def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: Path) -> None:
+    from semvpr.checkpoint import model_config, record_of
+
+    record = record_of(tiny_config(tmp_path))
+    record["config"]["teacher"]["checkpoint"] = "facebook/mask2former-swin-large-cityscapes-semantic"
+    assert model_config(record, tiny_config(tmp_path)).teacher.checkpoint.startswith("facebook/")
+    record["config"]["teacher"]["checkpoint"] = str(tmp_path)
+    given = tiny_config(tmp_path, f"teacher.checkpoint={tmp_path}")
+    assert model_config(record, given).teacher.checkpoint == str(tmp_path)
