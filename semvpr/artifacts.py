@@ -14,13 +14,16 @@ import hashlib
 import json
 import os
 import shutil
-import uuid
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from semvpr.errors import SemvprError
+from semvpr.io import write_text
 
 
 LOCK_DIR = ".locks"
@@ -76,8 +79,13 @@ def build_once(
 
 @contextmanager
 def _exclusive(lock_path: Path) -> Iterator[None]:
-    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free)."""
-    with open(lock_path, "a") as handle:
+    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free); a link there is refused."""
+    try:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as err:
+        raise SemvprError(f"lock file {lock_path} cannot be opened ({err.strerror}); a link there is never "
+                          f"followed: remove it") from None
+    with os.fdopen(fd, "r+") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:
             yield
@@ -86,15 +94,23 @@ def _exclusive(lock_path: Path) -> Iterator[None]:
 
 
 def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable: bool) -> None:
-    """Run ``build`` in a temporary sibling of ``final`` and rename it into place on success."""
-    suffix = "partial" if resumable else f"tmp-{uuid.uuid4().hex[:8]}"
-    tmp = final.parent / f".{final.name}.{suffix}"
-    tmp.mkdir(exist_ok=resumable)
+    """Run ``build`` in a temporary sibling of ``final`` and rename it into place on success.
+
+    A one-off build gets a fresh directory of a random name (created exclusively); a resumable
+    one reuses ``.<name>.partial`` only if that is a plain directory, never a link.
+    """
+    if resumable:
+        tmp = final.parent / f".{final.name}.partial"
+        if tmp.is_symlink() or (tmp.exists() and not tmp.is_dir()):
+            raise SemvprError(f"{tmp} is not a plain directory (a link?); refusing to build there: remove it")
+        tmp.mkdir(exist_ok=True)
+    else:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
     try:
         build(tmp)
         if isinstance(key, (DictConfig, ListConfig)):
             key = OmegaConf.to_container(key, resolve=True)
-        (tmp / "key.json").write_text(json.dumps(key, sort_keys=True, indent=1, default=str))
+        write_text(tmp / "key.json", json.dumps(key, sort_keys=True, indent=1, default=str))
         os.rename(tmp, final)
     except BaseException:
         if not resumable:

@@ -70,3 +70,38 @@ def test_inside_refuses_dotdot_absolute_and_symlinked_escapes(tmp_path: Path) ->
     for bad in ("../x.png", "sub/../../x.png", str(tmp_path / "x.png"), "link/x.png"):
         with pytest.raises(SemvprError, match="refusing to write"):
             inside(base, bad)
+
+
+def test_a_planted_partial_link_in_a_shared_cache_is_refused(tmp_path: Path) -> None:
+    """A '.labels-<hash>.partial' link made pseudo-labels land in the link's target."""
+    from semvpr.artifacts import artifact_dir
+    from tests.test_pseudolabels import _key, make_images
+
+    paths = make_images(tmp_path / "img")
+    cache, victim = tmp_path / "cache", tmp_path / "victim"
+    victim.mkdir()
+    final = artifact_dir(cache, "labels", _key(paths, tmp_path / "img"))
+    cache.mkdir()
+    os.symlink(victim, final.parent / f".{final.name}.partial")
+    with pytest.raises(SemvprError, match=r"\.partial is not a plain directory"):
+        pseudo_labels(CountingTeacher(), "teacher-abc", paths, SIZE, cache, tmp_path / "img", num_workers=0)
+    assert list(victim.iterdir()) == [] and not final.exists()
+
+
+def test_links_planted_inside_a_partial_build_or_as_a_lock_are_not_followed(tmp_path: Path) -> None:
+    from semvpr.artifacts import LOCK_DIR, artifact_dir, build_once
+
+    cache, victim = tmp_path / "cache", tmp_path / "victim"
+    victim.mkdir()
+    final = artifact_dir(cache, "thing", {"a": 1})
+    partial = final.parent / f".{final.name}.partial"
+    partial.mkdir(parents=True)
+    os.symlink(victim / "key.json", partial / "key.json")  # the key is written last, into the partial dir
+    out = build_once(cache, "thing", {"a": 1}, lambda tmp: (tmp / "x").write_text("1"), resumable=True)
+    assert (out / "key.json").is_file() and not (out / "key.json").is_symlink()
+    (cache / LOCK_DIR).mkdir(exist_ok=True)
+    lock = artifact_dir(cache, "other", {"b": 2})
+    os.symlink(victim / "created-by-lock", cache / LOCK_DIR / f"{lock.name}.lock")
+    with pytest.raises(SemvprError, match=r"lock file .* a link there is never followed"):
+        build_once(cache, "other", {"b": 2}, lambda tmp: None)
+    assert list(victim.iterdir()) == []
