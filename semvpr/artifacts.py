@@ -17,7 +17,7 @@ import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -45,6 +45,19 @@ def state_hash(state: dict[str, Any], length: int = 16) -> str:
         # reshape(-1): 0-dim buffers (BatchNorm's num_batches_tracked) cannot be viewed as bytes
         digest.update(tensor.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
     return digest.hexdigest()[:length]
+
+
+def files_identity(names: Sequence[str], paths: Sequence[str | Path]) -> str:
+    """Hash of each file's name (as the caller keys it), size and modification time in ns.
+
+    What a cache built from files is keyed by: the same names with other bytes (a dataset whose
+    images were replaced) give another key. One ``stat`` per file, no read.
+    """
+    digest = hashlib.sha256()
+    for name, path in zip(names, paths, strict=True):
+        st = os.stat(path)
+        digest.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return digest.hexdigest()[:16]
 
 
 def artifact_dir(cache_dir: str | Path, kind: str, key: Any) -> Path:

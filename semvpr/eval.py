@@ -54,7 +54,7 @@ def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[R
 def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: DictConfig) -> np.ndarray:
     """Descriptors of a place set's database or queries (memory-mapped), computed once per model and data."""
     paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
-    key = {"model": state_hash(retriever.state_dict()), "images": [places.relative(p) for p in paths],
+    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side),
            "image_size": list(cfg.data.image_size)}
     dim = retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim
 

@@ -204,8 +204,8 @@ def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndar
 
 
 def _data_key(places: PlaceSet, size: tuple[int, int]) -> dict[str, Any]:
-    return {"db": [places.relative(p) for p in places.db_paths],
-            "q": [places.relative(p) for p in places.q_paths], "image_size": list(size)}
+    """What the features of a place set are made of: each side's images (and labels) by name and content."""
+    return {"db": places.identity("db"), "q": places.identity("q"), "image_size": list(size)}
 
 
 def trunk_cached(places: PlaceSet, backbone_key: Any, image_size: Sequence[int], cache_dir: str | Path) -> bool:

@@ -16,7 +16,7 @@ from PIL import Image
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from semvpr.artifacts import build_once, config_hash
+from semvpr.artifacts import build_once, files_identity
 from semvpr.errors import SemvprError
 from semvpr.io import atomic_file, inside
 from semvpr.precision import autocast
@@ -34,8 +34,9 @@ def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Pa
 
 
 def image_list_identity(paths: Sequence[Path], root: Path) -> str:
-    """Hash of the (sorted) relative paths and byte sizes: the same images give the same labels."""
-    return config_hash(sorted((p.relative_to(root).as_posix(), p.stat().st_size) for p in paths))
+    """Hash of the (sorted) relative paths, sizes and mtimes: the same images give the same labels."""
+    named = sorted((p.relative_to(root).as_posix(), p) for p in paths)
+    return files_identity([n for n, _ in named], [p for _, p in named])
 
 
 def _write_png(ids: np.ndarray, final: Path) -> None:

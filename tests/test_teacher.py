@@ -250,3 +250,13 @@ def test_pickled_teacher_weights_are_refused(tmp_path: Path) -> None:
     with pytest.raises(SemvprError, match="pytorch_model.bin are unreadable"):
         teacher_mod.load_pretrained(str(folder))
     assert not sentinel.exists()
+
+
+def test_a_local_teacher_whose_weights_changed_is_another_teacher(tmp_path: Path) -> None:
+    """Keyed by path and commit hash (None for a directory), changed weights reused old pseudo-labels."""
+    folder = _saved_teacher(tmp_path / "ckpt")
+    first = build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key
+    assert build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key == first
+    torch.manual_seed(1)
+    embedded_model(TINY_MODEL).save_pretrained(folder)  # same directory, other weights
+    assert build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key != first

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semvpr.artifacts import files_identity
 from semvpr.errors import SemvprError
 from semvpr.metrics import positives_within
 
@@ -72,6 +73,13 @@ class PlaceSet:
     def relative(self, path: Path) -> str:
         """Key of one of the set's images: its path relative to the dataset root, POSIX style."""
         return Path(path).relative_to(self.root).as_posix()
+
+    def identity(self, side: str) -> str:
+        """Hash of one side's ("db" or "q") images and labels by key, size and mtime (``files_identity``)."""
+        paths, labels = (self.db_paths, self.db_labels) if side == "db" else (self.q_paths, self.q_labels)
+        files = [*paths, *(labels or ())]
+        names = [self.relative(p) for p in paths] + [f"label:{p}" for p in labels or ()]
+        return files_identity(names, files)
 
     def positives(self, radius: float = 25.0) -> list[np.ndarray]:
         """Per query: database indices within `radius` metres, nearest first."""

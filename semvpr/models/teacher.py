@@ -17,7 +17,7 @@ from torch import Tensor
 from torchmetrics.classification import MulticlassJaccardIndex
 from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig
 
-from semvpr.artifacts import build_once, config_hash
+from semvpr.artifacts import build_once, config_hash, files_identity
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.errors import SemvprError
 from semvpr.precision import autocast, lightning_precision
@@ -315,8 +315,9 @@ def file_hash(path: Path, length: int = 16) -> str:
 
 
 def dataset_identity(seg: Any) -> str:
-    """Hash of a SegmentationSet's file names and sizes (cheap, and survives moving the data) and label table."""
-    files = [(p.name, p.stat().st_size) for p in (*seg.images, *seg.labels)]
+    """Hash of a SegmentationSet's files (name, size, mtime: cheap, and survives moving the data) and label table."""
+    paths = [*seg.images, *seg.labels]
+    files = files_identity([p.name for p in paths], paths)
     lut = getattr(seg, "label_lut", None)  # the same PNGs read with another id table are other targets
     return config_hash(files if lut is None else [files, list(lut)])
 
