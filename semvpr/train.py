@@ -33,6 +33,7 @@ from semvpr.mining import RetrievalDataModule
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever, evaluate
 from semvpr.precision import lightning_precision
+from semvpr.resume import keep_run_record, resumed_config
 
 
 def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -230,11 +231,16 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
     hydra_cfg = HydraConfig.get()
-    run_job(cfg, Path(hydra_cfg.runtime.output_dir), multirun=hydra_cfg.mode == RunMode.MULTIRUN)
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    record = run_dir / ".hydra" / "config.yaml"
+    if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
+        cfg = resumed_config(cfg, hydra.compose(config_name="train"), record)
+    run_job(cfg, run_dir, multirun=hydra_cfg.mode == RunMode.MULTIRUN)
 
 
 def main() -> None:
     """Console entry point; user errors become one line on stderr and exit code 2."""
+    sys.argv[1:] = keep_run_record(sys.argv[1:])
     _hydra_main()
 
 
