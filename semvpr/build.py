@@ -24,6 +24,7 @@ from semvpr.data.classes import static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, unwrap_user_error
 from semvpr.features import STORAGES, FeatureStore, grid_size
+from semvpr.metrics import check_radius
 from semvpr.models.masks import WEIGHTINGS, ClassWeights, MaskSource, OracleMask, StudentMask, TeacherMask
 from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path
@@ -68,6 +69,10 @@ def check_config(cfg: DictConfig) -> None:
             raise SemvprError(f"model.{key}={cfg.model[key]} must be a positive integer")
     if cfg.model.get("queries_per_epoch") is not None and int(cfg.model.queries_per_epoch) < 1:
         raise SemvprError(f"model.queries_per_epoch={cfg.model.queries_per_epoch} must be positive (or null = all)")
+    positive = check_radius(cfg.model.positive_radius, "model.positive_radius")
+    if check_radius(cfg.model.negative_radius, "model.negative_radius") < positive:
+        raise SemvprError(f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
+                          f"{cfg.model.positive_radius}: a negative could then be a positive")
     if len(cfg.data.image_size) != 2:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
     if cfg.features.storage not in STORAGES:

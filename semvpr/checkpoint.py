@@ -71,6 +71,10 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
         raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}: {str(err).splitlines()[0]})") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
+    broken = next((k for k, v in ckpt["state_dict"].items()
+                   if not isinstance(v, torch.Tensor) or (v.is_floating_point() and not torch.isfinite(v).all())), None)
+    if broken is not None:
+        raise SemvprError(f"{path}: weight {broken!r} is not a tensor of finite numbers; the checkpoint is damaged")
     record = ckpt.get("hyper_parameters")
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         if isinstance(record, dict) and "config" in record and "format" not in record:

@@ -29,6 +29,7 @@ from torch import Tensor
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, Sampler
 
 from semvpr.errors import SemvprError
+from semvpr.metrics import check_radius
 from semvpr.features import FeatureStore, PlaceFeatures, StoreDataset
 
 
@@ -50,6 +51,8 @@ def mine(
 
     ``neg_cache`` (num_queries, num_negatives), -1 padded, is read and updated in place.
     """
+    positive_radius = check_radius(positive_radius, "model.positive_radius")
+    negative_radius = check_radius(negative_radius, "model.negative_radius")
     tree = cKDTree(db_utm)
     near = tree.query_ball_point(q_utm[query_ids], r=positive_radius)
     not_far = tree.query_ball_point(q_utm[query_ids], r=negative_radius)

@@ -122,3 +122,14 @@ def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: P
     record["config"]["teacher"]["checkpoint"] = str(tmp_path)
     given = tiny_config(tmp_path, f"teacher.checkpoint={tmp_path}")
     assert model_config(record, given).teacher.checkpoint == str(tmp_path)
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    """It evaluated to R@N = 0 with exit 0."""
+    state, record = genuine_record
+    state = dict(state)
+    name = next(k for k, v in state.items() if v.is_floating_point())
+    state[name] = state[name].clone().fill_(float("nan"))
+    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "nan.ckpt")
+    with pytest.raises(SemvprError, match=f"weight '{name}' is not a tensor of finite numbers"):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'nan.ckpt'}", config_name="eval"))

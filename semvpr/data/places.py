@@ -50,7 +50,14 @@ class PlaceSet:
             if value is not None:
                 object.__setattr__(self, field, tuple(Path(p) for p in value))
         for paths, utm_field in ((self.db_paths, "db_utm"), (self.q_paths, "q_utm")):
-            utm = np.asarray(getattr(self, utm_field), dtype=np.float64).reshape(-1, 2)
+            try:
+                utm = np.asarray(getattr(self, utm_field), dtype=np.float64).reshape(-1, 2)
+            except (TypeError, ValueError):
+                raise SemvprError(f"place set {self.name!r}: {utm_field} is not (east, north) numbers") from None
+            bad = np.flatnonzero(~np.isfinite(utm).all(1))
+            if len(bad):
+                raise SemvprError(f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), "
+                                  f"the first at row {bad[0]} ({utm[bad[0]].tolist()})")
             if len(utm) != len(paths):
                 raise SemvprError(f"place set {self.name!r}: {len(paths)} paths but {len(utm)} "
                                   f"positions in {utm_field}")
