@@ -68,7 +68,8 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
-        raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}: {str(err).splitlines()[0]})") from None
+        detail = (str(err).splitlines() or [""])[0]
+        raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}{': ' + detail if detail else ''})") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
     broken = next((k for k, v in ckpt["state_dict"].items()
@@ -105,8 +106,8 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
             raise SemvprError(f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}")
         cfg[group] = OmegaConf.load(CONF_DIR / group / f"{choice}.yaml")
     seed = record.get("seed")
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise SemvprError(f"{where}: seed={seed!r} is not an integer")
+    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
+        raise SemvprError(f"{where}: seed={seed!r} is not a whole number from 0 to 2**32-1")
     cfg.seed = seed
     for group in GROUPS:
         stored = config.get(group, {})

@@ -19,7 +19,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
-from semvpr.build import build_backbone, build_class_weights, build_mask_source, build_places, instantiate_node
+from semvpr.build import (build_backbone, build_class_weights, build_mask_source, build_places, check_config,
+                          instantiate_node)
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, exit_on_user_error
@@ -64,7 +65,10 @@ def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: Di
         out.flush()
 
     folder = build_once(cfg.paths.cache_dir, "descriptors", key, build)
-    desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
+    try:
+        desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SemvprError(f"descriptor cache {folder} is unreadable ({type(err).__name__}); delete it to rebuild") from None
     if desc.shape != (len(paths), dim) or desc.dtype != np.float32:
         raise SemvprError(f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
                           f"float32[{len(paths)}, {dim}]; delete it to rebuild")
@@ -73,6 +77,7 @@ def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: Di
 
 def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split."""
+    check_config(cfg)
     retriever, merged = load_retriever(cfg, explicit)
     test = build_places(merged, ("test",))["test"]
     result = evaluate(place_descriptors(retriever, test, "db", merged), place_descriptors(retriever, test, "q", merged),

@@ -78,3 +78,13 @@ def inside(base: Path, rel: str | Path) -> Path:
     if not path.resolve().is_relative_to(real_base):
         raise SemvprError(f"{path} leads outside {real_base} through a symlink; refusing to write there")
     return path
+
+
+def check_dir_path(path: Path, what: str) -> None:
+    """Refuse a directory path that cannot be made because a file sits on the way."""
+    path = Path(path).expanduser()
+    for folder in (path, *path.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise SemvprError(f"{what}={path}: {folder} is a file, not a directory")
+            return

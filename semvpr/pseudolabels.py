@@ -33,6 +33,17 @@ def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Pa
     return inside(Path(label_dir), rel.parent / f"{rel.name}.png")
 
 
+def read_label(label_dir: str | Path, image: str | Path, root: str | Path) -> np.ndarray:
+    """The trainId map of ``image`` from a labels directory; a damaged file is one line naming it."""
+    path = label_path(label_dir, image, root)
+    try:
+        with Image.open(path) as img:
+            return np.asarray(img)
+    except (OSError, ValueError, SyntaxError) as err:
+        raise SemvprError(f"pseudo-label {path} is unreadable ({type(err).__name__}); delete {Path(label_dir)} "
+                          f"to rebuild the labels") from None
+
+
 def image_list_identity(paths: Sequence[Path], root: Path) -> str:
     """Hash of the (sorted) relative paths, sizes and mtimes: the same images give the same labels."""
     named = sorted((p.relative_to(root).as_posix(), p) for p in paths)

@@ -213,7 +213,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         write_json(run_dir / "metrics.json", {
             "status": "failed", "error": f"{type(err).__name__}: {message}",
-            "filter": cfg.filter.get("name"), "backbone": cfg.backbone.get("name"), "seed": int(cfg.seed)})
+            "filter": cfg.filter.get("name"), "backbone": cfg.backbone.get("name"), "seed": cfg.get("seed")})
         if multirun:
             print(f"semvpr: job failed ({run_dir}): {message}", file=sys.stderr)
             return {"status": "failed"}

@@ -74,7 +74,7 @@ SENTINEL_TEXT = "untouched"
     (lambda s: _set("config.teacher.model", {"embed_dim": {"_target_": "numpy.save", "file": s}}),
      r"teacher\.model\.embed_dim is a mapping"),
     (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
-    (lambda s: _set("seed", "0"), r"seed='0' is not an integer"),
+    (lambda s: _set("seed", "0"), r"seed='0' is not a whole number"),
     # A stored path redirected eval to load another directory as the teacher.
     (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
     (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),

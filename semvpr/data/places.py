@@ -176,7 +176,10 @@ def _mat_strings(cell: np.ndarray) -> list[str]:
 
 
 def _mat_utm(value: np.ndarray, count: int, mat_path: Path, field: str) -> np.ndarray:
-    utm = np.asarray(value, dtype=np.float64)
+    try:
+        utm = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SemvprError(f"{mat_path}: dbStruct.{field} is not numeric (found {np.asarray(value).dtype})") from None
     if utm.size == 0 and count == 0:
         return np.zeros((0, 2))
     if utm.ndim == 2 and utm.shape[0] == 2 and utm.shape[1] == count:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import shutil
 import uuid
@@ -26,6 +27,7 @@ from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.io import check_dir_path
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
 # 3: static classes of different value: seasonal vegetation (June database, November queries), ground in
@@ -95,7 +97,7 @@ def get_preset(preset: str, render: Mapping[str, float] | None = None,
             raise SemvprError(f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)} "
                               "(the image size is data.image_size, --image-size on the command line)")
         default = getattr(p.render, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (
                 isinstance(default, int) and not float(value).is_integer()):
             raise SemvprError(f"SynthCity {name}={value!r} must be {'a whole' if isinstance(default, int) else 'a'} number")
         value = type(default)(value)
@@ -183,6 +185,8 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
 def _key(preset: str, seed: int, render: Mapping[str, float] | None,
          image_size: Sequence[int] | None = None) -> dict:
     """Cache key: the preset, seed, generator version and every effective render setting (size included)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise SemvprError(f"SynthCity seed={seed!r} must be a whole number >= 0")
     return {"preset": preset, "seed": int(seed), "version": GENERATOR_VERSION,
             "render": dataclasses.asdict(get_preset(preset, render, image_size).render)}
 
@@ -251,8 +255,9 @@ def main(argv: list[str] | None = None) -> None:
     out: Path = args.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SemvprError(f"--out {out} already exists and is not an empty directory; choose a new path or remove it")
+    check_dir_path(out, "--out")
     render = dict(args.render)
-    get_preset(args.preset, render, args.image_size)  # validate before creating anything
+    _key(args.preset, args.seed, render, args.image_size)  # validate before creating anything
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
