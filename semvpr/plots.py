@@ -274,12 +274,13 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
 
 def class_weights(sweep: Sweep, out: Path) -> str | None:
     """Learned per-class weights (mean ± std over seeds) per mask source and backbone; else a skip reason."""
-    from semvpr.report import LEARNED, filter_rank, mean_std
+    from semvpr.report import LEARNED, filter_rank, mean_std, numeric_weights
 
     runs: dict[tuple[str, str], list[dict[str, float]]] = {}
     for job in sweep.jobs:
-        if job.ok and isinstance(job.metrics.get("class_weights"), dict):
-            runs.setdefault((job.backbone, job.filter), []).append(job.metrics["class_weights"])
+        weights = numeric_weights(job.metrics.get("class_weights")) if job.ok else None
+        if weights is not None:
+            runs.setdefault((job.backbone, job.filter), []).append(weights)
     if not runs:
         return "no run learned class weights (filter.weights=learned)"
     cells = sorted(runs, key=lambda c: (c[0], filter_rank(c[1])))
