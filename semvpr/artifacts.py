@@ -23,7 +23,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from semvpr.errors import SemvprError
-from semvpr.io import write_text
+from semvpr.io import reclaim_orphans, temp_prefix, write_text
 
 
 LOCK_DIR = ".locks"
@@ -83,6 +83,7 @@ def build_once(
     if final.is_dir():
         return final
     (final.parent / LOCK_DIR).mkdir(parents=True, exist_ok=True)
+    reclaim_orphans(final.parent)
     with _exclusive(final.parent / LOCK_DIR / f"{final.name}.lock"):
         if final.is_dir():  # another job built it while we waited for the lock
             return final
@@ -118,7 +119,7 @@ def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable:
             raise SemvprError(f"{tmp} is not a plain directory (a link?); refusing to build there: remove it")
         tmp.mkdir(exist_ok=True)
     else:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
     try:
         build(tmp)
         if isinstance(key, (DictConfig, ListConfig)):

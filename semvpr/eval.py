@@ -27,7 +27,7 @@ from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.metrics import RECALL_NS
 from semvpr.models.retriever import Retriever, evaluate
-from semvpr.io import CONF_DIR, write_json
+from semvpr.io import CONF_DIR, open_array, write_json
 
 
 def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset()) -> tuple[Retriever, DictConfig]:
@@ -60,7 +60,7 @@ def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: Di
     dim = retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim
 
     def build(tmp: Path) -> None:
-        out = np.lib.format.open_memmap(tmp / "descriptors.npy", mode="w+", dtype=np.float32, shape=(len(paths), dim))
+        out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
         retriever.describe_images(paths, labels, cfg.data.image_size, out, desc=f"{places.name} {side}")
         out.flush()
 

@@ -105,3 +105,43 @@ def test_links_planted_inside_a_partial_build_or_as_a_lock_are_not_followed(tmp_
     with pytest.raises(SemvprError, match=r"lock file .* a link there is never followed"):
         build_once(cache, "other", {"b": 2}, lambda tmp: None)
     assert list(victim.iterdir()) == []
+
+
+def test_orphaned_temp_dirs_of_dead_processes_are_reclaimed(tmp_path: Path) -> None:
+    """kill -9 during a build left .<name>.tmp-* directories forever (and filled the disk)."""
+    import socket
+    import subprocess
+    import sys
+
+    from semvpr.artifacts import build_once
+    from semvpr.io import temp_prefix
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    host = socket.gethostname().split(".")[0]
+    cache = tmp_path / "cache"
+    orphan = cache / f".synthcity-abc.{host}-{dead}.k3j2h1g0.tmp"
+    (orphan / "images").mkdir(parents=True)
+    (orphan / "images" / "a.jpg").write_bytes(b"x" * 1000)
+    ours = cache / f"{temp_prefix('thing')}a1b2c3d4.tmp"  # a live writer's (this process)
+    ours.mkdir()
+    other_host = cache / f".x.otherhost-{dead}.a1b2c3d4.tmp"  # a shared file system: not ours to judge
+    other_host.mkdir()
+    build_once(cache, "thing", {"a": 1}, lambda tmp: None)
+    assert not orphan.exists() and ours.is_dir() and other_host.is_dir()
+
+
+def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a nearly full disk the memory-mapped cache ended in a bus error (exit 135, no message)."""
+    import shutil
+
+    from semvpr import io
+
+    usage = shutil._ntuple_diskusage(10 * 2**30, 10 * 2**30 - 2**20, 2**20)  # 1 MiB free
+    monkeypatch.setattr(io.shutil, "disk_usage", lambda _: usage)
+    with pytest.raises(SemvprError, match=r"the trunk cache needs 0\.01 GiB in .*, but only 0\.00 GiB are free"):
+        io.open_array(tmp_path / "db.npy", np.uint16, (100, 64, 1024), "the trunk cache")
+    assert not (tmp_path / "db.npy").exists()
+    small = io.open_array(tmp_path / "q.npy", np.uint16, (4, 8), "the trunk cache")
+    assert small.shape == (4, 8) and os.stat(tmp_path / "q.npy").st_blocks * 512 >= small.nbytes  # reserved

@@ -13,7 +13,8 @@ import json
 import math
 import os
 import shutil
-import uuid
+import signal
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +28,7 @@ from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.io import check_dir_path
+from semvpr.io import check_dir_path, reclaim_orphans, temp_prefix
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
 # 3: static classes of different value: seasonal vegetation (June database, November queries), ground in
@@ -243,6 +244,10 @@ def add_render_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="image size (default: the preset's)")
 
 
+def _stopped(signum: int, _frame: object) -> None:
+    raise SemvprError(f"stopped by {signal.Signals(signum).name}; the unfinished dataset was removed")
+
+
 @exit_on_user_error
 def main(argv: list[str] | None = None) -> None:
     """CLI: generate a SynthCity dataset into a new directory."""
@@ -259,8 +264,10 @@ def main(argv: list[str] | None = None) -> None:
     render = dict(args.render)
     _key(args.preset, args.seed, render, args.image_size)  # validate before creating anything
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+    reclaim_orphans(out.parent)
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(out.name), suffix=".tmp", dir=out.parent))
+    for sig in (signal.SIGTERM, signal.SIGINT):  # a kill ends in the cleanup below and one line
+        signal.signal(sig, _stopped)
     try:
         stats = generate(tmp, args.preset, args.seed, render, args.image_size)
         if out.exists():
