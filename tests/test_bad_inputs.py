@@ -16,18 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import tiny_config, write_checkpoint
-from tests.test_eval import _dbstruct, _image, make_folder
+from tests.test_eval import _dbstruct, _image, checkpoint, make_folder  # noqa: F401 - checkpoint is a fixture
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = ["data.image_size=[32,48]"]
-
-
-@pytest.fixture(scope="module")
-def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    tmp = tmp_path_factory.mktemp("ckpt")
-    write_checkpoint(tiny_config(tmp, "filter=none"), tmp / "tested.ckpt")
-    return tmp / "tested.ckpt"
 
 
 def _seed_2_70(tmp: Path, ckpt: Path) -> str:
@@ -109,12 +101,12 @@ FAST = {"seed=abc", "eval 0-byte ckpt", "localize top_k=abc", "synthcity --seed 
 
 
 @pytest.mark.parametrize("case", [c if c in FAST else pytest.param(c, marks=pytest.mark.slow) for c in sorted(CASES)])
-def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, ckpt: Path, case: str) -> None:
+def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, case: str) -> None:  # noqa: F811
     (module, *fixed), bad, fragment = CASES[case]
     inputs, run, cache, cwd = tmp_path / "in", tmp_path / "run", tmp_path / "cache", tmp_path / "cwd"
     inputs.mkdir()
     cwd.mkdir()
-    args = bad(inputs, ckpt)
+    args = bad(inputs, checkpoint)
     if module != "semvpr.data.synthcity":
         args += [f"paths.cache_dir={cache}", f"hydra.run.dir={run}"] if not any(
             a.startswith("paths.cache_dir=") for a in args) else [f"hydra.run.dir={run}"]
