@@ -43,12 +43,14 @@ def keep_run_record(argv: list[str]) -> list[str]:
     return [*argv, "hydra.output_subdir=null"] if record_of_resumed_run(argv) is not None else argv
 
 
-def resumed_config(cfg: DictConfig, default: DictConfig, record: Path) -> DictConfig:
+def resumed_config(cfg: DictConfig, default: DictConfig, record: Path, overrides: list[str]) -> DictConfig:
     """The run's own config (``record``) with this invocation's ``ckpt_path``.
 
-    ``cfg`` is what this invocation composed, ``default`` what it would compose without overrides:
-    every key where they differ was set by an override, and must equal the run's own value.
+    ``cfg`` is what this invocation composed from ``overrides``, ``default`` what it would compose
+    without them: every key an override names (a group: every key below it), and every key where
+    the two differ, must equal the run's own value.
     """
+    named = {o.lstrip("+~").partition("=")[0] for o in overrides}
     try:
         own = OmegaConf.load(record)
     except Exception as err:  # noqa: BLE001 - a damaged record gets one line
@@ -57,7 +59,8 @@ def resumed_config(cfg: DictConfig, default: DictConfig, record: Path) -> DictCo
         raise SemvprError(f"{record} is not a run config (a mapping)")
     given, base, theirs = (_leaves(OmegaConf.to_container(c, resolve=False)) for c in (cfg, default, own))
     for key in sorted(given.keys() | base.keys()):
-        if key in RESUME_KEYS or given.get(key) == base.get(key):
+        set_here = given.get(key) != base.get(key) or any(key == n or key.startswith(f"{n}.") for n in named)
+        if key in RESUME_KEYS or not set_here:
             continue
         if given.get(key) != theirs.get(key):
             raise SemvprError(f"resuming {record.parent.parent}: {key}={given.get(key)!r} contradicts the run's "

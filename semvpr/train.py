@@ -234,7 +234,7 @@ def _hydra_main(cfg: DictConfig) -> None:
     run_dir = Path(hydra_cfg.runtime.output_dir)
     record = run_dir / ".hydra" / "config.yaml"
     if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
-        cfg = resumed_config(cfg, hydra.compose(config_name="train"), record)
+        cfg = resumed_config(cfg, hydra.compose(config_name="train"), record, list(hydra_cfg.overrides.task))
     run_job(cfg, run_dir, multirun=hydra_cfg.mode == RunMode.MULTIRUN)
 
 
