@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import html
 import io
 import json
 import math
@@ -102,9 +101,10 @@ def filter_rank(name: str) -> tuple[int, str, bool]:
 
 
 def cell(text: object) -> str:
-    """Text from a run as one markdown table cell or list item: HTML escaped, no '|', '`' or line break."""
+    """Text from a run as one markdown table cell or list item: no HTML tag or entity ('&', '<'
+    escaped), no '|', '`' or line break."""
     flat = " ".join(str(text).split())
-    return html.escape(flat).replace("|", "&#124;").replace("`", "&#96;")
+    return flat.replace("&", "&amp;").replace("<", "&lt;").replace("|", "&#124;").replace("`", "&#96;")
 
 
 def numeric_weights(value: object) -> dict[str, float] | None:

@@ -224,7 +224,7 @@ def test_the_sweep_directory_is_read_as_data(sweep: Path, tmp_path: Path, monkey
     _job(sweep, "filter=bad,seed=1", bad)
     text = write_report(sweep).read_text()
     assert "hunter2" not in text and "${oc.env:SEMVPR_TEST_SECRET}" in text
-    assert "<script>" not in text and "x&#124;y &lt;script&gt;" in text
+    assert "<script>" not in text and "x&#124;y &lt;script>alert(1)&lt;/script>" in text
     table = [ln for ln in text.splitlines() if ln.startswith("| vgg16 |")]
     assert all(ln.count(" | ") == table[0].count(" | ") for ln in table)  # no cell split or row broken
     # Images only under a recorded dataset root, whatever absolute path retrievals.json lists.
