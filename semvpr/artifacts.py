@@ -14,13 +14,16 @@ import hashlib
 import json
 import os
 import shutil
-import uuid
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from semvpr.errors import SemvprError
+from semvpr.io import reclaim_orphans, temp_prefix, write_text
 
 
 LOCK_DIR = ".locks"
@@ -42,6 +45,19 @@ def state_hash(state: dict[str, Any], length: int = 16) -> str:
         # reshape(-1): 0-dim buffers (BatchNorm's num_batches_tracked) cannot be viewed as bytes
         digest.update(tensor.detach().cpu().reshape(-1).contiguous().view(torch.uint8).numpy().tobytes())
     return digest.hexdigest()[:length]
+
+
+def files_identity(names: Sequence[str], paths: Sequence[str | Path]) -> str:
+    """Hash of each file's name (as the caller keys it), size and modification time in ns.
+
+    What a cache built from files is keyed by: the same names with other bytes (a dataset whose
+    images were replaced) give another key. One ``stat`` per file, no read.
+    """
+    digest = hashlib.sha256()
+    for name, path in zip(names, paths, strict=True):
+        st = os.stat(path)
+        digest.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return digest.hexdigest()[:16]
 
 
 def artifact_dir(cache_dir: str | Path, kind: str, key: Any) -> Path:
@@ -67,6 +83,7 @@ def build_once(
     if final.is_dir():
         return final
     (final.parent / LOCK_DIR).mkdir(parents=True, exist_ok=True)
+    reclaim_orphans(final.parent)
     with _exclusive(final.parent / LOCK_DIR / f"{final.name}.lock"):
         if final.is_dir():  # another job built it while we waited for the lock
             return final
@@ -76,8 +93,13 @@ def build_once(
 
 @contextmanager
 def _exclusive(lock_path: Path) -> Iterator[None]:
-    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free)."""
-    with open(lock_path, "a") as handle:
+    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free); a link there is refused."""
+    try:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as err:
+        raise SemvprError(f"lock file {lock_path} cannot be opened ({err.strerror}); a link there is never "
+                          f"followed: remove it") from None
+    with os.fdopen(fd, "r+") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:
             yield
@@ -86,15 +108,23 @@ def _exclusive(lock_path: Path) -> Iterator[None]:
 
 
 def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable: bool) -> None:
-    """Run ``build`` in a temporary sibling of ``final`` and rename it into place on success."""
-    suffix = "partial" if resumable else f"tmp-{uuid.uuid4().hex[:8]}"
-    tmp = final.parent / f".{final.name}.{suffix}"
-    tmp.mkdir(exist_ok=resumable)
+    """Run ``build`` in a temporary sibling of ``final`` and rename it into place on success.
+
+    A one-off build gets a fresh directory of a random name (created exclusively); a resumable
+    one reuses ``.<name>.partial`` only if that is a plain directory, never a link.
+    """
+    if resumable:
+        tmp = final.parent / f".{final.name}.partial"
+        if tmp.is_symlink() or (tmp.exists() and not tmp.is_dir()):
+            raise SemvprError(f"{tmp} is not a plain directory (a link?); refusing to build there: remove it")
+        tmp.mkdir(exist_ok=True)
+    else:
+        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
     try:
         build(tmp)
         if isinstance(key, (DictConfig, ListConfig)):
             key = OmegaConf.to_container(key, resolve=True)
-        (tmp / "key.json").write_text(json.dumps(key, sort_keys=True, indent=1, default=str))
+        write_text(tmp / "key.json", json.dumps(key, sort_keys=True, indent=1, default=str))
         os.rename(tmp, final)
     except BaseException:
         if not resumable:

@@ -17,18 +17,19 @@ import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
-from PIL import Image
 from torch import Tensor, nn
 
 from semvpr.artifacts import config_hash, state_hash
 from semvpr.data.classes import static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, unwrap_user_error
+from semvpr.io import check_dir_path
 from semvpr.features import STORAGES, FeatureStore, grid_size
+from semvpr.metrics import check_radius
 from semvpr.models.aggregator import Aggregator
 from semvpr.models.masks import WEIGHTINGS, ClassWeights, MaskSource, OracleMask, StudentMask, TeacherMask
 from semvpr.precision import autocast
-from semvpr.pseudolabels import label_path
+from semvpr.pseudolabels import read_label
 
 MASK_SOURCES = ("none", "teacher", "student", "oracle")
 MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at the least, per cluster
@@ -58,16 +59,47 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
         raise
 
 
+#: Lightning 2's precision settings (``Trainer(precision=...)``).
+PRECISIONS = ("transformer-engine", "transformer-engine-float16", "16-true", "16-mixed", "bf16-true", "bf16-mixed",
+              "32-true", "64-true", "64", "32", "16", "bf16")
+SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
+
+
 def check_config(cfg: DictConfig) -> None:
-    """Reject config values that would fail deep inside training with a cryptic error."""
+    """Reject config values that would fail deep inside a run with a cryptic error (or none at all).
+
+    Called first by every CLI (train, eval, localize), before anything is read or written.
+    """
+    whole_number(cfg.seed, "seed", 0, SEED_MAX)
+    if cfg.get("num_figure_queries") is not None:
+        whole_number(cfg.num_figure_queries, "num_figure_queries", 1)
+    if cfg.get("top_k") is not None:
+        whole_number(cfg.top_k, "top_k", 1)
+    lr = cfg.model.optimizer.get("lr")
+    try:
+        lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0
+    except (TypeError, ValueError):
+        lr_ok = False
+    if not lr_ok:
+        raise SemvprError(f"model.optimizer.lr={lr!r} must be a number > 0")
+    if str(cfg.trainer.precision) not in PRECISIONS:
+        raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
+    check_dir_path(Path(str(cfg.paths.cache_dir)), "paths.cache_dir")
+    if cfg.get("ckpt_path") not in (None, "last"):
+        from semvpr.checkpoint import read_checkpoint
+
+        read_checkpoint(cfg.ckpt_path)
     if cfg.mask.name not in MASK_SOURCES:
         raise SemvprError(f"mask.name={cfg.mask.name!r} is not one of {list(MASK_SOURCES)}")
     for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features",
                 "init_per_image", "cache_refresh"):
-        if int(cfg.model[key]) < 1:
-            raise SemvprError(f"model.{key}={cfg.model[key]} must be a positive integer")
-    if cfg.model.get("queries_per_epoch") is not None and int(cfg.model.queries_per_epoch) < 1:
-        raise SemvprError(f"model.queries_per_epoch={cfg.model.queries_per_epoch} must be positive (or null = all)")
+        whole_number(cfg.model[key], f"model.{key}", 1)
+    if cfg.model.get("queries_per_epoch") is not None:
+        whole_number(cfg.model.queries_per_epoch, "model.queries_per_epoch (or null = all)", 1)
+    positive = check_radius(cfg.model.positive_radius, "model.positive_radius")
+    if check_radius(cfg.model.negative_radius, "model.negative_radius") < positive:
+        raise SemvprError(f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
+                          f"{cfg.model.positive_radius}: a negative could then be a positive")
     if len(cfg.data.image_size) != 2:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
     if cfg.features.storage not in STORAGES:
@@ -78,6 +110,15 @@ def check_config(cfg: DictConfig) -> None:
     if weighting == "learned" and cfg.mask.name == "none":
         raise SemvprError("mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
                           "mask=student, teacher or oracle (filter=unet, mask2former or oracle)")
+
+
+def whole_number(value: object, key: str, low: int, high: int | None = None) -> int:
+    """``value`` as an int in [low, high], or one line naming ``key``."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+    if not ok:
+        bounds = f"from {low} to {high}" if high is not None else f">= {low}"
+        raise SemvprError(f"{key}={value!r} must be a whole number {bounds}")
+    return int(value)  # type: ignore[arg-type]
 
 
 def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
@@ -195,7 +236,7 @@ def static_grid(labels_dir: Path, root: Path, image_paths: list[Path], grid: tup
     lut = torch.from_numpy(static_lut(tuple(static_names)))
     maps = []
     for path in image_paths:
-        label = torch.from_numpy(np.array(Image.open(label_path(labels_dir, path, root)))).long()
+        label = torch.from_numpy(read_label(labels_dir, path, root)).long()
         maps.append(lut[label])
     pooled = torch.nn.functional.adaptive_avg_pool2d(torch.stack(maps)[:, None], grid)
     return pooled.flatten(1)

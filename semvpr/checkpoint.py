@@ -6,7 +6,13 @@ file: a checkpoint records *choices* (the config group options, e.g. ``backbone=
 ``aggregator=sral``, ``mask=student``) and plain hyper-parameter values. Eval loads the project's own group files for
 those choices (which alone supply every ``_target_``) and checks each stored value against them:
 known keys only, the same kind of value, no interpolations, no keys starting with ``_``. Anything
-else is refused with one line naming the key, before anything is built or written.
+else is refused with one line naming the key, before anything is built or written. A recorded
+value that names a file or directory to read (``PATH_KEYS``) may be a Hugging Face id, never a
+local path, unless the eval invocation names that same path itself.
+
+Resuming training reads Lightning's callback state from the checkpoint too: :class:`RunCheckpoint`
+drops any path in it that lies outside the run's checkpoint directory, so a tampered or foreign
+``last.ckpt`` can never make Lightning read or delete another file.
 
 Checkpoints written before the aggregator and the mask were groups of their own record a ``filter``
 choice (SRAL + student for ``unet``, ...); they are read as the aggregator and mask that the
@@ -19,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.errors import SemvprError
@@ -30,6 +37,9 @@ GROUPS = ("backbone", "aggregator", "mask", "model", "teacher", "student")
 #: Training-only nodes: not recorded (eval never builds an optimizer).
 TRAINING_ONLY = {"model": ("optimizer", "scheduler")}
 _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
+#: Recorded (group, key)s whose value names something to read: a Hugging Face id or null.
+PATH_KEYS = (("teacher", "checkpoint"),)
+_HF_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9][A-Za-z0-9_.\-]*$")
 
 
 def record_of(cfg: DictConfig) -> dict[str, Any]:
@@ -62,9 +72,14 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
-        raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}: {str(err).splitlines()[0]})") from None
+        detail = (str(err).splitlines() or [""])[0]
+        raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}{': ' + detail if detail else ''})") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
+    broken = next((k for k, v in ckpt["state_dict"].items()
+                   if not isinstance(v, torch.Tensor) or (v.is_floating_point() and not torch.isfinite(v).all())), None)
+    if broken is not None:
+        raise SemvprError(f"{path}: weight {broken!r} is not a tensor of finite numbers; the checkpoint is damaged")
     record = ckpt.get("hyper_parameters")
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         if isinstance(record, dict) and "config" in record and "format" not in record:
@@ -97,8 +112,8 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
             raise SemvprError(f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}")
         cfg[group] = OmegaConf.load(CONF_DIR / group / f"{choice}.yaml")
     seed = record.get("seed")
-    if not isinstance(seed, int) or isinstance(seed, bool):
-        raise SemvprError(f"{where}: seed={seed!r} is not an integer")
+    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
+        raise SemvprError(f"{where}: seed={seed!r} is not a whole number from 0 to 2**32-1")
     cfg.seed = seed
     for group in GROUPS:
         stored = config.get(group, {})
@@ -107,6 +122,8 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
             schema.pop(key, None)  # type: ignore[union-attr]
         _check(stored, schema, f"{where}: {group}")
         cfg[group] = OmegaConf.merge(cfg[group], stored)
+    for group, key in PATH_KEYS:
+        _check_path_value(config.get(group, {}).get(key), base[group].get(key), f"{where}: {group}.{key}")
     return cfg
 
 
@@ -123,6 +140,16 @@ def _from_filter(choices: dict[str, Any], config: dict[str, Any], where: str) ->
             choices[key.split("/")[-1]] = value
     config["mask"] = {"weights": stored.get("weights", "binary")}
     return choices, config
+
+
+def _check_path_value(stored: Any, given: Any, path: str) -> None:
+    """A stored value naming something to read must be a Hugging Face id, or the invocation's own."""
+    if stored is None or stored == given:
+        return
+    text = str(stored)
+    if not _HF_ID.match(text) or ".." in text.split("/") or Path(text).expanduser().exists():
+        raise SemvprError(f"{path}={text!r} names a local path; a checkpoint's stored choices never do "
+                          f"(pass {path.rsplit(': ', 1)[-1]}={text} yourself to use that directory)")
 
 
 def _check(stored: Any, schema: Any, path: str) -> None:
@@ -161,3 +188,33 @@ def _same_kind(value: Any, schema: Any) -> bool:
     if isinstance(schema, float):
         return isinstance(value, (int, float))
     return type(value) is type(schema)
+
+
+class RunCheckpoint(ModelCheckpoint):
+    """Lightning's ModelCheckpoint, restoring from a checkpoint only paths inside its own ``dirpath``.
+
+    On resume Lightning restores ``best_model_path`` etc. from the file and later deletes or loads
+    those files; a path elsewhere (a tampered ``last.ckpt``, another run's checkpoint) is dropped
+    here, with the score that went with it.
+    """
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        super().load_state_dict(confine_callback_state(state_dict, Path(self.dirpath or ".")))
+
+
+def confine_callback_state(state: dict[str, Any], dirpath: Path) -> dict[str, Any]:
+    """ModelCheckpoint state with every file outside ``dirpath`` forgotten."""
+    root = dirpath.resolve()
+
+    def inside(value: Any) -> bool:
+        return isinstance(value, str) and bool(value) and Path(value).resolve().is_relative_to(root)
+
+    state = dict(state)
+    for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+        if key in state and not inside(state[key]):
+            state[key] = ""
+    if not state.get("best_model_path"):
+        state["best_model_score"] = None
+    if isinstance(state.get("best_k_models"), dict):
+        state["best_k_models"] = {k: v for k, v in state["best_k_models"].items() if inside(k)}
+    return state

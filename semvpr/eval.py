@@ -26,11 +26,12 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from semvpr.artifacts import build_once, state_hash
-from semvpr.build import build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places
+from semvpr.build import (build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
+                          check_config)
 from semvpr.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
 from semvpr.errors import SemvprError, exit_on_user_error, one_line
-from semvpr.io import CONF_DIR, write_json
+from semvpr.io import CONF_DIR, open_array, write_json
 from semvpr.metrics import RECALL_NS
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever, evaluate
@@ -71,17 +72,20 @@ def descriptor_dim(retriever: Retriever) -> int:
 def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, cfg: DictConfig) -> np.ndarray:
     """Descriptors of a place set's database or queries (memory-mapped), computed once per model and data."""
     paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
-    key = {"model": state_hash(retriever.state_dict()), "images": [places.relative(p) for p in paths],
+    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side),
            "image_size": list(cfg.data.image_size)}
     dim = descriptor_dim(retriever)
 
     def build(tmp: Path) -> None:
-        out = np.lib.format.open_memmap(tmp / "descriptors.npy", mode="w+", dtype=np.float32, shape=(len(paths), dim))
+        out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
         retriever.describe_images(paths, labels, cfg.data.image_size, out, desc=f"{places.name} {side}")
         out.flush()
 
     folder = build_once(cfg.paths.cache_dir, "descriptors", key, build)
-    desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
+    try:
+        desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SemvprError(f"descriptor cache {folder} is unreadable ({type(err).__name__}); delete it to rebuild") from None
     if desc.shape != (len(paths), dim) or desc.dtype != np.float32:
         raise SemvprError(f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
                           f"float32[{len(paths)}, {dim}]; delete it to rebuild")
@@ -92,6 +96,7 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
     beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time."""
     start = time.perf_counter()
+    check_config(cfg)
     retriever, merged = load_retriever(cfg, explicit)
     test = build_places(merged, ("test",))["test"]
     db = place_descriptors(retriever, test, "db", merged)

@@ -35,6 +35,7 @@ from semvpr.data.datamodule import ImageDataset
 from semvpr.data.places import PlaceSet
 from semvpr.data.segmentation import load_image
 from semvpr.errors import SemvprError
+from semvpr.io import open_array, temp_prefix
 from semvpr.models.masks import NUM_CLASSES, MaskSource
 from semvpr.precision import autocast
 from semvpr.logs import progress
@@ -204,8 +205,8 @@ def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndar
 
 
 def _data_key(places: PlaceSet, size: tuple[int, int]) -> dict[str, Any]:
-    return {"db": [places.relative(p) for p in places.db_paths],
-            "q": [places.relative(p) for p in places.q_paths], "image_size": list(size)}
+    """What the features of a place set are made of: each side's images (and labels) by name and content."""
+    return {"db": places.identity("db"), "q": places.identity("q"), "image_size": list(size)}
 
 
 def trunk_cached(places: PlaceSet, backbone_key: Any, image_size: Sequence[int], cache_dir: str | Path) -> bool:
@@ -267,8 +268,8 @@ def _build(missing: list[str], kinds: dict[str, tuple[Any, tuple[int, ...], Any]
     """Build the missing caches in one pass per side; each lands under its final name only when whole."""
     def compute(dirs: dict[str, Path]) -> None:
         for side, (paths, labels) in sides.items():
-            outs = {k: np.lib.format.open_memmap(d / f"{side}.npy", mode="w+", dtype=kinds[k][2],
-                                                 shape=(len(paths), *kinds[k][1])) for k, d in dirs.items()}
+            outs = {k: open_array(d / f"{side}.npy", kinds[k][2], (len(paths), *kinds[k][1]), f"the {k} cache of {name}")
+                    for k, d in dirs.items()}
             _extract(backbone, mask_source if "masks" in outs else None, weighting, paths, labels, size,
                      outs.get("trunk"), outs.get("masks"), batch_size, num_workers, f"{name} {side}")
             for arr in outs.values():
@@ -277,7 +278,7 @@ def _build(missing: list[str], kinds: dict[str, tuple[Any, tuple[int, ...], Any]
     # The first kind's build computes the others in the same pass into a scratch dir; theirs then
     # only move the files in (or compute alone if a parallel job built the first kind meanwhile).
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
-    scratch = Path(tempfile.mkdtemp(dir=cache_dir, prefix=".features-"))
+    scratch = Path(tempfile.mkdtemp(dir=cache_dir, prefix=temp_prefix("features"), suffix=".tmp"))
     try:
         first, *rest = missing
         for kind in rest:

@@ -16,7 +16,7 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from semvpr.build import build_places
+from semvpr.build import build_places, check_config
 from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.eval import explicit_keys, load_retriever, place_descriptors
 from semvpr.metrics import knn
@@ -38,6 +38,7 @@ def query_images(folder: str | Path) -> list[Path]:
 
 def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str, Any]]:
     """Top-k database matches (path, UTM, distance) for every query image."""
+    check_config(cfg)
     paths = query_images(cfg.queries)
     retriever, merged = load_retriever(cfg, explicit)
     if merged.mask.name == "oracle":

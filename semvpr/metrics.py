@@ -36,8 +36,20 @@ class RecallResult:
     num_without_positives: int
 
 
+def check_radius(radius: float, what: str) -> float:
+    """A search radius in metres: a finite number > 0 (scipy squares it, so -25 would act as 25)."""
+    try:
+        value = float(radius)
+    except (TypeError, ValueError):
+        raise SemvprError(f"{what}={radius!r} is not a number (metres)") from None
+    if not np.isfinite(value) or value <= 0:
+        raise SemvprError(f"{what}={radius!r} must be a finite distance > 0 (metres)")
+    return value
+
+
 def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> list[np.ndarray]:
     """Per query, the database indices within ``radius`` metres, sorted by distance (exact, float64)."""
+    radius = check_radius(radius, "positive radius")
     db = np.asarray(db_utm, np.float64)
     q = np.asarray(q_utm, np.float64)
     tree = cKDTree(db)

@@ -310,12 +310,13 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
 
 def class_weights(sweep: Sweep, out: Path) -> str | None:
     """Learned per-class weights (mean ± std over seeds) per mask source and backbone; else a skip reason."""
-    from semvpr.report import LEARNED, mean_std
+    from semvpr.report import LEARNED, mean_std, numeric_weights
 
     runs: dict[tuple[str, str], list[dict[str, float]]] = {}
     for job in sweep.jobs:
-        if job.ok and isinstance(job.metrics.get("class_weights"), dict):
-            runs.setdefault((job.backbone, job.cell), []).append(job.metrics["class_weights"])
+        weights = numeric_weights(job.metrics.get("class_weights")) if job.ok else None
+        if weights is not None:
+            runs.setdefault((job.backbone, job.cell), []).append(weights)
     if not runs:
         return "no run learned class weights (mask.weights=learned)"
     cells = sorted(runs, key=lambda c: (c[0], sweep.cells.index(c[1])))

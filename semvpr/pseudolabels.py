@@ -15,9 +15,9 @@ import torch
 from PIL import Image
 from torch.utils.data import DataLoader
 
-from semvpr.artifacts import build_once, config_hash
+from semvpr.artifacts import build_once, files_identity
 from semvpr.errors import SemvprError
-from semvpr.io import atomic_file
+from semvpr.io import atomic_file, inside
 from semvpr.logs import Progress
 from semvpr.precision import autocast
 
@@ -30,12 +30,24 @@ def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Pa
         rel = Path(image).relative_to(root)
     except ValueError:
         raise SemvprError(f"image {image} is not under the dataset root {root}") from None
-    return Path(label_dir) / rel.parent / f"{rel.name}.png"
+    return inside(Path(label_dir), rel.parent / f"{rel.name}.png")
+
+
+def read_label(label_dir: str | Path, image: str | Path, root: str | Path) -> np.ndarray:
+    """The trainId map of ``image`` from a labels directory; a damaged file is one line naming it."""
+    path = label_path(label_dir, image, root)
+    try:
+        with Image.open(path) as img:
+            return np.asarray(img)
+    except (OSError, ValueError, SyntaxError) as err:
+        raise SemvprError(f"pseudo-label {path} is unreadable ({type(err).__name__}); delete {Path(label_dir)} "
+                          f"to rebuild the labels") from None
 
 
 def image_list_identity(paths: Sequence[Path], root: Path) -> str:
-    """Hash of the (sorted) relative paths and byte sizes: the same images give the same labels."""
-    return config_hash(sorted((p.relative_to(root).as_posix(), p.stat().st_size) for p in paths))
+    """Hash of the (sorted) relative paths, sizes and mtimes: the same images give the same labels."""
+    named = sorted((p.relative_to(root).as_posix(), p) for p in paths)
+    return files_identity([n for n, _ in named], [p for _, p in named])
 
 
 def _write_png(ids: np.ndarray, final: Path) -> None:

@@ -7,12 +7,15 @@ import io
 import json
 import math
 import os
+import shutil
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
@@ -37,6 +40,8 @@ class Job:
     ok: bool
     error: str
     metrics: dict[str, Any]
+    #: Dataset roots the run recorded (data.root, paths.cache_dir): the only places images are drawn from.
+    roots: tuple[Path, ...] = ()
 
     @property
     def cell(self) -> str:
@@ -112,15 +117,31 @@ class Sweep:
         return sorted(jobs, key=lambda j: (not j.ok, j.seed if j.seed is not None else math.inf, j.name))
 
     def image_path(self, stored: str) -> Path | None:
-        """Find an image path stored by a run (relative paths are relative to the run's launch dir)."""
+        """Find an image path stored by a run (relative paths are relative to the run's launch dir);
+        None unless it lies under a dataset root some job recorded (a sweep directory is data)."""
         path = Path(stored)
-        if path.is_absolute():
-            return path if path.is_file() else None
         # The launch dir is usually the project root, an ancestor of outputs/multiruns/<date>/<time>.
-        for root in (Path.cwd(), self.dir, *self.dir.resolve().parents):
-            if (root / path).is_file():
-                return root / path
+        candidates = [path] if path.is_absolute() else [r / path for r in (Path.cwd(), self.dir, *self.dir.resolve().parents)]
+        roots = {root.resolve() for job in self.jobs for root in job.roots}
+        for candidate in candidates:
+            if candidate.is_file() and any(candidate.resolve().is_relative_to(root) for root in roots):
+                return candidate
         return None
+
+
+def md_cell(text: object) -> str:
+    """Text from a run as one markdown table cell or list item: no HTML tag or entity ('&', '<'
+    escaped), no '|', '`' or line break."""
+    flat = " ".join(str(text).split())
+    return flat.replace("&", "&amp;").replace("<", "&lt;").replace("|", "&#124;").replace("`", "&#96;")
+
+
+def numeric_weights(value: object) -> dict[str, float] | None:
+    """A run's recorded class weights if they are a name -> finite number mapping, else None."""
+    if not isinstance(value, dict) or not value:
+        return None
+    ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value.values())
+    return {str(k): float(v) for k, v in value.items()} if ok else None
 
 
 def _error_line(error: object) -> str:
@@ -132,27 +153,49 @@ def _error_line(error: object) -> str:
 FACT_KEYS = ("aggregator", "mask", "backbone", "seed", "mask.weights")
 
 
-def _hydra_facts(job_dir: Path) -> dict[str, str]:
-    """aggregator / mask / backbone / seed of a job from its .hydra files (for jobs that died before
-    metrics.json): the composed choices, so a filter preset counts as the aggregator and mask it chose."""
+def _yaml(path: Path) -> Any:
+    """A .hydra file as plain YAML data: interpolations stay text, nothing is resolved."""
+    return yaml.safe_load(path.read_text(encoding="utf-8")) if path.is_file() else None
+
+
+def _select(node: Any, dotted: str) -> Any:
+    for key in dotted.split("."):
+        node = node.get(key) if isinstance(node, dict) else None
+    return node
+
+
+def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
+    """aggregator / mask / backbone / seed / mask weighting of a job from its .hydra files (for jobs that
+    died before metrics.json), read as plain YAML (nothing resolved), and the dataset roots it recorded.
+    The composed choices are used, so a filter preset counts as the aggregator and mask it chose."""
     # lowest priority: the dir name itself, Hydra's override_dirname "aggregator=gem,mask=student,seed=1"
     facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(",")) if k in FACT_KEYS and v}
     hydra_dir = job_dir / ".hydra"
+    roots: list[Path] = []
     try:
-        if (hydra_dir / "config.yaml").is_file():
-            config = OmegaConf.load(hydra_dir / "config.yaml")
-            for key in ("seed", "mask.weights"):
-                value = OmegaConf.select(config, key, default=None, throw_on_resolution_failure=False)
-                if value is not None:
-                    facts[key] = str(value)
-        if (hydra_dir / "hydra.yaml").is_file():
-            choices = OmegaConf.select(OmegaConf.load(hydra_dir / "hydra.yaml"), "hydra.runtime.choices")
-            for key in ("aggregator", "mask", "backbone"):
-                if choices is not None and choices.get(key) is not None:
-                    facts[key] = str(choices.get(key))
-    except Exception:  # a damaged .hydra dir only costs us labels, never the report
+        config, hydra_cfg = _yaml(hydra_dir / "config.yaml"), _yaml(hydra_dir / "hydra.yaml")
+        # mask.weights is usually "${filter.weights}" (text here): the preset's value stands for it.
+        for key, fact in (("seed", "seed"), ("filter.weights", "mask.weights"), ("mask.weights", "mask.weights")):
+            value = _select(config, key)
+            if value is not None and "${" not in str(value):
+                facts[fact] = str(value)
+        choices = _select(hydra_cfg, "hydra.runtime.choices")
+        for key in ("aggregator", "mask", "backbone"):
+            if isinstance(choices, dict) and choices.get(key) is not None:
+                facts[key] = str(choices[key])
+        for item in _yaml(hydra_dir / "overrides.yaml") or []:
+            key, _, value = str(item).lstrip("+~").partition("=")
+            key = "mask.weights" if key == "filter.weights" else key
+            if key in FACT_KEYS:
+                facts[key] = value
+        launch = Path(str(_select(hydra_cfg, "hydra.runtime.cwd") or Path.cwd()))
+        for key in ("data.root", "paths.cache_dir"):
+            value = _select(config, key)
+            if isinstance(value, str) and value and "${" not in value:
+                roots.append(launch / Path(value).expanduser())
+    except Exception:  # a damaged .hydra dir only costs us labels and images, never the report
         pass
-    return facts
+    return facts, tuple(roots)
 
 
 def read_job(job_dir: Path, sweep_dir: Path) -> Job:
@@ -174,7 +217,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     ok = not error and metrics.get("status") == "ok"
     if not ok and not error:
         error = _error_line(metrics.get("error")) or f"status {metrics.get('status')!r}"
-    facts = _hydra_facts(job_dir)
+    facts, roots = _hydra_facts(job_dir)
     seed = metrics.get("seed", facts.get("seed"))
     try:
         seed = int(seed) if seed is not None else None
@@ -184,7 +227,8 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     if (metrics.get("weights") or facts.get("mask.weights")) == "learned":
         mask += LEARNED
     return Job(job_dir, name, str(metrics.get("aggregator") or facts.get("aggregator") or "?"), mask,
-               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics)
+               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics,
+               roots)
 
 
 def load_sweep(sweep_dir: Path) -> Sweep:
@@ -268,7 +312,7 @@ def _paired_summary(sweep: Sweep, cell: str, backbone: str, reference: dict[int 
     mean, std = mean_std(diffs)
     spread = f" ± {_fmt(std)}" if math.isfinite(std) else ""
     better = sum(d > 0 for d in diffs)
-    return f"{label or sweep.label(cell)} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
+    return f"{md_cell(label or sweep.label(cell))} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
 
 
 def _join(parts: list[str | None]) -> str:
@@ -324,21 +368,22 @@ def _matrix(sweep: Sweep, backbone: str) -> list[str]:
 
 def _class_weight_table(sweep: Sweep) -> list[str]:
     """Markdown table of the learned class weights, mean ± std over seeds, one column per row of the sweep."""
-    cells = {(j.backbone, j.cell): [] for j in sweep.jobs if j.ok and isinstance(j.metrics.get("class_weights"), dict)}
+    cells: dict[tuple[str, str], list[dict[str, float]]] = {}
+    for j in sweep.jobs:
+        weights = numeric_weights(j.metrics.get("class_weights")) if j.ok else None
+        if weights is not None:
+            cells.setdefault((j.backbone, j.cell), []).append(weights)
     if not cells:
         return []
-    for j in sweep.jobs:
-        if (j.backbone, j.cell) in cells and j.ok:
-            cells[(j.backbone, j.cell)].append(j.metrics["class_weights"])
     columns = sorted(cells, key=lambda c: (c[0], sweep.cells.index(c[1])))
     classes = list(next(iter(cells.values()))[0])
     out = ["## Learned class weights", "",
            "w_c = sigmoid(θ_c) after training (start: 0.98 static classes, 0.02 the others), mean ± std over seeds.", "",
-           "| class | " + " | ".join(f"{c.removesuffix(LEARNED)} ({bb})" for bb, c in columns) + " |",
+           "| class | " + " | ".join(f"{md_cell(c.removesuffix(LEARNED))} ({md_cell(bb)})" for bb, c in columns) + " |",
            "|---|" + "---:|" * len(columns)]
     for name in classes:
         stats = [mean_std([float(w[name]) for w in cells[c] if name in w]) for c in columns]
-        out.append(f"| {name} | " + " | ".join(f"{m:.2f} ± {s:.2f}" if math.isfinite(s) else f"{m:.2f}"
+        out.append(f"| {md_cell(name)} | " + " | ".join(f"{m:.2f} ± {s:.2f}" if math.isfinite(s) else f"{m:.2f}"
                                               for m, s in stats) + " |")
     return out + [""]
 
@@ -347,42 +392,47 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
     """Human-readable report: table, matrix, paired R@1 gains, failed jobs, figures."""
     n_ok = sum(j.ok for j in sweep.jobs)
     out = ["# semvpr sweep results", "",
-           f"Sweep `{sweep.dir}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
+           f"Sweep `{md_cell(sweep.dir)}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
            "Recall@N in %, mean ± sample std over seeds.", "",
            "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
            "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
     for r in rows:
         cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in RECALL_NS]
-        out.append(f"| {r['backbone']} | {sweep.label(r['cell'])} | {' | '.join(cells)} | {r['n']} | "
+        out.append(f"| {md_cell(r['backbone'])} | {md_cell(sweep.label(r['cell']))} | {' | '.join(cells)} | {r['n']} | "
                    f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |")
     out.append("")
     reference = f"`{cell_name(sweep.baseline, NO_MASK)}`" if sweep.baseline else ""
     for bb in sweep.backbones:
         gains = _baseline_gains(sweep, bb)
         if gains is None:
-            out += [f"**R@1 gain over {reference} ({bb}):** no finished {reference} run to compare with.", ""]
+            out += [f"**R@1 gain over {reference} ({md_cell(bb)}):** no finished {reference} run to compare with.", ""]
         elif gains:
-            out += [f"**R@1 gain over {reference} ({bb})**, per seed (same backbone init and data), then "
+            out += [f"**R@1 gain over {reference} ({md_cell(bb)})**, per seed (same backbone init and data), then "
                     f"mean ± std: {gains}", ""]
         learned = _learned_gains(sweep, bb)
         if learned:
-            out += [f"**R@1 gain of learned class weights over binary weights ({bb})**, paired by seed: {learned}", ""]
+            out += [f"**R@1 gain of learned class weights over binary weights ({md_cell(bb)})**, paired by seed: {learned}", ""]
     for bb in sweep.backbones:
         out += _matrix(sweep, bb)
     out += _class_weight_table(sweep)
     failed = [j for j in sweep.jobs if not j.ok]
     if failed:
         out += ["## Failed jobs", ""]
-        out += [f"- `{j.name}` ({j.cell}, {j.backbone}, seed {j.seed if j.seed is not None else '?'}): {j.error}"
+        out += [f"- `{md_cell(j.name)}` ({md_cell(j.cell)}, {md_cell(j.backbone)}, seed {j.seed if j.seed is not None else '?'}): "
+                f"{md_cell(j.error)}"
                 for j in failed]
     out += ["", "## Figures", ""] if failed else ["## Figures", ""]
     for fname, skipped in figures.items():  # blank-line separated so each image renders as its own block
-        out += [f"- `{fname}` skipped: {skipped}" if skipped else f"![{fname}]({fname})", ""]
+        out += [f"- `{fname}` skipped: {md_cell(skipped)}" if skipped else f"![{fname}]({fname})", ""]
     return "\n".join(out).rstrip() + "\n"
 
 
 def write_report(sweep_dir: Path) -> Path:
-    """Write results.csv, results.md and the figures into sweep_dir; return the results.md path."""
+    """Write results.csv, results.md and the figures into sweep_dir; return the results.md path.
+
+    Everything is made in a fresh scratch directory first and moved in only when all of it was
+    made, so a failure leaves the previous report whole (never a new csv beside an old md).
+    """
     from semvpr import plots  # matplotlib is only needed here, not to import the callback
 
     sweep = load_sweep(Path(sweep_dir))
@@ -390,17 +440,22 @@ def write_report(sweep_dir: Path) -> Path:
     figures: dict[str, str | None] = {}
     drawings = [("recall_at_n.png", plots.recall_curves), ("r1_by_aggregator.png", plots.matrix_bars),
                 ("figure3.png", plots.figure3), ("retrievals.png", plots.retrievals)]
-    if any(isinstance(j.metrics.get("class_weights"), dict) for j in sweep.jobs):
+    if any(numeric_weights(j.metrics.get("class_weights")) for j in sweep.jobs):
         drawings.append(("class_weights.png", plots.class_weights))
-    for fname, draw in drawings:
-        try:
-            figures[fname] = draw(sweep, sweep.dir / fname)
-        except Exception as err:  # one broken figure must not cost the table
-            figures[fname] = f"{type(err).__name__}: {err}"
-    write_text(sweep.dir / "results.csv", _csv_text(rows))
-    md = sweep.dir / "results.md"
-    write_text(md, _markdown(sweep, rows, figures))
-    return md
+    scratch = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=sweep.dir))
+    try:
+        for fname, draw in drawings:
+            try:
+                figures[fname] = draw(sweep, scratch / fname)
+            except Exception as err:  # one broken figure must not cost the table
+                figures[fname] = f"{type(err).__name__}: {err}"
+        write_text(scratch / "results.csv", _csv_text(rows))
+        write_text(scratch / "results.md", _markdown(sweep, rows, figures))
+        for made in sorted(scratch.iterdir(), key=lambda p: p.name == "results.md"):  # the md last
+            os.replace(made, sweep.dir / made.name)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return sweep.dir / "results.md"
 
 
 def print_summary(md: Path) -> None:

@@ -22,12 +22,11 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig
 
 from semvpr.build import (Semantic, build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
                           build_semantic, check_config, init_aggregator, mask_key)
-from semvpr.checkpoint import record_of
+from semvpr.checkpoint import RunCheckpoint, record_of
 from semvpr.data.places import PlaceSet
 from semvpr.data.retrieval import RetrievalDataModule
 from semvpr.distributed import sharded
@@ -43,6 +42,8 @@ from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Optimization, Retriever
 from semvpr.precision import lightning_precision
 from semvpr.logs import trainer_kwargs
+from semvpr.resume import keep_run_record, resumed_config
+
 
 @dataclass
 class Prepared:
@@ -137,9 +138,9 @@ def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[
     evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
     # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
     # (ModelCheckpoint's save_last only refreshes it when the best changes).
-    checkpoint = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
+    checkpoint = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
                                  mode="max", auto_insert_metric_name=False)
-    latest = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
+    latest = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
                              enable_version_counter=False)
     trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
     datamodule = RetrievalDataModule(job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size),
@@ -301,11 +302,16 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
     hydra_cfg = HydraConfig.get()
-    run_job(cfg, Path(hydra_cfg.runtime.output_dir), multirun=hydra_cfg.mode == RunMode.MULTIRUN)
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    record = run_dir / ".hydra" / "config.yaml"
+    if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
+        cfg = resumed_config(cfg, hydra.compose(config_name="train"), record, list(hydra_cfg.overrides.task))
+    run_job(cfg, run_dir, multirun=hydra_cfg.mode == RunMode.MULTIRUN)
 
 
 def main() -> None:
     """Console entry point; user errors become one line on stderr and exit code 2."""
+    sys.argv[1:] = keep_run_record(sys.argv[1:])
     _hydra_main()
 
 

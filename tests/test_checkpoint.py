@@ -76,7 +76,11 @@ SENTINEL_TEXT = "untouched"
     (lambda s: _set("config.teacher.model", {"embed_dim": {"_target_": "numpy.save", "file": s}}),
      r"teacher\.model\.embed_dim is a mapping"),
     (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
-    (lambda s: _set("seed", "0"), r"seed='0' is not an integer"),
+    (lambda s: _set("seed", "0"), r"seed='0' is not a whole number"),
+    # A stored path redirected eval to load another directory as the teacher.
+    (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
+    (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),
+    (lambda s: _set("config.teacher.checkpoint", "~/evil"), r"teacher\.checkpoint=.*names a local path"),
 ])
 def test_hostile_checkpoints_are_refused_before_anything_runs(tmp_path: Path, genuine_record: tuple[dict, dict],
                                                              edit: Callable, message: str) -> None:
@@ -137,3 +141,25 @@ def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Pa
     assert all(torch.equal(retriever.state_dict()[k], state[k]) for k in state)
     with torch.no_grad():  # a larger feature grid than trained: pooled to the recorded one
         assert retriever(torch.rand(2, 3, 96, 128)).shape == (2, retriever.aggregator.output_dim)
+
+
+def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: Path) -> None:
+    from semvpr.checkpoint import model_config, record_of
+
+    record = record_of(tiny_config(tmp_path))
+    record["config"]["teacher"]["checkpoint"] = "facebook/mask2former-swin-large-cityscapes-semantic"
+    assert model_config(record, tiny_config(tmp_path)).teacher.checkpoint.startswith("facebook/")
+    record["config"]["teacher"]["checkpoint"] = str(tmp_path)
+    given = tiny_config(tmp_path, f"teacher.checkpoint={tmp_path}")
+    assert model_config(record, given).teacher.checkpoint == str(tmp_path)
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    """It evaluated to R@N = 0 with exit 0."""
+    state, record = genuine_record
+    state = dict(state)
+    name = next(k for k, v in state.items() if v.is_floating_point())
+    state[name] = state[name].clone().fill_(float("nan"))
+    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "nan.ckpt")
+    with pytest.raises(SemvprError, match=f"weight '{name}' is not a tensor of finite numbers"):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'nan.ckpt'}", config_name="eval"))

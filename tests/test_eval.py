@@ -8,6 +8,7 @@ import pytest
 import scipy.io
 from PIL import Image
 
+from semvpr.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
 
@@ -142,3 +143,14 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
     # Up to float rounding (another batch size may take another oneDNN kernel; NetVLAD's soft
     # assignment amplifies it): entries are ~1e-2, a misplaced image would differ by that much.
     np.testing.assert_allclose(chunked, whole, rtol=0, atol=1e-4)
+
+
+def test_a_pickled_descriptor_cache_is_refused_unread(checkpoint: Path, tmp_path: Path) -> None:
+    root = make_folder(tmp_path / "folder")
+    cfg = config("data=folder", f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
+                 *SIZE, config_name="eval")
+    evaluate_checkpoint(cfg)
+    for cache in (tmp_path / "cache").glob("descriptors-*"):
+        np.save(cache / "descriptors.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(SemvprError, match=r"descriptor cache .*descriptors-.* is unreadable \(ValueError\)"):
+        evaluate_checkpoint(cfg)

@@ -133,3 +133,30 @@ def test_shape_probes_leave_batchnorm_statistics_alone() -> None:
     assert grid_size(backbone, (64, 96)) == (4, 6) and trunk_shape(backbone, (64, 96)) == (512, 8, 12)
     assert backbone.units[4].training
     assert all(torch.equal(before[k], v) for k, v in backbone.state_dict().items())
+
+
+def test_images_replaced_under_the_same_names_get_new_features(tmp_path: Path, backbone: VGG16Backbone) -> None:
+    """The trunk and descriptor caches were keyed by file names only: replaced images gave old features."""
+    import hashlib
+    import os
+
+    from PIL import Image
+
+    places = _places(tmp_path / "img")
+    first = place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
+                           "disk", num_workers=0)
+    before = first.db.trunk.clone()
+    path = places.db_paths[0]
+    stat = path.stat()
+    Image.fromarray(np.full((40, 56, 3), 255, np.uint8)).save(path)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1))  # mtime differs even on a coarse clock
+    again = place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
+                           "disk", num_workers=0)
+    assert len(list((tmp_path / "cache").glob("trunk-*"))) == 2
+    assert not torch.equal(again.db.trunk[0], before[0]) and torch.equal(again.db.trunk[1:], before[1:])
+    # The key re-derived by hand: sha256 over "<name below the root>\0<size>\0<mtime_ns>\n" lines.
+    digest = hashlib.sha256()
+    for p in places.db_paths:
+        st = p.stat()
+        digest.update(f"{p.relative_to(tmp_path / 'img').as_posix()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    assert places.identity("db") == digest.hexdigest()[:16]

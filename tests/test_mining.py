@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from semvpr.errors import SemvprError
 from semvpr.features import FeatureStore
 from semvpr.mining import QueryBatches, TupleDataset, collate_tuples, mine
 
@@ -167,3 +168,15 @@ def test_negative_cache_travels_with_the_datamodule_state() -> None:
     fresh = _datamodule(num_queries=6, cache_refresh=10, batch_size=2)
     fresh.load_state_dict(dm.state_dict())
     assert fresh.neg_cache[2, :4].tolist() == [7, 8, 9, -1] and (fresh.neg_cache[0] == -1).all()
+
+
+@pytest.mark.parametrize("override,message", [
+    ("model.positive_radius=-10", "model.positive_radius=-10.* > 0"),
+    ("model.negative_radius=5", "negative_radius=5 is below model.positive_radius"),
+])
+def test_impossible_mining_radii_are_refused_before_any_work(override: str, message: str) -> None:
+    from semvpr.build import check_config
+    from tests.helpers import config
+
+    with pytest.raises(SemvprError, match=message):
+        check_config(config(override))

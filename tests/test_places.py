@@ -267,3 +267,23 @@ def test_ground_truth_shipped_with_a_set_is_its_positives() -> None:
         PlaceSet("gt", ("d0",), ("q0", "q1"), np.zeros((1, 2)), q, ground_truth=(np.array([0]),))
     with pytest.raises(SemvprError, match=r"ground truth of query 1 holds \[3\], not database indices in \[0, 3\)"):
         PlaceSet("gt", ("d0", "d1", "d2"), ("q0", "q1"), db, q, ground_truth=(np.array([0]), np.array([3])))
+
+
+@pytest.mark.parametrize("radius", [-25.0, 0.0, float("nan"), float("inf")])
+def test_impossible_radii_are_refused(radius: float) -> None:
+    # scipy squares the radius: -25 found the same positives as 25.
+    places = PlaceSet("toy", ("d0",), ("q0",), np.zeros((1, 2)), np.zeros((1, 2)))
+    with pytest.raises(SemvprError, match="finite distance > 0"):
+        places.positives(radius)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_utms_are_refused_where_they_are_read(tmp_path: Path, bad: float) -> None:
+    with pytest.raises(SemvprError, match=r"q_utm has 1 non-finite position\(s\), the first at row 1"):
+        PlaceSet("toy", ("d0",), ("q0", "q1"), np.zeros((1, 2)), np.array([[0.0, 0.0], [bad, 5.0]]))
+    root = tmp_path / "pitts"
+    write_jpg(root / "a.jpg")
+    write_jpg(root / "queries_real" / "q.jpg")
+    write_dbstruct(tmp_path / "p.mat", ["a.jpg"], np.array([[bad, 1.0]]), ["q.jpg"], np.zeros((1, 2)))
+    with pytest.raises(SemvprError, match="db_utm has 1 non-finite"):
+        read_dbstruct_mat(tmp_path / "p.mat", root)

@@ -127,3 +127,14 @@ def test_label_paths_of_the_real_pitts30k_test_lists_are_unique() -> None:
     names = [*np.load(REALDATA / "pitts30k_test_dbImages.npy"), *np.load(REALDATA / "pitts30k_test_qImages.npy")]
     assert len({Path(n).stem for n in names}) == len(names) - 288
     assert len({label_path("labels", root / n, root) for n in names}) == len(names)
+
+
+def test_a_corrupt_cached_label_is_one_line_naming_it(tmp_path: Path) -> None:
+    from semvpr.pseudolabels import read_label
+
+    paths = make_images(tmp_path / "img", n=2)
+    out = pseudo_labels(CountingTeacher(), "t", paths, SIZE, tmp_path / "cache", tmp_path / "img", num_workers=0)
+    assert read_label(out, paths[0], tmp_path / "img").shape == SIZE
+    label_path(out, paths[0], tmp_path / "img").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(SemvprError, match=r"pseudo-label .*@000@img@\.png\.png is unreadable.*delete"):
+        read_label(out, paths[0], tmp_path / "img")

@@ -68,6 +68,8 @@ def sweep(tmp_path: Path) -> Path:
     rng = np.random.default_rng(0)
     for (f, seed), r1 in R1.items():
         job = _job(sweep, f"filter={f},seed={seed}", _metrics(f, seed, r1))
+        # The dataset root the run recorded: the report draws images from there only.
+        (job / ".hydra" / "config.yaml").write_text(f"seed: {seed}\ndata:\n  root: {tmp_path / 'data'}\n")
         arrays: dict[str, np.ndarray] = {"query_index": np.array([0, 1]),
                                          "image_paths": np.array([str(q) for q in queries])}
         if f != "none":
@@ -250,3 +252,34 @@ def test_aggregator_by_mask_matrix_and_bars(tmp_path: Path) -> None:
     with Image.open(tmp_path / "r1_by_aggregator.png") as im:
         assert im.format == "PNG" and im.width > 400
         assert len(set(np.asarray(im.convert("L")).ravel().tolist())) > 10
+
+
+def test_the_sweep_directory_is_read_as_data(sweep: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from semvpr import report
+    from semvpr.report import load_sweep
+
+    # An override is a plain string: ${oc.env:...} is never resolved (it leaked the variable into results.md).
+    monkeypatch.setenv("SEMVPR_TEST_SECRET", "hunter2")
+    crashed = _job(sweep, "aggregator=evil,seed=4", None)
+    (crashed / ".hydra" / "overrides.yaml").write_text("- aggregator=${oc.env:SEMVPR_TEST_SECRET}\n- seed=4\n")
+    # Names with '|', a line break and HTML; class weights that are not numbers.
+    bad = _metrics("none", 1, 10.0, aggregator="x|y\n<script>alert(1)</script>")
+    bad["class_weights"] = {"road": "heavy"}
+    _job(sweep, "filter=bad,seed=1", bad)
+    text = write_report(sweep).read_text()
+    assert "hunter2" not in text and "${oc.env:SEMVPR_TEST_SECRET}" in text
+    assert "<script>" not in text and "x&#124;y &lt;script>alert(1)&lt;/script>" in text
+    table = [ln for ln in text.splitlines() if ln.startswith("| vgg16 |")]
+    assert all(ln.count(" | ") == table[0].count(" | ") for ln in table)  # no cell split or row broken
+    # Images only under a recorded dataset root, whatever absolute path retrievals.json lists.
+    private = _png(tmp_path / "private" / "secret.png", (1, 2, 3))
+    loaded = load_sweep(sweep)
+    assert loaded.image_path(str(private)) is None
+    assert loaded.image_path(str(tmp_path / "data" / "q0.png")) == tmp_path / "data" / "q0.png"
+    # All or none: a failure while making the report leaves the previous csv and md as they were.
+    before = {name: (sweep / name).read_bytes() for name in ("results.csv", "results.md", "figure3.png")}
+    monkeypatch.setattr(report, "_markdown", lambda *a: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        write_report(sweep)
+    assert {name: (sweep / name).read_bytes() for name in before} == before
+    assert not [p for p in sweep.iterdir() if p.name.startswith(".")]

@@ -530,3 +530,24 @@ def test_cli_failure_mid_generation_leaves_nothing(tmp_path: Path, monkeypatch: 
         assert one_error_line(capsys.readouterr().err) == "semvpr: error: disk full"
     assert not out.exists()
     assert list(out.parent.iterdir()) == []  # the .tmp- directory is gone
+
+
+def test_sigterm_during_generation_is_one_line_and_leaves_nothing(tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "parent" / "city"
+    proc = subprocess.Popen([sys.executable, "-m", "semvpr.data.synthcity", "--out", str(out), "--preset", "default"],
+                            stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1],
+                            env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    deadline = time.time() + 120
+    while time.time() < deadline and not any((tmp_path / "parent").glob(".city.*.tmp/*")):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, err[-2000:]
+    assert one_error_line(err) == "semvpr: error: stopped by SIGTERM; the unfinished dataset was removed"
+    assert list(out.parent.iterdir()) == []

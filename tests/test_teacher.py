@@ -213,3 +213,88 @@ def test_backbone_learns_at_its_lr_factor() -> None:
     rest, backbone = opt.param_groups
     assert {id(p) for p in backbone["params"]} == encoder and not encoder & {id(p) for p in rest["params"]}
     assert backbone["initial_lr"] == pytest.approx(0.1 * rest["initial_lr"])
+
+
+def _saved_teacher(folder: Path) -> Path:
+    """A genuine tiny Mask2Former directory (safetensors weights, config, processor config)."""
+    from transformers import Mask2FormerImageProcessor
+
+    torch.manual_seed(0)
+    embedded_model(TINY_MODEL).save_pretrained(folder)
+    Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(folder)
+    return folder
+
+
+def _edit_json(path: Path, **changes: object) -> None:
+    import json
+
+    data = json.loads(path.read_text())
+    data.update(changes)
+    path.write_text(json.dumps(data))
+
+
+CUSTOM_CODE = "from pathlib import Path\nPath({sentinel!r}).write_text('ran')\n"
+
+
+@pytest.mark.parametrize("file,changes", [
+    ("config.json", {"model_type": "evil", "auto_map": {"AutoConfig": "evil.EvilConfig",
+                                                       "AutoModel": "evil.EvilModel"}}),
+    ("preprocessor_config.json", {"image_processor_type": "EvilProcessor",
+                                  "auto_map": {"AutoImageProcessor": "evil.EvilProcessor"}}),
+])
+def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, changes: dict) -> None:
+    """Even with 'y' on stdin (transformers asked "Do you wish to run the custom code?")."""
+    import subprocess
+    import sys
+
+    folder = _saved_teacher(tmp_path / "ckpt")
+    sentinel = tmp_path / "ran.txt"
+    (folder / "evil.py").write_text(CUSTOM_CODE.format(sentinel=str(sentinel)))
+    _edit_json(folder / file, **changes)
+    code = ("from semvpr.models.teacher import load_pretrained\n"
+            f"load_pretrained({str(folder)!r})\n")
+    proc = subprocess.run([sys.executable, "-c", code], input="y\ny\n", capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert not sentinel.exists()
+    assert proc.returncode != 0 and "SemvprError" in proc.stderr and "evil" in proc.stderr.lower()
+
+
+@pytest.mark.parametrize("changes,message", [
+    ({"rescale_factor": 1.0}, "rescale_factor=1.0"),
+    ({"image_std": [0.0, 0.25, 0.25]}, "image_std=.*finite numbers > 0"),
+    ({"image_mean": ["a", 0.5, 0.5]}, "image_mean=.*finite numbers"),
+])
+def test_a_processor_normalisation_is_used_or_refused(tmp_path: Path, changes: dict, message: str) -> None:
+    folder = _saved_teacher(tmp_path / "ckpt")
+    _edit_json(folder / "preprocessor_config.json", **changes)
+    with pytest.raises(SemvprError, match=message):
+        teacher_mod.load_pretrained(str(folder))
+    _edit_json(folder / "preprocessor_config.json", rescale_factor=1 / 255, image_mean=[0.5] * 3,
+               image_std=[0.25] * 3, do_normalize=False)
+    teacher = teacher_mod.load_pretrained(str(folder))
+    assert teacher.mean.flatten().tolist() == [0.0] * 3 and teacher.std.flatten().tolist() == [1.0] * 3
+
+
+def test_pickled_teacher_weights_are_refused(tmp_path: Path) -> None:
+    folder = _saved_teacher(tmp_path / "ckpt")
+    sentinel = tmp_path / "ran.txt"
+    (folder / "model.safetensors").unlink()
+
+    class Evil:
+        def __reduce__(self):  # type: ignore[no-untyped-def]
+            return (Path.write_text, (sentinel, "ran"))
+
+    torch.save({"x": Evil()}, folder / "pytorch_model.bin")
+    with pytest.raises(SemvprError, match="pytorch_model.bin are unreadable"):
+        teacher_mod.load_pretrained(str(folder))
+    assert not sentinel.exists()
+
+
+def test_a_local_teacher_whose_weights_changed_is_another_teacher(tmp_path: Path) -> None:
+    """Keyed by path and commit hash (None for a directory), changed weights reused old pseudo-labels."""
+    folder = _saved_teacher(tmp_path / "ckpt")
+    first = build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key
+    assert build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key == first
+    torch.manual_seed(1)
+    embedded_model(TINY_MODEL).save_pretrained(folder)  # same directory, other weights
+    assert build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key != first

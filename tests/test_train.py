@@ -138,6 +138,25 @@ def test_resumed_run_ends_as_the_uninterrupted_one(cache_dir: Path, trained_run:
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
 
 
+def test_resume_never_touches_a_file_named_by_a_tampered_checkpoint(cache_dir: Path, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=1"), run_dir)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    last = run_dir / "checkpoints" / "last.ckpt"
+    ckpt = torch.load(last, weights_only=True)
+    escaping = str(run_dir / "checkpoints" / ".." / ".." / "victim.txt")  # textually under checkpoints/
+    callbacks = [state for name, state in ckpt["callbacks"].items() if name.startswith("RunCheckpoint")]
+    assert len(callbacks) == 2
+    for state in callbacks:
+        state.update(best_model_path=escaping, kth_best_model_path=escaping, last_model_path=escaping,
+                     best_k_models={escaping: torch.tensor(-1.0)}, best_model_score=torch.tensor(-1.0))
+    torch.save(ckpt, last)
+    resumed = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), run_dir)
+    assert victim.read_text() == "keep"
+    assert resumed["status"] == "ok" and (run_dir / "checkpoints" / "best.ckpt").is_file()
+
+
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(cache_dir: Path, tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     from semvpr.models import retriever as retriever_mod

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semvpr.artifacts import files_identity
 from semvpr.errors import SemvprError
 from semvpr.metrics import positives_within
 
@@ -60,7 +61,14 @@ class PlaceSet:
             if value is not None:
                 object.__setattr__(self, field, tuple(Path(p) for p in value))
         for paths, utm_field in ((self.db_paths, "db_utm"), (self.q_paths, "q_utm")):
-            utm = np.asarray(getattr(self, utm_field), dtype=np.float64).reshape(-1, 2)
+            try:
+                utm = np.asarray(getattr(self, utm_field), dtype=np.float64).reshape(-1, 2)
+            except (TypeError, ValueError):
+                raise SemvprError(f"place set {self.name!r}: {utm_field} is not (east, north) numbers") from None
+            bad = np.flatnonzero(~np.isfinite(utm).all(1))
+            if len(bad):
+                raise SemvprError(f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), "
+                                  f"the first at row {bad[0]} ({utm[bad[0]].tolist()})")
             if len(utm) != len(paths):
                 raise SemvprError(f"place set {self.name!r}: {len(paths)} paths but {len(utm)} "
                                   f"positions in {utm_field}")
@@ -76,11 +84,22 @@ class PlaceSet:
         root = Path(self.root) if self.root is not None else common_root(images)
         if any(not p.is_relative_to(root) for p in images):
             root = common_root(images)  # e.g. queries under a separate query_root
+        # An image's key (its path below the root) names its cached artifacts: it must not climb out.
+        climbing = next((p for p in images if ".." in p.relative_to(root).parts), None)
+        if climbing is not None:
+            raise SemvprError(f"place set {self.name!r}: image {climbing} climbs out of the dataset root {root}")
         object.__setattr__(self, "root", root)
 
     def relative(self, path: Path) -> str:
         """Key of one of the set's images: its path relative to the dataset root, POSIX style."""
         return Path(path).relative_to(self.root).as_posix()
+
+    def identity(self, side: str) -> str:
+        """Hash of one side's ("db" or "q") images and labels by key, size and mtime (``files_identity``)."""
+        paths, labels = (self.db_paths, self.db_labels) if side == "db" else (self.q_paths, self.q_labels)
+        files = [*paths, *(labels or ())]
+        names = [self.relative(p) for p in paths] + [f"label:{p}" for p in labels or ()]
+        return files_identity(names, files)
 
     def _checked_ground_truth(self, truth: tuple[np.ndarray, ...] | list[np.ndarray]) -> tuple[np.ndarray, ...]:
         if len(truth) != len(self.q_paths):
@@ -146,6 +165,15 @@ def parse_utm_name(path: str | Path) -> tuple[float, float]:
                           f"(expected @utm_east@utm_north@zone@...@.jpg)") from None
 
 
+def listed_image(folder: Path, name: str, source: Path) -> Path:
+    """``folder / name`` for an image name read from a list file, refused if it leaves ``folder``."""
+    rel = Path(name)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise SemvprError(f"{source}: image name {name!r} leaves the folder {folder}; names must be relative, "
+                          f"without '..'")
+    return folder / rel
+
+
 def _images_in(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
@@ -191,7 +219,10 @@ def _mat_strings(cell: np.ndarray) -> list[str]:
 
 
 def _mat_utm(value: np.ndarray, count: int, mat_path: Path, field: str) -> np.ndarray:
-    utm = np.asarray(value, dtype=np.float64)
+    try:
+        utm = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SemvprError(f"{mat_path}: dbStruct.{field} is not numeric (found {np.asarray(value).dtype})") from None
     if utm.size == 0 and count == 0:
         return np.zeros((0, 2))
     if utm.ndim == 2 and utm.shape[0] == 2 and utm.shape[1] == count:
@@ -260,8 +291,8 @@ def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | 
     return PlaceSet(
         name=name or f"{mat_path.stem}" + (f"/{which[0]}" if which and which[0] else ""),
         root=image_root,
-        db_paths=tuple(db_root / n for n in db_names),
-        q_paths=tuple(q_root / n for n in q_names),
+        db_paths=tuple(listed_image(db_root, n, mat_path) for n in db_names),
+        q_paths=tuple(listed_image(q_root, n, mat_path) for n in q_names),
         db_utm=db_utm,
         q_utm=q_utm,
     )
@@ -311,7 +342,7 @@ def _read_msls_side(folder: Path, subtask: str | None, exclude_panos: bool) -> t
             utm.append((float(row["easting"]), float(row["northing"])))
         except (TypeError, ValueError):
             raise SemvprError(f"{folder / 'postprocessed.csv'}: bad easting/northing in row key={row['key']!r}") from None
-        paths.append(folder / "images" / f"{row['key']}.jpg")
+        paths.append(listed_image(folder / "images", f"{row['key']}.jpg", folder / "postprocessed.csv"))
     return paths, utm
 
 

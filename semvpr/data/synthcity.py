@@ -10,9 +10,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import shutil
-import uuid
+import signal
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +27,7 @@ from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.io import check_dir_path, reclaim_orphans, temp_prefix
 from semvpr.logs import Progress
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
@@ -95,7 +98,7 @@ def get_preset(preset: str, render: Mapping[str, float] | None = None,
             raise SemvprError(f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)} "
                               "(the image size is data.image_size, --image-size on the command line)")
         default = getattr(p.render, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (
                 isinstance(default, int) and not float(value).is_integer()):
             raise SemvprError(f"SynthCity {name}={value!r} must be {'a whole' if isinstance(default, int) else 'a'} number")
         value = type(default)(value)
@@ -184,6 +187,8 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
 def _key(preset: str, seed: int, render: Mapping[str, float] | None,
          image_size: Sequence[int] | None = None) -> dict:
     """Cache key: the preset, seed, generator version and every effective render setting (size included)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise SemvprError(f"SynthCity seed={seed!r} must be a whole number >= 0")
     return {"preset": preset, "seed": int(seed), "version": GENERATOR_VERSION,
             "render": dataclasses.asdict(get_preset(preset, render, image_size).render)}
 
@@ -240,6 +245,10 @@ def add_render_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="image size (default: the preset's)")
 
 
+def _stopped(signum: int, _frame: object) -> None:
+    raise SemvprError(f"stopped by {signal.Signals(signum).name}; the unfinished dataset was removed")
+
+
 @exit_on_user_error
 def main(argv: list[str] | None = None) -> None:
     """CLI: generate a SynthCity dataset into a new directory."""
@@ -252,11 +261,14 @@ def main(argv: list[str] | None = None) -> None:
     out: Path = args.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SemvprError(f"--out {out} already exists and is not an empty directory; choose a new path or remove it")
+    check_dir_path(out, "--out")
     render = dict(args.render)
-    get_preset(args.preset, render, args.image_size)  # validate before creating anything
+    _key(args.preset, args.seed, render, args.image_size)  # validate before creating anything
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+    reclaim_orphans(out.parent)
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(out.name), suffix=".tmp", dir=out.parent))
+    for sig in (signal.SIGTERM, signal.SIGINT):  # a kill ends in the cleanup below and one line
+        signal.signal(sig, _stopped)
     try:
         stats = generate(tmp, args.preset, args.seed, render, args.image_size)
         if out.exists():

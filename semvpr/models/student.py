@@ -16,7 +16,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
-from PIL import Image
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
@@ -25,7 +24,7 @@ from semvpr.data.classes import IGNORE, STATIC_NAMES, static_lut
 from semvpr.models.masks import NUM_CLASSES
 from semvpr.errors import SemvprError
 from semvpr.precision import autocast
-from semvpr.pseudolabels import label_path
+from semvpr.pseudolabels import label_path, read_label
 from semvpr.logs import Progress, progress
 
 VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
@@ -118,7 +117,7 @@ def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size:
     """(N,H,W) uint8 trainId targets from pseudo-label PNGs (255 = ignore)."""
     maps = []
     for p in paths:
-        ids = np.asarray(Image.open(label_path(label_dir, p, root)))
+        ids = read_label(label_dir, p, root)
         if ids.shape != tuple(image_size):
             raise SemvprError(f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}")
         maps.append(np.where(ids < NUM_CLASSES, ids, IGNORE).astype(np.uint8))

@@ -3,6 +3,7 @@ pixel-level backbone is the ImageNet EfficientNet-Lite0 (timm, the backbone whee
 random-init Swin."""
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -18,7 +19,7 @@ from torch import Tensor
 from torchmetrics.classification import MulticlassJaccardIndex
 from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig, TimmBackboneConfig
 
-from semvpr.artifacts import build_once, config_hash
+from semvpr.artifacts import build_once, config_hash, files_identity
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.errors import SemvprError
 from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, TIMM_EFFICIENTNET_LITE0,
@@ -75,6 +76,7 @@ class Teacher(L.LightningModule):
         # The pixel-level backbone's learning rate is lr x this (Mask2Former's recipe: 0.1 for an ImageNet backbone).
         self.backbone_lr_factor = backbone_lr_factor
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
+        self.source_hash = ""  # a pretrained checkpoint's content hash (load_pretrained)
         names = {_norm_name(n): i for i, n in enumerate(TRAIN_ID_NAMES)}
         model_to_train = [names.get(_norm_name(self.id2label[i]), IGNORE) for i in range(len(self.id2label))]
         if all(t == IGNORE for t in model_to_train):
@@ -243,34 +245,124 @@ def _teacher_kwargs(cfg: DictConfig) -> dict[str, Any]:
     }  # fmt: skip
 
 
+#: Processor types whose normalisation is image_mean / image_std after a 1/255 rescale.
+PROCESSOR_TYPES = ("Mask2FormerImageProcessor", "Mask2FormerImageProcessorFast", "MaskFormerImageProcessor",
+                   "MaskFormerImageProcessorFast")
+WEIGHT_FILES = ("model.safetensors", "pytorch_model.bin")
+
+
 def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
-    """Load a Mask2Former checkpoint (HF id from the local cache, or a directory) without the network."""
+    """Load a Mask2Former checkpoint (HF id from the local cache, or a directory) as data.
+
+    Nothing in the directory is run or asked about: its ``config.json`` must describe a plain
+    Mask2Former (``model_type`` mask2former, no ``auto_map``), the weights are read from
+    ``model.safetensors`` (or ``pytorch_model.bin`` with a weights-only load), and the image
+    normalisation comes from ``preprocessor_config.json`` (ImageNet's when there is none).
+    """
+    folder = _checkpoint_dir(checkpoint)
+    config = _mask2former_config(folder)
+    weights = next((folder / name for name in WEIGHT_FILES if (folder / name).is_file()), None)
+    if weights is None:
+        raise SemvprError(f"teacher checkpoint {folder} has none of {list(WEIGHT_FILES)} (sharded or other "
+                          f"weight files are not read)")
+    try:
+        model = Mask2FormerForUniversalSegmentation.from_pretrained(
+            folder, config=config, local_files_only=True, use_safetensors=weights.suffix == ".safetensors",
+            trust_remote_code=False)
+    except Exception as err:  # noqa: BLE001 - any unreadable weight file gets the same one line
+        raise SemvprError(f"teacher weights {weights} are unreadable ({type(err).__name__}: "
+                          f"{str(err).splitlines()[0] if str(err) else ''})") from None
+    mean, std = _normalisation(folder)
+    teacher = Teacher(model, image_mean=mean, image_std=std, **kwargs)
+    # What makes its predictions: the bytes of its weights and config, and the normalisation.
+    teacher.source_hash = config_hash([file_hash(weights), file_hash(folder / "config.json"), mean, std])
+    return teacher
+
+
+def _checkpoint_dir(checkpoint: str) -> Path:
+    """The directory of a local checkpoint, or of an HF id's snapshot in the local cache."""
+    from huggingface_hub import snapshot_download
     from huggingface_hub.constants import HF_HUB_CACHE
-    from transformers import AutoImageProcessor
 
     path = Path(checkpoint).expanduser()
     local = path.is_dir() or checkpoint.startswith((".", "/", "~"))
-    source = str(path) if local else checkpoint
+    if local and path.is_dir():
+        return path
+    if not local:
+        try:
+            return Path(snapshot_download(checkpoint, local_files_only=True))
+        except Exception:  # noqa: BLE001 - a bad id or a missing snapshot: the same advice
+            pass
     where = f"directory {path}" if local else f"the Hugging Face cache {HF_HUB_CACHE}"
+    raise SemvprError(
+        f"teacher checkpoint '{checkpoint}' is not available offline (looked in {where}); download it on "
+        f"a machine with internet into HF_HOME (`hf download {checkpoint}`) and copy that cache here, "
+        "or set teacher.checkpoint=null to train the embedded teacher")
+
+
+def _read_json(path: Path) -> dict[str, Any]:
     try:
-        model = Mask2FormerForUniversalSegmentation.from_pretrained(source, local_files_only=True)
-    except (OSError, ValueError):
-        raise SemvprError(
-            f"teacher checkpoint '{checkpoint}' is not available offline (looked in {where}); download it on "
-            f"a machine with internet into HF_HOME (`hf download {checkpoint}`) and copy that cache here, "
-            "or set teacher.checkpoint=null to train the embedded teacher"
-        ) from None
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise SemvprError(f"{path} is not readable JSON ({type(err).__name__})") from None
+    if not isinstance(data, dict):
+        raise SemvprError(f"{path} is not a JSON object")
+    return data
+
+
+def _mask2former_config(folder: Path) -> Mask2FormerConfig:
+    """The checkpoint's Mask2FormerConfig, refused if it asks for any other (or custom) class."""
+    path = folder / "config.json"
+    data = _read_json(path)
+    if data.get("model_type") != "mask2former" or "auto_map" in data:
+        raise SemvprError(f"{path}: model_type={data.get('model_type')!r}"
+                          f"{' with auto_map (custom code)' if 'auto_map' in data else ''}; only a plain "
+                          f"Mask2Former checkpoint (model_type 'mask2former', no custom code) is loaded")
+    if data.get("use_pretrained_backbone") or data.get("use_timm_backbone") or data.get("backbone"):
+        raise SemvprError(f"{path}: names a separate backbone checkpoint; only self-contained weights are loaded")
     try:
-        processor = AutoImageProcessor.from_pretrained(source, local_files_only=True)
-        mean, std = processor.image_mean, processor.image_std
-    except (OSError, ValueError):
-        mean, std = IMAGENET_MEAN, IMAGENET_STD  # weights without a processor config: HF's Mask2Former default
-    return Teacher(model, image_mean=mean, image_std=std, **kwargs)
+        return Mask2FormerConfig.from_dict(data)
+    except Exception as err:  # noqa: BLE001 - e.g. an unknown backbone model_type
+        raise SemvprError(f"{path}: not a valid Mask2Former config ({type(err).__name__}: "
+                          f"{str(err).splitlines()[0] if str(err) else ''})") from None
+
+
+def _normalisation(folder: Path) -> tuple[Sequence[float], Sequence[float]]:
+    """Mean and std on [0,1] pixels from ``preprocessor_config.json``; refused if it asks for more."""
+    path = folder / "preprocessor_config.json"
+    if not path.is_file():
+        return IMAGENET_MEAN, IMAGENET_STD  # HF's Mask2Former default
+    data = _read_json(path)
+    kind = data.get("image_processor_type")
+    if kind not in PROCESSOR_TYPES or "auto_map" in data:
+        raise SemvprError(f"{path}: image_processor_type={kind!r}; only {list(PROCESSOR_TYPES)} are read")
+    if data.get("do_rescale", True) and not math.isclose(float(data.get("rescale_factor", 1 / 255)), 1 / 255):
+        raise SemvprError(f"{path}: rescale_factor={data.get('rescale_factor')!r}; only 1/255 is supported")
+    if not data.get("do_normalize", True):
+        return (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    mean, std = data.get("image_mean", IMAGENET_MEAN), data.get("image_std", IMAGENET_STD)
+    for name, value in (("image_mean", mean), ("image_std", std)):
+        ok = (isinstance(value, list | tuple) and len(value) == 3
+              and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value))
+        if not ok or (name == "image_std" and min(value) <= 0):
+            raise SemvprError(f"{path}: {name}={value!r} is not three finite numbers"
+                              f"{' > 0' if name == 'image_std' else ''}")
+    return tuple(float(v) for v in mean), tuple(float(v) for v in std)
+
+
+def file_hash(path: Path, length: int = 16) -> str:
+    """SHA-256 of a file's bytes (read in 8 MiB blocks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(8 << 20):
+            digest.update(block)
+    return digest.hexdigest()[:length]
 
 
 def dataset_identity(seg: Any) -> str:
-    """Hash of a SegmentationSet's file names and sizes (cheap, and survives moving the data) and label table."""
-    files = [(p.name, p.stat().st_size) for p in (*seg.images, *seg.labels)]
+    """Hash of a SegmentationSet's files (name, size, mtime: cheap, and survives moving the data) and label table."""
+    paths = [*seg.images, *seg.labels]
+    files = files_identity([p.name for p in paths], paths)
     lut = getattr(seg, "label_lut", None)  # the same PNGs read with another id table are other targets
     return config_hash(files if lut is None else [files, list(lut)])
 
@@ -309,8 +401,8 @@ def teacher_architecture(cfg_teacher: Mapping[str, Any]) -> Teacher:
     cfg = cfg_teacher if isinstance(cfg_teacher, DictConfig) else OmegaConf.create(dict(cfg_teacher))
     if cfg.checkpoint:
         teacher = load_pretrained(str(cfg.checkpoint), **_teacher_kwargs(cfg))
-        revision = getattr(teacher.model.config, "_commit_hash", None)
-        teacher.teacher_key = f"pretrained-{config_hash([str(cfg.checkpoint), revision, cfg.get('inference_size')])}"
+        # Keyed by content, not by name: a directory whose weights changed is another teacher.
+        teacher.teacher_key = f"pretrained-{config_hash([teacher.source_hash, cfg.get('inference_size')])}"
         return teacher
     return embedded_teacher(cfg)
 

@@ -1,0 +1,147 @@
+"""Hostile dataset lists and caches: nothing is written outside the run and cache directories."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
+from semvpr.errors import SemvprError
+from semvpr.io import inside
+from semvpr.pseudolabels import pseudo_labels
+from tests.test_places import make_msls, write_dbstruct, write_jpg, write_msls_side
+from tests.test_pseudolabels import SIZE, CountingTeacher
+
+
+def files_under(folder: Path) -> set[Path]:
+    """Every file and link below ``folder`` (links not followed)."""
+    return {Path(d) / n for d, dirs, files in os.walk(folder) for n in files + dirs}
+
+
+def test_msls_key_climbing_out_of_the_images_folder_is_refused(tmp_path: Path) -> None:
+    root = make_msls(tmp_path / "msls")
+    write_msls_side(root / "train_val" / "sf" / "query", [("../../../../../victim", 5.0, 6.0, False, True)])
+    with pytest.raises(SemvprError, match=r"postprocessed\.csv: image name '\.\./.*victim\.jpg' leaves"):
+        read_msls(root, "val")
+
+
+@pytest.mark.parametrize("bad", ["../../victim.jpg", "/etc/victim.jpg", "000/../../victim.jpg"])
+def test_dbstruct_names_leaving_the_image_root_are_refused(tmp_path: Path, bad: str) -> None:
+    root = tmp_path / "pitts"
+    write_jpg(root / "000" / "a.jpg")
+    write_jpg(root / "queries_real" / "000" / "q.jpg")
+    utm = np.zeros((2, 2))
+    write_dbstruct(tmp_path / "p.mat", ["000/a.jpg", bad], utm, ["000/q.jpg"], utm[:1])
+    with pytest.raises(SemvprError, match=r"p\.mat: image name .*victim\.jpg.* leaves"):
+        read_dbstruct_mat(tmp_path / "p.mat", root)
+
+
+def test_a_place_set_refuses_an_image_key_that_climbs_out(tmp_path: Path) -> None:
+    root = tmp_path / "data"
+    with pytest.raises(SemvprError, match="climbs out of the dataset root"):
+        PlaceSet("x", (root / "a.jpg", root / "b" / ".." / ".." / "victim.jpg"), (root / "q.jpg",),
+                 np.zeros((2, 2)), np.zeros((1, 2)), root=root)
+    # Queries under a separate folder are fine: the root becomes their common folder.
+    ok = PlaceSet("x", (root / "a.jpg",), (tmp_path / "q" / "q.jpg",), np.zeros((1, 2)), np.zeros((1, 2)), root=root)
+    assert ok.root == tmp_path and ok.relative(ok.q_paths[0]) == "q/q.jpg"
+
+
+def test_pseudo_labels_never_land_outside_the_cache(tmp_path: Path) -> None:
+    """A textual '..' in an image path used to carry its label out of the labels directory."""
+    Image.fromarray(np.zeros((32, 40, 3), np.uint8)).save(tmp_path / "victim.png")
+    root = tmp_path / "deep" / "data"
+    root.mkdir(parents=True)
+    before = files_under(tmp_path)
+    climbing = root / "a" / ".." / ".." / ".." / "victim.png"
+    with pytest.raises(SemvprError, match="would leave"):
+        pseudo_labels(CountingTeacher(), "t", [climbing], SIZE, tmp_path / "cache", root, num_workers=0)
+    assert {p for p in files_under(tmp_path) - before if not p.is_relative_to(tmp_path / "cache")} == set()
+
+
+def test_inside_refuses_dotdot_absolute_and_symlinked_escapes(tmp_path: Path) -> None:
+    base = tmp_path / "art"
+    (base / "sub").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    os.symlink(tmp_path / "elsewhere", base / "link")
+    assert inside(base, "sub/x.png") == base / "sub" / "x.png"
+    for bad in ("../x.png", "sub/../../x.png", str(tmp_path / "x.png"), "link/x.png"):
+        with pytest.raises(SemvprError, match="refusing to write"):
+            inside(base, bad)
+
+
+def test_a_planted_partial_link_in_a_shared_cache_is_refused(tmp_path: Path) -> None:
+    """A '.labels-<hash>.partial' link made pseudo-labels land in the link's target."""
+    from semvpr.artifacts import artifact_dir
+    from tests.test_pseudolabels import _key, make_images
+
+    paths = make_images(tmp_path / "img")
+    cache, victim = tmp_path / "cache", tmp_path / "victim"
+    victim.mkdir()
+    final = artifact_dir(cache, "labels", _key(paths, tmp_path / "img"))
+    cache.mkdir()
+    os.symlink(victim, final.parent / f".{final.name}.partial")
+    with pytest.raises(SemvprError, match=r"\.partial is not a plain directory"):
+        pseudo_labels(CountingTeacher(), "teacher-abc", paths, SIZE, cache, tmp_path / "img", num_workers=0)
+    assert list(victim.iterdir()) == [] and not final.exists()
+
+
+def test_links_planted_inside_a_partial_build_or_as_a_lock_are_not_followed(tmp_path: Path) -> None:
+    from semvpr.artifacts import LOCK_DIR, artifact_dir, build_once
+
+    cache, victim = tmp_path / "cache", tmp_path / "victim"
+    victim.mkdir()
+    final = artifact_dir(cache, "thing", {"a": 1})
+    partial = final.parent / f".{final.name}.partial"
+    partial.mkdir(parents=True)
+    os.symlink(victim / "key.json", partial / "key.json")  # the key is written last, into the partial dir
+    out = build_once(cache, "thing", {"a": 1}, lambda tmp: (tmp / "x").write_text("1"), resumable=True)
+    assert (out / "key.json").is_file() and not (out / "key.json").is_symlink()
+    (cache / LOCK_DIR).mkdir(exist_ok=True)
+    lock = artifact_dir(cache, "other", {"b": 2})
+    os.symlink(victim / "created-by-lock", cache / LOCK_DIR / f"{lock.name}.lock")
+    with pytest.raises(SemvprError, match=r"lock file .* a link there is never followed"):
+        build_once(cache, "other", {"b": 2}, lambda tmp: None)
+    assert list(victim.iterdir()) == []
+
+
+def test_orphaned_temp_dirs_of_dead_processes_are_reclaimed(tmp_path: Path) -> None:
+    """kill -9 during a build left .<name>.tmp-* directories forever (and filled the disk)."""
+    import socket
+    import subprocess
+    import sys
+
+    from semvpr.artifacts import build_once
+    from semvpr.io import temp_prefix
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    host = socket.gethostname().split(".")[0]
+    cache = tmp_path / "cache"
+    orphan = cache / f".synthcity-abc.{host}-{dead}.k3j2h1g0.tmp"
+    (orphan / "images").mkdir(parents=True)
+    (orphan / "images" / "a.jpg").write_bytes(b"x" * 1000)
+    ours = cache / f"{temp_prefix('thing')}a1b2c3d4.tmp"  # a live writer's (this process)
+    ours.mkdir()
+    other_host = cache / f".x.otherhost-{dead}.a1b2c3d4.tmp"  # a shared file system: not ours to judge
+    other_host.mkdir()
+    build_once(cache, "thing", {"a": 1}, lambda tmp: None)
+    assert not orphan.exists() and ours.is_dir() and other_host.is_dir()
+
+
+def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a nearly full disk the memory-mapped cache ended in a bus error (exit 135, no message)."""
+    import shutil
+
+    from semvpr import io
+
+    usage = shutil._ntuple_diskusage(10 * 2**30, 10 * 2**30 - 2**20, 2**20)  # 1 MiB free
+    monkeypatch.setattr(io.shutil, "disk_usage", lambda _: usage)
+    with pytest.raises(SemvprError, match=r"the trunk cache needs 0\.01 GiB in .*, but only 0\.00 GiB are free"):
+        io.open_array(tmp_path / "db.npy", np.uint16, (100, 64, 1024), "the trunk cache")
+    assert not (tmp_path / "db.npy").exists()
+    small = io.open_array(tmp_path / "q.npy", np.uint16, (4, 8), "the trunk cache")
+    assert small.shape == (4, 8) and os.stat(tmp_path / "q.npy").st_blocks * 512 >= small.nbytes  # reserved
