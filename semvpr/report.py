@@ -349,20 +349,20 @@ def _matrix(sweep: Sweep, backbone: str) -> list[str]:
     """Aggregator rows × mask columns of R@1 / R@5 mean ± std, then each mask's paired gain over none."""
     aggregators = [a for a in sweep.aggregators if any(j.aggregator == a and j.backbone == backbone for j in sweep.jobs)]
     masks = [m for m in sweep.masks if any(j.mask == m and j.backbone == backbone for j in sweep.jobs)]
-    out = [f"## Aggregator × mask ({backbone})", "", "R@1 / R@5 in %, mean ± std over seeds.", "",
-           "| aggregator | " + " | ".join(sweep.label(m) for m in masks) + " |", "|---|" + "---:|" * len(masks)]
+    out = [f"## Aggregator × mask ({md_cell(backbone)})", "", "R@1 / R@5 in %, mean ± std over seeds.", "",
+           "| aggregator | " + " | ".join(md_cell(sweep.label(m)) for m in masks) + " |", "|---|" + "---:|" * len(masks)]
     for a in aggregators:
         cells = []
         for m in masks:
             ok = [j for j in sweep.jobs_of(cell_name(a, m), backbone) if j.ok]
             stats = [mean_std([j.recall(n) for j in ok]) for n in (1, 5)]
             cells.append(" / ".join(f"{_fmt(mu)} ± {_fmt(sd)}" for mu, sd in stats) if ok else "–")
-        out.append(f"| {a} | " + " | ".join(cells) + " |")
+        out.append(f"| {md_cell(a)} | " + " | ".join(cells) + " |")
     out.append("")
     gains = [(a, _mask_gains(sweep, backbone, a)) for a in aggregators]
     if any(g for _, g in gains):
         out += ["**R@1 gain of each mask over `none`, same aggregator**, paired by seed, mean ± std:", ""]
-        out += [f"- {a}: {g}" for a, g in gains if g] + [""]
+        out += [f"- {md_cell(a)}: {g}" for a, g in gains if g] + [""]
     return out
 
 
