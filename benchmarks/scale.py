@@ -1,4 +1,4 @@
-"""Memory and throughput of the real eval path as the dataset grows (DESIGN §9: nothing may need RAM in
+"""Memory and throughput of the real eval path as the dataset grows (ARCHITECTURE §5: nothing may need RAM in
 proportion to the dataset; decoding must hide behind the trunk).
 
 Writes N placeholder JPEGs (480x640 by default) in the @UTM@ layout, 80 % database and 20 % queries,

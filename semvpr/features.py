@@ -5,7 +5,7 @@ and the mask (which depends only on the image and frozen networks) are computed 
 reused by every epoch, by mining and by every sweep job with the same frozen weights (artifact kinds
 ``trunk`` / ``masks``, ``.npy`` files written batch by batch, never gathered in RAM).
 
-How the trunk cache is held is chosen by its size (``features.storage``, DESIGN §9: at 480x640 a
+How the trunk cache is held is chosen by its size (``features.storage``, ARCHITECTURE §5: at 480x640 a
 VGG16 pool4 map is 1.2 MB in bf16, Pitts30k's three splits ~64 GB):
 
 - ``ram``: it fits ``features.ram_gb``: read into memory;

@@ -4,7 +4,7 @@ bf16 autocast with channels_last is several times faster than fp32 on CPUs with 
 AMX and on recent GPUs, but oneDNN emulates it elsewhere: on an AVX2-only CPU a VGG16 conv ran
 8x *slower* in bf16 than in fp32. So every autocast in semvpr goes through ``autocast`` below,
 and Lightning's ``bf16-mixed`` falls back to ``32-true`` the same way. Numbers therefore differ
-slightly between a bf16 and an fp32 machine (see README, "Reproducibility").
+slightly between a bf16 and an fp32 machine (ARCHITECTURE §9).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Cityscapes class table: labelIds → 19 trainIds, and the static / dynamic split of DESIGN §3."""
+"""Cityscapes class table: labelIds → 19 trainIds, and the static / dynamic split of the masks (ARCHITECTURE §3.2)."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,7 +12,7 @@ TRAIN_ID_NAMES: tuple[str, ...] = (
     "motorcycle", "bicycle",
 )  # fmt: skip
 
-#: Classes whose features describe the place (DESIGN §3); everything else is dynamic/uninformative.
+#: Classes whose features describe the place (ARCHITECTURE §3.2); everything else is dynamic/uninformative.
 STATIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[:10]
 DYNAMIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[10:]
 

@@ -1,7 +1,7 @@
 """Mask sources: per-class probabilities of each pixel, reduced to a weight map on the feature grid.
 
 Every source (teacher, student, oracle) gives Cityscapes-class probabilities (B,C,H,W) at image
-resolution. On the local-feature grid (DESIGN §3) they become either
+resolution. On the local-feature grid (ARCHITECTURE §3.2) they become either
 
 - ``binary``: the static classes' probabilities summed per pixel, area-pooled and thresholded at
   0.5, one channel (the seed paper's filter); or

@@ -1,6 +1,6 @@
 """The retriever: backbone → (mask) → NetVLAD / SRAL aggregator → global descriptor.
 
-One code path for every aggregator and mask (DESIGN §3): the components are built outside and injected. The
+One code path for every aggregator and mask (ARCHITECTURE §3.4): the components are built outside and injected. The
 frozen backbone prefix and the mask run once per image (semvpr.features); training, mining and
 evaluation work on their cached outputs through :meth:`Retriever.describe`.
 """
