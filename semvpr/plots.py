@@ -63,6 +63,16 @@ def _na(ax: Axes, what: str = "n/a") -> None:
     ax.set_yticks([])
 
 
+def _show(ax: Axes, img: Any, missing: str) -> None:
+    """An image without ticks, or the ``missing`` mark when there is none."""
+    if img is None:
+        _na(ax, missing)
+        return
+    ax.imshow(img)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
 def _curve(recalls: Any) -> dict[int, float]:
     """metrics["recalls"] ({"1": r, "2": r, ...}) as {N: recall}, skipping malformed entries."""
     out: dict[int, float] = {}
@@ -193,12 +203,7 @@ def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
         stored = _image_of(sources.values(), qi)
         img = _thumb(sweep.image_path(stored)) if stored else None
         ax = axes[r, 0]
-        if img is None:
-            _na(ax, "image n/a")
-        else:
-            ax.imshow(img)
-            ax.set_xticks([])
-            ax.set_yticks([])
+        _show(ax, img, "image n/a")
         ax.set_ylabel(f"query {qi}\n{Path(stored).name[:28] if stored else ''}", fontsize=8)
         for c, (key, title, src) in enumerate(cols, start=1):
             ax = axes[r, c]
@@ -271,13 +276,7 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
     for b, q in enumerate(queries):
         r0 = b * len(rows)
         ax = fig.add_subplot(grid[r0:r0 + len(rows), 0])
-        img = _thumb(sweep.image_path(q))
-        if img is None:
-            _na(ax, "query n/a")
-        else:
-            ax.imshow(img)
-            ax.set_xticks([])
-            ax.set_yticks([])
+        _show(ax, _thumb(sweep.image_path(q)), "query n/a")
         ax.set_title(f"query: {Path(q).name[:24]}", fontsize=8)
         for i, f in enumerate(rows):
             entry = per_row[f].get(q, {})
@@ -310,16 +309,12 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
 
 def class_weights(sweep: Sweep, out: Path) -> str | None:
     """Learned per-class weights (mean ± std over seeds) per mask source and backbone; else a skip reason."""
-    from semvpr.report import LEARNED, mean_std, numeric_weights
+    from semvpr.report import LEARNED, mean_std
 
-    runs: dict[tuple[str, str], list[dict[str, float]]] = {}
-    for job in sweep.jobs:
-        weights = numeric_weights(job.metrics.get("class_weights")) if job.ok else None
-        if weights is not None:
-            runs.setdefault((job.backbone, job.cell), []).append(weights)
+    runs = sweep.learned_weights()
     if not runs:
         return "no run learned class weights (mask.weights=learned)"
-    cells = sorted(runs, key=lambda c: (c[0], sweep.cells.index(c[1])))
+    cells = list(runs)
     classes = list(runs[cells[0]][0])
     fig = _new_figure(max(8.0, 0.55 * len(classes)), 3.6)
     ax = fig.add_subplot()

@@ -116,6 +116,15 @@ class Sweep:
         jobs = [j for j in jobs if needs is None or (j.dir / needs).is_file()]
         return sorted(jobs, key=lambda j: (not j.ok, j.seed if j.seed is not None else math.inf, j.name))
 
+    def learned_weights(self) -> dict[tuple[str, str], list[dict[str, float]]]:
+        """Per (backbone, row), the learned class weights of each ok run, in table order."""
+        runs: dict[tuple[str, str], list[dict[str, float]]] = {}
+        for job in self.jobs:
+            weights = numeric_weights(job.metrics.get("class_weights")) if job.ok else None
+            if weights is not None:
+                runs.setdefault((job.backbone, job.cell), []).append(weights)
+        return {c: runs[c] for c in sorted(runs, key=lambda c: (c[0], self.cells.index(c[1])))}
+
     def image_path(self, stored: str) -> Path | None:
         """Find an image path stored by a run (relative paths are relative to the run's launch dir);
         None unless it lies under a dataset root some job recorded (a sweep directory is data)."""
@@ -368,14 +377,10 @@ def _matrix(sweep: Sweep, backbone: str) -> list[str]:
 
 def _class_weight_table(sweep: Sweep) -> list[str]:
     """Markdown table of the learned class weights, mean ± std over seeds, one column per row of the sweep."""
-    cells: dict[tuple[str, str], list[dict[str, float]]] = {}
-    for j in sweep.jobs:
-        weights = numeric_weights(j.metrics.get("class_weights")) if j.ok else None
-        if weights is not None:
-            cells.setdefault((j.backbone, j.cell), []).append(weights)
+    cells = sweep.learned_weights()
     if not cells:
         return []
-    columns = sorted(cells, key=lambda c: (c[0], sweep.cells.index(c[1])))
+    columns = list(cells)
     classes = list(next(iter(cells.values()))[0])
     out = ["## Learned class weights", "",
            "w_c = sigmoid(θ_c) after training (start: 0.98 static classes, 0.02 the others), mean ± std over seeds.", "",
