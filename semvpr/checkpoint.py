@@ -29,9 +29,10 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.errors import SemvprError
+from semvpr.io import CONF_DIR
 
 FORMAT = 2
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONF = Path(CONF_DIR)
 #: Config groups that define the model; each group file names itself in its ``name`` key.
 GROUPS = ("backbone", "aggregator", "mask", "model", "teacher", "student")
 #: Training-only nodes: not recorded (eval never builds an optimizer).
@@ -107,10 +108,10 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
     cfg = base.copy()
     for group in GROUPS:
         choice = choices.get(group)
-        options = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+        options = sorted(p.stem for p in (CONF / group).glob("*.yaml"))
         if not isinstance(choice, str) or not _CHOICE.match(choice) or choice not in options:
             raise SemvprError(f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}")
-        cfg[group] = OmegaConf.load(CONF_DIR / group / f"{choice}.yaml")
+        cfg[group] = OmegaConf.load(CONF / group / f"{choice}.yaml")
     seed = record.get("seed")
     if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
         raise SemvprError(f"{where}: seed={seed!r} is not a whole number from 0 to 2**32-1")
@@ -132,10 +133,10 @@ def _from_filter(choices: dict[str, Any], config: dict[str, Any], where: str) ->
     choices, config = dict(choices), dict(config)
     choice = choices.pop("filter")
     stored = config.pop("filter", {})
-    options = sorted(p.stem for p in (CONF_DIR / "filter").glob("*.yaml"))
+    options = sorted(p.stem for p in (CONF / "filter").glob("*.yaml"))
     if not isinstance(choice, str) or choice not in options or not isinstance(stored, dict):
         raise SemvprError(f"{where}: choices.filter={choice!r} is not one of the project's filter presets {options}")
-    for entry in OmegaConf.load(CONF_DIR / "filter" / f"{choice}.yaml").get("defaults", []):
+    for entry in OmegaConf.load(CONF / "filter" / f"{choice}.yaml").get("defaults", []):
         for key, value in entry.items():  # "override /aggregator": "sral"
             choices[key.split("/")[-1]] = value
     config["mask"] = {"weights": stored.get("weights", "binary")}

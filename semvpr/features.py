@@ -36,7 +36,8 @@ from semvpr.data.places import PlaceSet
 from semvpr.data.segmentation import load_image
 from semvpr.errors import SemvprError
 from semvpr.io import open_array, temp_prefix
-from semvpr.models.masks import NUM_CLASSES, MaskSource
+from semvpr.data.classes import NUM_CLASSES
+from semvpr.models.masks import MaskSource
 from semvpr.precision import autocast
 from semvpr.logs import progress
 

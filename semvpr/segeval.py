@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
-from semvpr.data.classes import static_lut
+from semvpr.models.masks import static_vector
 from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
 from semvpr.precision import autocast
 from semvpr.segmetrics import Confusion, binary_pred, class_scores, mask_scores
@@ -57,7 +57,7 @@ def teacher_outputs(teacher: nn.Module, images: Tensor, size: Sequence[int],
     size (one pass instead of two, no resize of a resized map).
     """
     scores = teacher.semantic_scores(images)
-    static = torch.from_numpy(static_lut(tuple(static_names))[: teacher.to_train.shape[1]]).to(scores.device)
+    static = static_vector(static_names).to(scores.device)
     share = torch.einsum("bmhw,mc,c->bhw", scores, teacher.to_train, static) / scores.sum(1).clamp_min(1e-6)
     scores = F.interpolate(scores, size=tuple(size), mode="bilinear", align_corners=False)
     prob = F.interpolate(share[:, None], size=tuple(size), mode="bilinear", align_corners=False).clamp(0.0, 1.0)

@@ -110,9 +110,38 @@ def figure_rows(cfg: DictConfig, seg: SegmentationSet, teacher: Any,
     return rows
 
 
+def train_students(cfg: DictConfig, sets: dict[str, SegmentationSet], labels: Path, root: Path,
+                   loggers: list[Any], results: dict[str, Any]) -> dict[str, tuple[Any, Any]]:
+    """A student per ``cfg.backbones`` entry on the teacher's labels, scored on val and test (into
+    ``results``); returns them by name with their frozen backbones, for the figure."""
+    from semvpr.models.student import build_student
+
+    size = [int(v) for v in cfg.seg.image_size]
+    static_names = list(cfg.teacher.static_classes)
+    workers, batch = int(cfg.seg.num_workers), int(cfg.eval_batch_size)
+    students = {}
+    for name, node in cfg.backbones.items():
+        backbone = frozen_backbone(node, int(cfg.seed))
+        tic = time.time()
+        student = build_student(cfg.student, backbone, list(sets["train"].images), labels, root, size,
+                                cfg.paths.cache_dir)
+        entry: dict[str, Any] = {"backbone": name, "weights": str(node.get("weights", "none")),
+                                 "build_s": time.time() - tic}
+        fitted = json.loads((student.artifact / "metrics.json").read_text())
+        entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
+        for split in ("val", "test"):
+            scores = score_student(student, backbone, sets[split], size, static_names, bool(cfg.student.bf16),
+                                   batch, workers)
+            log_scores(loggers, f"student_{name}", split, scores)
+            entry[split] = scores
+        entry.update(entry.pop("test"))
+        results[f"student_{name}"] = entry
+        students[f"student_{name}"] = (student, backbone)
+    return students
+
+
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Teacher, pseudo-labels, students, scores, figure; returns what results.json holds."""
-    from semvpr.models.student import build_student
     from semvpr.models.teacher import build_teacher
     from semvpr.plots import mask_figure
     from semvpr.pseudolabels import pseudo_labels
@@ -148,24 +177,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
                            batch_size=int(cfg.teacher.predict_batch_size), num_workers=workers)
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 
-    students = {}
-    for name, node in cfg.backbones.items():
-        backbone = frozen_backbone(node, int(cfg.seed))
-        tic = time.time()
-        student = build_student(cfg.student, backbone, list(sets["train"].images), labels, root, size,
-                                cfg.paths.cache_dir)
-        entry: dict[str, Any] = {"backbone": name, "weights": str(node.get("weights", "none")),
-                                 "build_s": time.time() - tic}
-        fitted = json.loads((student.artifact / "metrics.json").read_text())
-        entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
-        for split in ("val", "test"):
-            scores = score_student(student, backbone, sets[split], size, static_names, bool(cfg.student.bf16),
-                                   batch, workers)
-            log_scores(loggers, f"student_{name}", split, scores)
-            entry[split] = scores
-        entry.update(entry.pop("test"))
-        results[f"student_{name}"] = entry
-        students[f"student_{name}"] = (student, backbone)
+    students = train_students(cfg, sets, labels, root, loggers, results)
 
     columns = {"gt": "ground truth\n(bright = static)", "teacher": "teacher mask",
                **{k: f"student mask\n({k.removeprefix('student_')})" for k in students}}

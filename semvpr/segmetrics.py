@@ -13,11 +13,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
+from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES
 
 #: Objects that move between two visits of a place: person … bicycle (sky is non-static but does not move).
 MOVING_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[TRAIN_ID_NAMES.index("person"):]
-NUM_CLASSES = len(TRAIN_ID_NAMES)
 REMOVED, KEPT = 0, 1
 
 

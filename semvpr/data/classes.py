@@ -13,6 +13,7 @@ TRAIN_ID_NAMES: tuple[str, ...] = (
 )  # fmt: skip
 
 #: Classes whose features describe the place (ARCHITECTURE §3.2); everything else is dynamic/uninformative.
+NUM_CLASSES = len(TRAIN_ID_NAMES)
 STATIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[:10]
 DYNAMIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[10:]
 

@@ -21,10 +21,9 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor, nn
 
-from semvpr.data.classes import IGNORE, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
+from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 from semvpr.errors import SemvprError
 
-NUM_CLASSES = len(TRAIN_ID_NAMES)
 WEIGHTINGS = ("binary", "learned")
 
 

@@ -20,8 +20,8 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
 from semvpr.artifacts import build_once
-from semvpr.data.classes import IGNORE, STATIC_NAMES, static_lut
-from semvpr.models.masks import NUM_CLASSES
+from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES
+from semvpr.models.masks import static_vector
 from semvpr.errors import SemvprError
 from semvpr.precision import autocast
 from semvpr.pseudolabels import label_path, read_label
@@ -46,7 +46,7 @@ class Student(nn.Module):
         strides: Sequence[int] = (4, 8, 16), width: int = 64, static_names: Sequence[str] = STATIC_NAMES,
     ) -> None:  # fmt: skip
         super().__init__()
-        self.register_buffer("static_weight", torch.from_numpy(static_lut(tuple(static_names))[:NUM_CLASSES]),
+        self.register_buffer("static_weight", static_vector(static_names),
                              persistent=False)
         # The deepest frozen output of each wanted stride (ResNet's stem and layer1 share none; VGG's do not).
         chosen = {s: i for i, s in enumerate(frozen_strides) if s in set(strides)}

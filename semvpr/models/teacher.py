@@ -22,13 +22,11 @@ from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation,
 from semvpr.artifacts import build_once, config_hash, files_identity
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.errors import SemvprError
-from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, TIMM_EFFICIENTNET_LITE0,
+from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, IMAGENET_MEAN, IMAGENET_STD, TIMM_EFFICIENTNET_LITE0,
                                      efficientnet_lite0_state)
 from semvpr.precision import autocast, lightning_precision
 from semvpr.logs import trainer_kwargs
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def _norm_name(name: str) -> str:
