@@ -66,7 +66,9 @@ class PlaceSet:
             except (TypeError, ValueError):
                 raise SemvprError(f"place set {self.name!r}: {utm_field} is not (east, north) numbers") from None
             bad = np.flatnonzero(~np.isfinite(utm).all(1))
-            if len(bad):
+            # A set scored by shipped ground truth may have no positions at all (NaN throughout).
+            no_positions = self.ground_truth is not None and bool(np.isnan(utm).all())
+            if len(bad) and not no_positions:
                 raise SemvprError(f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), "
                                   f"the first at row {bad[0]} ({utm[bad[0]].tolist()})")
             if len(utm) != len(paths):
