@@ -210,7 +210,15 @@ def run_labels(cfg: DictConfig) -> dict[str, Any]:
     return {"aggregator": cfg.aggregator.get("name"), "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
             "mask": cfg.mask.get("name"), "weights": cfg.mask.get("weights"),
             "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)), "backbone": cfg.backbone.get("name"),
-            "filter": cfg.filter.get("name"), "seed": int(cfg.seed)}
+            "filter": cfg.filter.get("name"), "seed": _seed_of(cfg)}
+
+
+def _seed_of(cfg: DictConfig) -> int | str | None:
+    """The seed as recorded: a whole number, or as given when it is not one (a refused job's record)."""
+    try:
+        return int(cfg.get("seed"))
+    except (TypeError, ValueError):
+        return None if cfg.get("seed") is None else str(cfg.get("seed"))
 
 
 def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
