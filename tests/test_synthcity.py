@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import os
 import subprocess
 import sys
@@ -444,7 +445,8 @@ def test_get_preset_overrides_and_bad_values() -> None:
 
 
 def one_error_line(err: str) -> str:
-    lines = err.strip().splitlines()
+    """The one error line of stderr; stage lines (``semvpr: <stage>: i/N ...``) may precede it."""
+    lines = [ln for ln in err.strip().splitlines() if not re.match(r"semvpr: [^:]+: \d+/\d+ ", ln)]
     assert len(lines) == 1 and "Traceback" not in err, err
     assert lines[0].startswith("semvpr: error: "), err
     return lines[0]
