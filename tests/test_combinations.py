@@ -6,7 +6,7 @@ import torch
 from hydra.utils import instantiate
 
 from semvpr.build import build_aggregator, build_backbone
-from semvpr.models.retriever import Retriever, triplet_loss
+from semvpr.models.retriever import Optimization, Retriever, triplet_loss
 from tests.helpers import config
 
 BACKBONES = ("vgg16", "resnet50", "efficientnet_lite0")
@@ -29,7 +29,7 @@ def test_backbone_experiment_composes_and_steps(backbone: str, experiment: str |
     torch.manual_seed(0)
     model = build_backbone(cfg)
     aggregator = build_aggregator(cfg, model)
-    retriever = Retriever(model, aggregator, optimizer=instantiate(cfg.model.optimizer), margin=cfg.model.margin)
+    retriever = Retriever(model, aggregator, optimization=Optimization(instantiate(cfg.model.optimizer), margin=cfg.model.margin))
     optimizer = retriever.configure_optimizers()
     optimizer = optimizer["optimizer"] if isinstance(optimizer, dict) else optimizer
     images = torch.rand(4, 3, 64, 80)
