@@ -106,7 +106,7 @@ def bench_aggregate(batch: int, reps: int) -> float:
     c, alpha = layer.centroids.detach(), float(layer.alpha)
     speedups = []
     with torch.inference_mode():
-        # 7x10 is a 120x160 image's grid (SynthCity's size until stop 20); 30x40 the 480x640 paper grid
+        # 7x10 is a 120x160 image's grid (SynthCity's size before 180x240); 30x40 the 480x640 paper grid
         # (smaller batch: the loop is slow).
         for b, h, w in ((batch, 7, 10), (max(1, batch // 4), 30, 40)):
             x = torch.relu(torch.randn(b, 512, h, w))
