@@ -35,6 +35,7 @@ from semvpr.io import CONF_DIR, open_array, write_json
 from semvpr.metrics import RECALL_NS
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Retriever, evaluate
+from semvpr.logs import quiet_third_party
 
 
 #: Command-line group choices that would change the model, and the groups each one sets.
@@ -121,6 +122,7 @@ def explicit_keys() -> set[str]:
 @hydra.main(config_path=CONF_DIR, config_name="eval", version_base="1.3")
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
+    quiet_third_party()
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         result = evaluate_checkpoint(cfg, explicit_keys())

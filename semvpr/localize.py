@@ -21,6 +21,7 @@ from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.eval import explicit_keys, load_retriever, place_descriptors
 from semvpr.metrics import knn
 from semvpr.io import CONF_DIR, write_json
+from semvpr.logs import quiet_third_party
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
@@ -60,6 +61,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
 @hydra.main(config_path=CONF_DIR, config_name="localize", version_base="1.3")
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
+    quiet_third_party()
     results = localize(cfg, explicit_keys())
     output = Path(HydraConfig.get().runtime.output_dir) / "localize.json"
     write_json(output, results)

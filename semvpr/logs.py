@@ -27,6 +27,9 @@ NOISE_LINES = (
     "Using bfloat16 Automatic Mixed Precision", "Using 16bit Automatic Mixed Precision",
     "`Trainer.fit` stopped:",         # semvpr's epoch lines say when training ends
     "Loading `train_dataloader` to estimate number of stepping batches",
+    # transformers' Mask2Former lists only Swin as a backbone; timm's EfficientNet-Lite0 works through
+    # its TimmBackbone (tests/test_teacher.py checks its features and a save/load round trip).
+    "Backbone timm_backbone is not a supported model",
 )
 # Warnings about settings semvpr makes on purpose, with the reason each is harmless.
 NOISE_WARNINGS = (
@@ -49,7 +52,7 @@ _FILTER = _DropNoise()
 def quiet_third_party() -> None:
     """Hide the known harmless third-party lines and warnings (idempotent; other output is kept)."""
     for name in ("lightning.pytorch", "lightning.pytorch.utilities.rank_zero", "lightning.fabric",
-                 "lightning.fabric.utilities.rank_zero"):
+                 "lightning.fabric.utilities.rank_zero", "transformers.models.mask2former.configuration_mask2former"):
         logger = logging.getLogger(name)
         if _FILTER not in logger.filters:
             logger.addFilter(_FILTER)

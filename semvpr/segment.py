@@ -29,6 +29,7 @@ from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.io import CONF_DIR, atomic_dir, write_json
 from semvpr.segeval import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmetrics import binary_pred
+from semvpr.logs import quiet_third_party
 
 SPLITS = ("train", "val", "test")
 #: Keys of the last stdout line, per model.
@@ -207,6 +208,7 @@ def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
 @hydra.main(config_path=CONF_DIR, config_name="segment", version_base="1.3")
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
+    quiet_third_party()
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))  # process-wide, so here and not in run()
     run_dir = Path(HydraConfig.get().runtime.output_dir)

@@ -41,7 +41,7 @@ from semvpr.models.masks import MaskSource
 from semvpr.models.netvlad import PCAWhitening
 from semvpr.models.retriever import Optimization, Retriever
 from semvpr.precision import lightning_precision
-from semvpr.logs import trainer_kwargs
+from semvpr.logs import quiet_third_party, trainer_kwargs
 from semvpr.resume import keep_run_record, resumed_config
 
 
@@ -309,6 +309,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 @hydra.main(config_path=CONF_DIR, config_name="train", version_base="1.3")
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
+    quiet_third_party()
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     record = run_dir / ".hydra" / "config.yaml"
