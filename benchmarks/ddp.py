@@ -9,7 +9,7 @@ conv4 trunk features of 240x320 images (random weights and features: timing need
   count (Retriever.training_step), DDP's gradient all-reduce included, no optimizer step;
 - grad_rel_err: ||g_ddp - g_1|| / ||g_1|| of the first step's gradient.
 
-python benchmarks/ddp.py [--db 48] [--batch 4] [--negatives 2] [--steps 2] [--reps 2]
+python benchmarks/ddp.py [--db 192] [--batch 4] [--negatives 2] [--steps 2] [--reps 3]
 Last line: world=2 grad_rel_err=<e> refresh_speedup=<s> step_speedup=<s>
 """
 from __future__ import annotations
@@ -114,11 +114,11 @@ def measure(rank: int, world: int, args: argparse.Namespace, port: int, out: str
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--db", type=int, default=48)
+    parser.add_argument("--db", type=int, default=192)
     parser.add_argument("--batch", type=int, default=4)
     parser.add_argument("--negatives", type=int, default=2)
     parser.add_argument("--steps", type=int, default=2)
-    parser.add_argument("--reps", type=int, default=2)
+    parser.add_argument("--reps", type=int, default=3)
     args = parser.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     with tempfile.TemporaryDirectory() as tmp:
