@@ -139,9 +139,9 @@ def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[
     # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
     # (ModelCheckpoint's save_last only refreshes it when the best changes).
     checkpoint = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
-                                 mode="max", auto_insert_metric_name=False)
+                               mode="max", auto_insert_metric_name=False)
     latest = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
-                             enable_version_counter=False)
+                           enable_version_counter=False)
     trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
     datamodule = RetrievalDataModule(job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size),
                                      int(cfg.data.num_workers))
