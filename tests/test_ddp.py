@@ -144,8 +144,18 @@ def test_two_job_ddp_sweep_writes_one_sweep_dir_with_two_ok_jobs_and_one_report(
 @pytest.mark.slow
 def test_ddp_resume_is_bit_identical_at_the_same_world_size(tmp_path: Path) -> None:
     _train(tmp_path, *DDP, "trainer.max_epochs=2", f"hydra.run.dir={tmp_path / 'whole'}")
+    # A 2-epoch run killed after its first epoch: its record says 2 epochs, last.ckpt holds epoch 1.
     _train(tmp_path, *DDP, "trainer.max_epochs=1", f"hydra.run.dir={tmp_path / 'resumed'}")
-    _train(tmp_path, *DDP, "trainer.max_epochs=2", "ckpt_path=last", f"hydra.run.dir={tmp_path / 'resumed'}")
+    for name, old, new in (("config.yaml", "max_epochs: 1\n", "max_epochs: 2\n"),
+                           ("overrides.yaml", "trainer.max_epochs=1\n", "trainer.max_epochs=2\n"),
+                           ("hydra.yaml", "trainer.max_epochs=1\n", "trainer.max_epochs=2\n")):
+        record = tmp_path / "resumed" / ".hydra" / name
+        assert old in record.read_text(), name
+        record.write_text(record.read_text().replace(old, new))
+    # The README's resume command: the run's own config, no other override (experiment=tiny would be one).
+    proc = subprocess.run([sys.executable, "-m", "semvpr.train", "ckpt_path=last", f"hydra.run.dir={tmp_path / 'resumed'}"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-3000:]
     runs = [json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "resumed")]
     assert runs[0]["recalls"] == runs[1]["recalls"] and runs[0]["best/val/R@1"] == runs[1]["best/val/R@1"]
     weights = [torch.load(m["checkpoint"], weights_only=True)["state_dict"] for m in runs]
