@@ -23,7 +23,7 @@ from semvpr.data.published import results_for
 from semvpr.errors import SemvprError, exit_on_user_error
 from semvpr.io import write_text
 from semvpr.metrics import RECALL_NS
-from semvpr.report import sweep_dir_of
+from semvpr.sweep import sweep_dir_of
 
 COLUMNS = ("data", "set", "benchmark", *(f"R@{n}" for n in RECALL_NS), "queries", "database",
            "descriptor_dim", "wall_s", "source")

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from torchvision import transforms
 
 from semvpr.errors import SemvprError
-from semvpr.eval import descriptor_dim, load_retriever
+from semvpr.inference import descriptor_dim, load_retriever
 from semvpr.io import CONF_DIR
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.models.masks import OracleMask

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 
 from semvpr.build import build_places, check_config
 from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.eval import explicit_keys, load_retriever, place_descriptors
+from semvpr.inference import explicit_keys, load_retriever, place_descriptors
 from semvpr.metrics import knn
 from semvpr.io import CONF_DIR, write_json
 from semvpr.logs import quiet_third_party

@@ -14,11 +14,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from semvpr.io import atomic_file
+from semvpr.sweep import LEARNED, Job, Sweep, cell_name, mean_std
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-    from semvpr.report import Job, Sweep
 
 # maps.npz: "attention" (the aggregator's own map, if it has one), one array per mask source named
 # after it, and these bookkeeping arrays.
@@ -122,8 +122,6 @@ def recall_curves(sweep: Sweep, out: Path) -> str | None:
 def matrix_bars(sweep: Sweep, out: Path) -> str | None:
     """Grouped bars of test R@1 (mean ± std over seeds): one group per aggregator, one bar per mask,
     one panel per backbone; else a skip reason."""
-    from semvpr.report import cell_name, mean_std
-
     panels = []
     for bb in sweep.backbones:
         bars = {(a, m): [j.recall(1) for j in sweep.jobs_of(cell_name(a, m), bb) if j.ok]
@@ -309,8 +307,6 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
 
 def class_weights(sweep: Sweep, out: Path) -> str | None:
     """Learned per-class weights (mean ± std over seeds) per mask source and backbone; else a skip reason."""
-    from semvpr.report import LEARNED, mean_std
-
     runs = sweep.learned_weights()
     if not runs:
         return "no run learned class weights (mask.weights=learned)"

@@ -1,264 +1,26 @@
-"""Sweep-end report: results.csv / results.md and figures, read back from the per-run files of a multirun."""
+"""Sweep-end report: ``python -m semvpr.report <sweep dir>`` and the Hydra callback that runs it after a
+multirun; results.csv / results.md and figures from the sweep as ``semvpr.sweep`` reads it back."""
 from __future__ import annotations
 
 import argparse
 import csv
 import io
-import json
 import math
 import os
 import shutil
 import sys
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import yaml
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from semvpr.errors import SemvprError, exit_on_user_error
+from semvpr.errors import exit_on_user_error
 from semvpr.io import write_text
 from semvpr.metrics import RECALL_NS
-
-LEARNED = "+learned"  # a mask run with mask.weights=learned is reported as "<mask>+learned"
-NO_MASK = "none"  # the mask choice every other mask is paired against
-
-
-@dataclass
-class Job:
-    """One run of the sweep as read back from its directory."""
-
-    dir: Path
-    name: str
-    aggregator: str
-    mask: str  # the mask choice, with LEARNED appended for learned class weights
-    backbone: str
-    seed: int | None
-    ok: bool
-    error: str
-    metrics: dict[str, Any]
-    #: Dataset roots the run recorded (data.root, paths.cache_dir): the only places images are drawn from.
-    roots: tuple[Path, ...] = ()
-
-    @property
-    def cell(self) -> str:
-        """The table row this run belongs to (besides its backbone): aggregator · mask."""
-        return cell_name(self.aggregator, self.mask)
-
-    def recall(self, n: int) -> float:
-        """Test Recall@n in percent (nan when the run did not record it)."""
-        value = self.metrics.get(f"test/R@{n}")
-        return float(value) if isinstance(value, (int, float)) else math.nan
-
-
-def cell_name(aggregator: str, mask: str) -> str:
-    """Display key of an (aggregator, mask) pair."""
-    return f"{aggregator} · {mask}"
-
-
-@dataclass
-class Sweep:
-    """All jobs of one sweep directory, with the orderings the tables and figures share.
-
-    Runs are grouped by what they recorded (aggregator, mask, mask weighting, backbone), never by
-    a name known here: the baseline aggregator and the upper-bound masks are flags in metrics.json.
-    """
-
-    dir: Path
-    jobs: list[Job]
-
-    @property
-    def backbones(self) -> list[str]:
-        """Backbones in a stable (alphabetical) order, unknown ones last."""
-        return sorted({j.backbone for j in self.jobs}, key=lambda b: (b == "?", b))
-
-    @property
-    def baseline(self) -> str | None:
-        """The aggregator a run recorded as the baseline (conf/aggregator: baseline: true), if any ran."""
-        names = sorted({j.aggregator for j in self.jobs if j.metrics.get("baseline_aggregator") is True})
-        return names[0] if names else None
-
-    @property
-    def upper_bounds(self) -> frozenset[str]:
-        """Masks recorded as upper bounds (ground truth: a ceiling to read against, not a competitor)."""
-        return frozenset(j.mask.removesuffix(LEARNED) for j in self.jobs if j.metrics.get("mask_upper_bound") is True)
-
-    @property
-    def aggregators(self) -> list[str]:
-        """The baseline aggregator first, then the others alphabetically, unknown last."""
-        return sorted({j.aggregator for j in self.jobs}, key=lambda a: (a != self.baseline, a == "?", a))
-
-    @property
-    def masks(self) -> list[str]:
-        """No mask first, upper bounds last, each mask's learned-weights variant right after it."""
-        bounds = self.upper_bounds
-        return sorted({j.mask for j in self.jobs}, key=lambda m: (
-            m.removesuffix(LEARNED) != NO_MASK, m.removesuffix(LEARNED) in bounds, m == "?",
-            m.removesuffix(LEARNED), m.endswith(LEARNED)))
-
-    @property
-    def cells(self) -> list[str]:
-        """Rows in reading order: aggregators outer, masks inner."""
-        present = {j.cell for j in self.jobs}
-        return [c for a in self.aggregators for m in self.masks if (c := cell_name(a, m)) in present]
-
-    def label(self, cell: str) -> str:
-        """Display name of a row."""
-        mask = cell.rpartition(" · ")[2].removesuffix(LEARNED)
-        return f"{cell} (upper bound)" if mask in self.upper_bounds else cell
-
-    def jobs_of(self, cell: str, backbone: str, needs: str | None = None) -> list[Job]:
-        """Jobs of one row, ok runs first then by seed, optionally only those holding file `needs`."""
-        jobs = [j for j in self.jobs if j.cell == cell and j.backbone == backbone]
-        jobs = [j for j in jobs if needs is None or (j.dir / needs).is_file()]
-        return sorted(jobs, key=lambda j: (not j.ok, j.seed if j.seed is not None else math.inf, j.name))
-
-    def learned_weights(self) -> dict[tuple[str, str], list[dict[str, float]]]:
-        """Per (backbone, row), the learned class weights of each ok run, in table order."""
-        runs: dict[tuple[str, str], list[dict[str, float]]] = {}
-        for job in self.jobs:
-            weights = numeric_weights(job.metrics.get("class_weights")) if job.ok else None
-            if weights is not None:
-                runs.setdefault((job.backbone, job.cell), []).append(weights)
-        return {c: runs[c] for c in sorted(runs, key=lambda c: (c[0], self.cells.index(c[1])))}
-
-    def image_path(self, stored: str) -> Path | None:
-        """Find an image path stored by a run (relative paths are relative to the run's launch dir);
-        None unless it lies under a dataset root some job recorded (a sweep directory is data)."""
-        path = Path(stored)
-        # The launch dir is usually the project root, an ancestor of outputs/multiruns/<date>/<time>.
-        candidates = [path] if path.is_absolute() else [r / path for r in (Path.cwd(), self.dir, *self.dir.resolve().parents)]
-        roots = {root.resolve() for job in self.jobs for root in job.roots}
-        for candidate in candidates:
-            if candidate.is_file() and any(candidate.resolve().is_relative_to(root) for root in roots):
-                return candidate
-        return None
-
-
-def md_cell(text: object) -> str:
-    """Text from a run as one markdown table cell or list item: no HTML tag or entity ('&', '<'
-    escaped), no '|', '`' or line break."""
-    flat = " ".join(str(text).split())
-    return flat.replace("&", "&amp;").replace("<", "&lt;").replace("|", "&#124;").replace("`", "&#96;")
-
-
-def numeric_weights(value: object) -> dict[str, float] | None:
-    """A run's recorded class weights if they are a name -> finite number mapping, else None."""
-    if not isinstance(value, dict) or not value:
-        return None
-    ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value.values())
-    return {str(k): float(v) for k, v in value.items()} if ok else None
-
-
-def _error_line(error: object) -> str:
-    """The telling line of an error: a traceback ends with the exception, so take the last line."""
-    lines = [ln.strip() for ln in str(error or "").splitlines() if ln.strip()]
-    return lines[-1][:200] if lines else ""
-
-
-FACT_KEYS = ("aggregator", "mask", "backbone", "seed", "mask.weights")
-
-
-def _yaml(path: Path) -> Any:
-    """A .hydra file as plain YAML data: interpolations stay text, nothing is resolved."""
-    return yaml.safe_load(path.read_text(encoding="utf-8")) if path.is_file() else None
-
-
-def _select(node: Any, dotted: str) -> Any:
-    for key in dotted.split("."):
-        node = node.get(key) if isinstance(node, dict) else None
-    return node
-
-
-def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
-    """aggregator / mask / backbone / seed / mask weighting of a job from its .hydra files (for jobs that
-    died before metrics.json), read as plain YAML (nothing resolved), and the dataset roots it recorded.
-    The composed choices are used, so a filter preset counts as the aggregator and mask it chose."""
-    # lowest priority: the dir name itself, Hydra's override_dirname "aggregator=gem,mask=student,seed=1"
-    facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(",")) if k in FACT_KEYS and v}
-    hydra_dir = job_dir / ".hydra"
-    roots: list[Path] = []
-    try:
-        config, hydra_cfg = _yaml(hydra_dir / "config.yaml"), _yaml(hydra_dir / "hydra.yaml")
-        # mask.weights is usually "${filter.weights}" (text here): the preset's value stands for it.
-        for key, fact in (("seed", "seed"), ("filter.weights", "mask.weights"), ("mask.weights", "mask.weights")):
-            value = _select(config, key)
-            if value is not None and "${" not in str(value):
-                facts[fact] = str(value)
-        choices = _select(hydra_cfg, "hydra.runtime.choices")
-        for key in ("aggregator", "mask", "backbone"):
-            if isinstance(choices, dict) and choices.get(key) is not None:
-                facts[key] = str(choices[key])
-        for item in _yaml(hydra_dir / "overrides.yaml") or []:
-            key, _, value = str(item).lstrip("+~").partition("=")
-            key = "mask.weights" if key == "filter.weights" else key
-            if key in FACT_KEYS:
-                facts[key] = value
-        launch = Path(str(_select(hydra_cfg, "hydra.runtime.cwd") or Path.cwd()))
-        for key in ("data.root", "paths.cache_dir"):
-            value = _select(config, key)
-            if isinstance(value, str) and value and "${" not in value:
-                roots.append(launch / Path(value).expanduser())
-    except Exception:  # a damaged .hydra dir only costs us labels and images, never the report
-        pass
-    return facts, tuple(roots)
-
-
-def read_job(job_dir: Path, sweep_dir: Path) -> Job:
-    """Read one job directory; a missing or unreadable metrics.json makes a failed job."""
-    rel = job_dir.relative_to(sweep_dir).as_posix()
-    name = job_dir.name if rel == "." else rel
-    metrics: dict[str, Any] = {}
-    error = ""
-    path = job_dir / "metrics.json"
-    if not path.is_file():
-        error = "no metrics.json"
-    else:
-        try:
-            loaded = json.loads(path.read_text(encoding="utf-8"))
-            metrics = loaded if isinstance(loaded, dict) else {}
-            error = "" if metrics else "metrics.json is not a JSON object"
-        except (OSError, ValueError) as err:
-            error = f"unreadable metrics.json ({err})"
-    ok = not error and metrics.get("status") == "ok"
-    if not ok and not error:
-        error = _error_line(metrics.get("error")) or f"status {metrics.get('status')!r}"
-    facts, roots = _hydra_facts(job_dir)
-    seed = metrics.get("seed", facts.get("seed"))
-    try:
-        seed = int(seed) if seed is not None else None
-    except ValueError:
-        seed = None
-    mask = str(metrics.get("mask") or facts.get("mask") or "?")
-    if (metrics.get("weights") or facts.get("mask.weights")) == "learned":
-        mask += LEARNED
-    return Job(job_dir, name, str(metrics.get("aggregator") or facts.get("aggregator") or "?"), mask,
-               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics,
-               roots)
-
-
-def load_sweep(sweep_dir: Path) -> Sweep:
-    """Discover job dirs (any dir holding metrics.json or a .hydra dir) and read them."""
-    sweep_dir = Path(sweep_dir)
-    if not sweep_dir.is_dir():
-        raise SemvprError(f"sweep dir {sweep_dir} does not exist; pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
-    dirs = {p.parent for p in sweep_dir.rglob("metrics.json")}
-    dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}
-    if not dirs:
-        raise SemvprError(f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "
-                          "pass the multirun dir written by `python -m semvpr.train -m ...`")
-    return Sweep(sweep_dir, [read_job(d, sweep_dir) for d in sorted(dirs)])
-
-
-def mean_std(values: list[float]) -> tuple[float, float]:
-    """Mean and sample std (ddof=1) of the finite values; std is nan for fewer than two."""
-    vals = np.array([v for v in values if math.isfinite(v)], dtype=np.float64)
-    if vals.size == 0:
-        return math.nan, math.nan
-    return float(vals.mean()), float(vals.std(ddof=1)) if vals.size > 1 else math.nan
+from semvpr.sweep import (LEARNED, NO_MASK, Sweep, cell_name, load_sweep, md_cell, mean_std, numeric_weights,
+                          sweep_dir_of)
 
 
 def _rows(sweep: Sweep) -> list[dict[str, Any]]:
@@ -438,7 +200,9 @@ def write_report(sweep_dir: Path) -> Path:
     Everything is made in a fresh scratch directory first and moved in only when all of it was
     made, so a failure leaves the previous report whole (never a new csv beside an old md).
     """
-    from semvpr import plots  # matplotlib is only needed here, not to import the callback
+    from semvpr import (
+        plots,  # matplotlib is only needed here, not to import the callback
+    )
 
     sweep = load_sweep(Path(sweep_dir))
     rows = _rows(sweep)
@@ -467,14 +231,6 @@ def print_summary(md: Path) -> None:
     """Print where the report is and its table."""
     print(f"semvpr report: {md}")
     print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith(("|", "**R@1", "- "))))
-
-
-def sweep_dir_of(config: DictConfig) -> Path:
-    """A multirun's sweep dir (hydra.sweep.dir, relative to the launch dir)."""
-    sweep_dir = Path(str(config.hydra.sweep.dir))
-    if not sweep_dir.is_absolute():
-        sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
-    return sweep_dir
 
 
 class ReportCallback(Callback):

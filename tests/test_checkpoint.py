@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from semvpr.errors import SemvprError
-from semvpr.eval import load_retriever
+from semvpr.inference import load_retriever
 
 from tests.helpers import tiny_config, write_checkpoint
 

@@ -121,7 +121,7 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
     activation memory does not grow with the batch; descriptors are those of one whole-batch pass."""
     import semvpr.models.backbones as backbones
     from semvpr.build import build_places
-    from semvpr.eval import load_retriever, place_descriptors
+    from semvpr.inference import load_retriever, place_descriptors
     from semvpr.features import grid_size
 
     write_checkpoint(tiny_config(tmp_path, f"filter={filter_name}"), tmp_path / "model.ckpt")

@@ -24,7 +24,7 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_hub_model_takes_normalised_images_and_gives_unit_descriptors(checkpoint: Path) -> None:
-    from semvpr.eval import load_retriever
+    from semvpr.inference import load_retriever
 
     model = torch.hub.load(str(REPO), "semvpr", ckpt=str(checkpoint), source="local", image_size=[32, 48])
     rng = np.random.default_rng(0)

@@ -11,10 +11,7 @@ import argparse
 import dataclasses
 import json
 import math
-import os
-import shutil
 import signal
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +24,7 @@ from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.io import check_dir_path, reclaim_orphans, temp_prefix
+from semvpr.io import atomic_dir, check_dir_path, reclaim_orphans
 from semvpr.logs import Progress
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
@@ -266,17 +263,10 @@ def main(argv: list[str] | None = None) -> None:
     _key(args.preset, args.seed, render, args.image_size)  # validate before creating anything
     out.parent.mkdir(parents=True, exist_ok=True)
     reclaim_orphans(out.parent)
-    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(out.name), suffix=".tmp", dir=out.parent))
-    for sig in (signal.SIGTERM, signal.SIGINT):  # a kill ends in the cleanup below and one line
+    for sig in (signal.SIGTERM, signal.SIGINT):  # a kill ends in atomic_dir's cleanup and one line
         signal.signal(sig, _stopped)
-    try:
+    with atomic_dir(out) as tmp:
         stats = generate(tmp, args.preset, args.seed, render, args.image_size)
-        if out.exists():
-            out.rmdir()
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     print(f"wrote {sum(stats['images'].values())} images to {out} "
           f"(measured dynamic fraction {stats['dynamic_fraction']})")
 
