@@ -215,6 +215,22 @@ def test_backbone_learns_at_its_lr_factor() -> None:
     assert backbone["initial_lr"] == pytest.approx(0.1 * rest["initial_lr"])
 
 
+def test_backbone_lr_factor_zero_freezes_the_backbone() -> None:
+    from semvpr.models.teacher import embedded_teacher, targets_from_train_ids
+
+    torch.manual_seed(0)
+    teacher = embedded_teacher(tiny_cfg(train={"backbone_lr_factor": 0.0}))
+    teacher.trainer = type("T", (), {"estimated_stepping_batches": 100})()
+    (group,) = teacher.configure_optimizers()["optimizer"].param_groups
+    encoder = teacher.model.model.pixel_level_module.encoder
+    assert not {id(p) for p in encoder.parameters()} & {id(p) for p in group["params"]}
+    images, ids = torch.rand(2, 3, 32, 48), torch.randint(0, 19, (2, 32, 48))
+    masks, classes = targets_from_train_ids(ids, teacher.train_to_model)
+    teacher.model(pixel_values=teacher._pixels(images), mask_labels=masks, class_labels=classes).loss.backward()
+    assert all(p.grad is None for p in encoder.parameters())
+    assert any(p.grad is not None for p in teacher.model.parameters())
+
+
 def _saved_teacher(folder: Path) -> Path:
     """A genuine tiny Mask2Former directory (safetensors weights, config, processor config)."""
     from transformers import Mask2FormerImageProcessor

@@ -71,8 +71,11 @@ class Teacher(L.LightningModule):
         self.id2label = {int(k): str(v) for k, v in model.config.id2label.items()}
         self.inference_size = tuple(inference_size) if inference_size else None
         self.lr, self.weight_decay, self.warmup_steps, self.bf16, self.flip = lr, weight_decay, warmup_steps, bf16, flip
-        # The pixel-level backbone's learning rate is lr x this (Mask2Former's recipe: 0.1 for an ImageNet backbone).
+        # The pixel-level backbone's learning rate is lr x this (Mask2Former's recipe: 0.1 for an ImageNet backbone);
+        # 0 freezes it: no gradient flows into it, so training skips its backward pass.
         self.backbone_lr_factor = backbone_lr_factor
+        if backbone_lr_factor == 0:
+            self.model.model.pixel_level_module.encoder.requires_grad_(False)
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
         self.source_hash = ""  # a pretrained checkpoint's content hash (load_pretrained)
         names = {_norm_name(n): i for i, n in enumerate(TRAIN_ID_NAMES)}
@@ -170,7 +173,7 @@ class Teacher(L.LightningModule):
         encoder = {id(p) for p in self.model.model.pixel_level_module.encoder.parameters()}
         rest = [p for p in self.model.parameters() if id(p) not in encoder and p.requires_grad]
         backbone = [p for p in self.model.parameters() if id(p) in encoder and p.requires_grad]
-        groups = [{"params": rest}, {"params": backbone, "lr": self.lr * self.backbone_lr_factor}]
+        groups = [{"params": rest}] + ([{"params": backbone, "lr": self.lr * self.backbone_lr_factor}] if backbone else [])
         opt = torch.optim.AdamW(groups, lr=self.lr, weight_decay=self.weight_decay)
         total = max(1, int(self.trainer.estimated_stepping_batches))
         warm = min(self.warmup_steps, total // 2)
