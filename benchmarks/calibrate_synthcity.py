@@ -1,7 +1,9 @@
 """Calibrate SynthCity on val: do oracle static masks, binary and per-class weighted, help an untrained retriever?
 
-Random-init VGG16 trunk (conv5_3 before its ReLU), NetVLAD with k-means centroids from train-split
-features, evaluated on the val split (calibration is a choice, so it is made on val; test is
+A frozen trunk from conf/backbone (``--backbone``: by default the training default, the ImageNet
+EfficientNet-Lite0 cut at stride 16; ``--backbone vgg16`` is the random-init VGG16, conv5_3 before its
+ReLU, that the generator was first calibrated on, one init per model seed), NetVLAD with k-means
+centroids from train-split features, evaluated on the val split (calibration is a choice, so it is made on val; test is
 reported once, elsewhere) with four NetVLAD contribution weights on the feature grid:
 
 - ``none``: no mask;
@@ -14,7 +16,7 @@ reported once, elsewhere) with four NetVLAD contribution weights on the feature 
 The benchmark is useful when the binary oracle gains >= 10 R@1 points over none, the weighted oracle
 a further >= 3, and unmasked R@1 is 20-80 %.
 
-    python benchmarks/calibrate_synthcity.py [--preset default] [--seed 0 1 2] [--model-seed 0 1 2]
+    python benchmarks/calibrate_synthcity.py [--preset default] [--seed 0 1 2] [--model-seed 0 1 2] [--backbone vgg16]
         [--weight vegetation=0.3 ...] [--render pitch_m=8 ...] [--image-size 180 240]
         [--cache-dir outputs/cache]
 
@@ -42,7 +44,7 @@ from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
 from semvpr.io import CONF_DIR
-from semvpr.models.backbones import VGG16Backbone
+from semvpr.build import instantiate_backbone
 from semvpr.models.masks import pool_to_grid
 from semvpr.models.netvlad import NetVLAD
 
@@ -76,13 +78,13 @@ def load_labels(paths: Sequence[Path]) -> np.ndarray:
 
 
 @torch.no_grad()
-def local_features(trunk: VGG16Backbone, images: torch.Tensor, bf16: bool) -> torch.Tensor:
-    """conv5_3 features (channels_last, optionally in bf16 autocast), returned as fp32."""
+def local_features(trunk: torch.nn.Module, images: torch.Tensor, bf16: bool) -> torch.Tensor:
+    """The trunk's last-scale features (channels_last, optionally in bf16 autocast), returned as fp32."""
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         return trunk(images.contiguous(memory_format=torch.channels_last))[-1].float()
 
 
-def features_of(trunk: VGG16Backbone, paths: Sequence[Path], bf16: bool, batch: int = 64) -> torch.Tensor:
+def features_of(trunk: torch.nn.Module, paths: Sequence[Path], bf16: bool, batch: int = 64) -> torch.Tensor:
     """(N,D,h,w) local features of a list of images."""
     return torch.cat([local_features(trunk, load_batch(paths[i:i + batch]), bf16) for i in range(0, len(paths), batch)])
 
@@ -119,11 +121,12 @@ def hits_at(db: np.ndarray, q: np.ndarray, positives: list[np.ndarray], ns=(1, 5
     return {n: np.array([np.isin(pred[i, :n], positives[i]).any() for i in valid], np.float64) for n in ns}
 
 
-def calibrate(split: PlaceSet, train: PlaceSet, model_seed: int, clusters: int, init_images: int,
+def calibrate(split: PlaceSet, train: PlaceSet, backbone: str, model_seed: int, clusters: int, init_images: int,
               weights: np.ndarray, bf16: bool) -> dict[str, dict[int, np.ndarray]]:
-    """Per-variant, per-N query hits of one random-init trunk + k-means NetVLAD on ``split``."""
-    torch.manual_seed(model_seed)
-    trunk = VGG16Backbone(weights="none", train_from=None).eval().to(memory_format=torch.channels_last)
+    """Per-variant, per-N query hits of one frozen trunk (conf/backbone/<backbone>.yaml; a random init
+    is the model seed's) + k-means NetVLAD on ``split``."""
+    node = OmegaConf.load(Path(CONF_DIR) / "backbone" / f"{backbone}.yaml")
+    trunk = instantiate_backbone(node, model_seed).eval()
     pick = np.random.default_rng(model_seed).permutation(len(train.db_paths))[:init_images]
     init = features_of(trunk, [train.db_paths[i] for i in sorted(pick)], bf16)
     vlad = NetVLAD(clusters, trunk.out_channels)
@@ -152,7 +155,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seed", type=int, nargs="+", default=[0], help="dataset seeds (each its own city)")
-    ap.add_argument("--model-seed", type=int, nargs="+", default=[0], help="seeds of the random VGG16 init")
+    ap.add_argument("--model-seed", type=int, nargs="+", default=[0],
+                    help="seeds of the k-means sample (and of the trunk's init, if random)")
+    ap.add_argument("--backbone", default="efficientnet_lite0", help="a conf/backbone option, as weighted there")
     ap.add_argument("--split", default="val", choices=("val", "test"), help="test only to report, once")
     ap.add_argument("--weight", type=parse_weight, action="append", default=[],
                     help="override one class weight of the weighted oracle, e.g. vegetation=0.5")
@@ -184,7 +189,7 @@ def main() -> None:
               f"~ {100 * np.sqrt(0.25 / n):.1f} points); class weights {weights}")
         runs = []
         for seed in args.model_seed:
-            hits = calibrate(split, train, seed, args.clusters, args.init_images, lut, args.bf16)
+            hits = calibrate(split, train, args.backbone, seed, args.clusters, args.init_images, lut, args.bf16)
             runs.append(hits)
             tag = f"  data seed {data_seed} model seed {seed}"
             for v in VARIANTS:
