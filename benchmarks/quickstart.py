@@ -8,7 +8,8 @@ as the sweep reads them.
 
     python benchmarks/quickstart.py [--keep DIR] [--fp32] [--override seed=0,1,2 ...]
 
-Prints each job's time per stage (``timings`` of its ``metrics.json``); last line:
+Prints each job's time per stage (``timings`` of its ``metrics.json``), the stages summed over the
+sweep (generation, trunk and mask caching, teacher, pseudo-labels, student, training, ...); last line:
 ``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk>``.
 """
 from __future__ import annotations
@@ -63,6 +64,20 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
     return time.perf_counter() - t0, len(paths)
 
 
+#: Stages of a job (metrics.json ``timings``) in pipeline order, with the names the breakdown prints.
+STAGES = {"data_s": "generation", "features_s": "trunk + mask caching", "teacher_s": "teacher",
+          "labels_s": "pseudo-labels", "student_s": "student", "init_s": "aggregator init",
+          "untrained_eval_s": "untrained eval", "fit_s": "training", "test_s": "test"}
+
+
+def stage_breakdown(sweep_s: float, jobs: dict[str, dict[str, float]]) -> str:
+    """One line: each stage's seconds summed over the sweep's jobs (a cold stage is paid by the first job
+    that needs it, later ones read the cache), and what the jobs do not account for (start-up, report)."""
+    totals = {name: sum(t.get(key, 0.0) for t in jobs.values()) for key, name in STAGES.items()}
+    other = sweep_s - sum(t["job"] for t in jobs.values())
+    return "stages: " + ", ".join(f"{name} {v:.0f} s" for name, v in totals.items()) + f", outside jobs {other:.0f} s"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--override", action="append", default=[], help="extra Hydra override of the sweep")
@@ -72,7 +87,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="semvpr-quickstart-") as tmp:
         work = args.keep or Path(tmp)
         sweep_s = cold_sweep(work, args.override)
-        print(describe(sweep_s, job_timings(work / "sweep")), flush=True)
+        jobs = job_timings(work / "sweep")
+        print(describe(sweep_s, jobs), flush=True)
+        print(stage_breakdown(sweep_s, jobs), flush=True)
         trunk_s, n = trunk_pass(work, args.override, args.fp32)
         print(f"trunk pass: {n} images in {trunk_s:.1f} s", flush=True)
     print(f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f}")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -150,8 +151,11 @@ def instantiate_backbone(node: DictConfig, seed: int, pretrained: bool = True) -
     return instantiate_node(args).to(memory_format=torch.channels_last)
 
 
-def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Semantic:
-    """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask need them."""
+def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module,
+                   timings: dict[str, float] | None = None) -> Semantic:
+    """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask need them; the
+    seconds each took (built or read from the cache) into ``timings`` as teacher_s, labels_s, student_s."""
+    timings = {} if timings is None else timings
     needs_labels = aggregator_class(cfg).init_sample == "labelled" or cfg.mask.name in ("teacher", "student")
     if not needs_labels:
         return Semantic()
@@ -163,14 +167,18 @@ def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module) -> Sem
     needs_training = cfg.teacher.get("checkpoint") is None
     seg_train = instantiate_node(seg.train) if needs_training else None
     seg_val = instantiate_node(seg.val) if needs_training else None
+    tic = time.time()
     teacher = build_teacher(cfg.teacher, seg_train, seg_val, cfg.paths.cache_dir)
+    timings["teacher_s"], tic = time.time() - tic, time.time()
     images = list(train.db_paths) + list(train.q_paths)
     labels_dir = pseudo_labels(teacher, teacher.teacher_key, images, tuple(cfg.data.image_size),
                                cfg.paths.cache_dir, train.root)
+    timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, train.root)
     if cfg.mask.name == "student":
         semantic.student = build_student(cfg.student, backbone, images, labels_dir, train.root,
                                          tuple(cfg.data.image_size), cfg.paths.cache_dir)
+        timings["student_s"] = time.time() - tic
     return semantic
 
 

@@ -58,12 +58,15 @@ class Prepared:
 
 
 def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
-    """Place sets, backbone, the filter's semantic artifacts and the frozen-trunk features."""
+    """Place sets, backbone, the filter's semantic artifacts and the frozen-trunk features; the seconds of
+    each stage into ``timings`` (data, semantic = teacher + labels + student, features = trunk and masks)."""
     check_config(cfg)
-    places = build_places(cfg)
+    tic = time.time()
+    places = build_places(cfg)  # generates SynthCity on first use
+    timings["data_s"] = time.time() - tic
     backbone = build_backbone(cfg)
     tic = time.time()
-    semantic = build_semantic(cfg, places["train"], backbone)
+    semantic = build_semantic(cfg, places["train"], backbone, timings)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = time.time() - tic
     tic = time.time()
