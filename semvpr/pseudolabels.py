@@ -38,7 +38,7 @@ def read_label(label_dir: str | Path, image: str | Path, root: str | Path) -> np
     path = label_path(label_dir, image, root)
     try:
         with Image.open(path) as img:
-            return np.asarray(img)
+            return np.array(img)  # writable: callers hand it to torch
     except (OSError, ValueError, SyntaxError) as err:
         raise SemvprError(f"pseudo-label {path} is unreadable ({type(err).__name__}); delete {Path(label_dir)} "
                           f"to rebuild the labels") from None
