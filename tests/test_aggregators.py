@@ -24,6 +24,7 @@ BUILDERS = {
     "netvlad": lambda: NetVLAD(num_clusters=4, dim=D),
     "sral": lambda: SRAL(num_clusters=4, dim=D, num_shadows=2),
     "gem": lambda: GeM(dim=D),
+    "gem_fc": lambda: GeM(dim=D, fc_dim=7),
     "mixvpr": lambda: MixVPR(dim=D, grid=(H, W), out_channels=8, out_rows=3, mix_depth=2),
     "salad": lambda: SALAD(dim=D, num_clusters=4, cluster_dim=6, token_dim=5),
     "boq": lambda: BoQ(dim=D, proj_channels=64, num_queries=3, num_layers=2, row_dim=2),
@@ -80,6 +81,24 @@ def test_gem_matches_radenovic() -> None:
         unweighted = x.clamp(min=1e-6).pow(p).mean((2, 3)).pow(1 / p)  # the paper's unmasked GeM
         torch.testing.assert_close(agg(x), unweighted / unweighted.norm(dim=1, keepdim=True))
     assert agg.p.requires_grad
+
+
+def test_gem_head_matches_cosplace() -> None:
+    """CosPlace's aggregation: L2-normalise each location, GeM, linear layer, L2-normalise."""
+    agg = _build("gem_fc")
+    x, w = torch.randn(2, D, H, W), torch.rand(2, 1, H, W)
+    with torch.no_grad():
+        p = float(agg.p)
+        expected = []
+        for b in range(2):
+            cols = x[b].reshape(D, -1)
+            cols = cols / cols.norm(dim=0, keepdim=True)  # each location's feature on the unit sphere
+            ws = w[b].reshape(-1)
+            pooled = ((cols.clamp(min=1e-6) ** p * ws).sum(1) / ws.sum()) ** (1 / p)
+            z = agg.fc.weight @ pooled + agg.fc.bias
+            expected.append(z / z.norm())
+        torch.testing.assert_close(agg(x, w), torch.stack(expected))
+    assert agg.output_dim == 7 and agg.fc.weight.requires_grad
 
 
 def test_mixvpr_matches_the_paper() -> None:

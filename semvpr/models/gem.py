@@ -6,6 +6,12 @@ with one learnable exponent p (initialised at 3, as the paper) shared by all cha
 mask w ≡ 1 and this is the paper's GeM (p = 1: average pooling, p → ∞: max pooling); a location of
 weight 0 takes no part in the mean. The descriptor has as many dimensions as the backbone has
 channels.
+
+``fc_dim`` adds CosPlace's head (Berton, Masone & Caputo, CVPR 2022; the benchmark's "gem" with a
+fully connected layer): each location's feature is L2-normalised over channels first, then pooled
+as above, projected by a learned linear layer to ``fc_dim`` and L2-normalised. On a frozen trunk
+the plain GeM learns only p; the head gives it a learned projection, as NetVLAD, MixVPR, SALAD and
+BoQ have.
 """
 from __future__ import annotations
 
@@ -17,26 +23,32 @@ from semvpr.models.aggregator import Aggregator, check_weights
 
 
 class GeM(Aggregator):
-    """Weighted generalised-mean pooling: (B,D,h,w) [+ (B,1,h,w) mask] → (B,D) L2-normalised."""
+    """Weighted generalised-mean pooling: (B,D,h,w) [+ (B,1,h,w) mask] → (B,D) L2-normalised, or
+    (B,fc_dim) with CosPlace's head."""
 
-    def __init__(self, dim: int, p: float = 3.0, eps: float = 1e-6) -> None:
+    def __init__(self, dim: int, p: float = 3.0, eps: float = 1e-6, fc_dim: int | None = None) -> None:
         super().__init__()
         self.dim, self.eps = dim, eps
         self.p = nn.Parameter(torch.tensor(float(p)))
+        self.fc = nn.Linear(dim, fc_dim) if fc_dim else None
 
     @property
     def output_dim(self) -> int:
-        """Descriptor length D (the backbone's channels)."""
-        return self.dim
+        """Descriptor length: fc_dim with the head, else D (the backbone's channels)."""
+        return self.fc.out_features if self.fc is not None else self.dim
 
     def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
-        """Weighted GeM over the grid, in fp32."""
+        """Weighted GeM over the grid (in fp32), then the head if any."""
         weights = check_weights(x, weights)
         with torch.autocast(x.device.type, enabled=False):
+            x = x.float()
+            if self.fc is not None:
+                x = F.normalize(x, dim=1)
             p = self.p.float()
-            powered = x.float().clamp_min(self.eps).pow(p)
+            powered = x.clamp_min(self.eps).pow(p)
             w = powered.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
             w = w.expand(x.shape[0], 1, *x.shape[2:])
             mean = (powered * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(self.eps)
             # A fully masked image has an empty mean: clamp it where x^p could never be (eps^p), not to 0.
-            return F.normalize(mean.clamp_min(self.eps ** p).pow(1.0 / p), dim=1)
+            pooled = mean.clamp_min(self.eps ** p).pow(1.0 / p)
+            return F.normalize(self.fc(pooled) if self.fc is not None else pooled, dim=1)
