@@ -27,9 +27,6 @@ from torch import Tensor, nn
 from semvpr.errors import SemvprError
 from semvpr.models.aggregator import Aggregator, check_weights, log_weights
 
-HIDDEN = 512  # width of SALAD's three MLPs (the authors')
-
-
 def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Tensor:
     """log of the transport plan of (B,M,N) scores between row masses exp(log_a) (B,M) and column
     masses exp(log_b) (B,N), after ``iters`` alternating row/column normalisations in log space."""
@@ -40,22 +37,23 @@ def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Te
     return scores + u[:, :, None] + v[:, None, :]
 
 
-def _mlp(conv: bool, dim: int, out: int, dropout: float) -> nn.Sequential:
+def _mlp(conv: bool, dim: int, hidden: int, out: int, dropout: float) -> nn.Sequential:
     layer = (lambda i, o: nn.Conv2d(i, o, 1)) if conv else nn.Linear
     drop = [nn.Dropout(dropout)] if dropout > 0 else []
-    return nn.Sequential(layer(dim, HIDDEN), *drop, nn.ReLU(), layer(HIDDEN, out))
+    return nn.Sequential(layer(dim, hidden), *drop, nn.ReLU(), layer(hidden, out))
 
 
 class SALAD(Aggregator):
     """SALAD: (B,D,h,w) [+ mask] → (B, token_dim + num_clusters·cluster_dim) L2-normalised."""
 
     def __init__(self, dim: int, num_clusters: int = 32, cluster_dim: int = 64, token_dim: int = 256,
-                 dropout: float = 0.3, iters: int = 3) -> None:
+                 dropout: float = 0.3, iters: int = 3, hidden_dim: int = 512) -> None:
+        """``hidden_dim``: width of the three MLPs (the authors' 512, for DINOv2's 768 channels)."""
         super().__init__()
         self.num_clusters, self.cluster_dim, self.token_dim, self.iters = num_clusters, cluster_dim, token_dim, iters
-        self.token_features = _mlp(False, dim, token_dim, 0.0)
-        self.cluster_features = _mlp(True, dim, cluster_dim, dropout)
-        self.score = _mlp(True, dim, num_clusters, dropout)
+        self.token_features = _mlp(False, dim, hidden_dim, token_dim, 0.0)
+        self.cluster_features = _mlp(True, dim, hidden_dim, cluster_dim, dropout)
+        self.score = _mlp(True, dim, hidden_dim, num_clusters, dropout)
         self.dust_bin = nn.Parameter(torch.tensor(1.0))
 
     @property
