@@ -62,8 +62,8 @@ def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: 
         assert set(np.unique(maps[expected_mask])) <= {0.0, 1.0}
 
 
-# Descriptor sizes: GeM keeps the trunk's channels (None); the others are set in their yaml.
-@pytest.mark.parametrize("aggregator,dim", [("gem", None), ("mixvpr", 2048), ("salad", 256 + 8 * 64), ("boq", 2048)])
+# Descriptor sizes as set in their yaml (GeM: its CosPlace head's fc_dim).
+@pytest.mark.parametrize("aggregator,dim", [("gem", 512), ("mixvpr", 2048), ("salad", 256 + 8 * 64), ("boq", 128 * 16)])
 def test_fast_dev_run_each_aggregator_with_a_mask(cache_dir: Path, tmp_path: Path, aggregator: str, dim: int | None) -> None:
     cfg = tiny_config(cache_dir, f"aggregator={aggregator}", "mask=oracle", "model.pca_dim=8", "+trainer.fast_dev_run=true")
     backbone = build_backbone(cfg)
