@@ -78,6 +78,13 @@ def test_same_seed_is_byte_identical(dataset: Path, tmp_path: Path) -> None:
     assert stats == json.loads((dataset / "stats.json").read_text())
 
 
+def test_drawing_processes_write_the_same_files(dataset: Path, tmp_path: Path) -> None:
+    """Routes drawn by two processes, longest first, give the inline generator's files and statistics."""
+    stats = generate(tmp_path, "tiny", 0, workers=2)
+    assert tree(tmp_path) == tree(dataset)
+    assert stats == json.loads((dataset / "stats.json").read_text())
+
+
 def test_other_seed_gives_other_images(dataset: Path, tmp_path: Path) -> None:
     other = tmp_path / "seed1"
     other.mkdir()

@@ -11,6 +11,8 @@ import argparse
 import dataclasses
 import json
 import math
+import multiprocessing
+import os
 import signal
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -129,50 +131,99 @@ def _routes(p: Preset) -> list[tuple[str, str, int, SplitSpec]]:
     return out
 
 
-def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | None = None,
-             image_size: Sequence[int] | None = None) -> dict:
-    """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics."""
-    p = get_preset(preset, render, image_size)
-    spec = p.render
+#: A dataset of at least this many images is drawn by one process per core (route by route); a smaller
+#: one inline, where starting the processes would cost more than it saves. Both write the same files.
+PARALLEL_MIN_IMAGES = 1000
+
+
+def _route_images(kind: str, s: SplitSpec) -> int:
+    return s.db_per_route + s.q_per_route if kind == "vpr" else s.q_per_route
+
+
+def _draw_route(root: Path, seed: int, spec: RenderSpec, kind: str, split: str, rid: int,
+                s: SplitSpec) -> tuple[list[tuple[float, float]], np.ndarray]:
+    """Render and save one route's captures; returns their (dynamic, sky) fractions and, for a VPR route,
+    its per-class pixel counts. A pure function of its arguments (every random draw is seeded by them)."""
     pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
     ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
+    length = s.db_per_route * DB_STEP_M
+    pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec, ground_pool)
+    q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
+    if kind == "vpr":
+        captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
+        captures += [(x, 1, i) for i, x in enumerate(q_x)]
+    else:
+        captures = [(x, i % 2, i) for i, x in enumerate(q_x)]
+    fractions: list[tuple[float, float]] = []
+    class_pixels = np.zeros(len(TRAIN_ID_NAMES), np.int64)
+    for x, trav, i in captures:
+        rng = np.random.default_rng([seed, GENERATOR_VERSION, rid, trav, i])
+        img, label = render_capture(pano, float(x), rng, spec, pool, query=trav == 1)
+        fractions.append((float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
+        if kind == "vpr":
+            class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[:len(TRAIN_ID_NAMES)]
+            sub = "queries" if trav else "database"
+            name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav], f"r{rid}{sub[0]}{i:04d}")
+            _save(img, root / "images" / split / sub / name, format="JPEG", quality=JPEG_QUALITY)
+            _save(label, root / "labels" / split / sub / (name[:-4] + ".png"), format="PNG")
+        else:
+            city = f"route{rid}"
+            stem = f"{city}_{rid:06d}_{i:06d}"
+            _save(img, root / "seg" / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png", format="PNG")
+            _save(train_ids_to_label_ids(label),
+                  root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
+    return fractions, class_pixels
+
+
+def _cores() -> int:
+    """Cores this process may run on (the affinity mask, not the host's count, where the OS tells it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _quiet_worker() -> None:
+    """A drawing process leaves Ctrl-C to its parent, which stops the pool, and ends quietly when stopped."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | None = None,
+             image_size: Sequence[int] | None = None, workers: int | None = None) -> dict:
+    """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics.
+
+    ``workers``: drawing processes (None: one per core for a dataset of PARALLEL_MIN_IMAGES or more, else
+    inline). Routes are independent, so the files and statistics do not depend on it."""
+    p = get_preset(preset, render, image_size)
     routes = _routes(p)
-    total = sum(s.db_per_route + s.q_per_route if k == "vpr" else s.q_per_route for k, _, _, s in routes)
+    total = sum(_route_images(k, s) for k, _, _, s in routes)
+    if workers is None:
+        workers = min(_cores(), len(routes)) if total >= PARALLEL_MIN_IMAGES else 1
+    jobs = [(root, seed, p.render, kind, split, rid, s) for kind, split, rid, s in routes]
+    bar = Progress(f"SynthCity {preset} seed {seed}", total)
+    results: dict[int, tuple[list[tuple[float, float]], np.ndarray]] = {}
+    if workers <= 1:
+        for job in jobs:
+            results[job[5]] = _draw_route(*job)
+            bar.update(_route_images(job[3], job[6]))
+    else:
+        # Longest routes first, so that the cores finish together; `with` terminates the pool on an error
+        # or a signal (the caller's atomic directory then removes what was drawn).
+        order = sorted(jobs, key=lambda j: -_route_images(j[3], j[6]))
+        # fork: the children draw with NumPy and PIL only (never torch), and a spawned child would re-run
+        # a calling script that has no `if __name__ == "__main__"` guard.
+        with multiprocessing.get_context("fork").Pool(workers, initializer=_quiet_worker) as pool:
+            pending = {job[5]: (job, pool.apply_async(_draw_route, job)) for job in order}
+            for rid, (job, result) in pending.items():
+                results[rid] = result.get()
+                bar.update(_route_images(job[3], job[6]))
+    bar.close()
     fractions: dict[str, list[tuple[float, float]]] = {}
     class_pixels = np.zeros(len(TRAIN_ID_NAMES), np.int64)  # over every VPR capture
-    bar = Progress(f"SynthCity {preset} seed {seed}", total)
-    for kind, split, rid, s in routes:
-        length = s.db_per_route * DB_STEP_M
-        pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec, ground_pool)
-        q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
-        if kind == "vpr":
-            captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
-            captures += [(x, 1, i) for i, x in enumerate(q_x)]
-        else:
-            captures = [(x, i % 2, i) for i, x in enumerate(q_x)]
-        for x, trav, i in captures:
-            rng = np.random.default_rng([seed, GENERATOR_VERSION, rid, trav, i])
-            img, label = render_capture(pano, float(x), rng, spec, pool, query=trav == 1)
-            key = f"{'seg-' if kind == 'seg' else ''}{split}"
-            fractions.setdefault(key, []).append(
-                (float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
-            if kind == "vpr":
-                class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[:len(TRAIN_ID_NAMES)]
-                sub = "queries" if trav else "database"
-                name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav],
-                                f"r{rid}{sub[0]}{i:04d}")
-                _save(img, root / "images" / split / sub / name, format="JPEG", quality=JPEG_QUALITY)
-                _save(label, root / "labels" / split / sub / (name[:-4] + ".png"), format="PNG")
-            else:
-                city = f"route{rid}"
-                stem = f"{city}_{rid:06d}_{i:06d}"
-                _save(img, root / "seg" / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png", format="PNG")
-                _save(train_ids_to_label_ids(label),
-                      root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
-            bar.update()
-    bar.close()
+    for kind, split, rid, _ in routes:
+        route_fractions, route_pixels = results[rid]
+        fractions.setdefault(f"{'seg-' if kind == 'seg' else ''}{split}", []).extend(route_fractions)
+        class_pixels += route_pixels
     stats = {"preset": preset, "seed": seed, "version": GENERATOR_VERSION,
-             "render": dataclasses.asdict(spec),
+             "render": dataclasses.asdict(p.render),
              "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
              "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
              "images": {k: len(v) for k, v in fractions.items()},
