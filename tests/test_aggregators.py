@@ -49,6 +49,23 @@ def test_unit_weights_equal_the_unmasked_output(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", BUILDERS)
+def test_a_mask_that_keeps_nothing_gives_the_unmasked_descriptor(name: str) -> None:
+    """An image masked everywhere is described unmasked, not by a zero (or undefined) descriptor, which
+    would be the nearest database image of every query with no match closer than distance 1."""
+    agg, x = _build(name), torch.randn(3, D, H, W)
+    weights = torch.rand(3, 1, H, W) * 0.9 + 0.1
+    weights[1] = 0.0
+    with torch.no_grad():
+        out, unmasked = agg(x, weights), agg(x)
+        assert torch.isfinite(out).all()
+        assert torch.allclose(out[1], unmasked[1], atol=1e-6)
+        assert torch.linalg.vector_norm(out[1]) == pytest.approx(1.0, abs=1e-5)
+        # the other images keep their masks: the same as described alone
+        assert torch.allclose(out[[0, 2]], agg(x[[0, 2]], weights[[0, 2]]), atol=1e-6)
+        assert not torch.allclose(out[0], unmasked[0], atol=1e-4)
+
+
+@pytest.mark.parametrize("name", BUILDERS)
 def test_zero_weight_location_has_no_influence(name: str) -> None:
     agg, x = _build(name), torch.randn(2, D, H, W)
     weights = torch.rand(2, 1, H, W) * 0.9 + 0.1

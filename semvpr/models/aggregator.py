@@ -8,7 +8,11 @@ this interface:
 - ``output_dim``: the descriptor length;
 - ``forward(features, weights)``: ``weights`` is the mask (B,1,h,w) in [0, 1] on the feature grid,
   or None (no mask). Each aggregator says in its docstring how the mask enters; a weight of 1
-  everywhere gives exactly the unmasked descriptor, and a location of weight 0 has no influence;
+  everywhere gives exactly the unmasked descriptor, and a location of weight 0 has no influence.
+  An image whose mask keeps nothing (weights summing to less than ``EMPTY_MASK``: a bus filling the
+  frame) is described unmasked: its masked descriptor would be zero, or undefined, and a zero
+  descriptor lies at distance 1 from every unit descriptor, so it would be the nearest database
+  image of every query with no closer match;
 - ``init_sample`` / ``init_from_sample``: what initialisation sample the aggregator needs, if any
   (NetVLAD: k-means on local features; SRAL: the same features with static / dynamic labels);
 - ``attention(features)``: an optional per-location map (B,1,h,w) for the report figures.
@@ -18,6 +22,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import ClassVar, Literal
 
+import torch
 from torch import Tensor, nn
 
 #: The sample an aggregator's initialisation needs: none, local features, or local features with labels.
@@ -49,14 +54,21 @@ class Aggregator(nn.Module, ABC):
         return None
 
 
+#: A mask whose weights sum to less than this keeps nothing; its image is described unmasked.
+EMPTY_MASK = 1.0e-6
+
+
 def check_weights(x: Tensor, weights: Tensor | None) -> Tensor | None:
-    """``weights`` as float32 after checking it is (B,1,h,w) on the grid of ``x`` (B may be 1)."""
+    """``weights`` as float32 after checking it is (B,1,h,w) on the grid of ``x`` (B may be 1), with
+    the weights of an image whose mask keeps nothing set to 1 (see the module docstring)."""
     if weights is None:
         return None
     if (weights.dim() != 4 or weights.shape[1] != 1 or weights.shape[-2:] != x.shape[-2:]
             or weights.shape[0] not in (1, x.shape[0])):
         raise ValueError(f"mask must be (B,1,h,w) on the feature grid {tuple(x.shape[-2:])}, got {tuple(weights.shape)}")
-    return weights.float()
+    weights = weights.float()
+    empty = weights.sum(dim=(1, 2, 3), keepdim=True) < EMPTY_MASK
+    return torch.where(empty, torch.ones_like(weights), weights)
 
 
 #: log of a zero weight: exp(LOG_ZERO) is exactly 0 in float32 while sums of such terms stay finite
