@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import multiprocessing
@@ -17,6 +18,7 @@ import signal
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from PIL import Image
@@ -120,14 +122,27 @@ def _save(img: np.ndarray, path: Path, **kw: object) -> None:
     Image.fromarray(img).save(path, **kw)
 
 
-def _routes(p: Preset) -> list[tuple[str, str, int, SplitSpec]]:
-    """(kind, split, global route id, spec) for every route; ids fix seeds and northing lines."""
-    out, rid = [], 0
+class Route(NamedTuple):
+    """One route: what it is drawn for (``vpr`` or ``seg``), its split, its global id (which fixes its
+    seeds and northing line) and its capture counts."""
+
+    kind: str
+    split: str
+    rid: int
+    spec: SplitSpec
+
+    @property
+    def images(self) -> int:
+        return self.spec.db_per_route + self.spec.q_per_route if self.kind == "vpr" else self.spec.q_per_route
+
+
+def _routes(p: Preset) -> list[Route]:
+    """Every route of the preset, ids counted across VPR and segmentation routes."""
+    out: list[Route] = []
     for kind, splits in (("vpr", p.vpr), ("seg", p.seg)):
         for split, spec in splits.items():
             for _ in range(spec.routes):
-                out.append((kind, split, rid, spec))
-                rid += 1
+                out.append(Route(kind, split, len(out), spec))
     return out
 
 
@@ -136,14 +151,10 @@ def _routes(p: Preset) -> list[tuple[str, str, int, SplitSpec]]:
 PARALLEL_MIN_IMAGES = 1000
 
 
-def _route_images(kind: str, s: SplitSpec) -> int:
-    return s.db_per_route + s.q_per_route if kind == "vpr" else s.q_per_route
-
-
-def _draw_route(root: Path, seed: int, spec: RenderSpec, kind: str, split: str, rid: int,
-                s: SplitSpec) -> tuple[list[tuple[float, float]], np.ndarray]:
+def _draw_route(root: Path, seed: int, spec: RenderSpec, route: Route) -> tuple[list[tuple[float, float]], np.ndarray]:
     """Render and save one route's captures; returns their (dynamic, sky) fractions and, for a VPR route,
     its per-class pixel counts. A pure function of its arguments (every random draw is seeded by them)."""
+    kind, split, rid, s = route
     pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
     ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
     length = s.db_per_route * DB_STEP_M
@@ -194,27 +205,27 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
     inline). Routes are independent, so the files and statistics do not depend on it."""
     p = get_preset(preset, render, image_size)
     routes = _routes(p)
-    total = sum(_route_images(k, s) for k, _, _, s in routes)
+    total = sum(r.images for r in routes)
     if workers is None:
         workers = min(_cores(), len(routes)) if total >= PARALLEL_MIN_IMAGES else 1
-    jobs = [(root, seed, p.render, kind, split, rid, s) for kind, split, rid, s in routes]
+    draw = functools.partial(_draw_route, root, seed, p.render)
     bar = Progress(f"SynthCity {preset} seed {seed}", total)
     results: dict[int, tuple[list[tuple[float, float]], np.ndarray]] = {}
     if workers <= 1:
-        for job in jobs:
-            results[job[5]] = _draw_route(*job)
-            bar.update(_route_images(job[3], job[6]))
+        for route in routes:
+            results[route.rid] = draw(route)
+            bar.update(route.images)
     else:
         # Longest routes first, so that the cores finish together; `with` terminates the pool on an error
-        # or a signal (the caller's atomic directory then removes what was drawn).
-        order = sorted(jobs, key=lambda j: -_route_images(j[3], j[6]))
-        # fork: the children draw with NumPy and PIL only (never torch), and a spawned child would re-run
-        # a calling script that has no `if __name__ == "__main__"` guard.
+        # or a signal (the caller's atomic directory then removes what was drawn). fork: the children draw
+        # with NumPy and PIL only (never torch), and a spawned child would re-run a calling script that
+        # has no `if __name__ == "__main__"` guard.
         with multiprocessing.get_context("fork").Pool(workers, initializer=_quiet_worker) as pool:
-            pending = {job[5]: (job, pool.apply_async(_draw_route, job)) for job in order}
-            for rid, (job, result) in pending.items():
-                results[rid] = result.get()
-                bar.update(_route_images(job[3], job[6]))
+            pending = [(route, pool.apply_async(draw, (route,)))
+                       for route in sorted(routes, key=lambda r: -r.images)]
+            for route, result in pending:
+                results[route.rid] = result.get()
+                bar.update(route.images)
     bar.close()
     fractions: dict[str, list[tuple[float, float]]] = {}
     class_pixels = np.zeros(len(TRAIN_ID_NAMES), np.int64)  # over every VPR capture
