@@ -46,6 +46,20 @@ class Job:
         return float(value) if isinstance(value, (int, float)) else math.nan
 
 
+def weights_kind(weights: Any) -> str:
+    """What a backbone's ``weights`` setting names, as recorded: imagenet, none, or file (a path is
+    never recorded)."""
+    text = str(weights).lower() if weights is not None else "none"
+    return text if text in ("imagenet", "none") else "file"
+
+
+def backbone_label(name: str, kind: str | None) -> str:
+    """A table's backbone: its name, marked when its weights are not ImageNet's (runs that differ only
+    in backbone.weights must not share a row)."""
+    marks = {"none": "random init", "file": "own weights"}
+    return f"{name} ({marks[kind]})" if kind in marks else name
+
+
 def cell_name(aggregator: str, mask: str) -> str:
     """Display key of an (aggregator, mask) pair."""
     return f"{aggregator} · {mask}"
@@ -176,10 +190,11 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
     try:
         config, hydra_cfg = _yaml(hydra_dir / "config.yaml"), _yaml(hydra_dir / "hydra.yaml")
         # mask.weights is usually "${filter.weights}" (text here): the preset's value stands for it.
-        for key, fact in (("seed", "seed"), ("filter.weights", "mask.weights"), ("mask.weights", "mask.weights")):
+        for key, fact in (("seed", "seed"), ("filter.weights", "mask.weights"), ("mask.weights", "mask.weights"),
+                          ("backbone.weights", "backbone.weights")):
             value = _select(config, key)
             if value is not None and "${" not in str(value):
-                facts[fact] = str(value)
+                facts[fact] = weights_kind(value) if fact == "backbone.weights" else str(value)
         choices = _select(hydra_cfg, "hydra.runtime.choices")
         for key in ("aggregator", "mask", "backbone"):
             if isinstance(choices, dict) and choices.get(key) is not None:
@@ -228,7 +243,9 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     if (metrics.get("weights") or facts.get("mask.weights")) == "learned":
         mask += LEARNED
     return Job(job_dir, name, str(metrics.get("aggregator") or facts.get("aggregator") or "?"), mask,
-               str(metrics.get("backbone") or facts.get("backbone") or "?"), seed, ok, error, metrics,
+               backbone_label(str(metrics.get("backbone") or facts.get("backbone") or "?"),
+                              metrics.get("backbone_weights") or facts.get("backbone.weights")),
+               seed, ok, error, metrics,
                roots)
 
 

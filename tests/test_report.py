@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from semvpr.report import ReportCallback, write_report
+from semvpr.sweep import load_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 NS = (1, 5, 10, 20)
@@ -149,6 +150,23 @@ def test_missing_inputs_skip_figures_with_note(tmp_path: Path) -> None:
     assert "](recall_at_n.png)" in text and (tmp_path / "recall_at_n.png").stat().st_size > 0
     assert "**R@1 gain over `netvlad · none` (resnet50):** no finished `netvlad · none` run" in text
     assert "| resnet50 | sral · student | 30.0 ± – |" in text
+
+
+def test_runs_that_differ_only_in_backbone_weights_get_their_own_rows(tmp_path: Path) -> None:
+    """A sweep over backbone.weights=imagenet,none must not average the pretrained and random-init runs."""
+    for seed, (r1_pre, r1_rand) in enumerate([(70.0, 12.0), (72.0, 14.0)]):
+        _job(tmp_path, f"backbone.weights=imagenet,filter=none,seed={seed}",
+             {**_metrics("none", seed, r1_pre, "efficientnet_lite0"), "backbone_weights": "imagenet"})
+        _job(tmp_path, f"backbone.weights=none,filter=none,seed={seed}",
+             {**_metrics("none", seed, r1_rand, "efficientnet_lite0"), "backbone_weights": "none"})
+    # a job that died before metrics.json: its weights come from its composed config
+    died = _job(tmp_path, "backbone.weights=none,filter=none,seed=2", None)
+    (died / ".hydra" / "config.yaml").write_text("seed: 2\nbackbone:\n  name: efficientnet_lite0\n  weights: none\n")
+    (died / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    choices:\n      backbone: efficientnet_lite0\n")
+    text = write_report(tmp_path).read_text()
+    assert "| efficientnet_lite0 | netvlad · none | 71.0 ± 1.4 |" in text
+    assert "| efficientnet_lite0 (random init) | netvlad · none | 13.0 ± 1.4 |" in text
+    assert {job.backbone for job in load_sweep(tmp_path).jobs} == {"efficientnet_lite0", "efficientnet_lite0 (random init)"}
 
 
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:

@@ -92,6 +92,7 @@ def test_preset_and_explicit_choices_compose() -> None:
 def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     metrics = json.loads((trained_run / "metrics.json").read_text())
     assert metrics["status"] == "ok" and metrics["backbone"] == "efficientnet_lite0" and metrics["seed"] == 0
+    assert metrics["backbone_weights"] == "imagenet"  # the report marks "none" and "file" in its backbone column
     assert [metrics["recalls"][str(n)] for n in (1, 5, 10, 20)] == [metrics[f"test/R@{n}"] for n in (1, 5, 10, 20)]
     # SynthCity test queries all have positives: both denominators agree.
     assert metrics["test_queries_without_positives"] == 0
