@@ -35,7 +35,6 @@ from semvpr.evaluation import RecallEvaluation
 from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
 from semvpr.io import CONF_DIR, atomic_file, write_json
 from semvpr.launch import job_ranks, launched_rank
-from semvpr.sweep import weights_kind
 from semvpr.mining import Mining
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
@@ -44,6 +43,7 @@ from semvpr.models.retriever import Optimization, Retriever
 from semvpr.precision import lightning_precision
 from semvpr.logs import quiet_third_party, trainer_kwargs
 from semvpr.resume import keep_run_record, resumed_config
+from semvpr.sweep import weights_kind
 
 
 @dataclass
@@ -210,8 +210,8 @@ def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: di
 
 def run_labels(cfg: DictConfig) -> dict[str, Any]:
     """What the report groups a run by: aggregator, mask, its weighting, backbone and what its weights are
-    (imagenet, none or file), seed; ``filter`` is
-    the preset the config started from (an explicit aggregator= or mask= may have replaced its choices)."""
+    (imagenet, none or file), seed; ``filter`` is the preset the config started from (an explicit
+    aggregator= or mask= may have replaced its choices)."""
     return {"aggregator": cfg.aggregator.get("name"), "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
             "mask": cfg.mask.get("name"), "weights": cfg.mask.get("weights"),
             "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)), "backbone": cfg.backbone.get("name"),
