@@ -222,7 +222,7 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
         # has no `if __name__ == "__main__"` guard.
         with multiprocessing.get_context("fork").Pool(workers, initializer=_quiet_worker) as pool:
             pending = [(route, pool.apply_async(draw, (route,)))
-                       for route in sorted(routes, key=lambda r: -r.images)]
+                       for route in sorted(routes, key=lambda r: r.images, reverse=True)]
             for route, result in pending:
                 results[route.rid] = result.get()
                 bar.update(route.images)

@@ -72,7 +72,7 @@ def check_weights(x: Tensor, weights: Tensor | None) -> Tensor | None:
 
 
 #: log of a zero weight: exp(LOG_ZERO) is exactly 0 in float32 while sums of such terms stay finite
-#: (a fully masked image gives uniform attention instead of 0/0).
+#: (an image masked everywhere never gets here: check_weights describes it unmasked).
 LOG_ZERO = -1.0e4
 
 

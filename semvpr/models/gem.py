@@ -49,6 +49,6 @@ class GeM(Aggregator):
             w = powered.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
             w = w.expand(x.shape[0], 1, *x.shape[2:])
             mean = (powered * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(self.eps)
-            # A fully masked image has an empty mean: clamp it where x^p could never be (eps^p), not to 0.
-            pooled = mean.clamp_min(self.eps ** p).pow(1.0 / p)
+            # check_weights leaves every image some weight, so the mean of values >= eps^p is > 0.
+            pooled = mean.pow(1.0 / p)
             return F.normalize(self.fc(pooled) if self.fc is not None else pooled, dim=1)
