@@ -23,8 +23,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from semvpr.io import CONF_DIR
-from semvpr.precision import autocast, bf16_native
+from semvpr.core.io import CONF_DIR
+from semvpr.core.precision import autocast, bf16_native
 
 DIM, GRID = 112, (12, 15)
 

@@ -43,10 +43,10 @@ from PIL import Image
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
-from semvpr.io import CONF_DIR
-from semvpr.build import instantiate_backbone
+from semvpr.core.io import CONF_DIR
+from semvpr.config.build import instantiate_backbone
 from semvpr.models.masks import pool_to_grid
-from semvpr.models.netvlad import NetVLAD
+from semvpr.models.aggregators.netvlad import NetVLAD
 
 # Per-class contribution weights of the weighted oracle, chosen on val (SynthCity v3; the RenderSpec
 # comment has the measurements). Classes not listed keep their binary weight (1 static, 0 dynamic or

@@ -2,10 +2,10 @@
 with the same global batch, on VGG16's trainable conv5 block + NetVLAD (64 x 512) over cached
 conv4 trunk features of 240x320 images (random weights and features: timing needs no data).
 
-- refresh: describe a database of ``--db`` trunk rows (semvpr.distributed.sharded: whole eval
+- refresh: describe a database of ``--db`` trunk rows (semvpr.retrieval.distributed.sharded: whole eval
   batches per rank, gathered), as the descriptor-cache refresh does;
 - step: ``--steps`` training steps of global batches of ``--batch`` tuples (1 query, 1 positive,
-  ``--negatives`` negatives each), each rank on its slice (semvpr.mining), loss over the global pair
+  ``--negatives`` negatives each), each rank on its slice (semvpr.retrieval.mining), loss over the global pair
   count (Retriever.training_step), DDP's gradient all-reduce included, no optimizer step;
 - grad_rel_err: ||g_ddp - g_1|| / ||g_1|| of the first step's gradient.
 
@@ -28,12 +28,12 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from semvpr.distributed import rank_slice, sharded
-from semvpr.features import FeatureStore
-from semvpr.mining import TupleDataset, collate_tuples
+from semvpr.retrieval.distributed import rank_slice, sharded
+from semvpr.retrieval.features import FeatureStore
+from semvpr.retrieval.mining import TupleDataset, collate_tuples
 from semvpr.models.backbones import VGG16Backbone
-from semvpr.models.netvlad import NetVLAD
-from semvpr.models.retriever import Optimization, Retriever
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.retrieval.retriever import Optimization, Retriever
 
 GRID = (15, 20)  # conv4 output of a 240x320 image
 WORLD = 2

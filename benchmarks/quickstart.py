@@ -44,9 +44,9 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
     the CPU runs it natively (as the feature caches are written) unless ``fp32``."""
     from hydra import compose, initialize_config_dir
 
-    from semvpr.build import build_backbone, build_places
-    from semvpr.data.datamodule import ImageDataset
-    from semvpr.precision import autocast
+    from semvpr.config.build import build_backbone, build_places
+    from semvpr.segmentation.datamodule import ImageDataset
+    from semvpr.core.precision import autocast
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         # Only the plain overrides (a sweep's comma lists pick their first value).

@@ -26,10 +26,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from semvpr.build import build_aggregator, build_backbone, build_mask_source
-from semvpr.checkpoint import record_of
-from semvpr.models.retriever import Retriever
-from semvpr.precision import autocast
+from semvpr.config.build import build_aggregator, build_backbone, build_mask_source
+from semvpr.core.checkpoint import record_of
+from semvpr.retrieval.retriever import Retriever
+from semvpr.core.precision import autocast
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -28,13 +28,13 @@ from torch.utils.data import DataLoader
 from torchmetrics.classification import MulticlassJaccardIndex
 
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.datamodule import ImageDataset, SegmentationDataset
+from semvpr.segmentation.datamodule import ImageDataset, SegmentationDataset
 from semvpr.data.synthcity import read_segmentation, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import build_student
 from semvpr.models.teacher import build_teacher
-from semvpr.precision import autocast
-from semvpr.pseudolabels import pseudo_labels
+from semvpr.core.precision import autocast
+from semvpr.segmentation.pseudolabels import pseudo_labels
 
 REPO = Path(__file__).resolve().parents[1]
 

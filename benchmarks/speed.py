@@ -17,12 +17,12 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 from torch import Tensor
 
-from semvpr.io import CONF_DIR
-from semvpr.metrics import knn, positives_within, recall_result
+from semvpr.core.io import CONF_DIR
+from semvpr.retrieval.recall import knn, positives_within, recall_result
 from semvpr.models.backbones import VGG16Backbone
-from semvpr.models.netvlad import NetVLAD
-from semvpr.models.sral import SRAL
-from semvpr.precision import autocast, bf16_native
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.aggregators.sral import SRAL
+from semvpr.core.precision import autocast, bf16_native
 
 REPO = Path(__file__).resolve().parents[1]
 PITTS = REPO.parent / "shared" / "realdata" / "pitts30k_test.npz"

@@ -1,6 +1,6 @@
 """Evaluate a checkpoint on any place set: ``python -m semvpr.eval ckpt=PATH [data=... data.root=...]``.
 
-The model is rebuilt from the checkpoint's record and the descriptors cached by ``semvpr.inference``;
+The model is rebuilt from the checkpoint's record and the descriptors cached by ``semvpr.config.restore``;
 the data comes from this invocation. The positives are the place set's own (``PlaceSet.positives``: its shipped ground truth,
 or ``data.eval_radius``). Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and,
 where some query has no positive, over queries with positives (MSLS); the last line is one JSON
@@ -21,13 +21,13 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.build import build_places, check_config
-from semvpr.errors import SemvprError, exit_on_user_error, one_line
-from semvpr.inference import explicit_keys, load_retriever, place_descriptors
-from semvpr.io import CONF_DIR, write_json
-from semvpr.logs import quiet_third_party
-from semvpr.metrics import RECALL_NS
-from semvpr.models.retriever import evaluate
+from semvpr.config.build import build_places, check_config
+from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
+from semvpr.config.restore import explicit_keys, load_retriever, place_descriptors
+from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.logs import quiet_third_party
+from semvpr.retrieval.recall import RECALL_NS
+from semvpr.retrieval.retriever import evaluate
 
 
 def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:

@@ -20,10 +20,10 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.data.published import results_for
-from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.io import write_text
-from semvpr.metrics import RECALL_NS
-from semvpr.sweep import sweep_dir_of
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.core.io import write_text
+from semvpr.retrieval.recall import RECALL_NS
+from semvpr.reporting.sweep import sweep_dir_of
 
 COLUMNS = ("data", "set", "benchmark", *(f"R@{n}" for n in RECALL_NS), "queries", "database",
            "descriptor_dim", "wall_s", "source")

@@ -1,7 +1,7 @@
 """A semvpr checkpoint as other tools' scripts expect a VPR model (VPR-methods-evaluation style).
 
 :func:`load_model` rebuilds the checkpoint through the same trusted path as ``semvpr.eval``
-(``semvpr.checkpoint`` validates the record against the project's configs; ``eval.load_retriever``
+(``semvpr.core.checkpoint`` validates the record against the project's configs; ``eval.load_retriever``
 loads the weights) and wraps it in :class:`HubModel`: a module mapping a batch of images
 normalised with the ImageNet mean/std to L2-normalised global descriptors, with the matching
 preprocessing as ``model.transform`` (PIL image → normalised tensor) and ``model.feature_dim``.
@@ -16,12 +16,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision import transforms
 
-from semvpr.errors import SemvprError
-from semvpr.inference import descriptor_dim, load_retriever
-from semvpr.io import CONF_DIR
+from semvpr.core.errors import SemvprError
+from semvpr.config.restore import descriptor_dim, load_retriever
+from semvpr.core.io import CONF_DIR
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.models.masks import OracleMask
-from semvpr.models.retriever import Retriever
+from semvpr.retrieval.retriever import Retriever
 
 
 class HubModel(nn.Module):

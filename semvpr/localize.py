@@ -16,12 +16,12 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from semvpr.build import build_places, check_config
-from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.inference import explicit_keys, load_retriever, place_descriptors
-from semvpr.metrics import knn
-from semvpr.io import CONF_DIR, write_json
-from semvpr.logs import quiet_third_party
+from semvpr.config.build import build_places, check_config
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.config.restore import explicit_keys, load_retriever, place_descriptors
+from semvpr.retrieval.recall import knn
+from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.logs import quiet_third_party
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 

@@ -1,5 +1,5 @@
 """Sweep-end report: ``python -m semvpr.report <sweep dir>`` and the Hydra callback that runs it after a
-multirun; results.csv / results.md and figures from the sweep as ``semvpr.sweep`` reads it back."""
+multirun; results.csv / results.md and figures from the sweep as ``semvpr.reporting.sweep`` reads it back."""
 from __future__ import annotations
 
 import argparse
@@ -16,10 +16,10 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from semvpr.errors import exit_on_user_error
-from semvpr.io import write_text
-from semvpr.metrics import RECALL_NS
-from semvpr.sweep import (LEARNED, NO_MASK, Sweep, cell_name, load_sweep, md_cell, mean_std, numeric_weights,
+from semvpr.core.errors import exit_on_user_error
+from semvpr.core.io import write_text
+from semvpr.retrieval.recall import RECALL_NS
+from semvpr.reporting.sweep import (LEARNED, NO_MASK, Sweep, cell_name, load_sweep, md_cell, mean_std, numeric_weights,
                           sweep_dir_of)
 
 
@@ -200,9 +200,7 @@ def write_report(sweep_dir: Path) -> Path:
     Everything is made in a fresh scratch directory first and moved in only when all of it was
     made, so a failure leaves the previous report whole (never a new csv beside an old md).
     """
-    from semvpr import (
-        plots,  # matplotlib is only needed here, not to import the callback
-    )
+    from semvpr.reporting import figures as plots  # matplotlib is only needed here, not to import the callback
 
     sweep = load_sweep(Path(sweep_dir))
     rows = _rows(sweep)

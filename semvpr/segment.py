@@ -21,15 +21,15 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.build import instantiate_backbone, instantiate_node
+from semvpr.config.build import instantiate_backbone, instantiate_node
 from semvpr.data.places import common_root
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
-from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.io import CONF_DIR, atomic_dir, write_json
-from semvpr.segeval import score_student, score_teacher, student_prob, teacher_outputs
-from semvpr.segmetrics import binary_pred
-from semvpr.logs import quiet_third_party
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.core.io import CONF_DIR, atomic_dir, write_json
+from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
+from semvpr.segmentation.confusion import binary_pred
+from semvpr.core.logs import quiet_third_party
 
 SPLITS = ("train", "val", "test")
 #: Keys of the last stdout line, per model.
@@ -144,8 +144,8 @@ def train_students(cfg: DictConfig, sets: dict[str, SegmentationSet], labels: Pa
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Teacher, pseudo-labels, students, scores, figure; returns what results.json holds."""
     from semvpr.models.teacher import build_teacher
-    from semvpr.plots import mask_figure
-    from semvpr.pseudolabels import pseudo_labels
+    from semvpr.reporting.figures import mask_figure
+    from semvpr.segmentation.pseudolabels import pseudo_labels
 
     start = time.time()
     check_config(cfg)

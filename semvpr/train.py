@@ -24,26 +24,26 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from semvpr.build import (Semantic, build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
+from semvpr.config.build import (Semantic, build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
                           build_semantic, check_config, init_aggregator, mask_key)
-from semvpr.checkpoint import RunCheckpoint, record_of
+from semvpr.core.checkpoint import RunCheckpoint, record_of
 from semvpr.data.places import PlaceSet
-from semvpr.data.retrieval import RetrievalDataModule
-from semvpr.distributed import sharded
-from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.evaluation import RecallEvaluation
-from semvpr.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
-from semvpr.io import CONF_DIR, atomic_file, write_json
-from semvpr.launch import job_ranks, launched_rank
-from semvpr.mining import Mining
+from semvpr.retrieval.datamodule import RetrievalDataModule
+from semvpr.retrieval.distributed import sharded
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.retrieval.validation import RecallEvaluation
+from semvpr.retrieval.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
+from semvpr.core.io import CONF_DIR, atomic_file, write_json
+from semvpr.retrieval.launch import job_ranks, launched_rank
+from semvpr.retrieval.mining import Mining
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
-from semvpr.models.netvlad import PCAWhitening
-from semvpr.models.retriever import Optimization, Retriever
-from semvpr.precision import lightning_precision
-from semvpr.logs import quiet_third_party, trainer_kwargs
-from semvpr.resume import keep_run_record, resumed_config
-from semvpr.sweep import weights_kind
+from semvpr.models.aggregators.netvlad import PCAWhitening
+from semvpr.retrieval.retriever import Optimization, Retriever
+from semvpr.core.precision import lightning_precision
+from semvpr.core.logs import quiet_third_party, trainer_kwargs
+from semvpr.core.resume import keep_run_record, resumed_config
+from semvpr.reporting.sweep import weights_kind
 
 
 @dataclass
@@ -91,7 +91,7 @@ def mining_of(cfg: DictConfig) -> Mining:
 
 
 def build_retriever(cfg: DictConfig, job: Prepared) -> Retriever:
-    """The retriever with an uninitialised aggregator (:func:`semvpr.build.init_aggregator` fills it)."""
+    """The retriever with an uninitialised aggregator (:func:`semvpr.config.build.init_aggregator` fills it)."""
     aggregator = build_aggregator(cfg, job.backbone)
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
     optimization = Optimization(instantiate(cfg.model.optimizer), instantiate(cfg.model.scheduler),
@@ -228,7 +228,7 @@ def _seed_of(cfg: DictConfig) -> int | str | None:
 
 
 def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
-    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.features). Under DDP
+    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.retrieval.features). Under DDP
     every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
     ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
     per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16

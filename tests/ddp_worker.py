@@ -17,11 +17,11 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from semvpr.data.places import PlaceSet
-from semvpr.distributed import sharded
-from semvpr.features import FeatureStore, PlaceFeatures
-from semvpr.mining import Mining, TrainingEpoch, trainable_queries
-from semvpr.models.netvlad import NetVLAD
-from semvpr.models.retriever import Optimization, Retriever
+from semvpr.retrieval.distributed import sharded
+from semvpr.retrieval.features import FeatureStore, PlaceFeatures
+from semvpr.retrieval.mining import Mining, TrainingEpoch, trainable_queries
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.retrieval.retriever import Optimization, Retriever
 
 DIM, GRID = 8, (3, 4)
 

@@ -25,10 +25,10 @@ def config(*overrides: str, config_name: str = "train") -> DictConfig:
 
 def write_checkpoint(cfg: DictConfig, path: Path) -> dict[str, torch.Tensor]:
     """Write an untrained model's checkpoint as a run does (Lightning's state_dict + hyper_parameters)."""
-    from semvpr.build import build_aggregator, build_backbone, build_class_weights, build_mask_source
-    from semvpr.checkpoint import record_of
-    from semvpr.models.netvlad import PCAWhitening
-    from semvpr.models.retriever import Retriever
+    from semvpr.config.build import build_aggregator, build_backbone, build_class_weights, build_mask_source
+    from semvpr.core.checkpoint import record_of
+    from semvpr.models.aggregators.netvlad import PCAWhitening
+    from semvpr.retrieval.retriever import Retriever
 
     backbone = build_backbone(cfg)
     aggregator = build_aggregator(cfg, backbone)

@@ -8,14 +8,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from semvpr.errors import SemvprError
-from semvpr.models.aggregator import Aggregator
-from semvpr.models.boq import BoQ
-from semvpr.models.gem import GeM
-from semvpr.models.mixvpr import MixVPR
-from semvpr.models.netvlad import NetVLAD
-from semvpr.models.salad import SALAD
-from semvpr.models.sral import SRAL
+from semvpr.core.errors import SemvprError
+from semvpr.models.aggregators.base import Aggregator
+from semvpr.models.aggregators.boq import BoQ
+from semvpr.models.aggregators.gem import GeM
+from semvpr.models.aggregators.mixvpr import MixVPR
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.aggregators.salad import SALAD
+from semvpr.models.aggregators.sral import SRAL
 
 torch.set_num_threads(2)
 D, H, W = 32, 4, 5

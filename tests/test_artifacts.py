@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from semvpr.artifacts import LOCK_DIR, artifact_dir, build_once
+from semvpr.core.cache import LOCK_DIR, artifact_dir, build_once
 
 
 def _slow_build(log: str, tmp: Path) -> None:

@@ -7,7 +7,7 @@ import pytest
 import torch
 import torchvision
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import ResNet50Backbone, VGG16Backbone
 from tests.helpers import record_first_unit_batches
 

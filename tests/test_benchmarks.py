@@ -14,7 +14,7 @@ from semvpr.data.benchmarks import (
     read_npy_lists,
     read_patchnetvlad,
 )
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 # ../shared/realdata beside the checkout (or beside the folder of worktrees).
 REAL = next((p / "shared" / "realdata" for p in Path(__file__).resolve().parents[2:4] if (p / "shared" / "realdata").is_dir()),

@@ -10,8 +10,8 @@ from typing import Any, Callable
 import pytest
 import torch
 
-from semvpr.errors import SemvprError
-from semvpr.inference import load_retriever
+from semvpr.core.errors import SemvprError
+from semvpr.config.restore import load_retriever
 
 from tests.helpers import tiny_config, write_checkpoint
 
@@ -144,7 +144,7 @@ def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Pa
 
 
 def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: Path) -> None:
-    from semvpr.checkpoint import model_config, record_of
+    from semvpr.core.checkpoint import model_config, record_of
 
     record = record_of(tiny_config(tmp_path))
     record["config"]["teacher"]["checkpoint"] = "facebook/mask2former-swin-large-cityscapes-semantic"

@@ -5,8 +5,8 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from semvpr.build import build_aggregator, build_backbone
-from semvpr.models.retriever import Optimization, Retriever, triplet_loss
+from semvpr.config.build import build_aggregator, build_backbone
+from semvpr.retrieval.retriever import Optimization, Retriever, triplet_loss
 from tests.helpers import config
 
 BACKBONES = ("vgg16", "resnet50", "efficientnet_lite0")

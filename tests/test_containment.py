@@ -9,9 +9,9 @@ import pytest
 from PIL import Image
 
 from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
-from semvpr.errors import SemvprError
-from semvpr.io import inside
-from semvpr.pseudolabels import pseudo_labels
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import inside
+from semvpr.segmentation.pseudolabels import pseudo_labels
 from tests.test_places import make_msls, write_dbstruct, write_jpg, write_msls_side
 from tests.test_pseudolabels import SIZE, CountingTeacher
 
@@ -74,7 +74,7 @@ def test_inside_refuses_dotdot_absolute_and_symlinked_escapes(tmp_path: Path) ->
 
 def test_a_planted_partial_link_in_a_shared_cache_is_refused(tmp_path: Path) -> None:
     """A '.labels-<hash>.partial' link made pseudo-labels land in the link's target."""
-    from semvpr.artifacts import artifact_dir
+    from semvpr.core.cache import artifact_dir
     from tests.test_pseudolabels import _key, make_images
 
     paths = make_images(tmp_path / "img")
@@ -89,7 +89,7 @@ def test_a_planted_partial_link_in_a_shared_cache_is_refused(tmp_path: Path) -> 
 
 
 def test_links_planted_inside_a_partial_build_or_as_a_lock_are_not_followed(tmp_path: Path) -> None:
-    from semvpr.artifacts import LOCK_DIR, artifact_dir, build_once
+    from semvpr.core.cache import LOCK_DIR, artifact_dir, build_once
 
     cache, victim = tmp_path / "cache", tmp_path / "victim"
     victim.mkdir()
@@ -113,8 +113,8 @@ def test_orphaned_temp_dirs_of_dead_processes_are_reclaimed(tmp_path: Path) -> N
     import subprocess
     import sys
 
-    from semvpr.artifacts import build_once
-    from semvpr.io import temp_prefix
+    from semvpr.core.cache import build_once
+    from semvpr.core.io import temp_prefix
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True).stdout.strip()
@@ -136,7 +136,7 @@ def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(tmp_path:
     """On a nearly full disk the memory-mapped cache ended in a bus error (exit 135, no message)."""
     import shutil
 
-    from semvpr import io
+    from semvpr.core import io
 
     usage = shutil._ntuple_diskusage(10 * 2**30, 10 * 2**30 - 2**20, 2**20)  # 1 MiB free
     monkeypatch.setattr(io.shutil, "disk_usage", lambda _: usage)

@@ -9,10 +9,10 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from semvpr.data.datamodule import (ImageDataset, SegmentationDataModule, SegmentationDataset,
+from semvpr.segmentation.datamodule import (ImageDataset, SegmentationDataModule, SegmentationDataset,
                                     segmentation_augmentation, split_set)
 from semvpr.data.segmentation import SegmentationSet, read_cityscapes
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 # Vertical stripes of unequal width, so a flip applied to only one of image/mask shows.
 STRIPES = [(7, 0, (0.8, 0.1, 0.1)), (11, 9, (0.1, 0.8, 0.1)), (26, 23, (0.1, 0.1, 0.8)),

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr import distributed, mining
-from semvpr.errors import SemvprError
+from semvpr.retrieval import distributed, mining
+from semvpr.core.errors import SemvprError
 from semvpr.train import run_job
 
 from tests.helpers import tiny_config

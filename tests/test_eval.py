@@ -8,7 +8,7 @@ import pytest
 import scipy.io
 from PIL import Image
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
 
@@ -120,9 +120,9 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
     """The eval pipeline (trunk, mask, NetVLAD) takes its batch a few images at a time, so its
     activation memory does not grow with the batch; descriptors are those of one whole-batch pass."""
     import semvpr.models.backbones as backbones
-    from semvpr.build import build_places
-    from semvpr.inference import load_retriever, place_descriptors
-    from semvpr.features import grid_size
+    from semvpr.config.build import build_places
+    from semvpr.config.restore import load_retriever, place_descriptors
+    from semvpr.retrieval.features import grid_size
 
     write_checkpoint(tiny_config(tmp_path, f"filter={filter_name}"), tmp_path / "model.ckpt")
     root = make_folder(tmp_path / "folder", n=5)

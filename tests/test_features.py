@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr.build import sample_local_features, static_locations
-from semvpr.errors import SemvprError
-from semvpr.features import GiB, FeatureStore, choose_storage, place_features
+from semvpr.config.build import sample_local_features, static_locations
+from semvpr.core.errors import SemvprError
+from semvpr.retrieval.features import GiB, FeatureStore, choose_storage, place_features
 from semvpr.models.backbones import VGG16Backbone
 
 torch.set_num_threads(2)
@@ -18,7 +18,7 @@ torch.set_num_threads(2)
 def test_storage_is_chosen_by_size(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import shutil
 
-    from semvpr import features
+    from semvpr.retrieval import features
 
     def disk(free_gib: float) -> None:
         usage = shutil._ntuple_diskusage(500 * GiB, 500 * GiB - free_gib * GiB, free_gib * GiB)
@@ -125,7 +125,7 @@ def test_semantic_init_takes_static_locations_or_the_most_static_of_a_weak_teach
 
 
 def test_shape_probes_leave_batchnorm_statistics_alone() -> None:
-    from semvpr.features import grid_size, trunk_shape
+    from semvpr.retrieval.features import grid_size, trunk_shape
     from semvpr.models.backbones import ResNet50Backbone
 
     backbone = ResNet50Backbone(train_from="layer3")  # layer3 trainable, in train mode

@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torchvision.transforms.functional import to_tensor
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 from tests.helpers import config, tiny_config, write_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
@@ -24,7 +24,7 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_hub_model_takes_normalised_images_and_gives_unit_descriptors(checkpoint: Path) -> None:
-    from semvpr.inference import load_retriever
+    from semvpr.config.restore import load_retriever
 
     model = torch.hub.load(str(REPO), "semvpr", ckpt=str(checkpoint), source="local", image_size=[32, 48])
     rng = np.random.default_rng(0)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from semvpr.io import atomic_dir, atomic_file, write_json
+from semvpr.core.io import atomic_dir, atomic_file, write_json
 
 
 def test_a_failed_write_leaves_neither_target_nor_temp(tmp_path: Path) -> None:

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from semvpr import logs
+from semvpr.core import logs
 
 
 def test_progress_lines_have_count_rate_and_eta(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -9,8 +9,8 @@ from PIL import Image
 
 from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.models.masks import ClassWeights, OracleMask
-from semvpr.models.netvlad import NetVLAD
-from semvpr.models.retriever import triplet_loss
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.retrieval.retriever import triplet_loss
 
 
 def _labels(tmp_path: Path, n: int = 2) -> list[Path]:

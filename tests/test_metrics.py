@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semvpr.errors import SemvprError
-from semvpr.metrics import knn, positives_within, recall_at_n, recall_curve, recall_result
+from semvpr.core.errors import SemvprError
+from semvpr.retrieval.recall import knn, positives_within, recall_at_n, recall_curve, recall_result
 
 
 def test_recall_hand_made_case() -> None:

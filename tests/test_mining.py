@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr.errors import SemvprError
-from semvpr.features import FeatureStore
-from semvpr.mining import QueryBatches, TupleDataset, collate_tuples, mine
+from semvpr.core.errors import SemvprError
+from semvpr.retrieval.features import FeatureStore
+from semvpr.retrieval.mining import QueryBatches, TupleDataset, collate_tuples, mine
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -95,7 +95,7 @@ def test_batches_hold_consecutive_queries_and_pair_every_negative_with_its_query
 
 def test_loss_averages_over_query_negative_pairs() -> None:
     # pytorch-NetVlad: sum of per-(query, negative) triplet losses divided by the number of negatives.
-    from semvpr.models.retriever import triplet_loss
+    from semvpr.retrieval.retriever import triplet_loss
 
     torch.manual_seed(0)
     desc = torch.nn.functional.normalize(torch.randn(7, 4), dim=1)
@@ -111,7 +111,7 @@ def test_loss_averages_over_query_negative_pairs() -> None:
 def _line(num_queries: int):
     """Training features on a line: query i at 10 i m, database every 5 m; the last query is far away."""
     from semvpr.data.places import PlaceSet
-    from semvpr.features import PlaceFeatures
+    from semvpr.retrieval.features import PlaceFeatures
 
     db_utm = np.stack([np.arange(0, 10 * num_queries, 5.0), np.zeros(2 * num_queries)], 1)
     q_utm = np.stack([np.arange(num_queries) * 10.0 + 1.0, np.zeros(num_queries)], 1)
@@ -124,8 +124,8 @@ def _line(num_queries: int):
 
 def _datamodule(num_queries: int, cache_refresh: int, batch_size: int, queries_per_epoch: int | None = None):
     """A RetrievalDataModule over :func:`_line` (its describe function is never called here)."""
-    from semvpr.data.retrieval import RetrievalDataModule
-    from semvpr.mining import Mining
+    from semvpr.retrieval.datamodule import RetrievalDataModule
+    from semvpr.retrieval.mining import Mining
 
     train = _line(num_queries)
     mining = Mining(batch_size=batch_size, cache_refresh=cache_refresh, queries_per_epoch=queries_per_epoch)
@@ -133,7 +133,7 @@ def _datamodule(num_queries: int, cache_refresh: int, batch_size: int, queries_p
 
 
 def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epochs() -> None:
-    from semvpr.mining import TrainingEpoch
+    from semvpr.retrieval.mining import TrainingEpoch
 
     dm = _datamodule(num_queries=26, cache_refresh=10, batch_size=4)
     assert dm.trainable_queries.tolist() == list(range(25))
@@ -175,7 +175,7 @@ def test_negative_cache_travels_with_the_datamodule_state() -> None:
     ("model.negative_radius=5", "negative_radius=5 is below model.positive_radius"),
 ])
 def test_impossible_mining_radii_are_refused_before_any_work(override: str, message: str) -> None:
-    from semvpr.build import check_config
+    from semvpr.config.build import check_config
     from tests.helpers import config
 
     with pytest.raises(SemvprError, match=message):

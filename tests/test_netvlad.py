@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from semvpr.errors import SemvprError
-from semvpr.models.netvlad import NetVLAD, PCAWhitening, alpha_from_features
+from semvpr.core.errors import SemvprError
+from semvpr.models.aggregators.netvlad import NetVLAD, PCAWhitening, alpha_from_features
 
 torch.set_num_threads(2)
 

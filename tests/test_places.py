@@ -10,7 +10,7 @@ from PIL import Image
 
 from semvpr.data.places import (DBSTRUCT_FIELDS, PlaceSet, parse_utm_name, read_dbstruct_mat,
                                 read_msls, read_utm_folder)
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 
 def utm_name(east: float, north: float) -> str:

@@ -8,9 +8,9 @@ import pytest
 import torch
 from PIL import Image
 
-from semvpr.artifacts import artifact_dir
-from semvpr.errors import SemvprError
-from semvpr.pseudolabels import label_path, pseudo_labels
+from semvpr.core.cache import artifact_dir
+from semvpr.core.errors import SemvprError
+from semvpr.segmentation.pseudolabels import label_path, pseudo_labels
 
 SIZE = (16, 20)
 
@@ -82,7 +82,7 @@ def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
 
 def _key(paths: list[Path], root: Path) -> dict:
     """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
-    from semvpr.pseudolabels import VERSION, image_list_identity
+    from semvpr.segmentation.pseudolabels import VERSION, image_list_identity
 
     return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths, root),
             "image_size": list(SIZE)}
@@ -130,7 +130,7 @@ def test_label_paths_of_the_real_pitts30k_test_lists_are_unique() -> None:
 
 
 def test_a_corrupt_cached_label_is_one_line_naming_it(tmp_path: Path) -> None:
-    from semvpr.pseudolabels import read_label
+    from semvpr.segmentation.pseudolabels import read_label
 
     paths = make_images(tmp_path / "img", n=2)
     out = pseudo_labels(CountingTeacher(), "t", paths, SIZE, tmp_path / "cache", tmp_path / "img", num_workers=0)

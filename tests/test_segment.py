@@ -13,10 +13,10 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.errors import SemvprError, one_line
+from semvpr.core.errors import SemvprError, one_line
 from semvpr.models.teacher import build_teacher
 from semvpr.models.masks import TeacherMask
-from semvpr.segeval import teacher_outputs
+from semvpr.segmentation.scoring import teacher_outputs
 from semvpr.segment import run
 from tests.camvid_fixture import write_camvid
 from tests.helpers import CONF_DIR
@@ -93,7 +93,7 @@ def test_unset_root_is_a_user_error(tmp_path: Path) -> None:
 
 def test_worker_wrapped_error_prints_its_own_line() -> None:
     wrapped = SemvprError("Caught SemvprError in DataLoader worker process 0.\nOriginal Traceback (most recent "
-                          "call last):\n  File \"x.py\", line 1\nsemvpr.errors.SemvprError: image a.jpg is corrupt\n")
+                          "call last):\n  File \"x.py\", line 1\nsemvpr.core.errors.SemvprError: image a.jpg is corrupt\n")
     assert one_line(wrapped) == "image a.jpg is corrupt"
     assert one_line(SemvprError("plain")) == "plain"
 

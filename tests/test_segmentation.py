@@ -11,7 +11,7 @@ from PIL import Image
 from semvpr.data.classes import IGNORE
 from semvpr.data.segmentation import (SegmentationSet, load_image, load_pair, load_train_ids,
                                       read_cityscapes)
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 
 def write_pair(root: Path, split: str, city: str, stem: str, label_ids: np.ndarray,

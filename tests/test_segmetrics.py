@@ -7,7 +7,7 @@ import torch
 from torchmetrics.classification import MulticlassJaccardIndex
 
 from semvpr.data.classes import TRAIN_ID_NAMES
-from semvpr.segmetrics import Confusion, binary_pred, class_iou, class_scores, mask_scores
+from semvpr.segmentation.confusion import Confusion, binary_pred, class_iou, class_scores, mask_scores
 
 ROAD, BUILDING, SKY, PERSON, CAR, X = 0, 2, 10, 11, 13, 255
 GT = torch.tensor([[ROAD, ROAD, ROAD, ROAD],

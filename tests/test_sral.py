@@ -6,8 +6,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from semvpr.models.netvlad import NetVLAD
-from semvpr.models.sral import SRAL
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.aggregators.sral import SRAL
 
 torch.set_num_threads(2)
 EYE = np.eye(32, dtype=np.float32)

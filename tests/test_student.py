@@ -9,7 +9,7 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 from semvpr.models import student as student_mod
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import Student, build_student

@@ -20,14 +20,14 @@ from PIL import Image
 
 import semvpr.data.synthcity as synthcity
 import semvpr.data.synthcity_render as render
-from semvpr.artifacts import LOCK_DIR, artifact_dir
+from semvpr.core.cache import LOCK_DIR, artifact_dir
 from semvpr.data.classes import TRAIN_ID_NAMES, TRAIN_TO_LABEL, label_ids_to_train_ids
 from semvpr.data.places import parse_utm_name
 from semvpr.data.segmentation import read_cityscapes
 from semvpr.data.synthcity import (DATES, DB_STEP_M, PRESETS, ensure_synthcity, generate, get_preset, main,
                                    read_segmentation, read_split)
 from semvpr.data.synthcity_ground import FACADE_D, build_ground, ground_distance, make_ground_pool
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = PRESETS["tiny"]
@@ -383,7 +383,7 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
 
 def test_config_render_knobs_make_another_dataset(dataset: Path, cache_dir: Path) -> None:
     """``+data.render.<knob>=`` reaches the readers: a dataset generated with that knob, keyed by it."""
-    from semvpr.build import instantiate_node
+    from semvpr.config.build import instantiate_node
     from tests.helpers import tiny_config
 
     default = instantiate_node(tiny_config(cache_dir).data.test)
@@ -399,7 +399,7 @@ def test_config_render_knobs_make_another_dataset(dataset: Path, cache_dir: Path
 
 def test_config_image_size_draws_the_city_at_that_size(dataset: Path, cache_dir: Path) -> None:
     """``data.image_size`` is the size the city is drawn at (not an upsampling of the preset's images)."""
-    from semvpr.build import instantiate_node
+    from semvpr.config.build import instantiate_node
     from tests.helpers import tiny_config
 
     cfg = tiny_config(cache_dir, "data.image_size=[48,72]")

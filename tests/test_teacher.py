@@ -10,10 +10,10 @@ from omegaconf import OmegaConf
 from transformers import Mask2FormerForUniversalSegmentation
 from PIL import Image
 
-from semvpr.artifacts import LOCK_DIR
+from semvpr.core.cache import LOCK_DIR
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.segmentation import read_cityscapes
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 from semvpr.models import teacher as teacher_mod
 from semvpr.models.teacher import Teacher, build_teacher, embedded_model, targets_from_train_ids
 

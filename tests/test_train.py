@@ -17,8 +17,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from semvpr import train
-from semvpr.build import build_aggregator, build_backbone
-from semvpr.errors import SemvprError
+from semvpr.config.build import build_aggregator, build_backbone
+from semvpr.core.errors import SemvprError
 from semvpr.train import run_job
 
 from tests.helpers import CONF_DIR, config, tiny_config
@@ -160,7 +160,7 @@ def test_resume_never_touches_a_file_named_by_a_tampered_checkpoint(cache_dir: P
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(cache_dir: Path, tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
-    from semvpr.models import retriever as retriever_mod
+    from semvpr.retrieval import retriever as retriever_mod
 
     last = tmp_path / "checkpoints" / "last.ckpt"
     original = retriever_mod.triplet_loss
@@ -252,7 +252,7 @@ def test_localize_matches_the_cached_pipeline(cache_dir: Path, trained_run: Path
 
 def _count_trunk_passes(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     """The sides of every image pass that writes trunk features, appended as they happen."""
-    from semvpr import features
+    from semvpr.retrieval import features
 
     passes: list[str] = []
     extract = features._extract

@@ -1,1 +1,1 @@
-"""Datasets: SynthCity generator, place sets, segmentation sets, datamodules."""
+"""Datasets and readers: SynthCity, place sets and benchmark ground truth, segmentation sets, images."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from semvpr.data.places import IMAGE_SUFFIXES, PlaceSet
 from semvpr.data.published import check_counts
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 #: What a pickled numpy object array of index arrays may reference (numpy 1.x and 2.x names).
 _ARRAY_CLASSES = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.data.segmentation import SegmentationSet, check_pair
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 #: SegNet's 11 CamVid classes by label index; index 11 is Unlabelled (ignored).
 CAMVID_NAMES: tuple[str, ...] = (

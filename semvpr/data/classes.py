@@ -43,7 +43,7 @@ def static_lut(static_names: tuple[str, ...] | list[str] = STATIC_NAMES) -> np.n
     """Lookup table trainId → 1.0 (static) / 0.0 (dynamic or ignore), length 256."""
     unknown = set(static_names) - set(TRAIN_ID_NAMES)
     if unknown:
-        from semvpr.errors import SemvprError
+        from semvpr.core.errors import SemvprError
 
         raise SemvprError(f"unknown static class names {sorted(unknown)}; known: {TRAIN_ID_NAMES}")
     lut = np.zeros(256, dtype=np.float32)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.data.places import PlaceSet
-from semvpr.errors import SemvprError, exit_on_user_error, unwrap_user_error
+from semvpr.core.errors import SemvprError, exit_on_user_error, unwrap_user_error
 
 DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 

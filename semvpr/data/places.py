@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from semvpr.artifacts import files_identity
-from semvpr.errors import SemvprError
-from semvpr.metrics import positives_within
+from semvpr.core.cache import files_identity
+from semvpr.core.errors import SemvprError
+from semvpr.retrieval.recall import positives_within
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 #: The official MSLS cities of each split (mapillary_sls, ``default_cities``).

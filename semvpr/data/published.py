@@ -7,7 +7,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 PUBLISHED = Path(__file__).with_name("published.yaml")
 

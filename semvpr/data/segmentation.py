@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from semvpr.data.classes import IGNORE, LABEL_TO_TRAIN_LUT, TRAIN_ID_NAMES
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 IMAGE_SUFFIX = "_leftImg8bit.png"
 LABEL_SUFFIX = "_gtFine_labelIds.png"

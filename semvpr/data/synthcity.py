@@ -23,13 +23,13 @@ from typing import NamedTuple
 import numpy as np
 from PIL import Image
 
-from semvpr.artifacts import build_once
+from semvpr.core.cache import build_once
 from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
 from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
-from semvpr.errors import SemvprError, exit_on_user_error
-from semvpr.io import atomic_dir, check_dir_path, reclaim_orphans
-from semvpr.logs import Progress
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.core.io import atomic_dir, check_dir_path, reclaim_orphans
+from semvpr.core.logs import Progress
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
 # 3: static classes of different value: seasonal vegetation (June database, November queries), ground in

@@ -1,1 +1,1 @@
-"""Models: backbones, aggregators (NetVLAD, SRAL), mask sources, retriever, teacher, student."""
+"""Networks only: backbones, aggregators, mask sources, the teacher and the student."""

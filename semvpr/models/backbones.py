@@ -18,8 +18,8 @@ import torch
 import torchvision
 from torch import Tensor, nn
 
-from semvpr.artifacts import state_hash
-from semvpr.errors import SemvprError
+from semvpr.core.cache import state_hash
+from semvpr.core.errors import SemvprError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)

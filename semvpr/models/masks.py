@@ -22,7 +22,7 @@ from PIL import Image
 from torch import Tensor, nn
 
 from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 WEIGHTINGS = ("binary", "learned")
 

@@ -19,13 +19,13 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from semvpr.artifacts import build_once
+from semvpr.core.cache import build_once
 from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES
 from semvpr.models.masks import static_vector
-from semvpr.errors import SemvprError
-from semvpr.precision import autocast
-from semvpr.pseudolabels import label_path, read_label
-from semvpr.logs import Progress, progress
+from semvpr.core.errors import SemvprError
+from semvpr.core.precision import autocast
+from semvpr.segmentation.pseudolabels import label_path, read_label
+from semvpr.core.logs import Progress, progress
 
 VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
 
@@ -99,7 +99,7 @@ def cache_skips(
 ) -> list[Tensor]:  # fmt: skip
     """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once);
     ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower)."""
-    from semvpr.data.datamodule import ImageDataset
+    from semvpr.segmentation.datamodule import ImageDataset
 
     device = next(backbone.parameters()).device
     loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)

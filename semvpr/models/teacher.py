@@ -19,13 +19,13 @@ from torch import Tensor
 from torchmetrics.classification import MulticlassJaccardIndex
 from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig, TimmBackboneConfig
 
-from semvpr.artifacts import build_once, config_hash, files_identity
+from semvpr.core.cache import build_once, config_hash, files_identity
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, IMAGENET_MEAN, IMAGENET_STD, TIMM_EFFICIENTNET_LITE0,
                                      efficientnet_lite0_state)
-from semvpr.precision import autocast, lightning_precision
-from semvpr.logs import trainer_kwargs
+from semvpr.core.precision import autocast, lightning_precision
+from semvpr.core.logs import trainer_kwargs
 
 
 
@@ -372,7 +372,7 @@ def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
     """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
     from lightning.pytorch.loggers import CSVLogger
 
-    from semvpr.data.datamodule import SegmentationDataModule
+    from semvpr.segmentation.datamodule import SegmentationDataModule
 
     L.seed_everything(cfg.train.seed, workers=True, verbose=False)
     accelerator = "gpu" if torch.cuda.is_available() else "cpu"

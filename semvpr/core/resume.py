@@ -13,7 +13,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 #: Overrides a resume may give freely: which checkpoint, and Hydra's own settings.
 RESUME_KEYS = ("ckpt_path",)

@@ -15,9 +15,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from semvpr.models.masks import static_vector
 from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
-from semvpr.precision import autocast
-from semvpr.segmetrics import Confusion, binary_pred, class_scores, mask_scores
-from semvpr.logs import progress
+from semvpr.core.precision import autocast
+from semvpr.segmentation.confusion import Confusion, binary_pred, class_scores, mask_scores
+from semvpr.core.logs import progress
 
 
 class ScoringDataset(Dataset):

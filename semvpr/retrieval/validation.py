@@ -1,7 +1,7 @@
 """Recall@N of the retriever on val/test, as a Lightning callback that owns the evaluation results.
 
 The model only turns batches into descriptors (``validation_step`` / ``test_step`` return them);
-this callback collects them, gathers them across ranks in order (semvpr.distributed), computes
+this callback collects them, gathers them across ranks in order (semvpr.retrieval.distributed), computes
 recall once on rank 0, and gives every rank the same numbers to log. The caller reads the results
 from here: the last result per stage (:attr:`results`, with the top-k predictions for the figures)
 and the validation R@1 of the epoch with the best val/R@5, the one ModelCheckpoint keeps
@@ -16,9 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from semvpr.distributed import Describe, from_rank_zero, gather_rows, world
-from semvpr.features import PlaceFeatures
-from semvpr.models.retriever import evaluate
+from semvpr.retrieval.distributed import Describe, from_rank_zero, gather_rows, world
+from semvpr.retrieval.features import PlaceFeatures
+from semvpr.retrieval.retriever import evaluate
 
 
 class RecallEvaluation(L.Callback):

@@ -21,7 +21,7 @@ import faiss
 import numpy as np
 from scipy.spatial import cKDTree
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 RECALL_NS = (1, 5, 10, 20)  # the cut-offs every table reports
 

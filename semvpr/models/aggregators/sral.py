@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, cluster_means,
+from semvpr.models.aggregators.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, cluster_means,
                                    spherical_kmeans, subsample)
 
 FAR_SHADOW = -4.0  # shadow = −4·c_k when there are no dynamic features: never wins against the representative

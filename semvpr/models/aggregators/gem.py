@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.aggregator import Aggregator, check_weights
+from semvpr.models.aggregators.base import Aggregator, check_weights
 
 
 class GeM(Aggregator):

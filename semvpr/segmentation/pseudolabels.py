@@ -15,11 +15,11 @@ import torch
 from PIL import Image
 from torch.utils.data import DataLoader
 
-from semvpr.artifacts import build_once, files_identity
-from semvpr.errors import SemvprError
-from semvpr.io import atomic_file, inside
-from semvpr.logs import Progress
-from semvpr.precision import autocast
+from semvpr.core.cache import build_once, files_identity
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import atomic_file, inside
+from semvpr.core.logs import Progress
+from semvpr.core.precision import autocast
 
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
 
@@ -61,7 +61,7 @@ def _label_missing(
     num_workers: int,
 ) -> None:
     """Label the images whose PNG is not in ``out`` yet (a resumed run skips the finished ones)."""
-    from semvpr.data.datamodule import ImageDataset
+    from semvpr.segmentation.datamodule import ImageDataset
 
     todo = [p for p in paths if not label_path(out, p, root).is_file()]
     bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))

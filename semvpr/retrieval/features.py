@@ -30,16 +30,16 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
-from semvpr.artifacts import artifact_dir, build_once
-from semvpr.data.datamodule import ImageDataset
+from semvpr.core.cache import artifact_dir, build_once
+from semvpr.segmentation.datamodule import ImageDataset
 from semvpr.data.places import PlaceSet
 from semvpr.data.segmentation import load_image
-from semvpr.errors import SemvprError
-from semvpr.io import open_array, temp_prefix
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import open_array, temp_prefix
 from semvpr.data.classes import NUM_CLASSES
 from semvpr.models.masks import MaskSource
-from semvpr.precision import autocast
-from semvpr.logs import progress
+from semvpr.core.precision import autocast
+from semvpr.core.logs import progress
 
 STORAGES = ("auto", "ram", "disk", "stream")
 #: Trunk features are bf16 wherever they come from (cache or stream), so every path gives the same

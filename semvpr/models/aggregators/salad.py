@@ -24,8 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.errors import SemvprError
-from semvpr.models.aggregator import Aggregator, check_weights, log_weights
+from semvpr.core.errors import SemvprError
+from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
 
 def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Tensor:
     """log of the transport plan of (B,M,N) scores between row masses exp(log_a) (B,M) and column

@@ -19,8 +19,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.errors import SemvprError
-from semvpr.models.aggregator import Aggregator, check_weights
+from semvpr.core.errors import SemvprError
+from semvpr.models.aggregators.base import Aggregator, check_weights
 
 MAX_KMEANS_FEATURES = 50_000  # NetVLAD's recipe: cluster a 50k random sample of training local features
 

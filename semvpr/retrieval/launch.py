@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch.distributed as dist
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 _RANK_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
 CHILD_TIMEOUT_S = 600  # how long rank 0 waits for the other ranks to exit after its own job ended

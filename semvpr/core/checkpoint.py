@@ -28,8 +28,8 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.errors import SemvprError
-from semvpr.io import CONF_DIR
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import CONF_DIR
 
 FORMAT = 2
 CONF = Path(CONF_DIR)

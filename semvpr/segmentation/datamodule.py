@@ -10,7 +10,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from semvpr.data.segmentation import SegmentationSet, load_image, load_pair
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 Size = tuple[int, int] | list[int]
 

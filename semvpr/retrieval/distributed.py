@@ -8,7 +8,7 @@ many. Work is split the same way everywhere:
   gathered rows are the single-process ones bit for bit on the same hardware (a row's value can
   depend on the batch it was computed in, by ~1e-6);
 - training: each global batch of tuples is cut into ``world`` consecutive slices
-  (:func:`rank_slice`); the loss is normalised by the global pair count (semvpr.mining).
+  (:func:`rank_slice`); the loss is normalised by the global pair count (semvpr.retrieval.mining).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from semvpr.features import FeatureStore
+from semvpr.retrieval.features import FeatureStore
 
 Describe = Callable[[FeatureStore, np.ndarray | None], np.ndarray]
 

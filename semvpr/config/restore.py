@@ -1,7 +1,7 @@
 """A trained retriever rebuilt from its checkpoint, and its descriptors of a place set: what the
 entry points that read checkpoints (``semvpr.eval``, ``semvpr.localize``) and the hub share.
 
-The model comes from the checkpoint's record (``semvpr.checkpoint``: validated against the project's
+The model comes from the checkpoint's record (``semvpr.core.checkpoint``: validated against the project's
 own configs, nothing stored in the file is run); a command-line choice that would change the model is
 refused. Descriptors are computed once per model and image set and cached memory-mapped (kind
 ``descriptors``), so memory does not grow with the dataset.
@@ -14,14 +14,14 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from semvpr.artifacts import build_once, state_hash
-from semvpr.build import build_aggregator, build_backbone, build_class_weights, build_mask_source
-from semvpr.checkpoint import model_config, read_checkpoint
+from semvpr.core.cache import build_once, state_hash
+from semvpr.config.build import build_aggregator, build_backbone, build_class_weights, build_mask_source
+from semvpr.core.checkpoint import model_config, read_checkpoint
 from semvpr.data.places import PlaceSet
-from semvpr.errors import SemvprError
-from semvpr.io import open_array
-from semvpr.models.netvlad import PCAWhitening
-from semvpr.models.retriever import Retriever
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import open_array
+from semvpr.models.aggregators.netvlad import PCAWhitening
+from semvpr.retrieval.retriever import Retriever
 
 
 #: Command-line group choices that would change the model, and the groups each one sets.

@@ -20,7 +20,7 @@ from typing import Sequence
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.aggregator import Aggregator, check_weights
+from semvpr.models.aggregators.base import Aggregator, check_weights
 
 
 class FeatureMixer(nn.Module):

@@ -1,7 +1,7 @@
 """The retriever: backbone → (mask) → NetVLAD / SRAL aggregator → global descriptor.
 
 One code path for every aggregator and mask (ARCHITECTURE §3.4): the components are built outside and injected. The
-frozen backbone prefix and the mask run once per image (semvpr.features); training, mining and
+frozen backbone prefix and the mask run once per image (semvpr.retrieval.features); training, mining and
 evaluation work on their cached outputs through :meth:`Retriever.describe`.
 """
 from __future__ import annotations
@@ -16,14 +16,14 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from semvpr.data.datamodule import ImageDataset
-from semvpr.distributed import Describe
-from semvpr.errors import SemvprError
-from semvpr.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
-from semvpr.metrics import RECALL_NS, knn, recall_result
+from semvpr.segmentation.datamodule import ImageDataset
+from semvpr.retrieval.distributed import Describe
+from semvpr.core.errors import SemvprError
+from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
+from semvpr.retrieval.recall import RECALL_NS, knn, recall_result
 from semvpr.models.masks import ClassWeights, MaskSource
-from semvpr.precision import autocast
-from semvpr.logs import progress
+from semvpr.core.precision import autocast
+from semvpr.core.logs import progress
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class Retriever(L.LightningModule):
         class_weights: ClassWeights | None = None,
     ) -> None:
         super().__init__()
-        # What eval needs to rebuild the model: config choices and plain values (semvpr.checkpoint),
+        # What eval needs to rebuild the model: config choices and plain values (semvpr.core.checkpoint),
         # never code or _target_s; Lightning stores it in the checkpoint's "hyper_parameters".
         self.save_hyperparameters(record or {})
         self.backbone, self.aggregator, self.mask_source = backbone, aggregator, mask_source
@@ -139,7 +139,7 @@ class Retriever(L.LightningModule):
 
     # ------------------------------------------------------------------- training
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
-        """The triplet loss of this rank's tuples, summed and divided by ``batch["pairs"]`` (semvpr.mining:
+        """The triplet loss of this rank's tuples, summed and divided by ``batch["pairs"]`` (semvpr.retrieval.mining:
         the global pair count over the world size, so DDP's averaged gradient is the single-process one)."""
         if batch is None:
             return None  # no query of this batch had a violating negative (pytorch-NetVlad skips it too)
@@ -177,7 +177,7 @@ class Retriever(L.LightningModule):
 
     # ----------------------------------------------------------------- evaluation
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        """Descriptors of a val/test batch; semvpr.evaluation gathers them and computes recall."""
+        """Descriptors of a val/test batch; semvpr.retrieval.validation gathers them and computes recall."""
         return self.describe_batch(batch).float().cpu()
 
     test_step = validation_step

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.aggregator import Aggregator, check_weights, log_weights
+from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
 
 HEAD_DIM = 64  # the authors' heads: d // 64 of them
 

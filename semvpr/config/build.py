@@ -1,5 +1,5 @@
 """Build a run's components from its config: place sets, backbone, semantic artifacts, mask source,
-aggregator (from ``conf/aggregator``, against :class:`semvpr.models.aggregator.Aggregator`).
+aggregator (from ``conf/aggregator``, against :class:`semvpr.models.aggregators.base.Aggregator`).
 
 Shared by ``semvpr.train`` and ``semvpr.eval`` so both construct exactly the same model. Teacher,
 pseudo-labels, student and feature caches come from the artifact cache (built on first use).
@@ -20,17 +20,17 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 from torch import Tensor, nn
 
-from semvpr.artifacts import config_hash, state_hash
+from semvpr.core.cache import config_hash, state_hash
 from semvpr.data.classes import static_lut
 from semvpr.data.places import PlaceSet
-from semvpr.errors import SemvprError, unwrap_user_error
-from semvpr.io import check_dir_path
-from semvpr.features import STORAGES, FeatureStore, grid_size
-from semvpr.metrics import check_radius
-from semvpr.models.aggregator import Aggregator
+from semvpr.core.errors import SemvprError, unwrap_user_error
+from semvpr.core.io import check_dir_path
+from semvpr.retrieval.features import STORAGES, FeatureStore, grid_size
+from semvpr.retrieval.recall import check_radius
+from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.masks import WEIGHTINGS, ClassWeights, MaskSource, OracleMask, StudentMask, TeacherMask
-from semvpr.precision import autocast
-from semvpr.pseudolabels import read_label
+from semvpr.core.precision import autocast
+from semvpr.segmentation.pseudolabels import read_label
 
 MASK_SOURCES = ("none", "teacher", "student", "oracle")
 MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at the least, per cluster
@@ -87,7 +87,7 @@ def check_config(cfg: DictConfig) -> None:
         raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
     check_dir_path(Path(str(cfg.paths.cache_dir)), "paths.cache_dir")
     if cfg.get("ckpt_path") not in (None, "last"):
-        from semvpr.checkpoint import read_checkpoint
+        from semvpr.core.checkpoint import read_checkpoint
 
         read_checkpoint(cfg.ckpt_path)
     if cfg.mask.name not in MASK_SOURCES:
@@ -161,7 +161,7 @@ def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module,
         return Semantic()
     from semvpr.models.student import build_student
     from semvpr.models.teacher import build_teacher
-    from semvpr.pseudolabels import pseudo_labels
+    from semvpr.segmentation.pseudolabels import pseudo_labels
 
     seg = cfg.data.get("segmentation")
     needs_training = cfg.teacher.get("checkpoint") is None
@@ -255,7 +255,7 @@ def aggregator_class(cfg: DictConfig) -> type[Aggregator]:
     cls = get_class(cfg.aggregator.module._target_)
     if not (isinstance(cls, type) and issubclass(cls, Aggregator)):
         raise SemvprError(f"aggregator={cfg.aggregator.name}: {cfg.aggregator.module._target_} is not a "
-                          "semvpr.models.aggregator.Aggregator")
+                          "semvpr.models.aggregators.base.Aggregator")
     return cls
 
 

@@ -13,8 +13,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from semvpr.io import atomic_file
-from semvpr.sweep import LEARNED, Job, Sweep, cell_name, mean_std
+from semvpr.core.io import atomic_file
+from semvpr.reporting.sweep import LEARNED, Job, Sweep, cell_name, mean_std
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

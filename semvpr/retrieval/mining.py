@@ -30,10 +30,10 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from semvpr.distributed import Describe, from_rank_zero, rank_slice, world
-from semvpr.errors import SemvprError
-from semvpr.metrics import check_radius
-from semvpr.features import FeatureStore, PlaceFeatures
+from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, world
+from semvpr.core.errors import SemvprError
+from semvpr.retrieval.recall import check_radius
+from semvpr.retrieval.features import FeatureStore, PlaceFeatures
 
 
 def mine(
@@ -172,7 +172,7 @@ class TrainingEpoch:
     """One epoch's batches: for each sub-epoch, refresh the descriptor cache, mine, then train.
 
     Under DDP every rank iterates the same global batches: ``describe`` is sharded and gathered
-    (semvpr.distributed), rank 0 mines with the single-process random stream and broadcasts the
+    (semvpr.retrieval.distributed), rank 0 mines with the single-process random stream and broadcasts the
     tuples and the negative cache, and each rank yields its slice of every global batch (see
     :meth:`__iter__`).
     """

@@ -1,5 +1,5 @@
 """A sweep directory read back as data: its jobs (what each recorded), the rows they form and the orderings
-the report's tables and figures share. Nothing here writes; ``semvpr.report`` and ``semvpr.plots`` render it."""
+the report's tables and figures share. Nothing here writes; ``semvpr.report`` and ``semvpr.reporting.figures`` render it."""
 from __future__ import annotations
 
 import json
@@ -13,7 +13,7 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.errors import SemvprError
+from semvpr.core.errors import SemvprError
 
 LEARNED = "+learned"  # a mask run with mask.weights=learned is reported as "<mask>+learned"
 NO_MASK = "none"  # the mask choice every other mask is paired against

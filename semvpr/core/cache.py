@@ -22,8 +22,8 @@ from typing import Any, Callable, Iterator, Sequence
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from semvpr.errors import SemvprError
-from semvpr.io import reclaim_orphans, temp_prefix, write_text
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import reclaim_orphans, temp_prefix, write_text
 
 
 LOCK_DIR = ".locks"

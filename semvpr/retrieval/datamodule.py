@@ -1,9 +1,9 @@
-"""The VPR DataModule: train/val/test feature stores; training tuples re-mined per sub-epoch (semvpr.mining).
+"""The VPR DataModule: train/val/test feature stores; training tuples re-mined per sub-epoch (semvpr.retrieval.mining).
 
 Data flows one way: the descriptor function that mining needs is given at construction (the model's
-``describe_store``, sharded across ranks by semvpr.distributed), and the datamodule never reads the
+``describe_store``, sharded across ranks by semvpr.retrieval.distributed), and the datamodule never reads the
 trainer's model. Val/test batches are whole eval batches over database then queries; under DDP each
-rank loads a contiguous block of them (semvpr.evaluation gathers the descriptors back in order).
+rank loads a contiguous block of them (semvpr.retrieval.validation gathers the descriptors back in order).
 """
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader, Sampler
 
-from semvpr.distributed import Describe, batch_block, world
-from semvpr.features import PlaceFeatures, StoreDataset
-from semvpr.mining import Mining, TrainingEpoch, trainable_queries
+from semvpr.retrieval.distributed import Describe, batch_block, world
+from semvpr.retrieval.features import PlaceFeatures, StoreDataset
+from semvpr.retrieval.mining import Mining, TrainingEpoch, trainable_queries
 
 
 class RankBatches(Sampler[list[int]]):
@@ -40,7 +40,7 @@ class RankBatches(Sampler[list[int]]):
 
 
 class RetrievalDataModule(L.LightningDataModule):
-    """Feature stores of train/val/test; training batches re-mined per sub-epoch (semvpr.mining)."""
+    """Feature stores of train/val/test; training batches re-mined per sub-epoch (semvpr.retrieval.mining)."""
 
     def __init__(self, features: dict[str, PlaceFeatures], mining: Mining, describe: Describe,
                  eval_batch_size: int = 64, num_workers: int = 0) -> None:
@@ -77,7 +77,7 @@ class RetrievalDataModule(L.LightningDataModule):
         return self._eval_loader(self.features["test"])
 
     def _eval_loader(self, features: PlaceFeatures) -> DataLoader:
-        # Database first, then queries: semvpr.evaluation splits the descriptors at len(db).
+        # Database first, then queries: semvpr.retrieval.validation splits the descriptors at len(db).
         dataset = ConcatDataset([StoreDataset(features.db), StoreDataset(features.q)])
         workers = self.num_workers if features.db.streams else 0
         return DataLoader(dataset, batch_sampler=RankBatches(len(dataset), self.eval_batch_size), num_workers=workers)

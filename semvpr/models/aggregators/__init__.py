@@ -1,0 +1,1 @@
+"""Aggregators: local features and a per-location mask → one global descriptor (``base.Aggregator``)."""

@@ -1,0 +1,1 @@
+"""Sweep and evaluation directories read back as data and rendered: tables, figures, escaping."""
