@@ -44,7 +44,7 @@ from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
 from semvpr.core.io import CONF_DIR
-from semvpr.config.build import instantiate_backbone
+from semvpr.config.build import build_backbone
 from semvpr.models.masks import pool_to_grid
 from semvpr.models.aggregators.netvlad import NetVLAD
 
@@ -126,7 +126,7 @@ def calibrate(split: PlaceSet, train: PlaceSet, backbone: str, model_seed: int, 
     """Per-variant, per-N query hits of one frozen trunk (conf/backbone/<backbone>.yaml; a random init
     is the model seed's) + k-means NetVLAD on ``split``."""
     node = OmegaConf.load(Path(CONF_DIR) / "backbone" / f"{backbone}.yaml")
-    trunk = instantiate_backbone(node, model_seed).eval()
+    trunk = build_backbone(node, model_seed).eval()
     pick = np.random.default_rng(model_seed).permutation(len(train.db_paths))[:init_images]
     init = features_of(trunk, [train.db_paths[i] for i in sorted(pick)], bf16)
     vlad = NetVLAD(clusters, trunk.out_channels)

@@ -45,7 +45,7 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
     from hydra import compose, initialize_config_dir
 
     from semvpr.config.build import build_backbone, build_places
-    from semvpr.segmentation.datamodule import ImageDataset
+    from semvpr.data.images import ImageDataset
     from semvpr.core.precision import autocast
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
@@ -54,7 +54,7 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
         cfg = compose(config_name="train", overrides=[f"paths.cache_dir={work / 'cache'}", *plain])
     places = build_places(cfg)
     paths = [p for s in places.values() for p in (*s.db_paths, *s.q_paths)]
-    backbone = build_backbone(cfg).eval()
+    backbone = build_backbone(cfg.backbone, cfg.seed).eval()
     loader = DataLoader(ImageDataset(paths, tuple(cfg.data.image_size)), batch_size=int(cfg.model.eval_batch_size),
                         num_workers=int(cfg.data.num_workers))
     t0 = time.perf_counter()

@@ -26,9 +26,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from semvpr.config.build import build_aggregator, build_backbone, build_mask_source
-from semvpr.core.checkpoint import record_of
-from semvpr.retrieval.retriever import Retriever
+from semvpr.config.build import build_backbone, build_mask_source, build_retriever
 from semvpr.core.precision import autocast
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,9 +43,8 @@ def compose(*overrides: str):
 def write_checkpoint(path: Path, clusters: int) -> None:
     """An untrained VGG16 + NetVLAD checkpoint in the format a run writes."""
     cfg = compose("backbone=vgg16", "backbone.weights=none", f"model.num_clusters={clusters}")
-    backbone = build_backbone(cfg)
-    aggregator = build_aggregator(cfg, backbone)
-    retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), record=record_of(cfg))
+    backbone = build_backbone(cfg.backbone, cfg.seed)
+    retriever = build_retriever(cfg, backbone, build_mask_source(cfg, backbone), training=False)
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams)}, path)
 
 
@@ -87,7 +84,8 @@ def run_eval(ckpt: Path, data: Path, work: Path, hw: tuple[int, int], batch: int
 @torch.no_grad()
 def trunk_images_per_s(hw: tuple[int, int], batch: int, reps: int = 2) -> float:
     """The VGG16 trunk alone on decoded tensors, with the eval path's precision and memory format."""
-    backbone = build_backbone(compose("backbone.weights=none")).eval()
+    cfg = compose("backbone.weights=none")
+    backbone = build_backbone(cfg.backbone, cfg.seed).eval()
     x = torch.rand(batch, 3, *hw).contiguous(memory_format=torch.channels_last)
     with autocast("cpu"):
         backbone(x)

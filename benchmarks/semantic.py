@@ -28,11 +28,13 @@ from torch.utils.data import DataLoader
 from torchmetrics.classification import MulticlassJaccardIndex
 
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.segmentation.datamodule import ImageDataset, SegmentationDataset
+from semvpr.data.images import ImageDataset
+from semvpr.segmentation.datamodule import SegmentationDataset
 from semvpr.data.synthcity import read_segmentation, read_split
 from semvpr.models.backbones import VGG16Backbone
-from semvpr.models.student import build_student
-from semvpr.models.teacher import build_teacher
+from semvpr.models.student import StudentSpec
+from semvpr.models.teacher import TeacherSpec
+from semvpr.segmentation.training import build_student, build_teacher
 from semvpr.core.precision import autocast
 from semvpr.segmentation.pseudolabels import pseudo_labels
 
@@ -121,7 +123,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory(prefix="semvpr-bench-") as cache:
         start = time.perf_counter()
-        teacher = build_teacher(cfg.teacher, seg_train, seg_val, cache)
+        teacher = build_teacher(TeacherSpec.from_mapping(cfg.teacher), seg_train, seg_val, cache)
         teacher_s = time.perf_counter() - start
         miou, static_iou = teacher_held_out(teacher, seg_val, size, lut)
         print(f"teacher: {teacher_s:.0f} s, held-out mIoU {miou:.3f}, static IoU {static_iou:.3f}")
@@ -136,7 +138,7 @@ def main() -> None:
         torch.manual_seed(args.backbone_seed)
         backbone = VGG16Backbone(weights="none", train_from="conv5").eval()
         start = time.perf_counter()
-        student = build_student(cfg.student, backbone, images, labels, train.root, size, cache)
+        student = build_student(StudentSpec.from_mapping(cfg.student), backbone, images, labels, train.root, size, cache)
         student_s = time.perf_counter() - start
         n = min(args.eval_images, len(test.db_paths))
         scores = student_scores(student, backbone, teacher, test.db_paths[:n], test.db_labels[:n], size, lut)

@@ -18,7 +18,8 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from semvpr.core.io import CONF_DIR
-from semvpr.retrieval.recall import knn, positives_within, recall_result
+from semvpr.data.places import positives_within
+from semvpr.retrieval.recall import knn, recall_result
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.models.aggregators.sral import SRAL

@@ -21,13 +21,15 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places, check_config
+from semvpr.config.build import build_places
+from semvpr.config.checks import check_config
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
-from semvpr.config.restore import explicit_keys, load_retriever, place_descriptors
+from semvpr.config.restore import explicit_keys, load_retriever
+from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.retrieval.recall import RECALL_NS
-from semvpr.retrieval.retriever import evaluate
+from semvpr.retrieval.recall import evaluate
 
 
 def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
@@ -37,8 +39,9 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     check_config(cfg)
     retriever, merged = load_retriever(cfg, explicit)
     test = build_places(merged, ("test",))["test"]
-    db = place_descriptors(retriever, test, "db", merged)
-    result = evaluate(db, place_descriptors(retriever, test, "q", merged), test.positives())
+    size, cache = merged.data.image_size, merged.paths.cache_dir
+    db = place_descriptors(retriever, test, "db", size, cache)
+    result = evaluate(db, place_descriptors(retriever, test, "q", size, cache), test.positives())
     out = {"status": "ok", "checkpoint": str(cfg.ckpt), "data": merged.data.name, "set": test.name,
            "benchmark": merged.data.get("benchmark"), "aggregator": merged.aggregator.name, "mask": merged.mask.name,
            "backbone": merged.backbone.name, "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",

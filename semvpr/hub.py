@@ -16,11 +16,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision import transforms
 
-from semvpr.core.errors import SemvprError
-from semvpr.config.restore import descriptor_dim, load_retriever
+from semvpr.config.restore import load_retriever
 from semvpr.core.io import CONF_DIR
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
-from semvpr.models.masks import OracleMask
 from semvpr.retrieval.retriever import Retriever
 
 
@@ -32,7 +30,7 @@ class HubModel(nn.Module):
         self.retriever = retriever
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-        self.feature_dim = descriptor_dim(retriever)
+        self.feature_dim = retriever.descriptor_dim
         resize = [transforms.Resize(tuple(image_size), antialias=True)] if image_size else []
         #: PIL image → the normalised tensor this module takes (resized to ``image_size`` if given).
         self.transform = transforms.Compose([*resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)])
@@ -49,8 +47,5 @@ def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None) -> Hub
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(config_name="eval", overrides=[f"ckpt={Path(ckpt).expanduser()}"])
-    retriever, _ = load_retriever(cfg)
-    if isinstance(retriever.mask_source, OracleMask):
-        raise SemvprError(f"checkpoint {ckpt} uses mask=oracle, which needs SynthCity's ground-truth label "
-                          f"maps for every image; it cannot describe images alone")
+    retriever, _ = load_retriever(cfg, new_images=True)
     return HubModel(retriever, image_size).eval()

@@ -16,9 +16,11 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places, check_config
+from semvpr.config.build import build_places
+from semvpr.config.checks import check_config
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.config.restore import explicit_keys, load_retriever, place_descriptors
+from semvpr.config.restore import explicit_keys, load_retriever
+from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import knn
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
@@ -41,11 +43,9 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
     """Top-k database matches (path, UTM, distance) for every query image."""
     check_config(cfg)
     paths = query_images(cfg.queries)
-    retriever, merged = load_retriever(cfg, explicit)
-    if merged.mask.name == "oracle":
-        raise SemvprError("mask=oracle needs ground-truth labels and cannot localise new images")
+    retriever, merged = load_retriever(cfg, explicit, new_images=True)
     places = build_places(merged, ("test",))["test"]
-    db_desc = place_descriptors(retriever, places, "db", merged)
+    db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir)
     q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
     retriever.describe_images(paths, None, merged.data.image_size, q_desc, desc="queries")
     top = knn(db_desc, q_desc, int(cfg.top_k))

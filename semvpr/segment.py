@@ -21,29 +21,26 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.build import instantiate_backbone, instantiate_node
+from semvpr.config.build import build_backbone, student_spec, teacher_spec
+from semvpr.config.checks import check_config
+from semvpr.config.components import instantiate_node
 from semvpr.data.places import common_root
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
-from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.data.images import load_image
+from semvpr.data.segmentation import SegmentationSet, load_train_ids
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json
 from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmentation.confusion import binary_pred
+from semvpr.segmentation.training import build_student, build_teacher
+from semvpr.models.backbones import Backbone
+from semvpr.models.student import Student, StudentSpec
+from semvpr.models.teacher import Teacher
 from semvpr.core.logs import quiet_third_party
 
 SPLITS = ("train", "val", "test")
 #: Keys of the last stdout line, per model.
 SUMMARY_KEYS = ("miou", "dynamic_iou", "nonstatic_iou", "static_removed", "train_s")
-
-
-def check_config(cfg: DictConfig) -> None:
-    """Reject values that would fail late with a cryptic error."""
-    if OmegaConf.is_missing(cfg.seg, "root"):
-        raise SemvprError(f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid")
-    if len(cfg.seg.image_size) != 2:
-        raise SemvprError(f"seg.image_size={list(cfg.seg.image_size)} must be [H, W]")
-    if not cfg.backbones:
-        raise SemvprError("backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)")
 
 
 def dataset_classes(seg: SegmentationSet) -> list[int]:
@@ -84,55 +81,45 @@ def log_scores(loggers: list[Any], name: str, split: str, scores: dict[str, Any]
         logger.log_metrics(values, step=0)
 
 
-def frozen_backbone(node: DictConfig, seed: int) -> torch.nn.Module:
-    """A frozen trunk with the seed's random init (or its weights), channels_last, eval mode."""
-    return instantiate_backbone(node, seed).eval()
-
-
 @torch.no_grad()
-def figure_rows(cfg: DictConfig, seg: SegmentationSet, teacher: Any,
-                students: dict[str, tuple[Any, Any]]) -> list[tuple[np.ndarray, str, dict[str, np.ndarray]]]:
+def figure_rows(seg: SegmentationSet, teacher: Teacher, students: dict[str, tuple[Student, Backbone]],
+                static_names: list[str], image_size: list[int], num_images: int,
+                bf16: bool) -> list[tuple[np.ndarray, str, dict[str, np.ndarray]]]:
     """Image, ground-truth static mask and each model's binary mask for test images spread over the split."""
-    lut = static_lut(tuple(cfg.teacher.static_classes))
-    idx = np.unique(np.linspace(0, len(seg) - 1, int(cfg.num_figure_images)).round().astype(int))
+    lut = static_lut(tuple(static_names))
+    idx = np.unique(np.linspace(0, len(seg) - 1, num_images).round().astype(int))
     rows = []
     for i in idx.tolist():
         ids = load_train_ids(seg.labels[i], from_label_ids=True, lut=seg.label_lut).numpy()
         size = ids.shape
-        image = load_image(seg.images[i], cfg.seg.image_size)[None]
+        image = load_image(seg.images[i], image_size)[None]
         masks = {"gt": np.where(ids == IGNORE, np.nan, lut[np.clip(ids, 0, 255)])}
-        masks["teacher"] = binary_pred(teacher_outputs(teacher, image, size, list(cfg.teacher.static_classes))[1][0, 0]
-                                       ).float().numpy()
+        masks["teacher"] = binary_pred(teacher_outputs(teacher, image, size, static_names)[1][0, 0]).float().numpy()
         for name, (student, backbone) in students.items():
-            prob = student_prob(student, backbone, image, size, bool(cfg.student.bf16))
+            prob = student_prob(student, backbone, image, size, bf16)
             masks[name] = binary_pred(prob[0, 0]).float().numpy()
         native = (load_image(seg.images[i]).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         rows.append((native, seg.images[i].name, masks))
     return rows
 
 
-def train_students(cfg: DictConfig, sets: dict[str, SegmentationSet], labels: Path, root: Path,
-                   loggers: list[Any], results: dict[str, Any]) -> dict[str, tuple[Any, Any]]:
-    """A student per ``cfg.backbones`` entry on the teacher's labels, scored on val and test (into
-    ``results``); returns them by name with their frozen backbones, for the figure."""
-    from semvpr.models.student import build_student
-
-    size = [int(v) for v in cfg.seg.image_size]
-    static_names = list(cfg.teacher.static_classes)
-    workers, batch = int(cfg.seg.num_workers), int(cfg.eval_batch_size)
+def train_students(spec: StudentSpec, backbones: dict[str, tuple[Backbone, str]], sets: dict[str, SegmentationSet],
+                   labels: Path, root: Path, image_size: list[int], static_names: list[str], cache_dir: str,
+                   batch_size: int, num_workers: int, loggers: list[Any],
+                   results: dict[str, Any]) -> dict[str, tuple[Student, Backbone]]:
+    """A student per frozen backbone (with the name of its weights) on the teacher's labels, scored on val
+    and test against the teacher's static classes (into ``results``); returns them by name with their
+    backbones, for the figure."""
     students = {}
-    for name, node in cfg.backbones.items():
-        backbone = frozen_backbone(node, int(cfg.seed))
+    for name, (backbone, weights) in backbones.items():
         tic = time.time()
-        student = build_student(cfg.student, backbone, list(sets["train"].images), labels, root, size,
-                                cfg.paths.cache_dir)
-        entry: dict[str, Any] = {"backbone": name, "weights": str(node.get("weights", "none")),
-                                 "build_s": time.time() - tic}
+        student = build_student(spec, backbone, list(sets["train"].images), labels, root, image_size, cache_dir)
+        entry: dict[str, Any] = {"backbone": name, "weights": weights, "build_s": time.time() - tic}
         fitted = json.loads((student.artifact / "metrics.json").read_text())
         entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
         for split in ("val", "test"):
-            scores = score_student(student, backbone, sets[split], size, static_names, bool(cfg.student.bf16),
-                                   batch, workers)
+            scores = score_student(student, backbone, sets[split], image_size, static_names, bool(spec.bf16),
+                                   batch_size, num_workers)
             log_scores(loggers, f"student_{name}", split, scores)
             entry[split] = scores
         entry.update(entry.pop("test"))
@@ -142,23 +129,24 @@ def train_students(cfg: DictConfig, sets: dict[str, SegmentationSet], labels: Pa
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Teacher, pseudo-labels, students, scores, figure; returns what results.json holds."""
-    from semvpr.models.teacher import build_teacher
+    """Check, build the teacher, pseudo-labels and students, score them, draw the figure; returns what
+    results.json holds."""
     from semvpr.reporting.figures import mask_figure
     from semvpr.segmentation.pseudolabels import pseudo_labels
 
     start = time.time()
     check_config(cfg)
     sets = {split: instantiate_node(cfg.seg[split]) for split in SPLITS}
+    teacher_settings, student_settings = teacher_spec(cfg), student_spec(cfg)
     size = [int(v) for v in cfg.seg.image_size]
     classes = dataset_classes(sets["train"])
-    static_names = list(cfg.teacher.static_classes)
+    static_names = list(teacher_settings.static_classes)
     workers, batch = int(cfg.seg.num_workers), int(cfg.eval_batch_size)
     run_dir.mkdir(parents=True, exist_ok=True)
     loggers = [instantiate_node(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
 
     tic = time.time()
-    teacher = build_teacher(cfg.teacher, sets["train"], sets["val"], cfg.paths.cache_dir)
+    teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir)
     build_s = time.time() - tic
     artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
     trained = json.loads((artifact / "metrics.json").read_text())
@@ -175,14 +163,19 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     tic = time.time()
     root = common_root(list(sets["train"].images))
     labels = pseudo_labels(teacher, teacher.teacher_key, list(sets["train"].images), size, cfg.paths.cache_dir, root,
-                           batch_size=int(cfg.teacher.predict_batch_size), num_workers=workers)
+                           batch_size=int(teacher_settings.predict_batch_size), num_workers=workers)
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 
-    students = train_students(cfg, sets, labels, root, loggers, results)
+    backbones = {name: (build_backbone(node, int(cfg.seed)).eval(), str(node.get("weights", "none")))
+                 for name, node in cfg.backbones.items()}
+    students = train_students(student_settings, backbones, sets, labels, root, size, static_names, cfg.paths.cache_dir,
+                              batch, workers, loggers, results)
 
     columns = {"gt": "ground truth\n(bright = static)", "teacher": "teacher mask",
                **{k: f"student mask\n({k.removeprefix('student_')})" for k in students}}
-    mask_figure(figure_rows(cfg, sets["test"], teacher, students), columns, run_dir / "figure_masks.png",
+    rows = figure_rows(sets["test"], teacher, students, static_names, size, int(cfg.num_figure_images),
+                       bool(student_settings.bf16))
+    mask_figure(rows, columns, run_dir / "figure_masks.png",
                 f"{cfg.seg.name} test: static masks (bright = kept, dark = removed; unlabelled = image only)")
     for logger in loggers:
         logger.finalize("success")

@@ -11,116 +11,38 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 import lightning as L
-import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from semvpr.config.build import (Semantic, build_aggregator, build_backbone, build_class_weights, build_mask_source, build_places,
-                          build_semantic, check_config, init_aggregator, mask_key)
-from semvpr.core.checkpoint import RunCheckpoint, record_of
-from semvpr.data.places import PlaceSet
+from semvpr.config.build import (Prepared, build_retriever, build_trainer, init_aggregator, mining_of, prepare,
+                                 ranks_of)
+from semvpr.config.checks import check_config
+from semvpr.core.checkpoint import RunCheckpoint
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.logs import quiet_third_party
+from semvpr.core.resume import keep_run_record, resumed_config
+from semvpr.reporting.job_files import write_job_figure_data
+from semvpr.reporting.sweep import weights_kind
 from semvpr.retrieval.datamodule import RetrievalDataModule
 from semvpr.retrieval.distributed import sharded
-from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.retrieval.validation import RecallEvaluation
-from semvpr.retrieval.features import PlaceFeatures, choose_storage, place_features, trunk_cached, trunk_shape
-from semvpr.core.io import CONF_DIR, atomic_file, write_json
 from semvpr.retrieval.launch import job_ranks, launched_rank
-from semvpr.retrieval.mining import Mining
-from semvpr.models.backbones import Backbone
-from semvpr.models.masks import MaskSource
-from semvpr.models.aggregators.netvlad import PCAWhitening
-from semvpr.retrieval.retriever import Optimization, Retriever
-from semvpr.core.precision import lightning_precision
-from semvpr.core.logs import quiet_third_party, trainer_kwargs
-from semvpr.core.resume import keep_run_record, resumed_config
-from semvpr.reporting.sweep import weights_kind
-
-
-@dataclass
-class Prepared:
-    """What a job builds (or reads from the cache) before any training: the same on every rank."""
-
-    places: dict[str, PlaceSet]
-    backbone: Backbone
-    semantic: Semantic
-    mask_source: MaskSource | None
-    features: dict[str, PlaceFeatures]
-    storage: str
-
-
-def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
-    """Place sets, backbone, the filter's semantic artifacts and the frozen-trunk features; the seconds of
-    each stage into ``timings`` (data, semantic = teacher + labels + student, features = trunk and masks)."""
-    check_config(cfg)
-    tic = time.time()
-    places = build_places(cfg)  # generates SynthCity on first use
-    timings["data_s"] = time.time() - tic
-    backbone = build_backbone(cfg)
-    tic = time.time()
-    semantic = build_semantic(cfg, places["train"], backbone, timings)
-    mask_source = build_mask_source(cfg, backbone, semantic)
-    timings["semantic_s"] = time.time() - tic
-    tic = time.time()
-    storage = feature_storage(cfg, backbone, places)
-    features = {split: place_features(
-        places[split], backbone, backbone.frozen_identity(), mask_source, mask_key(mask_source, cfg),
-        cfg.data.image_size, cfg.paths.cache_dir, storage, cfg.model.eval_batch_size, cfg.data.num_workers,
-        weighting=cfg.mask.weights) for split in places}
-    timings["features_s"] = time.time() - tic
-    return Prepared(places, backbone, semantic, mask_source, features, storage)
-
-
-def mining_of(cfg: DictConfig) -> Mining:
-    """The mining and batching parameters of ``cfg.model`` (``batch_size`` is the global batch)."""
-    model = cfg.model
-    return Mining(batch_size=int(model.batch_size), cache_refresh=int(model.cache_refresh),
-                  queries_per_epoch=model.queries_per_epoch, seed=int(cfg.seed),
-                  positive_radius=float(model.positive_radius), negative_radius=float(model.negative_radius),
-                  num_negatives=int(model.num_negatives), negative_candidates=int(model.negative_candidates),
-                  margin=float(model.margin))
-
-
-def build_retriever(cfg: DictConfig, job: Prepared) -> Retriever:
-    """The retriever with an uninitialised aggregator (:func:`semvpr.config.build.init_aggregator` fills it)."""
-    aggregator = build_aggregator(cfg, job.backbone)
-    whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    optimization = Optimization(instantiate(cfg.model.optimizer), instantiate(cfg.model.scheduler),
-                                float(cfg.model.margin), float(cfg.model.class_weights.lr))
-    return Retriever(job.backbone, aggregator, job.mask_source, whitening, optimization, cfg.model.eval_batch_size,
-                     cfg.data.num_workers, record=record_of(cfg), class_weights=build_class_weights(cfg))
-
-
-def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
-    """The configured Lightning Trainer with the run's loggers and checkpoints."""
-    loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
-    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, **trainer_kwargs("retriever", callbacks),
-                       precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
-
-
-def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
-    """(processes per node, nodes) of a job: trainer.devices (-1: all GPUs) and trainer.num_nodes
-    under a DDP strategy; (1, 1) otherwise."""
-    if not str(trainer_cfg.get("strategy", "auto")).startswith("ddp"):
-        return 1, 1
-    devices = int(trainer_cfg.devices)
-    if devices == -1:  # Lightning's "all GPUs"
-        devices = torch.cuda.device_count()
-    return devices, int(trainer_cfg.get("num_nodes", 1))
+from semvpr.retrieval.retriever import Retriever
+from semvpr.retrieval.validation import RecallEvaluation
 
 
 def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
-    """Run one training job; returns the metrics to write (None on the ranks other than 0)."""
+    """Run one training job: check, build, fit, test, write; returns the metrics to write (None on the
+    ranks other than 0)."""
     start, timings = time.time(), {}
+    check_config(cfg)
     devices, nodes = ranks_of(cfg.trainer)
     if devices * nodes > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
@@ -129,7 +51,7 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
         print(f"semvpr: model.batch_size={cfg.model.batch_size} is the global batch: "
               f"{devices * nodes - int(cfg.model.batch_size)} of the {devices * nodes} ranks idle in every step",
               file=sys.stderr)
-    job = prepare(cfg, timings)
+    job = prepare(cfg, timings)  # generates SynthCity, builds the teacher, labels, student, trunk caches
     with job_ranks(devices, nodes, overrides, run_dir):
         return train_and_test(cfg, run_dir, job, timings, start)
 
@@ -137,7 +59,7 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
 def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float],
                    start: float) -> dict[str, Any] | None:
     """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
-    retriever = build_retriever(cfg, job)
+    retriever = build_retriever(cfg, job.backbone, job.mask_source)
     describe = sharded(retriever.describe_store, int(cfg.model.eval_batch_size))
     evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
     # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
@@ -155,8 +77,7 @@ def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[
     # ranks skip the initialisation: DDP gives them rank 0's weights.
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     tic = time.time()
-    init_info = init_aggregator(cfg, retriever.aggregator, job.backbone, job.features["train"].db,
-                                job.places["train"], job.semantic) if leader else None
+    init_info = init_aggregator(cfg, retriever, job) if leader else None
     timings["init_s"] = time.time() - tic
     tic = time.time()
     untrained = evaluation.evaluate(job.features["test"]) if leader else None
@@ -180,7 +101,7 @@ def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[
     if not leader:
         return None
     tested = evaluation.results["test"]
-    write_figure_data(run_dir, job.places["test"], job.features["test"], retriever, tested["predictions"],
+    write_job_figure_data(run_dir, job.places["test"], job.features["test"], retriever, tested["predictions"],
                       int(cfg.num_figure_queries), cfg.mask.name)
     return job_metrics(cfg, retriever, job, tested, untrained, {
         "checkpoint": str(tested_ckpt),
@@ -196,7 +117,7 @@ def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: di
     class_weights = retriever.class_weights
     return {
         "status": "ok", "error": None, **run_labels(cfg),
-        "descriptor_dim": retriever.whitening.out_dim if retriever.whitening is not None else retriever.aggregator.output_dim,
+        "descriptor_dim": retriever.descriptor_dim,
         "class_weights": class_weights.named_weights() if class_weights is not None else None,
         "data": cfg.data.name,
         **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
@@ -225,50 +146,6 @@ def _seed_of(cfg: DictConfig) -> int | str | None:
         return int(cfg.get("seed"))
     except (TypeError, ValueError):
         return None if cfg.get("seed") is None else str(cfg.get("seed"))
-
-
-def feature_storage(cfg: DictConfig, backbone: Any, places: dict[str, Any]) -> str:
-    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.retrieval.features). Under DDP
-    every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
-    ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
-    per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
-    images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
-    cached = all(trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir)
-                 for p in places.values())
-    storage = choose_storage(cfg.features.storage, per_image * images, cfg.paths.cache_dir,
-                             float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0], float(cfg.features.disk_gb),
-                             cached)
-    print(f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
-          file=sys.stderr)
-    return storage
-
-
-@torch.no_grad()
-def write_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retriever: Retriever,
-                      predictions: np.ndarray, num_queries: int, mask_name: str) -> None:
-    """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
-    over the query traversal (the same queries for every run, so the report can compare runs)."""
-    idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
-    positives = places.positives()
-    queries = []
-    for i in idx:
-        topk = [{"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(),
-                 "correct": bool(j in set(positives[i].tolist()))} for j in predictions[i, :5]]
-        queries.append({"query": str(places.q_paths[i]), "utm": places.q_utm[i].tolist(), "topk": topk})
-    write_json(run_dir / "retrievals.json", {"queries": queries})
-    arrays: dict[str, np.ndarray] = {"query_index": idx, "image_paths": np.array([str(places.q_paths[i]) for i in idx])}
-    trunk = features.q.trunk_of(idx, retriever.backbone).float().to(retriever.device)
-    local = retriever.backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
-    attention = retriever.aggregator.attention(local.float())
-    if attention is not None:
-        arrays["attention"] = attention[:, 0].float().cpu().numpy()
-    if features.q.mask is not None:
-        mask = features.q.mask[torch.from_numpy(idx)].float()
-        if retriever.class_weights is not None:  # class probabilities → the learned weight map
-            mask = retriever.class_weights(mask.to(retriever.device)).cpu()
-        arrays[mask_name] = mask[:, 0].numpy()
-    with atomic_file(run_dir / "maps.npz") as fh:
-        np.savez(fh, **arrays)
 
 
 class Interrupted(BaseException):

@@ -25,16 +25,10 @@ def config(*overrides: str, config_name: str = "train") -> DictConfig:
 
 def write_checkpoint(cfg: DictConfig, path: Path) -> dict[str, torch.Tensor]:
     """Write an untrained model's checkpoint as a run does (Lightning's state_dict + hyper_parameters)."""
-    from semvpr.config.build import build_aggregator, build_backbone, build_class_weights, build_mask_source
-    from semvpr.core.checkpoint import record_of
-    from semvpr.models.aggregators.netvlad import PCAWhitening
-    from semvpr.retrieval.retriever import Retriever
+    from semvpr.config.build import build_backbone, build_mask_source, build_retriever
 
-    backbone = build_backbone(cfg)
-    aggregator = build_aggregator(cfg, backbone)
-    whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    retriever = Retriever(backbone, aggregator, build_mask_source(cfg, backbone), whitening, record=record_of(cfg),
-                          class_weights=build_class_weights(cfg))
+    backbone = build_backbone(cfg.backbone, cfg.seed)
+    retriever = build_retriever(cfg, backbone, build_mask_source(cfg, backbone), training=False)
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams), "epoch": 0}, path)
     return retriever.state_dict()
 

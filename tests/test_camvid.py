@@ -11,7 +11,7 @@ from semvpr.data.camvid import CAMVID_NAMES, camvid_lut, read_camvid
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.segmentation.datamodule import SegmentationDataset, split_set
 from semvpr.core.errors import SemvprError
-from semvpr.models.teacher import dataset_identity
+from semvpr.segmentation.training import dataset_identity
 from tests.camvid_fixture import write_camvid
 
 

@@ -3,10 +3,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from hydra.utils import instantiate
 
-from semvpr.config.build import build_aggregator, build_backbone
-from semvpr.retrieval.retriever import Optimization, Retriever, triplet_loss
+from semvpr.config.build import build_backbone, build_retriever
+from semvpr.retrieval.losses import triplet_loss
 from tests.helpers import config
 
 BACKBONES = ("vgg16", "resnet50", "efficientnet_lite0")
@@ -27,9 +26,9 @@ def test_backbone_experiment_composes_and_steps(backbone: str, experiment: str |
     # The experiment's weights, except the torchvision files that tests cannot download.
     cfg.backbone.weights = "none" if backbone != "efficientnet_lite0" else cfg.backbone.weights
     torch.manual_seed(0)
-    model = build_backbone(cfg)
-    aggregator = build_aggregator(cfg, model)
-    retriever = Retriever(model, aggregator, optimization=Optimization(instantiate(cfg.model.optimizer), margin=cfg.model.margin))
+    model = build_backbone(cfg.backbone, cfg.seed)
+    retriever = build_retriever(cfg, model, None)
+    aggregator = retriever.aggregator
     optimizer = retriever.configure_optimizers()
     optimizer = optimizer["optimizer"] if isinstance(optimizer, dict) else optimizer
     images = torch.rand(4, 3, 64, 80)

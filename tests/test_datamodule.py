@@ -9,8 +9,9 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from semvpr.segmentation.datamodule import (ImageDataset, SegmentationDataModule, SegmentationDataset,
-                                    segmentation_augmentation, split_set)
+from semvpr.data.images import ImageDataset
+from semvpr.segmentation.datamodule import (SegmentationDataModule, SegmentationDataset, segmentation_augmentation,
+                                           split_set)
 from semvpr.data.segmentation import SegmentationSet, read_cityscapes
 from semvpr.core.errors import SemvprError
 

@@ -121,7 +121,8 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
     activation memory does not grow with the batch; descriptors are those of one whole-batch pass."""
     import semvpr.models.backbones as backbones
     from semvpr.config.build import build_places
-    from semvpr.config.restore import load_retriever, place_descriptors
+    from semvpr.config.restore import load_retriever
+    from semvpr.retrieval.descriptors import place_descriptors
     from semvpr.retrieval.features import grid_size
 
     write_checkpoint(tiny_config(tmp_path, f"filter={filter_name}"), tmp_path / "model.ckpt")
@@ -133,7 +134,8 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
         retriever, merged = load_retriever(cfg)
         grid_size(retriever.backbone, merged.data.image_size)  # the once-per-size shape probe, before counting
         seen = record_first_unit_batches(retriever.backbone)
-        return np.array(place_descriptors(retriever, build_places(merged, ("test",))["test"], "db", merged)), seen
+        return np.array(place_descriptors(retriever, build_places(merged, ("test",))["test"], "db",
+                                          merged.data.image_size, merged.paths.cache_dir)), seen
 
     whole, seen = descriptors("whole")
     assert seen == [5]

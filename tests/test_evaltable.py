@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from semvpr.evaltable import table_rows, write_table
+from semvpr.reporting.benchmarks_table import table_rows, write_table
 from tests.helpers import tiny_config, write_checkpoint
 from tests.test_benchmarks import object_array, same_images_as_lists, write_lists
 from tests.test_eval import make_folder

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr.config.build import sample_local_features, static_locations
+from semvpr.retrieval.initialisation import sample_local_features, static_locations
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.features import GiB, FeatureStore, choose_storage, place_features
 from semvpr.models.backbones import VGG16Backbone

@@ -10,7 +10,7 @@ from PIL import Image
 from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.models.masks import ClassWeights, OracleMask
 from semvpr.models.aggregators.netvlad import NetVLAD
-from semvpr.retrieval.retriever import triplet_loss
+from semvpr.retrieval.losses import triplet_loss
 
 
 def _labels(tmp_path: Path, n: int = 2) -> list[Path]:

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from semvpr.core.errors import SemvprError
-from semvpr.retrieval.recall import knn, positives_within, recall_at_n, recall_curve, recall_result
+from semvpr.data.places import positives_within
+from semvpr.retrieval.recall import knn, recall_at_n, recall_curve, recall_result
 
 
 def test_recall_hand_made_case() -> None:

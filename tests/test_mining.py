@@ -95,7 +95,7 @@ def test_batches_hold_consecutive_queries_and_pair_every_negative_with_its_query
 
 def test_loss_averages_over_query_negative_pairs() -> None:
     # pytorch-NetVlad: sum of per-(query, negative) triplet losses divided by the number of negatives.
-    from semvpr.retrieval.retriever import triplet_loss
+    from semvpr.retrieval.losses import triplet_loss
 
     torch.manual_seed(0)
     desc = torch.nn.functional.normalize(torch.randn(7, 4), dim=1)
@@ -175,7 +175,7 @@ def test_negative_cache_travels_with_the_datamodule_state() -> None:
     ("model.negative_radius=5", "negative_radius=5 is below model.positive_radius"),
 ])
 def test_impossible_mining_radii_are_refused_before_any_work(override: str, message: str) -> None:
-    from semvpr.config.build import check_config
+    from semvpr.config.checks import check_config
     from tests.helpers import config
 
     with pytest.raises(SemvprError, match=message):

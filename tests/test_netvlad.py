@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from semvpr.core.errors import SemvprError
-from semvpr.models.aggregators.netvlad import NetVLAD, PCAWhitening, alpha_from_features
+from semvpr.models.aggregators.netvlad import NetVLAD, alpha_from_features
+from semvpr.models.whitening import PCAWhitening
 
 torch.set_num_threads(2)
 

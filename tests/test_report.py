@@ -14,7 +14,8 @@ import pytest
 from omegaconf import OmegaConf
 from PIL import Image
 
-from semvpr.report import ReportCallback, write_report
+from semvpr.report import ReportCallback
+from semvpr.reporting.sweep_report import write_report
 from semvpr.reporting.sweep import load_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -273,7 +274,7 @@ def test_aggregator_by_mask_matrix_and_bars(tmp_path: Path) -> None:
 
 
 def test_the_sweep_directory_is_read_as_data(sweep: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from semvpr import report
+    from semvpr.reporting import sweep_report as report
     from semvpr.reporting.sweep import load_sweep
 
     # An override is a plain string: ${oc.env:...} is never resolved (it leaked the variable into results.md).

@@ -14,7 +14,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError, one_line
-from semvpr.models.teacher import build_teacher
+from semvpr.models.teacher import TeacherSpec
+from semvpr.segmentation.training import build_teacher
 from semvpr.models.masks import TeacherMask
 from semvpr.segmentation.scoring import teacher_outputs
 from semvpr.segment import run
@@ -72,8 +73,10 @@ def test_run_writes_results_figure_logs_and_teacher(segment_run: tuple[Path, Dic
 def test_saved_teacher_is_a_checkpoint_with_equal_predictions(segment_run: tuple[Path, DictConfig],
                                                                tmp_path: Path) -> None:
     run_dir, cfg = segment_run
-    trained = build_teacher(cfg.teacher, instantiate(cfg.seg.train), instantiate(cfg.seg.val), cfg.paths.cache_dir)
-    loaded = build_teacher(OmegaConf.merge(cfg.teacher, {"checkpoint": str(run_dir / "teacher")}), None, None,
+    trained = build_teacher(TeacherSpec.from_mapping(cfg.teacher), instantiate(cfg.seg.train), instantiate(cfg.seg.val),
+                            cfg.paths.cache_dir)
+    loaded = build_teacher(TeacherSpec.from_mapping(OmegaConf.merge(cfg.teacher, {"checkpoint": str(run_dir / "teacher")})),
+                           None, None,
                            tmp_path / "other-cache")
     assert loaded.teacher_key.startswith("pretrained-") and not (tmp_path / "other-cache").exists()
     images = torch.rand(2, 3, 32, 48)

@@ -9,8 +9,8 @@ import torch
 from PIL import Image
 
 from semvpr.data.classes import IGNORE
-from semvpr.data.segmentation import (SegmentationSet, load_image, load_pair, load_train_ids,
-                                      read_cityscapes)
+from semvpr.data.images import load_image
+from semvpr.data.segmentation import SegmentationSet, load_pair, load_train_ids, read_cityscapes
 from semvpr.core.errors import SemvprError
 
 

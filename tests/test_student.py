@@ -10,9 +10,10 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from semvpr.core.errors import SemvprError
-from semvpr.models import student as student_mod
+from semvpr.segmentation import training as student_mod
 from semvpr.models.backbones import VGG16Backbone
-from semvpr.models.student import Student, build_student
+from semvpr.models.student import Student, StudentSpec
+from semvpr.segmentation.training import build_student
 
 SIZE = (32, 48)
 
@@ -86,11 +87,11 @@ def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path:
     labels.mkdir()
     for p, ids in zip(paths, maps):
         Image.fromarray(ids).save(labels / f"{p.name}.png")
-    student = build_student(tiny_cfg(), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
+    student = build_student(StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
     assert not student.training
 
     test_paths, test_maps = toy_set(tmp_path / "test", 8, seed=1)
-    from semvpr.data.segmentation import load_image
+    from semvpr.data.images import load_image
 
     images = torch.stack([load_image(p) for p in test_paths])
     with torch.no_grad():
@@ -105,7 +106,7 @@ def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path:
     assert iou > 0.85, iou
 
     monkeypatch.setattr(student_mod, "fit_student", lambda *a: pytest.fail("trained twice"))
-    again = build_student(tiny_cfg(), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
+    again = build_student(StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
     for a, b in zip(student.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
 

@@ -383,7 +383,7 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
 
 def test_config_render_knobs_make_another_dataset(dataset: Path, cache_dir: Path) -> None:
     """``+data.render.<knob>=`` reaches the readers: a dataset generated with that knob, keyed by it."""
-    from semvpr.config.build import instantiate_node
+    from semvpr.config.components import instantiate_node
     from tests.helpers import tiny_config
 
     default = instantiate_node(tiny_config(cache_dir).data.test)
@@ -399,7 +399,7 @@ def test_config_render_knobs_make_another_dataset(dataset: Path, cache_dir: Path
 
 def test_config_image_size_draws_the_city_at_that_size(dataset: Path, cache_dir: Path) -> None:
     """``data.image_size`` is the size the city is drawn at (not an upsampling of the preset's images)."""
-    from semvpr.config.build import instantiate_node
+    from semvpr.config.components import instantiate_node
     from tests.helpers import tiny_config
 
     cfg = tiny_config(cache_dir, "data.image_size=[48,72]")

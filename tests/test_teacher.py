@@ -15,21 +15,23 @@ from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.segmentation import read_cityscapes
 from semvpr.core.errors import SemvprError
 from semvpr.models import teacher as teacher_mod
-from semvpr.models.teacher import Teacher, build_teacher, embedded_model, targets_from_train_ids
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_model, targets_from_train_ids
+from semvpr.segmentation import training as training_mod
+from semvpr.segmentation.training import build_teacher
 
 TINY_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1], "num_heads": [1, 1, 2, 2], "window_size": 4,
               "hidden_dim": 32, "num_attention_heads": 2, "encoder_layers": 1, "decoder_layers": 2,
               "num_queries": 8, "train_num_points": 256}  # fmt: skip
 
 
-def tiny_cfg(**over: object) -> OmegaConf:
-    """A teacher config small enough to train in seconds."""
+def tiny_spec(**over: object) -> TeacherSpec:
+    """A teacher small enough to train in seconds."""
     cfg = OmegaConf.load(Path(__file__).parents[1] / "conf/teacher/mask2former.yaml")
     cfg.image_size = [32, 48]
     cfg.model = TINY_MODEL
     cfg.train.update(epochs=1, batch_size=2, num_workers=0, warmup_steps=1, augment=False)
     cfg.merge_with(over)
-    return cfg
+    return TeacherSpec.from_mapping(cfg)
 
 
 def scene(rng: np.random.Generator, h: int = 32, w: int = 48) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +135,7 @@ def test_classes_map_to_train_ids_by_name() -> None:
 @pytest.mark.parametrize("checkpoint", ["no-such-org/mask2former-nowhere", "/no/such/dir/mask2former"])
 def test_missing_offline_checkpoint_is_one_line_error(checkpoint: str, tmp_path: Path) -> None:
     with pytest.raises(SemvprError) as err:
-        build_teacher(tiny_cfg(checkpoint=checkpoint), None, None, tmp_path)
+        build_teacher(tiny_spec(checkpoint=checkpoint), None, None, tmp_path)
     msg = str(err.value)
     assert "\n" not in msg and checkpoint in msg and "teacher.checkpoint=null" in msg
     if checkpoint.startswith("/"):
@@ -151,7 +153,7 @@ def test_pretrained_directory_loads_with_its_processor(tmp_path: Path) -> None:
     model = embedded_model(TINY_MODEL)
     model.save_pretrained(tmp_path / "ckpt")
     Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(tmp_path / "ckpt")
-    teacher = build_teacher(tiny_cfg(checkpoint=str(tmp_path / "ckpt")), None, None, tmp_path / "cache")
+    teacher = build_teacher(tiny_spec(checkpoint=str(tmp_path / "ckpt")), None, None, tmp_path / "cache")
     assert teacher.teacher_key.startswith("pretrained-")
     assert torch.allclose(teacher.mean.flatten(), torch.tensor([0.5] * 3))
     reference = Teacher(model, image_mean=[0.5] * 3, image_std=[0.25] * 3).eval()
@@ -163,15 +165,15 @@ def test_pretrained_directory_loads_with_its_processor(tmp_path: Path) -> None:
 def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     write_cityscapes(tmp_path / "cs")
     train, val = read_cityscapes(tmp_path / "cs", "train"), read_cityscapes(tmp_path / "cs", "val")
-    first = build_teacher(tiny_cfg(), train, val, tmp_path / "cache")
+    first = build_teacher(tiny_spec(), train, val, tmp_path / "cache")
     art = tmp_path / "cache" / first.teacher_key
     assert (art / "model.pt").is_file() and (art / "config.json").is_file()
     metrics = (art / "metrics.json").read_text()
     assert "val/static_iou" in metrics and "val/mIoU" in metrics
     assert not any(p.name.startswith(".") and p.name != LOCK_DIR for p in (tmp_path / "cache").iterdir())  # no temp dirs left
 
-    monkeypatch.setattr(teacher_mod, "_train", lambda *a: pytest.fail("trained twice"))
-    second = build_teacher(tiny_cfg(), train, val, tmp_path / "cache")
+    monkeypatch.setattr(training_mod, "_train", lambda *a: pytest.fail("trained twice"))
+    second = build_teacher(tiny_spec(), train, val, tmp_path / "cache")
     assert second.teacher_key == first.teacher_key
     images = batch(2, seed=5)[0]
     assert torch.equal(first.class_prob(images), second.class_prob(images))
@@ -186,7 +188,7 @@ def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_pa
     from semvpr.models.backbones import EFFICIENTNET_LITE_STD, EfficientNetLite0Backbone
     from semvpr.models.teacher import embedded_teacher
 
-    teacher = embedded_teacher(tiny_cfg(model=LITE_MODEL)).eval()
+    teacher = embedded_teacher(tiny_spec(model=LITE_MODEL)).eval()
     assert torch.allclose(teacher.std.flatten(), torch.tensor(EFFICIENTNET_LITE_STD))
     # The pixel-level backbone's stride 4-16 features are the VPR backbone's (same weights, same input).
     images = torch.rand(2, 3, 64, 80)
@@ -206,7 +208,7 @@ def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_pa
 def test_backbone_learns_at_its_lr_factor() -> None:
     from semvpr.models.teacher import embedded_teacher
 
-    teacher = embedded_teacher(tiny_cfg(train={"backbone_lr_factor": 0.1}))
+    teacher = embedded_teacher(tiny_spec(train={"backbone_lr_factor": 0.1}))
     teacher.trainer = type("T", (), {"estimated_stepping_batches": 100})()
     opt = teacher.configure_optimizers()["optimizer"]
     encoder = {id(p) for p in teacher.model.model.pixel_level_module.encoder.parameters()}
@@ -219,7 +221,7 @@ def test_backbone_lr_factor_zero_freezes_the_backbone() -> None:
     from semvpr.models.teacher import embedded_teacher, targets_from_train_ids
 
     torch.manual_seed(0)
-    teacher = embedded_teacher(tiny_cfg(train={"backbone_lr_factor": 0.0}))
+    teacher = embedded_teacher(tiny_spec(train={"backbone_lr_factor": 0.0}))
     teacher.trainer = type("T", (), {"estimated_stepping_batches": 100})()
     (group,) = teacher.configure_optimizers()["optimizer"].param_groups
     encoder = teacher.model.model.pixel_level_module.encoder
@@ -309,8 +311,8 @@ def test_pickled_teacher_weights_are_refused(tmp_path: Path) -> None:
 def test_a_local_teacher_whose_weights_changed_is_another_teacher(tmp_path: Path) -> None:
     """Keyed by path and commit hash (None for a directory), changed weights reused old pseudo-labels."""
     folder = _saved_teacher(tmp_path / "ckpt")
-    first = build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key
-    assert build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key == first
+    first = build_teacher(tiny_spec(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key
+    assert build_teacher(tiny_spec(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key == first
     torch.manual_seed(1)
     embedded_model(TINY_MODEL).save_pretrained(folder)  # same directory, other weights
-    assert build_teacher(tiny_cfg(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key != first
+    assert build_teacher(tiny_spec(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key != first

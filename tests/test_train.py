@@ -66,7 +66,7 @@ def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: 
 @pytest.mark.parametrize("aggregator,dim", [("gem", 512), ("mixvpr", 2048), ("salad", 256 + 8 * 64), ("boq", 128 * 16)])
 def test_fast_dev_run_each_aggregator_with_a_mask(cache_dir: Path, tmp_path: Path, aggregator: str, dim: int | None) -> None:
     cfg = tiny_config(cache_dir, f"aggregator={aggregator}", "mask=oracle", "model.pca_dim=8", "+trainer.fast_dev_run=true")
-    backbone = build_backbone(cfg)
+    backbone = build_backbone(cfg.backbone, cfg.seed)
     assert build_aggregator(cfg.copy(), backbone).output_dim == (dim or backbone.out_channels)
     metrics = run_job(cfg, tmp_path)
     # PCA whitening works on any aggregator's descriptor

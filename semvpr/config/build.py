@@ -1,127 +1,99 @@
-"""Build a run's components from its config: place sets, backbone, semantic artifacts, mask source,
-aggregator (from ``conf/aggregator``, against :class:`semvpr.models.aggregators.base.Aggregator`).
+"""A run's parts from its config: place sets, backbone, aggregator, mask source, the semantic artifacts
+they need (teacher, pseudo-labels, student), feature stores, the retriever and its trainer.
 
-Shared by ``semvpr.train`` and ``semvpr.eval`` so both construct exactly the same model. Teacher,
-pseudo-labels, student and feature caches come from the artifact cache (built on first use).
+The one place where a ``DictConfig`` becomes objects: train, eval, localize, segment, the hub and the
+tests build through it, so all of them construct exactly the same model. Below it every function takes
+typed values (``Mining``, ``Optimization``, ``InitSample``, ``StudentSpec``, ``TeacherSpec``, ...).
+Teacher, pseudo-labels, student and feature caches come from the artifact cache (built on first use).
 """
 from __future__ import annotations
 
-import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import numpy as np
 import torch
-from hydra.utils import get_class, instantiate
-from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import MissingMandatoryValue
-from torch import Tensor, nn
+from hydra.utils import instantiate
+from omegaconf import DictConfig
 
+from semvpr.config.components import component_class, instantiate_node
 from semvpr.core.cache import config_hash, state_hash
-from semvpr.data.classes import static_lut
+from semvpr.core.checkpoint import record_of
+from semvpr.core.errors import SemvprError
+from semvpr.core.logs import trainer_kwargs
+from semvpr.core.precision import lightning_precision
 from semvpr.data.places import PlaceSet
-from semvpr.core.errors import SemvprError, unwrap_user_error
-from semvpr.core.io import check_dir_path
-from semvpr.retrieval.features import STORAGES, FeatureStore, grid_size
-from semvpr.retrieval.recall import check_radius
 from semvpr.models.aggregators.base import Aggregator
-from semvpr.models.masks import WEIGHTINGS, ClassWeights, MaskSource, OracleMask, StudentMask, TeacherMask
-from semvpr.core.precision import autocast
-from semvpr.segmentation.pseudolabels import read_label
-
-MASK_SOURCES = ("none", "teacher", "student", "oracle")
-MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at the least, per cluster
+from semvpr.models.backbones import Backbone
+from semvpr.models.masks import ClassWeights, MaskSource
+from semvpr.models.student import Student, StudentSpec, student_architecture
+from semvpr.models.teacher import Teacher, TeacherSpec, teacher_architecture
+from semvpr.models.whitening import PCAWhitening
+from semvpr.retrieval.features import PlaceFeatures, choose_storage, grid_size, place_features, trunk_cached, trunk_shape
+from semvpr.retrieval.initialisation import InitSample, StaticLabels, initialise_aggregator
+from semvpr.retrieval.mining import Mining
+from semvpr.retrieval.retriever import Optimization, Retriever
 
 
 @dataclass
 class Semantic:
     """Semantic artifacts a run needs: teacher, its pseudo-labels of the train images, student."""
 
-    teacher: nn.Module | None = None
+    teacher: Teacher | None = None
     labels_dir: Path | None = None
     labels_root: Path | None = None
-    student: nn.Module | None = None
+    student: Student | None = None
 
 
-def instantiate_node(node: Any, **kwargs: Any) -> Any:
-    """hydra.utils.instantiate, with a SemvprError from inside the target re-raised unwrapped."""
-    try:
-        return instantiate(node, **kwargs)
-    except Exception as err:
-        user = unwrap_user_error(err)
-        if user is not None:
-            raise user from None
-        if isinstance(err, MissingMandatoryValue):
-            raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. "
-                              f"{err.full_key}=DIR") from None
-        raise
+@dataclass
+class Prepared:
+    """What a job builds (or reads from the cache) before any training: the same on every rank."""
+
+    places: dict[str, PlaceSet]
+    backbone: Backbone
+    semantic: Semantic
+    mask_source: MaskSource | None
+    features: dict[str, PlaceFeatures]
+    storage: str
 
 
-#: Lightning 2's precision settings (``Trainer(precision=...)``).
-PRECISIONS = ("transformer-engine", "transformer-engine-float16", "16-true", "16-mixed", "bf16-true", "bf16-mixed",
-              "32-true", "64-true", "64", "32", "16", "bf16")
-SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
+# ----------------------------------------------------------------------------------- typed settings
+def mining_of(cfg: DictConfig) -> Mining:
+    """The mining and batching parameters of ``cfg.model`` (``batch_size`` is the global batch)."""
+    model = cfg.model
+    return Mining(batch_size=int(model.batch_size), cache_refresh=int(model.cache_refresh),
+                  queries_per_epoch=model.queries_per_epoch, seed=int(cfg.seed),
+                  positive_radius=float(model.positive_radius), negative_radius=float(model.negative_radius),
+                  num_negatives=int(model.num_negatives), negative_candidates=int(model.negative_candidates),
+                  margin=float(model.margin))
 
 
-def check_config(cfg: DictConfig) -> None:
-    """Reject config values that would fail deep inside a run with a cryptic error (or none at all).
-
-    Called first by every CLI (train, eval, localize), before anything is read or written.
-    """
-    whole_number(cfg.seed, "seed", 0, SEED_MAX)
-    if cfg.get("num_figure_queries") is not None:
-        whole_number(cfg.num_figure_queries, "num_figure_queries", 1)
-    if cfg.get("top_k") is not None:
-        whole_number(cfg.top_k, "top_k", 1)
-    lr = cfg.model.optimizer.get("lr")
-    try:
-        lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0
-    except (TypeError, ValueError):
-        lr_ok = False
-    if not lr_ok:
-        raise SemvprError(f"model.optimizer.lr={lr!r} must be a number > 0")
-    if str(cfg.trainer.precision) not in PRECISIONS:
-        raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
-    check_dir_path(Path(str(cfg.paths.cache_dir)), "paths.cache_dir")
-    if cfg.get("ckpt_path") not in (None, "last"):
-        from semvpr.core.checkpoint import read_checkpoint
-
-        read_checkpoint(cfg.ckpt_path)
-    if cfg.mask.name not in MASK_SOURCES:
-        raise SemvprError(f"mask.name={cfg.mask.name!r} is not one of {list(MASK_SOURCES)}")
-    for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features",
-                "init_per_image", "cache_refresh"):
-        whole_number(cfg.model[key], f"model.{key}", 1)
-    if cfg.model.get("queries_per_epoch") is not None:
-        whole_number(cfg.model.queries_per_epoch, "model.queries_per_epoch (or null = all)", 1)
-    positive = check_radius(cfg.model.positive_radius, "model.positive_radius")
-    if check_radius(cfg.model.negative_radius, "model.negative_radius") < positive:
-        raise SemvprError(f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
-                          f"{cfg.model.positive_radius}: a negative could then be a positive")
-    if len(cfg.data.image_size) != 2:
-        raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
-    if cfg.features.storage not in STORAGES:
-        raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
-    weighting = cfg.mask.weights
-    if weighting not in WEIGHTINGS:
-        raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
-    if weighting == "learned" and cfg.mask.name == "none":
-        raise SemvprError("mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
-                          "mask=student, teacher or oracle (filter=unet, mask2former or oracle)")
+def optimization_of(cfg: DictConfig) -> Optimization:
+    """Optimizer and scheduler factories, margin and class-weight learning rate of ``cfg.model``."""
+    return Optimization(instantiate(cfg.model.optimizer), instantiate(cfg.model.scheduler),
+                        float(cfg.model.margin), float(cfg.model.class_weights.lr))
 
 
-def whole_number(value: object, key: str, low: int, high: int | None = None) -> int:
-    """``value`` as an int in [low, high], or one line naming ``key``."""
-    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
-    if not ok:
-        bounds = f"from {low} to {high}" if high is not None else f">= {low}"
-        raise SemvprError(f"{key}={value!r} must be a whole number {bounds}")
-    return int(value)  # type: ignore[arg-type]
+def init_sample_of(cfg: DictConfig) -> InitSample:
+    """The aggregator initialisation's sample size and seed."""
+    return InitSample(int(cfg.model.init_features), int(cfg.model.init_per_image), int(cfg.seed))
 
 
+def student_spec(cfg: DictConfig) -> StudentSpec:
+    """The student's settings (``cfg.student``)."""
+    return StudentSpec.from_mapping(cfg.student)
+
+
+def teacher_spec(cfg: DictConfig) -> TeacherSpec:
+    """The teacher's settings (``cfg.teacher``)."""
+    return TeacherSpec.from_mapping(cfg.teacher)
+
+
+# ----------------------------------------------------------------------------------- components
 def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
     """Instantiate the place sets of the requested splits (the data config's readers)."""
     places = {}
@@ -132,72 +104,38 @@ def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "te
     return places
 
 
-def build_backbone(cfg: DictConfig, pretrained: bool = True) -> nn.Module:
-    """The run's backbone (see ``instantiate_backbone``)."""
-    return instantiate_backbone(cfg.backbone, int(cfg.seed), pretrained)
-
-
-#: Backbone config keys that are not constructor arguments.
-CONFIG_ONLY_KEYS = ("name", "paper_train_from")
-
-
-def instantiate_backbone(node: DictConfig, seed: int, pretrained: bool = True) -> nn.Module:
-    """A backbone config node with the seed's random init, or its pretrained weights (``pretrained``;
-    eval skips them: the checkpoint carries every weight); channels_last."""
+def build_backbone(node: DictConfig, seed: int, pretrained: bool = True) -> Backbone:
+    """The backbone a ``backbone`` config node names (``module``), with the seed's random init or its
+    pretrained weights (``pretrained=False`` skips them: a checkpoint carries every weight); channels_last."""
     torch.manual_seed(seed)
-    args = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items() if k not in CONFIG_ONLY_KEYS}
-    if not pretrained:
-        args["weights"] = "none"
-    return instantiate_node(args).to(memory_format=torch.channels_last)
+    extra = {} if pretrained else {"weights": "none"}
+    return instantiate_node(node.module, **extra).to(memory_format=torch.channels_last)
 
 
-def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: nn.Module,
-                   timings: dict[str, float] | None = None) -> Semantic:
-    """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask need them; the
-    seconds each took (built or read from the cache) into ``timings`` as teacher_s, labels_s, student_s."""
-    timings = {} if timings is None else timings
-    needs_labels = aggregator_class(cfg).init_sample == "labelled" or cfg.mask.name in ("teacher", "student")
-    if not needs_labels:
-        return Semantic()
-    from semvpr.models.student import build_student
-    from semvpr.models.teacher import build_teacher
-    from semvpr.segmentation.pseudolabels import pseudo_labels
-
-    seg = cfg.data.get("segmentation")
-    needs_training = cfg.teacher.get("checkpoint") is None
-    seg_train = instantiate_node(seg.train) if needs_training else None
-    seg_val = instantiate_node(seg.val) if needs_training else None
-    tic = time.time()
-    teacher = build_teacher(cfg.teacher, seg_train, seg_val, cfg.paths.cache_dir)
-    timings["teacher_s"], tic = time.time() - tic, time.time()
-    images = list(train.db_paths) + list(train.q_paths)
-    labels_dir = pseudo_labels(teacher, teacher.teacher_key, images, tuple(cfg.data.image_size),
-                               cfg.paths.cache_dir, train.root)
-    timings["labels_s"], tic = time.time() - tic, time.time()
-    semantic = Semantic(teacher, labels_dir, train.root)
-    if cfg.mask.name == "student":
-        semantic.student = build_student(cfg.student, backbone, images, labels_dir, train.root,
-                                         tuple(cfg.data.image_size), cfg.paths.cache_dir)
-        timings["student_s"] = time.time() - tic
-    return semantic
+def build_aggregator(cfg: DictConfig, backbone: Backbone) -> Aggregator:
+    """The run's aggregator for the backbone's channels. An aggregator on a fixed grid (a ``grid`` key)
+    left null gets the backbone's grid at data.image_size, written into ``cfg`` so that the checkpoint
+    records the grid it was built for."""
+    component_class(cfg, "aggregator")
+    node = cfg.aggregator.module
+    if "grid" in node and node.grid is None:
+        node.grid = list(grid_size(backbone, tuple(cfg.data.image_size)))
+    return instantiate_node(node, dim=backbone.out_channels)
 
 
-def build_mask_source(cfg: DictConfig, backbone: nn.Module, semantic: Semantic | None = None) -> MaskSource | None:
-    """The run's mask source: trained (from ``semantic``), or untrained for weights to be loaded into."""
-    mask = cfg.mask.name
-    if mask == "none":
+def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | None = None) -> MaskSource | None:
+    """The run's mask source, given what its class ``needs``: trained (from ``semantic``), or untrained for
+    weights to be loaded into (``semantic=None``: a checkpoint carries them)."""
+    cls = component_class(cfg, "mask")
+    if cls is None:
         return None
-    static = list(cfg.teacher.static_classes)
-    if mask == "oracle":
-        return OracleMask(static)
-    if mask == "teacher":
-        from semvpr.models.teacher import teacher_architecture
-
-        return TeacherMask(semantic.teacher if semantic is not None else teacher_architecture(cfg.teacher), static)
-    from semvpr.models.student import student_architecture
-
-    return StudentMask(semantic.student if semantic is not None else student_architecture(cfg.student, backbone),
-                       static)
+    given: dict[str, Any] = {}
+    if cls.needs == "teacher":
+        given["teacher"] = semantic.teacher if semantic is not None else teacher_architecture(teacher_spec(cfg))
+    elif cls.needs == "student":
+        given["student"] = (semantic.student if semantic is not None
+                            else student_architecture(student_spec(cfg), backbone))
+    return instantiate_node(cfg.mask.module, **given)
 
 
 def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
@@ -207,7 +145,69 @@ def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
     return ClassWeights(list(cfg.teacher.static_classes), float(cfg.model.class_weights.init_logit))
 
 
-def mask_key(mask_source: nn.Module | None, cfg: DictConfig) -> str | None:
+def build_retriever(cfg: DictConfig, backbone: Backbone, mask_source: MaskSource | None, *,
+                    training: bool = True) -> Retriever:
+    """The retriever of ``cfg`` on this backbone and mask source, its aggregator uninitialised
+    (:func:`init_aggregator`) or to be loaded from a checkpoint; ``training`` adds the optimizer."""
+    aggregator = build_aggregator(cfg, backbone)
+    whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
+    return Retriever(backbone, aggregator, mask_source, whitening, optimization_of(cfg) if training else None,
+                     int(cfg.model.eval_batch_size), int(cfg.data.num_workers), record=record_of(cfg),
+                     class_weights=build_class_weights(cfg))
+
+
+def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
+    """The configured Lightning Trainer with the run's loggers and checkpoints."""
+    loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
+    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, **trainer_kwargs("retriever", callbacks),
+                       precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
+
+
+def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
+    """(processes per node, nodes) of a job: trainer.devices (-1: all GPUs) and trainer.num_nodes
+    under a DDP strategy; (1, 1) otherwise."""
+    if not str(trainer_cfg.get("strategy", "auto")).startswith("ddp"):
+        return 1, 1
+    devices = int(trainer_cfg.devices)
+    if devices == -1:  # Lightning's "all GPUs"
+        devices = torch.cuda.device_count()
+    return devices, int(trainer_cfg.get("num_nodes", 1))
+
+
+# ----------------------------------------------------------------------------------- semantic artifacts
+def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: Backbone,
+                   timings: dict[str, float] | None = None) -> Semantic:
+    """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask source need them;
+    the seconds each took (built or read from the cache) into ``timings`` as teacher_s, labels_s, student_s."""
+    from semvpr.segmentation.pseudolabels import pseudo_labels
+    from semvpr.segmentation.training import build_student, build_teacher
+
+    timings = {} if timings is None else timings
+    mask = component_class(cfg, "mask")
+    needs = mask.needs if mask is not None else None
+    if component_class(cfg, "aggregator").init_sample != "labelled" and needs not in ("teacher", "student"):
+        return Semantic()
+    teacher_settings = teacher_spec(cfg)
+    seg = cfg.data.get("segmentation")
+    needs_training = teacher_settings.checkpoint is None
+    seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
+    seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
+    tic = time.time()
+    teacher = build_teacher(teacher_settings, seg_train, seg_val, cfg.paths.cache_dir)
+    timings["teacher_s"], tic = time.time() - tic, time.time()
+    images = list(train.db_paths) + list(train.q_paths)
+    labels_dir = pseudo_labels(teacher, teacher.teacher_key, images, tuple(cfg.data.image_size),
+                               cfg.paths.cache_dir, train.root)
+    timings["labels_s"], tic = time.time() - tic, time.time()
+    semantic = Semantic(teacher, labels_dir, train.root)
+    if needs == "student":
+        semantic.student = build_student(student_spec(cfg), backbone, images, labels_dir, train.root,
+                                         tuple(cfg.data.image_size), cfg.paths.cache_dir)
+        timings["student_s"] = time.time() - tic
+    return semantic
+
+
+def mask_key(mask_source: MaskSource | None, cfg: DictConfig) -> str | None:
     """What a mask source's output depends on: its weights (and, for the oracle, the class list)."""
     if mask_source is None:
         return None
@@ -215,91 +215,51 @@ def mask_key(mask_source: nn.Module | None, cfg: DictConfig) -> str | None:
                         list(cfg.teacher.static_classes)])
 
 
-@torch.no_grad()
-def sample_local_features(backbone: nn.Module, store: FeatureStore, max_features: int, per_image: int,
-                          seed: int, batch_size: int = 16) -> tuple[Tensor, Tensor]:
-    """NetVLAD's k-means sample: ``per_image`` random locations of each of ``max_features / per_image``
-    random images (all of them when fewer). Returns (N,D) features and their (image, location) indices."""
-    rng = np.random.default_rng(seed)
-    num_images = min(len(store), math.ceil(max_features / per_image))
-    images = np.sort(rng.choice(len(store), num_images, replace=False))
-    device = next(backbone.parameters()).device
-    feats, where = [], []
-    for start in range(0, len(images), batch_size):
-        idx = images[start : start + batch_size]
-        trunk = store.trunk_of(idx, backbone).to(device).float()
-        with autocast(device):
-            local = backbone.forward_trainable(trunk.contiguous(memory_format=torch.channels_last))
-        local = local.float().flatten(2).transpose(1, 2).cpu()  # (B, h*w, D)
-        for image, grid in zip(idx, local):
-            loc = np.sort(rng.choice(len(grid), min(per_image, len(grid)), replace=False))
-            feats.append(grid[torch.from_numpy(loc)])
-            where.append(torch.from_numpy(np.stack([np.full(len(loc), image), loc], axis=1)))
-    return torch.cat(feats), torch.cat(where)
+def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet]) -> str:
+    """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.retrieval.features). Under
+    DDP every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
+    ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
+    per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
+    images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
+    cached = all(trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir)
+                 for p in places.values())
+    storage = choose_storage(cfg.features.storage, per_image * images, cfg.paths.cache_dir,
+                             float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0], float(cfg.features.disk_gb),
+                             cached)
+    print(f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
+          file=sys.stderr)
+    return storage
 
 
-def static_grid(labels_dir: Path, root: Path, image_paths: list[Path], grid: tuple[int, int],
-                static_names: list[str]) -> Tensor:
-    """Static fraction of each feature-grid cell (N,h*w) from pseudo-label PNGs."""
-    lut = torch.from_numpy(static_lut(tuple(static_names)))
-    maps = []
-    for path in image_paths:
-        label = torch.from_numpy(read_label(labels_dir, path, root)).long()
-        maps.append(lut[label])
-    pooled = torch.nn.functional.adaptive_avg_pool2d(torch.stack(maps)[:, None], grid)
-    return pooled.flatten(1)
+def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
+    """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job; the
+    seconds of each stage into ``timings`` (data, semantic = teacher + labels + student, features)."""
+    tic = time.time()
+    places = build_places(cfg)  # generates SynthCity on first use
+    timings["data_s"] = time.time() - tic
+    backbone = build_backbone(cfg.backbone, int(cfg.seed))
+    tic = time.time()
+    semantic = build_semantic(cfg, places["train"], backbone, timings)
+    mask_source = build_mask_source(cfg, backbone, semantic)
+    timings["semantic_s"] = time.time() - tic
+    tic = time.time()
+    storage = feature_storage(cfg, backbone, places)
+    features = {split: place_features(
+        places[split], backbone, backbone.frozen_identity(), mask_source, mask_key(mask_source, cfg),
+        cfg.data.image_size, cfg.paths.cache_dir, storage, int(cfg.model.eval_batch_size), int(cfg.data.num_workers),
+        weighting=cfg.mask.weights) for split in places}
+    timings["features_s"] = time.time() - tic
+    return Prepared(places, backbone, semantic, mask_source, features, storage)
 
 
-def aggregator_class(cfg: DictConfig) -> type[Aggregator]:
-    """The class ``aggregator.module`` names (not instantiated: its init needs are read before building)."""
-    cls = get_class(cfg.aggregator.module._target_)
-    if not (isinstance(cls, type) and issubclass(cls, Aggregator)):
-        raise SemvprError(f"aggregator={cfg.aggregator.name}: {cfg.aggregator.module._target_} is not a "
-                          "semvpr.models.aggregators.base.Aggregator")
-    return cls
-
-
-def build_aggregator(cfg: DictConfig, backbone: nn.Module) -> Aggregator:
-    """The run's aggregator for the backbone's channels. An aggregator on a fixed grid (a ``grid`` key)
-    left null gets the backbone's grid at data.image_size, written into ``cfg`` so that the checkpoint
-    records the grid it was built for."""
-    node = cfg.aggregator.module
-    if "grid" in node and node.grid is None:
-        node.grid = list(grid_size(backbone, tuple(cfg.data.image_size)))
-    aggregator_class(cfg)
-    return instantiate_node(node, dim=backbone.out_channels)
-
-
-def init_aggregator(cfg: DictConfig, aggregator: Aggregator, backbone: nn.Module, train_db: FeatureStore,
-                    train: PlaceSet, semantic: Semantic) -> dict:
-    """The aggregator's initialisation from a sample of training local features (NetVLAD's recipe),
-    labelled static / dynamic by the teacher where it asks for labels; returns what was used."""
-    if aggregator.init_sample == "none":
-        return {"init": "none"}
-    feats, where = sample_local_features(backbone, train_db, int(cfg.model.init_features),
-                                         int(cfg.model.init_per_image), cfg.seed)
-    if aggregator.init_sample == "features":
-        return aggregator.init_from_sample(feats, None, cfg.seed)
-    assert semantic.labels_dir is not None and semantic.labels_root is not None
-    grid = grid_size(backbone, tuple(cfg.data.image_size))
-    used = np.unique(where[:, 0].numpy())
-    static = static_grid(semantic.labels_dir, semantic.labels_root, [train.db_paths[i] for i in used], grid,
-                         list(cfg.teacher.static_classes))
-    row = torch.from_numpy(np.searchsorted(used, where[:, 0].numpy()))
-    is_static = static_locations(static[row, where[:, 1]], MIN_STATIC_PER_CLUSTER * int(cfg.aggregator.module.num_clusters))
-    return aggregator.init_from_sample(feats, is_static, cfg.seed)
-
-
-def static_locations(fraction: Tensor, at_least: int) -> Tensor:
-    """Which sampled locations the semantic init treats as static: those whose static fraction is >= 0.5,
-    or, where the labels call fewer than ``at_least`` static (a weak teacher), the ``at_least`` most static
-    ones (said on stderr), so the init degrades towards k-means instead of failing."""
-    is_static = fraction >= 0.5
-    at_least = min(at_least, len(fraction))
-    if int(is_static.sum()) >= at_least:
-        return is_static
-    print(f"semvpr: the teacher's labels call only {int(is_static.sum())} of {len(fraction)} k-means sample "
-          f"locations static; the semantic init uses the {at_least} most static ones", file=sys.stderr)
-    is_static = torch.zeros_like(is_static)
-    is_static[torch.argsort(fraction, descending=True, stable=True)[:at_least]] = True
-    return is_static
+def init_aggregator(cfg: DictConfig, retriever: Retriever, job: Prepared) -> dict[str, Any]:
+    """Initialise the retriever's aggregator from a sample of the job's training features (labelled by
+    the teacher's pseudo-labels where it asks for labels); returns what was used."""
+    labels = None
+    if retriever.aggregator.init_sample == "labelled":
+        semantic = job.semantic
+        assert semantic.labels_dir is not None and semantic.labels_root is not None
+        labels = StaticLabels(semantic.labels_dir, semantic.labels_root, job.places["train"].db_paths,
+                              list(cfg.teacher.static_classes), grid_size(job.backbone, tuple(cfg.data.image_size)))
+    return initialise_aggregator(retriever.aggregator, job.backbone, job.features["train"].db, init_sample_of(cfg),
+                                 labels)

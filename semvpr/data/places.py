@@ -8,10 +8,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from semvpr.core.cache import files_identity
 from semvpr.core.errors import SemvprError
-from semvpr.retrieval.recall import positives_within
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 #: The official MSLS cities of each split (mapillary_sls, ``default_cities``).
@@ -32,6 +32,32 @@ DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numI
 
 
 # eq=False: the arrays make field-wise equality ambiguous and the set unhashable otherwise.
+def check_radius(radius: float, what: str) -> float:
+    """A search radius in metres: a finite number > 0 (scipy squares it, so -25 would act as 25)."""
+    try:
+        value = float(radius)
+    except (TypeError, ValueError):
+        raise SemvprError(f"{what}={radius!r} is not a number (metres)") from None
+    if not np.isfinite(value) or value <= 0:
+        raise SemvprError(f"{what}={radius!r} must be a finite distance > 0 (metres)")
+    return value
+
+
+def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> list[np.ndarray]:
+    """Per query, the database indices within ``radius`` metres, sorted by distance (exact, float64)."""
+    radius = check_radius(radius, "positive radius")
+    db = np.asarray(db_utm, np.float64)
+    q = np.asarray(q_utm, np.float64)
+    tree = cKDTree(db)
+    out = []
+    for qi, idx in zip(q, tree.query_ball_point(q, r=radius)):
+        idx = np.asarray(idx, np.int64)
+        dist = np.linalg.norm(db[idx] - qi, axis=1)
+        out.append(idx[np.argsort(dist, kind="stable")])
+    return out
+
+
+
 @dataclass(frozen=True, eq=False)
 class PlaceSet:
     """A database and a query set of images with (east, north) UTM positions in metres."""

@@ -1,4 +1,4 @@
-"""Cityscapes-format segmentation sets and the image / label loaders every module shares."""
+"""Cityscapes-format segmentation sets and their label maps (trainIds)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -11,6 +11,7 @@ from PIL import Image
 
 from semvpr.data.classes import IGNORE, LABEL_TO_TRAIN_LUT, TRAIN_ID_NAMES
 from semvpr.core.errors import SemvprError
+from semvpr.data.images import Size, hw_of, load_image, open_image
 
 IMAGE_SUFFIX = "_leftImg8bit.png"
 LABEL_SUFFIX = "_gtFine_labelIds.png"
@@ -59,35 +60,7 @@ def read_cityscapes(root: str | Path, split: str) -> SegmentationSet:
     return SegmentationSet(images=tuple(images), labels=tuple(labels))
 
 
-def _open(path: Path, what: str) -> Image.Image:
-    """Open and decode fully, so truncated files fail here with their name, not deep in a worker."""
-    try:
-        img = Image.open(path)
-        img.load()
-    except FileNotFoundError:
-        raise SemvprError(f"{what} {path} not found") from None
-    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as err:
-        raise SemvprError(f"{what} {path} is unreadable or corrupt ({err})") from None
-    return img
-
-
-def _hw(size: tuple[int, int] | list[int] | None) -> tuple[int, int] | None:
-    if size is None:
-        return None
-    h, w = (int(v) for v in size)
-    return h, w
-
-
-def load_image(path: str | Path, size: tuple[int, int] | list[int] | None = None) -> torch.Tensor:
-    """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes bilinearly (antialiased)."""
-    img = _open(Path(path), "image").convert("RGB")
-    hw = _hw(size)
-    if hw is not None and img.size != (hw[1], hw[0]):
-        img = img.resize((hw[1], hw[0]), Image.BILINEAR)
-    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
-
-
-def load_train_ids(path: str | Path, size: tuple[int, int] | list[int] | None = None, *,
+def load_train_ids(path: str | Path, size: Size | None = None, *,
                    from_label_ids: bool, image: str | Path | None = None,
                    lut: Sequence[int] | None = None) -> torch.Tensor:
     """(H,W) long trainIds from a labelIds PNG (from_label_ids=True), a trainId PNG, or any ids via ``lut``
@@ -95,10 +68,10 @@ def load_train_ids(path: str | Path, size: tuple[int, int] | list[int] | None = 
     path = Path(path)
     if image is not None:
         check_pair(image, path)
-    img = _open(path, "label map")
+    img = open_image(path, "label map")
     if img.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
         raise SemvprError(f"label map {path} has mode {img.mode}; expected a single-channel PNG of ids")
-    hw = _hw(size)
+    hw = hw_of(size)
     if hw is not None and img.size != (hw[1], hw[0]):
         img = img.resize((hw[1], hw[0]), Image.NEAREST)  # nearest: ids must never be blended
     ids = np.asarray(img).astype(np.int64)
@@ -128,7 +101,7 @@ def check_pair(image: str | Path, label: str | Path) -> None:
         raise SemvprError(f"label map {label} is {lh}x{lw} but its image {image} is {ih}x{iw} (HxW)")
 
 
-def load_pair(image: str | Path, label: str | Path, size: tuple[int, int] | list[int] | None = None, *,
+def load_pair(image: str | Path, label: str | Path, size: Size | None = None, *,
               from_label_ids: bool, lut: Sequence[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Image (3,H,W) and trainIds (H,W), after checking their native sizes agree."""
     return load_image(image, size), load_train_ids(label, size, from_label_ids=from_label_ids, image=image, lut=lut)

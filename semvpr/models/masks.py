@@ -13,7 +13,7 @@ The aggregator uses the result to weight each location's contribution, never to 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import ClassVar, Literal, Sequence
 
 import numpy as np
 import torch
@@ -43,11 +43,23 @@ def pool_to_grid(static_prob: Tensor, grid_hw: tuple[int, int], threshold: float
     return (pooled >= threshold).float()
 
 
-class MaskSource(nn.Module):
-    """Gives class probabilities (B,C,H,W) of a batch; ``grid_mask`` reduces them to the grid."""
+#: What a mask source is built from: the teacher, the student (each built or loaded first, then given to
+#: its constructor as ``teacher=`` / ``student=``), or the place set's ground-truth label maps.
+Needs = Literal["teacher", "student", "ground_truth"]
 
+
+class MaskSource(nn.Module):
+    """Gives class probabilities (B,C,H,W) of a batch; ``grid_mask`` reduces them to the grid.
+
+    A mask source is one class and one ``conf/mask/*.yaml`` whose ``module`` node names it; ``needs``
+    says what the builder must provide.
+    """
+
+    needs: ClassVar[Needs]
     #: Whether it reads the backbone's features (else the frozen pass can be skipped for it).
-    needs_features: bool = False
+    needs_features: ClassVar[bool] = False
+    #: Whether it can describe images that come without label maps (a folder of queries, the hub).
+    describes_new_images: ClassVar[bool] = True
 
     def __init__(self, static_names: Sequence[str] = STATIC_NAMES) -> None:
         super().__init__()
@@ -75,6 +87,8 @@ class MaskSource(nn.Module):
 class TeacherMask(MaskSource):
     """Class probabilities from the Mask2Former teacher, run on the images themselves."""
 
+    needs = "teacher"
+
     def __init__(self, teacher: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
         super().__init__(static_names)
         self.teacher = teacher.eval().requires_grad_(False)
@@ -87,6 +101,7 @@ class TeacherMask(MaskSource):
 class StudentMask(MaskSource):
     """Class probabilities from the U-Net student over the backbone's own multi-scale features."""
 
+    needs = "student"
     needs_features = True
 
     def __init__(self, student: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
@@ -100,6 +115,9 @@ class StudentMask(MaskSource):
 
 class OracleMask(MaskSource):
     """One-hot ground-truth classes from SynthCity's label PNGs (upper bound; never in training data)."""
+
+    needs = "ground_truth"
+    describes_new_images = False
 
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         if label_paths is None:

@@ -2,32 +2,48 @@
 
 It learns the Cityscapes classes of the teacher's pseudo-labels (cross-entropy, 19 outputs); its
 static map is the sum of the static classes' probabilities, which is what the binary filter reads.
+How it is trained (once, cached) is ``semvpr.segmentation.training``.
 """
 from __future__ import annotations
 
-import json
-import math
-import time
 from collections.abc import Mapping, Sequence
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
-from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
-from torch.utils.data import DataLoader
 
-from semvpr.core.cache import build_once
-from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES
-from semvpr.models.masks import static_vector
 from semvpr.core.errors import SemvprError
-from semvpr.core.precision import autocast
-from semvpr.segmentation.pseudolabels import label_path, read_label
-from semvpr.core.logs import Progress, progress
+from semvpr.core.spec import from_mapping
+from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES
+from semvpr.models.masks import static_vector
 
-VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
+
+@dataclass(frozen=True)
+class StudentSpec:
+    """The student's architecture and training settings (``conf/student/*.yaml``)."""
+
+    name: str = "unet"
+    #: Strides of the frozen features it decodes (the output is at the smallest).
+    strides: Sequence[int] = (4, 8, 16)
+    width: int = 32
+    #: Pseudo-label classes that count as static (the binary target).
+    static_classes: Sequence[str] = STATIC_NAMES
+    epochs: int = 10
+    batch_size: int = 16
+    lr: float = 3.0e-3
+    weight_decay: float = 1.0e-4
+    bf16: bool = True
+    num_workers: int = 2
+    #: Train on at most this many of the given images (a fixed random subset; None = all).
+    max_images: int | None = None
+    seed: int = 0
+
+    @classmethod
+    def from_mapping(cls, node: Mapping[str, Any]) -> StudentSpec:
+        """From a ``student`` config node (unknown keys refused in one line)."""
+        return from_mapping(cls, node, "student")
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
@@ -92,115 +108,7 @@ class Student(nn.Module):
         return prob
 
 
-@torch.no_grad()
-def cache_skips(
-    backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
-    batch_size: int, num_workers: int, bf16: bool = True,
-) -> list[Tensor]:  # fmt: skip
-    """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once);
-    ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower)."""
-    from semvpr.segmentation.datamodule import ImageDataset
-
-    device = next(backbone.parameters()).device
-    loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
-    out: list[list[Tensor]] = [[] for _ in indices]
-    # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
-    with autocast(device, enabled=bf16):
-        for images, _ in progress(loader, "student features", len(paths), size=lambda b: len(b[0])):
-            skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
-            for level, i in enumerate(indices):
-                out[level].append(skips[i].to(torch.bfloat16).contiguous())
-    return [torch.cat(level) for level in out]
-
-
-def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size: Sequence[int]) -> Tensor:
-    """(N,H,W) uint8 trainId targets from pseudo-label PNGs (255 = ignore)."""
-    maps = []
-    for p in paths:
-        ids = read_label(label_dir, p, root)
-        if ids.shape != tuple(image_size):
-            raise SemvprError(f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}")
-        maps.append(np.where(ids < NUM_CLASSES, ids, IGNORE).astype(np.uint8))
-    return torch.from_numpy(np.stack(maps))
-
-
-def fit_student(student: Student, skips: list[Tensor], targets: Tensor, cfg: DictConfig) -> dict[str, float]:
-    """Train the decoder on cached features with cross-entropy at image resolution; returns final metrics
-    (the static-map IoU against the labels' static map is tracked, as that is what the filter uses)."""
-    gen = torch.Generator().manual_seed(int(cfg.seed))
-    n, bs = len(targets), int(cfg.batch_size)
-    steps = max(1, cfg.epochs * math.ceil(n / bs))
-    opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=steps, pct_start=0.1)
-    device = student.head.weight.device
-    student.train()
-    inter = union = 0
-    bar = Progress("student", steps, unit="steps")
-    for epoch in range(cfg.epochs):
-        order = torch.randperm(n, generator=gen)
-        inter = union = 0
-        for start in range(0, n, bs):
-            idx = order[start : start + bs]
-            target = targets[idx].to(device).long()
-            with autocast(device, enabled=bool(cfg.bf16)):
-                logits = student.decode([s[idx].to(device) for s in skips])
-            logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)
-            loss = F.cross_entropy(logits, target, ignore_index=IGNORE)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            valid = target != IGNORE
-            static = torch.einsum("bchw,c->bhw", logits.detach().softmax(1), student.static_weight)
-            pred, gt = (static >= 0.5) & valid, (student.static_weight[target.clamp(max=NUM_CLASSES - 1)] > 0) & valid
-            inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
-            bar.update()
-    bar.close()
-    student.eval()
-    return {"train/loss": float(loss.item()), "train/iou_vs_labels": inter / max(1, union)}
-
-
-def student_architecture(cfg_student: Mapping[str, Any], backbone: nn.Module) -> Student:
-    """An untrained student for this config over this backbone's frozen features."""
-    return Student(backbone.frozen_channels, backbone.frozen_strides, strides=list(cfg_student["strides"]),
-                   width=int(cfg_student["width"]), static_names=list(cfg_student.get("static_classes", STATIC_NAMES)))
-
-
-def build_student(
-    cfg_student: Mapping[str, Any], backbone: nn.Module, image_paths: Sequence[str | Path],
-    label_dir: str | Path, root: str | Path, image_size: Sequence[int], cache_dir: str | Path,
-) -> Student:  # fmt: skip
-    """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode."""
-    cfg = cfg_student if isinstance(cfg_student, DictConfig) else OmegaConf.create(dict(cfg_student))
-    paths, label_dir, root = [Path(p) for p in image_paths], Path(label_dir), Path(root)
-    if cfg.get("max_images") and len(paths) > cfg.max_images:
-        # The frozen trunk pass dominates the cost; a fixed random subset is plenty for a small decoder.
-        keep = torch.randperm(len(paths), generator=torch.Generator().manual_seed(int(cfg.seed)))[: cfg.max_images]
-        paths = [paths[i] for i in sorted(keep.tolist())]
-    size = [int(image_size[0]), int(image_size[1])]
-    key = {"version": VERSION, "student": OmegaConf.to_container(cfg, resolve=True),
-           "backbone": backbone.frozen_identity(), "labels": label_dir.name, "image_size": size}  # fmt: skip
-
-    def build(out: Path) -> None:
-        torch.manual_seed(int(cfg.seed))
-        student = student_architecture(cfg, backbone)
-        start = time.perf_counter()
-        targets = load_targets(paths, label_dir, root, size)
-        skips = cache_skips(backbone, student.skip_indices, paths, size, int(cfg.batch_size), int(cfg.num_workers),
-                            bf16=bool(cfg.bf16))
-        student.to(next(backbone.parameters()).device)
-        metrics = fit_student(student, skips, targets, cfg)
-        metrics["train_seconds"] = time.perf_counter() - start
-        torch.save(student.cpu().state_dict(), out / "student.pt")
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-
-    art = build_once(cache_dir, "student", key, build)
-    # The architecture comes from the config, only weights from the (possibly shared) cache.
-    student = student_architecture(cfg, backbone)
-    try:
-        student.load_state_dict(torch.load(art / "student.pt", weights_only=True, map_location="cpu"))
-    except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
-        raise SemvprError(f"student cache {art} does not hold this student's weights ({type(err).__name__}); "
-                          f"delete it to rebuild") from None
-    student.artifact = art  # type: ignore[attr-defined]  # for the benchmark / logs: metrics.json lives here
-    return student.to(next(backbone.parameters()).device).eval()
+def student_architecture(spec: StudentSpec, backbone: nn.Module) -> Student:
+    """An untrained student of this spec over this backbone's frozen features."""
+    return Student(backbone.frozen_channels, backbone.frozen_strides, strides=list(spec.strides), width=int(spec.width),
+                   static_names=list(spec.static_classes))

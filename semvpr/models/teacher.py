@@ -6,26 +6,25 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 import torch.nn.functional as F
-from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 from torchmetrics.classification import MulticlassJaccardIndex
 from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig, TimmBackboneConfig
 
-from semvpr.core.cache import build_once, config_hash, files_identity
+from semvpr.core.cache import config_hash
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.core.errors import SemvprError
+from semvpr.core.spec import from_mapping, plain
 from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, IMAGENET_MEAN, IMAGENET_STD, TIMM_EFFICIENTNET_LITE0,
                                      efficientnet_lite0_state)
-from semvpr.core.precision import autocast, lightning_precision
-from semvpr.core.logs import trainer_kwargs
+from semvpr.core.precision import autocast
 
 
 
@@ -46,6 +45,52 @@ def targets_from_train_ids(
         mask_labels.append((model_ids[None] == classes[:, None, None]).float())
         class_labels.append(classes)
     return mask_labels, class_labels
+
+
+@dataclass(frozen=True)
+class TeacherTraining:
+    """How the embedded teacher trains (``teacher.train``)."""
+
+    epochs: int = 3
+    batch_size: int = 4
+    lr: float = 1.0e-3
+    weight_decay: float = 0.05
+    warmup_steps: int = 50
+    #: The pixel-level backbone learns at lr x this; 0 freezes it (no backward through it).
+    backbone_lr_factor: float = 1.0
+    bf16: bool = True
+    augment: bool = False
+    flip: bool = False
+    num_workers: int = 2
+    #: Validate every n epochs; None = once, after the last one.
+    val_every: int | None = None
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class TeacherSpec:
+    """The teacher (``conf/teacher/*.yaml``): a pretrained checkpoint, or the embedded Mask2Former with
+    its architecture (``model``, the Hugging Face config values) and training settings."""
+
+    name: str = "mask2former"
+    #: A Hugging Face id (local cache only) or a local directory; None = the embedded teacher.
+    checkpoint: str | None = None
+    #: [H, W] a pretrained checkpoint sees; None = as given.
+    inference_size: Sequence[int] | None = None
+    static_classes: Sequence[str] = STATIC_NAMES
+    dynamic_classes: Sequence[str] = DYNAMIC_NAMES
+    predict_batch_size: int = 16
+    #: [H, W] the embedded teacher trains at.
+    image_size: Sequence[int] = (180, 240)
+    model: Mapping[str, Any] = field(default_factory=dict)
+    train: TeacherTraining = field(default_factory=TeacherTraining)
+
+    @classmethod
+    def from_mapping(cls, node: Mapping[str, Any]) -> TeacherSpec:
+        """From a ``teacher`` config node (unknown keys refused in one line)."""
+        values = dict(plain(node))
+        values["train"] = from_mapping(TeacherTraining, values.get("train", {}), "teacher.train")
+        return from_mapping(cls, values, "teacher")
 
 
 class Teacher(L.LightningModule):
@@ -236,13 +281,14 @@ def embedded_normalisation(cfg_model: Mapping[str, Any]) -> dict[str, tuple[floa
     return {"image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD}
 
 
-def _teacher_kwargs(cfg: DictConfig) -> dict[str, Any]:
+def _teacher_kwargs(spec: TeacherSpec) -> dict[str, Any]:
     """Teacher constructor arguments shared by the pretrained and embedded paths."""
+    train = spec.train
     return {
-        "static_names": list(cfg.static_classes), "dynamic_names": list(cfg.dynamic_classes),
-        "inference_size": cfg.get("inference_size"), "lr": cfg.train.lr, "weight_decay": cfg.train.weight_decay,
-        "warmup_steps": cfg.train.warmup_steps, "bf16": cfg.train.bf16, "flip": cfg.train.get("flip", False),
-        "backbone_lr_factor": cfg.train.get("backbone_lr_factor", 1.0),
+        "static_names": list(spec.static_classes), "dynamic_names": list(spec.dynamic_classes),
+        "inference_size": spec.inference_size, "lr": train.lr, "weight_decay": train.weight_decay,
+        "warmup_steps": train.warmup_steps, "bf16": train.bf16, "flip": train.flip,
+        "backbone_lr_factor": train.backbone_lr_factor,
     }  # fmt: skip
 
 
@@ -360,81 +406,17 @@ def file_hash(path: Path, length: int = 16) -> str:
     return digest.hexdigest()[:length]
 
 
-def dataset_identity(seg: Any) -> str:
-    """Hash of a SegmentationSet's files (name, size, mtime: cheap, and survives moving the data) and label table."""
-    paths = [*seg.images, *seg.labels]
-    files = files_identity([p.name for p in paths], paths)
-    lut = getattr(seg, "label_lut", None)  # the same PNGs read with another id table are other targets
-    return config_hash(files if lut is None else [files, list(lut)])
-
-
-def _train(cfg: DictConfig, seg_train: Any, seg_val: Any, out: Path) -> None:
-    """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
-    from lightning.pytorch.loggers import CSVLogger
-
-    from semvpr.segmentation.datamodule import SegmentationDataModule
-
-    L.seed_everything(cfg.train.seed, workers=True, verbose=False)
-    accelerator = "gpu" if torch.cuda.is_available() else "cpu"
-    teacher = embedded_teacher(cfg)
-    data = SegmentationDataModule(
-        seg_train, seg_val, image_size=tuple(cfg.image_size), batch_size=cfg.train.batch_size,
-        num_workers=cfg.train.num_workers, augment=cfg.train.augment, label_ids=True, seed=cfg.train.seed,
-    )  # fmt: skip
-    trainer = L.Trainer(
-        accelerator=accelerator, devices=1,
-        precision=lightning_precision("bf16-mixed" if cfg.train.bf16 else "32-true", accelerator),
-        max_epochs=cfg.train.epochs, check_val_every_n_epoch=cfg.train.val_every or cfg.train.epochs, num_sanity_val_steps=0,
-        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
-        log_every_n_steps=10, default_root_dir=out, **trainer_kwargs("teacher", ()),
-    )  # fmt: skip
-    start = time.perf_counter()
-    trainer.fit(teacher, datamodule=data)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    metrics["train_seconds"] = time.perf_counter() - start
-    torch.save(teacher.model.state_dict(), out / "model.pt")
-    (out / "config.json").write_text(teacher.model.config.to_json_string())
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-
-
-def teacher_architecture(cfg_teacher: Mapping[str, Any]) -> Teacher:
-    """The teacher this config describes: a pretrained checkpoint, or the embedded model untrained."""
-    cfg = cfg_teacher if isinstance(cfg_teacher, DictConfig) else OmegaConf.create(dict(cfg_teacher))
-    if cfg.checkpoint:
-        teacher = load_pretrained(str(cfg.checkpoint), **_teacher_kwargs(cfg))
+def teacher_architecture(spec: TeacherSpec) -> Teacher:
+    """The teacher this spec describes: a pretrained checkpoint, or the embedded model untrained."""
+    if spec.checkpoint:
+        teacher = load_pretrained(str(spec.checkpoint), **_teacher_kwargs(spec))
         # Keyed by content, not by name: a directory whose weights changed is another teacher.
-        teacher.teacher_key = f"pretrained-{config_hash([teacher.source_hash, cfg.get('inference_size')])}"
+        inference_size = list(spec.inference_size) if spec.inference_size is not None else None
+        teacher.teacher_key = f"pretrained-{config_hash([teacher.source_hash, inference_size])}"
         return teacher
-    return embedded_teacher(cfg)
+    return embedded_teacher(spec)
 
 
-def embedded_teacher(cfg: DictConfig) -> Teacher:
-    """The embedded teacher this config describes, untrained (its backbone's ImageNet weights loaded)."""
-    return Teacher(embedded_model(cfg.model), **embedded_normalisation(cfg.model), **_teacher_kwargs(cfg))
-
-
-def build_teacher(cfg_teacher: Mapping[str, Any], seg_train: Any, seg_val: Any, cache_dir: str | Path) -> Teacher:
-    """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
-    cfg = cfg_teacher if isinstance(cfg_teacher, DictConfig) else OmegaConf.create(dict(cfg_teacher))
-    teacher = teacher_architecture(cfg)
-    if not cfg.checkpoint:
-        if seg_train is None or seg_val is None:
-            raise SemvprError("teacher.checkpoint=null trains the embedded teacher, which needs data.segmentation "
-                              "train and val sets (Cityscapes format); set them or give a pretrained checkpoint")
-        # Only what changes the weights: class lists, labelling batch size etc. must not retrain it.
-        key = {
-            "version": 1, "image_size": list(cfg.image_size), "model": OmegaConf.to_container(cfg.model),
-            "train": {k: v for k, v in OmegaConf.to_container(cfg.train).items() if k != "val_every"},
-            "train_set": dataset_identity(seg_train),
-            "val_set": dataset_identity(seg_val),
-        }  # fmt: skip
-        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(cfg, seg_train, seg_val, tmp))
-        # The architecture comes from the config, only weights from the (possibly shared) cache.
-        try:
-            teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
-        except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
-            raise SemvprError(f"teacher cache {art} does not hold this teacher's weights ({type(err).__name__}); "
-                              f"delete it to rebuild") from None
-        teacher.teacher_key = art.name
-    teacher.eval().requires_grad_(False)
-    return teacher
+def embedded_teacher(spec: TeacherSpec) -> Teacher:
+    """The embedded teacher this spec describes, untrained (its backbone's ImageNet weights loaded)."""
+    return Teacher(embedded_model(spec.model), **embedded_normalisation(spec.model), **_teacher_kwargs(spec))

@@ -144,13 +144,6 @@ class Sweep:
         return None
 
 
-def md_cell(text: object) -> str:
-    """Text from a run as one markdown table cell or list item: no HTML tag or entity ('&', '<'
-    escaped), no '|', '`' or line break."""
-    flat = " ".join(str(text).split())
-    return flat.replace("&", "&amp;").replace("<", "&lt;").replace("|", "&#124;").replace("`", "&#96;")
-
-
 def numeric_weights(value: object) -> dict[str, float] | None:
     """A run's recorded class weights if they are a name -> finite number mapping, else None."""
     if not isinstance(value, dict) or not value:

@@ -31,9 +31,8 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
 from semvpr.core.cache import artifact_dir, build_once
-from semvpr.segmentation.datamodule import ImageDataset
+from semvpr.data.images import ImageDataset, load_image
 from semvpr.data.places import PlaceSet
-from semvpr.data.segmentation import load_image
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array, temp_prefix
 from semvpr.data.classes import NUM_CLASSES

@@ -32,7 +32,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, world
 from semvpr.core.errors import SemvprError
-from semvpr.retrieval.recall import check_radius
+from semvpr.data.places import check_radius
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
 
 

@@ -1,4 +1,4 @@
-"""Retrieval evaluation: positives by UTM radius, faiss kNN, Recall@N.
+"""Retrieval scoring: faiss kNN and Recall@N (the positives come from the place set, ``semvpr.data.places``).
 
 Two denominators, because the references differ:
 
@@ -16,10 +16,10 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import faiss
 import numpy as np
-from scipy.spatial import cKDTree
 
 from semvpr.core.errors import SemvprError
 
@@ -34,31 +34,6 @@ class RecallResult:
     recalls_pos: dict[int, float]
     num_queries: int
     num_without_positives: int
-
-
-def check_radius(radius: float, what: str) -> float:
-    """A search radius in metres: a finite number > 0 (scipy squares it, so -25 would act as 25)."""
-    try:
-        value = float(radius)
-    except (TypeError, ValueError):
-        raise SemvprError(f"{what}={radius!r} is not a number (metres)") from None
-    if not np.isfinite(value) or value <= 0:
-        raise SemvprError(f"{what}={radius!r} must be a finite distance > 0 (metres)")
-    return value
-
-
-def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> list[np.ndarray]:
-    """Per query, the database indices within ``radius`` metres, sorted by distance (exact, float64)."""
-    radius = check_radius(radius, "positive radius")
-    db = np.asarray(db_utm, np.float64)
-    q = np.asarray(q_utm, np.float64)
-    tree = cKDTree(db)
-    out = []
-    for qi, idx in zip(q, tree.query_ball_point(q, r=radius)):
-        idx = np.asarray(idx, np.int64)
-        dist = np.linalg.norm(db[idx] - qi, axis=1)
-        out.append(idx[np.argsort(dist, kind="stable")])
-    return out
 
 
 def _unit_float32(x: np.ndarray) -> np.ndarray:
@@ -136,3 +111,18 @@ def recall_at_n(predictions: np.ndarray, positives: Sequence[np.ndarray],
 def recall_curve(predictions: np.ndarray, positives: Sequence[np.ndarray], max_n: int = 20) -> dict[int, float]:
     """{N: Recall@N} for N = 1..max_n (for recall curves)."""
     return recall_at_n(predictions, positives, range(1, max_n + 1))
+
+
+def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray],
+             max_n: int = 20) -> dict[str, Any]:
+    """Top-k retrieval and Recall@1..max_n in percent: of all queries (``recalls``, ``curve``, as
+    pytorch-NetVlad and the benchmark) and of queries with a positive (``recalls_pos``, as MSLS)."""
+    k = min(max_n, len(db_desc))
+    predictions = knn(db_desc, q_desc, k)
+    result = recall_result(predictions, positives, ns=tuple(range(1, k + 1)))
+    # A database smaller than N is retrieved whole: Recall@N = Recall@len(db).
+    curve = {n: result.recalls[min(n, k)] for n in range(1, max_n + 1)}
+    return {"predictions": predictions, "curve": curve,
+            "recalls": {n: curve[n] for n in RECALL_NS},
+            "recalls_pos": {n: result.recalls_pos[min(n, k)] for n in RECALL_NS},
+            "num_without_positives": result.num_without_positives}

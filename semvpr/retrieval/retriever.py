@@ -1,4 +1,4 @@
-"""The retriever: backbone → (mask) → NetVLAD / SRAL aggregator → global descriptor.
+"""The retriever: backbone → (mask) → aggregator → (PCA whitening) → global descriptor, as a LightningModule.
 
 One code path for every aggregator and mask (ARCHITECTURE §3.4): the components are built outside and injected. The
 frozen backbone prefix and the mask run once per image (semvpr.retrieval.features); training, mining and
@@ -16,11 +16,11 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from semvpr.segmentation.datamodule import ImageDataset
+from semvpr.data.images import ImageDataset
 from semvpr.retrieval.distributed import Describe
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
-from semvpr.retrieval.recall import RECALL_NS, knn, recall_result
+from semvpr.retrieval.losses import triplet_loss
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.core.precision import autocast
 from semvpr.core.logs import progress
@@ -66,6 +66,11 @@ class Retriever(L.LightningModule):
         self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
 
     # ----------------------------------------------------------------- descriptors
+    @property
+    def descriptor_dim(self) -> int:
+        """Length of the global descriptor (after PCA whitening, if any)."""
+        return self.whitening.out_dim if self.whitening is not None else self.aggregator.output_dim
+
     def describe(self, trunk: Tensor, mask: Tensor | None) -> Tensor:
         """Global descriptors from frozen-trunk outputs and grid masks."""
         # float(): trunk features are stored in bf16; autocast (where native) takes them back down.
@@ -181,41 +186,6 @@ class Retriever(L.LightningModule):
         return self.describe_batch(batch).float().cpu()
 
     test_step = validation_step
-
-
-def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray],
-             max_n: int = 20) -> dict[str, Any]:
-    """Top-k retrieval and Recall@1..max_n in percent: of all queries (``recalls``, ``curve``, as
-    pytorch-NetVlad and the benchmark) and of queries with a positive (``recalls_pos``, as MSLS)."""
-    k = min(max_n, len(db_desc))
-    predictions = knn(db_desc, q_desc, k)
-    result = recall_result(predictions, positives, ns=tuple(range(1, k + 1)))
-    # A database smaller than N is retrieved whole: Recall@N = Recall@len(db).
-    curve = {n: result.recalls[min(n, k)] for n in range(1, max_n + 1)}
-    return {"predictions": predictions, "curve": curve,
-            "recalls": {n: curve[n] for n in RECALL_NS},
-            "recalls_pos": {n: result.recalls_pos[min(n, k)] for n in RECALL_NS},
-            "num_without_positives": result.num_without_positives}
-
-
-def triplet_loss(desc: Tensor, tuples: Tensor, margin: float, pairs: float | None = None, eps: float = 1e-6) -> Tensor:
-    """NetVLAD's loss: max(0, d(q,p) − d(q,n) + sqrt(margin)) on L2 distances (as
-    ``nn.TripletMarginLoss``), summed over every (query, negative) pair of the batch and divided by
-    ``pairs`` (default: their number, the mean, as pytorch-NetVlad divides by the number of
-    negatives). ``tuples`` (T, 2+N) holds each tuple's rows of ``desc``: query, positive,
-    negatives, -1 padded.
-
-    Every row is gathered once: a query repeated per negative would make the backward pass
-    accumulate into one row from several threads, whose order (and last bits) vary run to run.
-    """
-    q, p = desc[tuples[:, 0]], desc[tuples[:, 1]]
-    valid = tuples[:, 2:] >= 0
-    negatives = desc.new_zeros(*valid.shape, desc.shape[1])
-    negatives[valid] = desc[tuples[:, 2:][valid]]
-    d_pos = (q - p + eps).norm(dim=1)
-    d_neg = (q[:, None] - negatives + eps).norm(dim=2)
-    losses = torch.relu(d_pos[:, None] - d_neg + margin**0.5)[valid]
-    return losses.sum() / (valid.sum() if pairs is None else pairs)
 
 
 def _mask_or_none(mask: Tensor, device: torch.device) -> Tensor | None:

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from semvpr.retrieval.distributed import Describe, from_rank_zero, gather_rows, world
 from semvpr.retrieval.features import PlaceFeatures
-from semvpr.retrieval.retriever import evaluate
+from semvpr.retrieval.recall import evaluate
 
 
 class RecallEvaluation(L.Callback):

@@ -1,4 +1,4 @@
-"""Datasets for place images and segmentation pairs, and the teacher's LightningDataModule."""
+"""Segmentation pairs as a dataset, their augmentation, and the teacher's LightningDataModule."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -9,11 +9,9 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from semvpr.data.segmentation import SegmentationSet, load_image, load_pair
+from semvpr.data.images import Size
+from semvpr.data.segmentation import SegmentationSet, load_pair
 from semvpr.core.errors import SemvprError
-
-Size = tuple[int, int] | list[int]
-
 
 def segmentation_augmentation(image_size: Size, color: bool = True) -> K.AugmentationSequential:
     """Flip + resized crop on image and mask alike (mask resampled nearest), colour jitter on the image."""
@@ -26,20 +24,6 @@ def segmentation_augmentation(image_size: Size, color: bool = True) -> K.Augment
         ops.append(K.ColorJitter(0.3, 0.3, 0.3, 0.05, p=0.8))
     # kornia's default extra_args resample masks with NEAREST, so ids are never blended.
     return K.AugmentationSequential(*ops, data_keys=["input", "mask"])
-
-
-class ImageDataset(Dataset):
-    """Images from paths as (image (3,H,W) float [0,1], index)."""
-
-    def __init__(self, paths: Sequence[str | Path], image_size: Size | None) -> None:
-        self.paths = [Path(p) for p in paths]
-        self.image_size = image_size
-
-    def __len__(self) -> int:
-        return len(self.paths)
-
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, int]:
-        return load_image(self.paths[index], self.image_size), index
 
 
 class SegmentationDataset(Dataset):

@@ -61,7 +61,7 @@ def _label_missing(
     num_workers: int,
 ) -> None:
     """Label the images whose PNG is not in ``out`` yet (a resumed run skips the finished ones)."""
-    from semvpr.segmentation.datamodule import ImageDataset
+    from semvpr.data.images import ImageDataset
 
     todo = [p for p in paths if not label_path(out, p, root).is_file()]
     bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))

@@ -14,7 +14,8 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
 from semvpr.models.masks import static_vector
-from semvpr.data.segmentation import SegmentationSet, load_image, load_train_ids
+from semvpr.data.images import load_image
+from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.core.precision import autocast
 from semvpr.segmentation.confusion import Confusion, binary_pred, class_scores, mask_scores
 from semvpr.core.logs import progress

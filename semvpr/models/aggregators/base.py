@@ -14,7 +14,8 @@ this interface:
   descriptor lies at distance 1 from every unit descriptor, so it would be the nearest database
   image of every query with no closer match;
 - ``init_sample`` / ``init_from_sample``: what initialisation sample the aggregator needs, if any
-  (NetVLAD: k-means on local features; SRAL: the same features with static / dynamic labels);
+  (NetVLAD: k-means on local features; SRAL: the same features with static / dynamic labels), and
+  ``init_min_static``: how many sampled locations a labelled init needs to call static;
 - ``attention(features)``: an optional per-location map (B,1,h,w) for the report figures.
 """
 from __future__ import annotations
@@ -34,6 +35,12 @@ class Aggregator(nn.Module, ABC):
 
     #: What ``init_from_sample`` needs; "labelled" makes the run build the teacher's pseudo-labels.
     init_sample: ClassVar[InitSample] = "none"
+
+    @property
+    def init_min_static(self) -> int:
+        """For a "labelled" init: the fewest sampled locations it must be able to treat as static (a weak
+        teacher's labels are topped up with the most static locations to reach it)."""
+        return 0
 
     @property
     @abstractmethod

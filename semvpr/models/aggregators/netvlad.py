@@ -1,4 +1,4 @@
-"""NetVLAD aggregation (Arandjelović et al., CVPR'16), its k-means/α initialisation, and PCA whitening.
+"""NetVLAD aggregation (Arandjelović et al., CVPR'16) and its k-means/α initialisation.
 
 Soft-assignment is a 1×1 conv initialised as w_k = 2α·ĉ_k, b_k = −α‖ĉ_k‖², i.e. a softmax over
 −α‖x − ĉ_k‖² (pytorch-NetVlad "vladv2"), from the unit-norm k-means centroids ĉ_k (α is set on them
@@ -176,42 +176,3 @@ class NetVLAD(Aggregator):
             if mask is not None:
                 weights = weights * mask
             return vlad_aggregate(x, weights, self.centroids.float())
-
-
-class PCAWhitening(nn.Module):
-    """PCA + whitening + L2, fitted on database descriptors (NetVLAD's 4096-D reduction)."""
-
-    def __init__(self, in_dim: int, out_dim: int, eps: float = 1e-9) -> None:
-        super().__init__()
-        self.in_dim, self.out_dim, self.eps = in_dim, out_dim, eps
-        self.register_buffer("mean", torch.zeros(in_dim))
-        self.register_buffer("projection", torch.eye(out_dim, in_dim))
-
-    @torch.no_grad()
-    def fit(self, db: Tensor | np.ndarray) -> PCAWhitening:
-        """Fit mean and whitened top-``out_dim`` principal directions on (N,in_dim) descriptors."""
-        x = torch.as_tensor(np.asarray(db) if not isinstance(db, Tensor) else db).float().cpu()
-        n = x.shape[0]
-        if x.ndim != 2 or x.shape[1] != self.in_dim:
-            raise ValueError(f"expected (N,{self.in_dim}) descriptors, got {tuple(x.shape)}")
-        if self.out_dim > min(n - 1, self.in_dim):
-            raise SemvprError(f"PCA whitening to {self.out_dim} dims needs more than {self.out_dim} database "
-                              f"descriptors of at least that width, got {n}×{self.in_dim}; lower the PCA dimension")
-        mean = x.mean(0)
-        xc = x - mean
-        # Eigen-decompose the smaller Gram matrix (N×N when N < D): same spectrum, far cheaper than a D×D SVD.
-        if n < self.in_dim:
-            evals, evecs = torch.linalg.eigh((xc @ xc.T).double())
-            evals, evecs = evals.flip(0)[: self.out_dim], evecs.flip(1)[:, : self.out_dim]
-            dirs = (xc.T.double() @ evecs) / evals.clamp_min(1e-30).sqrt()  # (D,out) unit principal axes
-        else:
-            evals, evecs = torch.linalg.eigh((xc.T @ xc).double())
-            evals, dirs = evals.flip(0)[: self.out_dim], evecs.flip(1)[:, : self.out_dim]
-        scale = (evals.clamp_min(0) / (n - 1) + self.eps).rsqrt()
-        self.mean.copy_(mean)
-        self.projection.copy_((dirs * scale[None]).T.float())
-        return self
-
-    def forward(self, x: Tensor) -> Tensor:
-        """(B,in_dim) → (B,out_dim) whitened, L2-normalised."""
-        return F.normalize((x.float() - self.mean) @ self.projection.T, dim=1)

@@ -29,6 +29,7 @@ from semvpr.models.aggregators.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alp
                                    spherical_kmeans, subsample)
 
 FAR_SHADOW = -4.0  # shadow = −4·c_k when there are no dynamic features: never wins against the representative
+MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at the least, per cluster
 
 class SRAL(NetVLAD):
     """NetVLAD with per-cluster shadow centroids that down-weight features near dynamic content.
@@ -45,6 +46,11 @@ class SRAL(NetVLAD):
         self.shadow_weight = nn.Parameter(torch.empty(num_clusters, num_shadows, dim))
         self.shadow_bias = nn.Parameter(torch.empty(num_clusters, num_shadows))
         self.set_shadows(FAR_SHADOW * self.centroids.detach()[:, None].expand(-1, num_shadows, -1), float(self.alpha))
+
+    @property
+    def init_min_static(self) -> int:
+        """At least ``MIN_STATIC_PER_CLUSTER`` static sample locations per representative."""
+        return MIN_STATIC_PER_CLUSTER * self.num_clusters
 
     @torch.no_grad()
     def set_shadows(self, shadows: Tensor, alpha: float) -> None:

@@ -1,0 +1,93 @@
+"""``check_config``: the one place a run's settings are checked, first thing in every command, before
+anything is read or written, so a bad value is one line naming its key instead of a late traceback."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from semvpr.config.components import COMPONENTS, component_class
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import check_dir_path
+from semvpr.data.places import check_radius
+from semvpr.models.masks import WEIGHTINGS
+from semvpr.retrieval.features import STORAGES
+
+#: Lightning 2's precision settings (``Trainer(precision=...)``).
+PRECISIONS = ("transformer-engine", "transformer-engine-float16", "16-true", "16-mixed", "bf16-true", "bf16-mixed",
+              "32-true", "64-true", "64", "32", "16", "bf16")
+SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
+
+
+def whole_number(value: object, key: str, low: int, high: int | None = None) -> int:
+    """``value`` as an int in [low, high], or one line naming ``key``."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+    if not ok:
+        bounds = f"from {low} to {high}" if high is not None else f">= {low}"
+        raise SemvprError(f"{key}={value!r} must be a whole number {bounds}")
+    return int(value)  # type: ignore[arg-type]
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Reject config values that would fail deep inside a run with a cryptic error (or none at all).
+
+    One function for every command's config: the retrieval settings where the config has them (train,
+    eval, localize), the segmentation set's where it has one (segment).
+    """
+    whole_number(cfg.seed, "seed", 0, SEED_MAX)
+    check_dir_path(Path(str(cfg.paths.cache_dir)), "paths.cache_dir")
+    if "model" in cfg:
+        _check_retrieval(cfg)
+    if "seg" in cfg:
+        _check_segmentation(cfg)
+
+
+def _check_retrieval(cfg: DictConfig) -> None:
+    if cfg.get("num_figure_queries") is not None:
+        whole_number(cfg.num_figure_queries, "num_figure_queries", 1)
+    if cfg.get("top_k") is not None:
+        whole_number(cfg.top_k, "top_k", 1)
+    lr = cfg.model.optimizer.get("lr")
+    try:
+        lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0
+    except (TypeError, ValueError):
+        lr_ok = False
+    if not lr_ok:
+        raise SemvprError(f"model.optimizer.lr={lr!r} must be a number > 0")
+    if str(cfg.trainer.precision) not in PRECISIONS:
+        raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
+    if cfg.get("ckpt_path") not in (None, "last"):
+        from semvpr.core.checkpoint import read_checkpoint
+
+        read_checkpoint(cfg.ckpt_path)
+    for group in COMPONENTS:
+        component_class(cfg, group)
+    for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features",
+                "init_per_image", "cache_refresh"):
+        whole_number(cfg.model[key], f"model.{key}", 1)
+    if cfg.model.get("queries_per_epoch") is not None:
+        whole_number(cfg.model.queries_per_epoch, "model.queries_per_epoch (or null = all)", 1)
+    positive = check_radius(cfg.model.positive_radius, "model.positive_radius")
+    if check_radius(cfg.model.negative_radius, "model.negative_radius") < positive:
+        raise SemvprError(f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
+                          f"{cfg.model.positive_radius}: a negative could then be a positive")
+    if len(cfg.data.image_size) != 2:
+        raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
+    if cfg.features.storage not in STORAGES:
+        raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
+    weighting = cfg.mask.weights
+    if weighting not in WEIGHTINGS:
+        raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+    if weighting == "learned" and cfg.mask.get("module") is None:
+        raise SemvprError("mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
+                          "mask=student, teacher or oracle (filter=unet, mask2former or oracle)")
+
+
+def _check_segmentation(cfg: DictConfig) -> None:
+    if OmegaConf.is_missing(cfg.seg, "root"):
+        raise SemvprError(f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid")
+    if len(cfg.seg.image_size) != 2:
+        raise SemvprError(f"seg.image_size={list(cfg.seg.image_size)} must be [H, W]")
+    if not cfg.backbones:
+        raise SemvprError("backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)")

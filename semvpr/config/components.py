@@ -1,0 +1,59 @@
+"""Components are classes named in their yaml by a ``module`` node: a backbone (``conf/backbone``), an
+aggregator (``conf/aggregator``) and a mask source (``conf/mask``, ``module: null`` for none). Each
+class declares what it needs (an aggregator's ``init_sample``, a mask source's ``needs``), so no builder
+switches on a name; adding one is one class and one yaml file."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from hydra.utils import get_class, instantiate
+from omegaconf import DictConfig
+from omegaconf.errors import MissingMandatoryValue
+
+from semvpr.core.errors import SemvprError, unwrap_user_error
+from semvpr.core.io import CONF_DIR
+from semvpr.models.aggregators.base import Aggregator
+from semvpr.models.backbones import Backbone
+from semvpr.models.masks import MaskSource
+
+#: The component groups and the class each group's ``module`` must be.
+COMPONENTS: dict[str, type] = {"backbone": Backbone, "aggregator": Aggregator, "mask": MaskSource}
+
+
+def options(group: str) -> list[str]:
+    """The choices of a config group: the names of ``conf/<group>/*.yaml``, sorted."""
+    return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+
+
+def component_class(cfg: DictConfig, group: str) -> type | None:
+    """The class ``cfg.<group>.module`` names (None for ``module: null``), checked against its group's base
+    class without building it (a builder reads what it needs first)."""
+    node = cfg[group].get("module")
+    if node is None:
+        return None
+    target = node.get("_target_") if isinstance(node, DictConfig) else None
+    try:
+        cls = get_class(str(target))
+    except Exception:  # noqa: BLE001 - an unimportable name is the same user error
+        cls = None
+    base = COMPONENTS[group]
+    if not (isinstance(cls, type) and issubclass(cls, base)):
+        raise SemvprError(f"{group}={cfg[group].get('name')}: {group}.module._target_={target!r} is not a "
+                          f"{base.__module__}.{base.__name__}")
+    return cls
+
+
+def instantiate_node(node: Any, **kwargs: Any) -> Any:
+    """hydra.utils.instantiate, with a SemvprError from inside the target re-raised unwrapped and a missing
+    mandatory value (``???``) as one line naming its key."""
+    try:
+        return instantiate(node, **kwargs)
+    except Exception as err:
+        user = unwrap_user_error(err)
+        if user is not None:
+            raise user from None
+        if isinstance(err, MissingMandatoryValue):
+            raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. "
+                              f"{err.full_key}=DIR") from None
+        raise

@@ -1,0 +1,11 @@
+"""Text that runs recorded, made safe for the markdown tables and lines of every report: one escaping
+function, so a name, an override or an error message never becomes markup, a link, a heading or a
+second table row."""
+from __future__ import annotations
+
+
+def md_cell(text: object) -> str:
+    """Text from a run as one markdown table cell or list item: no HTML tag or entity ('&', '<'
+    escaped), no '|', '`' or line break."""
+    flat = " ".join(str(text).split())
+    return flat.replace("&", "&amp;").replace("<", "&lt;").replace("|", "&#124;").replace("`", "&#96;")

@@ -1,0 +1,38 @@
+"""A trained retriever's descriptors of a place set's database or queries: computed once per model and
+image set, cached memory-mapped (artifact kind ``descriptors``), so memory does not grow with the set."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from semvpr.core.cache import build_once, state_hash
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import open_array
+from semvpr.data.places import PlaceSet
+from semvpr.retrieval.retriever import Retriever
+
+
+def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, image_size: Sequence[int],
+                      cache_dir: str | Path) -> np.ndarray:
+    """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``)."""
+    paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
+    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side),
+           "image_size": list(image_size)}
+    dim = retriever.descriptor_dim
+
+    def build(tmp: Path) -> None:
+        out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
+        retriever.describe_images(paths, labels, image_size, out, desc=f"{places.name} {side}")
+        out.flush()
+
+    folder = build_once(cache_dir, "descriptors", key, build)
+    try:
+        desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SemvprError(f"descriptor cache {folder} is unreadable ({type(err).__name__}); delete it to rebuild") from None
+    if desc.shape != (len(paths), dim) or desc.dtype != np.float32:
+        raise SemvprError(f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
+                          f"float32[{len(paths)}, {dim}]; delete it to rebuild")
+    return desc

@@ -1,0 +1,203 @@
+"""Training the segmenters once per setting (cached): the embedded Mask2Former teacher with Lightning on
+a segmentation set, and the U-Net student in a plain loop over the frozen trunk's cached features on
+the teacher's pseudo-labels. Each lands in the artifact cache (``teacher-*``, ``student-*``) keyed by
+everything that changes its weights."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torch.utils.data import DataLoader
+
+from semvpr.core.cache import build_once, config_hash, files_identity
+from semvpr.core.errors import SemvprError
+from semvpr.core.logs import Progress, progress, trainer_kwargs
+from semvpr.core.precision import autocast, lightning_precision
+from semvpr.data.classes import IGNORE, NUM_CLASSES
+from semvpr.data.images import ImageDataset
+from semvpr.data.segmentation import SegmentationSet
+from semvpr.models.student import Student, StudentSpec, student_architecture
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher, teacher_architecture
+from semvpr.segmentation.datamodule import SegmentationDataModule
+from semvpr.segmentation.pseudolabels import label_path, read_label
+
+STUDENT_VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
+
+
+def dataset_identity(seg: SegmentationSet) -> str:
+    """Hash of a SegmentationSet's files (name, size, mtime: cheap, and survives moving the data) and label table."""
+    paths = [*seg.images, *seg.labels]
+    files = files_identity([p.name for p in paths], paths)
+    lut = seg.label_lut  # the same PNGs read with another id table are other targets
+    return config_hash(files if lut is None else [files, list(lut)])
+
+
+def _train(spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationSet, out: Path) -> None:
+    """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
+    from lightning.pytorch.loggers import CSVLogger
+
+    train = spec.train
+    L.seed_everything(train.seed, workers=True, verbose=False)
+    accelerator = "gpu" if torch.cuda.is_available() else "cpu"
+    teacher = embedded_teacher(spec)
+    data = SegmentationDataModule(
+        seg_train, seg_val, image_size=tuple(spec.image_size), batch_size=train.batch_size,
+        num_workers=train.num_workers, augment=train.augment, label_ids=True, seed=train.seed,
+    )  # fmt: skip
+    trainer = L.Trainer(
+        accelerator=accelerator, devices=1,
+        precision=lightning_precision("bf16-mixed" if train.bf16 else "32-true", accelerator),
+        max_epochs=train.epochs, check_val_every_n_epoch=train.val_every or train.epochs, num_sanity_val_steps=0,
+        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
+        log_every_n_steps=10, default_root_dir=out, **trainer_kwargs("teacher", ()),
+    )  # fmt: skip
+    start = time.perf_counter()
+    trainer.fit(teacher, datamodule=data)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    metrics["train_seconds"] = time.perf_counter() - start
+    torch.save(teacher.model.state_dict(), out / "model.pt")
+    (out / "config.json").write_text(teacher.model.config.to_json_string())
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+
+
+
+
+def build_teacher(spec: TeacherSpec, seg_train: SegmentationSet | None, seg_val: SegmentationSet | None,
+                  cache_dir: str | Path) -> Teacher:
+    """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
+    teacher = teacher_architecture(spec)
+    if not spec.checkpoint:
+        if seg_train is None or seg_val is None:
+            raise SemvprError("teacher.checkpoint=null trains the embedded teacher, which needs data.segmentation "
+                              "train and val sets (Cityscapes format); set them or give a pretrained checkpoint")
+        # Only what changes the weights: class lists, labelling batch size etc. must not retrain it.
+        key = {
+            "version": 1, "image_size": list(spec.image_size), "model": dict(spec.model),
+            "train": {k: v for k, v in dataclasses.asdict(spec.train).items() if k != "val_every"},
+            "train_set": dataset_identity(seg_train),
+            "val_set": dataset_identity(seg_val),
+        }  # fmt: skip
+        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(spec, seg_train, seg_val, tmp))
+        # The architecture comes from the config, only weights from the (possibly shared) cache.
+        try:
+            teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
+        except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
+            raise SemvprError(f"teacher cache {art} does not hold this teacher's weights ({type(err).__name__}); "
+                              f"delete it to rebuild") from None
+        teacher.teacher_key = art.name
+    teacher.eval().requires_grad_(False)
+    return teacher
+
+
+@torch.no_grad()
+def cache_skips(
+    backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
+    batch_size: int, num_workers: int, bf16: bool = True,
+) -> list[Tensor]:  # fmt: skip
+    """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once);
+    ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower)."""
+    device = next(backbone.parameters()).device
+    loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
+    out: list[list[Tensor]] = [[] for _ in indices]
+    # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
+    with autocast(device, enabled=bf16):
+        for images, _ in progress(loader, "student features", len(paths), size=lambda b: len(b[0])):
+            skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
+            for level, i in enumerate(indices):
+                out[level].append(skips[i].to(torch.bfloat16).contiguous())
+    return [torch.cat(level) for level in out]
+
+
+def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size: Sequence[int]) -> Tensor:
+    """(N,H,W) uint8 trainId targets from pseudo-label PNGs (255 = ignore)."""
+    maps = []
+    for p in paths:
+        ids = read_label(label_dir, p, root)
+        if ids.shape != tuple(image_size):
+            raise SemvprError(f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}")
+        maps.append(np.where(ids < NUM_CLASSES, ids, IGNORE).astype(np.uint8))
+    return torch.from_numpy(np.stack(maps))
+
+
+def fit_student(student: Student, skips: list[Tensor], targets: Tensor, spec: StudentSpec) -> dict[str, float]:
+    """Train the decoder on cached features with cross-entropy at image resolution; returns final metrics
+    (the static-map IoU against the labels' static map is tracked, as that is what the filter uses)."""
+    gen = torch.Generator().manual_seed(int(spec.seed))
+    n, bs = len(targets), int(spec.batch_size)
+    steps = max(1, spec.epochs * math.ceil(n / bs))
+    opt = torch.optim.AdamW(student.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=steps, pct_start=0.1)
+    device = student.head.weight.device
+    student.train()
+    inter = union = 0
+    bar = Progress("student", steps, unit="steps")
+    for epoch in range(spec.epochs):
+        order = torch.randperm(n, generator=gen)
+        inter = union = 0
+        for start in range(0, n, bs):
+            idx = order[start : start + bs]
+            target = targets[idx].to(device).long()
+            with autocast(device, enabled=bool(spec.bf16)):
+                logits = student.decode([s[idx].to(device) for s in skips])
+            logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)
+            loss = F.cross_entropy(logits, target, ignore_index=IGNORE)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            valid = target != IGNORE
+            static = torch.einsum("bchw,c->bhw", logits.detach().softmax(1), student.static_weight)
+            pred, gt = (static >= 0.5) & valid, (student.static_weight[target.clamp(max=NUM_CLASSES - 1)] > 0) & valid
+            inter, union = inter + int((pred & gt).sum()), union + int((pred | gt).sum())
+            bar.update()
+    bar.close()
+    student.eval()
+    return {"train/loss": float(loss.item()), "train/iou_vs_labels": inter / max(1, union)}
+
+
+def build_student(
+    spec: StudentSpec, backbone: nn.Module, image_paths: Sequence[str | Path],
+    label_dir: str | Path, root: str | Path, image_size: Sequence[int], cache_dir: str | Path,
+) -> Student:  # fmt: skip
+    """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode."""
+    paths, label_dir, root = [Path(p) for p in image_paths], Path(label_dir), Path(root)
+    if spec.max_images and len(paths) > spec.max_images:
+        # The frozen trunk pass dominates the cost; a fixed random subset is plenty for a small decoder.
+        keep = torch.randperm(len(paths), generator=torch.Generator().manual_seed(int(spec.seed)))[: spec.max_images]
+        paths = [paths[i] for i in sorted(keep.tolist())]
+    size = [int(image_size[0]), int(image_size[1])]
+    key = {"version": STUDENT_VERSION, "student": dataclasses.asdict(spec),
+           "backbone": backbone.frozen_identity(), "labels": label_dir.name, "image_size": size}  # fmt: skip
+
+    def build(out: Path) -> None:
+        torch.manual_seed(int(spec.seed))
+        student = student_architecture(spec, backbone)
+        start = time.perf_counter()
+        targets = load_targets(paths, label_dir, root, size)
+        skips = cache_skips(backbone, student.skip_indices, paths, size, int(spec.batch_size), int(spec.num_workers),
+                            bf16=bool(spec.bf16))
+        student.to(next(backbone.parameters()).device)
+        metrics = fit_student(student, skips, targets, spec)
+        metrics["train_seconds"] = time.perf_counter() - start
+        torch.save(student.cpu().state_dict(), out / "student.pt")
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+
+    art = build_once(cache_dir, "student", key, build)
+    # The architecture comes from the config, only weights from the (possibly shared) cache.
+    student = student_architecture(spec, backbone)
+    try:
+        student.load_state_dict(torch.load(art / "student.pt", weights_only=True, map_location="cpu"))
+    except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
+        raise SemvprError(f"student cache {art} does not hold this student's weights ({type(err).__name__}); "
+                          f"delete it to rebuild") from None
+    student.artifact = art  # type: ignore[attr-defined]  # for the benchmark / logs: metrics.json lives here
+    return student.to(next(backbone.parameters()).device).eval()
