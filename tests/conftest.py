@@ -2,6 +2,19 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+
+from tests.helpers import tiny_config, write_checkpoint  # noqa: E402 - after the offline switches
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A SynthCity-configured checkpoint (its data config has keys no other dataset knows)."""
+    tmp = tmp_path_factory.mktemp("ckpt")
+    write_checkpoint(tiny_config(tmp, "filter=attention"), tmp / "tested.ckpt")
+    return tmp / "tested.ckpt"

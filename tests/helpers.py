@@ -1,13 +1,21 @@
-"""Test helpers: compose the project's Hydra config with the tiny SynthCity preset."""
+"""Test helpers: the project's Hydra config (with the tiny SynthCity preset), an untrained checkpoint, and
+the small datasets, lists and ground-truth files the tests write in each reader's layout."""
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+import scipy.io
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
+from PIL import Image
+
+from semvpr.data.places import DBSTRUCT_FIELDS
 
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+#: Small images for evaluation tests (overrides of a place set's config).
+EVAL_SIZE = ["data.image_size=[32,48]", "data.num_workers=0"]
 
 
 def tiny_config(cache_dir: Path, *overrides: str, config_name: str = "train") -> DictConfig:
@@ -38,3 +46,167 @@ def record_first_unit_batches(backbone) -> list[int]:
     seen: list[int] = []
     backbone.units[0].register_forward_hook(lambda _m, args, _out: seen.append(args[0].shape[0]))
     return seen
+
+
+# ---------------------------------------------------------------- data fixtures the tests write
+
+
+def write_image(path: Path, seed: int) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.random.default_rng(seed).integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(path)
+
+
+def place_utm(i: int) -> tuple[float, float]:
+    return 585000.0 + 100.0 * i, 4477000.0
+
+
+def make_folder(root: Path, n: int = 6) -> Path:
+    """@UTM@ layout; query i is database image i again (same place, same pixels)."""
+    for i in range(n):
+        e, north = place_utm(i)
+        name = f"@{e:.2f}@{north:.2f}@17@T@@@@@@@@@@@.jpg"
+        write_image(root / "images" / "test" / "database" / name, i)
+        write_image(root / "images" / "test" / "queries" / name, i)
+    return root
+
+
+def write_pitts_mat(path: Path, which: str, db: list[str], q: list[str], db_utm: list | None = None,
+              q_utm: list | None = None) -> None:
+    """A Pitts/Tokyo dbStruct .mat (fields in MATLAB's order); place i at place_utm(i) unless given."""
+    utm_db = np.array(db_utm or [place_utm(i) for i in range(len(db))]).T
+    utm_q = np.array(q_utm or [place_utm(i) for i in range(len(q))]).T
+    fields = [("whichSet", which), ("dbImageFns", np.array(db, dtype=object)[:, None]), ("utmDb", utm_db),
+              ("qImageFns", np.array(q, dtype=object)[:, None]), ("utmQ", utm_q), ("numImages", len(db)),
+              ("numQueries", len(q)), ("posDistThr", 25), ("posDistSqThr", 625), ("nonTrivPosDistSqThr", 100)]
+    record = np.empty((1, 1), dtype=[(name, object) for name, _ in fields])
+    for name, value in fields:
+        record[0, 0][name] = value
+    path.parent.mkdir(parents=True, exist_ok=True)
+    scipy.io.savemat(path, {"dbStruct": record})
+
+
+def write_jpg(path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.new("RGB", (8, 6), (120, 30, 200)).save(path)
+
+
+def write_dbstruct(path: Path, db_names: list[str], db_utm: np.ndarray, q_names: list[str],
+                   q_utm: np.ndarray, drop: str | None = None) -> None:
+    """A dbStruct .mat as MATLAB writes it: one struct, fields in the Pitts order."""
+    values = {
+        "whichSet": "test", "dbImageFns": db_names, "utmDb": db_utm.T, "qImageFns": q_names,
+        "utmQ": q_utm.T, "numImages": len(db_names), "numQueries": len(q_names),
+        "posDistThr": 25.0, "posDistSqThr": 625.0, "nonTrivPosDistSqThr": 100.0,
+    }
+    fields = [f for f in DBSTRUCT_FIELDS if f != drop]
+    struct = np.empty((1, 1), dtype=[(f, object) for f in fields])
+    for f in fields:
+        v = values[f]
+        if isinstance(v, list):  # cell array N×1 of char arrays
+            cell = np.empty((len(v), 1), dtype=object)
+            for i, s in enumerate(v):
+                cell[i, 0] = np.array([s])
+            v = cell
+        struct[0, 0][f] = v
+    scipy.io.savemat(str(path), {"dbStruct": struct})
+
+
+def write_msls_side(folder: Path, rows: list[tuple[str, float, float, bool, bool]],
+                    columns: str = "easting,northing") -> None:
+    """One side of a city in the official MSLS layout (mapillary_sls README): postprocessed.csv with
+    UTMs, raw.csv with the panorama flag, subtask_index.csv, seq_info.csv, all indexed by frame.
+    A row is (key, easting, northing, is_panorama, in the 'all' subtask)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    post = [f",key,utm_zone,{columns},night,control_panel,view_direction,unique_cluster"]
+    post += [f"{i},{k},32U,{e},{n},False,False,Forward,{i}" for i, (k, e, n, _, _) in enumerate(rows)]
+    raw = [",key,lon,lat,ca,captured_at,pano"]
+    raw += [f"{i},{k},12.5,55.6,90.0,1500000000000,{pano}" for i, (k, _, _, pano, _) in enumerate(rows)]
+    sub = [",key,all,s2w,w2s,o2n,n2o,d2n,n2d"]
+    sub += [f"{i},{k},{all_},False,False,False,False,False,False" for i, (k, _, _, _, all_) in enumerate(rows)]
+    seq = [",key,frame_number,sequence_key"] + [f"{i},{k},{i},seq0" for i, (k, *_) in enumerate(rows)]
+    for name, lines in (("postprocessed", post), ("raw", raw), ("subtask_index", sub), ("seq_info", seq)):
+        (folder / f"{name}.csv").write_text("\n".join(lines) + "\n")
+    (folder / "images").mkdir(exist_ok=True)
+
+
+def object_array(rows: list[list[int]]) -> np.ndarray:
+    out = np.empty(len(rows), dtype=object)
+    for i, row in enumerate(rows):
+        out[i] = np.array(row, dtype=np.int64)
+    return out
+
+
+def write_lists(gt_dir: Path, set_name: str, db: list[str], q: list[str], gt: np.ndarray) -> None:
+    gt_dir.mkdir(parents=True, exist_ok=True)
+    np.save(gt_dir / f"{set_name}_dbImages.npy", np.array(db))
+    np.save(gt_dir / f"{set_name}_qImages.npy", np.array(q))
+    np.save(gt_dir / f"{set_name}_gt.npy", gt, allow_pickle=True)
+
+
+def same_images_as_lists(root: Path) -> tuple[list[str], list[str]]:
+    """The database and query images of a test_eval @UTM@ folder, relative to it (query i = database i)."""
+    names = sorted(p.name for p in (root / "images" / "test" / "database").iterdir())
+    return [f"images/test/database/{n}" for n in names], [f"images/test/queries/{n}" for n in names]
+
+
+#: The size CountingTeacher expects its images at.
+LABEL_SIZE = (16, 20)
+
+
+class CountingTeacher:
+    """Labels pixels by brightness (road 0 / car 13) and counts the images it saw; can fail on cue."""
+
+    device = torch.device("cpu")
+
+    def __init__(self, fail_after: int | None = None) -> None:
+        self.seen = 0
+        self.fail_after = fail_after
+
+    def predict_train_ids(self, images: torch.Tensor) -> torch.Tensor:
+        if self.fail_after is not None and self.seen + len(images) > self.fail_after:
+            raise KeyboardInterrupt("simulated kill")
+        self.seen += len(images)
+        assert images.shape[-2:] == LABEL_SIZE
+        return torch.where(images.mean(1) > 0.5, 13, 0).long()
+
+
+def write_msls_cities(root: Path) -> Path:
+    """An MSLS tree: cph and sf (val), london and zurich (train), miami (official test, no ground truth)."""
+    tv = root / "train_val"
+    write_msls_side(tv / "cph" / "database", [("c_db0", 100.0, 0.0, False, True), ("c_db1", 300.0, 0.0, False, True),
+                                             ("c_pano", 100.0, 1.0, True, True)])
+    write_msls_side(tv / "cph" / "query", [("c_q0", 105.0, 0.0, False, True), ("c_q_other", 300.0, 2.0, False, False)])
+    # Same UTM numbers as cph, in another zone.
+    write_msls_side(tv / "london" / "database", [("l_db0", 100.0, 0.0, False, True), ("l_pano", 100.0, 0.0, True, True)])
+    write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0, False, True), ("l_qpano", 101.0, 0.0, True, True)])
+    write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0, False, True)])
+    write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)])
+    # A training city held out for epoch selection (subtask flags False: selection does not filter).
+    write_msls_side(tv / "zurich" / "database", [("z_db0", 7.0, 7.0, False, False)])
+    write_msls_side(tv / "zurich" / "query", [("z_q0", 7.0, 8.0, False, False)])
+    # An official test city: images and subtask index only, no ground truth.
+    for side in ("database", "query"):
+        folder = root / "test" / "miami" / side
+        folder.mkdir(parents=True)
+        (folder / "subtask_index.csv").write_text(",key,all\n0,m0,True\n")
+    return root
+
+
+def make_images(root: Path, n: int = 10) -> list[Path]:
+    """Half-bright, half-dark images at a size other than LABEL_SIZE (so labelling must resize)."""
+    root.mkdir(parents=True)
+    paths = []
+    for i in range(n):
+        img = np.zeros((32, 40, 3), np.uint8)
+        img[:, : 4 * (i + 1)] = 255
+        paths.append(root / f"@{i:03d}@img@.png")
+        Image.fromarray(img).save(paths[-1])
+    return paths
+
+
+def labels_key(paths: list[Path], root: Path) -> dict:
+    """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
+    from semvpr.segmentation.pseudolabels import VERSION, image_list_identity
+
+    return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths, root),
+            "image_size": list(LABEL_SIZE)}

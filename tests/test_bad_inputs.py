@@ -15,11 +15,11 @@ from typing import Callable
 import numpy as np
 import pytest
 import torch
+from tests.helpers import make_folder, write_image, write_pitts_mat
 
-from tests.test_eval import _dbstruct, _image, checkpoint, make_folder  # noqa: F401 - checkpoint is a fixture
 
 REPO = Path(__file__).resolve().parents[1]
-SIZE = ["data.image_size=[32,48]"]
+EVAL_SIZE = ["data.image_size=[32,48]"]
 
 
 def _seed_2_70(tmp: Path, ckpt: Path) -> str:
@@ -41,16 +41,16 @@ def _a_file(tmp: Path) -> str:
 
 def _nan_folder(tmp: Path) -> str:
     root = make_folder(tmp / "folder", n=2)
-    _image(root / "images" / "test" / "queries" / "@nan@4477000.00@17@T@@@@@@@@@@@.jpg", 9)
+    write_image(root / "images" / "test" / "queries" / "@nan@4477000.00@17@T@@@@@@@@@@@.jpg", 9)
     return str(root)
 
 
 def _string_utm_pitts(tmp: Path) -> str:
     names = ["000/000000_pitch1_yaw1.jpg"]
     for name in names:
-        _image(tmp / "pitts" / name, 0)
-        _image(tmp / "pitts" / "queries_real" / name, 0)
-    _dbstruct(tmp / "pitts" / "datasets" / "pitts30k_test.mat", "test", names, names)
+        write_image(tmp / "pitts" / name, 0)
+        write_image(tmp / "pitts" / "queries_real" / name, 0)
+    write_pitts_mat(tmp / "pitts" / "datasets" / "pitts30k_test.mat", "test", names, names)
     from scipy.io import loadmat, savemat
 
     mat = loadmat(tmp / "pitts" / "datasets" / "pitts30k_test.mat")
@@ -60,7 +60,7 @@ def _string_utm_pitts(tmp: Path) -> str:
 
 
 TRAIN = ["semvpr.train", "experiment=tiny"]
-EVAL = ["semvpr.eval", "experiment=tiny", *SIZE]
+EVAL = ["semvpr.eval", "experiment=tiny", *EVAL_SIZE]
 # (cli and fixed args, bad args given tmp dir and checkpoint, a fragment of the one line)
 CASES: dict[str, tuple[list[str], Callable[[Path, Path], list[str]], str]] = {
     "num_clusters=abc": (TRAIN, lambda t, c: ["model.num_clusters=abc"], "model.num_clusters='abc'"),
@@ -78,10 +78,10 @@ CASES: dict[str, tuple[list[str], Callable[[Path, Path], list[str]], str]] = {
                       "non-finite position"),
     "eval utmQ string": (EVAL, lambda t, c: [f"ckpt={c}", "data=pitts30k", f"data.root={_string_utm_pitts(t)}"],
                          "utmQ"),
-    "localize top_k=0": (["semvpr.localize", *SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"], "top_k=0"),
-    "localize top_k=-1": (["semvpr.localize", *SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"],
+    "localize top_k=0": (["semvpr.localize", *EVAL_SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"], "top_k=0"),
+    "localize top_k=-1": (["semvpr.localize", *EVAL_SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"],
                           "top_k=-1"),
-    "localize top_k=abc": (["semvpr.localize", *SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"],
+    "localize top_k=abc": (["semvpr.localize", *EVAL_SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"],
                            "top_k='abc'"),
     "synthcity --seed -5": (["semvpr.data.synthcity"], lambda t, c: ["--out", str(t / "city"), "--seed", "-5"],
                             "seed=-5"),

@@ -15,6 +15,7 @@ from semvpr.data.benchmarks import (
     read_patchnetvlad,
 )
 from semvpr.core.errors import SemvprError
+from tests.helpers import EVAL_SIZE, make_folder, object_array, same_images_as_lists, write_lists
 
 # ../shared/realdata beside the checkout (or beside the folder of worktrees).
 REAL = next((p / "shared" / "realdata" for p in Path(__file__).resolve().parents[2:4] if (p / "shared" / "realdata").is_dir()),
@@ -23,24 +24,10 @@ needs_real = pytest.mark.skipif(not (REAL / "pitts30k_test.npz").is_file() or no
                                  reason="real Pitts30k-test lists (../shared/realdata) not present")
 
 
-def object_array(rows: list[list[int]]) -> np.ndarray:
-    out = np.empty(len(rows), dtype=object)
-    for i, row in enumerate(rows):
-        out[i] = np.array(row, dtype=np.int64)
-    return out
-
-
 def touch(root: Path, *names: str) -> None:
     for name in names:
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).write_bytes(b"")
-
-
-def write_lists(gt_dir: Path, set_name: str, db: list[str], q: list[str], gt: np.ndarray) -> None:
-    gt_dir.mkdir(parents=True, exist_ok=True)
-    np.save(gt_dir / f"{set_name}_dbImages.npy", np.array(db))
-    np.save(gt_dir / f"{set_name}_qImages.npy", np.array(q))
-    np.save(gt_dir / f"{set_name}_gt.npy", gt, allow_pickle=True)
 
 
 def brute_force_positives(db: np.ndarray, q: np.ndarray, radius: float) -> list[list[int]]:
@@ -248,12 +235,6 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp / "tested.ckpt"
 
 
-def same_images_as_lists(root: Path) -> tuple[list[str], list[str]]:
-    """The database and query images of a test_eval @UTM@ folder, relative to it (query i = database i)."""
-    names = sorted(p.name for p in (root / "images" / "test" / "database").iterdir())
-    return [f"images/test/database/{n}" for n in names], [f"images/test/queries/{n}" for n in names]
-
-
 def _gsv_npy(tmp: Path, root: Path) -> list[str]:
     db, q = same_images_as_lists(root)
     write_lists(tmp / "gt", "tiny_test", db, q, object_array([[i] for i in range(len(q))]))
@@ -296,7 +277,6 @@ def test_each_benchmark_config_evaluates_a_checkpoint(checkpoint: Path, tmp_path
     from semvpr.data import published
     from semvpr.eval import evaluate_checkpoint
     from tests.helpers import config
-    from tests.test_eval import SIZE, make_folder
 
     root = make_folder(tmp_path / "city", n=4)
     overrides = make(tmp_path, root)
@@ -306,7 +286,7 @@ def test_each_benchmark_config_evaluates_a_checkpoint(checkpoint: Path, tmp_path
     published.published.cache_clear()
     try:
         cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                     *SIZE, config_name="eval")
+                     *EVAL_SIZE, config_name="eval")
         result = evaluate_checkpoint(cfg)
     finally:
         published.published.cache_clear()

@@ -12,8 +12,7 @@ from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import inside
 from semvpr.segmentation.pseudolabels import pseudo_labels
-from tests.test_places import make_msls, write_dbstruct, write_jpg, write_msls_side
-from tests.test_pseudolabels import SIZE, CountingTeacher
+from tests.helpers import CountingTeacher, LABEL_SIZE, labels_key, make_images, write_dbstruct, write_jpg, write_msls_cities, write_msls_side
 
 
 def files_under(folder: Path) -> set[Path]:
@@ -22,7 +21,7 @@ def files_under(folder: Path) -> set[Path]:
 
 
 def test_msls_key_climbing_out_of_the_images_folder_is_refused(tmp_path: Path) -> None:
-    root = make_msls(tmp_path / "msls")
+    root = write_msls_cities(tmp_path / "msls")
     write_msls_side(root / "train_val" / "sf" / "query", [("../../../../../victim", 5.0, 6.0, False, True)])
     with pytest.raises(SemvprError, match=r"postprocessed\.csv: image name '\.\./.*victim\.jpg' leaves"):
         read_msls(root, "val")
@@ -57,7 +56,7 @@ def test_pseudo_labels_never_land_outside_the_cache(tmp_path: Path) -> None:
     before = files_under(tmp_path)
     climbing = root / "a" / ".." / ".." / ".." / "victim.png"
     with pytest.raises(SemvprError, match="would leave"):
-        pseudo_labels(CountingTeacher(), "t", [climbing], SIZE, tmp_path / "cache", root, num_workers=0)
+        pseudo_labels(CountingTeacher(), "t", [climbing], LABEL_SIZE, tmp_path / "cache", root, num_workers=0)
     assert {p for p in files_under(tmp_path) - before if not p.is_relative_to(tmp_path / "cache")} == set()
 
 
@@ -75,16 +74,15 @@ def test_inside_refuses_dotdot_absolute_and_symlinked_escapes(tmp_path: Path) ->
 def test_a_planted_partial_link_in_a_shared_cache_is_refused(tmp_path: Path) -> None:
     """A '.labels-<hash>.partial' link made pseudo-labels land in the link's target."""
     from semvpr.core.cache import artifact_dir
-    from tests.test_pseudolabels import _key, make_images
 
     paths = make_images(tmp_path / "img")
     cache, victim = tmp_path / "cache", tmp_path / "victim"
     victim.mkdir()
-    final = artifact_dir(cache, "labels", _key(paths, tmp_path / "img"))
+    final = artifact_dir(cache, "labels", labels_key(paths, tmp_path / "img"))
     cache.mkdir()
     os.symlink(victim, final.parent / f".{final.name}.partial")
     with pytest.raises(SemvprError, match=r"\.partial is not a plain directory"):
-        pseudo_labels(CountingTeacher(), "teacher-abc", paths, SIZE, cache, tmp_path / "img", num_workers=0)
+        pseudo_labels(CountingTeacher(), "teacher-abc", paths, LABEL_SIZE, cache, tmp_path / "img", num_workers=0)
     assert list(victim.iterdir()) == [] and not final.exists()
 
 

@@ -46,3 +46,50 @@ def test_no_module_imports_an_entry_point() -> None:
         if bad:
             offenders[module] = sorted(bad)
     assert not offenders, f"modules importing an entry point (move the shared code below it): {offenders}"
+
+
+def _layers() -> dict[str, int]:
+    """ARCHITECTURE §1's layer table, bottom first: package (or command module) → its rank."""
+    doc = (REPO / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
+    table = doc.split("<!-- layers -->")[1]
+    ranks: dict[str, int] = {}
+    rows = [line for line in table.splitlines() if line.startswith("| ") and "`semvpr" in line]
+    for rank, line in enumerate(reversed(rows)):  # the table lists the top layer first
+        for name in re.findall(r"`(semvpr[\w.]*)`", line.split("|")[2]):
+            ranks[name] = rank
+    return ranks
+
+
+def _layer_of(module: str, ranks: dict[str, int]) -> str | None:
+    """The longest layer name that is ``module`` or a package above it."""
+    owners = [name for name in ranks if module == name or module.startswith(f"{name}.")]
+    return max(owners, key=len) if owners else None
+
+
+def test_imports_point_down_the_layers() -> None:
+    """ARCHITECTURE §1: every module imports only its own layer's modules and those of layers below it."""
+    ranks = _layers()
+    assert {"semvpr.core", "semvpr.data", "semvpr.models", "semvpr.config", "semvpr.train"} <= set(ranks), ranks
+    offenders, unplaced = {}, []
+    for path in REPO.glob("semvpr/**/*.py"):
+        module = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+        if module == "semvpr":
+            continue  # the package's version only
+        own = _layer_of(module, ranks)
+        if own is None:
+            unplaced.append(module)
+            continue
+        up = sorted(name for name in _imported_modules(path)
+                    if (layer := _layer_of(name, ranks)) is not None and ranks[layer] > ranks[own])
+        if up:
+            offenders[module] = up
+    assert not unplaced, f"modules in no layer of ARCHITECTURE §1's table: {unplaced}"
+    assert not offenders, f"imports that climb a layer (move the shared code down): {offenders}"
+
+
+def test_the_top_of_the_package_holds_the_commands() -> None:
+    """The top of semvpr/ holds the commands (and the hub), everything else lives in a role's folder."""
+    top = sorted(p.stem for p in (REPO / "semvpr").glob("*.py") if p.stem != "__init__")
+    assert len(top) <= 10, top
+    commands = set(re.findall(r"^\| `python -m semvpr\.(\w+)", (REPO / "docs" / "ARCHITECTURE.md").read_text(), flags=re.M))
+    assert set(top) <= commands | {"hub"}, set(top) - commands

@@ -5,79 +5,32 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.io
-from PIL import Image
 
 from semvpr.core.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
 
-from tests.helpers import config, record_first_unit_batches, tiny_config, write_checkpoint
-
-SIZE = ["data.image_size=[32,48]", "data.num_workers=0"]
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A SynthCity-configured checkpoint (its data config has keys no other dataset knows)."""
-    tmp = tmp_path_factory.mktemp("ckpt")
-    write_checkpoint(tiny_config(tmp, "filter=attention"), tmp / "tested.ckpt")
-    return tmp / "tested.ckpt"
-
-
-def _image(path: Path, seed: int) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.random.default_rng(seed).integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(path)
-
-
-def _utm(i: int) -> tuple[float, float]:
-    return 585000.0 + 100.0 * i, 4477000.0
-
-
-def make_folder(root: Path, n: int = 6) -> Path:
-    """@UTM@ layout; query i is database image i again (same place, same pixels)."""
-    for i in range(n):
-        e, north = _utm(i)
-        name = f"@{e:.2f}@{north:.2f}@17@T@@@@@@@@@@@.jpg"
-        _image(root / "images" / "test" / "database" / name, i)
-        _image(root / "images" / "test" / "queries" / name, i)
-    return root
-
-
-def _dbstruct(path: Path, which: str, db: list[str], q: list[str], db_utm: list | None = None,
-              q_utm: list | None = None) -> None:
-    """A Pitts/Tokyo dbStruct .mat (fields in MATLAB's order); place i at _utm(i) unless given."""
-    utm_db = np.array(db_utm or [_utm(i) for i in range(len(db))]).T
-    utm_q = np.array(q_utm or [_utm(i) for i in range(len(q))]).T
-    fields = [("whichSet", which), ("dbImageFns", np.array(db, dtype=object)[:, None]), ("utmDb", utm_db),
-              ("qImageFns", np.array(q, dtype=object)[:, None]), ("utmQ", utm_q), ("numImages", len(db)),
-              ("numQueries", len(q)), ("posDistThr", 25), ("posDistSqThr", 625), ("nonTrivPosDistSqThr", 100)]
-    record = np.empty((1, 1), dtype=[(name, object) for name, _ in fields])
-    for name, value in fields:
-        record[0, 0][name] = value
-    path.parent.mkdir(parents=True, exist_ok=True)
-    scipy.io.savemat(path, {"dbStruct": record})
+from tests.helpers import EVAL_SIZE, config, make_folder, place_utm, record_first_unit_batches, tiny_config, write_checkpoint, write_image, write_msls_side, write_pitts_mat
 
 
 def make_pitts(root: Path, mat: str = "pitts30k_test", n: int = 6) -> Path:
     """pytorch-NetVlad layout: db names under root, query names under root/queries_real, same stems."""
     names = [f"000/{i:06d}_pitch1_yaw1.jpg" for i in range(n)]
     for i, name in enumerate(names):
-        _image(root / name, i)
-        _image(root / "queries_real" / name, i)
-    _dbstruct(root / "datasets" / f"{mat}.mat", "test", names, names)
+        write_image(root / name, i)
+        write_image(root / "queries_real" / name, i)
+    write_pitts_mat(root / "datasets" / f"{mat}.mat", "test", names, names)
     return root
 
 
 def make_msls(root: Path, n: int = 6) -> Path:
-    from tests.test_places import write_msls_side
 
     for city, offset in (("cph", 0), ("sf", 100)):
-        rows = [(f"{city}{i}", *_utm(i), False, True) for i in range(n // 2)]
+        rows = [(f"{city}{i}", *place_utm(i), False, True) for i in range(n // 2)]
         for side in ("database", "query"):
             write_msls_side(root / "train_val" / city / side, rows)
             for i in range(n // 2):
-                _image(root / "train_val" / city / side / "images" / f"{city}{i}.jpg", offset + i)
+                write_image(root / "train_val" / city / side / "images" / f"{city}{i}.jpg", offset + i)
     return root
 
 
@@ -94,7 +47,7 @@ def test_checkpoint_evaluates_on_each_dataset_family(checkpoint: Path, tmp_path:
     make, overrides = FAMILIES[family]
     root = make(tmp_path / family)
     cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                 *SIZE, config_name="eval")
+                 *EVAL_SIZE, config_name="eval")
     result = evaluate_checkpoint(cfg)
     assert (result["data"], result["aggregator"], result["mask"], result["database"], result["queries"]) == (
         family, "sral", "none", 6, 6)
@@ -106,12 +59,12 @@ def test_checkpoint_localises_against_another_dataset(checkpoint: Path, tmp_path
     root = make_pitts(tmp_path / "pitts")
     queries = tmp_path / "queries"
     for i in (4, 1):
-        _image(queries / f"q{i}.jpg", i)  # the pixels of database images 4 and 1
+        write_image(queries / f"q{i}.jpg", i)  # the pixels of database images 4 and 1
     cfg = config("data=pitts30k", f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                 f"queries={queries}", "top_k=3", *SIZE, config_name="localize")
+                 f"queries={queries}", "top_k=3", *EVAL_SIZE, config_name="localize")
     results = localize(cfg)
     assert [Path(r["matches"][0]["path"]).name for r in results] == ["000001_pitch1_yaw1.jpg", "000004_pitch1_yaw1.jpg"]
-    assert results[0]["matches"][0]["utm"] == list(_utm(1)) and len(results[0]["matches"]) == 3
+    assert results[0]["matches"][0]["utm"] == list(place_utm(1)) and len(results[0]["matches"]) == 3
 
 
 @pytest.mark.parametrize("filter_name", ["attention", "unet"])
@@ -130,7 +83,7 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
 
     def descriptors(cache: str) -> tuple[np.ndarray, list[int]]:
         cfg = config("data=folder", f"data.root={root}", f"+ckpt={tmp_path / 'model.ckpt'}",
-                     f"paths.cache_dir={tmp_path / cache}", "model.eval_batch_size=5", *SIZE, config_name="eval")
+                     f"paths.cache_dir={tmp_path / cache}", "model.eval_batch_size=5", *EVAL_SIZE, config_name="eval")
         retriever, merged = load_retriever(cfg)
         grid_size(retriever.backbone, merged.data.image_size)  # the once-per-size shape probe, before counting
         seen = record_first_unit_batches(retriever.backbone)
@@ -150,7 +103,7 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
 def test_a_pickled_descriptor_cache_is_refused_unread(checkpoint: Path, tmp_path: Path) -> None:
     root = make_folder(tmp_path / "folder")
     cfg = config("data=folder", f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                 *SIZE, config_name="eval")
+                 *EVAL_SIZE, config_name="eval")
     evaluate_checkpoint(cfg)
     for cache in (tmp_path / "cache").glob("descriptors-*"):
         np.save(cache / "descriptors.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)

@@ -8,9 +8,7 @@ import sys
 from pathlib import Path
 
 from semvpr.reporting.benchmarks_table import table_rows, write_table
-from tests.helpers import tiny_config, write_checkpoint
-from tests.test_benchmarks import object_array, same_images_as_lists, write_lists
-from tests.test_eval import make_folder
+from tests.helpers import make_folder, object_array, same_images_as_lists, tiny_config, write_checkpoint, write_lists
 
 REPO = Path(__file__).resolve().parents[1]
 

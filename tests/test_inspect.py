@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from semvpr.data.inspect import main
-from tests.test_places import write_dbstruct
+from tests.helpers import write_dbstruct
 
 REPO = Path(__file__).resolve().parents[1]
 MINIMAL_DATA = """\

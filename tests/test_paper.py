@@ -10,8 +10,7 @@ from PIL import Image
 from semvpr.eval import evaluate_checkpoint
 from semvpr.train import run_job
 
-from tests.helpers import config
-from tests.test_eval import _dbstruct
+from tests.helpers import config, write_pitts_mat
 
 # Per split: database places along a line (m) and queries next to some of them.
 LAYOUT = {"train": ([0, 5, 60, 120, 200], [1, 61]), "val": ([0, 60, 120], [1, 59]), "test": ([0, 60, 120], [2, 121])}
@@ -26,7 +25,7 @@ def make_pitts30k(root: Path) -> Path:
         for name, folder in [(n, root) for n in db] + [(n, root / "queries_real") for n in q]:
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             Image.fromarray(rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)).save(folder / name, quality=90)
-        _dbstruct(root / "datasets" / f"pitts30k_{split}.mat", split, db, q,
+        write_pitts_mat(root / "datasets" / f"pitts30k_{split}.mat", split, db, q,
                   db_utm=[(585000.0 + x, 4477000.0) for x in db_x], q_utm=[(585000.0 + x, 4477000.0) for x in q_x])
     return root
 

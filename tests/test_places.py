@@ -5,22 +5,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.io
-from PIL import Image
 
-from semvpr.data.places import (DBSTRUCT_FIELDS, PlaceSet, parse_utm_name, read_dbstruct_mat,
+from semvpr.data.places import (PlaceSet, parse_utm_name, read_dbstruct_mat,
                                 read_msls, read_utm_folder)
 from semvpr.core.errors import SemvprError
+from tests.helpers import write_dbstruct, write_jpg, write_msls_cities, write_msls_side
 
 
 def utm_name(east: float, north: float) -> str:
     """A VPR-datasets-downloader file name at (east, north)."""
     return f"@{east:.2f}@{north:.2f}@17@T@40.44@-79.99@pano@@0@@@@201311@@.jpg"
-
-
-def write_jpg(path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.new("RGB", (8, 6), (120, 30, 200)).save(path)
 
 
 def make_utm_folder(root: Path, split: str = "test") -> Path:
@@ -88,27 +82,6 @@ def test_read_utm_folder_bad_inputs(tmp_path: Path) -> None:
         read_utm_folder(root, "train")
 
 
-def write_dbstruct(path: Path, db_names: list[str], db_utm: np.ndarray, q_names: list[str],
-                   q_utm: np.ndarray, drop: str | None = None) -> None:
-    """A dbStruct .mat as MATLAB writes it: one struct, fields in the Pitts order."""
-    values = {
-        "whichSet": "test", "dbImageFns": db_names, "utmDb": db_utm.T, "qImageFns": q_names,
-        "utmQ": q_utm.T, "numImages": len(db_names), "numQueries": len(q_names),
-        "posDistThr": 25.0, "posDistSqThr": 625.0, "nonTrivPosDistSqThr": 100.0,
-    }
-    fields = [f for f in DBSTRUCT_FIELDS if f != drop]
-    struct = np.empty((1, 1), dtype=[(f, object) for f in fields])
-    for f in fields:
-        v = values[f]
-        if isinstance(v, list):  # cell array N×1 of char arrays
-            cell = np.empty((len(v), 1), dtype=object)
-            for i, s in enumerate(v):
-                cell[i, 0] = np.array([s])
-            v = cell
-        struct[0, 0][f] = v
-    scipy.io.savemat(str(path), {"dbStruct": struct})
-
-
 def test_read_dbstruct_mat(tmp_path: Path) -> None:
     root = tmp_path / "pitts"
     db_names = ["000/000000_pitch1_yaw1.jpg", "000/000001_pitch1_yaw2.jpg", "001/001000_pitch2_yaw1.jpg"]
@@ -165,47 +138,8 @@ def test_read_dbstruct_mat_bad_inputs(tmp_path: Path) -> None:
         read_dbstruct_mat(tmp_path / "junk.mat", tmp_path)
 
 
-def write_msls_side(folder: Path, rows: list[tuple[str, float, float, bool, bool]],
-                    columns: str = "easting,northing") -> None:
-    """One side of a city in the official MSLS layout (mapillary_sls README): postprocessed.csv with
-    UTMs, raw.csv with the panorama flag, subtask_index.csv, seq_info.csv, all indexed by frame.
-    A row is (key, easting, northing, is_panorama, in the 'all' subtask)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    post = [f",key,utm_zone,{columns},night,control_panel,view_direction,unique_cluster"]
-    post += [f"{i},{k},32U,{e},{n},False,False,Forward,{i}" for i, (k, e, n, _, _) in enumerate(rows)]
-    raw = [",key,lon,lat,ca,captured_at,pano"]
-    raw += [f"{i},{k},12.5,55.6,90.0,1500000000000,{pano}" for i, (k, _, _, pano, _) in enumerate(rows)]
-    sub = [",key,all,s2w,w2s,o2n,n2o,d2n,n2d"]
-    sub += [f"{i},{k},{all_},False,False,False,False,False,False" for i, (k, _, _, _, all_) in enumerate(rows)]
-    seq = [",key,frame_number,sequence_key"] + [f"{i},{k},{i},seq0" for i, (k, *_) in enumerate(rows)]
-    for name, lines in (("postprocessed", post), ("raw", raw), ("subtask_index", sub), ("seq_info", seq)):
-        (folder / f"{name}.csv").write_text("\n".join(lines) + "\n")
-    (folder / "images").mkdir(exist_ok=True)
-
-
-def make_msls(root: Path) -> Path:
-    tv = root / "train_val"
-    write_msls_side(tv / "cph" / "database", [("c_db0", 100.0, 0.0, False, True), ("c_db1", 300.0, 0.0, False, True),
-                                             ("c_pano", 100.0, 1.0, True, True)])
-    write_msls_side(tv / "cph" / "query", [("c_q0", 105.0, 0.0, False, True), ("c_q_other", 300.0, 2.0, False, False)])
-    # Same UTM numbers as cph, in another zone.
-    write_msls_side(tv / "london" / "database", [("l_db0", 100.0, 0.0, False, True), ("l_pano", 100.0, 0.0, True, True)])
-    write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0, False, True), ("l_qpano", 101.0, 0.0, True, True)])
-    write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0, False, True)])
-    write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)])
-    # A training city held out for epoch selection (subtask flags False: selection does not filter).
-    write_msls_side(tv / "zurich" / "database", [("z_db0", 7.0, 7.0, False, False)])
-    write_msls_side(tv / "zurich" / "query", [("z_q0", 7.0, 8.0, False, False)])
-    # An official test city: images and subtask index only, no ground truth.
-    for side in ("database", "query"):
-        folder = root / "test" / "miami" / side
-        folder.mkdir(parents=True)
-        (folder / "subtask_index.csv").write_text(",key,all\n0,m0,True\n")
-    return root
-
-
 def test_read_msls_follows_the_official_splits(tmp_path: Path) -> None:
-    root = make_msls(tmp_path / "msls")
+    root = write_msls_cities(tmp_path / "msls")
     val = read_msls(root, "val")
     # Official val cities, panoramas excluded, query frames outside the subtask dropped.
     assert [p.name for p in val.db_paths] == ["c_db0.jpg", "c_db1.jpg", "s_db0.jpg"]
@@ -232,7 +166,7 @@ def test_msls_config_selects_on_held_out_train_cities_and_tests_on_val_cities(tm
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    root = make_msls(tmp_path / "msls")
+    root = write_msls_cities(tmp_path / "msls")
     with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["data=msls", f"data.root={root}"])
     train, val, test = (instantiate(cfg.data[s]) for s in ("train", "val", "test"))
@@ -244,7 +178,7 @@ def test_msls_config_selects_on_held_out_train_cities_and_tests_on_val_cities(tm
 def test_read_msls_bad_inputs(tmp_path: Path) -> None:
     with pytest.raises(SemvprError, match=r"train_val.*not found.*data\.root="):
         read_msls(tmp_path / "none", "train")
-    root = make_msls(tmp_path / "msls")
+    root = write_msls_cities(tmp_path / "msls")
     with pytest.raises(SemvprError, match=r"'miami' has no ground truth.*val cities"):
         read_msls(root, "test")
     with pytest.raises(SemvprError, match="city folder 'nowhere' not found"):

@@ -5,43 +5,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from semvpr.core.cache import artifact_dir
 from semvpr.core.errors import SemvprError
 from semvpr.segmentation.pseudolabels import label_path, pseudo_labels
+from tests.helpers import CountingTeacher, LABEL_SIZE, labels_key, make_images
 
-SIZE = (16, 20)
-
-
-class CountingTeacher:
-    """Labels pixels by brightness (road 0 / car 13) and counts the images it saw; can fail on cue."""
-
-    device = torch.device("cpu")
-
-    def __init__(self, fail_after: int | None = None) -> None:
-        self.seen = 0
-        self.fail_after = fail_after
-
-    def predict_train_ids(self, images: torch.Tensor) -> torch.Tensor:
-        if self.fail_after is not None and self.seen + len(images) > self.fail_after:
-            raise KeyboardInterrupt("simulated kill")
-        self.seen += len(images)
-        assert images.shape[-2:] == SIZE
-        return torch.where(images.mean(1) > 0.5, 13, 0).long()
-
-
-def make_images(root: Path, n: int = 10) -> list[Path]:
-    """Half-bright, half-dark images at a size other than SIZE (so labelling must resize)."""
-    root.mkdir(parents=True)
-    paths = []
-    for i in range(n):
-        img = np.zeros((32, 40, 3), np.uint8)
-        img[:, : 4 * (i + 1)] = 255
-        paths.append(root / f"@{i:03d}@img@.png")
-        Image.fromarray(img).save(paths[-1])
-    return paths
+SIZE = LABEL_SIZE
 
 
 def test_labels_every_image_once(tmp_path: Path) -> None:
@@ -68,7 +39,7 @@ def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
     key_args = ("teacher-abc", paths, SIZE, tmp_path / "cache", tmp_path / "img")
     with pytest.raises(KeyboardInterrupt):
         pseudo_labels(CountingTeacher(fail_after=4), *key_args, batch_size=2, num_workers=0)
-    final = artifact_dir(tmp_path / "cache", "labels", _key(paths, tmp_path / "img"))
+    final = artifact_dir(tmp_path / "cache", "labels", labels_key(paths, tmp_path / "img"))
     assert not final.exists()  # a partial run never counts as complete
     partial = [d for d in (tmp_path / "cache").iterdir() if d.name.endswith(".partial")]
     assert len(partial) == 1 and len(list(partial[0].glob("*.png"))) == 4
@@ -78,14 +49,6 @@ def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
     assert out == final and resumed.seen == len(paths) - 4
     assert len(list(out.glob("*.png"))) == len(paths)
     assert not partial[0].exists()
-
-
-def _key(paths: list[Path], root: Path) -> dict:
-    """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
-    from semvpr.segmentation.pseudolabels import VERSION, image_list_identity
-
-    return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths, root),
-            "image_size": list(SIZE)}
 
 
 # Real Pitts30k-test names (pytorch-NetVlad layout): the same stem as a database and as a query

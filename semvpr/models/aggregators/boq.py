@@ -27,13 +27,30 @@ from semvpr.models.aggregators.base import Aggregator, check_weights, log_weight
 HEAD_DIM = 64  # the authors' heads: d // 64 of them
 
 
+class EncoderLayer(nn.Module):
+    """PyTorch's post-norm ``TransformerEncoderLayer`` (ReLU MLP, no dropout), with the same parameter
+    names, written out: its inference fast path (eval mode, an even number of heads, no autocast) turns
+    a float attention mask into NaNs, and the mask is how BoQ removes a location."""
+
+    def __init__(self, dim: int, heads: int, dim_feedforward: int) -> None:
+        super().__init__()
+        self.self_attn = nn.MultiheadAttention(dim, heads, batch_first=True)
+        self.linear1, self.linear2 = nn.Linear(dim, dim_feedforward), nn.Linear(dim_feedforward, dim)
+        self.norm1, self.norm2 = nn.LayerNorm(dim), nn.LayerNorm(dim)
+
+    def forward(self, x: Tensor, attn_mask: Tensor) -> Tensor:
+        """x ← LN(x + SelfAttn(x)); x ← LN(x + W2 ReLU(W1 x)), with ``attn_mask`` added to the logits."""
+        x = self.norm1(x + self.self_attn(x, x, x, attn_mask=attn_mask, need_weights=False)[0])
+        return self.norm2(x + self.linear2(F.relu(self.linear1(x))))
+
+
 class BoQBlock(nn.Module):
     """Encoder layer on the tokens, then Q learnable queries cross-attending to them."""
 
     def __init__(self, dim: int, num_queries: int) -> None:
         super().__init__()
         heads = max(1, dim // HEAD_DIM)
-        self.encoder = nn.TransformerEncoderLayer(dim, heads, dim_feedforward=4 * dim, dropout=0.0, batch_first=True)
+        self.encoder = EncoderLayer(dim, heads, dim_feedforward=4 * dim)
         self.queries = nn.Parameter(torch.randn(1, num_queries, dim))
         self.self_attn = nn.MultiheadAttention(dim, heads, batch_first=True)
         self.norm_q = nn.LayerNorm(dim)
@@ -46,7 +63,7 @@ class BoQBlock(nn.Module):
         heads = self.cross_attn.num_heads
         q = self.queries.expand(b, -1, -1)
         bias = key_bias[:, None, None, :].expand(b, heads, 1, n)
-        x = self.encoder(x, src_mask=bias.expand(b, heads, n, n).reshape(b * heads, n, n))
+        x = self.encoder(x, bias.expand(b, heads, n, n).reshape(b * heads, n, n))
         q = self.norm_q(q + self.self_attn(q, q, q, need_weights=False)[0])
         cross_bias = bias.expand(b, heads, q.shape[1], n).reshape(b * heads, q.shape[1], n)
         out = self.cross_attn(q, x, x, attn_mask=cross_bias, need_weights=False)[0]
