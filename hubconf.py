@@ -6,6 +6,7 @@ is its preprocessing (PIL image → normalised tensor, resized to ``image_size``
 checkpoint is loaded as ``semvpr.eval`` loads it (weights only, record validated; see
 ``semvpr.hub``).
 """
+
 dependencies = ["torch", "torchvision", "hydra", "omegaconf"]
 
 

@@ -13,6 +13,7 @@ Prints one line per aggregator (ms per step, descriptor size); last line:
 ``salad_512_over_128=<ratio> boq_256_over_128=<ratio>`` (step time at the former width over the
 configured one).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -73,8 +74,10 @@ def main() -> None:
         agg = build(name, **overrides)
         ms[label] = step_ms(agg, args.batch, args.repeats, bf16)
         print(f"{label:>20}: {ms[label]:8.1f} ms per step, descriptor {agg.output_dim}")
-    print(f"salad_512_over_128={ms['salad (hidden 512)'] / ms['salad']:.1f} "
-          f"boq_256_over_128={ms['boq (256 channels)'] / ms['boq']:.1f}")
+    print(
+        f"salad_512_over_128={ms['salad (hidden 512)'] / ms['salad']:.1f} "
+        f"boq_256_over_128={ms['boq (256 channels)'] / ms['boq']:.1f}"
+    )
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ minutes (at 480x640 on CPU a few images/s; on a GPU even 1,000 images/s is 17 s)
 
 Last line: ``images=<n> first_s=<s> warm_s=<s> per_image_us=<us>``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,8 +33,10 @@ def names() -> tuple[list[str], list[str]]:
     db, q = REALDATA / "pitts30k_test_dbImages.npy", REALDATA / "pitts30k_test_qImages.npy"
     if db.is_file() and q.is_file():
         return [str(n) for n in np.load(db)], [str(n) for n in np.load(q)]
-    return ([f"{i // 1000:03d}/{i:06d}_pitch1_yaw1.jpg" for i in range(10_000)],
-            [f"queries_real/{i // 1000:03d}/{i:06d}_pitch1_yaw1.jpg" for i in range(6_816)])
+    return (
+        [f"{i // 1000:03d}/{i:06d}_pitch1_yaw1.jpg" for i in range(10_000)],
+        [f"queries_real/{i // 1000:03d}/{i:06d}_pitch1_yaw1.jpg" for i in range(6_816)],
+    )
 
 
 def main() -> None:
@@ -49,8 +52,14 @@ def main() -> None:
         if not path.is_file():
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(b"\xff\xd8placeholder")
-    places = PlaceSet("pitts30k/test", [root / n for n in db], [root / n for n in q],
-                      np.zeros((len(db), 2)), np.zeros((len(q), 2)), root=root)
+    places = PlaceSet(
+        "pitts30k/test",
+        [root / n for n in db],
+        [root / n for n in q],
+        np.zeros((len(db), 2)),
+        np.zeros((len(q), 2)),
+        root=root,
+    )
     times = []
     for _ in range(args.repeat):
         tic = time.perf_counter()

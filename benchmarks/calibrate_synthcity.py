@@ -25,13 +25,14 @@ several (a generator change should be judged over several draws of the city: one
 moves by several points with the draw), then the last line (val numbers, mean over all seeds):
 ``none_R@1=<x> oracle_R@1=<y> weighted_R@1=<z> gain=<y-x> weighted_gain=<z-y>`` (percent).
 """
+
 from __future__ import annotations
 
 import argparse
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import faiss
 import numpy as np
@@ -40,13 +41,13 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 from PIL import Image
 
+from semvpr.config.build import build_backbone
+from semvpr.core.io import CONF_DIR
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
-from semvpr.core.io import CONF_DIR
-from semvpr.config.build import build_backbone
-from semvpr.models.masks import pool_to_grid
 from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.masks import pool_to_grid
 
 # Per-class contribution weights of the weighted oracle, chosen on val (SynthCity v3; the RenderSpec
 # comment has the measurements). Classes not listed keep their binary weight (1 static, 0 dynamic or
@@ -86,7 +87,9 @@ def local_features(trunk: torch.nn.Module, images: torch.Tensor, bf16: bool) -> 
 
 def features_of(trunk: torch.nn.Module, paths: Sequence[Path], bf16: bool, batch: int = 64) -> torch.Tensor:
     """(N,D,h,w) local features of a list of images."""
-    return torch.cat([local_features(trunk, load_batch(paths[i:i + batch]), bf16) for i in range(0, len(paths), batch)])
+    return torch.cat(
+        [local_features(trunk, load_batch(paths[i : i + batch]), bf16) for i in range(0, len(paths), batch)]
+    )
 
 
 def masks(labels: np.ndarray, grid: tuple[int, int], weights: np.ndarray) -> dict[str, torch.Tensor | None]:
@@ -95,19 +98,23 @@ def masks(labels: np.ndarray, grid: tuple[int, int], weights: np.ndarray) -> dic
     static = torch.from_numpy(static_lut())[ids][:, None]
     # Area pooling is linear, so pooling the per-pixel weight w[label] equals Σ_c pooled one-hot_c · w_c.
     per_class = torch.from_numpy(weights)[ids][:, None]
-    return {"none": None, "oracle": pool_to_grid(static, grid),
-            "oracle_soft": F.adaptive_avg_pool2d(static, grid),
-            "oracle_weighted": F.adaptive_avg_pool2d(per_class, grid)}
+    return {
+        "none": None,
+        "oracle": pool_to_grid(static, grid),
+        "oracle_soft": F.adaptive_avg_pool2d(static, grid),
+        "oracle_weighted": F.adaptive_avg_pool2d(per_class, grid),
+    }
 
 
 @torch.no_grad()
-def descriptors(vlad: NetVLAD, feats: torch.Tensor, labels: np.ndarray, weights: np.ndarray,
-                batch: int = 256) -> dict[str, np.ndarray]:
+def descriptors(
+    vlad: NetVLAD, feats: torch.Tensor, labels: np.ndarray, weights: np.ndarray, batch: int = 256
+) -> dict[str, np.ndarray]:
     """NetVLAD descriptors of every variant for precomputed local features."""
     out: dict[str, list[np.ndarray]] = {v: [] for v in VARIANTS}
     for i in range(0, len(feats), batch):
-        x = feats[i:i + batch]
-        for name, mask in masks(labels[i:i + batch], tuple(x.shape[-2:]), weights).items():
+        x = feats[i : i + batch]
+        for name, mask in masks(labels[i : i + batch], tuple(x.shape[-2:]), weights).items():
             out[name].append(vlad(x, mask).numpy())
     return {k: np.concatenate(v) for k, v in out.items()}
 
@@ -121,8 +128,16 @@ def hits_at(db: np.ndarray, q: np.ndarray, positives: list[np.ndarray], ns=(1, 5
     return {n: np.array([np.isin(pred[i, :n], positives[i]).any() for i in valid], np.float64) for n in ns}
 
 
-def calibrate(split: PlaceSet, train: PlaceSet, backbone: str, model_seed: int, clusters: int, init_images: int,
-              weights: np.ndarray, bf16: bool) -> dict[str, dict[int, np.ndarray]]:
+def calibrate(
+    split: PlaceSet,
+    train: PlaceSet,
+    backbone: str,
+    model_seed: int,
+    clusters: int,
+    init_images: int,
+    weights: np.ndarray,
+    bf16: bool,
+) -> dict[str, dict[int, np.ndarray]]:
     """Per-variant, per-N query hits of one frozen trunk (conf/backbone/<backbone>.yaml; a random init
     is the model seed's) + k-means NetVLAD on ``split``."""
     node = OmegaConf.load(Path(CONF_DIR) / "backbone" / f"{backbone}.yaml")
@@ -155,12 +170,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seed", type=int, nargs="+", default=[0], help="dataset seeds (each its own city)")
-    ap.add_argument("--model-seed", type=int, nargs="+", default=[0],
-                    help="seeds of the k-means sample (and of the trunk's init, if random)")
+    ap.add_argument(
+        "--model-seed",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="seeds of the k-means sample (and of the trunk's init, if random)",
+    )
     ap.add_argument("--backbone", default="efficientnet_lite0", help="a conf/backbone option, as weighted there")
     ap.add_argument("--split", default="val", choices=("val", "test"), help="test only to report, once")
-    ap.add_argument("--weight", type=parse_weight, action="append", default=[],
-                    help="override one class weight of the weighted oracle, e.g. vegetation=0.5")
+    ap.add_argument(
+        "--weight",
+        type=parse_weight,
+        action="append",
+        default=[],
+        help="override one class weight of the weighted oracle, e.g. vegetation=0.5",
+    )
     ap.add_argument("--cache-dir", default="outputs/cache")
     add_render_arguments(ap)
     ap.add_argument("--clusters", type=int, default=32)
@@ -183,10 +208,14 @@ def main() -> None:
         train = read_split(args.preset, data_seed, args.cache_dir, "train", render, args.image_size)
         stats = json.loads((root / "stats.json").read_text())
         n = sum(len(p) > 0 for p in split.positives())
-        print(f"dataset seed {data_seed}: {root} ({time.time() - t0:.1f}s): measured dynamic fraction "
-              f"{stats['dynamic_fraction']}, sky {stats['sky_fraction']}")
-        print(f"{args.split}: {len(split.db_paths)} database, {n} queries with positives (one std-error of R@1 "
-              f"~ {100 * np.sqrt(0.25 / n):.1f} points); class weights {weights}")
+        print(
+            f"dataset seed {data_seed}: {root} ({time.time() - t0:.1f}s): measured dynamic fraction "
+            f"{stats['dynamic_fraction']}, sky {stats['sky_fraction']}"
+        )
+        print(
+            f"{args.split}: {len(split.db_paths)} database, {n} queries with positives (one std-error of R@1 "
+            f"~ {100 * np.sqrt(0.25 / n):.1f} points); class weights {weights}"
+        )
         runs = []
         for seed in args.model_seed:
             hits = calibrate(split, train, args.backbone, seed, args.clusters, args.init_images, lut, args.bf16)
@@ -194,24 +223,32 @@ def main() -> None:
             tag = f"  data seed {data_seed} model seed {seed}"
             for v in VARIANTS:
                 print(f"{tag} {v:>15}: " + "  ".join(f"R@{k}={100 * h.mean():.1f}" for k, h in hits[v].items()))
-            print(f"{tag} paired R@1 differences (± std-error over queries): "
-                  f"oracle−none {paired(hits['none'][1], hits['oracle'][1])}, "
-                  f"weighted−oracle {paired(hits['oracle'][1], hits['oracle_weighted'][1])}, "
-                  f"weighted−soft {paired(hits['oracle_soft'][1], hits['oracle_weighted'][1])} "
-                  f"({time.time() - t0:.0f}s)")
+            print(
+                f"{tag} paired R@1 differences (± std-error over queries): "
+                f"oracle−none {paired(hits['none'][1], hits['oracle'][1])}, "
+                f"weighted−oracle {paired(hits['oracle'][1], hits['oracle_weighted'][1])}, "
+                f"weighted−soft {paired(hits['oracle_soft'][1], hits['oracle_weighted'][1])} "
+                f"({time.time() - t0:.0f}s)"
+            )
         r1[data_seed] = {v: float(np.mean([100 * h[v][1].mean() for h in runs])) for v in VARIANTS}
-        print(f"{args.split}, data seed {data_seed}, mean over model seeds {args.model_seed}: "
-              + "  ".join(f"{v} R@1={r:.1f}" for v, r in r1[data_seed].items()))
+        print(
+            f"{args.split}, data seed {data_seed}, mean over model seeds {args.model_seed}: "
+            + "  ".join(f"{v} R@1={r:.1f}" for v, r in r1[data_seed].items())
+        )
     gain = np.array([r["oracle"] - r["none"] for r in r1.values()])
     weighted_gain = np.array([r["oracle_weighted"] - r["oracle"] for r in r1.values()])
     if len(r1) > 1:
-        print(f"over dataset seeds {args.seed}: gain {gain.mean():.1f} ± {gain.std(ddof=1):.1f} "
-              f"({', '.join(f'{g:+.1f}' for g in gain)}), weighted_gain {weighted_gain.mean():.1f} ± "
-              f"{weighted_gain.std(ddof=1):.1f} ({', '.join(f'{g:+.1f}' for g in weighted_gain)}); "
-              f"total {time.time() - t0:.0f}s")
+        print(
+            f"over dataset seeds {args.seed}: gain {gain.mean():.1f} ± {gain.std(ddof=1):.1f} "
+            f"({', '.join(f'{g:+.1f}' for g in gain)}), weighted_gain {weighted_gain.mean():.1f} ± "
+            f"{weighted_gain.std(ddof=1):.1f} ({', '.join(f'{g:+.1f}' for g in weighted_gain)}); "
+            f"total {time.time() - t0:.0f}s"
+        )
     mean = {v: float(np.mean([r[v] for r in r1.values()])) for v in VARIANTS}
-    print(f"none_R@1={mean['none']:.1f} oracle_R@1={mean['oracle']:.1f} weighted_R@1={mean['oracle_weighted']:.1f} "
-          f"gain={gain.mean():.1f} weighted_gain={weighted_gain.mean():.1f}")
+    print(
+        f"none_R@1={mean['none']:.1f} oracle_R@1={mean['oracle']:.1f} weighted_R@1={mean['oracle_weighted']:.1f} "
+        f"gain={gain.mean():.1f} weighted_gain={weighted_gain.mean():.1f}"
+    )
 
 
 if __name__ == "__main__":

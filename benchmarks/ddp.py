@@ -12,6 +12,7 @@ conv4 trunk features of 240x320 images (random weights and features: timing need
 python benchmarks/ddp.py [--db 192] [--batch 4] [--negatives 2] [--steps 2] [--reps 3]
 Last line: world=2 grad_rel_err=<e> refresh_speedup=<s> step_speedup=<s>
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,11 +29,11 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.backbones import VGG16Backbone
 from semvpr.retrieval.distributed import rank_slice, sharded
 from semvpr.retrieval.features import FeatureStore
 from semvpr.retrieval.mining import TupleDataset, collate_tuples
-from semvpr.models.backbones import VGG16Backbone
-from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.retrieval.retriever import Optimization, Retriever
 
 GRID = (15, 20)  # conv4 output of a 240x320 image
@@ -54,14 +55,19 @@ def workload(args: argparse.Namespace) -> tuple[Retriever, FeatureStore, list[li
     """The model, a store of random trunk rows, and the global batches of tuples (same on every rank)."""
     torch.manual_seed(0)
     backbone = VGG16Backbone(weights="none", train_from="conv5")
-    retriever = Retriever(backbone, NetVLAD(num_clusters=64, dim=512), optimization=Optimization(torch.optim.SGD),
-                          eval_batch_size=16)
+    retriever = Retriever(
+        backbone, NetVLAD(num_clusters=64, dim=512), optimization=Optimization(torch.optim.SGD), eval_batch_size=16
+    )
     trunk = torch.randn(args.db, 512, *GRID, generator=torch.Generator().manual_seed(1)).to(torch.bfloat16)
     store = FeatureStore(tuple(Path(f"x{i}") for i in range(args.db)), GRID, trunk, None)
     rng = np.random.default_rng(0)
-    batches = [[(int(rng.integers(args.db)), int(rng.integers(args.db)),
-                 rng.choice(args.db, args.negatives, replace=False)) for _ in range(args.batch)]
-               for _ in range(args.steps)]
+    batches = [
+        [
+            (int(rng.integers(args.db)), int(rng.integers(args.db)), rng.choice(args.db, args.negatives, replace=False))
+            for _ in range(args.batch)
+        ]
+        for _ in range(args.steps)
+    ]
     return retriever, store, batches
 
 
@@ -70,8 +76,9 @@ def measure(rank: int, world: int, args: argparse.Namespace, port: int, out: str
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore", message=".*self.log.*")  # the step runs outside a Trainer
     if world > 1:
-        dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world,
-                                timeout=timedelta(seconds=600))
+        dist.init_process_group(
+            "gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world, timeout=timedelta(seconds=600)
+        )
     retriever, store, batches = workload(args)
     describe = sharded(retriever.describe_store, retriever.eval_batch_size)
     trainable = [p for p in retriever.parameters() if p.requires_grad]
@@ -130,11 +137,15 @@ def main() -> None:
         torch.multiprocessing.spawn(measure, args=(WORLD, args, port, str(ranks)), nprocs=WORLD)
         one, two = torch.load(single, weights_only=False), torch.load(ranks, weights_only=False)
     err = float((two["grad"] - one["grad"]).norm() / one["grad"].norm())
-    print(f"one process: refresh {one['refresh_s']:.2f} s, {args.steps} steps {one['step_s']:.2f} s; "
-          f"{WORLD} processes: refresh {two['refresh_s']:.2f} s, steps {two['step_s']:.2f} s; "
-          f"descriptors bit-identical: {np.array_equal(one['desc'], two['desc'])}")
-    print(f"world={WORLD} grad_rel_err={err:.2e} refresh_speedup={one['refresh_s'] / two['refresh_s']:.2f} "
-          f"step_speedup={one['step_s'] / two['step_s']:.2f}")
+    print(
+        f"one process: refresh {one['refresh_s']:.2f} s, {args.steps} steps {one['step_s']:.2f} s; "
+        f"{WORLD} processes: refresh {two['refresh_s']:.2f} s, steps {two['step_s']:.2f} s; "
+        f"descriptors bit-identical: {np.array_equal(one['desc'], two['desc'])}"
+    )
+    print(
+        f"world={WORLD} grad_rel_err={err:.2e} refresh_speedup={one['refresh_s'] / two['refresh_s']:.2f} "
+        f"step_speedup={one['step_s'] / two['step_s']:.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ Prints each job's time per stage (``timings`` of its ``metrics.json``), the stag
 sweep (generation, trunk and mask caching, teacher, pseudo-labels, student, training, ...); last line:
 ``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk>``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,8 +31,16 @@ from sweep_cost import FILTERS, REPO, describe, job_timings  # noqa: E402
 
 def cold_sweep(work: Path, overrides: list[str]) -> float:
     """Wall time of the four-way sweep from an empty cache under ``work``."""
-    cmd = [sys.executable, "-m", "semvpr.train", "-m", f"filter={FILTERS}", f"paths.cache_dir={work / 'cache'}",
-           f"hydra.sweep.dir={work / 'sweep'}", *overrides]
+    cmd = [
+        sys.executable,
+        "-m",
+        "semvpr.train",
+        "-m",
+        f"filter={FILTERS}",
+        f"paths.cache_dir={work / 'cache'}",
+        f"hydra.sweep.dir={work / 'sweep'}",
+        *overrides,
+    ]
     print(" ".join(cmd[1:]), flush=True)
     t0 = time.perf_counter()
     subprocess.run(cmd, cwd=REPO, check=True, stdout=subprocess.DEVNULL)
@@ -45,8 +54,8 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
     from hydra import compose, initialize_config_dir
 
     from semvpr.config.build import build_backbone, build_places
-    from semvpr.data.images import ImageDataset
     from semvpr.core.precision import autocast
+    from semvpr.data.images import ImageDataset
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         # Only the plain overrides (a sweep's comma lists pick their first value).
@@ -55,8 +64,11 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
     places = build_places(cfg)
     paths = [p for s in places.values() for p in (*s.db_paths, *s.q_paths)]
     backbone = build_backbone(cfg.backbone, cfg.seed).eval()
-    loader = DataLoader(ImageDataset(paths, tuple(cfg.data.image_size)), batch_size=int(cfg.model.eval_batch_size),
-                        num_workers=int(cfg.data.num_workers))
+    loader = DataLoader(
+        ImageDataset(paths, tuple(cfg.data.image_size)),
+        batch_size=int(cfg.model.eval_batch_size),
+        num_workers=int(cfg.data.num_workers),
+    )
     t0 = time.perf_counter()
     with autocast("cpu", enabled=not fp32):
         for images, _ in loader:
@@ -65,9 +77,17 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
 
 
 #: Stages of a job (metrics.json ``timings``) in pipeline order, with the names the breakdown prints.
-STAGES = {"data_s": "generation", "features_s": "trunk + mask caching", "teacher_s": "teacher",
-          "labels_s": "pseudo-labels", "student_s": "student", "init_s": "aggregator init",
-          "untrained_eval_s": "untrained eval", "fit_s": "training", "test_s": "test"}
+STAGES = {
+    "data_s": "generation",
+    "features_s": "trunk + mask caching",
+    "teacher_s": "teacher",
+    "labels_s": "pseudo-labels",
+    "student_s": "student",
+    "init_s": "aggregator init",
+    "untrained_eval_s": "untrained eval",
+    "fit_s": "training",
+    "test_s": "test",
+}
 
 
 def stage_breakdown(sweep_s: float, jobs: dict[str, dict[str, float]]) -> str:
@@ -82,7 +102,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--override", action="append", default=[], help="extra Hydra override of the sweep")
     ap.add_argument("--keep", type=Path, help="work folder to keep (default: a temporary one, removed)")
-    ap.add_argument("--fp32", action="store_true", help="time the trunk pass in fp32 (default: as the caches, bf16 where native)")
+    ap.add_argument(
+        "--fp32", action="store_true", help="time the trunk pass in fp32 (default: as the caches, bf16 where native)"
+    )
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="semvpr-quickstart-") as tmp:
         work = args.keep or Path(tmp)

@@ -7,6 +7,7 @@ Each way runs in a fresh process (as a user would); caches go to a temporary dir
 ``identical=<runs whose test recalls and tested weights equal the first cold run's, of all>
 max_r1_diff=<largest |R@1 difference| in points>``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,8 +25,16 @@ REPO = Path(__file__).resolve().parents[1]
 
 def job(run_dir: Path, cache: Path, seed: int, filter_: str, extra: list[str]) -> dict:
     """Run one semvpr.train job in its own process; its metrics.json."""
-    cmd = [sys.executable, "-m", "semvpr.train", f"filter={filter_}", f"seed={seed}", f"paths.cache_dir={cache}",
-           f"hydra.run.dir={run_dir}", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "semvpr.train",
+        f"filter={filter_}",
+        f"seed={seed}",
+        f"paths.cache_dir={cache}",
+        f"hydra.run.dir={run_dir}",
+        *extra,
+    ]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
@@ -51,20 +60,27 @@ def main() -> None:
         for filter_ in args.filters:
             extra = [f"trainer.max_epochs={args.epochs}", *args.overrides]
             start = time.time()
-            runs = {"cold": job(tmp / filter_ / "cold", tmp / "cache-a", args.seed, filter_, extra),
-                    "cold, other cache": job(tmp / filter_ / "cold2", tmp / f"cache-b-{filter_}", args.seed, filter_, extra),
-                    "warm": job(tmp / filter_ / "warm", tmp / "cache-a", args.seed, filter_, extra)}
+            runs = {
+                "cold": job(tmp / filter_ / "cold", tmp / "cache-a", args.seed, filter_, extra),
+                "cold, other cache": job(
+                    tmp / filter_ / "cold2", tmp / f"cache-b-{filter_}", args.seed, filter_, extra
+                ),
+                "warm": job(tmp / filter_ / "warm", tmp / "cache-a", args.seed, filter_, extra),
+            }
             half = [f"trainer.max_epochs={args.epochs // 2}", *args.overrides]
             job(tmp / filter_ / "resumed", tmp / "cache-a", args.seed, filter_, half)
-            runs["stopped + resumed"] = job(tmp / filter_ / "resumed", tmp / "cache-a", args.seed, filter_,
-                                            [*extra, "ckpt_path=last"])
+            runs["stopped + resumed"] = job(
+                tmp / filter_ / "resumed", tmp / "cache-a", args.seed, filter_, [*extra, "ckpt_path=last"]
+            )
             reference = runs["cold"]
             print(f"filter={filter_} seed={args.seed} ({time.time() - start:.0f} s)")
             for name, m in runs.items():
                 same = m["recalls"] == reference["recalls"] and same_weights(m, reference)
                 diff = abs(m["test/R@1"] - reference["test/R@1"])
-                print(f"  {name:>18}: R@1 {m['test/R@1']:.2f} R@5 {m['test/R@5']:.2f}  "
-                      f"{'identical to cold' if same else f'differs (R@1 {diff:+.2f})'}")
+                print(
+                    f"  {name:>18}: R@1 {m['test/R@1']:.2f} R@5 {m['test/R@5']:.2f}  "
+                    f"{'identical to cold' if same else f'differs (R@1 {diff:+.2f})'}"
+                )
                 if name != "cold":
                     identical, total, max_diff = identical + same, total + 1, max(max_diff, diff)
     print(f"identical={identical}/{total} max_r1_diff={max_diff:.2f}")

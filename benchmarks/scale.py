@@ -12,6 +12,7 @@ backbone alone on already decoded tensors of the same size and batch, in this pr
 Last line: ``rss_ratio=<peak RSS at the largest N / at the smallest> pipeline_ratio=<end-to-end
 images/s / trunk-only images/s>`` (targets: rss_ratio <= 1.2, pipeline_ratio >= 0.8).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,7 +35,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 def compose(*overrides: str):
     """The project's train config with overrides."""
-    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         return hydra_compose(config_name="train", overrides=list(overrides))
@@ -64,9 +66,19 @@ def write_images(root: Path, n: int, hw: tuple[int, int], seed: int = 0) -> None
 
 def run_eval(ckpt: Path, data: Path, work: Path, hw: tuple[int, int], batch: int, workers: int) -> tuple[float, float]:
     """Wall time (s) and peak RSS (MiB) of one ``semvpr.eval`` process."""
-    cmd = [sys.executable, "-m", "semvpr.eval", f"ckpt={ckpt}", "data=folder", f"data.root={data}",
-           f"data.image_size=[{hw[0]},{hw[1]}]", f"data.num_workers={workers}", f"model.eval_batch_size={batch}",
-           f"paths.cache_dir={work / 'cache'}", f"hydra.run.dir={work / 'run'}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "semvpr.eval",
+        f"ckpt={ckpt}",
+        "data=folder",
+        f"data.root={data}",
+        f"data.image_size=[{hw[0]},{hw[1]}]",
+        f"data.num_workers={workers}",
+        f"model.eval_batch_size={batch}",
+        f"paths.cache_dir={work / 'cache'}",
+        f"hydra.run.dir={work / 'run'}",
+    ]
     out, err = work / "stdout.txt", work / "stderr.txt"
     work.mkdir(parents=True, exist_ok=True)
     with out.open("w") as stdout, err.open("w") as stderr:
@@ -116,8 +128,10 @@ def main() -> None:
     (small, (t_small, rss_small)), (large, (t_large, rss_large)) = sorted(runs.items())
     pipeline = (large - small) / (t_large - t_small)
     trunk = trunk_images_per_s(hw, args.batch)
-    print(f"end-to-end {pipeline:.2f} images/s (decode, resize, trunk, NetVLAD, descriptor cache); "
-          f"trunk alone {trunk:.2f} images/s; peak RSS {rss_small:.0f} -> {rss_large:.0f} MiB")
+    print(
+        f"end-to-end {pipeline:.2f} images/s (decode, resize, trunk, NetVLAD, descriptor cache); "
+        f"trunk alone {trunk:.2f} images/s; peak RSS {rss_small:.0f} -> {rss_large:.0f} MiB"
+    )
     print(f"rss_ratio={rss_large / rss_small:.3f} pipeline_ratio={pipeline / trunk:.3f}")
 
 

@@ -12,6 +12,7 @@ stage is timed from scratch; SynthCity itself is generated once into --data-cach
 Last line: ``teacher_s=.. teacher_miou=.. teacher_static_iou=.. label_img_s=.. student_s=..
 student_iou_teacher=.. student_iou_gt=..``
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,16 +28,16 @@ from PIL import Image
 from torch.utils.data import DataLoader
 from torchmetrics.classification import MulticlassJaccardIndex
 
+from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.images import ImageDataset
-from semvpr.segmentation.datamodule import SegmentationDataset
 from semvpr.data.synthcity import read_segmentation, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
-from semvpr.segmentation.training import build_student, build_teacher
-from semvpr.core.precision import autocast
+from semvpr.segmentation.datamodule import SegmentationDataset
 from semvpr.segmentation.pseudolabels import pseudo_labels
+from semvpr.segmentation.training import build_student, build_teacher
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -69,7 +70,9 @@ class StaticIoU:
 
 
 @torch.no_grad()
-def teacher_held_out(teacher: torch.nn.Module, seg_val: object, size: tuple[int, int], lut: torch.Tensor) -> tuple[float, float]:
+def teacher_held_out(
+    teacher: torch.nn.Module, seg_val: object, size: tuple[int, int], lut: torch.Tensor
+) -> tuple[float, float]:
     """mIoU over the 19 classes and static IoU of the teacher on the held-out segmentation split."""
     miou = MulticlassJaccardIndex(len(TRAIN_ID_NAMES), ignore_index=IGNORE, average="macro")
     static = StaticIoU()
@@ -104,8 +107,12 @@ def main() -> None:
     ap.add_argument("--data-cache", default="outputs/cache", help="where SynthCity is generated (once)")
     ap.add_argument("--backbone-seed", type=int, default=0)
     ap.add_argument("--eval-images", type=int, default=400, help="held-out test images to score the student on")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="torch threads (default: torch's); 1 is far faster while other jobs load the cores")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads (default: torch's); 1 is far faster while other jobs load the cores",
+    )
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. teacher.train.epochs=12")
     args = ap.parse_args()
     if args.threads:
@@ -118,8 +125,13 @@ def main() -> None:
     size = Image.open(train.db_paths[0]).size[::-1]
     cfg = load_cfg(list(size), args.overrides)
     lut = torch.full((256,), IGNORE, dtype=torch.long)
-    lut[: len(TRAIN_ID_NAMES)] = torch.from_numpy(static_lut(tuple(cfg.teacher.static_classes))[: len(TRAIN_ID_NAMES)]).long()
-    print(f"cpu threads={torch.get_num_threads()} load={os.getloadavg()[0]:.1f} seg train/val={len(seg_train)}/{len(seg_val)}")
+    lut[: len(TRAIN_ID_NAMES)] = torch.from_numpy(
+        static_lut(tuple(cfg.teacher.static_classes))[: len(TRAIN_ID_NAMES)]
+    ).long()
+    print(
+        f"cpu threads={torch.get_num_threads()} load={os.getloadavg()[0]:.1f} "
+        f"seg train/val={len(seg_train)}/{len(seg_val)}"
+    )
 
     with tempfile.TemporaryDirectory(prefix="semvpr-bench-") as cache:
         start = time.perf_counter()
@@ -130,23 +142,36 @@ def main() -> None:
 
         images = list(train.db_paths) + list(train.q_paths)
         start = time.perf_counter()
-        labels = pseudo_labels(teacher, teacher.teacher_key, images, size, cache, train.root,
-                               batch_size=int(cfg.teacher.predict_batch_size))
+        labels = pseudo_labels(
+            teacher,
+            teacher.teacher_key,
+            images,
+            size,
+            cache,
+            train.root,
+            batch_size=int(cfg.teacher.predict_batch_size),
+        )
         label_img_s = len(images) / (time.perf_counter() - start)
         print(f"pseudo-labels: {len(images)} images, {label_img_s:.1f} img/s")
 
         torch.manual_seed(args.backbone_seed)
         backbone = VGG16Backbone(weights="none", train_from="conv5").eval()
         start = time.perf_counter()
-        student = build_student(StudentSpec.from_mapping(cfg.student), backbone, images, labels, train.root, size, cache)
+        student = build_student(
+            StudentSpec.from_mapping(cfg.student), backbone, images, labels, train.root, size, cache
+        )
         student_s = time.perf_counter() - start
         n = min(args.eval_images, len(test.db_paths))
         scores = student_scores(student, backbone, teacher, test.db_paths[:n], test.db_labels[:n], size, lut)
-        print(f"student: {student_s:.0f} s; static IoU on {n} test images: vs teacher {scores['student_teacher']:.3f}, "
-              f"vs GT {scores['student_gt']:.3f} (teacher vs GT {scores['teacher_gt']:.3f})")
-    print(f"teacher_s={teacher_s:.1f} teacher_miou={miou:.3f} teacher_static_iou={static_iou:.3f} "
-          f"label_img_s={label_img_s:.1f} student_s={student_s:.1f} student_iou_teacher={scores['student_teacher']:.3f} "
-          f"student_iou_gt={scores['student_gt']:.3f} teacher_test_iou_gt={scores['teacher_gt']:.3f}")
+        print(
+            f"student: {student_s:.0f} s; static IoU on {n} test images: vs teacher {scores['student_teacher']:.3f}, "
+            f"vs GT {scores['student_gt']:.3f} (teacher vs GT {scores['teacher_gt']:.3f})"
+        )
+    print(
+        f"teacher_s={teacher_s:.1f} teacher_miou={miou:.3f} teacher_static_iou={static_iou:.3f} "
+        f"label_img_s={label_img_s:.1f} student_s={student_s:.1f} student_iou_teacher={scores['student_teacher']:.3f} "
+        f"student_iou_gt={scores['student_gt']:.3f} teacher_test_iou_gt={scores['teacher_gt']:.3f}"
+    )
 
 
 if __name__ == "__main__":

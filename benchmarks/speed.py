@@ -4,6 +4,7 @@ SRAL vs NetVLAD, Recall@N at Pitts30k scale.
 python benchmarks/speed.py [--batch 16] [--reps 3]
 Last line: extract_roofline_ratio=<r> aggregate_speedup=<s> sral_cost=<c> recall_pitts30k_s=<t>
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,12 +19,12 @@ from omegaconf import OmegaConf
 from torch import Tensor
 
 from semvpr.core.io import CONF_DIR
+from semvpr.core.precision import autocast, bf16_native
 from semvpr.data.places import positives_within
-from semvpr.retrieval.recall import knn, recall_result
-from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.models.aggregators.sral import SRAL
-from semvpr.core.precision import autocast, bf16_native
+from semvpr.models.backbones import VGG16Backbone
+from semvpr.retrieval.recall import knn, recall_result
 
 REPO = Path(__file__).resolve().parents[1]
 PITTS = REPO.parent / "shared" / "realdata" / "pitts30k_test.npz"
@@ -79,9 +80,11 @@ def bench_extract(batch: int, reps: int, hw: tuple[int, int] = (120, 160)) -> fl
     ips_ours, ips_fp32 = batch / t_ours, batch / t_fp32
     roofline_ips = peak / flops_img
     name = "bf16" if bf16 else "fp32 (no native bf16 on this CPU)"
-    print(f"extract: VGG16 conv5_3 {hw[0]}x{hw[1]} batch {batch}: {flops_img / 1e9:.2f} GFLOP/img; "
-          f"plain fp32 {ips_fp32:.1f} img/s, channels_last {name} {ips_ours:.1f} img/s (x{ips_ours / ips_fp32:.2f}); "
-          f"matmul {peak / 1e12:.2f} TFLOP/s -> roofline {roofline_ips:.1f} img/s")
+    print(
+        f"extract: VGG16 conv5_3 {hw[0]}x{hw[1]} batch {batch}: {flops_img / 1e9:.2f} GFLOP/img; "
+        f"plain fp32 {ips_fp32:.1f} img/s, channels_last {name} {ips_ours:.1f} img/s (x{ips_ours / ips_fp32:.2f}); "
+        f"matmul {peak / 1e12:.2f} TFLOP/s -> roofline {roofline_ips:.1f} img/s"
+    )
     return ips_ours / roofline_ips
 
 
@@ -113,11 +116,13 @@ def bench_aggregate(batch: int, reps: int) -> float:
             x = torch.relu(torch.randn(b, 512, h, w))
             mask = (torch.rand(b, 1, h, w) > 0.3).float()
             torch.testing.assert_close(layer(x, mask), netvlad_loop_reference(x, c, alpha, mask), rtol=1e-4, atol=1e-5)
-            t_vec = best_time(lambda: layer(x, mask), reps)
-            t_loop = best_time(lambda: netvlad_loop_reference(x, c, alpha, mask), reps)
+            t_vec = best_time(lambda x=x, mask=mask: layer(x, mask), reps)
+            t_loop = best_time(lambda x=x, mask=mask: netvlad_loop_reference(x, c, alpha, mask), reps)
             speedups.append(t_loop / t_vec)
-            print(f"aggregate: K=64 D=512 batch {b} grid {h}x{w}: vectorised {t_vec * 1e3:.1f} ms, "
-                  f"loop {t_loop * 1e3:.1f} ms, speed-up x{speedups[-1]:.1f} (outputs allclose)")
+            print(
+                f"aggregate: K=64 D=512 batch {b} grid {h}x{w}: vectorised {t_vec * 1e3:.1f} ms, "
+                f"loop {t_loop * 1e3:.1f} ms, speed-up x{speedups[-1]:.1f} (outputs allclose)"
+            )
     return speedups[0]
 
 
@@ -133,11 +138,13 @@ def bench_sral(batch: int, reps: int) -> float:
         for b, h, w in ((batch, 7, 10), (max(1, batch // 4), 30, 40)):
             x = torch.relu(torch.randn(b, 512, h, w))
             mask = (torch.rand(b, 1, h, w) > 0.3).float()
-            t_vlad = best_time(lambda: vlad(x, mask), reps)
-            t_sral = best_time(lambda: sral(x, mask), reps)
+            t_vlad = best_time(lambda x=x, mask=mask: vlad(x, mask), reps)
+            t_sral = best_time(lambda x=x, mask=mask: sral(x, mask), reps)
             costs.append(t_sral / t_vlad)
-            print(f"sral: K=32 S=4 D=512 batch {b} grid {h}x{w}: NetVLAD {t_vlad * 1e3:.1f} ms, "
-                  f"SRAL {t_sral * 1e3:.1f} ms (x{costs[-1]:.2f}); {b / t_sral:.0f} maps/s")
+            print(
+                f"sral: K=32 S=4 D=512 batch {b} grid {h}x{w}: NetVLAD {t_vlad * 1e3:.1f} ms, "
+                f"SRAL {t_sral * 1e3:.1f} ms (x{costs[-1]:.2f}); {b / t_sral:.0f} maps/s"
+            )
     return costs[0]
 
 
@@ -153,7 +160,8 @@ def pitts30k_utms() -> tuple[np.ndarray, np.ndarray, str]:
 
 
 def bench_recall(dim: int = 4096) -> float:
-    """Positives (data.eval_radius of pitts30k) + faiss kNN (k=20) + Recall@N for 10,000 db × 6,816 queries; returns seconds."""
+    """Positives (data.eval_radius of pitts30k) + faiss kNN (k=20) + Recall@N for 10,000 db × 6,816 queries;
+    returns seconds."""
     db_utm, q_utm, source = pitts30k_utms()
     rng = np.random.default_rng(0)
     db = rng.standard_normal((len(db_utm), dim)).astype(np.float32)
@@ -172,9 +180,11 @@ def bench_recall(dim: int = 4096) -> float:
     t_rec = time.perf_counter() - t2
     total = t_pos + t_knn + t_rec
     recalls = " ".join(f"R@{n}={v:.1f}" for n, v in res.recalls.items())
-    print(f"recall: {len(db)} db x {len(q)} queries, {dim}-D, {source}: {recalls} "
-          f"({res.num_queries} queries with positives, {res.num_without_positives} without); "
-          f"positives {t_pos:.2f} s, faiss kNN {t_knn:.2f} s ({100 * t_knn / total:.0f} %), recall {t_rec:.2f} s")
+    print(
+        f"recall: {len(db)} db x {len(q)} queries, {dim}-D, {source}: {recalls} "
+        f"({res.num_queries} queries with positives, {res.num_without_positives} without); "
+        f"positives {t_pos:.2f} s, faiss kNN {t_knn:.2f} s ({100 * t_knn / total:.0f} %), recall {t_rec:.2f} s"
+    )
     return total
 
 
@@ -190,8 +200,10 @@ def main() -> None:
     speedup = bench_aggregate(args.agg_batch, args.reps)
     sral_cost = bench_sral(args.agg_batch, args.reps)
     seconds = bench_recall()
-    print(f"extract_roofline_ratio={ratio:.2f} aggregate_speedup={speedup:.2f} sral_cost={sral_cost:.2f} "
-          f"recall_pitts30k_s={seconds:.2f}")
+    print(
+        f"extract_roofline_ratio={ratio:.2f} aggregate_speedup={speedup:.2f} sral_cost={sral_cost:.2f} "
+        f"recall_pitts30k_s={seconds:.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ machine does not land on one revision only. Prints each sweep's wall time with i
 per stage (``timings`` of their ``metrics.json``); last line, totals over the repeats:
 ``before_s=<t> after_s=<t> ratio=<after/before>``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,16 @@ def sweep(rev: str, work: Path, label: str, overrides: list[str]) -> tuple[float
     subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--quiet", str(tree), rev], check=True)
     try:
         sweep_dir = work / f"{label}-sweep"
-        cmd = [sys.executable, "-m", "semvpr.train", "-m", f"filter={FILTERS}", f"paths.cache_dir={work / f'{label}-cache'}",
-               f"hydra.sweep.dir={sweep_dir}", *overrides]
+        cmd = [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            "-m",
+            f"filter={FILTERS}",
+            f"paths.cache_dir={work / f'{label}-cache'}",
+            f"hydra.sweep.dir={sweep_dir}",
+            *overrides,
+        ]
         print(f"{label} ({rev}): {' '.join(cmd[1:])}", flush=True)
         env = {**os.environ, "PYTHONPATH": str(tree)}  # this revision's package, not the installed one
         t0 = time.perf_counter()
@@ -59,8 +68,12 @@ def job_timings(sweep_dir: Path) -> dict[str, dict[str, float]]:
 
 def describe(wall: float, jobs: dict[str, dict[str, float]]) -> str:
     """One line: the sweep's wall time, then each job's total and its stages in seconds."""
-    parts = [f"{name} {t['job']:.0f} s (" + ", ".join(f"{k.removesuffix('_s')} {v:.0f}" for k, v in t.items()
-                                            if k != "job" and v >= 0.5) + ")" for name, t in jobs.items()]
+    parts = [
+        f"{name} {t['job']:.0f} s ("
+        + ", ".join(f"{k.removesuffix('_s')} {v:.0f}" for k, v in t.items() if k != "job" and v >= 0.5)
+        + ")"
+        for name, t in jobs.items()
+    ]
     return f"sweep {wall:.0f} s; " + "; ".join(parts)
 
 

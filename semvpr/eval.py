@@ -1,13 +1,14 @@
 """Evaluate a checkpoint on any place set: ``python -m semvpr.eval ckpt=PATH [data=... data.root=...]``.
 
-The model is rebuilt from the checkpoint's record and the descriptors cached by ``semvpr.config.restore``;
-the data comes from this invocation. The positives are the place set's own (``PlaceSet.positives``: its shipped ground truth,
-or ``data.eval_radius``). Prints Recall@N over all queries (pytorch-NetVlad, the benchmark) and,
-where some query has no positive, over queries with positives (MSLS); the last line is one JSON
-object, also written as ``eval.json``. With ``-m`` over several datasets (``data=a,b``,
-``data.root=A,B``), a job's bad input fails its own row only, and ``semvpr.evaltable`` writes one
-table for the sweep.
+The model is rebuilt from the checkpoint's record (``semvpr.config.restore``) and its descriptors cached
+(``semvpr.retrieval.descriptors``); the data comes from this invocation. The positives are the place set's
+own (``PlaceSet.positives``: its shipped ground truth, or ``data.eval_radius``). Prints Recall@N over
+all queries (pytorch-NetVlad, the benchmark) and, where some query has no positive, over queries with
+positives (MSLS); the last line is one JSON object, also written as ``eval.json``. With ``-m`` over
+several datasets (``data=a,b``, ``data.root=A,B``), a job's bad input fails its own row only, and
+``semvpr.evaltable`` writes one table for the sweep.
 """
+
 from __future__ import annotations
 
 import json
@@ -23,13 +24,12 @@ from omegaconf import DictConfig
 
 from semvpr.config.build import build_places
 from semvpr.config.checks import check_config
-from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.config.restore import explicit_keys, load_retriever
-from semvpr.retrieval.descriptors import place_descriptors
+from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
-from semvpr.retrieval.recall import RECALL_NS
-from semvpr.retrieval.recall import evaluate
+from semvpr.retrieval.descriptors import place_descriptors
+from semvpr.retrieval.recall import RECALL_NS, evaluate
 
 
 def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
@@ -42,12 +42,22 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     size, cache = merged.data.image_size, merged.paths.cache_dir
     db = place_descriptors(retriever, test, "db", size, cache)
     result = evaluate(db, place_descriptors(retriever, test, "q", size, cache), test.positives())
-    out = {"status": "ok", "checkpoint": str(cfg.ckpt), "data": merged.data.name, "set": test.name,
-           "benchmark": merged.data.get("benchmark"), "aggregator": merged.aggregator.name, "mask": merged.mask.name,
-           "backbone": merged.backbone.name, "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
-           "database": len(test.db_paths), "queries": len(test.q_paths), "descriptor_dim": int(db.shape[1]),
-           "queries_without_positives": result["num_without_positives"],
-           **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()}}
+    out = {
+        "status": "ok",
+        "checkpoint": str(cfg.ckpt),
+        "data": merged.data.name,
+        "set": test.name,
+        "benchmark": merged.data.get("benchmark"),
+        "aggregator": merged.aggregator.name,
+        "mask": merged.mask.name,
+        "backbone": merged.backbone.name,
+        "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
+        "database": len(test.db_paths),
+        "queries": len(test.q_paths),
+        "descriptor_dim": int(db.shape[1]),
+        "queries_without_positives": result["num_without_positives"],
+        **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()},
+    }
     if result["num_without_positives"]:
         out.update({f"test/R@{n}_pos": round(v, 2) for n, v in result["recalls_pos"].items()})
     out["wall_s"] = round(time.perf_counter() - start, 1)

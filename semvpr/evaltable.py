@@ -7,6 +7,7 @@ numbers of the same model family on the same protocol (``semvpr/data/published.y
 ``semvpr.reporting.benchmarks_table`` writes it). ``python -m semvpr.evaltable SWEEP_DIR`` writes the
 table again.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,8 +36,11 @@ class EvalTableCallback(Callback):
             print(f"semvpr eval table: {md}")
             print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith("|")))
         except Exception as err:  # noqa: BLE001
-            print(f"semvpr: eval table failed for {where} ({type(err).__name__}: {err}); "
-                  f"rerun with `python -m semvpr.evaltable {where}`", file=sys.stderr)
+            print(
+                f"semvpr: eval table failed for {where} ({type(err).__name__}: {err}); "
+                f"rerun with `python -m semvpr.evaltable {where}`",
+                file=sys.stderr,
+            )
 
 
 @exit_on_user_error

@@ -6,6 +6,7 @@ loads the weights) and wraps it in :class:`HubModel`: a module mapping a batch o
 normalised with the ImageNet mean/std to L2-normalised global descriptors, with the matching
 preprocessing as ``model.transform`` (PIL image → normalised tensor) and ``model.feature_dim``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -33,7 +34,9 @@ class HubModel(nn.Module):
         self.feature_dim = retriever.descriptor_dim
         resize = [transforms.Resize(tuple(image_size), antialias=True)] if image_size else []
         #: PIL image → the normalised tensor this module takes (resized to ``image_size`` if given).
-        self.transform = transforms.Compose([*resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)])
+        self.transform = transforms.Compose(
+            [*resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
+        )
 
     @torch.no_grad()
     def forward(self, images: Tensor) -> Tensor:

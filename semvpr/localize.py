@@ -5,6 +5,7 @@ and matched against the database of ``data``'s test split (its descriptors cache
 ``semvpr.eval``). Prints, per query, the top-k database images with their UTM and descriptor
 distance; writes ``localize.json`` in the run directory.
 """
+
 from __future__ import annotations
 
 import json
@@ -18,12 +19,12 @@ from omegaconf import DictConfig
 
 from semvpr.config.build import build_places
 from semvpr.config.checks import check_config
-from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.config.restore import explicit_keys, load_retriever
-from semvpr.retrieval.descriptors import place_descriptors
-from semvpr.retrieval.recall import knn
+from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
+from semvpr.retrieval.descriptors import place_descriptors
+from semvpr.retrieval.recall import knn
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
@@ -52,9 +53,15 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
     out = []
     for path, row, desc in zip(paths, top, q_desc):
         dist = np.linalg.norm(db_desc[row] - desc[None], axis=1)
-        out.append({"query": str(path), "matches": [
-            {"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(), "distance": float(d)}
-            for j, d in zip(row, dist)]})
+        out.append(
+            {
+                "query": str(path),
+                "matches": [
+                    {"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(), "distance": float(d)}
+                    for j, d in zip(row, dist)
+                ],
+            }
+        )
     return out
 
 
@@ -67,8 +74,10 @@ def _hydra_main(cfg: DictConfig) -> None:
     write_json(output, results)
     for result in results:
         best = result["matches"][0]
-        print(f"{Path(result['query']).name}: {Path(best['path']).name} "
-              f"(E {best['utm'][0]:.1f}, N {best['utm'][1]:.1f}, d={best['distance']:.3f})")
+        print(
+            f"{Path(result['query']).name}: {Path(best['path']).name} "
+            f"(E {best['utm'][0]:.1f}, N {best['utm'][1]:.1f}, d={best['distance']:.3f})"
+        )
     print(json.dumps({"queries": len(results), "top_k": int(cfg.top_k), "output": str(output)}))
 
 

@@ -1,5 +1,6 @@
 """Sweep-end report: ``python -m semvpr.report <sweep dir>`` and the Hydra callback that runs it after a
 multirun (``semvpr.reporting.sweep_report`` writes results.csv / results.md and the figures)."""
+
 from __future__ import annotations
 
 import argparse
@@ -26,15 +27,19 @@ class ReportCallback(Callback):
             where = str(sweep_dir)
             print_summary(write_report(sweep_dir))
         except Exception as err:
-            print(f"semvpr: report failed for {where} ({type(err).__name__}: {err}); "
-                  f"rerun with `python -m semvpr.report {where}`", file=sys.stderr)
+            print(
+                f"semvpr: report failed for {where} ({type(err).__name__}: {err}); "
+                f"rerun with `python -m semvpr.report {where}`",
+                file=sys.stderr,
+            )
 
 
 @exit_on_user_error
 def main(argv: list[str] | None = None) -> int:
     """CLI: python -m semvpr.report <sweep dir>."""
-    parser = argparse.ArgumentParser(prog="python -m semvpr.report",
-                                     description="Write results.csv/.md and figures for a finished sweep.")
+    parser = argparse.ArgumentParser(
+        prog="python -m semvpr.report", description="Write results.csv/.md and figures for a finished sweep."
+    )
     parser.add_argument("sweep_dir", type=Path, help="multirun dir, e.g. outputs/multiruns/<date>/<time>")
     print_summary(write_report(parser.parse_args(argv).sweep_dir))
     return 0

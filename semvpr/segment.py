@@ -7,6 +7,7 @@ on val), scores it on val and test and saves it in Hugging Face format (``<run d
 ``figure_masks.png`` and CSV / TensorBoard logs into ``outputs/segment/<date>/<time>``; the last
 stdout line is a JSON summary.
 """
+
 from __future__ import annotations
 
 import csv
@@ -24,19 +25,19 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.build import build_backbone, student_spec, teacher_spec
 from semvpr.config.checks import check_config
 from semvpr.config.components import instantiate_node
-from semvpr.data.places import common_root
-from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.images import load_image
-from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json
-from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
-from semvpr.segmentation.confusion import binary_pred
-from semvpr.segmentation.training import build_student, build_teacher
+from semvpr.core.logs import quiet_third_party
+from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
+from semvpr.data.images import load_image
+from semvpr.data.places import common_root
+from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.backbones import Backbone
 from semvpr.models.student import Student, StudentSpec
 from semvpr.models.teacher import Teacher
-from semvpr.core.logs import quiet_third_party
+from semvpr.segmentation.confusion import binary_pred
+from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
+from semvpr.segmentation.training import build_student, build_teacher
 
 SPLITS = ("train", "val", "test")
 #: Keys of the last stdout line, per model.
@@ -51,7 +52,8 @@ def dataset_classes(seg: SegmentationSet) -> list[int]:
 
 
 def save_teacher(teacher: Any, out: Path, image_size: list[int]) -> None:
-    """Hugging Face format (config.json, model.safetensors, preprocessor_config.json), renamed into place when complete."""
+    """Hugging Face format (config.json, model.safetensors, preprocessor_config.json), renamed into place
+    when complete."""
     from transformers import Mask2FormerImageProcessor
 
     with atomic_dir(out) as tmp:
@@ -82,9 +84,15 @@ def log_scores(loggers: list[Any], name: str, split: str, scores: dict[str, Any]
 
 
 @torch.no_grad()
-def figure_rows(seg: SegmentationSet, teacher: Teacher, students: dict[str, tuple[Student, Backbone]],
-                static_names: list[str], image_size: list[int], num_images: int,
-                bf16: bool) -> list[tuple[np.ndarray, str, dict[str, np.ndarray]]]:
+def figure_rows(
+    seg: SegmentationSet,
+    teacher: Teacher,
+    students: dict[str, tuple[Student, Backbone]],
+    static_names: list[str],
+    image_size: list[int],
+    num_images: int,
+    bf16: bool,
+) -> list[tuple[np.ndarray, str, dict[str, np.ndarray]]]:
     """Image, ground-truth static mask and each model's binary mask for test images spread over the split."""
     lut = static_lut(tuple(static_names))
     idx = np.unique(np.linspace(0, len(seg) - 1, num_images).round().astype(int))
@@ -103,10 +111,20 @@ def figure_rows(seg: SegmentationSet, teacher: Teacher, students: dict[str, tupl
     return rows
 
 
-def train_students(spec: StudentSpec, backbones: dict[str, tuple[Backbone, str]], sets: dict[str, SegmentationSet],
-                   labels: Path, root: Path, image_size: list[int], static_names: list[str], cache_dir: str,
-                   batch_size: int, num_workers: int, loggers: list[Any],
-                   results: dict[str, Any]) -> dict[str, tuple[Student, Backbone]]:
+def train_students(
+    spec: StudentSpec,
+    backbones: dict[str, tuple[Backbone, str]],
+    sets: dict[str, SegmentationSet],
+    labels: Path,
+    root: Path,
+    image_size: list[int],
+    static_names: list[str],
+    cache_dir: str,
+    batch_size: int,
+    num_workers: int,
+    loggers: list[Any],
+    results: dict[str, Any],
+) -> dict[str, tuple[Student, Backbone]]:
     """A student per frozen backbone (with the name of its weights) on the teacher's labels, scored on val
     and test against the teacher's static classes (into ``results``); returns them by name with their
     backbones, for the figure."""
@@ -118,8 +136,9 @@ def train_students(spec: StudentSpec, backbones: dict[str, tuple[Backbone, str]]
         fitted = json.loads((student.artifact / "metrics.json").read_text())
         entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
         for split in ("val", "test"):
-            scores = score_student(student, backbone, sets[split], image_size, static_names, bool(spec.bf16),
-                                   batch_size, num_workers)
+            scores = score_student(
+                student, backbone, sets[split], image_size, static_names, bool(spec.bf16), batch_size, num_workers
+            )
             log_scores(loggers, f"student_{name}", split, scores)
             entry[split] = scores
         entry.update(entry.pop("test"))
@@ -152,8 +171,9 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     trained = json.loads((artifact / "metrics.json").read_text())
     replay_log(artifact / "logs" / "metrics.csv", loggers, "teacher")
     save_teacher(teacher, run_dir / "teacher", size)
-    results: dict[str, Any] = {"teacher": {"train_s": trained["train_seconds"], "build_s": build_s,
-                                           "checkpoint": str(run_dir / "teacher")}}
+    results: dict[str, Any] = {
+        "teacher": {"train_s": trained["train_seconds"], "build_s": build_s, "checkpoint": str(run_dir / "teacher")}
+    }
     for split in ("val", "test"):
         scores = score_teacher(teacher, sets[split], size, classes, static_names, batch, workers)
         log_scores(loggers, "teacher", split, scores)
@@ -162,21 +182,51 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     tic = time.time()
     root = common_root(list(sets["train"].images))
-    labels = pseudo_labels(teacher, teacher.teacher_key, list(sets["train"].images), size, cfg.paths.cache_dir, root,
-                           batch_size=int(teacher_settings.predict_batch_size), num_workers=workers)
+    labels = pseudo_labels(
+        teacher,
+        teacher.teacher_key,
+        list(sets["train"].images),
+        size,
+        cfg.paths.cache_dir,
+        root,
+        batch_size=int(teacher_settings.predict_batch_size),
+        num_workers=workers,
+    )
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 
-    backbones = {name: (build_backbone(node, int(cfg.seed)).eval(), str(node.get("weights", "none")))
-                 for name, node in cfg.backbones.items()}
-    students = train_students(student_settings, backbones, sets, labels, root, size, static_names, cfg.paths.cache_dir,
-                              batch, workers, loggers, results)
+    backbones = {
+        name: (build_backbone(node, int(cfg.seed)).eval(), str(node.get("weights", "none")))
+        for name, node in cfg.backbones.items()
+    }
+    students = train_students(
+        student_settings,
+        backbones,
+        sets,
+        labels,
+        root,
+        size,
+        static_names,
+        cfg.paths.cache_dir,
+        batch,
+        workers,
+        loggers,
+        results,
+    )
 
-    columns = {"gt": "ground truth\n(bright = static)", "teacher": "teacher mask",
-               **{k: f"student mask\n({k.removeprefix('student_')})" for k in students}}
-    rows = figure_rows(sets["test"], teacher, students, static_names, size, int(cfg.num_figure_images),
-                       bool(student_settings.bf16))
-    mask_figure(rows, columns, run_dir / "figure_masks.png",
-                f"{cfg.seg.name} test: static masks (bright = kept, dark = removed; unlabelled = image only)")
+    columns = {
+        "gt": "ground truth\n(bright = static)",
+        "teacher": "teacher mask",
+        **{k: f"student mask\n({k.removeprefix('student_')})" for k in students},
+    }
+    rows = figure_rows(
+        sets["test"], teacher, students, static_names, size, int(cfg.num_figure_images), bool(student_settings.bf16)
+    )
+    mask_figure(
+        rows,
+        columns,
+        run_dir / "figure_masks.png",
+        f"{cfg.seg.name} test: static masks (bright = kept, dark = removed; unlabelled = image only)",
+    )
     for logger in loggers:
         logger.finalize("success")
     results.update({

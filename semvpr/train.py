@@ -4,6 +4,7 @@ One job: build what the aggregator and mask need (cached), init the aggregator, 
 model, fit with triplet mining, test the best checkpoint, and write ``metrics.json``,
 ``retrievals.json`` and ``maps.npz`` into the run directory for the sweep-end report.
 """
+
 from __future__ import annotations
 
 import json
@@ -21,8 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.config.build import (Prepared, build_retriever, build_trainer, init_aggregator, mining_of, prepare,
-                                 ranks_of)
+from semvpr.config.build import Prepared, build_retriever, build_trainer, init_aggregator, mining_of, prepare, ranks_of
 from semvpr.config.checks import check_config
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
@@ -48,29 +48,35 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
     overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
     if 0 < int(cfg.model.batch_size) < devices * nodes:
-        print(f"semvpr: model.batch_size={cfg.model.batch_size} is the global batch: "
-              f"{devices * nodes - int(cfg.model.batch_size)} of the {devices * nodes} ranks idle in every step",
-              file=sys.stderr)
+        print(
+            f"semvpr: model.batch_size={cfg.model.batch_size} is the global batch: "
+            f"{devices * nodes - int(cfg.model.batch_size)} of the {devices * nodes} ranks idle in every step",
+            file=sys.stderr,
+        )
     job = prepare(cfg, timings)  # generates SynthCity, builds the teacher, labels, student, trunk caches
     with job_ranks(devices, nodes, overrides, run_dir):
         return train_and_test(cfg, run_dir, job, timings, start)
 
 
-def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float],
-                   start: float) -> dict[str, Any] | None:
+def train_and_test(
+    cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float], start: float
+) -> dict[str, Any] | None:
     """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
     retriever = build_retriever(cfg, job.backbone, job.mask_source)
     describe = sharded(retriever.describe_store, int(cfg.model.eval_batch_size))
     evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
     # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
     # (ModelCheckpoint's save_last only refreshes it when the best changes).
-    checkpoint = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5",
-                               mode="max", auto_insert_metric_name=False)
-    latest = RunCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
-                           enable_version_counter=False)
+    checkpoint = RunCheckpoint(
+        dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5", mode="max", auto_insert_metric_name=False
+    )
+    latest = RunCheckpoint(
+        dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
+    )
     trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
-    datamodule = RetrievalDataModule(job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size),
-                                     int(cfg.data.num_workers))
+    datamodule = RetrievalDataModule(
+        job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size), int(cfg.data.num_workers)
+    )
     leader = trainer.global_rank == 0
     # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
     # same numbers whether its artifacts were built just now or read from the cache. The other
@@ -101,22 +107,47 @@ def train_and_test(cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[
     if not leader:
         return None
     tested = evaluation.results["test"]
-    write_job_figure_data(run_dir, job.places["test"], job.features["test"], retriever, tested["predictions"],
-                      int(cfg.num_figure_queries), cfg.mask.name)
-    return job_metrics(cfg, retriever, job, tested, untrained, {
-        "checkpoint": str(tested_ckpt),
-        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
-        "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
-        "tuples_per_epoch": datamodule.num_tuples, "aggregator_init": init_info,
-        "timings": timings, "wall_time_s": time.time() - start})
+    write_job_figure_data(
+        run_dir,
+        job.places["test"],
+        job.features["test"],
+        retriever,
+        tested["predictions"],
+        int(cfg.num_figure_queries),
+        cfg.mask.name,
+    )
+    return job_metrics(
+        cfg,
+        retriever,
+        job,
+        tested,
+        untrained,
+        {
+            "checkpoint": str(tested_ckpt),
+            "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
+            "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
+            "tuples_per_epoch": datamodule.num_tuples,
+            "aggregator_init": init_info,
+            "timings": timings,
+            "wall_time_s": time.time() - start,
+        },
+    )
 
 
-def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: dict[str, Any],
-                untrained: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
+def job_metrics(
+    cfg: DictConfig,
+    retriever: Retriever,
+    job: Prepared,
+    tested: dict[str, Any],
+    untrained: dict[str, Any],
+    run: dict[str, Any],
+) -> dict[str, Any]:
     """The job's metrics.json: what ran, the test recalls (trained and untrained), and ``run``'s facts."""
     class_weights = retriever.class_weights
     return {
-        "status": "ok", "error": None, **run_labels(cfg),
+        "status": "ok",
+        "error": None,
+        **run_labels(cfg),
         "descriptor_dim": retriever.descriptor_dim,
         "class_weights": class_weights.named_weights() if class_weights is not None else None,
         "data": cfg.data.name,
@@ -125,7 +156,8 @@ def job_metrics(cfg: DictConfig, retriever: Retriever, job: Prepared, tested: di
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
         "recalls": {str(n): v for n, v in tested["curve"].items()},
         "test_queries_without_positives": tested["num_without_positives"],
-        "feature_storage": job.storage, **run,
+        "feature_storage": job.storage,
+        **run,
     }
 
 
@@ -133,11 +165,17 @@ def run_labels(cfg: DictConfig) -> dict[str, Any]:
     """What the report groups a run by: aggregator, mask, its weighting, backbone and what its weights are
     (imagenet, none or file), seed; ``filter`` is the preset the config started from (an explicit
     aggregator= or mask= may have replaced its choices)."""
-    return {"aggregator": cfg.aggregator.get("name"), "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
-            "mask": cfg.mask.get("name"), "weights": cfg.mask.get("weights"),
-            "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)), "backbone": cfg.backbone.get("name"),
-            "backbone_weights": weights_kind(cfg.backbone.get("weights")),
-            "filter": cfg.filter.get("name"), "seed": _seed_of(cfg)}
+    return {
+        "aggregator": cfg.aggregator.get("name"),
+        "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
+        "mask": cfg.mask.get("name"),
+        "weights": cfg.mask.get("weights"),
+        "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)),
+        "backbone": cfg.backbone.get("name"),
+        "backbone_weights": weights_kind(cfg.backbone.get("weights")),
+        "filter": cfg.filter.get("name"),
+        "seed": _seed_of(cfg),
+    }
 
 
 def _seed_of(cfg: DictConfig) -> int | str | None:
@@ -173,8 +211,10 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
         metrics = fit_and_test(cfg, run_dir)
     except Exception as err:  # noqa: BLE001 - every failure is recorded for the report
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
-        write_json(run_dir / "metrics.json", {
-            "status": "failed", "error": f"{type(err).__name__}: {message}", **run_labels(cfg)})
+        write_json(
+            run_dir / "metrics.json",
+            {"status": "failed", "error": f"{type(err).__name__}: {message}", **run_labels(cfg)},
+        )
         if multirun:
             print(f"semvpr: job failed ({run_dir}): {message}", file=sys.stderr)
             return {"status": "failed"}

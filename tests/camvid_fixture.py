@@ -1,4 +1,5 @@
 """A tiny CamVid in the SegNet layout: sky over building over road with a car, colour tells the class."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,8 +9,7 @@ from PIL import Image
 
 # CamVid label indices of the scene and their colours.
 SKY, BUILDING, ROAD, CAR, UNLABELLED = 0, 1, 3, 8, 11
-COLOURS = {SKY: (70, 130, 180), BUILDING: (90, 90, 90), ROAD: (128, 64, 128), CAR: (0, 0, 200),
-           UNLABELLED: (0, 0, 0)}
+COLOURS = {SKY: (70, 130, 180), BUILDING: (90, 90, 90), ROAD: (128, 64, 128), CAR: (0, 0, 200), UNLABELLED: (0, 0, 0)}
 
 
 def scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -27,8 +27,9 @@ def scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndar
     return np.clip(img, 0, 255).astype(np.uint8), ids
 
 
-def write_camvid(root: Path, sizes: dict[str, int] | None = None, hw: tuple[int, int] = (36, 48),
-                 absolute_lists: bool = False) -> Path:
+def write_camvid(
+    root: Path, sizes: dict[str, int] | None = None, hw: tuple[int, int] = (36, 48), absolute_lists: bool = False
+) -> Path:
     """``root/{split}/*.png``, ``root/{split}annot/*.png`` and ``root/{split}.txt``; lists in SegNet's
     original absolute form (/SegNet/CamVid/...) when ``absolute_lists``."""
     rng = np.random.default_rng(0)

@@ -1,4 +1,5 @@
 """Shared test set-up: offline, deterministic, small thread count."""
+
 from __future__ import annotations
 
 import os

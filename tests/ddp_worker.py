@@ -4,6 +4,7 @@ in one process or on W gloo ranks; run by tests/test_ddp.py in a subprocess, nev
 ``python tests/ddp_worker.py WORLD OUT``: rank 0 saves to OUT what it saw; every rank's batch is
 gathered to rank 0 so the test can check that the slices recombine to the single-process batches.
 """
+
 from __future__ import annotations
 
 import sys
@@ -17,10 +18,10 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from semvpr.data.places import PlaceSet
+from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.retrieval.distributed import sharded
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
 from semvpr.retrieval.mining import Mining, TrainingEpoch, trainable_queries
-from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.retrieval.retriever import Optimization, Retriever
 
 DIM, GRID = 8, (3, 4)
@@ -53,23 +54,32 @@ def features(num_db: int = 40, num_q: int = 14) -> PlaceFeatures:
     gen = torch.Generator().manual_seed(0)
     db_utm = np.stack([np.arange(num_db) * 5.0, np.zeros(num_db)], 1)
     q_utm = np.stack([np.arange(num_q) * 15.0 + 1.0, np.zeros(num_q)], 1)
-    places = PlaceSet("line", tuple(f"/d/db{i}.jpg" for i in range(num_db)),
-                      tuple(f"/d/q{i}.jpg" for i in range(num_q)), db_utm, q_utm)
+    places = PlaceSet(
+        "line",
+        tuple(f"/d/db{i}.jpg" for i in range(num_db)),
+        tuple(f"/d/q{i}.jpg" for i in range(num_q)),
+        db_utm,
+        q_utm,
+    )
 
     def store(n: int) -> FeatureStore:
-        return FeatureStore(tuple(Path(f"x{i}") for i in range(n)), GRID, torch.randn(n, DIM, *GRID, generator=gen), None)
+        return FeatureStore(
+            tuple(Path(f"x{i}") for i in range(n)), GRID, torch.randn(n, DIM, *GRID, generator=gen), None
+        )
 
     return PlaceFeatures(places, store(num_db), store(num_q))
 
 
 def run(rank: int, world: int, out: str, port: int) -> None:
     if world > 1:
-        dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world,
-                                timeout=timedelta(seconds=120))
+        dist.init_process_group(
+            "gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world, timeout=timedelta(seconds=120)
+        )
     torch.manual_seed(0)
     torch.set_num_threads(1)
-    retriever = Retriever(Trunk(), NetVLAD(num_clusters=4, dim=DIM), optimization=Optimization(torch.optim.SGD),
-                          eval_batch_size=6)
+    retriever = Retriever(
+        Trunk(), NetVLAD(num_clusters=4, dim=DIM), optimization=Optimization(torch.optim.SGD), eval_batch_size=6
+    )
     train = features()
     # Global batches of 3 tuples: uneven slices on 2 ranks, an empty one on 3 ranks; sub-epochs of 7
     # queries end with a 1-query batch, which leaves empty slices on 2 ranks too.
@@ -77,7 +87,9 @@ def run(rank: int, world: int, out: str, port: int) -> None:
     neg_cache = np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64)
     describe = sharded(retriever.describe_store, retriever.eval_batch_size)
     seen: dict[str, Any] = {"db_desc": describe(train.db, None), "grads": [], "batches": [], "pairs": []}
-    epoch = TrainingEpoch(train, mining, trainable_queries(train.places, mining.positive_radius), neg_cache, 0, describe)
+    epoch = TrainingEpoch(
+        train, mining, trainable_queries(train.places, mining.positive_radius), neg_cache, 0, describe
+    )
     step = Step(retriever)
     model = nn.parallel.DistributedDataParallel(step) if world > 1 else step
     params = [p for p in retriever.parameters() if p.requires_grad]
@@ -88,8 +100,10 @@ def run(rank: int, world: int, out: str, port: int) -> None:
             continue
         model(batch).backward()
         seen["grads"].append(torch.cat([p.grad.flatten() for p in params]).clone())
-        local = (batch["trunk"].clone() if "trunk" in batch else torch.zeros(0, DIM, *GRID),
-                 int((batch["tuples"][:, 2:] >= 0).sum()) if "tuples" in batch else 0)
+        local = (
+            batch["trunk"].clone() if "trunk" in batch else torch.zeros(0, DIM, *GRID),
+            int((batch["tuples"][:, 2:] >= 0).sum()) if "tuples" in batch else 0,
+        )
         slices = [None] * world
         if world > 1:
             dist.all_gather_object(slices, local)

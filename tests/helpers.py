@@ -1,5 +1,6 @@
 """Test helpers: the project's Hydra config (with the tiny SynthCity preset), an untrained checkpoint, and
 the small datasets, lists and ground-truth files the tests write in each reader's layout."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -21,8 +22,9 @@ EVAL_SIZE = ["data.image_size=[32,48]", "data.num_workers=0"]
 def tiny_config(cache_dir: Path, *overrides: str, config_name: str = "train") -> DictConfig:
     """The train config on the tiny preset, caching into ``cache_dir``."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(config_name=config_name,
-                       overrides=["experiment=tiny", f"paths.cache_dir={cache_dir}", *overrides])
+        return compose(
+            config_name=config_name, overrides=["experiment=tiny", f"paths.cache_dir={cache_dir}", *overrides]
+        )
 
 
 def config(*overrides: str, config_name: str = "train") -> DictConfig:
@@ -70,14 +72,24 @@ def make_folder(root: Path, n: int = 6) -> Path:
     return root
 
 
-def write_pitts_mat(path: Path, which: str, db: list[str], q: list[str], db_utm: list | None = None,
-              q_utm: list | None = None) -> None:
+def write_pitts_mat(
+    path: Path, which: str, db: list[str], q: list[str], db_utm: list | None = None, q_utm: list | None = None
+) -> None:
     """A Pitts/Tokyo dbStruct .mat (fields in MATLAB's order); place i at place_utm(i) unless given."""
     utm_db = np.array(db_utm or [place_utm(i) for i in range(len(db))]).T
     utm_q = np.array(q_utm or [place_utm(i) for i in range(len(q))]).T
-    fields = [("whichSet", which), ("dbImageFns", np.array(db, dtype=object)[:, None]), ("utmDb", utm_db),
-              ("qImageFns", np.array(q, dtype=object)[:, None]), ("utmQ", utm_q), ("numImages", len(db)),
-              ("numQueries", len(q)), ("posDistThr", 25), ("posDistSqThr", 625), ("nonTrivPosDistSqThr", 100)]
+    fields = [
+        ("whichSet", which),
+        ("dbImageFns", np.array(db, dtype=object)[:, None]),
+        ("utmDb", utm_db),
+        ("qImageFns", np.array(q, dtype=object)[:, None]),
+        ("utmQ", utm_q),
+        ("numImages", len(db)),
+        ("numQueries", len(q)),
+        ("posDistThr", 25),
+        ("posDistSqThr", 625),
+        ("nonTrivPosDistSqThr", 100),
+    ]
     record = np.empty((1, 1), dtype=[(name, object) for name, _ in fields])
     for name, value in fields:
         record[0, 0][name] = value
@@ -90,13 +102,21 @@ def write_jpg(path: Path) -> None:
     Image.new("RGB", (8, 6), (120, 30, 200)).save(path)
 
 
-def write_dbstruct(path: Path, db_names: list[str], db_utm: np.ndarray, q_names: list[str],
-                   q_utm: np.ndarray, drop: str | None = None) -> None:
+def write_dbstruct(
+    path: Path, db_names: list[str], db_utm: np.ndarray, q_names: list[str], q_utm: np.ndarray, drop: str | None = None
+) -> None:
     """A dbStruct .mat as MATLAB writes it: one struct, fields in the Pitts order."""
     values = {
-        "whichSet": "test", "dbImageFns": db_names, "utmDb": db_utm.T, "qImageFns": q_names,
-        "utmQ": q_utm.T, "numImages": len(db_names), "numQueries": len(q_names),
-        "posDistThr": 25.0, "posDistSqThr": 625.0, "nonTrivPosDistSqThr": 100.0,
+        "whichSet": "test",
+        "dbImageFns": db_names,
+        "utmDb": db_utm.T,
+        "qImageFns": q_names,
+        "utmQ": q_utm.T,
+        "numImages": len(db_names),
+        "numQueries": len(q_names),
+        "posDistThr": 25.0,
+        "posDistSqThr": 625.0,
+        "nonTrivPosDistSqThr": 100.0,
     }
     fields = [f for f in DBSTRUCT_FIELDS if f != drop]
     struct = np.empty((1, 1), dtype=[(f, object) for f in fields])
@@ -111,8 +131,9 @@ def write_dbstruct(path: Path, db_names: list[str], db_utm: np.ndarray, q_names:
     scipy.io.savemat(str(path), {"dbStruct": struct})
 
 
-def write_msls_side(folder: Path, rows: list[tuple[str, float, float, bool, bool]],
-                    columns: str = "easting,northing") -> None:
+def write_msls_side(
+    folder: Path, rows: list[tuple[str, float, float, bool, bool]], columns: str = "easting,northing"
+) -> None:
     """One side of a city in the official MSLS layout (mapillary_sls README): postprocessed.csv with
     UTMs, raw.csv with the panorama flag, subtask_index.csv, seq_info.csv, all indexed by frame.
     A row is (key, easting, northing, is_panorama, in the 'all' subtask)."""
@@ -173,11 +194,15 @@ class CountingTeacher:
 def write_msls_cities(root: Path) -> Path:
     """An MSLS tree: cph and sf (val), london and zurich (train), miami (official test, no ground truth)."""
     tv = root / "train_val"
-    write_msls_side(tv / "cph" / "database", [("c_db0", 100.0, 0.0, False, True), ("c_db1", 300.0, 0.0, False, True),
-                                             ("c_pano", 100.0, 1.0, True, True)])
+    write_msls_side(
+        tv / "cph" / "database",
+        [("c_db0", 100.0, 0.0, False, True), ("c_db1", 300.0, 0.0, False, True), ("c_pano", 100.0, 1.0, True, True)],
+    )
     write_msls_side(tv / "cph" / "query", [("c_q0", 105.0, 0.0, False, True), ("c_q_other", 300.0, 2.0, False, False)])
     # Same UTM numbers as cph, in another zone.
-    write_msls_side(tv / "london" / "database", [("l_db0", 100.0, 0.0, False, True), ("l_pano", 100.0, 0.0, True, True)])
+    write_msls_side(
+        tv / "london" / "database", [("l_db0", 100.0, 0.0, False, True), ("l_pano", 100.0, 0.0, True, True)]
+    )
     write_msls_side(tv / "london" / "query", [("l_q0", 101.0, 0.0, False, True), ("l_qpano", 101.0, 0.0, True, True)])
     write_msls_side(tv / "sf" / "database", [("s_db0", 5.0, 5.0, False, True)])
     write_msls_side(tv / "sf" / "query", [("s_q0", 5.0, 6.0, False, True)])
@@ -208,5 +233,9 @@ def labels_key(paths: list[Path], root: Path) -> dict:
     """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
     from semvpr.segmentation.pseudolabels import VERSION, image_list_identity
 
-    return {"version": VERSION, "teacher": "teacher-abc", "images": image_list_identity(paths, root),
-            "image_size": list(LABEL_SIZE)}
+    return {
+        "version": VERSION,
+        "teacher": "teacher-abc",
+        "images": image_list_identity(paths, root),
+        "image_size": list(LABEL_SIZE),
+    }

@@ -1,5 +1,6 @@
 """Each aggregator agrees with its paper's formula re-derived here with plain torch ops (the mask
 contract every aggregator keeps is tested on every shipped config in ``test_components.py``)."""
+
 from __future__ import annotations
 
 import math
@@ -51,7 +52,7 @@ def test_gem_matches_radenovic() -> None:
     for b in range(2):
         xs = x[b].reshape(D, -1).clamp(min=1e-6)
         ws = w[b].reshape(-1)
-        f = ((xs ** p * ws).sum(1) / ws.sum()) ** (1 / p)
+        f = ((xs**p * ws).sum(1) / ws.sum()) ** (1 / p)
         expected.append(f / f.norm())
     with torch.no_grad():
         torch.testing.assert_close(agg(x, w), torch.stack(expected))
@@ -86,9 +87,11 @@ def test_mixvpr_matches_the_paper() -> None:
         for layer in agg.mix:  # X ← X + W2 ReLU(W1 LN(X))
             mu, var = rows.mean(-1, keepdim=True), rows.var(-1, unbiased=False, keepdim=True)
             normed = (rows - mu) / torch.sqrt(var + 1e-5) * layer.norm.weight + layer.norm.bias
-            rows = rows + (torch.relu(normed @ layer.fc1.weight.T + layer.fc1.bias) @ layer.fc2.weight.T + layer.fc2.bias)
-        z = agg.channel_proj.weight @ rows + agg.channel_proj.bias[:, None]   # (B, out_channels, hw)
-        z = z @ agg.row_proj.weight.T                                        # (B, out_channels, out_rows)
+            rows = rows + (
+                torch.relu(normed @ layer.fc1.weight.T + layer.fc1.bias) @ layer.fc2.weight.T + layer.fc2.bias
+            )
+        z = agg.channel_proj.weight @ rows + agg.channel_proj.bias[:, None]  # (B, out_channels, hw)
+        z = z @ agg.row_proj.weight.T  # (B, out_channels, out_rows)
         expected = z.reshape(2, -1)
         torch.testing.assert_close(agg(x), expected / expected.norm(dim=1, keepdim=True), rtol=1e-5, atol=1e-6)
         w = torch.rand(2, 1, H, W)
@@ -121,10 +124,10 @@ def test_salad_matches_the_paper() -> None:
         for weights in (None, w):
             out = []
             for b in range(2):
-                locs = x[b].reshape(D, n).T                                   # (n, D)
+                locs = x[b].reshape(D, n).T  # (n, D)
                 wb = torch.ones(n) if weights is None else weights[b].reshape(n)
-                f, s = _mlp(agg.cluster_features, locs).T, _mlp(agg.score, locs).T   # (l, n), (m, n)
-                s_bar = torch.cat([s, torch.full((1, n), 0.7)])                  # dustbin row
+                f, s = _mlp(agg.cluster_features, locs).T, _mlp(agg.score, locs).T  # (l, n), (m, n)
+                s_bar = torch.cat([s, torch.full((1, n), 0.7)])  # dustbin row
                 mu = torch.cat([torch.ones(m), torch.tensor([float(n - m)])]) / (m + n)
                 nu = wb / (m + n)
                 # Sinkhorn on K = exp(S̄): alternately rescale rows to mu and columns to nu
@@ -133,7 +136,7 @@ def test_salad_matches_the_paper() -> None:
                     r = mu / (kmat @ c)
                     c = nu / (kmat.T @ r)
                 plan = r[:, None] * kmat * c[None] * (m + n)
-                v = f @ plan[:m].T                                               # (l, m)
+                v = f @ plan[:m].T  # (l, m)
                 v = v / v.norm(dim=0, keepdim=True)
                 token = (locs * wb[:, None]).sum(0) / wb.sum()
                 g = _mlp(agg.token_features, token)
@@ -175,12 +178,15 @@ def test_boq_matches_the_paper() -> None:
                 for blk in agg.blocks:
                     enc = blk.encoder  # post-norm: x ← LN(x + SA(x)); x ← LN(x + W2 ReLU(W1 x))
                     tokens = ln(tokens + _attention(tokens, tokens, enc.self_attn, bias), enc.norm1)
-                    ff = torch.relu(tokens @ enc.linear1.weight.T + enc.linear1.bias) @ enc.linear2.weight.T + enc.linear2.bias
+                    ff = (
+                        torch.relu(tokens @ enc.linear1.weight.T + enc.linear1.bias) @ enc.linear2.weight.T
+                        + enc.linear2.bias
+                    )
                     tokens = ln(tokens + ff, enc.norm2)
                     q = blk.queries[0]
                     q = ln(q + _attention(q, q, blk.self_attn, torch.zeros(len(q))), blk.norm_q)
                     outs.append(ln(_attention(q, tokens, blk.cross_attn, bias), blk.norm_out))
-                stacked = torch.cat(outs)                                        # (L·Q, d)
-                rows = stacked.T @ agg.fc.weight.T + agg.fc.bias                 # (d, row_dim)
+                stacked = torch.cat(outs)  # (L·Q, d)
+                rows = stacked.T @ agg.fc.weight.T + agg.fc.bias  # (d, row_dim)
                 out.append(rows.reshape(-1) / rows.norm())
             torch.testing.assert_close(agg(x, weights), torch.stack(out), rtol=1e-4, atol=1e-5)

@@ -1,4 +1,5 @@
 """The artifact cache: built once, atomically, even by concurrent jobs."""
+
 from __future__ import annotations
 
 import multiprocessing as mp
@@ -17,14 +18,14 @@ def _slow_build(log: str, tmp: Path) -> None:
     (tmp / "content.txt").write_text("done")
 
 
-def _job(cache: str, log: str, out: "mp.Queue[str]") -> None:
+def _job(cache: str, log: str, out: mp.Queue[str]) -> None:
     out.put(str(build_once(cache, "thing", {"a": 1}, lambda tmp: _slow_build(log, tmp))))
 
 
 def test_concurrent_jobs_build_an_artifact_once(tmp_path: Path) -> None:
     cache, log = tmp_path / "cache", tmp_path / "builds.log"
     ctx = mp.get_context("fork")
-    out: "mp.Queue[str]" = ctx.Queue()
+    out: mp.Queue[str] = ctx.Queue()
     jobs = [ctx.Process(target=_job, args=(str(cache), str(log), out)) for _ in range(3)]
     for job in jobs:
         job.start()

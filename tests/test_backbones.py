@@ -1,4 +1,5 @@
 """Backbones: shapes/strides from the table, frozen/trainable split, weights loading errors."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -44,7 +45,7 @@ def test_vgg16_requires_grad_and_eval_split(vgg: VGG16Backbone) -> None:
     assert sum(p.numel() for p in vgg.parameters() if p.requires_grad) == 3 * (512 * 512 * 9 + 512)
     assert len(trainable) == 6 and len(frozen) == 20
     vgg.train()
-    assert all(not u.training for u in vgg.units[: vgg.split]) and all(u.training for u in vgg.units[vgg.split:])
+    assert all(not u.training for u in vgg.units[: vgg.split]) and all(u.training for u in vgg.units[vgg.split :])
     vgg.eval()
 
 
@@ -64,10 +65,13 @@ def test_vgg16_channels_last_and_other_splits(vgg: VGG16Backbone) -> None:
     torch.testing.assert_close(frozen_all.forward_trainable(frozen_all.forward_frozen(x)[-1]), ref)
 
 
-@pytest.mark.parametrize("stage,channels,strides", [
-    ("layer3", (64, 256, 512, 1024), (2, 4, 8, 16)),
-    ("layer4", (64, 256, 512, 1024, 2048), (2, 4, 8, 16, 32)),
-])
+@pytest.mark.parametrize(
+    "stage,channels,strides",
+    [
+        ("layer3", (64, 256, 512, 1024), (2, 4, 8, 16)),
+        ("layer4", (64, 256, 512, 1024, 2048), (2, 4, 8, 16, 32)),
+    ],
+)
 def test_resnet50_shapes_and_split(stage: str, channels: tuple[int, ...], strides: tuple[int, ...]) -> None:
     model = ResNet50Backbone(stage=stage, train_from="layer3").eval()
     assert model.skip_channels == channels and model.skip_strides == strides and model.out_channels == channels[-1]
@@ -78,7 +82,9 @@ def test_resnet50_shapes_and_split(stage: str, channels: tuple[int, ...], stride
     assert model.frozen_channels == (64, 256, 512)
     _check_table(model, frozen, model.frozen_channels, model.frozen_strides, (64, 64))
     torch.testing.assert_close(model.forward_trainable(frozen[-1]), outs[-1], rtol=0, atol=0)
-    assert all(not p.requires_grad for n, p in model.named_parameters() if n.startswith(("units.0.", "units.2.", "units.3.")))
+    assert all(
+        not p.requires_grad for n, p in model.named_parameters() if n.startswith(("units.0.", "units.2.", "units.3."))
+    )
     assert all(p.requires_grad for n, p in model.named_parameters() if n.startswith("units.4."))
     model.train()
     assert not model.units[0][1].training and model.units[4].training  # frozen BatchNorm keeps its statistics
@@ -86,8 +92,10 @@ def test_resnet50_shapes_and_split(stage: str, channels: tuple[int, ...], stride
 
 def test_missing_imagenet_weights_offline(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("TORCH_HOME", str(tmp_path))
-    for build, name in ((lambda: VGG16Backbone(weights="imagenet"), "vgg16-397923af.pth"),
-                        (lambda: ResNet50Backbone(weights="imagenet"), "resnet50-0676ba61.pth")):
+    for build, name in (
+        (lambda: VGG16Backbone(weights="imagenet"), "vgg16-397923af.pth"),
+        (lambda: ResNet50Backbone(weights="imagenet"), "resnet50-0676ba61.pth"),
+    ):
         with pytest.raises(SemvprError) as err:
             build()
         msg = str(err.value)
@@ -109,7 +117,6 @@ def test_weights_from_path(tmp_path: Path, vgg: VGG16Backbone) -> None:
         VGG16Backbone(weights=tmp_path / "bad.pth")
     with pytest.raises(SemvprError, match="train_from"):
         VGG16Backbone(train_from="conv9")
-
 
 
 def _imagenet_normalise(x: torch.Tensor) -> torch.Tensor:
@@ -154,10 +161,14 @@ def test_resnet50_cut_matches_the_benchmark() -> None:
     resnet = torchvision.models.resnet50().eval()
     reference = torch.nn.Sequential(*list(resnet.children())[:-3]).eval()
     ours = ResNet50Backbone(stage="layer3", weights="none", train_from="layer3").eval()
-    prefixes = {"conv1.": "units.0.0.", "bn1.": "units.0.1.", "layer1.": "units.2.", "layer2.": "units.3.",
-                "layer3.": "units.4."}
-    state = {prefixes[p] + k[len(p):]: v for k, v in resnet.state_dict().items()
-             for p in prefixes if k.startswith(p)}
+    prefixes = {
+        "conv1.": "units.0.0.",
+        "bn1.": "units.0.1.",
+        "layer1.": "units.2.",
+        "layer2.": "units.3.",
+        "layer3.": "units.4.",
+    }
+    state = {prefixes[p] + k[len(p) :]: v for k, v in resnet.state_dict().items() for p in prefixes if k.startswith(p)}
     ours.load_state_dict(state, strict=True)
     x = torch.rand(1, 3, 64, 96)
     with torch.no_grad():
@@ -235,8 +246,15 @@ def _tf_same_conv(x: torch.Tensor, w: torch.Tensor, stride: int, groups: int = 1
 def _bn(x: torch.Tensor, sd: dict[str, torch.Tensor], name: str) -> torch.Tensor:
     import torch.nn.functional as F
 
-    return F.batch_norm(x, sd[f"{name}.running_mean"], sd[f"{name}.running_var"], sd[f"{name}.weight"],
-                        sd[f"{name}.bias"], training=False, eps=1e-3)  # TF's BatchNorm epsilon
+    return F.batch_norm(
+        x,
+        sd[f"{name}.running_mean"],
+        sd[f"{name}.running_var"],
+        sd[f"{name}.weight"],
+        sd[f"{name}.bias"],
+        training=False,
+        eps=1e-3,
+    )  # TF's BatchNorm epsilon
 
 
 def test_efficientnet_lite0_equals_the_wheel_tensors_applied_by_hand() -> None:
@@ -253,7 +271,9 @@ def test_efficientnet_lite0_equals_the_wheel_tensors_applied_by_hand() -> None:
     for n, stride in ((1, 2), (2, 1)):  # stage2: two inverted residuals, the second with a skip
         b = f"_blocks.{n}"
         e = _bn(_tf_same_conv(h, sd[f"{b}._expand_conv.weight"], 1), sd, f"{b}._bn0").clamp(0, 6)
-        e = _bn(_tf_same_conv(e, sd[f"{b}._depthwise_conv.weight"], stride, groups=e.shape[1]), sd, f"{b}._bn1").clamp(0, 6)
+        e = _bn(_tf_same_conv(e, sd[f"{b}._depthwise_conv.weight"], stride, groups=e.shape[1]), sd, f"{b}._bn1").clamp(
+            0, 6
+        )
         e = _bn(_tf_same_conv(e, sd[f"{b}._project_conv.weight"], 1), sd, f"{b}._bn2")
         h = e if stride == 2 else h + e
     backbone = EfficientNetLite0Backbone(weights="imagenet", train_from="stage3").eval()
@@ -271,7 +291,9 @@ def test_efficientnet_lite0_table_split_and_weights(tmp_path: Path) -> None:
     x = torch.rand(1, 3, 64, 96)
     _check_table(b, b(x), (16, 24, 40, 112, 320), (2, 4, 8, 16, 32), (64, 96))
     assert b.frozen_channels == (16, 24, 40, 112) and b.out_channels == 320
-    assert not any(p.requires_grad for p in b.units[:4].parameters()) and all(p.requires_grad for p in b.units[4].parameters())
+    assert not any(p.requires_grad for p in b.units[:4].parameters()) and all(
+        p.requires_grad for p in b.units[4].parameters()
+    )
     # Random init differs per seed, the ImageNet trunk does not: that is what lets seeds share trunk caches.
     torch.manual_seed(0)
     a0 = EfficientNetLite0Backbone(weights="none").frozen_identity()
@@ -294,4 +316,3 @@ def test_efficientnet_lite0_table_split_and_weights(tmp_path: Path) -> None:
         EfficientNetLite0Backbone(weights=tmp_path / "bad.pth")
     with pytest.raises(SemvprError, match="stage"):
         EfficientNetLite0Backbone(stage="stage3")
-

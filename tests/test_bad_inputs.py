@@ -4,19 +4,20 @@ Each row runs ``python -m <cli> ...`` from an empty working directory with its r
 cache under the test's tmp dir, and lists every file before and after: new files may appear only
 in the run directory and the cache.
 """
+
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
 import torch
-from tests.helpers import make_folder, write_image, write_pitts_mat
 
+from tests.helpers import make_folder, write_image, write_pitts_mat
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL_SIZE = ["data.image_size=[32,48]"]
@@ -74,21 +75,46 @@ CASES: dict[str, tuple[list[str], Callable[[Path, Path], list[str]], str]] = {
     "negative radius": (TRAIN, lambda t, c: ["model.positive_radius=-5"], "model.positive_radius=-5"),
     "eval 0-byte ckpt": (EVAL, lambda t, c: [f"ckpt={_empty(t)}"], "empty.ckpt"),
     "eval seed 2**70": (EVAL, lambda t, c: [f"ckpt={_seed_2_70(t, c)}"], "seed=1180591620717411303424"),
-    "eval NaN UTMs": (EVAL, lambda t, c: [f"ckpt={c}", "data=folder", f"data.root={_nan_folder(t)}"],
-                      "non-finite position"),
-    "eval utmQ string": (EVAL, lambda t, c: [f"ckpt={c}", "data=pitts30k", f"data.root={_string_utm_pitts(t)}"],
-                         "utmQ"),
-    "localize top_k=0": (["semvpr.localize", *EVAL_SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"], "top_k=0"),
-    "localize top_k=-1": (["semvpr.localize", *EVAL_SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"],
-                          "top_k=-1"),
-    "localize top_k=abc": (["semvpr.localize", *EVAL_SIZE], lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"],
-                           "top_k='abc'"),
-    "synthcity --seed -5": (["semvpr.data.synthcity"], lambda t, c: ["--out", str(t / "city"), "--seed", "-5"],
-                            "seed=-5"),
-    "synthcity view_m=inf": (["semvpr.data.synthcity"],
-                             lambda t, c: ["--out", str(t / "city"), "--render", "view_m=inf"], "view_m"),
-    "synthcity --out under a file": (["semvpr.data.synthcity"], lambda t, c: ["--out", f"{_a_file(t)}/city"],
-                                     "is a file"),
+    "eval NaN UTMs": (
+        EVAL,
+        lambda t, c: [f"ckpt={c}", "data=folder", f"data.root={_nan_folder(t)}"],
+        "non-finite position",
+    ),
+    "eval utmQ string": (
+        EVAL,
+        lambda t, c: [f"ckpt={c}", "data=pitts30k", f"data.root={_string_utm_pitts(t)}"],
+        "utmQ",
+    ),
+    "localize top_k=0": (
+        ["semvpr.localize", *EVAL_SIZE],
+        lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"],
+        "top_k=0",
+    ),
+    "localize top_k=-1": (
+        ["semvpr.localize", *EVAL_SIZE],
+        lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"],
+        "top_k=-1",
+    ),
+    "localize top_k=abc": (
+        ["semvpr.localize", *EVAL_SIZE],
+        lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"],
+        "top_k='abc'",
+    ),
+    "synthcity --seed -5": (
+        ["semvpr.data.synthcity"],
+        lambda t, c: ["--out", str(t / "city"), "--seed", "-5"],
+        "seed=-5",
+    ),
+    "synthcity view_m=inf": (
+        ["semvpr.data.synthcity"],
+        lambda t, c: ["--out", str(t / "city"), "--render", "view_m=inf"],
+        "view_m",
+    ),
+    "synthcity --out under a file": (
+        ["semvpr.data.synthcity"],
+        lambda t, c: ["--out", f"{_a_file(t)}/city"],
+        "is a file",
+    ),
 }
 
 
@@ -108,11 +134,20 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, case
     cwd.mkdir()
     args = bad(inputs, checkpoint)
     if module != "semvpr.data.synthcity":
-        args += [f"paths.cache_dir={cache}", f"hydra.run.dir={run}"] if not any(
-            a.startswith("paths.cache_dir=") for a in args) else [f"hydra.run.dir={run}"]
+        args += (
+            [f"paths.cache_dir={cache}", f"hydra.run.dir={run}"]
+            if not any(a.startswith("paths.cache_dir=") for a in args)
+            else [f"hydra.run.dir={run}"]
+        )
     before = files(tmp_path)
-    proc = subprocess.run([sys.executable, "-m", module, *fixed, *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=300, env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.run(
+        [sys.executable, "-m", module, *fixed, *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
     assert lines[0].startswith("semvpr: error: ") and fragment in lines[0], lines[0]

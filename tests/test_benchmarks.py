@@ -1,4 +1,5 @@
 """Readers of the community's ground-truth formats: real Pitts30k-test lists and tiny fixtures."""
+
 from __future__ import annotations
 
 import os
@@ -7,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semvpr.core.errors import SemvprError
 from semvpr.data.benchmarks import (
     load_npy,
     read_msls_val_npy,
@@ -14,14 +16,17 @@ from semvpr.data.benchmarks import (
     read_npy_lists,
     read_patchnetvlad,
 )
-from semvpr.core.errors import SemvprError
 from tests.helpers import EVAL_SIZE, make_folder, object_array, same_images_as_lists, write_lists
 
 # ../shared/realdata beside the checkout (or beside the folder of worktrees).
-REAL = next((p / "shared" / "realdata" for p in Path(__file__).resolve().parents[2:4] if (p / "shared" / "realdata").is_dir()),
-            Path("shared/realdata"))
-needs_real = pytest.mark.skipif(not (REAL / "pitts30k_test.npz").is_file() or not (REAL / "pitts30k_test_qImages.npy").is_file(),
-                                 reason="real Pitts30k-test lists (../shared/realdata) not present")
+REAL = next(
+    (p / "shared" / "realdata" for p in Path(__file__).resolve().parents[2:4] if (p / "shared" / "realdata").is_dir()),
+    Path("shared/realdata"),
+)
+needs_real = pytest.mark.skipif(
+    not (REAL / "pitts30k_test.npz").is_file() or not (REAL / "pitts30k_test_qImages.npy").is_file(),
+    reason="real Pitts30k-test lists (../shared/realdata) not present",
+)
 
 
 def touch(root: Path, *names: str) -> None:
@@ -46,16 +51,22 @@ def test_npy_lists_carry_the_shipped_positives(tmp_path: Path) -> None:
     assert "database" in places.summary() and "nan" not in places.summary()
 
 
-@pytest.mark.parametrize("case, match", [
-    ("missing_gt", r"tiny_test_gt.npy not found"),
-    ("short_gt", r"1 rows of positives .* for 2 queries"),
-    ("float_gt", r"row 0 holds float64 values, expected database indices"),
-    ("out_of_range", r"ground truth of query 1 holds \[3\], not database indices in \[0, 3\)"),
-    ("names_2d", r"expected a non-empty 1-D array of image paths"),
-    ("not_npy", r"not a readable .npy array"),
-    ("code_in_pickle", r"not a readable .npy array .*posix.system is not part of a numpy array|nt.system is not part"),
-    ("no_image", r"first query image 'qry/x.jpg' not found"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("missing_gt", r"tiny_test_gt.npy not found"),
+        ("short_gt", r"1 rows of positives .* for 2 queries"),
+        ("float_gt", r"row 0 holds float64 values, expected database indices"),
+        ("out_of_range", r"ground truth of query 1 holds \[3\], not database indices in \[0, 3\)"),
+        ("names_2d", r"expected a non-empty 1-D array of image paths"),
+        ("not_npy", r"not a readable .npy array"),
+        (
+            "code_in_pickle",
+            r"not a readable .npy array .*posix.system is not part of a numpy array|nt.system is not part",
+        ),
+        ("no_image", r"first query image 'qry/x.jpg' not found"),
+    ],
+)
 def test_npy_lists_bad_files_give_one_line(tmp_path: Path, case: str, match: str) -> None:
     db, q = ["ref/a.jpg", "ref/b.jpg", "ref/c.jpg"], ["qry/x.jpg", "qry/y.jpg"]
     gt_dir = tmp_path / "gt"
@@ -167,16 +178,22 @@ def test_real_patchnetvlad_npz_scores_within_its_radius(tmp_path: Path) -> None:
     assert sum(len(p) > 0 for p in expected) == 6816  # every Pitts30k-test query has a positive
 
 
-@pytest.mark.parametrize("case, match", [
-    ("missing_key", r"lacks \['posDistThr'\]"),
-    ("short_list", r"utmQ is float64\[3, 2\], expected \(2, 2\) positions for the 2 images listed"),
-    ("bad_radius", r"posDistThr is -5.0, expected one positive radius in metres"),
-    ("empty_list", r"image list .*db.txt is empty"),
-    ("not_npz", r"not a readable .npz"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("missing_key", r"lacks \['posDistThr'\]"),
+        ("short_list", r"utmQ is float64\[3, 2\], expected \(2, 2\) positions for the 2 images listed"),
+        ("bad_radius", r"posDistThr is -5.0, expected one positive radius in metres"),
+        ("empty_list", r"image list .*db.txt is empty"),
+        ("not_npz", r"not a readable .npz"),
+    ],
+)
 def test_patchnetvlad_bad_files_give_one_line(tmp_path: Path, case: str, match: str) -> None:
-    fields = {"utmDb": np.array([[0.0, 0.0], [30.0, 0.0]]), "utmQ": np.array([[1.0, 0.0], [29.0, 0.0], [90.0, 0.0]]),
-              "posDistThr": np.array(25.0)}
+    fields = {
+        "utmDb": np.array([[0.0, 0.0], [30.0, 0.0]]),
+        "utmQ": np.array([[1.0, 0.0], [29.0, 0.0], [90.0, 0.0]]),
+        "posDistThr": np.array(25.0),
+    }
     (tmp_path / "db.txt").write_text("d0.jpg\nd1.jpg\n")
     (tmp_path / "q.txt").write_text("q0.jpg\nq1.jpg\nq2.jpg\n")
     touch(tmp_path, "d0.jpg", "q0.jpg")
@@ -198,8 +215,12 @@ def test_patchnetvlad_bad_files_give_one_line(tmp_path: Path, case: str, match: 
 
 
 def test_patchnetvlad_fixture_positives(tmp_path: Path) -> None:
-    np.savez(tmp_path / "tiny.npz", utmDb=np.array([[0.0, 0.0], [30.0, 0.0]]),
-             utmQ=np.array([[1.0, 0.0], [29.0, 0.0], [90.0, 0.0]]), posDistThr=np.array(5))
+    np.savez(
+        tmp_path / "tiny.npz",
+        utmDb=np.array([[0.0, 0.0], [30.0, 0.0]]),
+        utmQ=np.array([[1.0, 0.0], [29.0, 0.0], [90.0, 0.0]]),
+        posDistThr=np.array(5),
+    )
     (tmp_path / "db.txt").write_text("d0.jpg\nd1.jpg\n")
     (tmp_path / "q.txt").write_text("q0.jpg\nq1.jpg\nq2.jpg\n")
     touch(tmp_path, "d0.jpg", "q0.jpg")
@@ -259,7 +280,12 @@ def _patchnetvlad(tmp: Path, root: Path) -> list[str]:
     (tmp / "q.txt").write_text("\n".join(q))
     utm = np.array([parse_utm_name(n) for n in db])
     np.savez(tmp / "tiny.npz", utmDb=utm, utmQ=utm, posDistThr=np.array(25))
-    return ["data=patchnetvlad", f"data.npz={tmp / 'tiny.npz'}", f"data.db_list={tmp / 'db.txt'}", f"data.q_list={tmp / 'q.txt'}"]
+    return [
+        "data=patchnetvlad",
+        f"data.npz={tmp / 'tiny.npz'}",
+        f"data.db_list={tmp / 'db.txt'}",
+        f"data.q_list={tmp / 'q.txt'}",
+    ]
 
 
 def _nordland(tmp: Path, root: Path) -> list[str]:
@@ -272,8 +298,9 @@ def _nordland(tmp: Path, root: Path) -> list[str]:
 
 
 @pytest.mark.parametrize("make", [_gsv_npy, _msls_val, _patchnetvlad, _nordland], ids=lambda f: f.__name__[1:])
-def test_each_benchmark_config_evaluates_a_checkpoint(checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                      make) -> None:
+def test_each_benchmark_config_evaluates_a_checkpoint(
+    checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, make
+) -> None:
     from semvpr.data import published
     from semvpr.eval import evaluate_checkpoint
     from tests.helpers import config
@@ -285,13 +312,23 @@ def test_each_benchmark_config_evaluates_a_checkpoint(checkpoint: Path, tmp_path
     monkeypatch.setattr(published, "PUBLISHED", fixture)
     published.published.cache_clear()
     try:
-        cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                     *EVAL_SIZE, config_name="eval")
+        cfg = config(
+            *overrides,
+            f"data.root={root}",
+            f"+ckpt={checkpoint}",
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            *EVAL_SIZE,
+            config_name="eval",
+        )
         result = evaluate_checkpoint(cfg)
     finally:
         published.published.cache_clear()
     assert (result["database"], result["queries"]) == (4, 4)
     # Each query is its place's database image again: any model retrieves it first.
     assert result["test/R@1"] == 100.0 and result["queries_without_positives"] == 0
-    assert result["benchmark"] == {"gsv_npy": "tiny_test", "msls_val": "msls_val", "patchnetvlad": None,
-                                   "nordland": "nordland±0"}[result["data"]]
+    assert (
+        result["benchmark"]
+        == {"gsv_npy": "tiny_test", "msls_val": "msls_val", "patchnetvlad": None, "nordland": "nordland±0"}[
+            result["data"]
+        ]
+    )

@@ -1,4 +1,5 @@
 """CamVid reader: pairing from the split lists, the label table, and one-line errors."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,10 +8,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from semvpr.core.errors import SemvprError
 from semvpr.data.camvid import CAMVID_NAMES, camvid_lut, read_camvid
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.segmentation.datamodule import SegmentationDataset, split_set
-from semvpr.core.errors import SemvprError
 from semvpr.segmentation.training import dataset_identity
 from tests.camvid_fixture import write_camvid
 
@@ -18,9 +19,19 @@ from tests.camvid_fixture import write_camvid
 def test_label_table_maps_onto_cityscapes_train_ids() -> None:
     lut = camvid_lut()
     names = {camvid: TRAIN_ID_NAMES[lut[i]] for i, camvid in enumerate(CAMVID_NAMES)}
-    assert names == {"Sky": "sky", "Building": "building", "Pole": "pole", "Road": "road", "Pavement": "sidewalk",
-                     "Tree": "vegetation", "SignSymbol": "traffic sign", "Fence": "fence", "Car": "car",
-                     "Pedestrian": "person", "Bicyclist": "rider"}
+    assert names == {
+        "Sky": "sky",
+        "Building": "building",
+        "Pole": "pole",
+        "Road": "road",
+        "Pavement": "sidewalk",
+        "Tree": "vegetation",
+        "SignSymbol": "traffic sign",
+        "Fence": "fence",
+        "Car": "car",
+        "Pedestrian": "person",
+        "Bicyclist": "rider",
+    }
     assert [lut[i] for i in (0, 3, 8, 9, 10)] == [10, 0, 13, 11, 12]
     assert lut[11] == IGNORE and set(lut[12:]) == {IGNORE}  # Unlabelled and unknown ids are ignored
 
@@ -69,9 +80,11 @@ def test_missing_corrupt_and_mismatched_files_are_named(tmp_path: Path) -> None:
     (root / "trainannot" / "0001TP_000002.png").unlink()
     (root / "val" / "0001TP_000001.png").write_bytes(b"not an image")
     Image.fromarray(np.zeros((36, 40), np.uint8)).save(root / "testannot" / "0001TP_000000.png")
-    cases = {"train": r"train\.txt:3: label map .*trainannot/0001TP_000002\.png is missing",
-             "val": r"val/0001TP_000001\.png is unreadable or corrupt",
-             "test": r"0001TP_000000\.png is 36x40 but its image .* is 36x48"}
+    cases = {
+        "train": r"train\.txt:3: label map .*trainannot/0001TP_000002\.png is missing",
+        "val": r"val/0001TP_000001\.png is unreadable or corrupt",
+        "test": r"0001TP_000000\.png is 36x40 but its image .* is 36x48",
+    }
     for split, message in cases.items():
         with pytest.raises(SemvprError, match=message) as err:
             read_camvid(root, split)

@@ -1,26 +1,38 @@
 """A checkpoint is data: genuine ones load for every aggregator, mask and backbone; hostile ones run nothing."""
+
 from __future__ import annotations
 
 import copy
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 import torch
 
-from semvpr.core.errors import SemvprError
 from semvpr.config.restore import load_retriever
-
+from semvpr.core.errors import SemvprError
 from tests.helpers import tiny_config, write_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("filter_name,backbone", [
-    ("none", "vgg16"), ("attention", "vgg16"), ("unet", "vgg16"), ("mask2former", "vgg16"), ("oracle", "vgg16"),
-    ("unet", "resnet50"), ("mask2former", "resnet50"), ("none", "efficientnet_lite0"), ("unet", "efficientnet_lite0")])
+@pytest.mark.parametrize(
+    "filter_name,backbone",
+    [
+        ("none", "vgg16"),
+        ("attention", "vgg16"),
+        ("unet", "vgg16"),
+        ("mask2former", "vgg16"),
+        ("oracle", "vgg16"),
+        ("unet", "resnet50"),
+        ("mask2former", "resnet50"),
+        ("none", "efficientnet_lite0"),
+        ("unet", "efficientnet_lite0"),
+    ],
+)
 def test_genuine_checkpoints_load(tmp_path: Path, filter_name: str, backbone: str) -> None:
     trained = tiny_config(tmp_path, f"filter={filter_name}", f"backbone={backbone}", "model.pca_dim=4", "seed=3")
     state = write_checkpoint(trained, tmp_path / "run.ckpt")
@@ -42,6 +54,7 @@ def _set(path: str, value: Any) -> Callable[[dict], None]:
         for key in parents:
             node = node.setdefault(key, {})
         node[leaf] = value
+
     return edit
 
 
@@ -65,25 +78,33 @@ def _hostile(tmp_path: Path, genuine_record: tuple[dict, dict], edit: Callable[[
 SENTINEL_TEXT = "untouched"
 
 
-@pytest.mark.parametrize("edit,message", [
-    # A stored _target_ naming one of semvpr's own JSON writers (it overwrote a file before this change).
-    (lambda s: _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": s, "obj": "pwned"}),
-     r"backbone\._target_ is refused"),
-    (lambda s: _set("config.aggregator.module._target_", "torch.save"), r"aggregator\.module\._target_ is refused"),
-    (lambda s: _set("config.teacher.checkpoint", "${oc.env:HOME}"), r"teacher\.checkpoint=.*interpolations"),
-    (lambda s: _set("config.model.evil", 1), r"model\.evil is not a key"),
-    (lambda s: _set("config.model.num_clusters", "32"), r"model\.num_clusters='32' has the wrong type"),
-    (lambda s: _set("config.teacher.model", {"embed_dim": {"_target_": "numpy.save", "file": s}}),
-     r"teacher\.model\.embed_dim is a mapping"),
-    (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
-    (lambda s: _set("seed", "0"), r"seed='0' is not a whole number"),
-    # A stored path redirected eval to load another directory as the teacher.
-    (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
-    (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),
-    (lambda s: _set("config.teacher.checkpoint", "~/evil"), r"teacher\.checkpoint=.*names a local path"),
-])
-def test_hostile_checkpoints_are_refused_before_anything_runs(tmp_path: Path, genuine_record: tuple[dict, dict],
-                                                             edit: Callable, message: str) -> None:
+@pytest.mark.parametrize(
+    "edit,message",
+    [
+        # A stored _target_ naming one of semvpr's own JSON writers (it overwrote a file before this change).
+        (
+            lambda s: _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": s, "obj": "pwned"}),
+            r"backbone\._target_ is refused",
+        ),
+        (lambda s: _set("config.aggregator.module._target_", "torch.save"), r"aggregator\.module\._target_ is refused"),
+        (lambda s: _set("config.teacher.checkpoint", "${oc.env:HOME}"), r"teacher\.checkpoint=.*interpolations"),
+        (lambda s: _set("config.model.evil", 1), r"model\.evil is not a key"),
+        (lambda s: _set("config.model.num_clusters", "32"), r"model\.num_clusters='32' has the wrong type"),
+        (
+            lambda s: _set("config.teacher.model", {"embed_dim": {"_target_": "numpy.save", "file": s}}),
+            r"teacher\.model\.embed_dim is a mapping",
+        ),
+        (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
+        (lambda s: _set("seed", "0"), r"seed='0' is not a whole number"),
+        # A stored path redirected eval to load another directory as the teacher.
+        (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
+        (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),
+        (lambda s: _set("config.teacher.checkpoint", "~/evil"), r"teacher\.checkpoint=.*names a local path"),
+    ],
+)
+def test_hostile_checkpoints_are_refused_before_anything_runs(
+    tmp_path: Path, genuine_record: tuple[dict, dict], edit: Callable, message: str
+) -> None:
     sentinel = tmp_path / "sentinel.json"
     sentinel.write_text(SENTINEL_TEXT)
     path = _hostile(tmp_path, genuine_record, edit(str(sentinel)))
@@ -105,11 +126,26 @@ def test_old_format_checkpoint_is_refused_with_how_to_fix(tmp_path: Path, genuin
 def test_cli_refuses_a_hostile_checkpoint_with_one_line(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
     sentinel = tmp_path / "sentinel.json"
     sentinel.write_text(SENTINEL_TEXT)
-    path = _hostile(tmp_path, genuine_record,
-                    _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": str(sentinel), "obj": 1}))
-    proc = subprocess.run([sys.executable, "-m", "semvpr.eval", "experiment=tiny", f"paths.cache_dir={tmp_path}",
-                           f"ckpt={path}", f"hydra.run.dir={tmp_path / 'out'}"],
-                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    path = _hostile(
+        tmp_path,
+        genuine_record,
+        _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": str(sentinel), "obj": 1}),
+    )
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            "experiment=tiny",
+            f"paths.cache_dir={tmp_path}",
+            f"ckpt={path}",
+            f"hydra.run.dir={tmp_path / 'out'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "_target_ is refused" in proc.stderr
     assert sentinel.read_text() == SENTINEL_TEXT
@@ -122,9 +158,20 @@ def test_filter_record_loads_as_the_presets_aggregator_and_mask(tmp_path: Path) 
     # The record as written when the filter bundled aggregator and mask.
     choices = {k: v for k, v in record["choices"].items() if k not in ("aggregator", "mask")}
     config = {k: v for k, v in record["config"].items() if k not in ("aggregator", "mask")}
-    old = {**record, "choices": {**choices, "filter": "unet"},
-           "config": {**config, "filter": {"name": "unet", "aggregator": {"num_clusters": 8, "num_shadows": 4},
-                                           "init": "semantic", "mask": "student", "weights": "learned"}}}
+    old = {
+        **record,
+        "choices": {**choices, "filter": "unet"},
+        "config": {
+            **config,
+            "filter": {
+                "name": "unet",
+                "aggregator": {"num_clusters": 8, "num_shadows": 4},
+                "init": "semantic",
+                "mask": "student",
+                "weights": "learned",
+            },
+        },
+    }
     torch.save({"state_dict": state, "hyper_parameters": old}, tmp_path / "old.ckpt")
     retriever, merged = load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'old.ckpt'}", config_name="eval"))
     assert (merged.aggregator.name, merged.mask.name, merged.mask.weights) == ("sral", "student", "learned")

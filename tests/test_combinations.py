@@ -1,4 +1,5 @@
 """Every backbone x experiment composes and takes one training step (tiny inputs, CPU)."""
+
 from __future__ import annotations
 
 import pytest
@@ -35,7 +36,7 @@ def test_backbone_experiment_composes_and_steps(backbone: str, experiment: str |
     with torch.no_grad():
         trunk = model.forward_frozen(images, keep_scales=False)[-1]
     frozen = [p.detach().clone() for unit in model.units[: model.split] for p in unit.parameters()]
-    trainable = [p.detach().clone() for unit in model.units[model.split:] for p in unit.parameters()]
+    trainable = [p.detach().clone() for unit in model.units[model.split :] for p in unit.parameters()]
     before = [p.detach().clone() for p in aggregator.parameters()]
     # query 0, positive 1, negatives 2 and 3; the positive is the query with a little noise.
     desc_in = torch.cat([trunk[:1], trunk[:1] + 0.05 * torch.randn_like(trunk[:1]), trunk[2:]])
@@ -44,7 +45,12 @@ def test_backbone_experiment_composes_and_steps(backbone: str, experiment: str |
     optimizer.zero_grad()
     (loss + 1e-3 * sum(p.float().square().sum() for p in aggregator.parameters())).backward()
     optimizer.step()
-    assert all(torch.equal(a, p) for a, p in zip(frozen, (p for u in model.units[: model.split] for p in u.parameters())))
-    moved = [not torch.equal(a, p) for a, p in zip(trainable, (p for u in model.units[model.split:] for p in u.parameters()))]
+    assert all(
+        torch.equal(a, p) for a, p in zip(frozen, (p for u in model.units[: model.split] for p in u.parameters()))
+    )
+    moved = [
+        not torch.equal(a, p)
+        for a, p in zip(trainable, (p for u in model.units[model.split :] for p in u.parameters()))
+    ]
     assert (cfg.backbone.train_from is None) == (not moved) and (not moved or any(moved))
     assert any(not torch.equal(a, p) for a, p in zip(before, aggregator.parameters()))

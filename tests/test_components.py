@@ -4,6 +4,7 @@ through the one builder, is the kind of class its group requires, and keeps its 
 Aggregators: weights of 1 everywhere are the unmasked output, a location of weight 0 has no influence,
 and an image whose mask keeps nothing is described unmasked. Mask sources: a (B,1,h,w) binary or
 (B,C,h,w) learned grid mask. Backbones: the channels and strides their tables declare."""
+
 from __future__ import annotations
 
 import pytest
@@ -110,7 +111,9 @@ def test_every_mask_source_gives_a_grid_mask(name: str, tmp_path) -> None:
         labels = []
         for i in range(2):
             labels.append(tmp_path / f"{i}.png")
-            Image.fromarray(np.random.default_rng(i).integers(0, NUM_CLASSES, (64, 80)).astype(np.uint8)).save(labels[-1])
+            Image.fromarray(np.random.default_rng(i).integers(0, NUM_CLASSES, (64, 80)).astype(np.uint8)).save(
+                labels[-1]
+            )
         assert not source.describes_new_images
     with torch.no_grad():
         skips = backbone.forward_frozen(images)

@@ -1,4 +1,5 @@
 """Hostile dataset lists and caches: nothing is written outside the run and cache directories."""
+
 from __future__ import annotations
 
 import os
@@ -8,11 +9,20 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import inside
+from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
 from semvpr.segmentation.pseudolabels import pseudo_labels
-from tests.helpers import CountingTeacher, LABEL_SIZE, labels_key, make_images, write_dbstruct, write_jpg, write_msls_cities, write_msls_side
+from tests.helpers import (
+    LABEL_SIZE,
+    CountingTeacher,
+    labels_key,
+    make_images,
+    write_dbstruct,
+    write_jpg,
+    write_msls_cities,
+    write_msls_side,
+)
 
 
 def files_under(folder: Path) -> set[Path]:
@@ -41,8 +51,14 @@ def test_dbstruct_names_leaving_the_image_root_are_refused(tmp_path: Path, bad: 
 def test_a_place_set_refuses_an_image_key_that_climbs_out(tmp_path: Path) -> None:
     root = tmp_path / "data"
     with pytest.raises(SemvprError, match="climbs out of the dataset root"):
-        PlaceSet("x", (root / "a.jpg", root / "b" / ".." / ".." / "victim.jpg"), (root / "q.jpg",),
-                 np.zeros((2, 2)), np.zeros((1, 2)), root=root)
+        PlaceSet(
+            "x",
+            (root / "a.jpg", root / "b" / ".." / ".." / "victim.jpg"),
+            (root / "q.jpg",),
+            np.zeros((2, 2)),
+            np.zeros((1, 2)),
+            root=root,
+        )
     # Queries under a separate folder are fine: the root becomes their common folder.
     ok = PlaceSet("x", (root / "a.jpg",), (tmp_path / "q" / "q.jpg",), np.zeros((1, 2)), np.zeros((1, 2)), root=root)
     assert ok.root == tmp_path and ok.relative(ok.q_paths[0]) == "q/q.jpg"
@@ -114,8 +130,9 @@ def test_orphaned_temp_dirs_of_dead_processes_are_reclaimed(tmp_path: Path) -> N
     from semvpr.core.cache import build_once
     from semvpr.core.io import temp_prefix
 
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                          text=True).stdout.strip()
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
     host = socket.gethostname().split(".")[0]
     cache = tmp_path / "cache"
     orphan = cache / f".synthcity-abc.{host}-{dead}.k3j2h1g0.tmp"
@@ -129,8 +146,9 @@ def test_orphaned_temp_dirs_of_dead_processes_are_reclaimed(tmp_path: Path) -> N
     assert not orphan.exists() and ours.is_dir() and other_host.is_dir()
 
 
-def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(tmp_path: Path,
-                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """On a nearly full disk the memory-mapped cache ended in a bus error (exit 135, no message)."""
     import shutil
 

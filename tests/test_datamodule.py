@@ -1,4 +1,5 @@
 """Image / segmentation datasets, augmentation alignment and the segmentation datamodule."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,15 +10,23 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from semvpr.data.images import ImageDataset
-from semvpr.segmentation.datamodule import (SegmentationDataModule, SegmentationDataset, segmentation_augmentation,
-                                           split_set)
-from semvpr.data.segmentation import SegmentationSet, read_cityscapes
 from semvpr.core.errors import SemvprError
+from semvpr.data.images import ImageDataset
+from semvpr.data.segmentation import SegmentationSet, read_cityscapes
+from semvpr.segmentation.datamodule import (
+    SegmentationDataModule,
+    SegmentationDataset,
+    segmentation_augmentation,
+    split_set,
+)
 
 # Vertical stripes of unequal width, so a flip applied to only one of image/mask shows.
-STRIPES = [(7, 0, (0.8, 0.1, 0.1)), (11, 9, (0.1, 0.8, 0.1)), (26, 23, (0.1, 0.1, 0.8)),
-           (23, 41, (0.5, 0.5, 0.5))]  # (labelId, first column, colour)
+STRIPES = [
+    (7, 0, (0.8, 0.1, 0.1)),
+    (11, 9, (0.1, 0.8, 0.1)),
+    (26, 23, (0.1, 0.1, 0.8)),
+    (23, 41, (0.5, 0.5, 0.5)),
+]  # (labelId, first column, colour)
 TRAIN_ID = {7: 0, 11: 2, 26: 13, 23: 10}
 H, W = 32, 64
 

@@ -1,5 +1,6 @@
 """Data-parallel training (trainer=ddp) on CPU with gloo: the work is split and the numbers are the
 single-process ones. Every multi-process run happens in a subprocess, under a timeout."""
+
 from __future__ import annotations
 
 import copy
@@ -12,10 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr.retrieval import distributed, mining
 from semvpr.core.errors import SemvprError
+from semvpr.retrieval import distributed, mining
 from semvpr.train import run_job
-
 from tests.helpers import tiny_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,7 +45,7 @@ def test_per_rank_batches_recombine_to_the_single_process_batch(world: int, monk
     desc = np.random.default_rng(0).normal(size=(len(train.db) + len(train.q), 16)).astype(np.float32)
 
     def describe(store, index):  # type: ignore[no-untyped-def]
-        rows = desc[: len(train.db)] if store is train.db else desc[len(train.db):]
+        rows = desc[: len(train.db)] if store is train.db else desc[len(train.db) :]
         return rows if index is None else rows[index]
 
     broadcasts: list = []  # what rank 0 sends (its tuples and negative cache), replayed on the others
@@ -53,8 +53,11 @@ def test_per_rank_batches_recombine_to_the_single_process_batch(world: int, monk
     def epoch_batches(rank: int, size: int) -> list:
         monkeypatch.setattr(mining, "world", lambda: (rank, size))
         replay = iter(list(broadcasts))
-        monkeypatch.setattr(mining, "from_rank_zero", lambda obj: (
-            broadcasts.append(copy.deepcopy(obj)) or obj if rank == 0 else copy.deepcopy(next(replay))))
+        monkeypatch.setattr(
+            mining,
+            "from_rank_zero",
+            lambda obj: broadcasts.append(copy.deepcopy(obj)) or obj if rank == 0 else copy.deepcopy(next(replay)),
+        )
         cache = np.full((len(train.q), rules.num_negatives), -1, dtype=np.int64)
         return list(mining.TrainingEpoch(train, rules, queries, cache, 0, describe))
 
@@ -74,8 +77,9 @@ def test_per_rank_batches_recombine_to_the_single_process_batch(world: int, monk
 
 
 def _worker(world: int, out: Path) -> dict:
-    proc = subprocess.run([sys.executable, str(WORKER), str(world), str(out)], cwd=REPO, capture_output=True,
-                          text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, str(WORKER), str(world), str(out)], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return torch.load(out, weights_only=False)
 
@@ -113,9 +117,21 @@ def test_ddp_outside_the_command_line_is_refused(tmp_path: Path) -> None:
 
 
 def _train(tmp_path: Path, *overrides: str, multirun: bool = False) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.run([sys.executable, "-m", "semvpr.train", *(["-m"] if multirun else []), "experiment=tiny",
-                           f"paths.cache_dir={tmp_path / 'cache'}", *overrides],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=1200)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            *(["-m"] if multirun else []),
+            "experiment=tiny",
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            *overrides,
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
@@ -146,15 +162,22 @@ def test_ddp_resume_is_bit_identical_at_the_same_world_size(tmp_path: Path) -> N
     _train(tmp_path, *DDP, "trainer.max_epochs=2", f"hydra.run.dir={tmp_path / 'whole'}")
     # A 2-epoch run killed after its first epoch: its record says 2 epochs, last.ckpt holds epoch 1.
     _train(tmp_path, *DDP, "trainer.max_epochs=1", f"hydra.run.dir={tmp_path / 'resumed'}")
-    for name, old, new in (("config.yaml", "max_epochs: 1\n", "max_epochs: 2\n"),
-                           ("overrides.yaml", "trainer.max_epochs=1\n", "trainer.max_epochs=2\n"),
-                           ("hydra.yaml", "trainer.max_epochs=1\n", "trainer.max_epochs=2\n")):
+    for name, old, new in (
+        ("config.yaml", "max_epochs: 1\n", "max_epochs: 2\n"),
+        ("overrides.yaml", "trainer.max_epochs=1\n", "trainer.max_epochs=2\n"),
+        ("hydra.yaml", "trainer.max_epochs=1\n", "trainer.max_epochs=2\n"),
+    ):
         record = tmp_path / "resumed" / ".hydra" / name
         assert old in record.read_text(), name
         record.write_text(record.read_text().replace(old, new))
     # The README's resume command: the run's own config, no other override (experiment=tiny would be one).
-    proc = subprocess.run([sys.executable, "-m", "semvpr.train", "ckpt_path=last", f"hydra.run.dir={tmp_path / 'resumed'}"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=1200)
+    proc = subprocess.run(
+        [sys.executable, "-m", "semvpr.train", "ckpt_path=last", f"hydra.run.dir={tmp_path / 'resumed'}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     runs = [json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("whole", "resumed")]
     assert runs[0]["recalls"] == runs[1]["recalls"] and runs[0]["best/val/R@1"] == runs[1]["best/val/R@1"]
@@ -166,12 +189,26 @@ def test_ddp_resume_is_bit_identical_at_the_same_world_size(tmp_path: Path) -> N
 def test_submitit_local_runs_one_task_per_device(tmp_path: Path) -> None:
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     launcher = ("hydra/launcher=submitit_local", "hydra.launcher.gpus_per_node=0", "hydra.launcher.timeout_min=30")
-    _train(tmp_path, *launcher, "hydra.launcher.tasks_per_node=2", *DDP, f"hydra.sweep.dir={tmp_path / 'ok'}", multirun=True)
+    _train(
+        tmp_path,
+        *launcher,
+        "hydra.launcher.tasks_per_node=2",
+        *DDP,
+        f"hydra.sweep.dir={tmp_path / 'ok'}",
+        multirun=True,
+    )
     jobs = list((tmp_path / "ok").rglob("metrics.json"))
     assert len(jobs) == 1 and json.loads(jobs[0].read_text())["status"] == "ok"
     logs = "".join(p.read_text() for p in (tmp_path / "ok" / ".submitit").rglob("*_log.err"))
     assert "GLOBAL_RANK: 1, MEMBER: 2/2" in logs
     # One task for two devices: refused in one line, recorded as the job's failure.
-    _train(tmp_path, *launcher, "hydra.launcher.tasks_per_node=1", *DDP, f"hydra.sweep.dir={tmp_path / 'one'}", multirun=True)
+    _train(
+        tmp_path,
+        *launcher,
+        "hydra.launcher.tasks_per_node=1",
+        *DDP,
+        f"hydra.sweep.dir={tmp_path / 'one'}",
+        multirun=True,
+    )
     failed = json.loads(next((tmp_path / "one").rglob("metrics.json")).read_text())
     assert failed["status"] == "failed" and "tasks_per_node=2" in failed["error"]

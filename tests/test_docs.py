@@ -1,4 +1,5 @@
 """Every ``ARCHITECTURE §n`` cited in the code names a section that docs/ARCHITECTURE.md has."""
+
 from __future__ import annotations
 
 import re
@@ -79,8 +80,11 @@ def test_imports_point_down_the_layers() -> None:
         if own is None:
             unplaced.append(module)
             continue
-        up = sorted(name for name in _imported_modules(path)
-                    if (layer := _layer_of(name, ranks)) is not None and ranks[layer] > ranks[own])
+        up = sorted(
+            name
+            for name in _imported_modules(path)
+            if (layer := _layer_of(name, ranks)) is not None and ranks[layer] > ranks[own]
+        )
         if up:
             offenders[module] = up
     assert not unplaced, f"modules in no layer of ARCHITECTURE §1's table: {unplaced}"
@@ -91,5 +95,7 @@ def test_the_top_of_the_package_holds_the_commands() -> None:
     """The top of semvpr/ holds the commands (and the hub), everything else lives in a role's folder."""
     top = sorted(p.stem for p in (REPO / "semvpr").glob("*.py") if p.stem != "__init__")
     assert len(top) <= 10, top
-    commands = set(re.findall(r"^\| `python -m semvpr\.(\w+)", (REPO / "docs" / "ARCHITECTURE.md").read_text(), flags=re.M))
+    commands = set(
+        re.findall(r"^\| `python -m semvpr\.(\w+)", (REPO / "docs" / "ARCHITECTURE.md").read_text(), flags=re.M)
+    )
     assert set(top) <= commands | {"hub"}, set(top) - commands

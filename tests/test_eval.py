@@ -1,4 +1,5 @@
 """A checkpoint evaluates and localises on every supported dataset family, whatever it was trained on."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,8 +10,18 @@ import pytest
 from semvpr.core.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
-
-from tests.helpers import EVAL_SIZE, config, make_folder, place_utm, record_first_unit_batches, tiny_config, write_checkpoint, write_image, write_msls_side, write_pitts_mat
+from tests.helpers import (
+    EVAL_SIZE,
+    config,
+    make_folder,
+    place_utm,
+    record_first_unit_batches,
+    tiny_config,
+    write_checkpoint,
+    write_image,
+    write_msls_side,
+    write_pitts_mat,
+)
 
 
 def make_pitts(root: Path, mat: str = "pitts30k_test", n: int = 6) -> Path:
@@ -46,11 +57,22 @@ FAMILIES = {
 def test_checkpoint_evaluates_on_each_dataset_family(checkpoint: Path, tmp_path: Path, family: str) -> None:
     make, overrides = FAMILIES[family]
     root = make(tmp_path / family)
-    cfg = config(*overrides, f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                 *EVAL_SIZE, config_name="eval")
+    cfg = config(
+        *overrides,
+        f"data.root={root}",
+        f"+ckpt={checkpoint}",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        *EVAL_SIZE,
+        config_name="eval",
+    )
     result = evaluate_checkpoint(cfg)
     assert (result["data"], result["aggregator"], result["mask"], result["database"], result["queries"]) == (
-        family, "sral", "none", 6, 6)
+        family,
+        "sral",
+        "none",
+        6,
+        6,
+    )
     # Each query is its place's database image again: any model must retrieve it first.
     assert result["test/R@1"] == 100.0
 
@@ -60,16 +82,25 @@ def test_checkpoint_localises_against_another_dataset(checkpoint: Path, tmp_path
     queries = tmp_path / "queries"
     for i in (4, 1):
         write_image(queries / f"q{i}.jpg", i)  # the pixels of database images 4 and 1
-    cfg = config("data=pitts30k", f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                 f"queries={queries}", "top_k=3", *EVAL_SIZE, config_name="localize")
+    cfg = config(
+        "data=pitts30k",
+        f"data.root={root}",
+        f"+ckpt={checkpoint}",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"queries={queries}",
+        "top_k=3",
+        *EVAL_SIZE,
+        config_name="localize",
+    )
     results = localize(cfg)
     assert [Path(r["matches"][0]["path"]).name for r in results] == ["000001_pitch1_yaw1.jpg", "000004_pitch1_yaw1.jpg"]
     assert results[0]["matches"][0]["utm"] == list(place_utm(1)) and len(results[0]["matches"]) == 3
 
 
 @pytest.mark.parametrize("filter_name", ["attention", "unet"])
-def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                                  filter_name: str) -> None:
+def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, filter_name: str
+) -> None:
     """The eval pipeline (trunk, mask, NetVLAD) takes its batch a few images at a time, so its
     activation memory does not grow with the batch; descriptors are those of one whole-batch pass."""
     import semvpr.models.backbones as backbones
@@ -82,13 +113,23 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
     root = make_folder(tmp_path / "folder", n=5)
 
     def descriptors(cache: str) -> tuple[np.ndarray, list[int]]:
-        cfg = config("data=folder", f"data.root={root}", f"+ckpt={tmp_path / 'model.ckpt'}",
-                     f"paths.cache_dir={tmp_path / cache}", "model.eval_batch_size=5", *EVAL_SIZE, config_name="eval")
+        cfg = config(
+            "data=folder",
+            f"data.root={root}",
+            f"+ckpt={tmp_path / 'model.ckpt'}",
+            f"paths.cache_dir={tmp_path / cache}",
+            "model.eval_batch_size=5",
+            *EVAL_SIZE,
+            config_name="eval",
+        )
         retriever, merged = load_retriever(cfg)
         grid_size(retriever.backbone, merged.data.image_size)  # the once-per-size shape probe, before counting
         seen = record_first_unit_batches(retriever.backbone)
-        return np.array(place_descriptors(retriever, build_places(merged, ("test",))["test"], "db",
-                                          merged.data.image_size, merged.paths.cache_dir)), seen
+        return np.array(
+            place_descriptors(
+                retriever, build_places(merged, ("test",))["test"], "db", merged.data.image_size, merged.paths.cache_dir
+            )
+        ), seen
 
     whole, seen = descriptors("whole")
     assert seen == [5]
@@ -102,8 +143,14 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(tmp_path: Path
 
 def test_a_pickled_descriptor_cache_is_refused_unread(checkpoint: Path, tmp_path: Path) -> None:
     root = make_folder(tmp_path / "folder")
-    cfg = config("data=folder", f"data.root={root}", f"+ckpt={checkpoint}", f"paths.cache_dir={tmp_path / 'cache'}",
-                 *EVAL_SIZE, config_name="eval")
+    cfg = config(
+        "data=folder",
+        f"data.root={root}",
+        f"+ckpt={checkpoint}",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        *EVAL_SIZE,
+        config_name="eval",
+    )
     evaluate_checkpoint(cfg)
     for cache in (tmp_path / "cache").glob("descriptors-*"):
         np.save(cache / "descriptors.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)

@@ -1,4 +1,5 @@
 """One command evaluates a checkpoint on several datasets and writes one table beside published numbers."""
+
 from __future__ import annotations
 
 import csv
@@ -20,11 +21,27 @@ def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> No
     write_lists(tmp_path, "tiny_test", db, q, object_array([[i] for i in range(len(q))]))
     sweep = tmp_path / "sweep"
     proc = subprocess.run(
-        [sys.executable, "-m", "semvpr.eval", "-m", f"ckpt={tmp_path / 'tested.ckpt'}", "data=folder,gsv_npy",
-         f"data.root={root},{tmp_path / 'missing'}", "++data.set=tiny_test", f"++data.gt_dir={tmp_path}",
-         "data.image_size=[32,48]", "data.num_workers=0", f"paths.cache_dir={tmp_path / 'cache'}",
-         f"hydra.sweep.dir={sweep}"],
-        cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+        [
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            "-m",
+            f"ckpt={tmp_path / 'tested.ckpt'}",
+            "data=folder,gsv_npy",
+            f"data.root={root},{tmp_path / 'missing'}",
+            "++data.set=tiny_test",
+            f"++data.gt_dir={tmp_path}",
+            "data.image_size=[32,48]",
+            "data.num_workers=0",
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     with (sweep / "results.csv").open(newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -49,18 +66,35 @@ def _job(sweep: Path, num: int, result: dict) -> None:
 
 
 def test_published_numbers_stand_beside_the_same_model_and_protocol(tmp_path: Path) -> None:
-    base = {"status": "ok", "checkpoint": "m.ckpt", "aggregator": "netvlad", "mask": "none", "backbone": "vgg16", "model": "vgg16-netvlad",
-            "database": 10000, "queries": 6816, "descriptor_dim": 32768, "wall_s": 12.5,
-            **{f"test/R@{n}": 80.0 + n / 10 for n in (1, 5, 10, 20)}}
+    base = {
+        "status": "ok",
+        "checkpoint": "m.ckpt",
+        "aggregator": "netvlad",
+        "mask": "none",
+        "backbone": "vgg16",
+        "model": "vgg16-netvlad",
+        "database": 10000,
+        "queries": 6816,
+        "descriptor_dim": 32768,
+        "wall_s": 12.5,
+        **{f"test/R@{n}": 80.0 + n / 10 for n in (1, 5, 10, 20)},
+    }
     _job(tmp_path, 0, {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test"})
     _job(tmp_path, 1, {**base, "data": "tokyo247", "set": "tokyo247-test", "benchmark": "tokyo247"})
-    _job(tmp_path, 2, {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test", "model": "resnet50-gem"})
+    _job(
+        tmp_path,
+        2,
+        {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test", "model": "resnet50-gem"},
+    )
     rows = table_rows(tmp_path)
     assert [r["data"] for r in rows] == ["pitts30k", "published", "published", "published", "tokyo247", "pitts30k"]
     # pytorch-NetVlad's README (vgg16): 85.2 / 94.8 / 97.0 on Pitts30k-test; R@20 not published.
     assert [rows[1][k] for k in ("R@1", "R@5", "R@10", "R@20")] == [85.2, 94.8, 97.0, ""]
     assert "pytorch-NetVlad" in rows[1]["source"] and rows[1]["benchmark"] == "pitts30k_test"
     md = write_table(tmp_path).read_text()
-    assert "| pitts30k | pitts30k-test | pitts30k_test | 80.10 | 80.50 | 81.00 | 82.00 | 6816 | 10000 | 32768 | 12.50 |" in md
+    assert (
+        "| pitts30k | pitts30k-test | pitts30k_test | 80.10 | 80.50 | 81.00 | 82.00 | 6816 | 10000 | 32768 | 12.50 |"
+        in md
+    )
     assert "| published | pitts30k-test | pitts30k_test | 85.20 | 94.80 | 97.00 |  |" in md
     assert (tmp_path / "results.csv").read_text().count("\n") == len(rows) + 1

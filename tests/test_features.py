@@ -1,4 +1,5 @@
 """Frozen-trunk feature stores: storage chosen by size, caches read as data, NetVLAD's k-means sample."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from semvpr.retrieval.initialisation import sample_local_features, static_locations
 from semvpr.core.errors import SemvprError
-from semvpr.retrieval.features import GiB, FeatureStore, choose_storage, place_features
 from semvpr.models.backbones import VGG16Backbone
+from semvpr.retrieval.features import FeatureStore, GiB, choose_storage, place_features
+from semvpr.retrieval.initialisation import sample_local_features, static_locations
 
 torch.set_num_threads(2)
 
@@ -63,8 +64,21 @@ def _places(root: Path, n: int = 6):
 
 def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16Backbone) -> None:
     places = _places(tmp_path / "img")
-    stores = {s: place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48),
-                                tmp_path / "cache", s, batch_size=4, num_workers=0) for s in ("ram", "disk", "stream")}
+    stores = {
+        s: place_features(
+            places,
+            backbone,
+            backbone.frozen_identity(),
+            None,
+            None,
+            (32, 48),
+            tmp_path / "cache",
+            s,
+            batch_size=4,
+            num_workers=0,
+        )
+        for s in ("ram", "disk", "stream")
+    }
     assert stores["stream"].db.trunk is None and stores["stream"].db.streams
     ram, disk = stores["ram"].db.trunk, stores["disk"].db.trunk
     assert torch.equal(ram, disk) and ram.dtype == torch.bfloat16 and ram.shape == (6, 512, 2, 3)
@@ -78,24 +92,46 @@ def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16
 
 def test_a_foreign_or_damaged_cache_is_refused(tmp_path: Path, backbone: VGG16Backbone) -> None:
     places = _places(tmp_path / "img")
-    place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
-                   "disk", num_workers=0)
+    place_features(
+        places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache", "disk", num_workers=0
+    )
     (cache,) = (tmp_path / "cache").glob("trunk-*")
     np.save(cache / "db.npy", np.zeros((6, 3), np.uint16))
     with pytest.raises(SemvprError, match=r"holds uint16\[6, 3\].*delete .*trunk-"):
-        place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
-                       "disk", num_workers=0)
+        place_features(
+            places,
+            backbone,
+            backbone.frozen_identity(),
+            None,
+            None,
+            (32, 48),
+            tmp_path / "cache",
+            "disk",
+            num_workers=0,
+        )
     np.save(cache / "db.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(SemvprError, match="unreadable"):  # never unpickled
-        place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
-                       "disk", num_workers=0)
+        place_features(
+            places,
+            backbone,
+            backbone.frozen_identity(),
+            None,
+            None,
+            (32, 48),
+            tmp_path / "cache",
+            "disk",
+            num_workers=0,
+        )
 
 
 def test_kmeans_sample_takes_a_few_locations_of_many_images(backbone: VGG16Backbone) -> None:
     n, c, h, w = 40, 512, 3, 4
-    store = FeatureStore(tuple(f"i{k}" for k in range(n)), (48, 64),
-                         torch.arange(n, dtype=torch.float32).view(n, 1, 1, 1).expand(n, c, h, w).to(torch.bfloat16),
-                         None)
+    store = FeatureStore(
+        tuple(f"i{k}" for k in range(n)),
+        (48, 64),
+        torch.arange(n, dtype=torch.float32).view(n, 1, 1, 1).expand(n, c, h, w).to(torch.bfloat16),
+        None,
+    )
     frozen = VGG16Backbone(weights="none", train_from=None).eval()  # identity trainable part
     feats, where = sample_local_features(frozen, store, max_features=50, per_image=5, seed=0)
     # NetVLAD: max_features / per_image images, per_image random locations each.
@@ -112,7 +148,8 @@ def test_kmeans_sample_takes_a_few_locations_of_many_images(backbone: VGG16Backb
 
 
 def test_semantic_init_takes_static_locations_or_the_most_static_of_a_weak_teacher(
-        capsys: pytest.CaptureFixture[str]) -> None:
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     fraction = torch.tensor([0.9, 0.1, 0.5, 0.49, 0.0, 1.0, 0.3, 0.2])
     # Enough static locations: exactly those >= 0.5, nothing said.
     assert static_locations(fraction, 3).tolist() == [True, False, True, False, False, True, False, False]
@@ -125,8 +162,8 @@ def test_semantic_init_takes_static_locations_or_the_most_static_of_a_weak_teach
 
 
 def test_shape_probes_leave_batchnorm_statistics_alone() -> None:
-    from semvpr.retrieval.features import grid_size, trunk_shape
     from semvpr.models.backbones import ResNet50Backbone
+    from semvpr.retrieval.features import grid_size, trunk_shape
 
     backbone = ResNet50Backbone(train_from="layer3")  # layer3 trainable, in train mode
     before = {k: v.clone() for k, v in backbone.state_dict().items()}
@@ -143,15 +180,17 @@ def test_images_replaced_under_the_same_names_get_new_features(tmp_path: Path, b
     from PIL import Image
 
     places = _places(tmp_path / "img")
-    first = place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
-                           "disk", num_workers=0)
+    first = place_features(
+        places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache", "disk", num_workers=0
+    )
     before = first.db.trunk.clone()
     path = places.db_paths[0]
     stat = path.stat()
     Image.fromarray(np.full((40, 56, 3), 255, np.uint8)).save(path)
     os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1))  # mtime differs even on a coarse clock
-    again = place_features(places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache",
-                           "disk", num_workers=0)
+    again = place_features(
+        places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache", "disk", num_workers=0
+    )
     assert len(list((tmp_path / "cache").glob("trunk-*"))) == 2
     assert not torch.equal(again.db.trunk[0], before[0]) and torch.equal(again.db.trunk[1:], before[1:])
     # The key re-derived by hand: sha256 over "<name below the root>\0<size>\0<mtime_ns>\n" lines.

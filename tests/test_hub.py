@@ -1,4 +1,5 @@
 """torch.hub.load(<repo>, "semvpr", ckpt=..., source="local"): a checkpoint usable by others' scripts."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -40,9 +41,16 @@ def test_hub_model_takes_normalised_images_and_gives_unit_descriptors(checkpoint
     # The same weights as semvpr.eval loads, fed the [0, 1] images it takes.
     retriever, _ = load_retriever(config(f"+ckpt={checkpoint}", config_name="eval"))
     with torch.no_grad():
-        expected = F.normalize(retriever(torch.stack([to_tensor(im.resize((48, 32), Image.BILINEAR)) for im in images])).float(), dim=1)
-    reference = F.normalize(retriever(batch * torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
-                                      + torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)).float(), dim=1)
+        expected = F.normalize(
+            retriever(torch.stack([to_tensor(im.resize((48, 32), Image.BILINEAR)) for im in images])).float(), dim=1
+        )
+    reference = F.normalize(
+        retriever(
+            batch * torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+            + torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+        ).float(),
+        dim=1,
+    )
     torch.testing.assert_close(desc, reference, rtol=0, atol=1e-5)
     torch.testing.assert_close(desc, expected, rtol=0, atol=1e-4)  # normalise then un-normalise: rounding only
 
@@ -51,7 +59,9 @@ def test_hub_refuses_what_eval_refuses(checkpoint: Path, tmp_path: Path) -> None
     ckpt = torch.load(checkpoint, weights_only=True)
     ckpt["hyper_parameters"]["choices"]["backbone"] = "../../evil"
     torch.save(ckpt, tmp_path / "tampered.ckpt")
-    with pytest.raises(SemvprError, match=r"choices.backbone='../../evil' is not one of the project's backbone configs"):
+    with pytest.raises(
+        SemvprError, match=r"choices.backbone='../../evil' is not one of the project's backbone configs"
+    ):
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "tampered.ckpt"), source="local")
     with pytest.raises(SemvprError, match=r"checkpoint .*missing.ckpt not found"):
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "missing.ckpt"), source="local")

@@ -1,4 +1,5 @@
 """`python -m semvpr.data.inspect`: summary + JSON last line, one-line errors with exit code 2."""
+
 from __future__ import annotations
 
 import json
@@ -39,8 +40,14 @@ def make_folder(root: Path) -> Path:
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    return subprocess.run([sys.executable, "-m", "semvpr.data.inspect", *args], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "semvpr.data.inspect", *args],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 @pytest.fixture()
@@ -58,8 +65,7 @@ def test_cli_prints_summary_and_json_last_line(tmp_path: Path, conf_dir: Path) -
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.strip().splitlines()
     assert lines[0].startswith("tiny/test: 4 database, 3 queries")
-    assert json.loads(lines[-1]) == {"database": 4, "queries": 3, "queries_with_positives": 2,
-                                     "mean_positives": 1.33}
+    assert json.loads(lines[-1]) == {"database": 4, "queries": 3, "queries_with_positives": 2, "mean_positives": 1.33}
 
 
 def test_cli_bad_root_one_line_exit_2(tmp_path: Path, conf_dir: Path) -> None:
@@ -71,8 +77,7 @@ def test_cli_bad_root_one_line_exit_2(tmp_path: Path, conf_dir: Path) -> None:
     assert proc.stdout == ""
 
 
-def test_missing_override_and_bad_group_are_user_errors(conf_dir: Path,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_missing_override_and_bad_group_are_user_errors(conf_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["--config-dir", str(conf_dir)])
     assert exc.value.code == 2
@@ -90,22 +95,32 @@ def test_repo_conf_folder_dataset(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert json.loads(out.out.strip().splitlines()[-1])["queries_with_positives"] == 2, out.err
 
 
-@pytest.mark.parametrize(("case", "expected"), [
-    ("malformed_name", r"IMG_0001\.jpg: not an @UTM@ image name"),
-    ("empty_split", r"images/test/queries: no queries images"),
-    ("mat_lacks_field", r"pitts30k_test\.mat: dbStruct lacks field 'utmQ'"),
-    ("mat_empty_split", r"pitts30k_test\.mat: empty split \(0 database, 1 query names\)"),
-])
-def test_bad_dataset_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                        case: str, expected: str) -> None:
+@pytest.mark.parametrize(
+    ("case", "expected"),
+    [
+        ("malformed_name", r"IMG_0001\.jpg: not an @UTM@ image name"),
+        ("empty_split", r"images/test/queries: no queries images"),
+        ("mat_lacks_field", r"pitts30k_test\.mat: dbStruct lacks field 'utmQ'"),
+        ("mat_empty_split", r"pitts30k_test\.mat: empty split \(0 database, 1 query names\)"),
+    ],
+)
+def test_bad_dataset_is_one_line_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str, expected: str
+) -> None:
     """Each broken dataset gives exit 2 and one `semvpr: error:` line naming the problem."""
     root = tmp_path / "data"
     if case.startswith("mat"):
         (root / "datasets").mkdir(parents=True)
         names, utm = (["a.jpg"], np.zeros((1, 2)))
         db_names, db_utm = ([], np.zeros((0, 2))) if case == "mat_empty_split" else (names, utm)
-        write_dbstruct(root / "datasets" / "pitts30k_test.mat", db_names, db_utm, names, utm,
-                       drop="utmQ" if case == "mat_lacks_field" else None)
+        write_dbstruct(
+            root / "datasets" / "pitts30k_test.mat",
+            db_names,
+            db_utm,
+            names,
+            utm,
+            drop="utmQ" if case == "mat_lacks_field" else None,
+        )
         overrides = ["data=pitts30k", f"data.root={root}"]
     else:
         make_folder(root)

@@ -1,4 +1,5 @@
 """Atomic writes: a reader never sees half a file, and a planted temp name or link is never followed."""
+
 from __future__ import annotations
 
 import os
@@ -11,10 +12,9 @@ from semvpr.core.io import atomic_dir, atomic_file, write_json
 
 def test_a_failed_write_leaves_neither_target_nor_temp(tmp_path: Path) -> None:
     target = tmp_path / "metrics.json"
-    with pytest.raises(RuntimeError):
-        with atomic_file(target) as fh:
-            fh.write(b"{half")
-            raise RuntimeError("killed")
+    with pytest.raises(RuntimeError), atomic_file(target) as fh:
+        fh.write(b"{half")
+        raise RuntimeError("killed")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -44,10 +44,9 @@ def test_atomic_dir_replaces_the_target_only_when_complete(tmp_path: Path) -> No
     out = tmp_path / "teacher"
     out.mkdir()
     (out / "old").write_text("old")
-    with pytest.raises(ValueError):
-        with atomic_dir(out) as tmp:
-            (tmp / "new").write_text("new")
-            raise ValueError
+    with pytest.raises(ValueError), atomic_dir(out) as tmp:
+        (tmp / "new").write_text("new")
+        raise ValueError
     assert [p.name for p in tmp_path.iterdir()] == ["teacher"] and (out / "old").exists()
     with atomic_dir(out) as tmp:
         (tmp / "new").write_text("new")

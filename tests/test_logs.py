@@ -1,4 +1,5 @@
 """semvpr's stage lines and the hiding of known third-party noise."""
+
 from __future__ import annotations
 
 import io
@@ -20,7 +21,7 @@ def test_progress_lines_have_count_rate_and_eta(monkeypatch: pytest.MonkeyPatch)
     bar.update(10)  # t=10: under every_s, no line
     bar.update(10)  # t=20: 20 images in 20 s -> 1.0/s, 80 left -> ETA 80 s
     bar.update(20)  # t=40: 40 in 40 s, 20 s since the last line -> a line, ETA 60 s
-    bar.close()     # t=100
+    bar.close()  # t=100
     lines = out.getvalue().splitlines()
     assert lines == [
         "semvpr: pseudo-labels: 0/100 images",
@@ -42,12 +43,18 @@ def test_epoch_lines_show_metrics_and_eta(monkeypatch: pytest.MonkeyPatch) -> No
     monkeypatch.setattr(logs.time, "monotonic", lambda: next(clock))
     out = io.StringIO()
     cb = logs.EpochLines("retriever", stream=out)
-    trainer = SimpleNamespace(current_epoch=0, max_epochs=4, sanity_checking=False, is_global_zero=True,
-                              callback_metrics={"train/loss": 0.25, "val/R@1": 31.25})
+    trainer = SimpleNamespace(
+        current_epoch=0,
+        max_epochs=4,
+        sanity_checking=False,
+        is_global_zero=True,
+        callback_metrics={"train/loss": 0.25, "val/R@1": 31.25},
+    )
     cb.on_fit_start(trainer, None)  # type: ignore[arg-type]
     cb.on_train_epoch_end(trainer, None)  # type: ignore[arg-type]
-    assert out.getvalue().strip() == ("semvpr: retriever: epoch 1/4: train/loss 0.25, val/R@1 31.2 "
-                                      "(30 s elapsed, ETA 1.5 min)")
+    assert out.getvalue().strip() == (
+        "semvpr: retriever: epoch 1/4: train/loss 0.25, val/R@1 31.2 (30 s elapsed, ETA 1.5 min)"
+    )
 
 
 def test_known_noise_is_hidden_and_the_rest_kept(caplog: pytest.LogCaptureFixture) -> None:
@@ -62,12 +69,14 @@ def test_known_noise_is_hidden_and_the_rest_kept(caplog: pytest.LogCaptureFixtur
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         logs.quiet_third_party()  # filters go in front of the "default" one
-        warnings.warn("Found 38 module(s) in eval mode at the start of training.", UserWarning)
-        warnings.warn("a real problem", UserWarning)
+        warnings.warn("Found 38 module(s) in eval mode at the start of training.", UserWarning, stacklevel=1)
+        warnings.warn("a real problem", UserWarning, stacklevel=1)
     assert [str(w.message) for w in caught] == ["a real problem"]
 
 
-def test_a_trainer_built_with_trainer_kwargs_prints_only_stage_lines(tmp_path, capfd: pytest.CaptureFixture[str]) -> None:
+def test_a_trainer_built_with_trainer_kwargs_prints_only_stage_lines(
+    tmp_path, capfd: pytest.CaptureFixture[str]
+) -> None:
     import lightning as L
     import torch
     from torch.utils.data import DataLoader, TensorDataset
@@ -86,8 +95,14 @@ def test_a_trainer_built_with_trainer_kwargs_prints_only_stage_lines(tmp_path, c
             return torch.optim.SGD(self.parameters(), lr=0.1)
 
     data = DataLoader(TensorDataset(torch.randn(8, 2)), batch_size=4)
-    trainer = L.Trainer(max_epochs=2, logger=False, enable_checkpointing=False, default_root_dir=tmp_path,
-                        accelerator="cpu", **logs.trainer_kwargs("tiny"))
+    trainer = L.Trainer(
+        max_epochs=2,
+        logger=False,
+        enable_checkpointing=False,
+        default_root_dir=tmp_path,
+        accelerator="cpu",
+        **logs.trainer_kwargs("tiny"),
+    )
     trainer.fit(Tiny(), data)
     captured = capfd.readouterr()
     lines = [line for line in (captured.out + captured.err).splitlines() if line.strip()]

@@ -1,4 +1,5 @@
 """Mask sources' grid masks: binary is the seed's filter; learned class weights get gradients and move."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,8 +9,8 @@ import torch
 from PIL import Image
 
 from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
-from semvpr.models.masks import ClassWeights, OracleMask
 from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.masks import ClassWeights, OracleMask
 from semvpr.retrieval.losses import triplet_loss
 
 
@@ -27,7 +28,7 @@ def test_binary_oracle_is_the_thresholded_static_fraction(tmp_path: Path) -> Non
     paths = _labels(tmp_path)
     ids = np.stack([np.asarray(Image.open(p)) for p in paths])
     # The seed's filter, by hand: static pixels (trainIds 0..9) area-pooled to the grid, >= 0.5.
-    static = torch.from_numpy(((ids < 10)).astype(np.float32))[:, None]
+    static = torch.from_numpy((ids < 10).astype(np.float32))[:, None]
     expected = (torch.nn.functional.adaptive_avg_pool2d(static, (3, 4)) >= 0.5).float()
     oracle = OracleMask(STATIC_NAMES)
     images = torch.zeros(2, 3, 24, 32)

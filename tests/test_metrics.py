@@ -1,4 +1,5 @@
 """Metrics: Recall@N on a hand-made case, kNN equals brute force, positives by radius."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,13 +11,15 @@ from semvpr.retrieval.recall import knn, recall_at_n, recall_curve, recall_resul
 
 
 def test_recall_hand_made_case() -> None:
-    predictions = np.array([
-        [3, 1, 2, 0, 4],   # positive {1}: first hit at rank 1 → counts from N=2
-        [0, 2, 4, 1, 3],   # positive {0, 9}: hit at rank 0
-        [4, 3, 2, 1, 0],   # positive {7}: never retrieved
-        [1, 2, 3, 4, 0],   # no positives: excluded
-        [2, 4, 1, 3, 0],   # positive {3, 0}: hit at rank 3
-    ])
+    predictions = np.array(
+        [
+            [3, 1, 2, 0, 4],  # positive {1}: first hit at rank 1 → counts from N=2
+            [0, 2, 4, 1, 3],  # positive {0, 9}: hit at rank 0
+            [4, 3, 2, 1, 0],  # positive {7}: never retrieved
+            [1, 2, 3, 4, 0],  # no positives: excluded
+            [2, 4, 1, 3, 0],  # positive {3, 0}: hit at rank 3
+        ]
+    )
     positives = [np.array([1]), np.array([0, 9]), np.array([7]), np.array([], np.int64), np.array([3, 0])]
     res = recall_result(predictions, positives, ns=(1, 2, 4, 5))
     assert res.num_queries == 5 and res.num_without_positives == 1

@@ -1,4 +1,5 @@
 """Mining as pytorch-NetVlad: feature-nearest positive, violating hard negatives, negative cache, epochs."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -37,8 +38,9 @@ def test_mine_picks_nearest_positive_and_hardest_violating_negatives() -> None:
     assert (qi, pos) == (0, 2) and pos == int(np.argmin(d[:3]))
     # The image at 20 m is not a negative (beyond 25 m only), although it is the hardest one.
     assert negs.tolist() == [7, 4]
-    radius_10 = mine(db, q, db_utm, q_utm, np.array([0]), np.random.default_rng(0), negative_radius=10.0,
-                     num_negatives=2)
+    radius_10 = mine(
+        db, q, db_utm, q_utm, np.array([0]), np.random.default_rng(0), negative_radius=10.0, num_negatives=2
+    )
     assert radius_10[0][2].tolist() == [3, 7]  # what a 10 m negative radius would (wrongly) give
 
 
@@ -72,10 +74,28 @@ def test_negative_cache_brings_back_last_visits_hard_negatives() -> None:
     # One random candidate per visit: without the cache the hard negatives are usually missed.
     hits = {"cache": 0, "none": 0}
     for seed in range(20):
-        with_cache = mine(db, q, db_utm, q_utm, np.array([0]), np.random.default_rng(seed), cache.copy(),
-                          num_negatives=2, negative_candidates=1)
-        without = mine(db, q, db_utm, q_utm, np.array([0]), np.random.default_rng(seed), None,
-                       num_negatives=2, negative_candidates=1)
+        with_cache = mine(
+            db,
+            q,
+            db_utm,
+            q_utm,
+            np.array([0]),
+            np.random.default_rng(seed),
+            cache.copy(),
+            num_negatives=2,
+            negative_candidates=1,
+        )
+        without = mine(
+            db,
+            q,
+            db_utm,
+            q_utm,
+            np.array([0]),
+            np.random.default_rng(seed),
+            None,
+            num_negatives=2,
+            negative_candidates=1,
+        )
         hits["cache"] += with_cache[0][2][0] == 7
         hits["none"] += bool(without) and without[0][2][0] == 7
     assert hits["cache"] == 20 and hits["none"] < 10
@@ -101,8 +121,13 @@ def test_loss_averages_over_query_negative_pairs() -> None:
     desc = torch.nn.functional.normalize(torch.randn(7, 4), dim=1)
     triples = [[0, 1, 2], [0, 1, 3], [4, 5, 6]]
     margin = 0.1**0.5
-    by_hand = sum(max(0.0, (desc[a] - desc[p]).norm().item() - (desc[a] - desc[n]).norm().item() + margin)
-                  for a, p, n in triples) / 3
+    by_hand = (
+        sum(
+            max(0.0, (desc[a] - desc[p]).norm().item() - (desc[a] - desc[n]).norm().item() + margin)
+            for a, p, n in triples
+        )
+        / 3
+    )
     reference = torch.nn.TripletMarginLoss(margin=margin)(*(desc[[t[i] for t in triples]] for i in range(3)))
     loss = triplet_loss(desc, torch.tensor([[0, 1, 2, 3], [4, 5, 6, -1]]), margin=0.1)
     assert loss.item() == pytest.approx(by_hand, rel=1e-4) and loss.item() == pytest.approx(reference.item(), rel=1e-6)
@@ -116,8 +141,13 @@ def _line(num_queries: int):
     db_utm = np.stack([np.arange(0, 10 * num_queries, 5.0), np.zeros(2 * num_queries)], 1)
     q_utm = np.stack([np.arange(num_queries) * 10.0 + 1.0, np.zeros(num_queries)], 1)
     q_utm[-1] = (1e6, 0)  # no database image within 10 m: never a training query
-    places = PlaceSet("line", tuple(f"/d/db{i}.jpg" for i in range(len(db_utm))),
-                      tuple(f"/d/q{i}.jpg" for i in range(num_queries)), db_utm, q_utm)
+    places = PlaceSet(
+        "line",
+        tuple(f"/d/db{i}.jpg" for i in range(len(db_utm))),
+        tuple(f"/d/q{i}.jpg" for i in range(num_queries)),
+        db_utm,
+        q_utm,
+    )
     store = lambda n: FeatureStore(tuple(f"x{i}" for i in range(n)), (1, 1), torch.zeros(n, 1, 1, 1), None)  # noqa: E731
     return PlaceFeatures(places, store(len(db_utm)), store(num_queries))
 
@@ -145,8 +175,9 @@ def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epo
         return rng.normal(size=(len(store) if index is None else len(index), 8)).astype(np.float32)
 
     def epoch_of(module, epoch: int) -> TrainingEpoch:
-        return TrainingEpoch(module.features["train"], module.mining, module.trainable_queries, module.neg_cache,
-                             epoch, describe)
+        return TrainingEpoch(
+            module.features["train"], module.mining, module.trainable_queries, module.neg_cache, epoch, describe
+        )
 
     epoch = epoch_of(dm, 0)
     assert [len(c) for c in epoch.chunks] == [9, 8, 8]  # ceil(25 / 10) sub-epochs
@@ -170,10 +201,13 @@ def test_negative_cache_travels_with_the_datamodule_state() -> None:
     assert fresh.neg_cache[2, :4].tolist() == [7, 8, 9, -1] and (fresh.neg_cache[0] == -1).all()
 
 
-@pytest.mark.parametrize("override,message", [
-    ("model.positive_radius=-10", "model.positive_radius=-10.* > 0"),
-    ("model.negative_radius=5", "negative_radius=5 is below model.positive_radius"),
-])
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ("model.positive_radius=-10", "model.positive_radius=-10.* > 0"),
+        ("model.negative_radius=5", "negative_radius=5 is below model.positive_radius"),
+    ],
+)
 def test_impossible_mining_radii_are_refused_before_any_work(override: str, message: str) -> None:
     from semvpr.config.checks import check_config
     from tests.helpers import config

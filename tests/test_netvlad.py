@@ -1,4 +1,5 @@
 """NetVLAD: equals the naive loop, mask semantics, k-means/α init, PCA whitening."""
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,9 @@ def layer() -> NetVLAD:
     return net
 
 
-def published_netvlad(x: np.ndarray, weight: np.ndarray, bias: np.ndarray, centroids: np.ndarray,
-                      mask: np.ndarray | None = None) -> np.ndarray:
+def published_netvlad(
+    x: np.ndarray, weight: np.ndarray, bias: np.ndarray, centroids: np.ndarray, mask: np.ndarray | None = None
+) -> np.ndarray:
     """NetVLAD as Arandjelović et al. (CVPR'16) define it, written from the paper in float64 NumPy:
     L2-normalise each local descriptor; soft-assign with a 1x1 conv of weights w_k and biases b_k
     (decoupled from the centroids c_k, initialised as w_k = 2αĉ_k, b_k = −α‖ĉ_k‖²) followed by a
@@ -50,13 +52,18 @@ def published_netvlad(x: np.ndarray, weight: np.ndarray, bias: np.ndarray, centr
 def test_matches_the_published_formula(layer: NetVLAD) -> None:
     x = torch.randn(3, 32, 5, 7)  # signed, like conv5_3 before its ReLU
     mask = (torch.rand(3, 1, 5, 7) > 0.4).float() * torch.rand(3, 1, 5, 7)
-    params = (layer.conv.weight[:, :, 0, 0].detach().numpy(), layer.conv.bias.detach().numpy(),
-              layer.centroids.detach().numpy())
+    params = (
+        layer.conv.weight[:, :, 0, 0].detach().numpy(),
+        layer.conv.bias.detach().numpy(),
+        layer.centroids.detach().numpy(),
+    )
     with torch.no_grad():
         out, masked = layer(x), layer(x, mask)
     assert out.shape == (3, 8 * 32)
     np.testing.assert_allclose(out.numpy(), published_netvlad(x.numpy(), *params), rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(masked.numpy(), published_netvlad(x.numpy(), *params, mask.numpy()), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        masked.numpy(), published_netvlad(x.numpy(), *params, mask.numpy()), rtol=1e-4, atol=1e-5
+    )
     assign = layer.assignment(x)
     assert assign.shape == (3, 8, 5, 7)
     torch.testing.assert_close(assign.sum(1), torch.ones(3, 5, 7))
@@ -147,7 +154,11 @@ def test_pca_whitening() -> None:
     a = PCAWhitening(40, 5).fit(wide).projection
     b = PCAWhitening(40, 5)
     b.fit(torch.cat([wide, wide.mean(0, keepdim=True).expand(30, -1)]))  # N ≥ D, same principal axes
-    torch.testing.assert_close((a * b.projection).sum(1).abs() / (a.norm(dim=1) * b.projection.norm(dim=1)),
-                               torch.ones(5), rtol=1e-3, atol=1e-3)
+    torch.testing.assert_close(
+        (a * b.projection).sum(1).abs() / (a.norm(dim=1) * b.projection.norm(dim=1)),
+        torch.ones(5),
+        rtol=1e-3,
+        atol=1e-3,
+    )
     with pytest.raises(SemvprError, match="PCA whitening to 40 dims"):
         PCAWhitening(40, 40).fit(wide)

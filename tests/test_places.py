@@ -1,4 +1,5 @@
 """PlaceSet positives and the @UTM@ folder, dbStruct .mat and MSLS readers, incl. bad input."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,9 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from semvpr.data.places import (PlaceSet, parse_utm_name, read_dbstruct_mat,
-                                read_msls, read_utm_folder)
 from semvpr.core.errors import SemvprError
+from semvpr.data.places import PlaceSet, parse_utm_name, read_dbstruct_mat, read_msls, read_utm_folder
 from tests.helpers import write_dbstruct, write_jpg, write_msls_cities, write_msls_side
 
 
@@ -170,7 +170,10 @@ def test_msls_config_selects_on_held_out_train_cities_and_tests_on_val_cities(tm
     with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["data=msls", f"data.root={root}"])
     train, val, test = (instantiate(cfg.data[s]) for s in ("train", "val", "test"))
-    city = {name: {p.parts[-4] for p in s.db_paths + s.q_paths} for name, s in (("train", train), ("val", val), ("test", test))}
+    city = {
+        name: {p.parts[-4] for p in s.db_paths + s.q_paths}
+        for name, s in (("train", train), ("val", val), ("test", test))
+    }
     # Epoch selection never sees the reported cities, and neither does training.
     assert city == {"train": {"london"}, "val": {"zurich"}, "test": {"cph", "sf"}}
 

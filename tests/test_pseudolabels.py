@@ -1,4 +1,5 @@
 """Pseudo-label cache: one PNG per image, built once, resumable after an interruption."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,7 +11,7 @@ from PIL import Image
 from semvpr.core.cache import artifact_dir
 from semvpr.core.errors import SemvprError
 from semvpr.segmentation.pseudolabels import label_path, pseudo_labels
-from tests.helpers import CountingTeacher, LABEL_SIZE, labels_key, make_images
+from tests.helpers import LABEL_SIZE, CountingTeacher, labels_key, make_images
 
 SIZE = LABEL_SIZE
 
@@ -53,8 +54,10 @@ def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
 
 # Real Pitts30k-test names (pytorch-NetVlad layout): the same stem as a database and as a query
 # image (288 stems do; ../shared/realdata/pitts30k_test_{db,q}Images.npy).
-PITTS_PAIRS = [("003/003504_pitch1_yaw1.jpg", "queries_real/003/003504_pitch1_yaw1.jpg"),
-               ("003/003504_pitch1_yaw2.jpg", "queries_real/003/003504_pitch1_yaw2.jpg")]
+PITTS_PAIRS = [
+    ("003/003504_pitch1_yaw1.jpg", "queries_real/003/003504_pitch1_yaw1.jpg"),
+    ("003/003504_pitch1_yaw2.jpg", "queries_real/003/003504_pitch1_yaw2.jpg"),
+]
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
 
 

@@ -1,4 +1,5 @@
 """Sweep report: aggregation numbers, table order, gains, failed jobs, figures, CLI and Hydra callback."""
+
 from __future__ import annotations
 
 import csv
@@ -15,15 +16,23 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from semvpr.report import ReportCallback
-from semvpr.reporting.sweep_report import write_report
 from semvpr.reporting.sweep import load_sweep
+from semvpr.reporting.sweep_report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 NS = (1, 5, 10, 20)
 # (filter, seed) -> R@1; R@N = R@1 + (N - 1) so every column has hand-checkable stats
-R1 = {("none", 1): 40.0, ("none", 2): 44.0, ("attention", 1): 38.0, ("attention", 2): 40.0,
-      ("unet", 1): 48.0, ("unet", 2): 50.0, ("mask2former", 1): 50.0, ("mask2former", 2): 56.0,
-      ("oracle", 1): 70.0}
+R1 = {
+    ("none", 1): 40.0,
+    ("none", 2): 44.0,
+    ("attention", 1): 38.0,
+    ("attention", 2): 40.0,
+    ("unet", 1): 48.0,
+    ("unet", 2): 50.0,
+    ("mask2former", 1): 50.0,
+    ("mask2former", 2): 56.0,
+    ("oracle", 1): 70.0,
+}
 
 
 def _png(path: Path, colour: tuple[int, int, int]) -> Path:
@@ -33,8 +42,13 @@ def _png(path: Path, colour: tuple[int, int, int]) -> Path:
 
 
 # The seed's filter presets as the (aggregator, mask) they select, and their display rows.
-PRESETS = {"none": ("netvlad", "none"), "attention": ("sral", "none"), "unet": ("sral", "student"),
-           "mask2former": ("sral", "teacher"), "oracle": ("sral", "oracle")}
+PRESETS = {
+    "none": ("netvlad", "none"),
+    "attention": ("sral", "none"),
+    "unet": ("sral", "student"),
+    "mask2former": ("sral", "teacher"),
+    "oracle": ("sral", "oracle"),
+}
 ROW = {f: f"{a} · {m}" for f, (a, m) in PRESETS.items()}
 
 
@@ -42,13 +56,26 @@ def _labels(filter_: str, aggregator: str | None = None, mask: str | None = None
     """What a run records to be grouped by (semvpr.train.run_labels)."""
     aggregator = aggregator or PRESETS[filter_][0]
     mask = mask or PRESETS[filter_][1]
-    return {"aggregator": aggregator, "baseline_aggregator": aggregator == "netvlad", "mask": mask,
-            "mask_upper_bound": mask == "oracle", "weights": "binary", "filter": filter_}
+    return {
+        "aggregator": aggregator,
+        "baseline_aggregator": aggregator == "netvlad",
+        "mask": mask,
+        "mask_upper_bound": mask == "oracle",
+        "weights": "binary",
+        "filter": filter_,
+    }
 
 
 def _metrics(filter_: str, seed: int, r1: float, backbone: str = "vgg16", **labels: str) -> dict:
-    m = {"status": "ok", "error": None, **_labels(filter_, **labels), "backbone": backbone, "seed": seed,
-         "wall_time_s": 10.0 * seed, "recalls": {str(n): min(100.0, r1 + n - 1) for n in range(1, 21)}}
+    m = {
+        "status": "ok",
+        "error": None,
+        **_labels(filter_, **labels),
+        "backbone": backbone,
+        "seed": seed,
+        "wall_time_s": 10.0 * seed,
+        "recalls": {str(n): min(100.0, r1 + n - 1) for n in range(1, 21)},
+    }
     m.update({f"test/R@{n}": r1 + n - 1 for n in NS})
     return m
 
@@ -72,8 +99,10 @@ def sweep(tmp_path: Path) -> Path:
         job = _job(sweep, f"filter={f},seed={seed}", _metrics(f, seed, r1))
         # The dataset root the run recorded: the report draws images from there only.
         (job / ".hydra" / "config.yaml").write_text(f"seed: {seed}\ndata:\n  root: {tmp_path / 'data'}\n")
-        arrays: dict[str, np.ndarray] = {"query_index": np.array([0, 1]),
-                                         "image_paths": np.array([str(q) for q in queries])}
+        arrays: dict[str, np.ndarray] = {
+            "query_index": np.array([0, 1]),
+            "image_paths": np.array([str(q) for q in queries]),
+        }
         if f != "none":
             arrays["attention"] = rng.random((2, 4, 5)).astype(np.float32)
         if f == "mask2former":
@@ -82,14 +111,26 @@ def sweep(tmp_path: Path) -> Path:
             arrays["student"] = (rng.random((2, 4, 5)) > 0.5).astype(np.float32)
         np.savez(job / "maps.npz", **arrays)
         topk = [{"path": str(d), "utm": [float(i), 0.0], "correct": i == 0 and f != "none"} for i, d in enumerate(dbs)]
-        (job / "retrievals.json").write_text(json.dumps(
-            {"queries": [{"query": str(q), "utm": [0.0, 0.0], "topk": topk} for q in queries]}))
-    _job(sweep, "filter=unet,seed=3", {"status": "failed", **_labels("unet"), "backbone": "vgg16", "seed": 3,
-                                       "error": "Traceback (most recent call last):\n  File x\nRuntimeError: out of memory"})
+        (job / "retrievals.json").write_text(
+            json.dumps({"queries": [{"query": str(q), "utm": [0.0, 0.0], "topk": topk} for q in queries]})
+        )
+    _job(
+        sweep,
+        "filter=unet,seed=3",
+        {
+            "status": "failed",
+            **_labels("unet"),
+            "backbone": "vgg16",
+            "seed": 3,
+            "error": "Traceback (most recent call last):\n  File x\nRuntimeError: out of memory",
+        },
+    )
     crashed = _job(sweep, "filter=mask2former,seed=3", None)
     (crashed / ".hydra" / "overrides.yaml").write_text("- filter=mask2former\n- seed=3\n")
-    (crashed / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    choices:\n      backbone: vgg16\n"
-                                                   "      aggregator: sral\n      mask: teacher\n      filter: mask2former\n")
+    (crashed / ".hydra" / "hydra.yaml").write_text(
+        "hydra:\n  runtime:\n    choices:\n      backbone: vgg16\n"
+        "      aggregator: sral\n      mask: teacher\n      filter: mask2former\n"
+    )
     return sweep
 
 
@@ -117,18 +158,27 @@ def test_markdown_order_gains_failures_and_figures(sweep: Path) -> None:
     assert md == sweep / "results.md"
     text = md.read_text()
     table = [ln for ln in text.splitlines() if ln.startswith("| vgg16 |")]
-    assert [ln.split("|")[2].strip() for ln in table] == ["netvlad · none", "sral · none", "sral · student",
-                                                          "sral · teacher", "sral · oracle (upper bound)"]
+    assert [ln.split("|")[2].strip() for ln in table] == [
+        "netvlad · none",
+        "sral · none",
+        "sral · student",
+        "sral · teacher",
+        "sral · oracle (upper bound)",
+    ]
     assert "| 42.0 ± 2.8 | 46.0 ± 2.8 | 51.0 ± 2.8 | 61.0 ± 2.8 | 2 | 1, 2 | 0 | 15.0 |" in table[0]
     assert "| 70.0 ± – |" in table[4]
     # Paired by seed: attention 38-40, 40-44; the oracle has seed 1 only (70-40), not 70-mean(none).
-    assert ("**R@1 gain over `netvlad · none` (vgg16)**, per seed (same backbone init and data), then mean ± std: "
-            "sral · none −3.0 ± 1.4 (better in 0 of 2 seeds), sral · student +7.0 ± 1.4 (better in 2 of 2 seeds), "
-            "sral · teacher +11.0 ± 1.4 (better in 2 of 2 seeds), sral · oracle (upper bound) +30.0 "
-            "(better in 1 of 1 seeds)") in text
+    assert (
+        "**R@1 gain over `netvlad · none` (vgg16)**, per seed (same backbone init and data), then mean ± std: "
+        "sral · none −3.0 ± 1.4 (better in 0 of 2 seeds), sral · student +7.0 ± 1.4 (better in 2 of 2 seeds), "
+        "sral · teacher +11.0 ± 1.4 (better in 2 of 2 seeds), sral · oracle (upper bound) +30.0 "
+        "(better in 1 of 1 seeds)"
+    ) in text
     # the same aggregator without a mask: student 48-38, 50-40; teacher 50-38, 56-40; oracle 70-38
-    assert ("- sral: student +10.0 ± 0.0 (better in 2 of 2 seeds), teacher +14.0 ± 2.8 (better in 2 of 2 seeds), "
-            "oracle (upper bound) +32.0 (better in 1 of 1 seeds)") in text
+    assert (
+        "- sral: student +10.0 ± 0.0 (better in 2 of 2 seeds), teacher +14.0 ± 2.8 (better in 2 of 2 seeds), "
+        "oracle (upper bound) +32.0 (better in 1 of 1 seeds)"
+    ) in text
     failed = [ln for ln in text.splitlines() if ln.startswith("- `filter=")]
     assert len(failed) == 2
     assert any("filter=unet,seed=3" in ln and ln.endswith("RuntimeError: out of memory") for ln in failed)
@@ -156,24 +206,36 @@ def test_missing_inputs_skip_figures_with_note(tmp_path: Path) -> None:
 def test_runs_that_differ_only_in_backbone_weights_get_their_own_rows(tmp_path: Path) -> None:
     """A sweep over backbone.weights=imagenet,none must not average the pretrained and random-init runs."""
     for seed, (r1_pre, r1_rand) in enumerate([(70.0, 12.0), (72.0, 14.0)]):
-        _job(tmp_path, f"backbone.weights=imagenet,filter=none,seed={seed}",
-             {**_metrics("none", seed, r1_pre, "efficientnet_lite0"), "backbone_weights": "imagenet"})
-        _job(tmp_path, f"backbone.weights=none,filter=none,seed={seed}",
-             {**_metrics("none", seed, r1_rand, "efficientnet_lite0"), "backbone_weights": "none"})
+        _job(
+            tmp_path,
+            f"backbone.weights=imagenet,filter=none,seed={seed}",
+            {**_metrics("none", seed, r1_pre, "efficientnet_lite0"), "backbone_weights": "imagenet"},
+        )
+        _job(
+            tmp_path,
+            f"backbone.weights=none,filter=none,seed={seed}",
+            {**_metrics("none", seed, r1_rand, "efficientnet_lite0"), "backbone_weights": "none"},
+        )
     # a job that died before metrics.json: its weights come from its composed config
     died = _job(tmp_path, "backbone.weights=none,filter=none,seed=2", None)
     (died / ".hydra" / "config.yaml").write_text("seed: 2\nbackbone:\n  name: efficientnet_lite0\n  weights: none\n")
-    (died / ".hydra" / "hydra.yaml").write_text("hydra:\n  runtime:\n    choices:\n      backbone: efficientnet_lite0\n")
+    (died / ".hydra" / "hydra.yaml").write_text(
+        "hydra:\n  runtime:\n    choices:\n      backbone: efficientnet_lite0\n"
+    )
     text = write_report(tmp_path).read_text()
     assert "| efficientnet_lite0 | netvlad · none | 71.0 ± 1.4 |" in text
     assert "| efficientnet_lite0 (random init) | netvlad · none | 13.0 ± 1.4 |" in text
-    assert {job.backbone for job in load_sweep(tmp_path).jobs} == {"efficientnet_lite0", "efficientnet_lite0 (random init)"}
+    assert {job.backbone for job in load_sweep(tmp_path).jobs} == {
+        "efficientnet_lite0",
+        "efficientnet_lite0 (random init)",
+    }
 
 
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
     for target in (tmp_path, tmp_path / "missing"):
-        proc = subprocess.run([sys.executable, "-m", "semvpr.report", str(target)], capture_output=True, text=True,
-                              cwd=ROOT, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-m", "semvpr.report", str(target)], capture_output=True, text=True, cwd=ROOT, timeout=120
+        )
         assert proc.returncode == 2
         lines = proc.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("semvpr: error:") and str(target) in lines[0]
@@ -194,7 +256,8 @@ def test_callback_resolves_relative_sweep_dir(sweep: Path, capsys: pytest.Captur
 
 def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
     """A real `-m` sweep with the callback configured writes results.md into hydra.sweep.dir."""
-    (tmp_path / "app.py").write_text(textwrap.dedent("""
+    (tmp_path / "app.py").write_text(
+        textwrap.dedent("""
         import json, hydra
         from hydra.core.hydra_config import HydraConfig
         from pathlib import Path
@@ -208,18 +271,27 @@ def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
             Path(HydraConfig.get().runtime.output_dir, "metrics.json").write_text(json.dumps(m))
 
         main()
-    """))
-    (tmp_path / "cfg.yaml").write_text(textwrap.dedent("""
+    """)
+    )
+    (tmp_path / "cfg.yaml").write_text(
+        textwrap.dedent("""
         mask: none
         seed: 1
         hydra:
           callbacks:
             report: {_target_: semvpr.report.ReportCallback}
           sweep: {dir: "multiruns/${now:%Y-%m-%d}/${now:%H-%M-%S}", subdir: "${hydra.job.override_dirname}"}
-    """))
+    """)
+    )
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "app.py", "-m", "mask=none,student", "seed=1,2"], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=180)
+    proc = subprocess.run(
+        [sys.executable, "app.py", "-m", "mask=none,student", "seed=1,2"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
     assert proc.returncode == 0, proc.stderr
     (md,) = tmp_path.glob("multiruns/*/*/results.md")
     assert "| vgg16 | gem · student | 41.5 ± 0.7 |" in md.read_text()
@@ -239,8 +311,10 @@ def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
     text = write_report(tmp_path).read_text()
     rows = [ln.split("|")[2].strip() for ln in text.splitlines() if ln.startswith("| vgg16 |")]
     assert rows == ["sral · oracle (upper bound)", "sral · oracle+learned (upper bound)"]
-    assert ("**R@1 gain of learned class weights over binary weights (vgg16)**, paired by seed: "
-            "sral · oracle+learned (upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)") in text
+    assert (
+        "**R@1 gain of learned class weights over binary weights (vgg16)**, paired by seed: "
+        "sral · oracle+learned (upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)"
+    ) in text
     assert "| vegetation | 0.40 ± 0.14 |" in text and "| road | 0.90 ± 0.00 |" in text
     assert "](class_weights.png)" in text
     with Image.open(tmp_path / "class_weights.png") as im:
@@ -249,14 +323,22 @@ def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
 
 def test_aggregator_by_mask_matrix_and_bars(tmp_path: Path) -> None:
     # R@1 by (aggregator, mask, seed); R@5 = R@1 + 4 (see _metrics)
-    r1 = {("netvlad", "none"): (30.0, 34.0), ("netvlad", "oracle"): (35.0, 33.0),
-          ("gem", "none"): (20.0, 22.0), ("gem", "student"): (26.0, 30.0), ("gem", "oracle"): (25.0, 27.0)}
+    r1 = {
+        ("netvlad", "none"): (30.0, 34.0),
+        ("netvlad", "oracle"): (35.0, 33.0),
+        ("gem", "none"): (20.0, 22.0),
+        ("gem", "student"): (26.0, 30.0),
+        ("gem", "oracle"): (25.0, 27.0),
+    }
     for (agg, mask), values in r1.items():
         for seed, value in enumerate(values):
-            _job(tmp_path, f"aggregator={agg},mask={mask},seed={seed}",
-                 _metrics("none", seed, value, aggregator=agg, mask=mask))
+            _job(
+                tmp_path,
+                f"aggregator={agg},mask={mask},seed={seed}",
+                _metrics("none", seed, value, aggregator=agg, mask=mask),
+            )
     text = write_report(tmp_path).read_text()
-    matrix = text[text.index("## Aggregator × mask (vgg16)"):]
+    matrix = text[text.index("## Aggregator × mask (vgg16)") :]
     lines = [ln for ln in matrix.splitlines() if ln.startswith("| ")]
     # baseline aggregator first; no mask first, upper bounds last
     assert lines[0] == "| aggregator | none | student | oracle (upper bound) |"

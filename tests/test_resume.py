@@ -1,4 +1,5 @@
 """A resume continues the run as it was started: its own config, its .hydra record untouched."""
+
 from __future__ import annotations
 
 import json
@@ -20,8 +21,14 @@ REPO = Path(__file__).resolve().parents[1]
 def train_cli(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
     """``python -m semvpr.train`` from ``cwd`` (where a default outputs/ would land)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-m", "semvpr.train", *overrides], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "semvpr.train", *overrides],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
 
 
 def test_a_resume_takes_the_runs_own_config_and_refuses_what_contradicts_it(tmp_path: Path) -> None:
@@ -36,9 +43,10 @@ def test_a_resume_takes_the_runs_own_config_and_refuses_what_contradicts_it(tmp_
     # Repeating the original overrides agrees with the record; another value does not.
     again = ["ckpt_path=last", "experiment=tiny", "filter=unet", "trainer.max_epochs=3"]
     assert resumed_config(config(*again), default, record, again).trainer.max_epochs == 3
-    for override, message in (("trainer.max_epochs=5", "trainer.max_epochs=5 contradicts the run's own "
-                                                       "trainer.max_epochs=3"),
-                              ("filter=none", r"filter\..* contradicts the run's own filter\.")):
+    for override, message in (
+        ("trainer.max_epochs=5", "trainer.max_epochs=5 contradicts the run's own trainer.max_epochs=3"),
+        ("filter=none", r"filter\..* contradicts the run's own filter\."),
+    ):
         with pytest.raises(SemvprError, match=message):
             resumed_config(config("ckpt_path=last", override), default, record, ["ckpt_path=last", override])
     # Hydra is told not to rewrite the run's .hydra record; a fresh run is left alone.
@@ -51,8 +59,9 @@ def test_a_resume_takes_the_runs_own_config_and_refuses_what_contradicts_it(tmp_
 def test_resume_reloads_the_runs_own_config_and_refuses_contradictions(tmp_path: Path) -> None:
     run, cache, cwd = tmp_path / "run", tmp_path / "cache", tmp_path / "cwd"
     cwd.mkdir()
-    start = train_cli(cwd, "experiment=tiny", f"paths.cache_dir={cache}", "trainer.max_epochs=1",
-                      f"hydra.run.dir={run}")
+    start = train_cli(
+        cwd, "experiment=tiny", f"paths.cache_dir={cache}", "trainer.max_epochs=1", f"hydra.run.dir={run}"
+    )
     assert start.returncode == 0, start.stderr[-2000:]
     record = {p.name: p.read_text() for p in (run / ".hydra").iterdir()}
     first = json.loads((run / "metrics.json").read_text())

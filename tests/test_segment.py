@@ -1,4 +1,5 @@
 """`python -m semvpr.segment` end to end on a tiny CamVid, and its saved teacher used as teacher.checkpoint."""
+
 from __future__ import annotations
 
 import json
@@ -14,11 +15,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError, one_line
-from semvpr.models.teacher import TeacherSpec
-from semvpr.segmentation.training import build_teacher
 from semvpr.models.masks import TeacherMask
-from semvpr.segmentation.scoring import teacher_outputs
+from semvpr.models.teacher import TeacherSpec
 from semvpr.segment import run
+from semvpr.segmentation.scoring import teacher_outputs
+from semvpr.segmentation.training import build_teacher
 from tests.camvid_fixture import write_camvid
 from tests.helpers import CONF_DIR
 
@@ -44,8 +45,11 @@ def segment_config(*overrides: str) -> DictConfig:
 def segment_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, DictConfig]:
     """One complete tiny run (teacher, pseudo-labels, EfficientNet-Lite0 and random-init VGG16 students)."""
     tmp = tmp_path_factory.mktemp("segment")
-    cfg = segment_config(f"seg.root={write_camvid(tmp / 'camvid')}", f"paths.cache_dir={tmp / 'cache'}",
-                         "+backbone@backbones.vgg16=vgg16")
+    cfg = segment_config(
+        f"seg.root={write_camvid(tmp / 'camvid')}",
+        f"paths.cache_dir={tmp / 'cache'}",
+        "+backbone@backbones.vgg16=vgg16",
+    )
     run(cfg, tmp / "run")
     return tmp / "run", cfg
 
@@ -65,19 +69,27 @@ def test_run_writes_results_figure_logs_and_teacher(segment_run: tuple[Path, Dic
         assert 0.0 <= student["dynamic_iou"] <= 1.0 and student["train_s"] > 0 and "static_removed" in student["val"]
     assert (run_dir / "figure_masks.png").stat().st_size > 10_000
     assert list((run_dir / "csv").rglob("metrics.csv")) and list((run_dir / "tensorboard").rglob("events.*"))
-    assert {p.name for p in (run_dir / "teacher").iterdir()} >= {"config.json", "model.safetensors",
-                                                                  "preprocessor_config.json"}
+    assert {p.name for p in (run_dir / "teacher").iterdir()} >= {
+        "config.json",
+        "model.safetensors",
+        "preprocessor_config.json",
+    }
     assert not list(run_dir.glob(".*tmp*"))  # results and teacher were renamed into place
 
 
-def test_saved_teacher_is_a_checkpoint_with_equal_predictions(segment_run: tuple[Path, DictConfig],
-                                                               tmp_path: Path) -> None:
+def test_saved_teacher_is_a_checkpoint_with_equal_predictions(
+    segment_run: tuple[Path, DictConfig], tmp_path: Path
+) -> None:
     run_dir, cfg = segment_run
-    trained = build_teacher(TeacherSpec.from_mapping(cfg.teacher), instantiate(cfg.seg.train), instantiate(cfg.seg.val),
-                            cfg.paths.cache_dir)
-    loaded = build_teacher(TeacherSpec.from_mapping(OmegaConf.merge(cfg.teacher, {"checkpoint": str(run_dir / "teacher")})),
-                           None, None,
-                           tmp_path / "other-cache")
+    trained = build_teacher(
+        TeacherSpec.from_mapping(cfg.teacher), instantiate(cfg.seg.train), instantiate(cfg.seg.val), cfg.paths.cache_dir
+    )
+    loaded = build_teacher(
+        TeacherSpec.from_mapping(OmegaConf.merge(cfg.teacher, {"checkpoint": str(run_dir / "teacher")})),
+        None,
+        None,
+        tmp_path / "other-cache",
+    )
     assert loaded.teacher_key.startswith("pretrained-") and not (tmp_path / "other-cache").exists()
     images = torch.rand(2, 3, 32, 48)
     assert torch.equal(loaded.predict_train_ids(images), trained.predict_train_ids(images))
@@ -95,21 +107,35 @@ def test_unset_root_is_a_user_error(tmp_path: Path) -> None:
 
 
 def test_worker_wrapped_error_prints_its_own_line() -> None:
-    wrapped = SemvprError("Caught SemvprError in DataLoader worker process 0.\nOriginal Traceback (most recent "
-                          "call last):\n  File \"x.py\", line 1\nsemvpr.core.errors.SemvprError: image a.jpg is corrupt\n")
+    wrapped = SemvprError(
+        "Caught SemvprError in DataLoader worker process 0.\nOriginal Traceback (most recent "
+        'call last):\n  File "x.py", line 1\nsemvpr.core.errors.SemvprError: image a.jpg is corrupt\n'
+    )
     assert one_line(wrapped) == "image a.jpg is corrupt"
     assert one_line(SemvprError("plain")) == "plain"
 
 
 def test_cli_bad_root_one_line_exit_2(tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1"}
-    proc = subprocess.run([sys.executable, "-m", "semvpr.segment", f"seg.root={tmp_path / 'nowhere'}",
-                           f"hydra.run.dir={tmp_path / 'run'}"], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.segment",
+            f"seg.root={tmp_path / 'nowhere'}",
+            f"hydra.run.dir={tmp_path / 'run'}",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [
         f"semvpr: error: CamVid root {tmp_path / 'nowhere'} is not a directory; set seg.root to the folder "
-        "holding train/, trainannot/ and train.txt (SegNet layout)"]
+        "holding train/, trainannot/ and train.txt (SegNet layout)"
+    ]
 
 
 @pytest.mark.slow
@@ -118,8 +144,12 @@ def test_vpr_run_uses_the_saved_teacher(segment_run: tuple[Path, DictConfig], tm
     from tests.helpers import tiny_config
 
     run_dir, _ = segment_run
-    cfg = tiny_config(tmp_path / "cache", "filter=mask2former", f"teacher.checkpoint={run_dir / 'teacher'}",
-                      "+trainer.fast_dev_run=true")
+    cfg = tiny_config(
+        tmp_path / "cache",
+        "filter=mask2former",
+        f"teacher.checkpoint={run_dir / 'teacher'}",
+        "+trainer.fast_dev_run=true",
+    )
     metrics = run_job(cfg, tmp_path / "vpr")
     assert metrics["status"] == "ok" and 0.0 <= metrics["test/R@1"] <= 100.0
     assert not list((tmp_path / "cache").glob("teacher-*"))  # nothing trained: the saved teacher was used

@@ -1,4 +1,5 @@
 """Cityscapes reader, image / trainId loaders and their error messages."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,14 +9,15 @@ import pytest
 import torch
 from PIL import Image
 
+from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE
 from semvpr.data.images import load_image
 from semvpr.data.segmentation import SegmentationSet, load_pair, load_train_ids, read_cityscapes
-from semvpr.core.errors import SemvprError
 
 
-def write_pair(root: Path, split: str, city: str, stem: str, label_ids: np.ndarray,
-               label_hw: tuple[int, int] | None = None) -> tuple[Path, Path]:
+def write_pair(
+    root: Path, split: str, city: str, stem: str, label_ids: np.ndarray, label_hw: tuple[int, int] | None = None
+) -> tuple[Path, Path]:
     """A Cityscapes image (red channel = labelId) and its labelIds PNG."""
     h, w = label_ids.shape
     image = root / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png"
@@ -38,8 +40,10 @@ def test_read_cityscapes_pairs_by_name(tmp_path: Path) -> None:
     write_pair(tmp_path, "val", "lindau", "lindau_000000_000019", ids)
     seg = read_cityscapes(tmp_path, "train")
     assert isinstance(seg, SegmentationSet) and len(seg) == 3
-    assert [p.name for p in seg.images][:2] == ["aachen_000000_000019_leftImg8bit.png",
-                                                "aachen_000001_000019_leftImg8bit.png"]
+    assert [p.name for p in seg.images][:2] == [
+        "aachen_000000_000019_leftImg8bit.png",
+        "aachen_000001_000019_leftImg8bit.png",
+    ]
     for image, label in zip(seg.images, seg.labels):
         assert label.name == image.name.replace("_leftImg8bit", "_gtFine_labelIds")
         assert label.parent.name == image.parent.name and label.is_file()

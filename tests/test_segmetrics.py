@@ -1,4 +1,5 @@
 """Segmentation scores on a hand-built label map whose IoUs are worked out by hand."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -54,8 +55,9 @@ def test_mask_scores_by_hand() -> None:
     assert s["dynamic_iou"] == pytest.approx(2 / 5)
     assert s["nonstatic_iou"] == pytest.approx(4 / 7)  # 4 of 5 non-static removed, 2 static removed
     assert s["static_iou"] == pytest.approx(8 / 11)  # 8 static kept; 10 static + 1 kept car pixel
-    assert s["removed_by_class"] == pytest.approx({"road": 1 / 6, "building": 1 / 4, "sky": 1.0, "person": 1.0,
-                                                   "car": 0.5})
+    assert s["removed_by_class"] == pytest.approx(
+        {"road": 1 / 6, "building": 1 / 4, "sky": 1.0, "person": 1.0, "car": 0.5}
+    )
 
 
 def test_all_static_mask_scores_zero_on_moving_objects() -> None:
@@ -73,8 +75,11 @@ def test_class_iou_matches_torchmetrics_on_random_maps() -> None:
     gen = torch.Generator().manual_seed(0)
     target = torch.randint(0, 19, (3, 17, 23), generator=gen)
     target[:, :3] = X
-    pred = torch.where(torch.rand(target.shape, generator=gen) < 0.6, target.clamp(max=18),
-                       torch.randint(0, 19, target.shape, generator=gen))
+    pred = torch.where(
+        torch.rand(target.shape, generator=gen) < 0.6,
+        target.clamp(max=18),
+        torch.randint(0, 19, target.shape, generator=gen),
+    )
     conf = Confusion()
     conf.update(pred[:2], target[:2])
     conf.update(pred[2:], target[2:])  # accumulates over batches

@@ -1,4 +1,5 @@
 """U-Net student: shapes, skip choice, backbone identity, and a short fit that clearly beats chance."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,9 +11,9 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from semvpr.core.errors import SemvprError
-from semvpr.segmentation import training as student_mod
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import Student, StudentSpec
+from semvpr.segmentation import training as student_mod
 from semvpr.segmentation.training import build_student
 
 SIZE = (32, 48)
@@ -80,14 +81,17 @@ def toy_set(root: Path, n: int, seed: int) -> tuple[list[Path], list[np.ndarray]
     return paths, maps
 
 
-def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path: Path,
-                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_short_fit_beats_chance_and_is_cached(
+    backbone: VGG16Backbone, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     paths, maps = toy_set(tmp_path / "img", 24, seed=0)
     labels = tmp_path / "labels-abc"
     labels.mkdir()
     for p, ids in zip(paths, maps):
         Image.fromarray(ids).save(labels / f"{p.name}.png")
-    student = build_student(StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
+    student = build_student(
+        StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+    )
     assert not student.training
 
     test_paths, test_maps = toy_set(tmp_path / "test", 8, seed=1)
@@ -106,7 +110,9 @@ def test_short_fit_beats_chance_and_is_cached(backbone: VGG16Backbone, tmp_path:
     assert iou > 0.85, iou
 
     monkeypatch.setattr(student_mod, "fit_student", lambda *a: pytest.fail("trained twice"))
-    again = build_student(StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache")
+    again = build_student(
+        StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+    )
     for a, b in zip(student.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
 
@@ -128,5 +134,6 @@ def test_multi_class_student_static_sum_is_its_binary_mask(backbone: VGG16Backbo
     torch.testing.assert_close(student.static_prob(skips, out_hw=SIZE)[:, 0], by_hand)
     assert torch.equal(binary, pool_to_grid(by_hand[:, None], (2, 3)))
     assert learned.shape == (2, 19, 2, 3)
-    torch.testing.assert_close(learned[:, :3].sum(1, keepdim=True),
-                               torch.nn.functional.adaptive_avg_pool2d(by_hand[:, None], (2, 3)))
+    torch.testing.assert_close(
+        learned[:, :3].sum(1, keepdim=True), torch.nn.functional.adaptive_avg_pool2d(by_hand[:, None], (2, 3))
+    )

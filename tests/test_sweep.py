@@ -1,4 +1,5 @@
 """The four-way comparison as one Hydra multirun, with the report at the end."""
+
 from __future__ import annotations
 
 import subprocess
@@ -13,9 +14,21 @@ REPO = Path(__file__).resolve().parents[1]
 def _sweep(tmp_path: Path, name: str, *overrides: str) -> tuple[subprocess.CompletedProcess[str], Path]:
     sweep_dir = tmp_path / name
     proc = subprocess.run(
-        [sys.executable, "-m", "semvpr.train", "-m", "experiment=tiny", f"paths.cache_dir={tmp_path / 'cache'}",
-         f"hydra.sweep.dir={sweep_dir}", *overrides],
-        cwd=REPO, capture_output=True, text=True, timeout=1200)
+        [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            "-m",
+            "experiment=tiny",
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            f"hydra.sweep.dir={sweep_dir}",
+            *overrides,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
     return proc, sweep_dir
 
 

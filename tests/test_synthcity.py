@@ -3,6 +3,7 @@
 All tests share one tiny-preset dataset built through the artifact cache (module fixture); the
 numbers they check come from PRESETS["tiny"], so they hold whatever sizes the preset is tuned to.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -21,25 +22,38 @@ from PIL import Image
 import semvpr.data.synthcity as synthcity
 import semvpr.data.synthcity_render as render
 from semvpr.core.cache import LOCK_DIR, artifact_dir
+from semvpr.core.errors import SemvprError
 from semvpr.data.classes import TRAIN_ID_NAMES, TRAIN_TO_LABEL, label_ids_to_train_ids
 from semvpr.data.places import parse_utm_name
 from semvpr.data.segmentation import read_cityscapes
-from semvpr.data.synthcity import (DATES, DB_STEP_M, PRESETS, ensure_synthcity, generate, get_preset, main,
-                                   read_segmentation, read_split)
+from semvpr.data.synthcity import (
+    DATES,
+    DB_STEP_M,
+    PRESETS,
+    ensure_synthcity,
+    generate,
+    get_preset,
+    main,
+    read_segmentation,
+    read_split,
+)
 from semvpr.data.synthcity_ground import FACADE_D, build_ground, ground_distance, make_ground_pool
-from semvpr.core.errors import SemvprError
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = PRESETS["tiny"]
 DYNAMIC_MIN = TRAIN_ID_NAMES.index("sky")  # trainIds >= 10 are dynamic / uninformative
-ROAD, BUILDING, POLE, SIGN, VEG, TERRAIN = (TRAIN_ID_NAMES.index(n) for n in
-                                            ("road", "building", "pole", "traffic sign", "vegetation", "terrain"))
+ROAD, BUILDING, POLE, SIGN, VEG, TERRAIN = (
+    TRAIN_ID_NAMES.index(n) for n in ("road", "building", "pole", "traffic sign", "vegetation", "terrain")
+)
 
 
 def tree(root: Path, skip: tuple[str, ...] = ("key.json",)) -> dict[str, str]:
     """Relative path → sha256 of every file under ``root`` (``skip``: top-level names left out)."""
-    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and p.relative_to(root).parts[0] not in skip}
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.relative_to(root).parts[0] not in skip
+    }
 
 
 def ids(path: Path) -> np.ndarray:
@@ -107,8 +121,10 @@ def test_vpr_layout_counts_names_and_labels(dataset: Path) -> None:
     assert {p.name for p in dataset.iterdir()} == {"images", "labels", "seg", "stats.json", "key.json"}
     assert sorted(p.name for p in (dataset / "images").iterdir()) == sorted(TINY.vpr)
     for split, spec in TINY.vpr.items():
-        for sub, per_route, date in (("database", spec.db_per_route, DATES[0]),
-                                     ("queries", spec.q_per_route, DATES[1])):
+        for sub, per_route, date in (
+            ("database", spec.db_per_route, DATES[0]),
+            ("queries", spec.q_per_route, DATES[1]),
+        ):
             images = vpr_images(dataset, split, sub)
             assert len(images) == spec.routes * per_route, (split, sub)
             assert len(list((dataset / "labels" / split / sub).iterdir())) == len(images)
@@ -140,13 +156,13 @@ def test_routes_disjoint_and_database_every_5m(dataset: Path) -> None:
         for north, east in db.items():
             assert len(east) == spec.db_per_route
             np.testing.assert_allclose(np.diff(east), DB_STEP_M, atol=0.011)
-            assert DB_STEP_M == pytest.approx(5.0)
+            assert pytest.approx(5.0) == DB_STEP_M
             # Queries fall along the same stretch, each within half a step of a database image.
             gaps = np.abs(q[north][:, None] - east[None, :]).min(1)
             assert len(q[north]) == spec.q_per_route and gaps.max() <= DB_STEP_M / 2 + 0.011
     splits = sorted(lines)
     for i, a in enumerate(splits):
-        for b in splits[i + 1:]:
+        for b in splits[i + 1 :]:
             assert not lines[a] & lines[b], (a, b)
             # Far beyond any positive radius: no cross-split positives.
             assert min(abs(x - y) for x in lines[a] for y in lines[b]) > 100.0
@@ -189,8 +205,10 @@ def test_labels_are_valid_train_ids(dataset: Path) -> None:
 def measured(labels: list[np.ndarray]) -> tuple[float, float]:
     """Mean dynamic and mean sky fraction over label maps (trainIds)."""
     sky = TRAIN_ID_NAMES.index("sky")
-    return (float(np.mean([(a >= DYNAMIC_MIN).mean() for a in labels])),
-            float(np.mean([(a == sky).mean() for a in labels])))
+    return (
+        float(np.mean([(a >= DYNAMIC_MIN).mean() for a in labels])),
+        float(np.mean([(a == sky).mean() for a in labels])),
+    )
 
 
 def test_dynamic_fraction_in_bounds_and_stats_agree(dataset: Path) -> None:
@@ -201,8 +219,7 @@ def test_dynamic_fraction_in_bounds_and_stats_agree(dataset: Path) -> None:
     lo, hi = TINY.dynamic_bounds
     assert lo <= measured(queries)[0] <= hi
     for split in TINY.vpr:  # stats keys: VPR split (database + queries), "seg-<split>"
-        labels = [ids(label_of(dataset, p)) for sub in ("database", "queries")
-                  for p in vpr_images(dataset, split, sub)]
+        labels = [ids(label_of(dataset, p)) for sub in ("database", "queries") for p in vpr_images(dataset, split, sub)]
         dyn, sky = measured(labels)
         assert stats["images"][split] == len(labels)
         assert stats["dynamic_fraction"][split] == pytest.approx(dyn, abs=1e-3)
@@ -214,8 +231,12 @@ def test_dynamic_fraction_in_bounds_and_stats_agree(dataset: Path) -> None:
         assert stats["dynamic_fraction"][f"seg-{split}"] == pytest.approx(dyn, abs=1e-3)
         assert stats["sky_fraction"][f"seg-{split}"] == pytest.approx(sky, abs=1e-3)
     assert set(stats["images"]) == set(TINY.vpr) | {f"seg-{s}" for s in TINY.seg}
-    every = [ids(label_of(dataset, p)) for split in TINY.vpr for sub in ("database", "queries")
-             for p in vpr_images(dataset, split, sub)]
+    every = [
+        ids(label_of(dataset, p))
+        for split in TINY.vpr
+        for sub in ("database", "queries")
+        for p in vpr_images(dataset, split, sub)
+    ]
     counts = np.bincount(np.concatenate([a.ravel() for a in every]), minlength=len(TRAIN_ID_NAMES))
     assert list(stats["class_fraction"]) == sorted(TRAIN_ID_NAMES)
     for i, name in enumerate(TRAIN_ID_NAMES):
@@ -254,18 +275,23 @@ def still_spec() -> render.RenderSpec:
 @pytest.fixture(scope="module")
 def street() -> render.Panorama:
     """One 200 m route of the tiny preset's street."""
-    return render.build_panorama(np.random.default_rng(5), 200.0, TINY.render, make_ground_pool(np.random.default_rng(6)))
+    return render.build_panorama(
+        np.random.default_rng(5), 200.0, TINY.render, make_ground_pool(np.random.default_rng(6))
+    )
 
 
-def test_same_pose_both_traversals_differ_only_in_vegetation(street: render.Panorama,
-                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+def test_same_pose_both_traversals_differ_only_in_vegetation(
+    street: render.Panorama, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Facades, poles and signs are world-fixed and identical in both traversals; only foliage colours change."""
     monkeypatch.setattr(render, "add_dynamic_objects", lambda *args, **kwargs: None)
     pool, spec = render.make_texture_pool(np.random.default_rng(0), 3), still_spec()
     furniture, foliage, changed = 0, 0, 0
     for i, x in enumerate(np.arange(10.0, 190.0, 6.0)):
-        (img0, lab0), (img1, lab1) = (render.render_capture(street, float(x), np.random.default_rng(i), spec, pool,
-                                                            query=q) for q in (False, True))
+        (img0, lab0), (img1, lab1) = (
+            render.render_capture(street, float(x), np.random.default_rng(i), spec, pool, query=q)
+            for q in (False, True)
+        )
         assert (lab0 == lab1).all(), x  # a crown keeps its outline (and label) when its leaves fall
         seasonal = np.isin(lab0, (VEG, TERRAIN))
         assert (img0[~seasonal] == img1[~seasonal]).all(), x
@@ -280,8 +306,8 @@ def best_shift(a: np.ndarray, b: np.ndarray, rows: slice, valid: np.ndarray, max
     """Shift s (pixels) minimising the mean |a[:, j + s] - b[:, j]| over rows where ``valid`` holds in both."""
     errors = []
     for s in range(max_shift + 1):
-        ok = valid[rows, s:] & valid[rows, :valid.shape[1] - s]
-        diff = np.abs(a[rows, s:].astype(np.float32) - b[rows, :b.shape[1] - s].astype(np.float32)).mean(-1)
+        ok = valid[rows, s:] & valid[rows, : valid.shape[1] - s]
+        diff = np.abs(a[rows, s:].astype(np.float32) - b[rows, : b.shape[1] - s].astype(np.float32)).mean(-1)
         errors.append(diff[ok].mean() if ok.sum() > 20 else np.inf)
     return int(np.argmin(errors))
 
@@ -294,10 +320,12 @@ def test_ground_is_seen_in_perspective(street: render.Panorama, monkeypatch: pyt
     h = spec.height
     near = ground_distance(render.VIEW_BOTTOM + 0.5 / ppm)  # what the bottom row sees
     for i, x in enumerate((40.0, 90.0, 140.0)):
-        (a, la), (b, lb) = (render.render_capture(street, x + off, np.random.default_rng(i), spec, pool, query=False)
-                            for off in (0.0, dx))
+        (a, la), (b, lb) = (
+            render.render_capture(street, x + off, np.random.default_rng(i), spec, pool, query=False)
+            for off in (0.0, dx)
+        )
         static = (la < DYNAMIC_MIN) & (lb < DYNAMIC_MIN)
-        assert (la[h - 3:] == ROAD).mean() > 0.9
+        assert (la[h - 3 :] == ROAD).mean() > 0.9
         assert abs(best_shift(a, b, slice(h // 3, h // 2), static, 40) - dx * ppm) <= 1, x
         assert abs(best_shift(a, b, slice(h - 2, h), static, 40) - dx * ppm * FACADE_D / near) <= 3, x
 
@@ -370,7 +398,11 @@ def test_ensure_synthcity_reuses_cache(dataset: Path, cache_dir: Path, monkeypat
     assert ensure_synthcity(cache_dir, "tiny", 0, None, [TINY.render.height, TINY.render.width]) == dataset
     assert tree(dataset, skip=()) == before and {p: p.stat().st_mtime_ns for p in dataset.rglob("*")} == mtimes
     assert json.loads((dataset / "key.json").read_text()) == {
-        "preset": "tiny", "seed": 0, "version": synthcity.GENERATOR_VERSION, "render": dataclasses.asdict(TINY.render)}
+        "preset": "tiny",
+        "seed": 0,
+        "version": synthcity.GENERATOR_VERSION,
+        "render": dataclasses.asdict(TINY.render),
+    }
     # Another seed or any other knob is another artifact; a failed build leaves nothing in the cache.
     assert artifact_dir(cache_dir, "synthcity", synthcity._key("tiny", 1, None)) != dataset
     for knob in ({"coverage": 0.2}, {"pitch_m": 8.0}, {"liveries": 2}):
@@ -406,7 +438,10 @@ def test_config_image_size_draws_the_city_at_that_size(dataset: Path, cache_dir:
     small = instantiate_node(cfg.data.test)
     root = small.root.parent
     assert root != dataset and json.loads((root / "key.json").read_text())["render"] == {
-        **dataclasses.asdict(TINY.render), "height": 48, "width": 72}
+        **dataclasses.asdict(TINY.render),
+        "height": 48,
+        "width": 72,
+    }
     for image in (small.q_paths[0], small.db_paths[-1]):
         assert Image.open(image).size == (72, 48)
         assert ids(label_of(root, image)).shape == (48, 72)
@@ -421,7 +456,11 @@ def test_get_preset_overrides_and_bad_values() -> None:
     p = get_preset("tiny", {"coverage": 0.2, "lighting": 0, "pitch_m": 8, "liveries": 2.0})
     assert (p.render.coverage, p.render.lighting, p.render.pitch_m, p.render.liveries) == (0.2, 0.0, 8.0, 2)
     assert type(p.render.liveries) is int and p.vpr == TINY.vpr
-    assert (p.render.height, p.render.width, p.render.season) == (TINY.render.height, TINY.render.width, TINY.render.season)
+    assert (p.render.height, p.render.width, p.render.season) == (
+        TINY.render.height,
+        TINY.render.width,
+        TINY.render.season,
+    )
     assert get_preset("tiny") == get_preset("tiny", {}) == TINY
     with pytest.raises(SemvprError, match=r"unknown SynthCity preset 'huge'.*tiny"):
         get_preset("huge")
@@ -459,8 +498,9 @@ def one_error_line(err: str) -> str:
     return lines[0]
 
 
-def test_cli_writes_dataset_identical_to_generate(dataset: Path, tmp_path: Path,
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_writes_dataset_identical_to_generate(
+    dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "new" / "city"  # parent does not exist yet
     main(["--out", str(out), "--preset", "tiny", "--seed", "0"])
     printed = capsys.readouterr().out.strip().splitlines()
@@ -481,8 +521,14 @@ def test_cli_refuses_non_empty_out(tmp_path: Path) -> None:
     out.mkdir()
     (out / "keep.txt").write_text("precious")
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.run([sys.executable, "-m", "semvpr.data.synthcity", "--out", str(out), "--preset", "tiny"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "semvpr.data.synthcity", "--out", str(out), "--preset", "tiny"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2, proc.stderr
     line = one_error_line(proc.stderr)
     assert "--out" in line and str(out) in line and "not an empty directory" in line
@@ -509,10 +555,15 @@ def test_cli_bad_preset_is_argparse_error(tmp_path: Path, capsys: pytest.Capture
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize(("args", "expected"), [(["--render", "coverage=1.5"], "coverage=1.5 is outside [0, 1]"),
-                                               (["--render", "lighting=-0.5"], "lighting=-0.5 is outside [0, 1]"),
-                                               (["--render", "sky=0.5"], "no render knob 'sky'"),
-                                               (["--image-size", "8", "8"], "image_size=[8, 8] must be")])
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--render", "coverage=1.5"], "coverage=1.5 is outside [0, 1]"),
+        (["--render", "lighting=-0.5"], "lighting=-0.5 is outside [0, 1]"),
+        (["--render", "sky=0.5"], "no render knob 'sky'"),
+        (["--image-size", "8", "8"], "image_size=[8, 8] must be"),
+    ],
+)
 def test_cli_bad_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], expected: str) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["--out", str(tmp_path / "x"), "--preset", "tiny", *args])
@@ -522,9 +573,9 @@ def test_cli_bad_knob(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: 
 
 
 @pytest.mark.parametrize("error", [SemvprError("disk full"), KeyboardInterrupt()])
-def test_cli_failure_mid_generation_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                   capsys: pytest.CaptureFixture[str],
-                                                   error: BaseException) -> None:
+def test_cli_failure_mid_generation_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], error: BaseException
+) -> None:
     def half_then_fail(root: Path, *args: object) -> dict:
         (root / "images").mkdir()
         (root / "images" / "partial.jpg").write_bytes(b"\xff\xd8")
@@ -549,9 +600,13 @@ def test_sigterm_during_generation_is_one_line_and_leaves_nothing(tmp_path: Path
     import time
 
     out = tmp_path / "parent" / "city"
-    proc = subprocess.Popen([sys.executable, "-m", "semvpr.data.synthcity", "--out", str(out), "--preset", "default"],
-                            stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1],
-                            env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "semvpr.data.synthcity", "--out", str(out), "--preset", "default"],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).resolve().parents[1],
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+    )
     deadline = time.time() + 120
     while time.time() < deadline and not any((tmp_path / "parent").glob(".city.*.tmp/*")):
         time.sleep(0.2)

@@ -1,4 +1,5 @@
 """Mask2Former teacher: training signal, post-processing, name mapping, offline loading, build cache."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,21 +8,21 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
-from transformers import Mask2FormerForUniversalSegmentation
 from PIL import Image
+from transformers import Mask2FormerForUniversalSegmentation
 
 from semvpr.core.cache import LOCK_DIR
+from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.segmentation import read_cityscapes
-from semvpr.core.errors import SemvprError
 from semvpr.models import teacher as teacher_mod
 from semvpr.models.teacher import Teacher, TeacherSpec, embedded_model, targets_from_train_ids
 from semvpr.segmentation import training as training_mod
 from semvpr.segmentation.training import build_teacher
 
-TINY_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1], "num_heads": [1, 1, 2, 2], "window_size": 4,
-              "hidden_dim": 32, "num_attention_heads": 2, "encoder_layers": 1, "decoder_layers": 2,
-              "num_queries": 8, "train_num_points": 256}  # fmt: skip
+TINY_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1],
+              "num_heads": [1, 1, 2, 2], "window_size": 4, "hidden_dim": 32, "num_attention_heads": 2,
+              "encoder_layers": 1, "decoder_layers": 2, "num_queries": 8, "train_num_points": 256}  # fmt: skip
 
 
 def tiny_spec(**over: object) -> TeacherSpec:
@@ -152,7 +153,9 @@ def test_pretrained_directory_loads_with_its_processor(tmp_path: Path) -> None:
     torch.manual_seed(0)
     model = embedded_model(TINY_MODEL)
     model.save_pretrained(tmp_path / "ckpt")
-    Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(tmp_path / "ckpt")
+    Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(
+        tmp_path / "ckpt"
+    )
     teacher = build_teacher(tiny_spec(checkpoint=str(tmp_path / "ckpt")), None, None, tmp_path / "cache")
     assert teacher.teacher_key.startswith("pretrained-")
     assert torch.allclose(teacher.mean.flatten(), torch.tensor([0.5] * 3))
@@ -170,7 +173,9 @@ def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytes
     assert (art / "model.pt").is_file() and (art / "config.json").is_file()
     metrics = (art / "metrics.json").read_text()
     assert "val/static_iou" in metrics and "val/mIoU" in metrics
-    assert not any(p.name.startswith(".") and p.name != LOCK_DIR for p in (tmp_path / "cache").iterdir())  # no temp dirs left
+    assert not any(
+        p.name.startswith(".") and p.name != LOCK_DIR for p in (tmp_path / "cache").iterdir()
+    )  # no temp dirs left
 
     monkeypatch.setattr(training_mod, "_train", lambda *a: pytest.fail("trained twice"))
     second = build_teacher(tiny_spec(), train, val, tmp_path / "cache")
@@ -254,12 +259,19 @@ def _edit_json(path: Path, **changes: object) -> None:
 CUSTOM_CODE = "from pathlib import Path\nPath({sentinel!r}).write_text('ran')\n"
 
 
-@pytest.mark.parametrize("file,changes", [
-    ("config.json", {"model_type": "evil", "auto_map": {"AutoConfig": "evil.EvilConfig",
-                                                       "AutoModel": "evil.EvilModel"}}),
-    ("preprocessor_config.json", {"image_processor_type": "EvilProcessor",
-                                  "auto_map": {"AutoImageProcessor": "evil.EvilProcessor"}}),
-])
+@pytest.mark.parametrize(
+    "file,changes",
+    [
+        (
+            "config.json",
+            {"model_type": "evil", "auto_map": {"AutoConfig": "evil.EvilConfig", "AutoModel": "evil.EvilModel"}},
+        ),
+        (
+            "preprocessor_config.json",
+            {"image_processor_type": "EvilProcessor", "auto_map": {"AutoImageProcessor": "evil.EvilProcessor"}},
+        ),
+    ],
+)
 def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, changes: dict) -> None:
     """Even with 'y' on stdin (transformers asked "Do you wish to run the custom code?")."""
     import subprocess
@@ -269,26 +281,39 @@ def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, 
     sentinel = tmp_path / "ran.txt"
     (folder / "evil.py").write_text(CUSTOM_CODE.format(sentinel=str(sentinel)))
     _edit_json(folder / file, **changes)
-    code = ("from semvpr.models.teacher import load_pretrained\n"
-            f"load_pretrained({str(folder)!r})\n")
-    proc = subprocess.run([sys.executable, "-c", code], input="y\ny\n", capture_output=True, text=True, timeout=120,
-                          cwd=Path(__file__).resolve().parents[1])
+    code = f"from semvpr.models.teacher import load_pretrained\nload_pretrained({str(folder)!r})\n"
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        input="y\ny\n",
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+    )
     assert not sentinel.exists()
     assert proc.returncode != 0 and "SemvprError" in proc.stderr and "evil" in proc.stderr.lower()
 
 
-@pytest.mark.parametrize("changes,message", [
-    ({"rescale_factor": 1.0}, "rescale_factor=1.0"),
-    ({"image_std": [0.0, 0.25, 0.25]}, "image_std=.*finite numbers > 0"),
-    ({"image_mean": ["a", 0.5, 0.5]}, "image_mean=.*finite numbers"),
-])
+@pytest.mark.parametrize(
+    "changes,message",
+    [
+        ({"rescale_factor": 1.0}, "rescale_factor=1.0"),
+        ({"image_std": [0.0, 0.25, 0.25]}, "image_std=.*finite numbers > 0"),
+        ({"image_mean": ["a", 0.5, 0.5]}, "image_mean=.*finite numbers"),
+    ],
+)
 def test_a_processor_normalisation_is_used_or_refused(tmp_path: Path, changes: dict, message: str) -> None:
     folder = _saved_teacher(tmp_path / "ckpt")
     _edit_json(folder / "preprocessor_config.json", **changes)
     with pytest.raises(SemvprError, match=message):
         teacher_mod.load_pretrained(str(folder))
-    _edit_json(folder / "preprocessor_config.json", rescale_factor=1 / 255, image_mean=[0.5] * 3,
-               image_std=[0.25] * 3, do_normalize=False)
+    _edit_json(
+        folder / "preprocessor_config.json",
+        rescale_factor=1 / 255,
+        image_mean=[0.5] * 3,
+        image_std=[0.25] * 3,
+        do_normalize=False,
+    )
     teacher = teacher_mod.load_pretrained(str(folder))
     assert teacher.mean.flatten().tolist() == [0.0] * 3 and teacher.std.flatten().tolist() == [1.0] * 3
 

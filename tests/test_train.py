@@ -1,4 +1,5 @@
 """End-to-end training jobs on the tiny SynthCity preset."""
+
 from __future__ import annotations
 
 import json
@@ -12,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -20,7 +20,6 @@ from semvpr import train
 from semvpr.config.build import build_aggregator, build_backbone
 from semvpr.core.errors import SemvprError
 from semvpr.train import run_job
-
 from tests.helpers import CONF_DIR, config, tiny_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,9 +39,17 @@ def trained_run(cache_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
     return run_dir
 
 
-@pytest.mark.parametrize("filter_name,backbone", [("none", "vgg16"), ("attention", "vgg16"), ("unet", "vgg16"),
-                                                  ("mask2former", "vgg16"), ("oracle", "vgg16"),
-                                                  ("unet", "resnet50")])
+@pytest.mark.parametrize(
+    "filter_name,backbone",
+    [
+        ("none", "vgg16"),
+        ("attention", "vgg16"),
+        ("unet", "vgg16"),
+        ("mask2former", "vgg16"),
+        ("oracle", "vgg16"),
+        ("unet", "resnet50"),
+    ],
+)
 def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: str, backbone: str) -> None:
     cfg = tiny_config(cache_dir, f"filter={filter_name}", f"backbone={backbone}", "+trainer.fast_dev_run=true")
     metrics = run_job(cfg, tmp_path)
@@ -64,8 +71,12 @@ def test_fast_dev_run_each_filter(cache_dir: Path, tmp_path: Path, filter_name: 
 
 # Descriptor sizes as set in their yaml (GeM: its CosPlace head's fc_dim).
 @pytest.mark.parametrize("aggregator,dim", [("gem", 512), ("mixvpr", 2048), ("salad", 256 + 8 * 64), ("boq", 128 * 16)])
-def test_fast_dev_run_each_aggregator_with_a_mask(cache_dir: Path, tmp_path: Path, aggregator: str, dim: int | None) -> None:
-    cfg = tiny_config(cache_dir, f"aggregator={aggregator}", "mask=oracle", "model.pca_dim=8", "+trainer.fast_dev_run=true")
+def test_fast_dev_run_each_aggregator_with_a_mask(
+    cache_dir: Path, tmp_path: Path, aggregator: str, dim: int | None
+) -> None:
+    cfg = tiny_config(
+        cache_dir, f"aggregator={aggregator}", "mask=oracle", "model.pca_dim=8", "+trainer.fast_dev_run=true"
+    )
     backbone = build_backbone(cfg.backbone, cfg.seed)
     assert build_aggregator(cfg.copy(), backbone).output_dim == (dim or backbone.out_channels)
     metrics = run_job(cfg, tmp_path)
@@ -128,14 +139,19 @@ def test_resumed_run_ends_as_the_uninterrupted_one(cache_dir: Path, trained_run:
     resumed = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), run_dir)
     last = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
     reference = torch.load(trained_run / "checkpoints" / "last.ckpt", weights_only=True)
-    assert first["epoch"] == 0 and (last["epoch"], last["global_step"]) == (reference["epoch"], reference["global_step"])
+    assert first["epoch"] == 0 and (last["epoch"], last["global_step"]) == (
+        reference["epoch"],
+        reference["global_step"],
+    )
     # The resumed run trained only the remaining epoch: its own log starts at epoch 1.
     resumed_log = sorted((run_dir / "csv").rglob("metrics.csv"))[-1].read_text().splitlines()
     assert all(line.split(",")[0] != "0" for line in resumed_log[1:])
     # Mining RNG (per epoch), negative cache and optimizer state travel: same numbers, same weights.
     uninterrupted = json.loads((trained_run / "metrics.json").read_text())
     assert resumed["recalls"] == uninterrupted["recalls"]
-    weights = [torch.load(m, weights_only=True)["state_dict"] for m in (resumed["checkpoint"], uninterrupted["checkpoint"])]
+    weights = [
+        torch.load(m, weights_only=True)["state_dict"] for m in (resumed["checkpoint"], uninterrupted["checkpoint"])
+    ]
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
 
 
@@ -150,16 +166,22 @@ def test_resume_never_touches_a_file_named_by_a_tampered_checkpoint(cache_dir: P
     callbacks = [state for name, state in ckpt["callbacks"].items() if name.startswith("RunCheckpoint")]
     assert len(callbacks) == 2
     for state in callbacks:
-        state.update(best_model_path=escaping, kth_best_model_path=escaping, last_model_path=escaping,
-                     best_k_models={escaping: torch.tensor(-1.0)}, best_model_score=torch.tensor(-1.0))
+        state.update(
+            best_model_path=escaping,
+            kth_best_model_path=escaping,
+            last_model_path=escaping,
+            best_k_models={escaping: torch.tensor(-1.0)},
+            best_model_score=torch.tensor(-1.0),
+        )
     torch.save(ckpt, last)
     resumed = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), run_dir)
     assert victim.read_text() == "keep"
     assert resumed["status"] == "ok" and (run_dir / "checkpoints" / "best.ckpt").is_file()
 
 
-def test_nan_loss_stops_and_keeps_last_good_checkpoint(cache_dir: Path, tmp_path: Path,
-                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(
+    cache_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from semvpr.retrieval import retriever as retriever_mod
 
     last = tmp_path / "checkpoints" / "last.ckpt"
@@ -199,9 +221,20 @@ def test_signal_stops_the_sweep_instead_of_recording_a_failure(tmp_path: Path, m
 
 def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "semvpr.eval", "experiment=tiny", f"paths.cache_dir={cache_dir}",
-         f"hydra.run.dir={cache_dir.parent / 'eval'}", *overrides],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            "experiment=tiny",
+            f"paths.cache_dir={cache_dir}",
+            f"hydra.run.dir={cache_dir.parent / 'eval'}",
+            *overrides,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None:
@@ -236,17 +269,41 @@ def test_localize_matches_the_cached_pipeline(cache_dir: Path, trained_run: Path
     for i, item in enumerate(retrievals):
         (queries / f"q{i}.jpg").write_bytes(Path(item["query"]).read_bytes())
     proc = subprocess.run(
-        [sys.executable, "-m", "semvpr.localize", "experiment=tiny", f"paths.cache_dir={cache_dir}",
-         f"ckpt={trained_run / 'checkpoints' / 'tested.ckpt'}", f"queries={queries}", "top_k=3",
-         f"hydra.run.dir={tmp_path / 'out'}"], cwd=REPO, capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "semvpr.localize",
+            "experiment=tiny",
+            f"paths.cache_dir={cache_dir}",
+            f"ckpt={trained_run / 'checkpoints' / 'tested.ckpt'}",
+            f"queries={queries}",
+            "top_k=3",
+            f"hydra.run.dir={tmp_path / 'out'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "out" / "localize.json").read_text())
     # Images through the full pipeline retrieve what the cached-feature evaluation retrieved.
     assert [r["matches"][0]["path"] for r in results] == [item["topk"][0]["path"] for item in retrievals]
     empty = subprocess.run(
-        [sys.executable, "-m", "semvpr.localize", "experiment=tiny", f"paths.cache_dir={cache_dir}",
-         f"ckpt={trained_run / 'checkpoints' / 'tested.ckpt'}", f"queries={tmp_path / 'none'}"],
-        cwd=REPO, capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "semvpr.localize",
+            "experiment=tiny",
+            f"paths.cache_dir={cache_dir}",
+            f"ckpt={trained_run / 'checkpoints' / 'tested.ckpt'}",
+            f"queries={tmp_path / 'none'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert empty.returncode == 2 and "does not exist" in empty.stderr
 
 
@@ -266,30 +323,47 @@ def _count_trunk_passes(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return passes
 
 
-def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     passes = _count_trunk_passes(monkeypatch)
     cfg = tiny_config(tmp_path / "cache", "filter=none", "trainer.max_epochs=2")
     built = run_job(cfg, tmp_path / "built")  # SynthCity and the trunk features
     assert len(passes) == 6  # train/val/test x database/queries
     cached = run_job(cfg, tmp_path / "cached")
-    streamed = run_job(tiny_config(tmp_path / "cache", "filter=none", "trainer.max_epochs=2", "features.storage=stream"),
-                       tmp_path / "streamed")
+    streamed = run_job(
+        tiny_config(tmp_path / "cache", "filter=none", "trainer.max_epochs=2", "features.storage=stream"),
+        tmp_path / "streamed",
+    )
     assert len(passes) == 6  # the cached job read them, the streamed one wrote none
-    assert (built["feature_storage"], cached["feature_storage"], streamed["feature_storage"]) == ("ram", "ram", "stream")
+    assert (built["feature_storage"], cached["feature_storage"], streamed["feature_storage"]) == (
+        "ram",
+        "ram",
+        "stream",
+    )
     _assert_same_run(built, cached, streamed)
 
 
 @pytest.mark.parametrize("weights,passes_per_seed", [("imagenet", [6, 0]), ("none", [6, 6])])
-def test_seeds_share_the_pretrained_trunk_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, weights: str,
-                                               passes_per_seed: list[int]) -> None:
+def test_seeds_share_the_pretrained_trunk_pass(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, weights: str, passes_per_seed: list[int]
+) -> None:
     # A frozen ImageNet trunk is the same network for every seed: one pass per image for a seed sweep;
     # a random-init trunk is another network per seed.
     passes = _count_trunk_passes(monkeypatch)
     counts = []
     for seed in (0, 1):
         before = len(passes)
-        run_job(tiny_config(tmp_path / "cache", "filter=none", f"seed={seed}", f"backbone.weights={weights}",
-                            "+trainer.fast_dev_run=true"), tmp_path / f"seed{seed}")
+        run_job(
+            tiny_config(
+                tmp_path / "cache",
+                "filter=none",
+                f"seed={seed}",
+                f"backbone.weights={weights}",
+                "+trainer.fast_dev_run=true",
+            ),
+            tmp_path / f"seed{seed}",
+        )
         counts.append(len(passes) - before)
     assert counts == passes_per_seed
     assert len(list((tmp_path / "cache").glob("trunk-*"))) == (3 if weights == "imagenet" else 6)  # one per split

@@ -5,6 +5,7 @@
 The default preset (seed 0) is generated into / read from the cache directory. Overlays tint each
 class group by the phenomenon it models (see semvpr/data/synthcity_render.py).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,14 +19,24 @@ import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
 from semvpr.data.synthcity import read_split  # noqa: E402
-from semvpr.data.synthcity_render import (DYNAMIC_MIN, LIGHT, POLE, ROAD, SIDEWALK, SIGN, TERRAIN,  # noqa: E402
-                                          VEG)
+from semvpr.data.synthcity_render import (
+    DYNAMIC_MIN,
+    LIGHT,
+    POLE,
+    ROAD,
+    SIDEWALK,
+    SIGN,
+    TERRAIN,  # noqa: E402
+    VEG,
+)
 
 # Class group → tint: dynamic/sky (misleading), seasonal vegetation, aliased ground, place-specific furniture.
-TINTS = (("dynamic / sky", lambda lab: lab >= DYNAMIC_MIN, (1.0, 0.1, 0.1)),
-         ("vegetation (season)", lambda lab: np.isin(lab, (VEG, TERRAIN)), (1.0, 0.9, 0.0)),
-         ("road, sidewalk (aliasing, parallax)", lambda lab: np.isin(lab, (ROAD, SIDEWALK)), (0.1, 0.4, 1.0)),
-         ("poles, signs (per place)", lambda lab: np.isin(lab, (POLE, SIGN, LIGHT)), (1.0, 0.0, 1.0)))
+TINTS = (
+    ("dynamic / sky", lambda lab: lab >= DYNAMIC_MIN, (1.0, 0.1, 0.1)),
+    ("vegetation (season)", lambda lab: np.isin(lab, (VEG, TERRAIN)), (1.0, 0.9, 0.0)),
+    ("road, sidewalk (aliasing, parallax)", lambda lab: np.isin(lab, (ROAD, SIDEWALK)), (0.1, 0.4, 1.0)),
+    ("poles, signs (per place)", lambda lab: np.isin(lab, (POLE, SIGN, LIGHT)), (1.0, 0.0, 1.0)),
+)
 
 
 def overlay(image: np.ndarray, label: np.ndarray) -> np.ndarray:
@@ -54,15 +65,21 @@ def main() -> None:
         for path, lab in ((test.q_paths[qi], test.q_labels[qi]), (test.db_paths[di], test.db_labels[di])):
             img, label = np.asarray(Image.open(path).convert("RGB")), np.asarray(Image.open(lab))
             panels += [img, overlay(img, label)]
-        titles = ["query (November)", "query: class groups", f"nearest database, June ({dist:.1f} m)",
-                  "database: class groups"]
+        titles = [
+            "query (November)",
+            "query: class groups",
+            f"nearest database, June ({dist:.1f} m)",
+            "database: class groups",
+        ]
         for ax, panel, title in zip(row, [panels[0], panels[1], panels[2], panels[3]], titles):
             ax.imshow(panel)
             ax.set_title(title, fontsize=9)
             ax.axis("off")
     legend = ", ".join(f"{name} {('red', 'yellow', 'blue', 'magenta')[i]}" for i, (name, *_) in enumerate(TINTS))
-    fig.suptitle("SynthCity default preset, test split: same place, two traversals (season, light, road users)\n"
-                 + legend, fontsize=10)
+    fig.suptitle(
+        "SynthCity default preset, test split: same place, two traversals (season, light, road users)\n" + legend,
+        fontsize=10,
+    )
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_name(f".{args.out.name}.tmp.png")

@@ -6,6 +6,7 @@ tests build through it, so all of them construct exactly the same model. Below i
 typed values (``Mining``, ``Optimization``, ``InitSample``, ``StudentSpec``, ``TeacherSpec``, ...).
 Teacher, pseudo-labels, student and feature caches come from the artifact cache (built on first use).
 """
+
 from __future__ import annotations
 
 import sys
@@ -33,7 +34,14 @@ from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.models.student import Student, StudentSpec, student_architecture
 from semvpr.models.teacher import Teacher, TeacherSpec, teacher_architecture
 from semvpr.models.whitening import PCAWhitening
-from semvpr.retrieval.features import PlaceFeatures, choose_storage, grid_size, place_features, trunk_cached, trunk_shape
+from semvpr.retrieval.features import (
+    PlaceFeatures,
+    choose_storage,
+    grid_size,
+    place_features,
+    trunk_cached,
+    trunk_shape,
+)
 from semvpr.retrieval.initialisation import InitSample, StaticLabels, initialise_aggregator
 from semvpr.retrieval.mining import Mining
 from semvpr.retrieval.retriever import Optimization, Retriever
@@ -65,17 +73,27 @@ class Prepared:
 def mining_of(cfg: DictConfig) -> Mining:
     """The mining and batching parameters of ``cfg.model`` (``batch_size`` is the global batch)."""
     model = cfg.model
-    return Mining(batch_size=int(model.batch_size), cache_refresh=int(model.cache_refresh),
-                  queries_per_epoch=model.queries_per_epoch, seed=int(cfg.seed),
-                  positive_radius=float(model.positive_radius), negative_radius=float(model.negative_radius),
-                  num_negatives=int(model.num_negatives), negative_candidates=int(model.negative_candidates),
-                  margin=float(model.margin))
+    return Mining(
+        batch_size=int(model.batch_size),
+        cache_refresh=int(model.cache_refresh),
+        queries_per_epoch=model.queries_per_epoch,
+        seed=int(cfg.seed),
+        positive_radius=float(model.positive_radius),
+        negative_radius=float(model.negative_radius),
+        num_negatives=int(model.num_negatives),
+        negative_candidates=int(model.negative_candidates),
+        margin=float(model.margin),
+    )
 
 
 def optimization_of(cfg: DictConfig) -> Optimization:
     """Optimizer and scheduler factories, margin and class-weight learning rate of ``cfg.model``."""
-    return Optimization(instantiate(cfg.model.optimizer), instantiate(cfg.model.scheduler),
-                        float(cfg.model.margin), float(cfg.model.class_weights.lr))
+    return Optimization(
+        instantiate(cfg.model.optimizer),
+        instantiate(cfg.model.scheduler),
+        float(cfg.model.margin),
+        float(cfg.model.class_weights.lr),
+    )
 
 
 def init_sample_of(cfg: DictConfig) -> InitSample:
@@ -133,8 +151,9 @@ def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | 
     if cls.needs == "teacher":
         given["teacher"] = semantic.teacher if semantic is not None else teacher_architecture(teacher_spec(cfg))
     elif cls.needs == "student":
-        given["student"] = (semantic.student if semantic is not None
-                            else student_architecture(student_spec(cfg), backbone))
+        given["student"] = (
+            semantic.student if semantic is not None else student_architecture(student_spec(cfg), backbone)
+        )
     return instantiate_node(cfg.mask.module, **given)
 
 
@@ -145,22 +164,36 @@ def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
     return ClassWeights(list(cfg.teacher.static_classes), float(cfg.model.class_weights.init_logit))
 
 
-def build_retriever(cfg: DictConfig, backbone: Backbone, mask_source: MaskSource | None, *,
-                    training: bool = True) -> Retriever:
+def build_retriever(
+    cfg: DictConfig, backbone: Backbone, mask_source: MaskSource | None, *, training: bool = True
+) -> Retriever:
     """The retriever of ``cfg`` on this backbone and mask source, its aggregator uninitialised
     (:func:`init_aggregator`) or to be loaded from a checkpoint; ``training`` adds the optimizer."""
     aggregator = build_aggregator(cfg, backbone)
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    return Retriever(backbone, aggregator, mask_source, whitening, optimization_of(cfg) if training else None,
-                     int(cfg.model.eval_batch_size), int(cfg.data.num_workers), record=record_of(cfg),
-                     class_weights=build_class_weights(cfg))
+    return Retriever(
+        backbone,
+        aggregator,
+        mask_source,
+        whitening,
+        optimization_of(cfg) if training else None,
+        int(cfg.model.eval_batch_size),
+        int(cfg.data.num_workers),
+        record=record_of(cfg),
+        class_weights=build_class_weights(cfg),
+    )
 
 
 def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
     """The configured Lightning Trainer with the run's loggers and checkpoints."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
-    return instantiate(cfg.trainer, default_root_dir=str(run_dir), logger=loggers, **trainer_kwargs("retriever", callbacks),
-                       precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)))
+    return instantiate(
+        cfg.trainer,
+        default_root_dir=str(run_dir),
+        logger=loggers,
+        **trainer_kwargs("retriever", callbacks),
+        precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)),
+    )
 
 
 def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
@@ -175,8 +208,9 @@ def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
 
 
 # ----------------------------------------------------------------------------------- semantic artifacts
-def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: Backbone,
-                   timings: dict[str, float] | None = None) -> Semantic:
+def build_semantic(
+    cfg: DictConfig, train: PlaceSet, backbone: Backbone, timings: dict[str, float] | None = None
+) -> Semantic:
     """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask source need them;
     the seconds each took (built or read from the cache) into ``timings`` as teacher_s, labels_s, student_s."""
     from semvpr.segmentation.pseudolabels import pseudo_labels
@@ -196,13 +230,15 @@ def build_semantic(cfg: DictConfig, train: PlaceSet, backbone: Backbone,
     teacher = build_teacher(teacher_settings, seg_train, seg_val, cfg.paths.cache_dir)
     timings["teacher_s"], tic = time.time() - tic, time.time()
     images = list(train.db_paths) + list(train.q_paths)
-    labels_dir = pseudo_labels(teacher, teacher.teacher_key, images, tuple(cfg.data.image_size),
-                               cfg.paths.cache_dir, train.root)
+    labels_dir = pseudo_labels(
+        teacher, teacher.teacher_key, images, tuple(cfg.data.image_size), cfg.paths.cache_dir, train.root
+    )
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, train.root)
     if needs == "student":
-        semantic.student = build_student(student_spec(cfg), backbone, images, labels_dir, train.root,
-                                         tuple(cfg.data.image_size), cfg.paths.cache_dir)
+        semantic.student = build_student(
+            student_spec(cfg), backbone, images, labels_dir, train.root, tuple(cfg.data.image_size), cfg.paths.cache_dir
+        )
         timings["student_s"] = time.time() - tic
     return semantic
 
@@ -211,8 +247,9 @@ def mask_key(mask_source: MaskSource | None, cfg: DictConfig) -> str | None:
     """What a mask source's output depends on: its weights (and, for the oracle, the class list)."""
     if mask_source is None:
         return None
-    return config_hash([type(mask_source).__name__, state_hash(mask_source.state_dict()),
-                        list(cfg.teacher.static_classes)])
+    return config_hash(
+        [type(mask_source).__name__, state_hash(mask_source.state_dict()), list(cfg.teacher.static_classes)]
+    )
 
 
 def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet]) -> str:
@@ -221,13 +258,21 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
     ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
     per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
     images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
-    cached = all(trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir)
-                 for p in places.values())
-    storage = choose_storage(cfg.features.storage, per_image * images, cfg.paths.cache_dir,
-                             float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0], float(cfg.features.disk_gb),
-                             cached)
-    print(f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
-          file=sys.stderr)
+    cached = all(
+        trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir) for p in places.values()
+    )
+    storage = choose_storage(
+        cfg.features.storage,
+        per_image * images,
+        cfg.paths.cache_dir,
+        float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0],
+        float(cfg.features.disk_gb),
+        cached,
+    )
+    print(
+        f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
+        file=sys.stderr,
+    )
     return storage
 
 
@@ -244,10 +289,22 @@ def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
     timings["semantic_s"] = time.time() - tic
     tic = time.time()
     storage = feature_storage(cfg, backbone, places)
-    features = {split: place_features(
-        places[split], backbone, backbone.frozen_identity(), mask_source, mask_key(mask_source, cfg),
-        cfg.data.image_size, cfg.paths.cache_dir, storage, int(cfg.model.eval_batch_size), int(cfg.data.num_workers),
-        weighting=cfg.mask.weights) for split in places}
+    features = {
+        split: place_features(
+            places[split],
+            backbone,
+            backbone.frozen_identity(),
+            mask_source,
+            mask_key(mask_source, cfg),
+            cfg.data.image_size,
+            cfg.paths.cache_dir,
+            storage,
+            int(cfg.model.eval_batch_size),
+            int(cfg.data.num_workers),
+            weighting=cfg.mask.weights,
+        )
+        for split in places
+    }
     timings["features_s"] = time.time() - tic
     return Prepared(places, backbone, semantic, mask_source, features, storage)
 
@@ -259,7 +316,13 @@ def init_aggregator(cfg: DictConfig, retriever: Retriever, job: Prepared) -> dic
     if retriever.aggregator.init_sample == "labelled":
         semantic = job.semantic
         assert semantic.labels_dir is not None and semantic.labels_root is not None
-        labels = StaticLabels(semantic.labels_dir, semantic.labels_root, job.places["train"].db_paths,
-                              list(cfg.teacher.static_classes), grid_size(job.backbone, tuple(cfg.data.image_size)))
-    return initialise_aggregator(retriever.aggregator, job.backbone, job.features["train"].db, init_sample_of(cfg),
-                                 labels)
+        labels = StaticLabels(
+            semantic.labels_dir,
+            semantic.labels_root,
+            job.places["train"].db_paths,
+            list(cfg.teacher.static_classes),
+            grid_size(job.backbone, tuple(cfg.data.image_size)),
+        )
+    return initialise_aggregator(
+        retriever.aggregator, job.backbone, job.features["train"].db, init_sample_of(cfg), labels
+    )

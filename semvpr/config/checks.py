@@ -1,5 +1,6 @@
 """``check_config``: the one place a run's settings are checked, first thing in every command, before
 anything is read or written, so a bad value is one line naming its key instead of a late traceback."""
+
 from __future__ import annotations
 
 import math
@@ -15,8 +16,20 @@ from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.features import STORAGES
 
 #: Lightning 2's precision settings (``Trainer(precision=...)``).
-PRECISIONS = ("transformer-engine", "transformer-engine-float16", "16-true", "16-mixed", "bf16-true", "bf16-mixed",
-              "32-true", "64-true", "64", "32", "16", "bf16")
+PRECISIONS = (
+    "transformer-engine",
+    "transformer-engine-float16",
+    "16-true",
+    "16-mixed",
+    "bf16-true",
+    "bf16-mixed",
+    "32-true",
+    "64-true",
+    "64",
+    "32",
+    "16",
+    "bf16",
+)
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
 
 
@@ -63,15 +76,24 @@ def _check_retrieval(cfg: DictConfig) -> None:
         read_checkpoint(cfg.ckpt_path)
     for group in COMPONENTS:
         component_class(cfg, group)
-    for key in ("num_clusters", "batch_size", "eval_batch_size", "num_negatives", "init_features",
-                "init_per_image", "cache_refresh"):
+    for key in (
+        "num_clusters",
+        "batch_size",
+        "eval_batch_size",
+        "num_negatives",
+        "init_features",
+        "init_per_image",
+        "cache_refresh",
+    ):
         whole_number(cfg.model[key], f"model.{key}", 1)
     if cfg.model.get("queries_per_epoch") is not None:
         whole_number(cfg.model.queries_per_epoch, "model.queries_per_epoch (or null = all)", 1)
     positive = check_radius(cfg.model.positive_radius, "model.positive_radius")
     if check_radius(cfg.model.negative_radius, "model.negative_radius") < positive:
-        raise SemvprError(f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
-                          f"{cfg.model.positive_radius}: a negative could then be a positive")
+        raise SemvprError(
+            f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
+            f"{cfg.model.positive_radius}: a negative could then be a positive"
+        )
     if len(cfg.data.image_size) != 2:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
     if cfg.features.storage not in STORAGES:
@@ -80,14 +102,20 @@ def _check_retrieval(cfg: DictConfig) -> None:
     if weighting not in WEIGHTINGS:
         raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
     if weighting == "learned" and cfg.mask.get("module") is None:
-        raise SemvprError("mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
-                          "mask=student, teacher or oracle (filter=unet, mask2former or oracle)")
+        raise SemvprError(
+            "mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
+            "mask=student, teacher or oracle (filter=unet, mask2former or oracle)"
+        )
 
 
 def _check_segmentation(cfg: DictConfig) -> None:
     if OmegaConf.is_missing(cfg.seg, "root"):
-        raise SemvprError(f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid")
+        raise SemvprError(
+            f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid"
+        )
     if len(cfg.seg.image_size) != 2:
         raise SemvprError(f"seg.image_size={list(cfg.seg.image_size)} must be [H, W]")
     if not cfg.backbones:
-        raise SemvprError("backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)")
+        raise SemvprError(
+            "backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)"
+        )

@@ -2,6 +2,7 @@
 aggregator (``conf/aggregator``) and a mask source (``conf/mask``, ``module: null`` for none). Each
 class declares what it needs (an aggregator's ``init_sample``, a mask source's ``needs``), so no builder
 switches on a name; adding one is one class and one yaml file."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -39,8 +40,10 @@ def component_class(cfg: DictConfig, group: str) -> type | None:
         cls = None
     base = COMPONENTS[group]
     if not (isinstance(cls, type) and issubclass(cls, base)):
-        raise SemvprError(f"{group}={cfg[group].get('name')}: {group}.module._target_={target!r} is not a "
-                          f"{base.__module__}.{base.__name__}")
+        raise SemvprError(
+            f"{group}={cfg[group].get('name')}: {group}.module._target_={target!r} is not a "
+            f"{base.__module__}.{base.__name__}"
+        )
     return cls
 
 
@@ -54,6 +57,5 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
         if user is not None:
             raise user from None
         if isinstance(err, MissingMandatoryValue):
-            raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. "
-                              f"{err.full_key}=DIR") from None
+            raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. {err.full_key}=DIR") from None
         raise

@@ -5,6 +5,7 @@ The model comes from the checkpoint's record (``semvpr.core.checkpoint``: valida
 project's own configs, nothing stored in the file is run) and is assembled by the same builder as a
 training run; a command-line choice that would change the model is refused.
 """
+
 from __future__ import annotations
 
 from hydra.core.hydra_config import HydraConfig
@@ -16,12 +17,17 @@ from semvpr.core.errors import SemvprError
 from semvpr.retrieval.retriever import Retriever
 
 #: Command-line group choices that would change the model, and the groups each one sets.
-MODEL_OVERRIDES = {"backbone": ("backbone",), "aggregator": ("aggregator",), "mask": ("mask",),
-                   "filter": ("aggregator", "mask")}
+MODEL_OVERRIDES = {
+    "backbone": ("backbone",),
+    "aggregator": ("aggregator",),
+    "mask": ("mask",),
+    "filter": ("aggregator", "mask"),
+}
 
 
-def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset(), *,
-                   new_images: bool = False) -> tuple[Retriever, DictConfig]:
+def load_retriever(
+    cfg: DictConfig, explicit: set[str] = frozenset(), *, new_images: bool = False
+) -> tuple[Retriever, DictConfig]:
     """The checkpoint ``cfg.ckpt`` as a retriever in eval mode, and the config it was rebuilt with.
     ``new_images``: the caller describes images that come without label maps (localize, the hub), which
     a mask source that reads ground truth cannot."""
@@ -30,13 +36,17 @@ def load_retriever(cfg: DictConfig, explicit: set[str] = frozenset(), *,
     trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
     for override in sorted(explicit & set(MODEL_OVERRIDES)):
         if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):
-            raise SemvprError(f"checkpoint {cfg.ckpt} was trained with {trained}; drop the {override}= override "
-                              "(the model comes from the checkpoint)")
+            raise SemvprError(
+                f"checkpoint {cfg.ckpt} was trained with {trained}; drop the {override}= override "
+                "(the model comes from the checkpoint)"
+            )
     backbone = build_backbone(merged.backbone, int(merged.seed), pretrained=False)
     mask_source = build_mask_source(merged, backbone)
     if new_images and mask_source is not None and not mask_source.describes_new_images:
-        raise SemvprError(f"checkpoint {cfg.ckpt} uses mask={merged.mask.name}, which needs ground-truth label maps "
-                          f"for every image; it cannot describe new images")
+        raise SemvprError(
+            f"checkpoint {cfg.ckpt} uses mask={merged.mask.name}, which needs ground-truth label maps "
+            f"for every image; it cannot describe new images"
+        )
     retriever = build_retriever(merged, backbone, mask_source, training=False)
     try:
         retriever.load_state_dict(state, strict=True)

@@ -7,6 +7,7 @@ Builders of the same artifact are serialised by an advisory lock (``flock`` on
 the jobs of a parallel sweep (e.g. hydra-submitit-launcher on a shared file system) build it once:
 the first takes the lock, the others wait and then reuse its result.
 """
+
 from __future__ import annotations
 
 import fcntl
@@ -15,16 +16,16 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import reclaim_orphans, temp_prefix, write_text
-
 
 LOCK_DIR = ".locks"
 
@@ -97,8 +98,9 @@ def _exclusive(lock_path: Path) -> Iterator[None]:
     try:
         fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
     except OSError as err:
-        raise SemvprError(f"lock file {lock_path} cannot be opened ({err.strerror}); a link there is never "
-                          f"followed: remove it") from None
+        raise SemvprError(
+            f"lock file {lock_path} cannot be opened ({err.strerror}); a link there is never followed: remove it"
+        ) from None
     with os.fdopen(fd, "r+") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:

@@ -18,6 +18,7 @@ Checkpoints written before the aggregator and the mask were groups of their own 
 choice (SRAL + student for ``unet``, ...); they are read as the aggregator and mask that the
 project's filter preset selects, with the filter's recorded ``weights``.
 """
+
 from __future__ import annotations
 
 import re
@@ -52,8 +53,7 @@ def record_of(cfg: DictConfig) -> dict[str, Any]:
         for key in TRAINING_ONLY.get(group, ()):
             node.pop(key, None)
         config[group] = _plain(node)
-    return {"format": FORMAT, "choices": {g: str(cfg[g].name) for g in GROUPS},
-            "config": config, "seed": int(cfg.seed)}
+    return {"format": FORMAT, "choices": {g: str(cfg[g].name) for g in GROUPS}, "config": config, "seed": int(cfg.seed)}
 
 
 def _plain(node: Any) -> Any:
@@ -74,19 +74,29 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
         detail = (str(err).splitlines() or [""])[0]
-        raise SemvprError(f"{path} is not a readable checkpoint ({type(err).__name__}{': ' + detail if detail else ''})") from None
+        raise SemvprError(
+            f"{path} is not a readable checkpoint ({type(err).__name__}{': ' + detail if detail else ''})"
+        ) from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
-    broken = next((k for k, v in ckpt["state_dict"].items()
-                   if not isinstance(v, torch.Tensor) or (v.is_floating_point() and not torch.isfinite(v).all())), None)
+    broken = next(
+        (
+            k
+            for k, v in ckpt["state_dict"].items()
+            if not isinstance(v, torch.Tensor) or (v.is_floating_point() and not torch.isfinite(v).all())
+        ),
+        None,
+    )
     if broken is not None:
         raise SemvprError(f"{path}: weight {broken!r} is not a tensor of finite numbers; the checkpoint is damaged")
     record = ckpt.get("hyper_parameters")
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         if isinstance(record, dict) and "config" in record and "format" not in record:
-            raise SemvprError(f"{path} was written by an older semvpr (checkpoint format 1: it stores Hydra "
-                              "_target_s, and its VGG16 features were cut after conv5_3's ReLU); it cannot be "
-                              "loaded safely or faithfully: retrain it with this version")
+            raise SemvprError(
+                f"{path} was written by an older semvpr (checkpoint format 1: it stores Hydra "
+                "_target_s, and its VGG16 features were cut after conv5_3's ReLU); it cannot be "
+                "loaded safely or faithfully: retrain it with this version"
+            )
         raise SemvprError(f"{path} is not a semvpr checkpoint of format {FORMAT} (no model record)")
     return ckpt["state_dict"], record
 
@@ -110,7 +120,9 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
         choice = choices.get(group)
         options = sorted(p.stem for p in (CONF / group).glob("*.yaml"))
         if not isinstance(choice, str) or not _CHOICE.match(choice) or choice not in options:
-            raise SemvprError(f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}")
+            raise SemvprError(
+                f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}"
+            )
         cfg[group] = OmegaConf.load(CONF / group / f"{choice}.yaml")
     seed = record.get("seed")
     if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
@@ -149,8 +161,10 @@ def _check_path_value(stored: Any, given: Any, path: str) -> None:
         return
     text = str(stored)
     if not _HF_ID.match(text) or ".." in text.split("/") or Path(text).expanduser().exists():
-        raise SemvprError(f"{path}={text!r} names a local path; a checkpoint's stored choices never do "
-                          f"(pass {path.rsplit(': ', 1)[-1]}={text} yourself to use that directory)")
+        raise SemvprError(
+            f"{path}={text!r} names a local path; a checkpoint's stored choices never do "
+            f"(pass {path.rsplit(': ', 1)[-1]}={text} yourself to use that directory)"
+        )
 
 
 def _check(stored: Any, schema: Any, path: str) -> None:

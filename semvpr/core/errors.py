@@ -1,9 +1,11 @@
 """User-facing errors: one exception type, printed as one line with exit code 2 by the CLIs."""
+
 from __future__ import annotations
 
 import functools
 import sys
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 F = TypeVar("F", bound=Callable[..., object])
 

@@ -9,6 +9,7 @@ left is reclaimed by the next build there (:func:`reclaim_orphans`).
 Per-item paths inside an artifact (one file per image) go through :func:`inside`, which refuses
 any that would leave the artifact's directory.
 """
+
 from __future__ import annotations
 
 import json
@@ -131,8 +132,10 @@ def ensure_free(folder: Path, nbytes: int, what: str) -> None:
     """Refuse, in one line, to start writing ``nbytes`` into ``folder`` when the disk lacks room."""
     free = shutil.disk_usage(folder).free
     if nbytes > free:
-        raise SemvprError(f"{what} needs {nbytes / 2**30:.2f} GiB in {folder}, but only {free / 2**30:.2f} GiB "
-                          f"are free; free some space or point paths.cache_dir elsewhere")
+        raise SemvprError(
+            f"{what} needs {nbytes / 2**30:.2f} GiB in {folder}, but only {free / 2**30:.2f} GiB "
+            f"are free; free some space or point paths.cache_dir elsewhere"
+        )
 
 
 def open_array(path: Path, dtype: Any, shape: tuple[int, ...], what: str) -> Any:
@@ -148,8 +151,10 @@ def open_array(path: Path, dtype: Any, shape: tuple[int, ...], what: str) -> Any
         try:
             os.posix_fallocate(fd, 0, os.fstat(fd).st_size)
         except OSError as err:
-            raise SemvprError(f"{what}: cannot reserve {size / 2**30:.2f} GiB in {Path(path).parent} "
-                              f"({err.strerror}); free some space or point paths.cache_dir elsewhere") from None
+            raise SemvprError(
+                f"{what}: cannot reserve {size / 2**30:.2f} GiB in {Path(path).parent} "
+                f"({err.strerror}); free some space or point paths.cache_dir elsewhere"
+            ) from None
         finally:
             os.close(fd)
     return out

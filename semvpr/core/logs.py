@@ -7,6 +7,7 @@ file gets the same lines as a console). :func:`quiet_third_party` hides what Lig
 dependencies repeat in every job and that says nothing about the run: adverts, device banners,
 warnings about settings semvpr makes on purpose (a frozen trunk in eval mode, short epochs).
 """
+
 from __future__ import annotations
 
 import logging
@@ -22,10 +23,13 @@ T = TypeVar("T")
 
 # Informational lines Lightning logs once per Trainer (so once per job of a sweep).
 NOISE_LINES = (
-    "💡 Tip:",                        # litlogger / litmodels adverts
-    "GPU available:", "TPU available:", "HPU available:",
-    "Using bfloat16 Automatic Mixed Precision", "Using 16bit Automatic Mixed Precision",
-    "`Trainer.fit` stopped:",         # semvpr's epoch lines say when training ends
+    "💡 Tip:",  # litlogger / litmodels adverts
+    "GPU available:",
+    "TPU available:",
+    "HPU available:",
+    "Using bfloat16 Automatic Mixed Precision",
+    "Using 16bit Automatic Mixed Precision",
+    "`Trainer.fit` stopped:",  # semvpr's epoch lines say when training ends
     "Loading `train_dataloader` to estimate number of stepping batches",
     # transformers' Mask2Former lists only Swin as a backbone; timm's EfficientNet-Lite0 works through
     # its TimmBackbone (tests/test_teacher.py checks its features and a save/load round trip).
@@ -33,7 +37,7 @@ NOISE_LINES = (
 )
 # Warnings about settings semvpr makes on purpose, with the reason each is harmless.
 NOISE_WARNINGS = (
-    r"Found \d+ module\(s\) in eval mode",   # the frozen trunk stays in eval mode (fixed BatchNorm)
+    r"Found \d+ module\(s\) in eval mode",  # the frozen trunk stays in eval mode (fixed BatchNorm)
     r"The number of training batches \(\d+\) is smaller than the logging interval",  # short CPU epochs
     r"Precision .* is not supported by the model summary",
     r"`isinstance\(treespec, LeafSpec\)` is deprecated",  # Lightning on newer torch
@@ -51,8 +55,13 @@ _FILTER = _DropNoise()
 
 def quiet_third_party() -> None:
     """Hide the known harmless third-party lines and warnings (idempotent; other output is kept)."""
-    for name in ("lightning.pytorch", "lightning.pytorch.utilities.rank_zero", "lightning.fabric",
-                 "lightning.fabric.utilities.rank_zero", "transformers.models.mask2former.configuration_mask2former"):
+    for name in (
+        "lightning.pytorch",
+        "lightning.pytorch.utilities.rank_zero",
+        "lightning.fabric",
+        "lightning.fabric.utilities.rank_zero",
+        "transformers.models.mask2former.configuration_mask2former",
+    ):
         logger = logging.getLogger(name)
         if _FILTER not in logger.filters:
             logger.addFilter(_FILTER)
@@ -79,8 +88,15 @@ class Progress:
     ``semvpr: pseudo-labels: 120/402 images (3.1/s, 39 s elapsed, ETA 1.5 min)``
     """
 
-    def __init__(self, stage: str, total: int, unit: str = "images", every_s: float = 30.0,
-                 stream: TextIO | None = None, done: int = 0) -> None:
+    def __init__(
+        self,
+        stage: str,
+        total: int,
+        unit: str = "images",
+        every_s: float = 30.0,
+        stream: TextIO | None = None,
+        done: int = 0,
+    ) -> None:
         self.stage, self.total, self.unit, self.every_s = stage, int(total), unit, float(every_s)
         self.stream = stream
         self.start = time.monotonic()
@@ -105,8 +121,7 @@ class Progress:
         rate = (self.count - self.initial) / elapsed if elapsed > 0 else 0.0
         eta = (self.total - self.count) / rate if rate > 0 else float("nan")
         eta_text = _duration(eta) if eta == eta else "?"
-        return (f"{self.count}/{self.total} {self.unit} ({rate:.1f}/s, {_duration(elapsed)} elapsed, "
-                f"ETA {eta_text})")
+        return f"{self.count}/{self.total} {self.unit} ({rate:.1f}/s, {_duration(elapsed)} elapsed, ETA {eta_text})"
 
     def close(self) -> None:
         """The last line: how many units in how long."""
@@ -114,8 +129,9 @@ class Progress:
             self._print(f"{self.count}/{self.total} {self.unit} in {_duration(time.monotonic() - self.start)}")
 
 
-def progress(items: Iterable[T], stage: str, total: int, unit: str = "images", every_s: float = 30.0,
-             size: Any = None) -> Iterator[T]:
+def progress(
+    items: Iterable[T], stage: str, total: int, unit: str = "images", every_s: float = 30.0, size: Any = None
+) -> Iterator[T]:
     """Iterate ``items`` with stage lines; ``size(item)`` counts units per item (default 1)."""
     bar = Progress(stage, total, unit, every_s)
     for item in items:
@@ -130,8 +146,9 @@ class EpochLines(L.Callback):
     ``semvpr: retriever: epoch 2/4: train/loss 0.231, val/R@1 31.2, val/R@5 52.0 (1.2 min elapsed, ETA 1.2 min)``
     """
 
-    def __init__(self, stage: str, keys: tuple[str, ...] = ("train/loss", "val/R@1", "val/R@5"),
-                 stream: TextIO | None = None) -> None:
+    def __init__(
+        self, stage: str, keys: tuple[str, ...] = ("train/loss", "val/R@1", "val/R@5"), stream: TextIO | None = None
+    ) -> None:
         self.stage, self.keys, self.stream = stage, keys, stream
         self.start = 0.0
         self.first_epoch = 0
@@ -151,13 +168,16 @@ class EpochLines(L.Callback):
         done = epoch - self.first_epoch
         eta = elapsed / done * (total - epoch) if total and total > 0 and done > 0 else None
         timing = f"{_duration(elapsed)} elapsed" + (f", ETA {_duration(eta)}" if eta is not None else "")
-        print(f"semvpr: {self.stage}: epoch {epoch}/{total if total and total > 0 else '?'}"
-              f"{': ' + shown if shown else ''} ({timing})", file=self.stream or sys.stderr, flush=True)
+        print(
+            f"semvpr: {self.stage}: epoch {epoch}/{total if total and total > 0 else '?'}"
+            f"{': ' + shown if shown else ''} ({timing})",
+            file=self.stream or sys.stderr,
+            flush=True,
+        )
 
 
 def trainer_kwargs(stage: str, callbacks: Iterable[L.Callback] = ()) -> dict[str, Any]:
     """Trainer arguments for a semvpr fit: no progress bar or model summary (both repeat in every job
     of a sweep), :class:`EpochLines` after ``callbacks``; the known noise hidden."""
     quiet_third_party()
-    return {"enable_progress_bar": False, "enable_model_summary": False,
-            "callbacks": [*callbacks, EpochLines(stage)]}
+    return {"enable_progress_bar": False, "enable_model_summary": False, "callbacks": [*callbacks, EpochLines(stage)]}

@@ -6,6 +6,7 @@ AMX and on recent GPUs, but oneDNN emulates it elsewhere: on an AVX2-only CPU a 
 and Lightning's ``bf16-mixed`` falls back to ``32-true`` the same way. Numbers therefore differ
 slightly between a bf16 and an fp32 machine (ARCHITECTURE §9).
 """
+
 from __future__ import annotations
 
 import functools
@@ -29,8 +30,7 @@ def bf16_native(device_type: str) -> bool:
 def autocast(device: torch.device | str = "cpu", enabled: bool = True) -> torch.autocast:
     """bf16 autocast where the device runs bf16 natively (and ``enabled``), else a disabled autocast."""
     device_type = torch.device(device).type
-    return torch.autocast(device_type=device_type, dtype=torch.bfloat16,
-                          enabled=enabled and bf16_native(device_type))
+    return torch.autocast(device_type=device_type, dtype=torch.bfloat16, enabled=enabled and bf16_native(device_type))
 
 
 def lightning_precision(requested: str, accelerator: str) -> str:

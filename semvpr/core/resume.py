@@ -6,6 +6,7 @@ is the same run. Overrides given with the resume must agree with that config; on
 contradicts it (another filter, another ``trainer.max_epochs``) is refused in one line before
 anything is written. The run's ``.hydra`` record is left as it is (Hydra is told not to rewrite it).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -63,9 +64,11 @@ def resumed_config(cfg: DictConfig, default: DictConfig, record: Path, overrides
         if key in RESUME_KEYS or not set_here:
             continue
         if given.get(key) != theirs.get(key):
-            raise SemvprError(f"resuming {record.parent.parent}: {key}={given.get(key)!r} contradicts the run's "
-                              f"own {key}={theirs.get(key)!r}; a resume continues the run as it was started: "
-                              f"drop the override")
+            raise SemvprError(
+                f"resuming {record.parent.parent}: {key}={given.get(key)!r} contradicts the run's "
+                f"own {key}={theirs.get(key)!r}; a resume continues the run as it was started: "
+                f"drop the override"
+            )
     own.ckpt_path = cfg.ckpt_path
     return own
 

@@ -1,5 +1,6 @@
 """Typed settings: a config node becomes a frozen dataclass at the config layer, so the code below it
 takes named, typed values instead of a whole ``DictConfig``."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -30,8 +31,11 @@ def from_mapping(cls: type[S], node: Mapping[str, Any], where: str) -> S:
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise SemvprError(f"{where}.{unknown[0]} is not a setting of {where} (known: {', '.join(sorted(fields))})")
-    missing = [name for name, f in fields.items() if name not in values
-               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    missing = [
+        name
+        for name, f in fields.items()
+        if name not in values and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
     if missing:
         raise SemvprError(f"{where}.{missing[0]} is not set")
     return cls(**values)  # type: ignore[call-arg]

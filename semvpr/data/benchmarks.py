@@ -15,6 +15,7 @@ shipped one. A set recognised by name has its counts checked against ``published
 Object arrays (``_gt.npy``, ``pIdx``) are pickles: they are unpickled with only numpy's array
 classes allowed, so a crafted file cannot run code.
 """
+
 from __future__ import annotations
 
 import pickle
@@ -23,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
+from semvpr.core.errors import SemvprError
 from semvpr.data.places import IMAGE_SUFFIXES, PlaceSet
 from semvpr.data.published import check_counts
-from semvpr.core.errors import SemvprError
 
 #: What a pickled numpy object array of index arrays may reference (numpy 1.x and 2.x names).
 _ARRAY_CLASSES = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
@@ -47,14 +48,18 @@ def load_npy(path: Path) -> np.ndarray:
     try:
         with path.open("rb") as fh:
             version = np.lib.format.read_magic(fh)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
             shape, _, dtype = read_header(fh)
             if not dtype.hasobject:
                 fh.seek(0)
                 return np.load(fh, allow_pickle=False)
             array = _ArrayUnpickler(fh).load()
     except (ValueError, OSError, EOFError, pickle.UnpicklingError) as err:
-        raise SemvprError(f"{path}: not a readable .npy array ({str(err).splitlines()[0] if str(err) else type(err).__name__})") from None
+        raise SemvprError(
+            f"{path}: not a readable .npy array ({str(err).splitlines()[0] if str(err) else type(err).__name__})"
+        ) from None
     if not isinstance(array, np.ndarray) or array.shape != shape:
         raise SemvprError(f"{path}: the pickled content is not the {shape} array its header announces")
     return array
@@ -64,7 +69,9 @@ def _names(path: Path) -> list[str]:
     """A 1-D .npy list of relative image paths."""
     array = load_npy(path)
     if array.ndim != 1 or not len(array) or not all(isinstance(n, str) and n for n in array.tolist()):
-        raise SemvprError(f"{path}: expected a non-empty 1-D array of image paths, got {array.dtype}{list(array.shape)}")
+        raise SemvprError(
+            f"{path}: expected a non-empty 1-D array of image paths, got {array.dtype}{list(array.shape)}"
+        )
     return [str(n) for n in array.tolist()]
 
 
@@ -73,7 +80,9 @@ def _index_lists(path: Path, count: int) -> list[np.ndarray]:
     array = load_npy(path)
     rows = list(array) if array.ndim in (1, 2) else []
     if len(rows) != count:
-        raise SemvprError(f"{path}: {len(rows)} rows of positives ({array.dtype}{list(array.shape)}) for {count} queries")
+        raise SemvprError(
+            f"{path}: {len(rows)} rows of positives ({array.dtype}{list(array.shape)}) for {count} queries"
+        )
     out = []
     for i, row in enumerate(rows):
         idx = np.asarray(row).ravel()
@@ -86,17 +95,25 @@ def _index_lists(path: Path, count: int) -> list[np.ndarray]:
 def _check_images(image_root: Path, db: list[str], q: list[str], where: Path) -> None:
     """The image folder exists and holds the first listed image of each side (one stat each)."""
     if not image_root.is_dir():
-        raise SemvprError(f"image folder {image_root} does not exist; set data.root=... to the folder the "
-                          f"paths in {where} are relative to")
+        raise SemvprError(
+            f"image folder {image_root} does not exist; set data.root=... to the folder the "
+            f"paths in {where} are relative to"
+        )
     for side, names in (("database", db), ("query", q)):
         if not (image_root / names[0]).is_file():
             raise SemvprError(f"{where}: first {side} image {names[0]!r} not found under {image_root}")
 
 
 def _set(name: str, image_root: Path, db: list[str], q: list[str], **truth: object) -> PlaceSet:
-    return PlaceSet(name=name, root=image_root, db_paths=tuple(image_root / n for n in db),
-                    q_paths=tuple(image_root / n for n in q), db_utm=np.full((len(db), 2), np.nan),
-                    q_utm=np.full((len(q), 2), np.nan), **truth)  # type: ignore[arg-type]
+    return PlaceSet(
+        name=name,
+        root=image_root,
+        db_paths=tuple(image_root / n for n in db),
+        q_paths=tuple(image_root / n for n in q),
+        db_utm=np.full((len(db), 2), np.nan),
+        q_utm=np.full((len(q), 2), np.nan),
+        **truth,
+    )  # type: ignore[arg-type]
 
 
 def read_npy_lists(gt_dir: str | Path, image_root: str | Path, set_name: str) -> PlaceSet:
@@ -117,9 +134,15 @@ def read_msls_val_npy(gt_dir: str | Path, image_root: str | Path) -> PlaceSet:
     db = _names(gt_dir / "msls_val_dbImages.npy")
     all_q = _names(gt_dir / "msls_val_qImages.npy")
     q_idx = load_npy(gt_dir / "msls_val_qIdx.npy")
-    if q_idx.ndim != 1 or not np.issubdtype(q_idx.dtype, np.integer) or (q_idx.size and (q_idx.min() < 0 or q_idx.max() >= len(all_q))):
-        raise SemvprError(f"{gt_dir / 'msls_val_qIdx.npy'}: expected 1-D indices into the {len(all_q)} "
-                          f"query images, got {q_idx.dtype}{list(q_idx.shape)}")
+    if (
+        q_idx.ndim != 1
+        or not np.issubdtype(q_idx.dtype, np.integer)
+        or (q_idx.size and (q_idx.min() < 0 or q_idx.max() >= len(all_q)))
+    ):
+        raise SemvprError(
+            f"{gt_dir / 'msls_val_qIdx.npy'}: expected 1-D indices into the {len(all_q)} "
+            f"query images, got {q_idx.dtype}{list(q_idx.shape)}"
+        )
     q = [all_q[i] for i in q_idx.tolist()]
     truth = _index_lists(gt_dir / "msls_val_pIdx.npy", len(q))
     check_counts("msls_val", len(db), len(q), str(gt_dir / "msls_val_*.npy"))
@@ -136,8 +159,9 @@ def _lines(path: Path) -> list[str]:
     return names
 
 
-def read_patchnetvlad(npz_path: str | Path, db_list: str | Path, q_list: str | Path,
-                      image_root: str | Path) -> PlaceSet:
+def read_patchnetvlad(
+    npz_path: str | Path, db_list: str | Path, q_list: str | Path, image_root: str | Path
+) -> PlaceSet:
     """Patch-NetVLAD ground truth: positions (``utmDb``, ``utmQ``) and the positive radius
     (``posDistThr``) from the .npz, image paths from the two lists (one per line, same order)."""
     npz_path, image_root = Path(npz_path).expanduser(), Path(image_root).expanduser()
@@ -147,29 +171,43 @@ def read_patchnetvlad(npz_path: str | Path, db_list: str | Path, q_list: str | P
         with np.load(npz_path, allow_pickle=False) as npz:
             fields = {k: npz[k] for k in npz.files}
     except Exception as err:  # noqa: BLE001 - zipfile, pickle refusal and format errors alike
-        raise SemvprError(f"{npz_path}: not a readable .npz ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        raise SemvprError(
+            f"{npz_path}: not a readable .npz ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
     missing = [k for k in ("utmDb", "utmQ", "posDistThr") if k not in fields]
     if missing:
-        raise SemvprError(f"{npz_path}: lacks {missing} (found {sorted(fields)}); is it a Patch-NetVLAD dataset_gt_files .npz?")
+        raise SemvprError(
+            f"{npz_path}: lacks {missing} (found {sorted(fields)}); is it a Patch-NetVLAD dataset_gt_files .npz?"
+        )
     db, q = _lines(Path(db_list).expanduser()), _lines(Path(q_list).expanduser())
     for key, names in (("utmDb", db), ("utmQ", q)):
         if fields[key].shape != (len(names), 2) or not np.issubdtype(fields[key].dtype, np.number):
-            raise SemvprError(f"{npz_path}: {key} is {fields[key].dtype}{list(fields[key].shape)}, expected "
-                              f"({len(names)}, 2) positions for the {len(names)} images listed")
+            raise SemvprError(
+                f"{npz_path}: {key} is {fields[key].dtype}{list(fields[key].shape)}, expected "
+                f"({len(names)}, 2) positions for the {len(names)} images listed"
+            )
     radius = fields["posDistThr"]
     if radius.size != 1 or not np.issubdtype(radius.dtype, np.number) or not float(radius) > 0:
         raise SemvprError(f"{npz_path}: posDistThr is {radius.tolist()!r}, expected one positive radius in metres")
     check_counts(npz_path.stem, len(db), len(q), str(npz_path))
     _check_images(image_root, db, q, Path(db_list))
-    return PlaceSet(name=npz_path.stem, root=image_root, db_paths=tuple(image_root / n for n in db),
-                    q_paths=tuple(image_root / n for n in q), db_utm=fields["utmDb"], q_utm=fields["utmQ"],
-                    eval_radius=float(radius))
+    return PlaceSet(
+        name=npz_path.stem,
+        root=image_root,
+        db_paths=tuple(image_root / n for n in db),
+        q_paths=tuple(image_root / n for n in q),
+        db_utm=fields["utmDb"],
+        q_utm=fields["utmQ"],
+        eval_radius=float(radius),
+    )
 
 
 def _frames(folder: Path) -> tuple[list[Path], np.ndarray]:
     """Images of a Nordland traversal and their frame numbers (the integer in each file name)."""
     if not folder.is_dir():
-        raise SemvprError(f"Nordland folder {folder} not found; data.root should hold the database and query traversals")
+        raise SemvprError(
+            f"Nordland folder {folder} not found; data.root should hold the database and query traversals"
+        )
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not images:
         raise SemvprError(f"{folder}: no images (.jpg/.png)")
@@ -188,12 +226,20 @@ def read_nordland(root: str | Path, frame_window: int, database: str = "ref", qu
     frames within ``frame_window`` of f. Positions are (frame, 0): one unit is one frame."""
     root = Path(root).expanduser()
     if not isinstance(frame_window, int) or isinstance(frame_window, bool) or frame_window < 0:
-        raise SemvprError(f"data.frame_window={frame_window!r}: expected a number of frames >= 0 (the tables use 1 and 10)")
+        raise SemvprError(
+            f"data.frame_window={frame_window!r}: expected a number of frames >= 0 (the tables use 1 and 10)"
+        )
     db_paths, db_frames = _frames(root / database)
     q_paths, q_frames = _frames(root / queries)
     lo = np.searchsorted(db_frames, q_frames - frame_window, side="left")
     hi = np.searchsorted(db_frames, q_frames + frame_window, side="right")
     truth = tuple(np.arange(a, b, dtype=np.int64) for a, b in zip(lo, hi))
-    return PlaceSet(name=f"nordland±{frame_window}", root=root, db_paths=tuple(db_paths), q_paths=tuple(q_paths),
-                    db_utm=np.stack([db_frames, np.zeros_like(db_frames)], 1),
-                    q_utm=np.stack([q_frames, np.zeros_like(q_frames)], 1), ground_truth=truth)
+    return PlaceSet(
+        name=f"nordland±{frame_window}",
+        root=root,
+        db_paths=tuple(db_paths),
+        q_paths=tuple(q_paths),
+        db_utm=np.stack([db_frames, np.zeros_like(db_frames)], 1),
+        q_utm=np.stack([q_frames, np.zeros_like(q_frames)], 1),
+        ground_truth=truth,
+    )

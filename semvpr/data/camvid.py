@@ -1,11 +1,13 @@
-"""CamVid in the SegNet layout (``{split}/``, ``{split}annot/``, ``{split}.txt``), labels mapped to Cityscapes trainIds."""
+"""CamVid in the SegNet layout (``{split}/``, ``{split}annot/``, ``{split}.txt``), labels mapped to Cityscapes
+trainIds."""
+
 from __future__ import annotations
 
 from pathlib import Path
 
+from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.data.segmentation import SegmentationSet, check_pair
-from semvpr.core.errors import SemvprError
 
 #: SegNet's 11 CamVid classes by label index; index 11 is Unlabelled (ignored).
 CAMVID_NAMES: tuple[str, ...] = (
@@ -40,12 +42,16 @@ def read_camvid(root: str | Path, split: str) -> SegmentationSet:
     """The image / label pairs listed in ``<root>/<split>.txt``, checked to exist and to agree in size."""
     root = Path(root).expanduser()
     if not root.is_dir():
-        raise SemvprError(f"CamVid root {root} is not a directory; set seg.root to the folder holding "
-                          f"{split}/, {split}annot/ and {split}.txt (SegNet layout)")
+        raise SemvprError(
+            f"CamVid root {root} is not a directory; set seg.root to the folder holding "
+            f"{split}/, {split}annot/ and {split}.txt (SegNet layout)"
+        )
     listing = root / f"{split}.txt"
     if not listing.is_file():
-        raise SemvprError(f"CamVid split list {listing} not found; seg.root must hold {split}.txt with lines "
-                          f"'{split}/<name>.png {split}annot/<name>.png' (SegNet layout)")
+        raise SemvprError(
+            f"CamVid split list {listing} not found; seg.root must hold {split}.txt with lines "
+            f"'{split}/<name>.png {split}annot/<name>.png' (SegNet layout)"
+        )
     images, labels = [], []
     for number, line in enumerate(listing.read_text().splitlines(), start=1):
         if not line.strip():

@@ -1,4 +1,5 @@
 """Cityscapes class table: labelIds → 19 trainIds, and the static / dynamic split of the masks (ARCHITECTURE §3.2)."""
+
 from __future__ import annotations
 
 import numpy as np

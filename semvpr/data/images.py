@@ -1,5 +1,6 @@
 """Images as every stage reads them: decoded whole (a corrupt file fails with its name), RGB in
 [0, 1], resized to [H, W] where asked, and a dataset of image files for batched passes."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -42,7 +43,6 @@ def load_image(path: str | Path, size: Size | None = None) -> torch.Tensor:
     if hw is not None and img.size != (hw[1], hw[0]):
         img = img.resize((hw[1], hw[0]), Image.BILINEAR)
     return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
-
 
 
 class ImageDataset(Dataset):

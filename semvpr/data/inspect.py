@@ -1,4 +1,5 @@
 """`python -m semvpr.data.inspect <hydra overrides>`: summarise the test PlaceSet a config points at."""
+
 from __future__ import annotations
 
 import argparse
@@ -7,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from semvpr.data.places import PlaceSet
 from semvpr.core.errors import SemvprError, exit_on_user_error, unwrap_user_error
+from semvpr.data.places import PlaceSet
 
 DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -66,16 +67,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config-dir", type=Path, default=DEFAULT_CONFIG_DIR)
     parser.add_argument("--config-name", default="train")
     parser.add_argument("--node", default="data.test", help="config node that instantiates to a PlaceSet")
-    parser.add_argument("--radius", type=float, default=None,
-                        help="positive radius in metres (default: the set's evaluation ground truth)")
+    parser.add_argument(
+        "--radius",
+        type=float,
+        default=None,
+        help="positive radius in metres (default: the set's evaluation ground truth)",
+    )
     args = parser.parse_args(argv)
-    places = compose_place_set(args.config_dir.expanduser().resolve(), args.config_name, args.overrides,
-                               args.node)
+    places = compose_place_set(args.config_dir.expanduser().resolve(), args.config_name, args.overrides, args.node)
     stats = positive_stats(places, args.radius)
     print(places.summary())
     within = f"within {args.radius:g} m" if args.radius is not None else "among the evaluation positives"
-    print(f"  queries with a database image {within}: "
-          f"{stats['queries_with_positives']}/{stats['queries']} (mean {stats['mean_positives']} positives)")
+    print(
+        f"  queries with a database image {within}: "
+        f"{stats['queries_with_positives']}/{stats['queries']} (mean {stats['mean_positives']} positives)"
+    )
     print(json.dumps(stats))
 
 

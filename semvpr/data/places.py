@@ -1,4 +1,5 @@
 """Place-recognition sets (database + queries with UTM positions) and readers for the common formats."""
+
 from __future__ import annotations
 
 import csv
@@ -57,7 +58,6 @@ def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> li
     return out
 
 
-
 @dataclass(frozen=True, eq=False)
 class PlaceSet:
     """A database and a query set of images with (east, north) UTM positions in metres."""
@@ -95,17 +95,21 @@ class PlaceSet:
             # A set scored by shipped ground truth may have no positions at all (NaN throughout).
             no_positions = self.ground_truth is not None and bool(np.isnan(utm).all())
             if len(bad) and not no_positions:
-                raise SemvprError(f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), "
-                                  f"the first at row {bad[0]} ({utm[bad[0]].tolist()})")
+                raise SemvprError(
+                    f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), "
+                    f"the first at row {bad[0]} ({utm[bad[0]].tolist()})"
+                )
             if len(utm) != len(paths):
-                raise SemvprError(f"place set {self.name!r}: {len(paths)} paths but {len(utm)} "
-                                  f"positions in {utm_field}")
+                raise SemvprError(
+                    f"place set {self.name!r}: {len(paths)} paths but {len(utm)} positions in {utm_field}"
+                )
             object.__setattr__(self, utm_field, utm)
-        for labels, paths, field in ((self.db_labels, self.db_paths, "db_labels"),
-                                     (self.q_labels, self.q_paths, "q_labels")):
+        for labels, paths, field in (
+            (self.db_labels, self.db_paths, "db_labels"),
+            (self.q_labels, self.q_paths, "q_labels"),
+        ):
             if labels is not None and len(labels) != len(paths):
-                raise SemvprError(f"place set {self.name!r}: {len(paths)} images but "
-                                  f"{len(labels)} {field}")
+                raise SemvprError(f"place set {self.name!r}: {len(paths)} images but {len(labels)} {field}")
         if self.ground_truth is not None:
             object.__setattr__(self, "ground_truth", self._checked_ground_truth(self.ground_truth))
         images = self.db_paths + self.q_paths
@@ -131,14 +135,19 @@ class PlaceSet:
 
     def _checked_ground_truth(self, truth: tuple[np.ndarray, ...] | list[np.ndarray]) -> tuple[np.ndarray, ...]:
         if len(truth) != len(self.q_paths):
-            raise SemvprError(f"place set {self.name!r}: ground truth for {len(truth)} queries, "
-                              f"but {len(self.q_paths)} queries")
+            raise SemvprError(
+                f"place set {self.name!r}: ground truth for {len(truth)} queries, but {len(self.q_paths)} queries"
+            )
         out = []
         for i, positives in enumerate(truth):
             idx = np.asarray(positives).ravel()
-            if idx.size and (not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0 or idx.max() >= len(self.db_paths)):
-                raise SemvprError(f"place set {self.name!r}: ground truth of query {i} holds {idx[:5].tolist()}, "
-                                  f"not database indices in [0, {len(self.db_paths)})")
+            if idx.size and (
+                not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0 or idx.max() >= len(self.db_paths)
+            ):
+                raise SemvprError(
+                    f"place set {self.name!r}: ground truth of query {i} holds {idx[:5].tolist()}, "
+                    f"not database indices in [0, {len(self.db_paths)})"
+                )
             out.append(idx.astype(np.int64))
         return tuple(out)
 
@@ -149,8 +158,10 @@ class PlaceSet:
             return list(self.ground_truth)
         radius = self.eval_radius if radius is None else radius
         if radius is None:
-            raise SemvprError(f"place set {self.name!r} has no evaluation ground truth: set data.eval_radius "
-                              f"(metres; 25 in the VPR benchmarks)")
+            raise SemvprError(
+                f"place set {self.name!r} has no evaluation ground truth: set data.eval_radius "
+                f"(metres; 25 in the VPR benchmarks)"
+            )
         if len(self.db_utm) == 0:
             return [np.zeros(0, dtype=np.int64) for _ in range(len(self.q_utm))]
         return positives_within(self.db_utm, self.q_utm, radius)
@@ -161,8 +172,10 @@ class PlaceSet:
         if radius is None:
             return self
         if self.ground_truth is not None:
-            raise SemvprError(f"place set {self.name!r} is scored by the ground truth shipped with it; "
-                              f"data.eval_radius={radius} does not apply (drop it)")
+            raise SemvprError(
+                f"place set {self.name!r} is scored by the ground truth shipped with it; "
+                f"data.eval_radius={radius} does not apply (drop it)"
+            )
         return dataclasses.replace(self, eval_radius=float(radius))
 
     def summary(self) -> str:
@@ -171,8 +184,10 @@ class PlaceSet:
         for label, utm in (("database", self.db_utm), ("queries", self.q_utm)):
             if len(utm) and np.isfinite(utm).all():
                 lo, hi = utm.min(0), utm.max(0)
-                lines.append(f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
-                             f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)")
+                lines.append(
+                    f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
+                    f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)"
+                )
         return "\n".join(lines)
 
 
@@ -189,16 +204,16 @@ def parse_utm_name(path: str | Path) -> tuple[float, float]:
             raise ValueError
         return float(fields[1]), float(fields[2])
     except ValueError:
-        raise SemvprError(f"{path}: not an @UTM@ image name "
-                          f"(expected @utm_east@utm_north@zone@...@.jpg)") from None
+        raise SemvprError(f"{path}: not an @UTM@ image name (expected @utm_east@utm_north@zone@...@.jpg)") from None
 
 
 def listed_image(folder: Path, name: str, source: Path) -> Path:
     """``folder / name`` for an image name read from a list file, refused if it leaves ``folder``."""
     rel = Path(name)
     if rel.is_absolute() or ".." in rel.parts:
-        raise SemvprError(f"{source}: image name {name!r} leaves the folder {folder}; names must be relative, "
-                          f"without '..'")
+        raise SemvprError(
+            f"{source}: image name {name!r} leaves the folder {folder}; names must be relative, without '..'"
+        )
     return folder / rel
 
 
@@ -210,21 +225,27 @@ def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
     """Read `root/images/<split>/{database,queries}/*.jpg` (@UTM@ names); root may also be images/."""
     root = Path(root).expanduser()
     if not root.is_dir():
-        raise SemvprError(f"dataset root {root} does not exist; point data.root=... at the folder "
-                          f"holding images/{split}/database and images/{split}/queries")
+        raise SemvprError(
+            f"dataset root {root} does not exist; point data.root=... at the folder "
+            f"holding images/{split}/database and images/{split}/queries"
+        )
     base = root / "images" if (root / "images").is_dir() else root
     split_dir = base / split
     if not split_dir.is_dir():
         found = sorted(p.name for p in base.iterdir() if p.is_dir())
-        raise SemvprError(f"split folder {split_dir} not found (splits there: {found or 'none'}); "
-                          f"expected images/{split}/database and images/{split}/queries under data.root")
+        raise SemvprError(
+            f"split folder {split_dir} not found (splits there: {found or 'none'}); "
+            f"expected images/{split}/database and images/{split}/queries under data.root"
+        )
     paths = {}
     for sub in ("database", "queries"):
         folder = split_dir / sub
         images = _images_in(folder) if folder.is_dir() else []
         if not images:
-            raise SemvprError(f"{folder}: no {sub} images (.jpg/.png) found; the @UTM@ layout needs "
-                              f"images/{split}/database and images/{split}/queries")
+            raise SemvprError(
+                f"{folder}: no {sub} images (.jpg/.png) found; the @UTM@ layout needs "
+                f"images/{split}/database and images/{split}/queries"
+            )
         paths[sub] = images
     name = base.parent.name if base.name == "images" else base.name
     return PlaceSet(
@@ -268,19 +289,24 @@ def _resolve_root(names: list[str], candidates: list[Path], mat_path: Path, what
         if (folder / names[0]).exists():
             return folder
     looked = ", ".join(str(c / names[0]) for c in candidates)
-    raise SemvprError(f"{mat_path}: first {what} image {names[0]!r} not found (looked at {looked}); "
-                      f"point image_root (data.root) and, if elsewhere, query_root at the image folders")
+    raise SemvprError(
+        f"{mat_path}: first {what} image {names[0]!r} not found (looked at {looked}); "
+        f"point image_root (data.root) and, if elsewhere, query_root at the image folders"
+    )
 
 
-def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | None = None,
-                      query_root: str | Path | None = None) -> PlaceSet:
+def read_dbstruct_mat(
+    mat_path: str | Path, image_root: str | Path, name: str | None = None, query_root: str | Path | None = None
+) -> PlaceSet:
     """Read a Pitts250k/30k or Tokyo 24/7 `dbStruct` .mat; image names resolve under image_root."""
     from scipy.io import loadmat
 
     mat_path, image_root = Path(mat_path).expanduser(), Path(image_root).expanduser()
     if not mat_path.is_file():
-        raise SemvprError(f"dbStruct file {mat_path} not found; check data.root (it should hold "
-                          f"datasets/<name>.mat of the Pittsburgh / Tokyo 24/7 release, and the images)")
+        raise SemvprError(
+            f"dbStruct file {mat_path} not found; check data.root (it should hold "
+            f"datasets/<name>.mat of the Pittsburgh / Tokyo 24/7 release, and the images)"
+        )
     try:
         mat = loadmat(str(mat_path))
     except NotImplementedError:
@@ -296,8 +322,10 @@ def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | 
 
     def field(key: str) -> np.ndarray:
         if record is None or key not in names_present:
-            raise SemvprError(f"{mat_path}: dbStruct lacks field '{key}' (fields found: "
-                              f"{list(names_present)}); is this a Pitts/Tokyo dbStruct file?")
+            raise SemvprError(
+                f"{mat_path}: dbStruct lacks field '{key}' (fields found: "
+                f"{list(names_present)}); is this a Pitts/Tokyo dbStruct file?"
+            )
         return record[key]
 
     db_names, q_names = _mat_strings(field("dbImageFns")), _mat_strings(field("qImageFns"))
@@ -307,14 +335,15 @@ def read_dbstruct_mat(mat_path: str | Path, image_root: str | Path, name: str | 
     if not db_names or not q_names:
         raise SemvprError(f"{mat_path}: empty split ({len(db_names)} database, {len(q_names)} query names)")
     if not image_root.is_dir():
-        raise SemvprError(f"image root {image_root} does not exist; set data.root=... to the folder "
-                          f"holding the images listed in {mat_path.name}")
+        raise SemvprError(
+            f"image root {image_root} does not exist; set data.root=... to the folder "
+            f"holding the images listed in {mat_path.name}"
+        )
     db_root = _resolve_root(db_names, [image_root], mat_path, "database")
     # pytorch-NetVlad joins Pitts query names onto <root>/queries_real; other releases (Tokyo 24/7,
     # lists with the prefix) resolve under the root. queries_real first: a query stem may also be a
     # database image's (288 in Pitts30k-test), and <root>/<name> would then find the database image.
-    q_candidates = ([Path(query_root).expanduser()] if query_root
-                    else [image_root / "queries_real", image_root])
+    q_candidates = [Path(query_root).expanduser()] if query_root else [image_root / "queries_real", image_root]
     q_root = _resolve_root(q_names, q_candidates, mat_path, "query")
     return PlaceSet(
         name=name or f"{mat_path.stem}" + (f"/{which[0]}" if which and which[0] else ""),
@@ -351,7 +380,9 @@ def _flag(value: str | None) -> bool:
     return str(value).strip().lower() in ("true", "1")
 
 
-def _read_msls_side(folder: Path, subtask: str | None, exclude_panos: bool) -> tuple[list[Path], list[tuple[float, float]]]:
+def _read_msls_side(
+    folder: Path, subtask: str | None, exclude_panos: bool
+) -> tuple[list[Path], list[tuple[float, float]]]:
     """Images and UTMs of one city side, filtered as mapillary_sls does (panoramas, val subtask)."""
     rows = _read_csv(folder / "postprocessed.csv", ("key", "easting", "northing"))
     keep: set[int] | None = None
@@ -369,7 +400,9 @@ def _read_msls_side(folder: Path, subtask: str | None, exclude_panos: bool) -> t
         try:
             utm.append((float(row["easting"]), float(row["northing"])))
         except (TypeError, ValueError):
-            raise SemvprError(f"{folder / 'postprocessed.csv'}: bad easting/northing in row key={row['key']!r}") from None
+            raise SemvprError(
+                f"{folder / 'postprocessed.csv'}: bad easting/northing in row key={row['key']!r}"
+            ) from None
         paths.append(listed_image(folder / "images", f"{row['key']}.jpg", folder / "postprocessed.csv"))
     return paths, utm
 
@@ -382,8 +415,9 @@ def _msls_city_dir(root: Path, city: str) -> Path:
     raise SemvprError(f"MSLS city folder {city!r} not found under {root / 'train_val'} or {root / 'test'}")
 
 
-def read_msls(root: str | Path, split: str, cities: list[str] | None = None, subtask: str = "all",
-              exclude_panos: bool = True) -> PlaceSet:
+def read_msls(
+    root: str | Path, split: str, cities: list[str] | None = None, subtask: str = "all", exclude_panos: bool = True
+) -> PlaceSet:
     """Read Mapillary SLS following mapillary_sls: official cities per split, panoramas excluded,
     and for ``split="val"`` only the frames of ``subtask`` (subtask_index.csv; "all" by default).
 
@@ -393,19 +427,25 @@ def read_msls(root: str | Path, split: str, cities: list[str] | None = None, sub
     (:data:`MSLS_SELECTION_CITIES`, as train cities are read); ``split="train"`` the others.
     """
     root = Path(root).expanduser()
-    official = {**MSLS_CITIES, "train": tuple(c for c in MSLS_CITIES["train"] if c not in MSLS_SELECTION_CITIES),
-                "selection": MSLS_SELECTION_CITIES}
+    official = {
+        **MSLS_CITIES,
+        "train": tuple(c for c in MSLS_CITIES["train"] if c not in MSLS_SELECTION_CITIES),
+        "selection": MSLS_SELECTION_CITIES,
+    }
     if split not in official:
         raise SemvprError(f"MSLS split {split!r} unknown; use one of {sorted(official)}")
     if not (root / "train_val").is_dir() and not (root / "test").is_dir():
-        raise SemvprError(f"MSLS folders {root / 'train_val'} / {root / 'test'} not found; set data.root=... "
-                          f"to the folder holding train_val/ and test/")
+        raise SemvprError(
+            f"MSLS folders {root / 'train_val'} / {root / 'test'} not found; set data.root=... "
+            f"to the folder holding train_val/ and test/"
+        )
     if cities is None:
-        cities = [c for c in official[split]
-                  if (root / "train_val" / c).is_dir() or (root / "test" / c).is_dir()]
+        cities = [c for c in official[split] if (root / "train_val" / c).is_dir() or (root / "test" / c).is_dir()]
         if not cities:
-            raise SemvprError(f"{root}: none of the MSLS {split} cities {list(official[split])} "
-                              f"is there; pass data.cities.<split>=[...]")
+            raise SemvprError(
+                f"{root}: none of the MSLS {split} cities {list(official[split])} "
+                f"is there; pass data.cities.<split>=[...]"
+            )
     db_paths: list[Path] = []
     q_paths: list[Path] = []
     db_utm: list[tuple[float, float]] = []
@@ -413,9 +453,11 @@ def read_msls(root: str | Path, split: str, cities: list[str] | None = None, sub
     for i, city in enumerate(cities):
         folder = _msls_city_dir(root, city)
         if not (folder / "query" / "postprocessed.csv").is_file() and (folder / "query").is_dir():
-            raise SemvprError(f"MSLS city {city!r} has no ground truth ({folder / 'query' / 'postprocessed.csv'} "
-                              f"missing): the official test cities are scored on the MSLS server; evaluate "
-                              f"on the val cities (cph, sf) as the benchmarks do")
+            raise SemvprError(
+                f"MSLS city {city!r} has no ground truth ({folder / 'query' / 'postprocessed.csv'} "
+                f"missing): the official test cities are scored on the MSLS server; evaluate "
+                f"on the val cities (cph, sf) as the benchmarks do"
+            )
         # Cities sit in different UTM zones whose (east, north) ranges overlap; shifting each
         # city's easting by 10,000 km keeps radius searches from ever pairing two cities.
         shift = i * 1e7
@@ -427,7 +469,14 @@ def read_msls(root: str | Path, split: str, cities: list[str] | None = None, sub
         q_paths += paths
         q_utm += [(e + shift, n) for e, n in utm]
     if not db_paths or not q_paths:
-        raise SemvprError(f"{root}: empty MSLS split {split!r} for cities {cities} "
-                          f"({len(db_paths)} database, {len(q_paths)} queries)")
-    return PlaceSet(name=f"msls/{split}", db_paths=tuple(db_paths), q_paths=tuple(q_paths),
-                    db_utm=np.array(db_utm).reshape(-1, 2), q_utm=np.array(q_utm).reshape(-1, 2), root=root)
+        raise SemvprError(
+            f"{root}: empty MSLS split {split!r} for cities {cities} ({len(db_paths)} database, {len(q_paths)} queries)"
+        )
+    return PlaceSet(
+        name=f"msls/{split}",
+        db_paths=tuple(db_paths),
+        q_paths=tuple(q_paths),
+        db_utm=np.array(db_utm).reshape(-1, 2),
+        q_utm=np.array(q_utm).reshape(-1, 2),
+        root=root,
+    )

@@ -1,4 +1,5 @@
 """Published set sizes and Recall@N, read from ``published.yaml`` (numbers with their citations)."""
+
 from __future__ import annotations
 
 from functools import lru_cache
@@ -26,9 +27,11 @@ def check_counts(set_name: str, database: int, queries: int, where: str) -> None
     if expected is None:
         return
     if (database, queries) != (expected["database"], expected["queries"]):
-        raise SemvprError(f"{where}: {database} database / {queries} query images, but {set_name} has "
-                          f"{expected['database']} / {expected['queries']} ({expected['source']}); "
-                          f"the files are incomplete or of another set")
+        raise SemvprError(
+            f"{where}: {database} database / {queries} query images, but {set_name} has "
+            f"{expected['database']} / {expected['queries']} ({expected['source']}); "
+            f"the files are incomplete or of another set"
+        )
 
 
 def results_for(model: str, benchmark: str | None) -> list[dict[str, Any]]:

@@ -1,4 +1,5 @@
 """Cityscapes-format segmentation sets and their label maps (trainIds)."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -9,8 +10,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-from semvpr.data.classes import IGNORE, LABEL_TO_TRAIN_LUT, TRAIN_ID_NAMES
 from semvpr.core.errors import SemvprError
+from semvpr.data.classes import IGNORE, LABEL_TO_TRAIN_LUT, TRAIN_ID_NAMES
 from semvpr.data.images import Size, hw_of, load_image, open_image
 
 IMAGE_SUFFIX = "_leftImg8bit.png"
@@ -45,8 +46,10 @@ def read_cityscapes(root: str | Path, split: str) -> SegmentationSet:
     root = Path(root).expanduser()
     image_dir = root / "leftImg8bit" / split
     if not image_dir.is_dir():
-        raise SemvprError(f"Cityscapes images {image_dir} not found; set the segmentation root to the "
-                          f"folder holding leftImg8bit/ and gtFine/")
+        raise SemvprError(
+            f"Cityscapes images {image_dir} not found; set the segmentation root to the "
+            f"folder holding leftImg8bit/ and gtFine/"
+        )
     images = sorted(image_dir.glob(f"*/*{IMAGE_SUFFIX}"))
     if not images:
         raise SemvprError(f"{image_dir}: no <city>/*{IMAGE_SUFFIX} images")
@@ -60,9 +63,14 @@ def read_cityscapes(root: str | Path, split: str) -> SegmentationSet:
     return SegmentationSet(images=tuple(images), labels=tuple(labels))
 
 
-def load_train_ids(path: str | Path, size: Size | None = None, *,
-                   from_label_ids: bool, image: str | Path | None = None,
-                   lut: Sequence[int] | None = None) -> torch.Tensor:
+def load_train_ids(
+    path: str | Path,
+    size: Size | None = None,
+    *,
+    from_label_ids: bool,
+    image: str | Path | None = None,
+    lut: Sequence[int] | None = None,
+) -> torch.Tensor:
     """(H,W) long trainIds from a labelIds PNG (from_label_ids=True), a trainId PNG, or any ids via ``lut``
     (256 entries; overrides from_label_ids); nearest resize."""
     path = Path(path)
@@ -101,7 +109,13 @@ def check_pair(image: str | Path, label: str | Path) -> None:
         raise SemvprError(f"label map {label} is {lh}x{lw} but its image {image} is {ih}x{iw} (HxW)")
 
 
-def load_pair(image: str | Path, label: str | Path, size: Size | None = None, *,
-              from_label_ids: bool, lut: Sequence[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def load_pair(
+    image: str | Path,
+    label: str | Path,
+    size: Size | None = None,
+    *,
+    from_label_ids: bool,
+    lut: Sequence[int] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Image (3,H,W) and trainIds (H,W), after checking their native sizes agree."""
     return load_image(image, size), load_train_ids(label, size, from_label_ids=from_label_ids, image=image, lut=lut)

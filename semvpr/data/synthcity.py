@@ -5,6 +5,7 @@ Each route is a long strip of facades (``synthcity_render``) over a road seen in
 at random positions in November (autumn foliage), at another time of day, with other vehicles and
 people. Everything is a pure function of (preset, seed, GENERATOR_VERSION).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,12 +25,12 @@ import numpy as np
 from PIL import Image
 
 from semvpr.core.cache import build_once
-from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
-from semvpr.data.synthcity_ground import make_ground_pool
-from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import atomic_dir, check_dir_path, reclaim_orphans
 from semvpr.core.logs import Progress
+from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
+from semvpr.data.synthcity_ground import make_ground_pool
+from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
 # 3: static classes of different value: seasonal vegetation (June database, November queries), ground in
@@ -81,8 +82,9 @@ POSITIVE_KNOBS = ("view_m", "liveries")  # the others may be 0 (no jitter, no pi
 MIN_SIDE = 32  # pixels: both trunks (VGG16 conv5_3, ResNet50 layer3) reduce by 16, so >= 2x2 feature cells
 
 
-def get_preset(preset: str, render: Mapping[str, float] | None = None,
-               image_size: Sequence[int] | None = None) -> Preset:
+def get_preset(
+    preset: str, render: Mapping[str, float] | None = None, image_size: Sequence[int] | None = None
+) -> Preset:
     """Preset by name, with RenderSpec difficulty knobs overridden (e.g. ``{"pitch_m": 8.0}``) and the
     images drawn at ``image_size`` ([H, W]; None = the preset's own size)."""
     if preset not in PRESETS:
@@ -96,12 +98,20 @@ def get_preset(preset: str, render: Mapping[str, float] | None = None,
         changes["height"], changes["width"] = size
     for name, value in (render or {}).items():
         if name not in KNOBS:
-            raise SemvprError(f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)} "
-                              "(the image size is data.image_size, --image-size on the command line)")
+            raise SemvprError(
+                f"SynthCity has no render knob {name!r}; choose among {list(KNOBS)} "
+                "(the image size is data.image_size, --image-size on the command line)"
+            )
         default = getattr(p.render, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or (
-                isinstance(default, int) and not float(value).is_integer()):
-            raise SemvprError(f"SynthCity {name}={value!r} must be {'a whole' if isinstance(default, int) else 'a'} number")
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+            or (isinstance(default, int) and not float(value).is_integer())
+        ):
+            raise SemvprError(
+                f"SynthCity {name}={value!r} must be {'a whole' if isinstance(default, int) else 'a'} number"
+            )
         value = type(default)(value)
         if name in UNIT_KNOBS and not 0.0 <= value <= 1.0:
             raise SemvprError(f"SynthCity {name}={value} is outside [0, 1]")
@@ -172,7 +182,7 @@ def _draw_route(root: Path, seed: int, spec: RenderSpec, route: Route) -> tuple[
         img, label = render_capture(pano, float(x), rng, spec, pool, query=trav == 1)
         fractions.append((float((label >= DYNAMIC_MIN).mean()), float((label == SKY).mean())))
         if kind == "vpr":
-            class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[:len(TRAIN_ID_NAMES)]
+            class_pixels += np.bincount(label.ravel(), minlength=len(TRAIN_ID_NAMES))[: len(TRAIN_ID_NAMES)]
             sub = "queries" if trav else "database"
             name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, DATES[trav], f"r{rid}{sub[0]}{i:04d}")
             _save(img, root / "images" / split / sub / name, format="JPEG", quality=JPEG_QUALITY)
@@ -181,8 +191,11 @@ def _draw_route(root: Path, seed: int, spec: RenderSpec, route: Route) -> tuple[
             city = f"route{rid}"
             stem = f"{city}_{rid:06d}_{i:06d}"
             _save(img, root / "seg" / "leftImg8bit" / split / city / f"{stem}_leftImg8bit.png", format="PNG")
-            _save(train_ids_to_label_ids(label),
-                  root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png", format="PNG")
+            _save(
+                train_ids_to_label_ids(label),
+                root / "seg" / "gtFine" / split / city / f"{stem}_gtFine_labelIds.png",
+                format="PNG",
+            )
     return fractions, class_pixels
 
 
@@ -197,8 +210,14 @@ def _quiet_worker() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | None = None,
-             image_size: Sequence[int] | None = None, workers: int | None = None) -> dict:
+def generate(
+    root: Path,
+    preset: str,
+    seed: int,
+    render: Mapping[str, float] | None = None,
+    image_size: Sequence[int] | None = None,
+    workers: int | None = None,
+) -> dict:
     """Write the whole dataset under ``root``; returns (and saves as stats.json) measured statistics.
 
     ``workers``: drawing processes (None: one per core for a dataset of PARALLEL_MIN_IMAGES or more, else
@@ -221,8 +240,10 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
         # with NumPy and PIL only (never torch), and a spawned child would re-run a calling script that
         # has no `if __name__ == "__main__"` guard.
         with multiprocessing.get_context("fork").Pool(workers, initializer=_quiet_worker) as pool:
-            pending = [(route, pool.apply_async(draw, (route,)))
-                       for route in sorted(routes, key=lambda r: r.images, reverse=True)]
+            pending = [
+                (route, pool.apply_async(draw, (route,)))
+                for route in sorted(routes, key=lambda r: r.images, reverse=True)
+            ]
             for route, result in pending:
                 results[route.rid] = result.get()
                 bar.update(route.images)
@@ -233,34 +254,52 @@ def generate(root: Path, preset: str, seed: int, render: Mapping[str, float] | N
         route_fractions, route_pixels = results[rid]
         fractions.setdefault(f"{'seg-' if kind == 'seg' else ''}{split}", []).extend(route_fractions)
         class_pixels += route_pixels
-    stats = {"preset": preset, "seed": seed, "version": GENERATOR_VERSION,
-             "render": dataclasses.asdict(p.render),
-             "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
-             "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
-             "images": {k: len(v) for k, v in fractions.items()},
-             "class_fraction": {n: round(float(c / class_pixels.sum()), 4) for n, c in zip(TRAIN_ID_NAMES, class_pixels)}}
+    stats = {
+        "preset": preset,
+        "seed": seed,
+        "version": GENERATOR_VERSION,
+        "render": dataclasses.asdict(p.render),
+        "dynamic_fraction": {k: round(float(np.mean([f[0] for f in v])), 4) for k, v in fractions.items()},
+        "sky_fraction": {k: round(float(np.mean([f[1] for f in v])), 4) for k, v in fractions.items()},
+        "images": {k: len(v) for k, v in fractions.items()},
+        "class_fraction": {n: round(float(c / class_pixels.sum()), 4) for n, c in zip(TRAIN_ID_NAMES, class_pixels)},
+    }
     (root / "stats.json").write_text(json.dumps(stats, indent=1, sort_keys=True))
     return stats
 
 
-def _key(preset: str, seed: int, render: Mapping[str, float] | None,
-         image_size: Sequence[int] | None = None) -> dict:
+def _key(preset: str, seed: int, render: Mapping[str, float] | None, image_size: Sequence[int] | None = None) -> dict:
     """Cache key: the preset, seed, generator version and every effective render setting (size included)."""
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise SemvprError(f"SynthCity seed={seed!r} must be a whole number >= 0")
-    return {"preset": preset, "seed": int(seed), "version": GENERATOR_VERSION,
-            "render": dataclasses.asdict(get_preset(preset, render, image_size).render)}
+    return {
+        "preset": preset,
+        "seed": int(seed),
+        "version": GENERATOR_VERSION,
+        "render": dataclasses.asdict(get_preset(preset, render, image_size).render),
+    }
 
 
-def ensure_synthcity(cache_dir: str | Path, preset: str = "default", seed: int = 0,
-                     render: Mapping[str, float] | None = None, image_size: Sequence[int] | None = None) -> Path:
+def ensure_synthcity(
+    cache_dir: str | Path,
+    preset: str = "default",
+    seed: int = 0,
+    render: Mapping[str, float] | None = None,
+    image_size: Sequence[int] | None = None,
+) -> Path:
     """Dataset root in the artifact cache, generated on first use (kind "synthcity")."""
     key = _key(preset, seed, render, image_size)
     return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), render, image_size))
 
 
-def read_split(preset: str, seed: int, cache_dir: str | Path, split: str, render: Mapping[str, float] | None = None,
-               image_size: Sequence[int] | None = None):
+def read_split(
+    preset: str,
+    seed: int,
+    cache_dir: str | Path,
+    split: str,
+    render: Mapping[str, float] | None = None,
+    image_size: Sequence[int] | None = None,
+):
     """PlaceSet of one VPR split (train/val/test), with the trainId label maps attached; the city is
     drawn at ``image_size`` (``data.image_size``), so the loader never resamples it."""
     from semvpr.data.places import read_utm_folder
@@ -273,17 +312,29 @@ def read_split(preset: str, seed: int, cache_dir: str | Path, split: str, render
     def labels(paths: tuple[Path, ...]) -> tuple[Path, ...]:
         return tuple(root / "labels" / split / p.parent.name / f"{p.stem}.png" for p in paths)
 
-    return dataclasses.replace(places, name=f"synthcity-{preset}-s{seed}/{split}",
-                               db_labels=labels(places.db_paths), q_labels=labels(places.q_paths))
+    return dataclasses.replace(
+        places,
+        name=f"synthcity-{preset}-s{seed}/{split}",
+        db_labels=labels(places.db_paths),
+        q_labels=labels(places.q_paths),
+    )
 
 
-def read_segmentation(preset: str, seed: int, cache_dir: str | Path, split: str,
-                      render: Mapping[str, float] | None = None, image_size: Sequence[int] | None = None):
+def read_segmentation(
+    preset: str,
+    seed: int,
+    cache_dir: str | Path,
+    split: str,
+    render: Mapping[str, float] | None = None,
+    image_size: Sequence[int] | None = None,
+):
     """SegmentationSet (Cityscapes format) of the separate segmentation routes (train/val)."""
     from semvpr.data.segmentation import read_cityscapes
 
     if split not in get_preset(preset).seg:
-        raise SemvprError(f"SynthCity has no segmentation split {split!r}; choose one of {sorted(get_preset(preset).seg)}")
+        raise SemvprError(
+            f"SynthCity has no segmentation split {split!r}; choose one of {sorted(get_preset(preset).seg)}"
+        )
     return read_cityscapes(ensure_synthcity(cache_dir, preset, seed, render, image_size) / "seg", split)
 
 
@@ -299,8 +350,14 @@ def parse_knob(text: str) -> tuple[str, float]:
 def add_render_arguments(ap: argparse.ArgumentParser) -> None:
     """``--render KNOB=VALUE`` (repeatable, into ``args.render``) and ``--image-size H W``: what
     ``get_preset`` takes as ``dict(args.render)`` and ``args.image_size``."""
-    ap.add_argument("--render", type=parse_knob, action="append", default=[], metavar="KNOB=VALUE",
-                    help=f"override a difficulty knob (repeatable), one of {', '.join(KNOBS)}")
+    ap.add_argument(
+        "--render",
+        type=parse_knob,
+        action="append",
+        default=[],
+        metavar="KNOB=VALUE",
+        help=f"override a difficulty knob (repeatable), one of {', '.join(KNOBS)}",
+    )
     ap.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), help="image size (default: the preset's)")
 
 
@@ -329,8 +386,9 @@ def main(argv: list[str] | None = None) -> None:
         signal.signal(sig, _stopped)
     with atomic_dir(out) as tmp:
         stats = generate(tmp, args.preset, args.seed, render, args.image_size)
-    print(f"wrote {sum(stats['images'].values())} images to {out} "
-          f"(measured dynamic fraction {stats['dynamic_fraction']})")
+    print(
+        f"wrote {sum(stats['images'].values())} images to {out} (measured dynamic fraction {stats['dynamic_fraction']})"
+    )
 
 
 if __name__ == "__main__":

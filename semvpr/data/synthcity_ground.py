@@ -8,6 +8,7 @@ It models two documented reasons why ground pixels are poor place evidence in VP
   lateral camera shift moves ground at distance d by ``FACADE_D / d`` times as many pixels as the
   facades; two traversals of one place rarely show the same piece of road in the same cells.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -65,20 +66,22 @@ def _asphalt(rng: np.random.Generator) -> np.ndarray:
 
 def _paving(rng: np.random.Generator, kind: int) -> np.ndarray:
     """A seamless paving tile (square slabs, brick bond or diagonal), each paver a shade of a two-colour palette."""
-    a, b = (np.float32(c) * np.float32(rng.uniform(0.8, 1.1)) for c in rng.permutation(
-        [[0.7, 0.68, 0.64], [0.62, 0.3, 0.24], [0.5, 0.5, 0.52], [0.85, 0.78, 0.6]])[:2])
+    a, b = (
+        np.float32(c) * np.float32(rng.uniform(0.8, 1.1))
+        for c in rng.permutation([[0.7, 0.68, 0.64], [0.62, 0.3, 0.24], [0.5, 0.5, 0.52], [0.85, 0.78, 0.6]])[:2]
+    )
     if kind == 0:
         cell = _px(float(rng.choice([0.4, 0.6, 0.8])))
-        yy, xx = np.mgrid[0:4 * cell, 0:4 * cell]
+        yy, xx = np.mgrid[0 : 4 * cell, 0 : 4 * cell]
         pid, grout = (yy // cell) * 97 + xx // cell, (yy % cell == 0) | (xx % cell == 0)
     elif kind == 1:
         ch, cw = _px(0.2), _px(0.4)
-        yy, xx = np.mgrid[0:8 * ch, 0:5 * cw]
+        yy, xx = np.mgrid[0 : 8 * ch, 0 : 5 * cw]
         shifted = (xx + (yy // ch % 2) * (cw // 2)) % (5 * cw)
         pid, grout = (yy // ch) * 97 + shifted // cw, (yy % ch == 0) | (shifted % cw == 0)
     else:
         cell = _px(0.3)
-        yy, xx = np.mgrid[0:4 * cell, 0:4 * cell]
+        yy, xx = np.mgrid[0 : 4 * cell, 0 : 4 * cell]
         u, v = (xx + yy) % (4 * cell), (xx - yy) % (4 * cell)
         pid, grout = (u // cell) * 97 + v // cell, (u % cell == 0) | (v % cell == 0)
     shade = rng.uniform(0.85, 1.15, int(pid.max()) + 1).astype(np.float32)[pid]
@@ -107,7 +110,7 @@ def _mark(rng: np.random.Generator, kind: int) -> tuple[np.ndarray, np.ndarray]:
         alpha = np.kron(glyphs, np.ones((cell, cell), bool))
         return np.broadcast_to(paint, alpha.shape + (3,)), alpha
     n = _px(1.6)  # bike symbol: two rings and a bar
-    yy, xx = np.mgrid[0:n // 2, 0:n]
+    yy, xx = np.mgrid[0 : n // 2, 0:n]
     r = n / 5
     rings = [np.abs(np.hypot(yy - n / 4, xx - cx) - r) < 1.2 for cx in (n / 4, 3 * n / 4)]
     alpha = rings[0] | rings[1] | ((np.abs(yy - n / 4) < 1) & (xx > n / 4) & (xx < 3 * n / 4))
@@ -116,12 +119,21 @@ def _mark(rng: np.random.Generator, kind: int) -> tuple[np.ndarray, np.ndarray]:
 
 def make_ground_pool(rng: np.random.Generator) -> GroundPool:
     """Three asphalts, three pavings and six marks for the whole dataset: the source of ground aliasing."""
-    return GroundPool(tuple(_asphalt(rng) for _ in range(3)), tuple(_paving(rng, k) for k in range(3)),
-                      tuple(_mark(rng, k % 5) for k in range(6)))
+    return GroundPool(
+        tuple(_asphalt(rng) for _ in range(3)),
+        tuple(_paving(rng, k) for k in range(3)),
+        tuple(_mark(rng, k % 5) for k in range(6)),
+    )
 
 
-def _lay(rgb: np.ndarray, rows: slice, tiles: tuple[np.ndarray, ...], rng: np.random.Generator,
-         c0: int, run_m: tuple[float, float]) -> None:
+def _lay(
+    rgb: np.ndarray,
+    rows: slice,
+    tiles: tuple[np.ndarray, ...],
+    rng: np.random.Generator,
+    c0: int,
+    run_m: tuple[float, float],
+) -> None:
     """Pave ``rows`` in runs of one pool tile each; tiles are indexed by absolute texel position (world-fixed)."""
     cols, c = rgb.shape[1], 0
     r = np.arange(rows.start, rows.stop)
@@ -129,7 +141,7 @@ def _lay(rgb: np.ndarray, rows: slice, tiles: tuple[np.ndarray, ...], rng: np.ra
         n = _px(rng.uniform(*run_m))
         t = tiles[rng.integers(len(tiles))]
         cc = np.arange(c, min(c + n, cols)) + c0
-        rgb[rows, c:c + n] = t[(r % t.shape[0])[:, None], (cc % t.shape[1])[None, :]]
+        rgb[rows, c : c + n] = t[(r % t.shape[0])[:, None], (cc % t.shape[1])[None, :]]
         c += n
 
 
@@ -154,12 +166,15 @@ def build_ground(rng: np.random.Generator, x0: float, x1: float, pool: GroundPoo
             x += rng.uniform(6.0, 12.0)
             continue
         mrgb, alpha = pool.marks[rng.integers(len(pool.marks))]
-        top = int(rng.integers(0, max(1, curb - alpha.shape[0]))) if rng.random() < 0.8 else \
-            int(rng.integers(far, max(far + 1, len(depth) - alpha.shape[0])))
+        top = (
+            int(rng.integers(0, max(1, curb - alpha.shape[0])))
+            if rng.random() < 0.8
+            else int(rng.integers(far, max(far + 1, len(depth) - alpha.shape[0])))
+        )
         left = _px(x)
-        window = rgb[top:top + alpha.shape[0], left:left + alpha.shape[1]]
-        a = alpha[:window.shape[0], :window.shape[1], None]
-        window[:] = np.where(a, mrgb[:window.shape[0], :window.shape[1]], window)
+        window = rgb[top : top + alpha.shape[0], left : left + alpha.shape[1]]
+        a = alpha[: window.shape[0], : window.shape[1], None]
+        window[:] = np.where(a, mrgb[: window.shape[0], : window.shape[1]], window)
         x += rng.uniform(3.0, 12.0)
     label = np.where(np.arange(len(depth)) < curb, ROAD, SIDEWALK).astype(np.uint8)
     return Ground(rgb, label, x0)

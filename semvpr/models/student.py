@@ -4,6 +4,7 @@ It learns the Cityscapes classes of the teacher's pseudo-labels (cross-entropy, 
 static map is the sum of the static classes' probabilities, which is what the binary filter reads.
 How it is trained (once, cached) is ``semvpr.segmentation.training``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -62,8 +63,7 @@ class Student(nn.Module):
         strides: Sequence[int] = (4, 8, 16), width: int = 64, static_names: Sequence[str] = STATIC_NAMES,
     ) -> None:  # fmt: skip
         super().__init__()
-        self.register_buffer("static_weight", static_vector(static_names),
-                             persistent=False)
+        self.register_buffer("static_weight", static_vector(static_names), persistent=False)
         # The deepest frozen output of each wanted stride (ResNet's stem and layer1 share none; VGG's do not).
         chosen = {s: i for i, s in enumerate(frozen_strides) if s in set(strides)}
         if not chosen:
@@ -76,7 +76,8 @@ class Student(nn.Module):
         chans = [frozen_channels[i] for i in self.skip_indices]
         # 1x1 projections first: 3x3 convs on 256-512 raw channels cost ~7x more for no measured gain.
         self.lateral = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(c, width, 1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True)) for c in chans
+            nn.Sequential(nn.Conv2d(c, width, 1, bias=False), nn.BatchNorm2d(width), nn.ReLU(inplace=True))
+            for c in chans
         )
         self.bottom = _block(width, width)
         self.ups = nn.ModuleList(_block(2 * width, width) for _ in chans[:-1])
@@ -110,5 +111,10 @@ class Student(nn.Module):
 
 def student_architecture(spec: StudentSpec, backbone: nn.Module) -> Student:
     """An untrained student of this spec over this backbone's frozen features."""
-    return Student(backbone.frozen_channels, backbone.frozen_strides, strides=list(spec.strides), width=int(spec.width),
-                   static_names=list(spec.static_classes))
+    return Student(
+        backbone.frozen_channels,
+        backbone.frozen_strides,
+        strides=list(spec.strides),
+        width=int(spec.width),
+        static_names=list(spec.static_classes),
+    )

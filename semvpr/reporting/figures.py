@@ -1,5 +1,6 @@
 """Sweep-report figures: Recall@N curves, R@1 per aggregator and mask, the seed paper's Figure 3
 (attention / masks), top-k retrievals, learned class weights."""
+
 from __future__ import annotations
 
 import json
@@ -97,14 +98,20 @@ def recall_curves(sweep: Sweep, out: Path) -> str | None:
         if lines:
             panels.append((bb, lines))
     if not panels:
-        return "no finished run recorded per-N recalls (metrics.json \"recalls\")"
+        return 'no finished run recorded per-N recalls (metrics.json "recalls")'
     fig = _new_figure(5.5 * len(panels), 4.3)
     for ax, (bb, lines) in zip(fig.subplots(1, len(panels), squeeze=False)[0], panels):
         for f, ns, ys in lines:
             mean = ys.mean(axis=0)
-            (line,) = ax.plot(ns, mean, marker="o", ms=3, ls="--" if sweep.label(f) != f else "-",
-                              color=f"C{sweep.cells.index(f) % 10}",  # same colour per row in every panel
-                              label=f"{sweep.label(f)} (n={len(ys)})")
+            (line,) = ax.plot(
+                ns,
+                mean,
+                marker="o",
+                ms=3,
+                ls="--" if sweep.label(f) != f else "-",
+                color=f"C{sweep.cells.index(f) % 10}",  # same colour per row in every panel
+                label=f"{sweep.label(f)} (n={len(ys)})",
+            )
             if len(ys) > 1:
                 std = ys.std(axis=0, ddof=1)
                 ax.fill_between(ns, mean - std, mean + std, color=line.get_color(), alpha=0.15)
@@ -124,8 +131,11 @@ def matrix_bars(sweep: Sweep, out: Path) -> str | None:
     one panel per backbone; else a skip reason."""
     panels = []
     for bb in sweep.backbones:
-        bars = {(a, m): [j.recall(1) for j in sweep.jobs_of(cell_name(a, m), bb) if j.ok]
-                for a in sweep.aggregators for m in sweep.masks}
+        bars = {
+            (a, m): [j.recall(1) for j in sweep.jobs_of(cell_name(a, m), bb) if j.ok]
+            for a in sweep.aggregators
+            for m in sweep.masks
+        }
         bars = {k: v for k, v in bars.items() if any(math.isfinite(x) for x in v)}
         if bars:
             panels.append((bb, bars))
@@ -141,9 +151,15 @@ def matrix_bars(sweep: Sweep, out: Path) -> str | None:
             if not xs:
                 continue
             stats = [mean_std(bars[(aggs[x], m)]) for x in xs]
-            ax.bar(np.array(xs) + (i - (len(masks) - 1) / 2) * width, [mu for mu, _ in stats], width,
-                   yerr=[sd if math.isfinite(sd) else 0.0 for _, sd in stats], capsize=2,
-                   color=f"C{i % 10}", label=sweep.label(m))
+            ax.bar(
+                np.array(xs) + (i - (len(masks) - 1) / 2) * width,
+                [mu for mu, _ in stats],
+                width,
+                yerr=[sd if math.isfinite(sd) else 0.0 for _, sd in stats],
+                capsize=2,
+                color=f"C{i % 10}",
+                label=sweep.label(m),
+            )
         ax.set_xticks(range(len(aggs)), aggs)
         ax.set(title=f"backbone: {bb}", ylabel="test R@1 (%)", ylim=(0, 100))
         ax.grid(axis="y", alpha=0.3)
@@ -183,16 +199,26 @@ def _image_of(sources: Any, qi: int) -> str | None:
 def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
     """Seed Figure 3: per query a row of image, the aggregator's attention and each mask source's mask
     (whichever the sweep's runs wrote); else a skip reason."""
-    keys = sorted({k for job in sweep.jobs if (job.dir / "maps.npz").is_file()
-                   for k in (_maps(job.dir / "maps.npz") or {}) if k not in MAP_META},
-                  key=lambda k: (k != ATTENTION, k in sweep.upper_bounds, k))  # upper bounds last
+    keys = sorted(
+        {
+            k
+            for job in sweep.jobs
+            if (job.dir / "maps.npz").is_file()
+            for k in (_maps(job.dir / "maps.npz") or {})
+            if k not in MAP_META
+        },
+        key=lambda k: (k != ATTENTION, k in sweep.upper_bounds, k),
+    )  # upper bounds last
     # the backbone whose runs fill the most columns; sorted order breaks ties
     candidates = [(bb, {key: _map_source(sweep, bb, key) for key in keys}) for bb in sweep.backbones]
     bb, sources = max(candidates, key=lambda c: sum(v is not None for v in c[1].values()))
     if not any(sources.values()):
         return "no job wrote maps.npz with attention or mask arrays"
-    cols = [(key, "attention\n(per-image scaled)" if key == ATTENTION else f"{key} mask\n(bright = static)",
-             sources[key]) for key in keys if sources[key]]
+    cols = [
+        (key, "attention\n(per-image scaled)" if key == ATTENTION else f"{key} mask\n(bright = static)", sources[key])
+        for key in keys
+        if sources[key]
+    ]
     first = next(s for s in sources.values() if s)
     queries = [int(q) for q in first[1]["query_index"][:max_queries]]
     fig = _new_figure(2.6 * (1 + len(cols)), 2.2 * len(queries) + 0.8)
@@ -203,7 +229,7 @@ def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
         ax = axes[r, 0]
         _show(ax, img, "image n/a")
         ax.set_ylabel(f"query {qi}\n{Path(stored).name[:28] if stored else ''}", fontsize=8)
-        for c, (key, title, src) in enumerate(cols, start=1):
+        for c, (key, _title, src) in enumerate(cols, start=1):
             ax = axes[r, c]
             idx = list(src[1]["query_index"]).index(qi) if src and qi in list(src[1]["query_index"]) else None
             if idx is None:
@@ -215,13 +241,24 @@ def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
                 if img is not None:  # faded image underneath so one sees *what* is kept
                     ax.imshow(img.mean(axis=2), cmap="gray", extent=(0, w, h, 0))
                 # feature-grid map stretched over the image extent; nearest keeps binary masks crisp
-                ax.imshow(m, cmap="magma", vmin=lo, vmax=max(hi, lo + 1e-6), extent=(0, w, h, 0),
-                          alpha=0.7 if img is not None else 1.0,
-                          interpolation="bilinear" if key == ATTENTION else "nearest")
+                ax.imshow(
+                    m,
+                    cmap="magma",
+                    vmin=lo,
+                    vmax=max(hi, lo + 1e-6),
+                    extent=(0, w, h, 0),
+                    alpha=0.7 if img is not None else 1.0,
+                    interpolation="bilinear" if key == ATTENTION else "nearest",
+                )
                 ax.set_xticks([])
                 ax.set_yticks([])
             if r == len(queries) - 1:
-                ax.set_xlabel(f"from {src[0].cell}, seed {'?' if src[0].seed is None else src[0].seed}" if src else "no run wrote it", fontsize=8)
+                ax.set_xlabel(
+                    f"from {src[0].cell}, seed {'?' if src[0].seed is None else src[0].seed}"
+                    if src
+                    else "no run wrote it",
+                    fontsize=8,
+                )
         if r == 0:
             for c, title in enumerate(["image"] + [t for _, t, _ in cols]):
                 axes[0, c].set_title(title, fontsize=10)
@@ -273,7 +310,7 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
     grid = fig.add_gridspec(len(queries) * len(rows), k + 1, width_ratios=[1.4] + [1.0] * k)
     for b, q in enumerate(queries):
         r0 = b * len(rows)
-        ax = fig.add_subplot(grid[r0:r0 + len(rows), 0])
+        ax = fig.add_subplot(grid[r0 : r0 + len(rows), 0])
         _show(ax, _thumb(sweep.image_path(q)), "query n/a")
         ax.set_title(f"query: {Path(q).name[:24]}", fontsize=8)
         for i, f in enumerate(rows):
@@ -299,8 +336,10 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
                 ax.set_title(f"#{c + 1}" + (f" · {dist:.0f} m" if math.isfinite(dist) else ""), fontsize=8)
                 if c == 0:
                     ax.set_ylabel(sweep.label(f), fontsize=9)
-    fig.suptitle(f"Top-{k} retrievals per aggregator · mask ({bb}; green = correct, red = wrong)\n"
-                 "queries where the runs disagree most on the top-1")
+    fig.suptitle(
+        f"Top-{k} retrievals per aggregator · mask ({bb}; green = correct, red = wrong)\n"
+        "queries where the runs disagree most on the top-1"
+    )
     _save(fig, out)
     return None
 
@@ -320,8 +359,14 @@ def class_weights(sweep: Sweep, out: Path) -> str | None:
         stats = [mean_std([float(w[name]) for w in runs[cell] if name in w]) for name in classes]
         means = [m for m, _ in stats]
         stds = [s if math.isfinite(s) else 0.0 for _, s in stats]
-        ax.bar(x + (i - (len(cells) - 1) / 2) * width, means, width, yerr=stds, capsize=2,
-               label=f"{cell[1].removesuffix(LEARNED)} ({cell[0]}, {len(runs[cell])} seeds)")
+        ax.bar(
+            x + (i - (len(cells) - 1) / 2) * width,
+            means,
+            width,
+            yerr=stds,
+            capsize=2,
+            label=f"{cell[1].removesuffix(LEARNED)} ({cell[0]}, {len(runs[cell])} seeds)",
+        )
     ax.set_xticks(x, classes, rotation=45, ha="right", fontsize=8)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("learned weight w_c")
@@ -332,8 +377,9 @@ def class_weights(sweep: Sweep, out: Path) -> str | None:
     return None
 
 
-def mask_figure(rows: list[tuple[np.ndarray, str, dict[str, np.ndarray]]], columns: dict[str, str], out: Path,
-                title: str) -> None:
+def mask_figure(
+    rows: list[tuple[np.ndarray, str, dict[str, np.ndarray]]], columns: dict[str, str], out: Path, title: str
+) -> None:
     """Figure 3 on a segmentation set: per image a row of the image and binary static masks (bright = static)
     over the faded image; a mask's NaN pixels (unlabelled) show the image only."""
     fig = _new_figure(2.6 * (1 + len(columns)), 2.2 * len(rows) + 0.8)
@@ -348,8 +394,15 @@ def mask_figure(rows: list[tuple[np.ndarray, str, dict[str, np.ndarray]]], colum
                 _na(ax)
                 continue
             ax.imshow(img.mean(axis=2), cmap="gray", extent=(0, w, h, 0))
-            ax.imshow(masks[key].astype(np.float32), cmap="magma", vmin=0.0, vmax=1.0, extent=(0, w, h, 0),
-                      alpha=0.7, interpolation="nearest")
+            ax.imshow(
+                masks[key].astype(np.float32),
+                cmap="magma",
+                vmin=0.0,
+                vmax=1.0,
+                extent=(0, w, h, 0),
+                alpha=0.7,
+                interpolation="nearest",
+            )
         for ax in axes[r]:
             ax.set_xticks([])
             ax.set_yticks([])

@@ -1,6 +1,7 @@
 """What a training job writes for the sweep report besides metrics.json: the top-k retrievals of a fixed
 set of test queries (``retrievals.json``) and their attention and mask maps (``maps.npz``), read back
 by ``semvpr.reporting.sweep`` and drawn by ``semvpr.reporting.figures``."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,16 +16,29 @@ from semvpr.retrieval.retriever import Retriever
 
 
 @torch.no_grad()
-def write_job_figure_data(run_dir: Path, places: Any, features: PlaceFeatures, retriever: Retriever,
-                      predictions: np.ndarray, num_queries: int, mask_name: str) -> None:
+def write_job_figure_data(
+    run_dir: Path,
+    places: Any,
+    features: PlaceFeatures,
+    retriever: Retriever,
+    predictions: np.ndarray,
+    num_queries: int,
+    mask_name: str,
+) -> None:
     """Top-k retrievals and attention / mask maps of ``num_queries`` test queries spread evenly
     over the query traversal (the same queries for every run, so the report can compare runs)."""
     idx = np.unique(np.linspace(0, len(places.q_paths) - 1, num_queries).round().astype(int))
     positives = places.positives()
     queries = []
     for i in idx:
-        topk = [{"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(),
-                 "correct": bool(j in set(positives[i].tolist()))} for j in predictions[i, :5]]
+        topk = [
+            {
+                "path": str(places.db_paths[j]),
+                "utm": places.db_utm[j].tolist(),
+                "correct": bool(j in set(positives[i].tolist())),
+            }
+            for j in predictions[i, :5]
+        ]
         queries.append({"query": str(places.q_paths[i]), "utm": places.q_utm[i].tolist(), "topk": topk})
     write_json(run_dir / "retrievals.json", {"queries": queries})
     arrays: dict[str, np.ndarray] = {"query_index": idx, "image_paths": np.array([str(places.q_paths[i]) for i in idx])}

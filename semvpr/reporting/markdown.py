@@ -1,6 +1,7 @@
 """Text that runs recorded, made safe for the markdown tables and lines of every report: one escaping
 function, so a name, an override or an error message never becomes markup, a link, a heading or a
 second table row."""
+
 from __future__ import annotations
 
 

@@ -1,5 +1,7 @@
 """A sweep directory read back as data: its jobs (what each recorded), the rows they form and the orderings
-the report's tables and figures share. Nothing here writes; ``semvpr.report`` and ``semvpr.reporting.figures`` render it."""
+the report's tables and figures share. Nothing here writes; ``semvpr.reporting.sweep_report`` and
+``semvpr.reporting.figures`` render it."""
+
 from __future__ import annotations
 
 import json
@@ -101,9 +103,16 @@ class Sweep:
     def masks(self) -> list[str]:
         """No mask first, upper bounds last, each mask's learned-weights variant right after it."""
         bounds = self.upper_bounds
-        return sorted({j.mask for j in self.jobs}, key=lambda m: (
-            m.removesuffix(LEARNED) != NO_MASK, m.removesuffix(LEARNED) in bounds, m == "?",
-            m.removesuffix(LEARNED), m.endswith(LEARNED)))
+        return sorted(
+            {j.mask for j in self.jobs},
+            key=lambda m: (
+                m.removesuffix(LEARNED) != NO_MASK,
+                m.removesuffix(LEARNED) in bounds,
+                m == "?",
+                m.removesuffix(LEARNED),
+                m.endswith(LEARNED),
+            ),
+        )
 
     @property
     def cells(self) -> list[str]:
@@ -136,7 +145,9 @@ class Sweep:
         None unless it lies under a dataset root some job recorded (a sweep directory is data)."""
         path = Path(stored)
         # The launch dir is usually the project root, an ancestor of outputs/multiruns/<date>/<time>.
-        candidates = [path] if path.is_absolute() else [r / path for r in (Path.cwd(), self.dir, *self.dir.resolve().parents)]
+        candidates = (
+            [path] if path.is_absolute() else [r / path for r in (Path.cwd(), self.dir, *self.dir.resolve().parents)]
+        )
         roots = {root.resolve() for job in self.jobs for root in job.roots}
         for candidate in candidates:
             if candidate.is_file() and any(candidate.resolve().is_relative_to(root) for root in roots):
@@ -183,8 +194,12 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
     try:
         config, hydra_cfg = _yaml(hydra_dir / "config.yaml"), _yaml(hydra_dir / "hydra.yaml")
         # mask.weights is usually "${filter.weights}" (text here): the preset's value stands for it.
-        for key, fact in (("seed", "seed"), ("filter.weights", "mask.weights"), ("mask.weights", "mask.weights"),
-                          ("backbone.weights", "backbone.weights")):
+        for key, fact in (
+            ("seed", "seed"),
+            ("filter.weights", "mask.weights"),
+            ("mask.weights", "mask.weights"),
+            ("backbone.weights", "backbone.weights"),
+        ):
             value = _select(config, key)
             if value is not None and "${" not in str(value):
                 facts[fact] = weights_kind(value) if fact == "backbone.weights" else str(value)
@@ -235,23 +250,37 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     mask = str(metrics.get("mask") or facts.get("mask") or "?")
     if (metrics.get("weights") or facts.get("mask.weights")) == "learned":
         mask += LEARNED
-    return Job(job_dir, name, str(metrics.get("aggregator") or facts.get("aggregator") or "?"), mask,
-               backbone_label(str(metrics.get("backbone") or facts.get("backbone") or "?"),
-                              metrics.get("backbone_weights") or facts.get("backbone.weights")),
-               seed, ok, error, metrics,
-               roots)
+    return Job(
+        job_dir,
+        name,
+        str(metrics.get("aggregator") or facts.get("aggregator") or "?"),
+        mask,
+        backbone_label(
+            str(metrics.get("backbone") or facts.get("backbone") or "?"),
+            metrics.get("backbone_weights") or facts.get("backbone.weights"),
+        ),
+        seed,
+        ok,
+        error,
+        metrics,
+        roots,
+    )
 
 
 def load_sweep(sweep_dir: Path) -> Sweep:
     """Discover job dirs (any dir holding metrics.json or a .hydra dir) and read them."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
-        raise SemvprError(f"sweep dir {sweep_dir} does not exist; pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
+        raise SemvprError(
+            f"sweep dir {sweep_dir} does not exist; pass the multirun dir, e.g. outputs/multiruns/<date>/<time>"
+        )
     dirs = {p.parent for p in sweep_dir.rglob("metrics.json")}
     dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}
     if not dirs:
-        raise SemvprError(f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "
-                          "pass the multirun dir written by `python -m semvpr.train -m ...`")
+        raise SemvprError(
+            f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "
+            "pass the multirun dir written by `python -m semvpr.train -m ...`"
+        )
     return Sweep(sweep_dir, [read_job(d, sweep_dir) for d in sorted(dirs)])
 
 

@@ -1,6 +1,7 @@
 """A training sweep's report: results.csv, results.md and the figures, from the sweep directory as
 ``semvpr.reporting.sweep`` reads it back (one row per backbone · aggregator · mask, the paired R@1
 gains, the aggregator × mask matrix, the learned class weights, the failed jobs)."""
+
 from __future__ import annotations
 
 import csv
@@ -27,12 +28,20 @@ def _rows(sweep: Sweep) -> list[dict[str, Any]]:
             if not jobs:
                 continue
             ok = [j for j in jobs if j.ok]
-            row: dict[str, Any] = {"cell": cell, "aggregator": jobs[0].aggregator, "mask": jobs[0].mask,
-                                   "backbone": bb, "n": len(ok), "failed": len(jobs) - len(ok),
-                                   "seeds": sorted(j.seed for j in ok if j.seed is not None)}
+            row: dict[str, Any] = {
+                "cell": cell,
+                "aggregator": jobs[0].aggregator,
+                "mask": jobs[0].mask,
+                "backbone": bb,
+                "n": len(ok),
+                "failed": len(jobs) - len(ok),
+                "seeds": sorted(j.seed for j in ok if j.seed is not None),
+            }
             for n in RECALL_NS:
                 row[f"R@{n}"] = mean_std([j.recall(n) for j in ok])
-            walls = [float(j.metrics["wall_time_s"]) for j in ok if isinstance(j.metrics.get("wall_time_s"), (int, float))]
+            walls = [
+                float(j.metrics["wall_time_s"]) for j in ok if isinstance(j.metrics.get("wall_time_s"), (int, float))
+            ]
             row["wall_time_s"] = mean_std(walls)[0]
             rows.append(row)
     return rows
@@ -48,15 +57,28 @@ def _fmt(x: float, signed: bool = False) -> str:
 def _csv_text(rows: list[dict[str, Any]]) -> str:
     """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing."""
     buf = io.StringIO()
-    cols = (["aggregator", "mask", "backbone", "n", "seeds"] + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")]
-            + ["wall_time_s", "failed"])
+    cols = (
+        ["aggregator", "mask", "backbone", "n", "seeds"]
+        + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")]
+        + ["wall_time_s", "failed"]
+    )
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
     num = lambda x: "" if not math.isfinite(x) else f"{x:.4f}"  # noqa: E731
     for r in rows:
         stats = [num(v) for n in RECALL_NS for v in r[f"R@{n}"]]
-        writer.writerow([r["aggregator"], r["mask"], r["backbone"], r["n"], " ".join(map(str, r["seeds"])), *stats,
-                         num(r["wall_time_s"]), r["failed"]])
+        writer.writerow(
+            [
+                r["aggregator"],
+                r["mask"],
+                r["backbone"],
+                r["n"],
+                " ".join(map(str, r["seeds"])),
+                *stats,
+                num(r["wall_time_s"]),
+                r["failed"],
+            ]
+        )
     return buf.getvalue()
 
 
@@ -65,9 +87,10 @@ def _r1_by_seed(sweep: Sweep, cell: str, backbone: str) -> dict[int | None, floa
     return {j.seed: j.recall(1) for j in sweep.jobs_of(cell, backbone) if j.ok and math.isfinite(j.recall(1))}
 
 
-def _paired_summary(sweep: Sweep, cell: str, backbone: str, reference: dict[int | None, float],
-                    label: str | None = None) -> str | None:
-    """"<row> +g ± s (better in k of n seeds)" for R@1 minus the reference's with the same seed.
+def _paired_summary(
+    sweep: Sweep, cell: str, backbone: str, reference: dict[int | None, float], label: str | None = None
+) -> str | None:
+    """ "<row> +g ± s (better in k of n seeds)" for R@1 minus the reference's with the same seed.
 
     Runs with the same seed share the backbone init and the data, so the per-seed difference is
     the fair comparison; its spread is much smaller than the seeds' spread of absolute recall.
@@ -78,7 +101,8 @@ def _paired_summary(sweep: Sweep, cell: str, backbone: str, reference: dict[int 
     mean, std = mean_std(diffs)
     spread = f" ± {_fmt(std)}" if math.isfinite(std) else ""
     better = sum(d > 0 for d in diffs)
-    return f"{md_cell(label or sweep.label(cell))} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
+    name = md_cell(label or sweep.label(cell))
+    return f"{name} {_fmt(mean, signed=True)}{spread} (better in {better} of {len(diffs)} seeds)"
 
 
 def _join(parts: list[str | None]) -> str:
@@ -100,23 +124,39 @@ def _baseline_gains(sweep: Sweep, backbone: str) -> str | None:
 def _mask_gains(sweep: Sweep, backbone: str, aggregator: str) -> str:
     """R@1 of each mask minus no mask, same aggregator and seed (binary weights against binary)."""
     none = _r1_by_seed(sweep, cell_name(aggregator, NO_MASK), backbone)
-    parts = [_paired_summary(sweep, cell_name(aggregator, m), backbone, none, label=sweep.label(m))
-             for m in sweep.masks if m != NO_MASK]
+    parts = [
+        _paired_summary(sweep, cell_name(aggregator, m), backbone, none, label=sweep.label(m))
+        for m in sweep.masks
+        if m != NO_MASK
+    ]
     return _join(parts) if none else ""
 
 
 def _learned_gains(sweep: Sweep, backbone: str) -> str:
     """R@1 of each learned-weights row minus the same row with binary weights, same seed."""
-    return _join([_paired_summary(sweep, c, backbone, _r1_by_seed(sweep, c.removesuffix(LEARNED), backbone))
-                  for c in sweep.cells if c.endswith(LEARNED)])
+    return _join(
+        [
+            _paired_summary(sweep, c, backbone, _r1_by_seed(sweep, c.removesuffix(LEARNED), backbone))
+            for c in sweep.cells
+            if c.endswith(LEARNED)
+        ]
+    )
 
 
 def _matrix(sweep: Sweep, backbone: str) -> list[str]:
     """Aggregator rows × mask columns of R@1 / R@5 mean ± std, then each mask's paired gain over none."""
-    aggregators = [a for a in sweep.aggregators if any(j.aggregator == a and j.backbone == backbone for j in sweep.jobs)]
+    aggregators = [
+        a for a in sweep.aggregators if any(j.aggregator == a and j.backbone == backbone for j in sweep.jobs)
+    ]
     masks = [m for m in sweep.masks if any(j.mask == m and j.backbone == backbone for j in sweep.jobs)]
-    out = [f"## Aggregator × mask ({md_cell(backbone)})", "", "R@1 / R@5 in %, mean ± std over seeds.", "",
-           "| aggregator | " + " | ".join(md_cell(sweep.label(m)) for m in masks) + " |", "|---|" + "---:|" * len(masks)]
+    out = [
+        f"## Aggregator × mask ({md_cell(backbone)})",
+        "",
+        "R@1 / R@5 in %, mean ± std over seeds.",
+        "",
+        "| aggregator | " + " | ".join(md_cell(sweep.label(m)) for m in masks) + " |",
+        "|---|" + "---:|" * len(masks),
+    ]
     for a in aggregators:
         cells = []
         for m in masks:
@@ -139,29 +179,42 @@ def _class_weight_table(sweep: Sweep) -> list[str]:
         return []
     columns = list(cells)
     classes = list(next(iter(cells.values()))[0])
-    out = ["## Learned class weights", "",
-           "w_c = sigmoid(θ_c) after training (start: 0.98 static classes, 0.02 the others), mean ± std over seeds.", "",
-           "| class | " + " | ".join(f"{md_cell(c.removesuffix(LEARNED))} ({md_cell(bb)})" for bb, c in columns) + " |",
-           "|---|" + "---:|" * len(columns)]
+    out = [
+        "## Learned class weights",
+        "",
+        "w_c = sigmoid(θ_c) after training (start: 0.98 static classes, 0.02 the others), mean ± std over seeds.",
+        "",
+        "| class | " + " | ".join(f"{md_cell(c.removesuffix(LEARNED))} ({md_cell(bb)})" for bb, c in columns) + " |",
+        "|---|" + "---:|" * len(columns),
+    ]
     for name in classes:
         stats = [mean_std([float(w[name]) for w in cells[c] if name in w]) for c in columns]
-        out.append(f"| {md_cell(name)} | " + " | ".join(f"{m:.2f} ± {s:.2f}" if math.isfinite(s) else f"{m:.2f}"
-                                              for m, s in stats) + " |")
+        out.append(
+            f"| {md_cell(name)} | "
+            + " | ".join(f"{m:.2f} ± {s:.2f}" if math.isfinite(s) else f"{m:.2f}" for m, s in stats)
+            + " |"
+        )
     return out + [""]
 
 
 def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str | None]) -> str:
     """Human-readable report: table, matrix, paired R@1 gains, failed jobs, figures."""
     n_ok = sum(j.ok for j in sweep.jobs)
-    out = ["# semvpr sweep results", "",
-           f"Sweep `{md_cell(sweep.dir)}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
-           "Recall@N in %, mean ± sample std over seeds.", "",
-           "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
-           "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
+    out = [
+        "# semvpr sweep results",
+        "",
+        f"Sweep `{md_cell(sweep.dir)}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
+        "Recall@N in %, mean ± sample std over seeds.",
+        "",
+        "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
+        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|",
+    ]
     for r in rows:
         cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in RECALL_NS]
-        out.append(f"| {md_cell(r['backbone'])} | {md_cell(sweep.label(r['cell']))} | {' | '.join(cells)} | {r['n']} | "
-                   f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |")
+        out.append(
+            f"| {md_cell(r['backbone'])} | {md_cell(sweep.label(r['cell']))} | {' | '.join(cells)} | {r['n']} | "
+            f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |"
+        )
     out.append("")
     reference = f"`{cell_name(sweep.baseline, NO_MASK)}`" if sweep.baseline else ""
     for bb in sweep.backbones:
@@ -169,20 +222,29 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
         if gains is None:
             out += [f"**R@1 gain over {reference} ({md_cell(bb)}):** no finished {reference} run to compare with.", ""]
         elif gains:
-            out += [f"**R@1 gain over {reference} ({md_cell(bb)})**, per seed (same backbone init and data), then "
-                    f"mean ± std: {gains}", ""]
+            out += [
+                f"**R@1 gain over {reference} ({md_cell(bb)})**, per seed (same backbone init and data), then "
+                f"mean ± std: {gains}",
+                "",
+            ]
         learned = _learned_gains(sweep, bb)
         if learned:
-            out += [f"**R@1 gain of learned class weights over binary weights ({md_cell(bb)})**, paired by seed: {learned}", ""]
+            out += [
+                f"**R@1 gain of learned class weights over binary weights ({md_cell(bb)})**, paired by seed: {learned}",
+                "",
+            ]
     for bb in sweep.backbones:
         out += _matrix(sweep, bb)
     out += _class_weight_table(sweep)
     failed = [j for j in sweep.jobs if not j.ok]
     if failed:
         out += ["## Failed jobs", ""]
-        out += [f"- `{md_cell(j.name)}` ({md_cell(j.cell)}, {md_cell(j.backbone)}, seed {j.seed if j.seed is not None else '?'}): "
-                f"{md_cell(j.error)}"
-                for j in failed]
+        out += [
+            f"- `{md_cell(j.name)}` ({md_cell(j.cell)}, {md_cell(j.backbone)}, "
+            f"seed {j.seed if j.seed is not None else '?'}): "
+            f"{md_cell(j.error)}"
+            for j in failed
+        ]
     out += ["", "## Figures", ""] if failed else ["## Figures", ""]
     for fname, skipped in figures.items():  # blank-line separated so each image renders as its own block
         out += [f"- `{fname}` skipped: {md_cell(skipped)}" if skipped else f"![{fname}]({fname})", ""]
@@ -200,8 +262,12 @@ def write_report(sweep_dir: Path) -> Path:
     sweep = load_sweep(Path(sweep_dir))
     rows = _rows(sweep)
     figures: dict[str, str | None] = {}
-    drawings = [("recall_at_n.png", plots.recall_curves), ("r1_by_aggregator.png", plots.matrix_bars),
-                ("figure3.png", plots.figure3), ("retrievals.png", plots.retrievals)]
+    drawings = [
+        ("recall_at_n.png", plots.recall_curves),
+        ("r1_by_aggregator.png", plots.matrix_bars),
+        ("figure3.png", plots.figure3),
+        ("retrievals.png", plots.retrievals),
+    ]
     if any(numeric_weights(j.metrics.get("class_weights")) for j in sweep.jobs):
         drawings.append(("class_weights.png", plots.class_weights))
     scratch = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=sweep.dir))

@@ -5,6 +5,7 @@ Data flows one way: the descriptor function that mining needs is given at constr
 trainer's model. Val/test batches are whole eval batches over database then queries; under DDP each
 rank loads a contiguous block of them (semvpr.retrieval.validation gathers the descriptors back in order).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -42,8 +43,14 @@ class RankBatches(Sampler[list[int]]):
 class RetrievalDataModule(L.LightningDataModule):
     """Feature stores of train/val/test; training batches re-mined per sub-epoch (semvpr.retrieval.mining)."""
 
-    def __init__(self, features: dict[str, PlaceFeatures], mining: Mining, describe: Describe,
-                 eval_batch_size: int = 64, num_workers: int = 0) -> None:
+    def __init__(
+        self,
+        features: dict[str, PlaceFeatures],
+        mining: Mining,
+        describe: Describe,
+        eval_batch_size: int = 64,
+        num_workers: int = 0,
+    ) -> None:
         super().__init__()
         self.features, self.mining, self.describe = features, mining, describe
         self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
@@ -57,8 +64,15 @@ class RetrievalDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> TrainingEpoch:
         self._count_tuples()
-        self._epoch = TrainingEpoch(self.features["train"], self.mining, self.trainable_queries, self.neg_cache,
-                                    self.trainer.current_epoch, self.describe, self.num_workers)
+        self._epoch = TrainingEpoch(
+            self.features["train"],
+            self.mining,
+            self.trainable_queries,
+            self.neg_cache,
+            self.trainer.current_epoch,
+            self.describe,
+            self.num_workers,
+        )
         return self._epoch
 
     def _count_tuples(self) -> None:

@@ -1,5 +1,6 @@
 """A trained retriever's descriptors of a place set's database or queries: computed once per model and
 image set, cached memory-mapped (artifact kind ``descriptors``), so memory does not grow with the set."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -14,12 +15,12 @@ from semvpr.data.places import PlaceSet
 from semvpr.retrieval.retriever import Retriever
 
 
-def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, image_size: Sequence[int],
-                      cache_dir: str | Path) -> np.ndarray:
+def place_descriptors(
+    retriever: Retriever, places: PlaceSet, side: str, image_size: Sequence[int], cache_dir: str | Path
+) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``)."""
     paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
-    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side),
-           "image_size": list(image_size)}
+    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
     dim = retriever.descriptor_dim
 
     def build(tmp: Path) -> None:
@@ -31,8 +32,12 @@ def place_descriptors(retriever: Retriever, places: PlaceSet, side: str, image_s
     try:
         desc = np.load(folder / "descriptors.npy", mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError) as err:
-        raise SemvprError(f"descriptor cache {folder} is unreadable ({type(err).__name__}); delete it to rebuild") from None
+        raise SemvprError(
+            f"descriptor cache {folder} is unreadable ({type(err).__name__}); delete it to rebuild"
+        ) from None
     if desc.shape != (len(paths), dim) or desc.dtype != np.float32:
-        raise SemvprError(f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
-                          f"float32[{len(paths)}, {dim}]; delete it to rebuild")
+        raise SemvprError(
+            f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
+            f"float32[{len(paths)}, {dim}]; delete it to rebuild"
+        )
     return desc

@@ -10,6 +10,7 @@ many. Work is split the same way everywhere:
 - training: each global batch of tuples is cut into ``world`` consecutive slices
   (:func:`rank_slice`); the loss is normalised by the global pair count (semvpr.retrieval.mining).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable

@@ -15,15 +15,17 @@ VGG16 pool4 map is 1.2 MB in bf16, Pitts30k's three splits ~64 GB):
 
 The three give the same features; only speed and memory differ.
 """
+
 from __future__ import annotations
 
 import math
 import shutil
 import tempfile
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -31,14 +33,14 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
 from semvpr.core.cache import artifact_dir, build_once
-from semvpr.data.images import ImageDataset, load_image
-from semvpr.data.places import PlaceSet
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array, temp_prefix
-from semvpr.data.classes import NUM_CLASSES
-from semvpr.models.masks import MaskSource
-from semvpr.core.precision import autocast
 from semvpr.core.logs import progress
+from semvpr.core.precision import autocast
+from semvpr.data.classes import NUM_CLASSES
+from semvpr.data.images import ImageDataset, load_image
+from semvpr.data.places import PlaceSet
+from semvpr.models.masks import MaskSource
 
 STORAGES = ("auto", "ram", "disk", "stream")
 #: Trunk features are bf16 wherever they come from (cache or stream), so every path gives the same
@@ -83,8 +85,9 @@ class FeatureStore:
         images = torch.stack([load_image(self.paths[int(i)], self.image_size) for i in index])
         device = next(backbone.parameters()).device
         with autocast(device):
-            out = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last),
-                                          keep_scales=False)[-1]
+            out = backbone.forward_frozen(
+                images.to(device).contiguous(memory_format=torch.channels_last), keep_scales=False
+            )[-1]
         return out.to(TRUNK_DTYPE)
 
 
@@ -102,12 +105,12 @@ class StoreDataset(Dataset):
         return self.store.item(self.index[i])
 
 
-def store_loader(store: FeatureStore, batch_size: int, num_workers: int,
-                 index: Sequence[int] | None = None) -> DataLoader:
+def store_loader(
+    store: FeatureStore, batch_size: int, num_workers: int, index: Sequence[int] | None = None
+) -> DataLoader:
     """Batches of a store in order; decoding workers only where images are streamed."""
     workers = num_workers if store.streams else 0
-    return DataLoader(StoreDataset(store, index), batch_size=batch_size, num_workers=workers,
-                      persistent_workers=False)
+    return DataLoader(StoreDataset(store, index), batch_size=batch_size, num_workers=workers, persistent_workers=False)
 
 
 @dataclass
@@ -120,7 +123,8 @@ class PlaceFeatures:
 
 
 _SHAPES: weakref.WeakKeyDictionary[nn.Module, dict[tuple[int, int], tuple[tuple[int, ...], ...]]] = (
-    weakref.WeakKeyDictionary())
+    weakref.WeakKeyDictionary()
+)
 
 
 @torch.no_grad()
@@ -149,8 +153,9 @@ def trunk_shape(backbone: nn.Module, image_size: Sequence[int]) -> tuple[int, in
     return _shapes(backbone, image_size)[0]  # type: ignore[return-value]
 
 
-def choose_storage(setting: str, trunk_bytes: int, cache_dir: str | Path, ram_gb: float, disk_gb: float,
-                   cached: bool = False) -> str:
+def choose_storage(
+    setting: str, trunk_bytes: int, cache_dir: str | Path, ram_gb: float, disk_gb: float, cached: bool = False
+) -> str:
     """``ram`` / ``disk`` / ``stream`` for a trunk cache of ``trunk_bytes`` (see the module docstring)."""
     if setting not in STORAGES:
         raise SemvprError(f"features.storage={setting!r} is not one of {list(STORAGES)}")
@@ -166,9 +171,19 @@ def choose_storage(setting: str, trunk_bytes: int, cache_dir: str | Path, ram_gb
 
 
 @torch.no_grad()
-def _extract(backbone: nn.Module, mask_source: MaskSource | None, weighting: str, paths: Sequence[Path],
-             labels: Sequence[Path] | None, image_size: tuple[int, int], trunk_out: np.ndarray | None,
-             mask_out: np.ndarray | None, batch_size: int, num_workers: int, desc: str) -> None:
+def _extract(
+    backbone: nn.Module,
+    mask_source: MaskSource | None,
+    weighting: str,
+    paths: Sequence[Path],
+    labels: Sequence[Path] | None,
+    image_size: tuple[int, int],
+    trunk_out: np.ndarray | None,
+    mask_out: np.ndarray | None,
+    batch_size: int,
+    num_workers: int,
+    desc: str,
+) -> None:
     """One pass over the images, writing trunk outputs (bf16 bits) and grid masks into the arrays."""
     grid = grid_size(backbone, image_size)
     device = next(backbone.parameters()).device
@@ -180,13 +195,13 @@ def _extract(backbone: nn.Module, mask_source: MaskSource | None, weighting: str
     backbone.eval()
     for batch, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
         for start in range(0, len(index), step):
-            images = batch[start:start + step].to(device).contiguous(memory_format=torch.channels_last)
+            images = batch[start : start + step].to(device).contiguous(memory_format=torch.channels_last)
             first = int(index[start])
             rows = slice(first, first + len(images))
             with autocast(device):
                 outs = backbone.forward_frozen(images, keep_scales=keep) if run_backbone else []
                 if mask_out is not None:
-                    chunk_labels = [labels[int(i)] for i in index[start:start + step]] if labels is not None else None
+                    chunk_labels = [labels[int(i)] for i in index[start : start + step]] if labels is not None else None
                     mask_out[rows] = mask_source.grid_mask(images, outs, chunk_labels, grid, weighting).cpu().numpy()
             if trunk_out is not None:
                 trunk_out[rows] = outs[-1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
@@ -199,8 +214,10 @@ def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndar
     except (OSError, ValueError) as err:
         raise SemvprError(f"feature cache {path} is unreadable ({err}); delete {what} to rebuild it") from None
     if arr.shape != shape or arr.dtype != np.dtype(dtype):
-        raise SemvprError(f"feature cache {path} holds {arr.dtype}{list(arr.shape)}, expected "
-                          f"{np.dtype(dtype)}{list(shape)}; delete {what} to rebuild it")
+        raise SemvprError(
+            f"feature cache {path} holds {arr.dtype}{list(arr.shape)}, expected "
+            f"{np.dtype(dtype)}{list(shape)}; delete {what} to rebuild it"
+        )
     return arr
 
 
@@ -245,13 +262,30 @@ def place_features(
         kinds["masks"] = ({"mask": mask_key, "weighting": weighting, "data": data_key}, (channels, *grid), np.float16)
     missing = [k for k, (key, _, _) in kinds.items() if not artifact_dir(cache_dir, k, key).is_dir()]
     if missing:
-        _build(missing, kinds, sides, backbone, mask_source, weighting, size, cache_dir, batch_size, num_workers,
-               places.name)
+        _build(
+            missing,
+            kinds,
+            sides,
+            backbone,
+            mask_source,
+            weighting,
+            size,
+            cache_dir,
+            batch_size,
+            num_workers,
+            places.name,
+        )
     stores = {}
     for side, (paths, _) in sides.items():
-        arrays = {kind: _open(artifact_dir(cache_dir, kind, key) / f"{side}.npy", (len(paths), *per_image), dtype,
-                              artifact_dir(cache_dir, kind, key))
-                  for kind, (key, per_image, dtype) in kinds.items()}
+        arrays = {
+            kind: _open(
+                artifact_dir(cache_dir, kind, key) / f"{side}.npy",
+                (len(paths), *per_image),
+                dtype,
+                artifact_dir(cache_dir, kind, key),
+            )
+            for kind, (key, per_image, dtype) in kinds.items()
+        }
         trunk = None
         if "trunk" in arrays:
             held = np.array(arrays["trunk"]) if storage == "ram" else arrays["trunk"]
@@ -261,17 +295,40 @@ def place_features(
     return PlaceFeatures(places, stores["db"], stores["q"])
 
 
-def _build(missing: list[str], kinds: dict[str, tuple[Any, tuple[int, ...], Any]],
-           sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]], backbone: nn.Module,
-           mask_source: MaskSource | None, weighting: str, size: tuple[int, int], cache_dir: str | Path,
-           batch_size: int, num_workers: int, name: str) -> None:
+def _build(
+    missing: list[str],
+    kinds: dict[str, tuple[Any, tuple[int, ...], Any]],
+    sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]],
+    backbone: nn.Module,
+    mask_source: MaskSource | None,
+    weighting: str,
+    size: tuple[int, int],
+    cache_dir: str | Path,
+    batch_size: int,
+    num_workers: int,
+    name: str,
+) -> None:
     """Build the missing caches in one pass per side; each lands under its final name only when whole."""
+
     def compute(dirs: dict[str, Path]) -> None:
         for side, (paths, labels) in sides.items():
-            outs = {k: open_array(d / f"{side}.npy", kinds[k][2], (len(paths), *kinds[k][1]), f"the {k} cache of {name}")
-                    for k, d in dirs.items()}
-            _extract(backbone, mask_source if "masks" in outs else None, weighting, paths, labels, size,
-                     outs.get("trunk"), outs.get("masks"), batch_size, num_workers, f"{name} {side}")
+            outs = {
+                k: open_array(d / f"{side}.npy", kinds[k][2], (len(paths), *kinds[k][1]), f"the {k} cache of {name}")
+                for k, d in dirs.items()
+            }
+            _extract(
+                backbone,
+                mask_source if "masks" in outs else None,
+                weighting,
+                paths,
+                labels,
+                size,
+                outs.get("trunk"),
+                outs.get("masks"),
+                batch_size,
+                num_workers,
+                f"{name} {side}",
+            )
             for arr in outs.values():
                 arr.flush()
 
@@ -283,14 +340,18 @@ def _build(missing: list[str], kinds: dict[str, tuple[Any, tuple[int, ...], Any]
         first, *rest = missing
         for kind in rest:
             (scratch / kind).mkdir()
-        build_once(cache_dir, first, kinds[first][0], lambda tmp: compute({first: tmp, **{k: scratch / k for k in rest}}))
+        build_once(
+            cache_dir, first, kinds[first][0], lambda tmp: compute({first: tmp, **{k: scratch / k for k in rest}})
+        )
         for kind in rest:
+
             def adopt(tmp: Path, kind: str = kind) -> None:
                 if all((scratch / kind / f"{side}.npy").is_file() for side in sides):
                     for side in sides:
                         shutil.move(scratch / kind / f"{side}.npy", tmp / f"{side}.npy")
                 else:
                     compute({kind: tmp})
+
             build_once(cache_dir, kind, kinds[kind][0], adopt)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)

@@ -1,6 +1,7 @@
 """An aggregator's initialisation from a sample of training local features (NetVLAD's recipe: k-means
 on 50,000 random locations), labelled static / dynamic by the teacher's pseudo-labels where the
 aggregator asks for labels (SRAL's semantic-constrained init)."""
+
 from __future__ import annotations
 
 import math
@@ -45,8 +46,9 @@ class StaticLabels:
 
 
 @torch.no_grad()
-def sample_local_features(backbone: nn.Module, store: FeatureStore, max_features: int, per_image: int,
-                          seed: int, batch_size: int = 16) -> tuple[Tensor, Tensor]:
+def sample_local_features(
+    backbone: nn.Module, store: FeatureStore, max_features: int, per_image: int, seed: int, batch_size: int = 16
+) -> tuple[Tensor, Tensor]:
     """NetVLAD's k-means sample: ``per_image`` random locations of each of ``max_features / per_image``
     random images (all of them when fewer). Returns (N,D) features and their (image, location) indices."""
     rng = np.random.default_rng(seed)
@@ -67,8 +69,9 @@ def sample_local_features(backbone: nn.Module, store: FeatureStore, max_features
     return torch.cat(feats), torch.cat(where)
 
 
-def static_grid(labels_dir: Path, root: Path, image_paths: Sequence[Path], grid: tuple[int, int],
-                static_names: Sequence[str]) -> Tensor:
+def static_grid(
+    labels_dir: Path, root: Path, image_paths: Sequence[Path], grid: tuple[int, int], static_names: Sequence[str]
+) -> Tensor:
     """Static fraction of each feature-grid cell (N,h*w) from pseudo-label PNGs."""
     lut = torch.from_numpy(static_lut(tuple(static_names)))
     maps = []
@@ -87,15 +90,19 @@ def static_locations(fraction: Tensor, at_least: int) -> Tensor:
     at_least = min(at_least, len(fraction))
     if int(is_static.sum()) >= at_least:
         return is_static
-    print(f"semvpr: the teacher's labels call only {int(is_static.sum())} of {len(fraction)} k-means sample "
-          f"locations static; the semantic init uses the {at_least} most static ones", file=sys.stderr)
+    print(
+        f"semvpr: the teacher's labels call only {int(is_static.sum())} of {len(fraction)} k-means sample "
+        f"locations static; the semantic init uses the {at_least} most static ones",
+        file=sys.stderr,
+    )
     is_static = torch.zeros_like(is_static)
     is_static[torch.argsort(fraction, descending=True, stable=True)[:at_least]] = True
     return is_static
 
 
-def initialise_aggregator(aggregator: Aggregator, backbone: nn.Module, train_db: FeatureStore, sample: InitSample,
-                          labels: StaticLabels | None) -> dict[str, Any]:
+def initialise_aggregator(
+    aggregator: Aggregator, backbone: nn.Module, train_db: FeatureStore, sample: InitSample, labels: StaticLabels | None
+) -> dict[str, Any]:
     """Initialise ``aggregator`` as its ``init_sample`` asks (nothing, features, or labelled features);
     returns what was used, for metrics.json."""
     if aggregator.init_sample == "none":
@@ -106,8 +113,9 @@ def initialise_aggregator(aggregator: Aggregator, backbone: nn.Module, train_db:
     if labels is None:
         raise ValueError(f"{type(aggregator).__name__} initialises from labelled features; no labels were given")
     used = np.unique(where[:, 0].numpy())
-    static = static_grid(labels.labels_dir, labels.root, [labels.image_paths[i] for i in used], labels.grid,
-                         labels.static_names)
+    static = static_grid(
+        labels.labels_dir, labels.root, [labels.image_paths[i] for i in used], labels.grid, labels.static_names
+    )
     row = torch.from_numpy(np.searchsorted(used, where[:, 0].numpy()))
     is_static = static_locations(static[row, where[:, 1]], aggregator.init_min_static)
     return aggregator.init_from_sample(feats, is_static, sample.seed)

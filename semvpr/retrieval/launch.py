@@ -12,6 +12,7 @@
 When the job ends the process group is destroyed and the variables are restored, so that the next
 job of a sweep starts afresh.
 """
+
 from __future__ import annotations
 
 import os
@@ -38,11 +39,18 @@ def _submitit_ranks(devices: int) -> dict[str, str] | None:
 
     env = submitit.JobEnvironment()
     if env.num_tasks != devices * env.num_nodes:
-        raise SemvprError(f"trainer=ddp under submitit needs hydra.launcher.tasks_per_node={devices} "
-                          f"(= trainer.devices), got {env.num_tasks // env.num_nodes} task(s) per node")
+        raise SemvprError(
+            f"trainer=ddp under submitit needs hydra.launcher.tasks_per_node={devices} "
+            f"(= trainer.devices), got {env.num_tasks // env.num_nodes} task(s) per node"
+        )
     port = 20000 + int("".join(c for c in str(env.job_id) if c.isdigit()) or 0) % 20000
-    return {"MASTER_ADDR": env.hostnames[0], "MASTER_PORT": str(port), "NODE_RANK": str(env.node),
-            "LOCAL_RANK": str(env.local_rank), "WORLD_SIZE": str(env.num_tasks)}
+    return {
+        "MASTER_ADDR": env.hostnames[0],
+        "MASTER_PORT": str(port),
+        "NODE_RANK": str(env.node),
+        "LOCAL_RANK": str(env.local_rank),
+        "WORLD_SIZE": str(env.num_tasks),
+    }
 
 
 def launched_rank() -> int:
@@ -64,8 +72,16 @@ def _free_port() -> int:
 
 
 def _child_command(overrides: list[str], run_dir: Path, rank: int) -> list[str]:
-    return [sys.executable, "-m", "semvpr.train", *overrides, f'hydra.run.dir="{run_dir}"',
-            "hydra.output_subdir=null", f"hydra.job.name=ddp_rank{rank}", "hydra/job_logging=stdout"]
+    return [
+        sys.executable,
+        "-m",
+        "semvpr.train",
+        *overrides,
+        f'hydra.run.dir="{run_dir}"',
+        "hydra.output_subdir=null",
+        f"hydra.job.name=ddp_rank{rank}",
+        "hydra/job_logging=stdout",
+    ]
 
 
 @contextmanager
@@ -81,14 +97,26 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
             if found is not None:
                 os.environ.update(found)
             elif num_nodes > 1:
-                raise SemvprError("trainer.num_nodes > 1 needs a scheduler that starts one task per device "
-                                  "(SLURM with hydra.launcher.tasks_per_node=trainer.devices, or torchrun)")
+                raise SemvprError(
+                    "trainer.num_nodes > 1 needs a scheduler that starts one task per device "
+                    "(SLURM with hydra.launcher.tasks_per_node=trainer.devices, or torchrun)"
+                )
             else:
-                os.environ.update({"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "NODE_RANK": "0",
-                                   "WORLD_SIZE": str(world_size), "LOCAL_RANK": "0"})
-                children = [subprocess.Popen(_child_command(overrides, run_dir, rank),
-                                             env={**os.environ, "LOCAL_RANK": str(rank)})
-                            for rank in range(1, world_size)]
+                os.environ.update(
+                    {
+                        "MASTER_ADDR": "127.0.0.1",
+                        "MASTER_PORT": str(_free_port()),
+                        "NODE_RANK": "0",
+                        "WORLD_SIZE": str(world_size),
+                        "LOCAL_RANK": "0",
+                    }
+                )
+                children = [
+                    subprocess.Popen(
+                        _child_command(overrides, run_dir, rank), env={**os.environ, "LOCAL_RANK": str(rank)}
+                    )
+                    for rank in range(1, world_size)
+                ]
         yield
     except BaseException:
         for child in children:

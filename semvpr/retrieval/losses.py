@@ -1,4 +1,5 @@
 """Training losses of the retriever."""
+
 from __future__ import annotations
 
 import torch

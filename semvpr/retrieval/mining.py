@@ -18,6 +18,7 @@ negative cache travels in the checkpoint, so a resumed run mines what the uninte
 Under DDP the refresh is sharded, rank 0 mines and broadcasts, and each rank trains on its slice
 of every batch (:class:`TrainingEpoch`), with the same gradient as one process.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -30,9 +31,9 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, world
 from semvpr.core.errors import SemvprError
 from semvpr.data.places import check_radius
+from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, world
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
 
 
@@ -123,8 +124,9 @@ class QueryBatches(Sampler[list[int]]):
 
     def __init__(self, queries: np.ndarray, tuples: list[tuple[int, int, np.ndarray]], batch_size: int) -> None:
         where = {qi: i for i, (qi, _, _) in enumerate(tuples)}
-        self.batches = [[where[q] for q in queries[s : s + batch_size] if q in where]
-                        for s in range(0, len(queries), batch_size)]
+        self.batches = [
+            [where[q] for q in queries[s : s + batch_size] if q in where] for s in range(0, len(queries), batch_size)
+        ]
 
     def __len__(self) -> int:
         return len(self.batches)
@@ -148,13 +150,30 @@ class Mining:
     negative_candidates: int = 1000
     margin: float = 0.1
 
-    def mine(self, db_desc: np.ndarray, q_desc: np.ndarray, places: Any, query_ids: np.ndarray,
-             rng: np.random.Generator, neg_cache: np.ndarray | None) -> list[tuple[int, int, np.ndarray]]:
+    def mine(
+        self,
+        db_desc: np.ndarray,
+        q_desc: np.ndarray,
+        places: Any,
+        query_ids: np.ndarray,
+        rng: np.random.Generator,
+        neg_cache: np.ndarray | None,
+    ) -> list[tuple[int, int, np.ndarray]]:
         """:func:`mine` with these radii, counts and margin."""
-        return mine(db_desc, q_desc, places.db_utm, places.q_utm, query_ids, rng, neg_cache,
-                    positive_radius=self.positive_radius, negative_radius=self.negative_radius,
-                    num_negatives=self.num_negatives, negative_candidates=self.negative_candidates,
-                    margin=self.margin)
+        return mine(
+            db_desc,
+            q_desc,
+            places.db_utm,
+            places.q_utm,
+            query_ids,
+            rng,
+            neg_cache,
+            positive_radius=self.positive_radius,
+            negative_radius=self.negative_radius,
+            num_negatives=self.num_negatives,
+            negative_candidates=self.negative_candidates,
+            margin=self.margin,
+        )
 
 
 def trainable_queries(places: Any, positive_radius: float) -> np.ndarray:
@@ -164,7 +183,8 @@ def trainable_queries(places: Any, positive_radius: float) -> np.ndarray:
     if len(queries) == 0:
         raise SemvprError(
             f"no training query of {places.name} has a database image within {positive_radius} m; "
-            "check the training split's UTM coordinates")
+            "check the training split's UTM coordinates"
+        )
     return queries
 
 
@@ -177,8 +197,16 @@ class TrainingEpoch:
     :meth:`__iter__`).
     """
 
-    def __init__(self, train: PlaceFeatures, mining: Mining, queries: np.ndarray, neg_cache: np.ndarray,
-                 epoch: int, describe: Describe, num_workers: int = 0) -> None:
+    def __init__(
+        self,
+        train: PlaceFeatures,
+        mining: Mining,
+        queries: np.ndarray,
+        neg_cache: np.ndarray,
+        epoch: int,
+        describe: Describe,
+        num_workers: int = 0,
+    ) -> None:
         self.train, self.mining, self.describe, self.num_workers = train, mining, describe, num_workers
         self.neg_cache = neg_cache
         self.num_tuples = 0
@@ -206,8 +234,11 @@ class TrainingEpoch:
             self.num_tuples += len(tuples)
             batches = QueryBatches(chunk, tuples, self.mining.batch_size).batches
             pairs = [sum(len(tuples[i][2]) for i in batch) for batch in batches]
-            loader = DataLoader(TupleDataset(tuples, train.db, train.q),
-                                batch_sampler=[batch[rank_slice(len(batch), rank, size)] for batch in batches],
-                                collate_fn=collate_tuples, num_workers=self.num_workers if train.db.streams else 0)
+            loader = DataLoader(
+                TupleDataset(tuples, train.db, train.q),
+                batch_sampler=[batch[rank_slice(len(batch), rank, size)] for batch in batches],
+                collate_fn=collate_tuples,
+                num_workers=self.num_workers if train.db.streams else 0,
+            )
             for batch, n in zip(loader, pairs):
                 yield None if n == 0 else {**(batch or {}), "pairs": n / size}

@@ -12,6 +12,7 @@ They differ only where some query has no database image within the radius (none 
 Pitts30k-test or SynthCity). ``recall_result`` returns both with the query counts;
 ``recall_at_n`` / ``recall_curve`` are the all-queries shortcuts.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
@@ -83,27 +84,35 @@ def first_hit_ranks(predictions: np.ndarray, positives: Sequence[np.ndarray]) ->
     return ranks
 
 
-def recall_result(predictions: np.ndarray, positives: Sequence[np.ndarray],
-                  ns: Iterable[int] = RECALL_NS) -> RecallResult:
+def recall_result(
+    predictions: np.ndarray, positives: Sequence[np.ndarray], ns: Iterable[int] = RECALL_NS
+) -> RecallResult:
     """Recall@N (percent) for each N in ``ns`` plus the query counts behind it."""
     ns = tuple(int(n) for n in ns)
     if max(ns) > np.asarray(predictions).shape[1]:
-        raise ValueError(f"Recall@{max(ns)} needs at least {max(ns)} predictions per query, "
-                         f"got {np.asarray(predictions).shape[1]}")
+        raise ValueError(
+            f"Recall@{max(ns)} needs at least {max(ns)} predictions per query, got {np.asarray(predictions).shape[1]}"
+        )
     ranks = first_hit_ranks(predictions, positives)
     valid = ranks[ranks >= 0]
     if valid.size == 0:
-        raise SemvprError("no query has a database image within the positive radius; check the UTM coordinates "
-                          "of the test set (or the radius)")
+        raise SemvprError(
+            "no query has a database image within the positive radius; check the UTM coordinates "
+            "of the test set (or the radius)"
+        )
     # A query without positives has rank -1 and never counts as a hit.
     hits = {n: int(np.count_nonzero(valid < n)) for n in ns}
-    return RecallResult(recalls={n: 100.0 * h / len(ranks) for n, h in hits.items()},
-                        recalls_pos={n: 100.0 * h / valid.size for n, h in hits.items()},
-                        num_queries=int(len(ranks)), num_without_positives=int((ranks < 0).sum()))
+    return RecallResult(
+        recalls={n: 100.0 * h / len(ranks) for n, h in hits.items()},
+        recalls_pos={n: 100.0 * h / valid.size for n, h in hits.items()},
+        num_queries=int(len(ranks)),
+        num_without_positives=int((ranks < 0).sum()),
+    )
 
 
-def recall_at_n(predictions: np.ndarray, positives: Sequence[np.ndarray],
-                ns: Iterable[int] = RECALL_NS) -> dict[int, float]:
+def recall_at_n(
+    predictions: np.ndarray, positives: Sequence[np.ndarray], ns: Iterable[int] = RECALL_NS
+) -> dict[int, float]:
     """{N: Recall@N in percent of all queries} (``recall_result`` also gives the MSLS denominator)."""
     return recall_result(predictions, positives, ns).recalls
 
@@ -113,8 +122,9 @@ def recall_curve(predictions: np.ndarray, positives: Sequence[np.ndarray], max_n
     return recall_at_n(predictions, positives, range(1, max_n + 1))
 
 
-def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray],
-             max_n: int = 20) -> dict[str, Any]:
+def evaluate(
+    db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray], max_n: int = 20
+) -> dict[str, Any]:
     """Top-k retrieval and Recall@1..max_n in percent: of all queries (``recalls``, ``curve``, as
     pytorch-NetVlad and the benchmark) and of queries with a positive (``recalls_pos``, as MSLS)."""
     k = min(max_n, len(db_desc))
@@ -122,7 +132,10 @@ def evaluate(db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.nda
     result = recall_result(predictions, positives, ns=tuple(range(1, k + 1)))
     # A database smaller than N is retrieved whole: Recall@N = Recall@len(db).
     curve = {n: result.recalls[min(n, k)] for n in range(1, max_n + 1)}
-    return {"predictions": predictions, "curve": curve,
-            "recalls": {n: curve[n] for n in RECALL_NS},
-            "recalls_pos": {n: result.recalls_pos[min(n, k)] for n in RECALL_NS},
-            "num_without_positives": result.num_without_positives}
+    return {
+        "predictions": predictions,
+        "curve": curve,
+        "recalls": {n: curve[n] for n in RECALL_NS},
+        "recalls_pos": {n: result.recalls_pos[min(n, k)] for n in RECALL_NS},
+        "num_without_positives": result.num_without_positives,
+    }

@@ -4,11 +4,13 @@ One code path for every aggregator and mask (ARCHITECTURE §3.4): the components
 frozen backbone prefix and the mask run once per image (semvpr.retrieval.features); training, mining and
 evaluation work on their cached outputs through :meth:`Retriever.describe`.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -16,14 +18,14 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from semvpr.data.images import ImageDataset
-from semvpr.retrieval.distributed import Describe
 from semvpr.core.errors import SemvprError
+from semvpr.core.logs import progress
+from semvpr.core.precision import autocast
+from semvpr.data.images import ImageDataset
+from semvpr.models.masks import ClassWeights, MaskSource
+from semvpr.retrieval.distributed import Describe
 from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
 from semvpr.retrieval.losses import triplet_loss
-from semvpr.models.masks import ClassWeights, MaskSource
-from semvpr.core.precision import autocast
-from semvpr.core.logs import progress
 
 
 @dataclass(frozen=True)
@@ -86,8 +88,9 @@ class Retriever(L.LightningModule):
         """Descriptors of a feature-store batch: cached trunk rows, or images through the frozen prefix."""
         if "image" in batch:
             with torch.no_grad():
-                trunk = self.backbone.forward_frozen(batch["image"].contiguous(memory_format=torch.channels_last),
-                                                     keep_scales=False)[-1]
+                trunk = self.backbone.forward_frozen(
+                    batch["image"].contiguous(memory_format=torch.channels_last), keep_scales=False
+                )[-1]
                 trunk = trunk.to(TRUNK_DTYPE)
         else:
             trunk = batch["trunk"]
@@ -107,8 +110,12 @@ class Retriever(L.LightningModule):
         keep = self.mask_source is not None and self.mask_source.needs_features
         step = self.backbone.images_per_forward(images.shape[-2:], keep_scales=keep)
         if len(images) > step:
-            return torch.cat([self(images[i:i + step], None if label_paths is None else label_paths[i:i + step])
-                              for i in range(0, len(images), step)])
+            return torch.cat(
+                [
+                    self(images[i : i + step], None if label_paths is None else label_paths[i : i + step])
+                    for i in range(0, len(images), step)
+                ]
+            )
         outs = self.backbone.forward_frozen(images.contiguous(memory_format=torch.channels_last), keep_scales=keep)
         mask = None
         if self.mask_source is not None:
@@ -117,12 +124,22 @@ class Retriever(L.LightningModule):
         return self.describe(outs[-1].to(TRUNK_DTYPE), mask)
 
     @torch.no_grad()
-    def describe_images(self, paths: Sequence[Path], labels: Sequence[Path] | None, image_size: Sequence[int],
-                        out: np.ndarray, desc: str = "descriptors") -> None:
+    def describe_images(
+        self,
+        paths: Sequence[Path],
+        labels: Sequence[Path] | None,
+        image_size: Sequence[int],
+        out: np.ndarray,
+        desc: str = "descriptors",
+    ) -> None:
         """Descriptors of image files in one pass (decoding in workers), written into ``out`` (N,D)."""
         self.eval()
-        loader = DataLoader(ImageDataset(list(paths), tuple(image_size)), batch_size=self.eval_batch_size,
-                            num_workers=self.num_workers, pin_memory=self.device.type == "cuda")
+        loader = DataLoader(
+            ImageDataset(list(paths), tuple(image_size)),
+            batch_size=self.eval_batch_size,
+            num_workers=self.num_workers,
+            pin_memory=self.device.type == "cuda",
+        )
         with autocast(self.device):
             for images, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
                 batch_labels = [labels[i] for i in index] if labels is not None else None
@@ -157,7 +174,8 @@ class Retriever(L.LightningModule):
         if not torch.isfinite(loss):
             raise SemvprError(
                 f"training loss became {loss.item()} at epoch {self.current_epoch} step "
-                f"{self.global_step}; the last good checkpoint is left as it was (lower model.optimizer.lr?)")
+                f"{self.global_step}; the last good checkpoint is left as it was (lower model.optimizer.lr?)"
+            )
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["tuples"]))
         return loss
 
@@ -170,11 +188,18 @@ class Retriever(L.LightningModule):
         if self.optimization is None:
             raise SemvprError("the retriever was built without an optimizer (model.optimizer)")
         own = {id(p) for p in self.class_weights.parameters()} if self.class_weights is not None else set()
-        groups: list[dict[str, Any]] = [{"params": [p for p in self.parameters() if p.requires_grad and id(p) not in own]}]
+        groups: list[dict[str, Any]] = [
+            {"params": [p for p in self.parameters() if p.requires_grad and id(p) not in own]}
+        ]
         if own:
             # A few logits that must travel several units: their own learning rate.
-            groups.append({"params": list(self.class_weights.parameters()), "lr": self.optimization.class_weights_lr,
-                           "weight_decay": 0.0})
+            groups.append(
+                {
+                    "params": list(self.class_weights.parameters()),
+                    "lr": self.optimization.class_weights_lr,
+                    "weight_decay": 0.0,
+                }
+            )
         optimizer = self.optimization.optimizer(groups)
         if self.optimization.scheduler is None:
             return optimizer

@@ -7,6 +7,7 @@ from here: the last result per stage (:attr:`results`, with the top-k prediction
 and the validation R@1 of the epoch with the best val/R@5, the one ModelCheckpoint keeps
 (:attr:`best_val`, saved in the checkpoint so that a resumed run reports it too).
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -35,8 +36,15 @@ class RecallEvaluation(L.Callback):
         return self._recall(features, self.describe(features.db, None), self.describe(features.q, None))
 
     # Lightning hooks: collect each batch's descriptors, then evaluate at the end of the loop.
-    def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any,
-                                batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+    def on_validation_batch_end(
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        outputs: Any,
+        batch: Any,
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
         self._rows.append(outputs)
 
     on_test_batch_end = on_validation_batch_end

@@ -5,6 +5,7 @@ out) against predictions (columns): per-class IoU and mIoU for a class map, and 
 static mask what it removes: moving objects (the point of the mask), static pixels (the damage
 the retriever feels) and sky (uninformative, removed by the project's mask on purpose).
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -16,7 +17,7 @@ from torch import Tensor
 from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES
 
 #: Objects that move between two visits of a place: person … bicycle (sky is non-static but does not move).
-MOVING_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[TRAIN_ID_NAMES.index("person"):]
+MOVING_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[TRAIN_ID_NAMES.index("person") :]
 REMOVED, KEPT = 0, 1
 
 
@@ -68,8 +69,9 @@ def class_scores(counts: np.ndarray, classes: Sequence[int]) -> dict[str, object
     }
 
 
-def mask_scores(counts: np.ndarray, static_names: Sequence[str] = STATIC_NAMES,
-                moving_names: Sequence[str] = MOVING_NAMES) -> dict[str, object]:
+def mask_scores(
+    counts: np.ndarray, static_names: Sequence[str] = STATIC_NAMES, moving_names: Sequence[str] = MOVING_NAMES
+) -> dict[str, object]:
     """Scores of a binary mask from a (trainId × [removed, kept]) confusion.
 
     dynamic_iou: removed vs moving objects, over pixels that are static or moving (sky and other
@@ -95,4 +97,3 @@ def mask_scores(counts: np.ndarray, static_names: Sequence[str] = STATIC_NAMES,
 def binary_pred(static_prob: Tensor, threshold: float = 0.5) -> Tensor:
     """A static probability map as [removed, kept] labels (the project's mask keeps prob ≥ 0.5)."""
     return torch.where(static_prob >= threshold, KEPT, REMOVED)
-

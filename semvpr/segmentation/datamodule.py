@@ -1,4 +1,5 @@
 """Segmentation pairs as a dataset, their augmentation, and the teacher's LightningDataModule."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -9,9 +10,10 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from semvpr.core.errors import SemvprError
 from semvpr.data.images import Size
 from semvpr.data.segmentation import SegmentationSet, load_pair
-from semvpr.core.errors import SemvprError
+
 
 def segmentation_augmentation(image_size: Size, color: bool = True) -> K.AugmentationSequential:
     """Flip + resized crop on image and mask alike (mask resampled nearest), colour jitter on the image."""
@@ -29,8 +31,13 @@ def segmentation_augmentation(image_size: Size, color: bool = True) -> K.Augment
 class SegmentationDataset(Dataset):
     """(image (3,H,W) float [0,1], trainIds (H,W) long) pairs, optionally augmented per sample."""
 
-    def __init__(self, data: SegmentationSet | tuple[Sequence[str | Path], Sequence[str | Path]],
-                 image_size: Size | None, augment: bool = False, label_ids: bool = True) -> None:
+    def __init__(
+        self,
+        data: SegmentationSet | tuple[Sequence[str | Path], Sequence[str | Path]],
+        image_size: Size | None,
+        augment: bool = False,
+        label_ids: bool = True,
+    ) -> None:
         if not isinstance(data, SegmentationSet):
             data = SegmentationSet(images=tuple(data[0]), labels=tuple(data[1]))
         if len(data) == 0:
@@ -48,8 +55,13 @@ class SegmentationDataset(Dataset):
         return len(self.data)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
-        image, ids = load_pair(self.data.images[index], self.data.labels[index], self.image_size,
-                               from_label_ids=self.label_ids, lut=self.data.label_lut)
+        image, ids = load_pair(
+            self.data.images[index],
+            self.data.labels[index],
+            self.image_size,
+            from_label_ids=self.label_ids,
+            lut=self.data.label_lut,
+        )
         if self._aug is not None:
             image, mask = self._aug(image[None], ids[None, None].float())
             image = image[0].clamp_(0.0, 1.0)
@@ -57,20 +69,22 @@ class SegmentationDataset(Dataset):
         return image, ids
 
 
-def split_set(data: SegmentationSet, val_fraction: float,
-              seed: int = 0) -> tuple[SegmentationSet, SegmentationSet]:
+def split_set(data: SegmentationSet, val_fraction: float, seed: int = 0) -> tuple[SegmentationSet, SegmentationSet]:
     """Deterministic random train/val split of one SegmentationSet (at least one item on each side)."""
     n = len(data)
     n_val = max(1, round(n * val_fraction))
     if n < 2 or n_val >= n:
-        raise SemvprError(f"cannot split {n} segmentation pairs into train/val with "
-                          f"val_fraction={val_fraction}; give a separate validation set")
+        raise SemvprError(
+            f"cannot split {n} segmentation pairs into train/val with "
+            f"val_fraction={val_fraction}; give a separate validation set"
+        )
     order = torch.randperm(n, generator=torch.Generator().manual_seed(seed)).tolist()
 
     def pick(idx: list[int]) -> SegmentationSet:
         idx = sorted(idx)
-        return SegmentationSet(tuple(data.images[i] for i in idx), tuple(data.labels[i] for i in idx),
-                               label_lut=data.label_lut)
+        return SegmentationSet(
+            tuple(data.images[i] for i in idx), tuple(data.labels[i] for i in idx), label_lut=data.label_lut
+        )
 
     return pick(order[n_val:]), pick(order[:n_val])
 
@@ -78,10 +92,19 @@ def split_set(data: SegmentationSet, val_fraction: float,
 class SegmentationDataModule(L.LightningDataModule):
     """Train/val loaders of (image, trainIds) for teacher training; val split off train when not given."""
 
-    def __init__(self, train: SegmentationSet, val: SegmentationSet | None = None, *,
-                 image_size: Size = (128, 256), batch_size: int = 8, num_workers: int = 2,
-                 augment: bool = True, label_ids: bool = True, val_fraction: float = 0.1,
-                 seed: int = 0) -> None:
+    def __init__(
+        self,
+        train: SegmentationSet,
+        val: SegmentationSet | None = None,
+        *,
+        image_size: Size = (128, 256),
+        batch_size: int = 8,
+        num_workers: int = 2,
+        augment: bool = True,
+        label_ids: bool = True,
+        val_fraction: float = 0.1,
+        seed: int = 0,
+    ) -> None:
         super().__init__()
         if len(train) == 0:
             raise SemvprError("segmentation training set is empty: no image/label pairs found")
@@ -97,10 +120,15 @@ class SegmentationDataModule(L.LightningDataModule):
         self.val_ds = SegmentationDataset(val, self.image_size, False, label_ids)
 
     def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
-        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0,
-                          # A ragged last batch of one breaks BatchNorm in training.
-                          drop_last=shuffle and len(ds) > self.batch_size)
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            # A ragged last batch of one breaks BatchNorm in training.
+            drop_last=shuffle and len(ds) > self.batch_size,
+        )
 
     def train_dataloader(self) -> DataLoader:
         """Shuffled, augmented training batches."""

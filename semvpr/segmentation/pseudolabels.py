@@ -4,6 +4,7 @@ A label is stored at the image's path relative to its dataset root (``<rel path>
 file stem alone: stems repeat within a dataset (Pitts30k: ``000/000546_pitch1_yaw1.jpg`` is a
 database image, ``queries_real/000/000546_pitch1_yaw1.jpg`` a query).
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -40,8 +41,9 @@ def read_label(label_dir: str | Path, image: str | Path, root: str | Path) -> np
         with Image.open(path) as img:
             return np.array(img)  # writable: callers hand it to torch
     except (OSError, ValueError, SyntaxError) as err:
-        raise SemvprError(f"pseudo-label {path} is unreadable ({type(err).__name__}); delete {Path(label_dir)} "
-                          f"to rebuild the labels") from None
+        raise SemvprError(
+            f"pseudo-label {path} is unreadable ({type(err).__name__}); delete {Path(label_dir)} to rebuild the labels"
+        ) from None
 
 
 def image_list_identity(paths: Sequence[Path], root: Path) -> str:
@@ -57,7 +59,12 @@ def _write_png(ids: np.ndarray, final: Path) -> None:
 
 
 def _label_missing(
-    teacher: Any, paths: Sequence[Path], root: Path, image_size: tuple[int, int], out: Path, batch_size: int,
+    teacher: Any,
+    paths: Sequence[Path],
+    root: Path,
+    image_size: tuple[int, int],
+    out: Path,
+    batch_size: int,
     num_workers: int,
 ) -> None:
     """Label the images whose PNG is not in ``out`` yet (a resumed run skips the finished ones)."""
@@ -97,8 +104,12 @@ def pseudo_labels(
     for p in paths:
         label_path("", p, root)  # every image must sit under the root: fail before any work
     size = (int(image_size[0]), int(image_size[1]))
-    key = {"version": VERSION, "teacher": teacher_key, "images": image_list_identity(paths, root),
-           "image_size": list(size)}
+    key = {
+        "version": VERSION,
+        "teacher": teacher_key,
+        "images": image_list_identity(paths, root),
+        "image_size": list(size),
+    }
     return build_once(
         cache_dir, "labels", key,
         lambda out: _label_missing(teacher, paths, root, size, out, batch_size, num_workers),

@@ -3,6 +3,7 @@
 Models see the images at their input size; predictions are resized to each label map's native
 size (CamVid 360x480) before scoring, so a lower input resolution is paid for in the scores.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -13,12 +14,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
-from semvpr.models.masks import static_vector
+from semvpr.core.logs import progress
+from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
-from semvpr.core.precision import autocast
+from semvpr.models.masks import static_vector
 from semvpr.segmentation.confusion import Confusion, binary_pred, class_scores, mask_scores
-from semvpr.core.logs import progress
 
 
 class ScoringDataset(Dataset):
@@ -44,13 +45,15 @@ def _collate(batch: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, list[Tens
 
 def loader(seg: SegmentationSet, image_size: Sequence[int], batch_size: int, num_workers: int) -> DataLoader:
     """Batches of :class:`ScoringDataset` in the set's order."""
-    return DataLoader(ScoringDataset(seg, image_size), batch_size=batch_size, num_workers=num_workers,
-                      collate_fn=_collate)
+    return DataLoader(
+        ScoringDataset(seg, image_size), batch_size=batch_size, num_workers=num_workers, collate_fn=_collate
+    )
 
 
 @torch.no_grad()
-def teacher_outputs(teacher: nn.Module, images: Tensor, size: Sequence[int],
-                    static_names: Sequence[str]) -> tuple[Tensor, Tensor]:
+def teacher_outputs(
+    teacher: nn.Module, images: Tensor, size: Sequence[int], static_names: Sequence[str]
+) -> tuple[Tensor, Tensor]:
     """trainIds (B,H,W) and static probability (B,1,H,W) at ``size`` from one forward pass.
 
     The same post-processing as ``Teacher.predict_train_ids`` / ``class_prob`` summed over the
@@ -66,8 +69,7 @@ def teacher_outputs(teacher: nn.Module, images: Tensor, size: Sequence[int],
 
 
 @torch.no_grad()
-def student_prob(student: nn.Module, backbone: nn.Module, images: Tensor, size: Sequence[int],
-                 bf16: bool) -> Tensor:
+def student_prob(student: nn.Module, backbone: nn.Module, images: Tensor, size: Sequence[int], bf16: bool) -> Tensor:
     """Student static probability (B,1,H,W) at ``size`` from the backbone's frozen features."""
     x = images.to(next(backbone.parameters()).device).contiguous(memory_format=torch.channels_last)
     with autocast(x.device, enabled=bf16):
@@ -83,12 +85,20 @@ def _by_size(labels: list[Tensor]) -> dict[tuple[int, ...], list[int]]:
     return groups
 
 
-def score_teacher(teacher: nn.Module, seg: SegmentationSet, image_size: Sequence[int], classes: Sequence[int],
-                  static_names: Sequence[str], batch_size: int = 8, num_workers: int = 2) -> dict[str, Any]:
+def score_teacher(
+    teacher: nn.Module,
+    seg: SegmentationSet,
+    image_size: Sequence[int],
+    classes: Sequence[int],
+    static_names: Sequence[str],
+    batch_size: int = 8,
+    num_workers: int = 2,
+) -> dict[str, Any]:
     """Class-map scores (mIoU over ``classes``, per-class IoU) and binary-mask scores of the teacher."""
     class_conf, mask_conf = Confusion(), Confusion(2)
-    for images, labels, _ in progress(loader(seg, image_size, batch_size, num_workers), "teacher scores",
-                                      len(seg), size=lambda b: len(b[0])):
+    for images, labels, _ in progress(
+        loader(seg, image_size, batch_size, num_workers), "teacher scores", len(seg), size=lambda b: len(b[0])
+    ):
         for size, pos in _by_size(labels).items():
             ids, prob = teacher_outputs(teacher, images[pos], size, static_names)
             target = torch.stack([labels[i] for i in pos])
@@ -97,13 +107,21 @@ def score_teacher(teacher: nn.Module, seg: SegmentationSet, image_size: Sequence
     return {**class_scores(class_conf.counts, classes), **mask_scores(mask_conf.counts, static_names)}
 
 
-def score_student(student: nn.Module, backbone: nn.Module, seg: SegmentationSet, image_size: Sequence[int],
-                  static_names: Sequence[str], bf16: bool, batch_size: int = 8,
-                  num_workers: int = 2) -> dict[str, Any]:
+def score_student(
+    student: nn.Module,
+    backbone: nn.Module,
+    seg: SegmentationSet,
+    image_size: Sequence[int],
+    static_names: Sequence[str],
+    bf16: bool,
+    batch_size: int = 8,
+    num_workers: int = 2,
+) -> dict[str, Any]:
     """Binary-mask scores of a student (static vs not) against the labels."""
     conf = Confusion(2)
-    for images, labels, _ in progress(loader(seg, image_size, batch_size, num_workers), "student scores",
-                                      len(seg), size=lambda b: len(b[0])):
+    for images, labels, _ in progress(
+        loader(seg, image_size, batch_size, num_workers), "student scores", len(seg), size=lambda b: len(b[0])
+    ):
         for size, pos in _by_size(labels).items():
             prob = student_prob(student, backbone, images[pos], size, bf16)
             conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))

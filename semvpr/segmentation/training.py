@@ -2,6 +2,7 @@
 a segmentation set, and the U-Net student in a plain loop over the frozen trunk's cached features on
 the teacher's pseudo-labels. Each lands in the artifact cache (``teacher-*``, ``student-*``) keyed by
 everything that changes its weights."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -69,16 +70,17 @@ def _train(spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationS
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
 
 
-
-
-def build_teacher(spec: TeacherSpec, seg_train: SegmentationSet | None, seg_val: SegmentationSet | None,
-                  cache_dir: str | Path) -> Teacher:
+def build_teacher(
+    spec: TeacherSpec, seg_train: SegmentationSet | None, seg_val: SegmentationSet | None, cache_dir: str | Path
+) -> Teacher:
     """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
     teacher = teacher_architecture(spec)
     if not spec.checkpoint:
         if seg_train is None or seg_val is None:
-            raise SemvprError("teacher.checkpoint=null trains the embedded teacher, which needs data.segmentation "
-                              "train and val sets (Cityscapes format); set them or give a pretrained checkpoint")
+            raise SemvprError(
+                "teacher.checkpoint=null trains the embedded teacher, which needs data.segmentation "
+                "train and val sets (Cityscapes format); set them or give a pretrained checkpoint"
+            )
         # Only what changes the weights: class lists, labelling batch size etc. must not retrain it.
         key = {
             "version": 1, "image_size": list(spec.image_size), "model": dict(spec.model),
@@ -91,8 +93,9 @@ def build_teacher(spec: TeacherSpec, seg_train: SegmentationSet | None, seg_val:
         try:
             teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
         except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
-            raise SemvprError(f"teacher cache {art} does not hold this teacher's weights ({type(err).__name__}); "
-                              f"delete it to rebuild") from None
+            raise SemvprError(
+                f"teacher cache {art} does not hold this teacher's weights ({type(err).__name__}); delete it to rebuild"
+            ) from None
         teacher.teacher_key = art.name
     teacher.eval().requires_grad_(False)
     return teacher
@@ -123,7 +126,9 @@ def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size:
     for p in paths:
         ids = read_label(label_dir, p, root)
         if ids.shape != tuple(image_size):
-            raise SemvprError(f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}")
+            raise SemvprError(
+                f"pseudo-label {label_path(label_dir, p, root)} is {ids.shape}, expected {tuple(image_size)}"
+            )
         maps.append(np.where(ids < NUM_CLASSES, ids, IGNORE).astype(np.uint8))
     return torch.from_numpy(np.stack(maps))
 
@@ -140,7 +145,7 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, spec: St
     student.train()
     inter = union = 0
     bar = Progress("student", steps, unit="steps")
-    for epoch in range(spec.epochs):
+    for _ in range(spec.epochs):
         order = torch.randperm(n, generator=gen)
         inter = union = 0
         for start in range(0, n, bs):
@@ -183,8 +188,15 @@ def build_student(
         student = student_architecture(spec, backbone)
         start = time.perf_counter()
         targets = load_targets(paths, label_dir, root, size)
-        skips = cache_skips(backbone, student.skip_indices, paths, size, int(spec.batch_size), int(spec.num_workers),
-                            bf16=bool(spec.bf16))
+        skips = cache_skips(
+            backbone,
+            student.skip_indices,
+            paths,
+            size,
+            int(spec.batch_size),
+            int(spec.num_workers),
+            bf16=bool(spec.bf16),
+        )
         student.to(next(backbone.parameters()).device)
         metrics = fit_student(student, skips, targets, spec)
         metrics["train_seconds"] = time.perf_counter() - start
@@ -197,7 +209,8 @@ def build_student(
     try:
         student.load_state_dict(torch.load(art / "student.pt", weights_only=True, map_location="cpu"))
     except Exception as err:  # noqa: BLE001 - a damaged or foreign cache entry
-        raise SemvprError(f"student cache {art} does not hold this student's weights ({type(err).__name__}); "
-                          f"delete it to rebuild") from None
+        raise SemvprError(
+            f"student cache {art} does not hold this student's weights ({type(err).__name__}); delete it to rebuild"
+        ) from None
     student.artifact = art  # type: ignore[attr-defined]  # for the benchmark / logs: metrics.json lives here
     return student.to(next(backbone.parameters()).device).eval()

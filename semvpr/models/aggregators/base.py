@@ -18,6 +18,7 @@ this interface:
   ``init_min_static``: how many sampled locations a labelled init needs to call static;
 - ``attention(features)``: an optional per-location map (B,1,h,w) for the report figures.
 """
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -70,9 +71,15 @@ def check_weights(x: Tensor, weights: Tensor | None) -> Tensor | None:
     the weights of an image whose mask keeps nothing set to 1 (see the module docstring)."""
     if weights is None:
         return None
-    if (weights.dim() != 4 or weights.shape[1] != 1 or weights.shape[-2:] != x.shape[-2:]
-            or weights.shape[0] not in (1, x.shape[0])):
-        raise ValueError(f"mask must be (B,1,h,w) on the feature grid {tuple(x.shape[-2:])}, got {tuple(weights.shape)}")
+    if (
+        weights.dim() != 4
+        or weights.shape[1] != 1
+        or weights.shape[-2:] != x.shape[-2:]
+        or weights.shape[0] not in (1, x.shape[0])
+    ):
+        raise ValueError(
+            f"mask must be (B,1,h,w) on the feature grid {tuple(x.shape[-2:])}, got {tuple(weights.shape)}"
+        )
     weights = weights.float()
     empty = weights.sum(dim=(1, 2, 3), keepdim=True) < EMPTY_MASK
     return torch.where(empty, torch.ones_like(weights), weights)

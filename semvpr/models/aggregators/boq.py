@@ -16,6 +16,7 @@ removes the location exactly (its bias is −10⁴, whose exp is 0 in float32). 
 a 3×3 convolution (ResNet); here the projection is 1×1 so that a masked location cannot leak into
 its neighbours before the attention sees the mask.
 """
+
 from __future__ import annotations
 
 import torch
@@ -73,8 +74,9 @@ class BoQBlock(nn.Module):
 class BoQ(Aggregator):
     """Bag-of-Queries: (B,C,h,w) [+ mask] → (B, proj_channels·row_dim) L2-normalised."""
 
-    def __init__(self, dim: int, proj_channels: int = 256, num_queries: int = 32, num_layers: int = 2,
-                 row_dim: int = 8) -> None:
+    def __init__(
+        self, dim: int, proj_channels: int = 256, num_queries: int = 32, num_layers: int = 2, row_dim: int = 8
+    ) -> None:
         super().__init__()
         self.proj_channels, self.row_dim = proj_channels, row_dim
         self.proj_c = nn.Conv2d(dim, proj_channels, kernel_size=1)
@@ -90,7 +92,7 @@ class BoQ(Aggregator):
     def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
         """Tokens through the blocks with the mask as a key bias, query outputs → rows → L2."""
         weights = check_weights(x, weights)
-        tokens = self.norm_input(self.proj_c(x).flatten(2).transpose(1, 2))   # (B, n, d)
+        tokens = self.norm_input(self.proj_c(x).flatten(2).transpose(1, 2))  # (B, n, d)
         b, n, _ = tokens.shape
         # Without a mask the bias is 0 everywhere: one code path, so w ≡ 1 is the unmasked model exactly.
         key_bias = tokens.new_zeros(b, n) if weights is None else log_weights(weights).flatten(1).expand(b, n)
@@ -99,5 +101,5 @@ class BoQ(Aggregator):
         for block in self.blocks:
             tokens, out = block(tokens, key_bias)
             outs.append(out)
-        rows = self.fc(torch.cat(outs, dim=1).transpose(1, 2))                  # (B, d, row_dim)
+        rows = self.fc(torch.cat(outs, dim=1).transpose(1, 2))  # (B, d, row_dim)
         return F.normalize(rows.flatten(1), dim=1)

@@ -13,6 +13,7 @@ as above, projected by a learned linear layer to ``fc_dim`` and L2-normalised. O
 the plain GeM learns only p; the head gives it a learned projection, as NetVLAD, MixVPR, SALAD and
 BoQ have.
 """
+
 from __future__ import annotations
 
 import torch

@@ -13,9 +13,10 @@ at the configured image size). A feature map of another size (eval at another im
 adaptive-average-pooled to that grid after the mask is applied; the descriptor is then that of
 the pooled map.
 """
+
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -39,8 +40,15 @@ class FeatureMixer(nn.Module):
 class MixVPR(Aggregator):
     """MixVPR on a fixed feature grid: (B,C,h,w) [+ mask] → (B, out_channels·out_rows)."""
 
-    def __init__(self, dim: int, grid: Sequence[int], out_channels: int = 512, out_rows: int = 4,
-                 mix_depth: int = 4, mlp_ratio: float = 1.0) -> None:
+    def __init__(
+        self,
+        dim: int,
+        grid: Sequence[int],
+        out_channels: int = 512,
+        out_rows: int = 4,
+        mix_depth: int = 4,
+        mlp_ratio: float = 1.0,
+    ) -> None:
         super().__init__()
         self.dim, self.grid = dim, (int(grid[0]), int(grid[1]))
         self.out_channels, self.out_rows = out_channels, out_rows
@@ -61,6 +69,6 @@ class MixVPR(Aggregator):
             x = x * weights.to(x.dtype)
         if tuple(x.shape[-2:]) != self.grid:
             x = F.adaptive_avg_pool2d(x, self.grid)
-        rows = self.mix(x.flatten(2))                                        # (B, C, hw)
-        proj = self.channel_proj(rows.transpose(1, 2)).transpose(1, 2)      # (B, out_channels, hw)
-        return F.normalize(self.row_proj(proj).flatten(1), dim=1)           # (B, out_channels·out_rows)
+        rows = self.mix(x.flatten(2))  # (B, C, hw)
+        proj = self.channel_proj(rows.transpose(1, 2)).transpose(1, 2)  # (B, out_channels, hw)
+        return F.normalize(self.row_proj(proj).flatten(1), dim=1)  # (B, out_channels·out_rows)

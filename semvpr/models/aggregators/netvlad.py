@@ -9,6 +9,7 @@ A mask m (B,1,h,w) weights each location's contribution: V(:,k) = Σ_i m_i·a_k(
 The aggregation always runs in fp32 (autocast off): α is in the thousands at init, so bf16 logits
 would flip assignments.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,11 +45,21 @@ def subsample(feats: np.ndarray, limit: int, seed: int) -> np.ndarray:
 def spherical_kmeans(feats: np.ndarray, k: int, seed: int, niter: int = 50) -> np.ndarray:
     """(k,D) unit centroids of unit-norm float32 ``feats`` with seeded faiss k-means."""
     if len(feats) < k:
-        raise SemvprError(f"k-means needs at least {k} local features for {k} clusters, got {len(feats)}; "
-                          "use more cluster-init images or fewer clusters")
+        raise SemvprError(
+            f"k-means needs at least {k} local features for {k} clusters, got {len(feats)}; "
+            "use more cluster-init images or fewer clusters"
+        )
     # Use every (already subsampled) point and silence faiss' "too few points" warning on tiny sets.
-    km = faiss.Kmeans(feats.shape[1], k, niter=niter, seed=seed, spherical=True, verbose=False,
-                      max_points_per_centroid=1 << 30, min_points_per_centroid=1)
+    km = faiss.Kmeans(
+        feats.shape[1],
+        k,
+        niter=niter,
+        seed=seed,
+        spherical=True,
+        verbose=False,
+        max_points_per_centroid=1 << 30,
+        min_points_per_centroid=1,
+    )
     km.train(feats, init_centroids=kmeans_pp_seeds(feats, k, seed))
     return km.centroids.copy()
 

@@ -16,6 +16,7 @@ Mask: the weight scales each location's mass, b_i = w_i / (m + n) (log b_i = log
 weight 0 → mass exactly 0, so the location receives no transport); the dustbin's mass is unchanged.
 The cluster MLPs use dropout (0.3 as the authors) in training only.
 """
+
 from __future__ import annotations
 
 import math
@@ -26,6 +27,7 @@ from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
 from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
+
 
 def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Tensor:
     """log of the transport plan of (B,M,N) scores between row masses exp(log_a) (B,M) and column
@@ -46,8 +48,16 @@ def _mlp(conv: bool, dim: int, hidden: int, out: int, dropout: float) -> nn.Sequ
 class SALAD(Aggregator):
     """SALAD: (B,D,h,w) [+ mask] → (B, token_dim + num_clusters·cluster_dim) L2-normalised."""
 
-    def __init__(self, dim: int, num_clusters: int = 32, cluster_dim: int = 64, token_dim: int = 256,
-                 dropout: float = 0.3, iters: int = 3, hidden_dim: int = 512) -> None:
+    def __init__(
+        self,
+        dim: int,
+        num_clusters: int = 32,
+        cluster_dim: int = 64,
+        token_dim: int = 256,
+        dropout: float = 0.3,
+        iters: int = 3,
+        hidden_dim: int = 512,
+    ) -> None:
         """``hidden_dim``: width of the three MLPs (the authors' 512, for DINOv2's 768 channels)."""
         super().__init__()
         self.num_clusters, self.cluster_dim, self.token_dim, self.iters = num_clusters, cluster_dim, token_dim, iters
@@ -65,8 +75,10 @@ class SALAD(Aggregator):
         """P (B,m,n): the Sinkhorn plan of (B,m,n) scores times (m + n), dustbin row dropped."""
         b, m, n = scores.shape
         if n <= m:
-            raise SemvprError(f"SALAD needs more feature locations than clusters (the dustbin's mass is n − m), "
-                              f"got {n} locations for {m} clusters; lower aggregator.num_clusters")
+            raise SemvprError(
+                f"SALAD needs more feature locations than clusters (the dustbin's mass is n − m), "
+                f"got {n} locations for {m} clusters; lower aggregator.num_clusters"
+            )
         norm = -math.log(m + n)
         log_a = scores.new_full((b, m + 1), norm)
         log_a[:, m] = math.log(n - m) + norm
@@ -84,8 +96,8 @@ class SALAD(Aggregator):
             w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
             w = w.expand(x.shape[0], 1, *x.shape[2:])
             token = (x * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(1e-12)
-            f = self.cluster_features(x).flatten(2)                      # (B, l, n)
-            p = self.assignment(self.score(x).flatten(2), weights)        # (B, m, n)
+            f = self.cluster_features(x).flatten(2)  # (B, l, n)
+            p = self.assignment(self.score(x).flatten(2), weights)  # (B, m, n)
             local = F.normalize(torch.einsum("bln,bmn->blm", f, p), dim=1).flatten(1)
             g = F.normalize(self.token_features(token), dim=1)
             return F.normalize(torch.cat([g, local], dim=1), dim=1)

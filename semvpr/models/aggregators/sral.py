@@ -18,6 +18,7 @@ nearest its representative. Without enough dynamic features (fewer than S) the s
 s_kj = −4·c_k, outside the unit sphere, so l_kj ≤ −8α < −3α ≤ l_k for unit features; β ≈ 1 and SRAL
 starts as NetVLAD (the shadows stay learnable, but learn slowly from there since ∂β ∝ β(1 − β)).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,11 +26,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.models.aggregators.netvlad import (MAX_KMEANS_FEATURES, NetVLAD, alpha_from_features, cluster_means,
-                                   spherical_kmeans, subsample)
+from semvpr.models.aggregators.netvlad import (
+    MAX_KMEANS_FEATURES,
+    NetVLAD,
+    alpha_from_features,
+    cluster_means,
+    spherical_kmeans,
+    subsample,
+)
 
 FAR_SHADOW = -4.0  # shadow = −4·c_k when there are no dynamic features: never wins against the representative
 MIN_STATIC_PER_CLUSTER = 10  # static k-means sample the semantic init needs at the least, per cluster
+
 
 class SRAL(NetVLAD):
     """NetVLAD with per-cluster shadow centroids that down-weight features near dynamic content.
@@ -89,8 +97,13 @@ class SRAL(NetVLAD):
         """Representatives from unlabelled features; shadows at the antipodes (no semantics available)."""
         return float(self.init_semantic(feats, None, seed, niter)["alpha"])
 
-    def init_semantic(self, static_feats: Tensor | np.ndarray, dynamic_feats: Tensor | np.ndarray | None,
-                      seed: int = 0, niter: int = 50) -> dict[str, float]:
+    def init_semantic(
+        self,
+        static_feats: Tensor | np.ndarray,
+        dynamic_feats: Tensor | np.ndarray | None,
+        seed: int = 0,
+        niter: int = 50,
+    ) -> dict[str, float]:
         """Semantic-constrained init from (N_s,D) static and (N_d,D) dynamic local features; returns counts used."""
         static = subsample(self._features(static_feats), MAX_KMEANS_FEATURES, seed)
         reps = spherical_kmeans(static, self.num_clusters, seed, niter)
@@ -107,5 +120,9 @@ class SRAL(NetVLAD):
         else:
             shadows = FAR_SHADOW * torch.from_numpy(reps)[:, None].expand(-1, self.num_shadows, -1)
         self.set_shadows(shadows, alpha)
-        return {"static_features": len(static), "dynamic_features": num_dynamic,
-                "shadow_candidates": num_candidates, "alpha": alpha}
+        return {
+            "static_features": len(static),
+            "dynamic_features": num_dynamic,
+            "shadow_candidates": num_candidates,
+            "alpha": alpha,
+        }
