@@ -23,7 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from semvpr.config.build import build_places
-from semvpr.config.checks import check_config
+from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.core.io import CONF_DIR, write_json
@@ -87,6 +87,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point."""
+    check_overrides_or_exit(sys.argv[1:])
     _hydra_main()
 
 

@@ -9,6 +9,7 @@ distance; writes ``localize.json`` in the run directory.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from semvpr.config.build import build_places
-from semvpr.config.checks import check_config
+from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
@@ -83,6 +84,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point."""
+    check_overrides_or_exit(sys.argv[1:])
     _hydra_main()
 
 

@@ -23,7 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from semvpr.config.build import Prepared, build_retriever, build_trainer, init_aggregator, mining_of, prepare, ranks_of
-from semvpr.config.checks import check_config
+from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
@@ -47,10 +47,10 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
     if devices * nodes > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
     overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
-    if 0 < int(cfg.model.batch_size) < devices * nodes:
+    if 0 < int(cfg.recipe.batch_size) < devices * nodes:
         print(
-            f"semvpr: model.batch_size={cfg.model.batch_size} is the global batch: "
-            f"{devices * nodes - int(cfg.model.batch_size)} of the {devices * nodes} ranks idle in every step",
+            f"semvpr: recipe.batch_size={cfg.recipe.batch_size} is the global batch: "
+            f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step",
             file=sys.stderr,
         )
     job = prepare(cfg, timings)  # generates SynthCity, builds the teacher, labels, student, trunk caches
@@ -243,6 +243,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point; user errors become one line on stderr and exit code 2."""
+    check_overrides_or_exit(sys.argv[1:])
     sys.argv[1:] = keep_run_record(sys.argv[1:])
     _hydra_main()
 

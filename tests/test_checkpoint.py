@@ -178,6 +178,27 @@ def test_filter_record_loads_as_the_presets_aggregator_and_mask(tmp_path: Path) 
     assert retriever.class_weights is not None
 
 
+def test_a_format_2_record_with_a_model_group_loads_its_structure(tmp_path: Path) -> None:
+    """Format 2 recorded the training protocol and the model's structure in one ``model`` group
+    (``model=netvlad``); the structure (clusters, whitening, ...) is read, the protocol left out."""
+    trained = tiny_config(tmp_path, "filter=attention", "model.pca_dim=8", "model.num_clusters=6")
+    state = write_checkpoint(trained, tmp_path / "new.ckpt")
+    record = torch.load(tmp_path / "new.ckpt", weights_only=True)["hyper_parameters"]
+    assert record["format"] == 3 and "model" not in record["choices"]
+    protocol = {"name": "netvlad", "margin": 0.1, "batch_size": 2, "positive_radius": 10.0, "class_weights": {}}
+    old = {
+        **record,
+        "format": 2,
+        "choices": {**record["choices"], "model": "netvlad"},
+        "config": {**record["config"], "model": {**protocol, **record["config"]["model"]}},
+    }
+    old["config"]["model"]["class_weights"] = {"init_logit": 4.0, "lr": 0.05}
+    torch.save({"state_dict": state, "hyper_parameters": old}, tmp_path / "old.ckpt")
+    retriever, merged = load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'old.ckpt'}", config_name="eval"))
+    assert (merged.model.num_clusters, merged.model.pca_dim, retriever.descriptor_dim) == (6, 8, 8)
+    assert "margin" not in merged.model and merged.recipe.name == "triplet"
+
+
 def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Path) -> None:
     trained = tiny_config(tmp_path, "aggregator=mixvpr")
     state = write_checkpoint(trained, tmp_path / "run.ckpt")

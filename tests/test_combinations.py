@@ -40,7 +40,7 @@ def test_backbone_experiment_composes_and_steps(backbone: str, experiment: str |
     before = [p.detach().clone() for p in aggregator.parameters()]
     # query 0, positive 1, negatives 2 and 3; the positive is the query with a little noise.
     desc_in = torch.cat([trunk[:1], trunk[:1] + 0.05 * torch.randn_like(trunk[:1]), trunk[2:]])
-    loss = triplet_loss(retriever.describe(desc_in, None), torch.tensor([[0, 1, 2, 3]]), cfg.model.margin)
+    loss = triplet_loss(retriever.describe(desc_in, None), torch.tensor([[0, 1, 2, 3]]), cfg.recipe.margin)
     assert torch.isfinite(loss)
     optimizer.zero_grad()
     (loss + 1e-3 * sum(p.float().square().sum() for p in aggregator.parameters())).backward()

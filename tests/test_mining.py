@@ -204,8 +204,8 @@ def test_negative_cache_travels_with_the_datamodule_state() -> None:
 @pytest.mark.parametrize(
     "override,message",
     [
-        ("model.positive_radius=-10", "model.positive_radius=-10.* > 0"),
-        ("model.negative_radius=5", "negative_radius=5 is below model.positive_radius"),
+        ("recipe.positive_radius=-10", "recipe.positive_radius=-10.* > 0"),
+        ("recipe.negative_radius=5", "negative_radius=5 is below recipe.positive_radius"),
     ],
 )
 def test_impossible_mining_radii_are_refused_before_any_work(override: str, message: str) -> None:

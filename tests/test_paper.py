@@ -49,8 +49,8 @@ def test_paper_experiment_dry_run(tmp_path: Path) -> None:
     cfg = config("experiment=paper", f"data.root={root}", "+trainer.fast_dev_run=true", *small)
     # The paper's protocol, as composed: VGG16 conv5 trainable, K=64, SGD 1e-4 halved every 5 epochs.
     assert list(cfg.data.image_size) == [480, 640] and cfg.model.num_clusters == 64 and cfg.trainer.max_epochs == 30
-    assert cfg.backbone.train_from == "conv5" and cfg.model.optimizer._target_ == "torch.optim.SGD"
-    assert (cfg.model.scheduler.step_size, cfg.model.queries_per_epoch, cfg.model.cache_refresh) == (5, None, 1000)
+    assert cfg.backbone.train_from == "conv5" and cfg.recipe.optimizer._target_ == "torch.optim.SGD"
+    assert (cfg.recipe.scheduler.step_size, cfg.recipe.queries_per_epoch, cfg.recipe.cache_refresh) == (5, None, 1000)
     metrics = run_job(cfg, tmp_path / "run")
     assert metrics["status"] == "ok" and metrics["aggregator_init"]["features"] == 5 * 100
     assert metrics["tuples_per_epoch"][0] >= 1  # one training step ran on a mined tuple

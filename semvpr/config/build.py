@@ -71,28 +71,28 @@ class Prepared:
 
 # ----------------------------------------------------------------------------------- typed settings
 def mining_of(cfg: DictConfig) -> Mining:
-    """The mining and batching parameters of ``cfg.model`` (``batch_size`` is the global batch)."""
-    model = cfg.model
+    """The mining and batching parameters of ``cfg.recipe`` (``batch_size`` is the global batch)."""
+    recipe = cfg.recipe
     return Mining(
-        batch_size=int(model.batch_size),
-        cache_refresh=int(model.cache_refresh),
-        queries_per_epoch=model.queries_per_epoch,
+        batch_size=int(recipe.batch_size),
+        cache_refresh=int(recipe.cache_refresh),
+        queries_per_epoch=recipe.queries_per_epoch,
         seed=int(cfg.seed),
-        positive_radius=float(model.positive_radius),
-        negative_radius=float(model.negative_radius),
-        num_negatives=int(model.num_negatives),
-        negative_candidates=int(model.negative_candidates),
-        margin=float(model.margin),
+        positive_radius=float(recipe.positive_radius),
+        negative_radius=float(recipe.negative_radius),
+        num_negatives=int(recipe.num_negatives),
+        negative_candidates=int(recipe.negative_candidates),
+        margin=float(recipe.margin),
     )
 
 
 def optimization_of(cfg: DictConfig) -> Optimization:
-    """Optimizer and scheduler factories, margin and class-weight learning rate of ``cfg.model``."""
+    """Optimizer and scheduler factories, margin and class-weight learning rate of ``cfg.recipe``."""
     return Optimization(
-        instantiate(cfg.model.optimizer),
-        instantiate(cfg.model.scheduler),
-        float(cfg.model.margin),
-        float(cfg.model.class_weights.lr),
+        instantiate(cfg.recipe.optimizer),
+        instantiate(cfg.recipe.scheduler),
+        float(cfg.recipe.margin),
+        float(cfg.recipe.class_weights.lr),
     )
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.components import COMPONENTS, component_class
-from semvpr.core.errors import SemvprError
-from semvpr.core.io import check_dir_path
+from semvpr.config.components import COMPONENTS, component_class, options
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.core.io import CONF_DIR, check_dir_path
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.features import STORAGES
@@ -42,6 +42,40 @@ def whole_number(value: object, key: str, low: int, high: int | None = None) -> 
     return int(value)  # type: ignore[arg-type]
 
 
+def _leaves(node: object, prefix: str = "") -> set[str]:
+    """Dotted keys of a plain mapping's leaves."""
+    if not isinstance(node, dict):
+        return {prefix.rstrip(".")}
+    return set().union(*(_leaves(v, f"{prefix}{k}.") for k, v in node.items())) if node else set()
+
+
+def check_overrides(argv: list[str]) -> None:
+    """An override that names the training protocol as a ``model`` group or ``model.`` setting (it is the
+    ``recipe`` group) gets one line saying where it is, instead of Hydra's error."""
+    recipe = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "recipe" / "triplet.yaml")))
+    model = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "train.yaml").model))
+    for arg in argv:
+        key, sep, value = arg.lstrip("+~").partition("=")
+        if key == "model" and sep:
+            raise SemvprError(
+                f"{arg}: the training protocol is the recipe group now: model=netvlad is recipe=triplet "
+                f"({', '.join(options('recipe'))})"
+            )
+        rest = key.removeprefix("model.")
+        if (
+            key.startswith("model.")
+            and rest not in model
+            and any(r == rest or r.startswith(f"{rest}.") for r in recipe)
+        ):
+            raise SemvprError(f"{arg}: {key} is a setting of the training protocol now: recipe.{rest}={value}")
+
+
+@exit_on_user_error
+def check_overrides_or_exit(argv: list[str]) -> None:
+    """:func:`check_overrides` as a command's first step: one line and exit code 2."""
+    check_overrides(argv)
+
+
 def check_config(cfg: DictConfig) -> None:
     """Reject config values that would fail deep inside a run with a cryptic error (or none at all).
 
@@ -61,13 +95,13 @@ def _check_retrieval(cfg: DictConfig) -> None:
         whole_number(cfg.num_figure_queries, "num_figure_queries", 1)
     if cfg.get("top_k") is not None:
         whole_number(cfg.top_k, "top_k", 1)
-    lr = cfg.model.optimizer.get("lr")
+    lr = cfg.recipe.optimizer.get("lr")
     try:
         lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0
     except (TypeError, ValueError):
         lr_ok = False
     if not lr_ok:
-        raise SemvprError(f"model.optimizer.lr={lr!r} must be a number > 0")
+        raise SemvprError(f"recipe.optimizer.lr={lr!r} must be a number > 0")
     if str(cfg.trainer.precision) not in PRECISIONS:
         raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
     if cfg.get("ckpt_path") not in (None, "last"):
@@ -76,23 +110,17 @@ def _check_retrieval(cfg: DictConfig) -> None:
         read_checkpoint(cfg.ckpt_path)
     for group in COMPONENTS:
         component_class(cfg, group)
-    for key in (
-        "num_clusters",
-        "batch_size",
-        "eval_batch_size",
-        "num_negatives",
-        "init_features",
-        "init_per_image",
-        "cache_refresh",
-    ):
+    for key in ("num_clusters", "eval_batch_size", "init_features", "init_per_image"):
         whole_number(cfg.model[key], f"model.{key}", 1)
-    if cfg.model.get("queries_per_epoch") is not None:
-        whole_number(cfg.model.queries_per_epoch, "model.queries_per_epoch (or null = all)", 1)
-    positive = check_radius(cfg.model.positive_radius, "model.positive_radius")
-    if check_radius(cfg.model.negative_radius, "model.negative_radius") < positive:
+    for key in ("batch_size", "num_negatives", "cache_refresh"):
+        whole_number(cfg.recipe[key], f"recipe.{key}", 1)
+    if cfg.recipe.get("queries_per_epoch") is not None:
+        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch (or null = all)", 1)
+    positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
+    if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
         raise SemvprError(
-            f"model.negative_radius={cfg.model.negative_radius} is below model.positive_radius="
-            f"{cfg.model.positive_radius}: a negative could then be a positive"
+            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
+            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
         )
     if len(cfg.data.image_size) != 2:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")

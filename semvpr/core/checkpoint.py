@@ -4,7 +4,8 @@ Researchers exchange checkpoints, so nothing read from one is ever run. ``torch.
 ``weights_only=True``, and the model is never rebuilt by instantiating ``_target_``s stored in the
 file: a checkpoint records *choices* (the config group options, e.g. ``backbone=vgg16``,
 ``aggregator=sral``, ``mask=student``) and plain hyper-parameter values. Eval loads the project's own group files for
-those choices (which alone supply every ``_target_``) and checks each stored value against them:
+those choices (which alone supply every ``_target_``), and the train config's own ``model`` node for the
+model's structure (clusters, whitening, ...), and checks each stored value against them:
 known keys only, the same kind of value, no interpolations, no keys starting with ``_``. Anything
 else is refused with one line naming the key, before anything is built or written. A recorded
 value that names a file or directory to read (``PATH_KEYS``) may be a Hugging Face id, never a
@@ -16,7 +17,9 @@ drops any path in it that lies outside the run's checkpoint directory, so a tamp
 
 Checkpoints written before the aggregator and the mask were groups of their own record a ``filter``
 choice (SRAL + student for ``unet``, ...); they are read as the aggregator and mask that the
-project's filter preset selects, with the filter's recorded ``weights``.
+project's filter preset selects, with the filter's recorded ``weights``. Checkpoints of format 2 recorded
+the training protocol and the model's structure together in a ``model`` group; the structure is read,
+the protocol (which eval never needs) is left out.
 """
 
 from __future__ import annotations
@@ -32,12 +35,14 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 
-FORMAT = 2
+FORMAT = 3
+#: Older formats read here: 2 recorded the training protocol in a ``model`` group (``model=netvlad``).
+READABLE_FORMATS = (2, FORMAT)
 CONF = Path(CONF_DIR)
 #: Config groups that define the model; each group file names itself in its ``name`` key.
-GROUPS = ("backbone", "aggregator", "mask", "model", "teacher", "student")
-#: Training-only nodes: not recorded (eval never builds an optimizer).
-TRAINING_ONLY = {"model": ("optimizer", "scheduler")}
+GROUPS = ("backbone", "aggregator", "mask", "teacher", "student")
+#: Plain nodes of the train config that define the model (checked against the invocation's own).
+NODES = ("model",)
 _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
 #: Recorded (group, key)s whose value names something to read: a Hugging Face id or null.
 PATH_KEYS = (("teacher", "checkpoint"),)
@@ -47,11 +52,9 @@ _HF_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9][A-Za-z0-9_.\-]*$"
 def record_of(cfg: DictConfig) -> dict[str, Any]:
     """What a checkpoint records about a run's model: format, group choices, plain values, seed."""
     config: dict[str, Any] = {}
-    for group in GROUPS:
+    for group in (*GROUPS, *NODES):
         node = OmegaConf.to_container(cfg[group], resolve=True)
         assert isinstance(node, dict)
-        for key in TRAINING_ONLY.get(group, ()):
-            node.pop(key, None)
         config[group] = _plain(node)
     return {"format": FORMAT, "choices": {g: str(cfg[g].name) for g in GROUPS}, "config": config, "seed": int(cfg.seed)}
 
@@ -90,7 +93,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
     if broken is not None:
         raise SemvprError(f"{path}: weight {broken!r} is not a tensor of finite numbers; the checkpoint is damaged")
     record = ckpt.get("hyper_parameters")
-    if not isinstance(record, dict) or record.get("format") != FORMAT:
+    if not isinstance(record, dict) or record.get("format") not in READABLE_FORMATS:
         if isinstance(record, dict) and "config" in record and "format" not in record:
             raise SemvprError(
                 f"{path} was written by an older semvpr (checkpoint format 1: it stores Hydra "
@@ -112,7 +115,9 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
         raise SemvprError(f"{where}: model record lacks 'choices' / 'config'")
     if "filter" in choices and "aggregator" not in choices:
         choices, config = _from_filter(choices, config, where)
-    unknown = sorted(set(choices) - set(GROUPS)) or sorted(set(config) - set(GROUPS))
+    if record.get("format") == 2:
+        choices, config = _from_model_group(choices, config, base)
+    unknown = sorted(set(choices) - set(GROUPS)) or sorted(set(config) - set(GROUPS) - set(NODES))
     if unknown:
         raise SemvprError(f"{where}: '{unknown[0]}' is not a model config group ({', '.join(GROUPS)})")
     cfg = base.copy()
@@ -128,11 +133,9 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
     if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
         raise SemvprError(f"{where}: seed={seed!r} is not a whole number from 0 to 2**32-1")
     cfg.seed = seed
-    for group in GROUPS:
+    for group in (*GROUPS, *NODES):
         stored = config.get(group, {})
         schema = OmegaConf.to_container(cfg[group], resolve=True)
-        for key in TRAINING_ONLY.get(group, ()):
-            schema.pop(key, None)  # type: ignore[union-attr]
         _check(stored, schema, f"{where}: {group}")
         cfg[group] = OmegaConf.merge(cfg[group], stored)
     for group, key in PATH_KEYS:
@@ -153,6 +156,24 @@ def _from_filter(choices: dict[str, Any], config: dict[str, Any], where: str) ->
             choices[key.split("/")[-1]] = value
     config["mask"] = {"weights": stored.get("weights", "binary")}
     return choices, config
+
+
+def _from_model_group(choices: dict[str, Any], config: dict[str, Any], base: DictConfig) -> tuple[dict, dict]:
+    """A format-2 record: its ``model`` group held the model's structure and the training protocol; the
+    structure is read into the ``model`` node, the protocol (training only) is left out."""
+    choices = {k: v for k, v in choices.items() if k != "model"}
+    config = dict(config)
+    stored = config.get("model")
+    if isinstance(stored, dict):
+        config["model"] = _known_part(stored, OmegaConf.to_container(base.model, resolve=True))
+    return choices, config
+
+
+def _known_part(stored: dict[str, Any], schema: Any) -> dict[str, Any]:
+    """The keys of ``stored`` (recursively) that ``schema`` has."""
+    if not isinstance(schema, dict):
+        return {}
+    return {k: _known_part(v, schema[k]) if isinstance(v, dict) else v for k, v in stored.items() if k in schema}
 
 
 def _check_path_value(stored: Any, given: Any, path: str) -> None:

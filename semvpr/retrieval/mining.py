@@ -55,8 +55,8 @@ def mine(
 
     ``neg_cache`` (num_queries, num_negatives), -1 padded, is read and updated in place.
     """
-    positive_radius = check_radius(positive_radius, "model.positive_radius")
-    negative_radius = check_radius(negative_radius, "model.negative_radius")
+    positive_radius = check_radius(positive_radius, "recipe.positive_radius")
+    negative_radius = check_radius(negative_radius, "recipe.negative_radius")
     tree = cKDTree(db_utm)
     near = tree.query_ball_point(q_utm[query_ids], r=positive_radius)
     not_far = tree.query_ball_point(q_utm[query_ids], r=negative_radius)

@@ -174,7 +174,7 @@ class Retriever(L.LightningModule):
         if not torch.isfinite(loss):
             raise SemvprError(
                 f"training loss became {loss.item()} at epoch {self.current_epoch} step "
-                f"{self.global_step}; the last good checkpoint is left as it was (lower model.optimizer.lr?)"
+                f"{self.global_step}; the last good checkpoint is left as it was (lower recipe.optimizer.lr?)"
             )
         self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["tuples"]))
         return loss
@@ -186,7 +186,7 @@ class Retriever(L.LightningModule):
 
     def configure_optimizers(self) -> Any:
         if self.optimization is None:
-            raise SemvprError("the retriever was built without an optimizer (model.optimizer)")
+            raise SemvprError("the retriever was built without an optimizer (recipe.optimizer)")
         own = {id(p) for p in self.class_weights.parameters()} if self.class_weights is not None else set()
         groups: list[dict[str, Any]] = [
             {"params": [p for p in self.parameters() if p.requires_grad and id(p) not in own]}
