@@ -24,6 +24,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from semvpr.config.components import options
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
 
@@ -67,7 +68,7 @@ def main() -> None:
     bf16 = bf16_native("cpu")
     print(f"batch {args.batch}, grid {GRID}, {DIM} channels, {'bf16' if bf16 else 'fp32'}, {args.threads} thread(s)")
     ms = {}
-    variants = {name: (name, {}) for name in ("netvlad", "gem", "mixvpr", "salad", "boq")}
+    variants = {name: (name, {}) for name in options("aggregator") if name != "sral"}  # SRAL: NetVLAD's cost
     variants["salad (hidden 512)"] = ("salad", {"hidden_dim": 512})
     variants["boq (256 channels)"] = ("boq", {"proj_channels": 256, "row_dim": 8})  # 2,048-D too
     for label, (name, overrides) in variants.items():
