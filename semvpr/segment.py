@@ -115,6 +115,7 @@ def train_students(
     spec: StudentSpec,
     backbones: dict[str, tuple[Backbone, str]],
     sets: dict[str, SegmentationSet],
+    scored: tuple[str, ...],
     labels: Path,
     root: Path,
     image_size: list[int],
@@ -125,9 +126,9 @@ def train_students(
     loggers: list[Any],
     results: dict[str, Any],
 ) -> dict[str, tuple[Student, Backbone]]:
-    """A student per frozen backbone (with the name of its weights) on the teacher's labels, scored on val
-    and test against the teacher's static classes (into ``results``); returns them by name with their
-    backbones, for the figure."""
+    """A student per frozen backbone (with the name of its weights) on the teacher's labels, scored on the
+    ``scored`` splits against the teacher's static classes (into ``results``); returns them by name with
+    their backbones, for the figure."""
     students = {}
     for name, (backbone, weights) in backbones.items():
         tic = time.time()
@@ -135,13 +136,15 @@ def train_students(
         entry: dict[str, Any] = {"backbone": name, "weights": weights, "build_s": time.time() - tic}
         fitted = json.loads((student.artifact / "metrics.json").read_text())
         entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
-        for split in ("val", "test"):
+        for split in scored:
             scores = score_student(
                 student, backbone, sets[split], image_size, static_names, bool(spec.bf16), batch_size, num_workers
             )
             log_scores(loggers, f"student_{name}", split, scores)
             entry[split] = scores
-        entry.update(entry.pop("test"))
+        entry.update(entry[scored[-1]])
+        if scored[-1] == "test":
+            del entry["test"]
         results[f"student_{name}"] = entry
         students[f"student_{name}"] = (student, backbone)
     return students
@@ -174,11 +177,15 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     results: dict[str, Any] = {
         "teacher": {"train_s": trained["train_seconds"], "build_s": build_s, "checkpoint": str(run_dir / "teacher")}
     }
-    for split in ("val", "test"):
+    scored = ("val", "test") if cfg.score_test else ("val",)
+    for split in scored:
         scores = score_teacher(teacher, sets[split], size, classes, static_names, batch, workers)
         log_scores(loggers, "teacher", split, scores)
         results["teacher"][split] = scores
-    results["teacher"].update(results["teacher"].pop("test"))  # test scores at the top level, val under "val"
+    # The last scored split's numbers at the top level (test, or val when settings are being chosen).
+    results["teacher"].update(results["teacher"][scored[-1]])
+    if cfg.score_test:
+        del results["teacher"]["test"]
 
     tic = time.time()
     root = common_root(list(sets["train"].images))
@@ -202,6 +209,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         student_settings,
         backbones,
         sets,
+        scored,
         labels,
         root,
         size,
@@ -219,20 +227,21 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         **{k: f"student mask\n({k.removeprefix('student_')})" for k in students},
     }
     rows = figure_rows(
-        sets["test"], teacher, students, static_names, size, int(cfg.num_figure_images), bool(student_settings.bf16)
+        sets[scored[-1]], teacher, students, static_names, size, int(cfg.num_figure_images), bool(student_settings.bf16)
     )
     mask_figure(
         rows,
         columns,
         run_dir / "figure_masks.png",
-        f"{cfg.seg.name} test: static masks (bright = kept, dark = removed; unlabelled = image only)",
+        f"{cfg.seg.name} {scored[-1]}: static masks (bright = kept, dark = removed; unlabelled = image only)",
     )
     for logger in loggers:
         logger.finalize("success")
     results.update({
         "dataset": {"name": cfg.seg.name, "root": str(cfg.seg.root), "image_size": size,
                     "classes": [TRAIN_ID_NAMES[c] for c in classes], **{s: len(sets[s]) for s in SPLITS}},
-        "scored_on": "test (val under each model's 'val')", "threads": torch.get_num_threads(),
+        "scored_on": "test (val under each model's 'val')" if cfg.score_test else "val only (test not scored)",
+        "threads": torch.get_num_threads(),
         "config": OmegaConf.to_container(cfg, resolve=True), "wall_time_s": time.time() - start,
     })  # fmt: skip
     write_json(run_dir / "results.json", results)

@@ -77,6 +77,32 @@ def test_run_writes_results_figure_logs_and_teacher(segment_run: tuple[Path, Dic
     assert not list(run_dir.glob(".*tmp*"))  # results and teacher were renamed into place
 
 
+def test_score_test_false_scores_val_only(
+    segment_run: tuple[Path, DictConfig], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Choosing settings: with score_test=false no model sees a test image; the top-level numbers are val's."""
+    import semvpr.segment as segment
+
+    _, cfg = segment_run
+    seen: list[int] = []
+    for name in ("score_teacher", "score_student"):
+        real = getattr(segment, name)
+
+        def spy(*args, real=real, **kwargs):
+            seen.append(len(next(a for a in args if hasattr(a, "images")).images))
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(segment, name, spy)
+    results = run(OmegaConf.merge(cfg, {"score_test": False}), tmp_path / "val-only")
+    assert seen and set(seen) == {len(instantiate(cfg.seg.val))} != {len(instantiate(cfg.seg.test))}
+    assert results["scored_on"].startswith("val only") and "test" not in results["teacher"]
+    assert results["teacher"]["dynamic_iou"] == results["teacher"]["val"]["dynamic_iou"]
+    assert (
+        results["student_efficientnet_lite0"]["dynamic_iou"]
+        == results["student_efficientnet_lite0"]["val"]["dynamic_iou"]
+    )
+
+
 def test_saved_teacher_is_a_checkpoint_with_equal_predictions(
     segment_run: tuple[Path, DictConfig], tmp_path: Path
 ) -> None:
