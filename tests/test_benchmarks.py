@@ -358,3 +358,28 @@ def test_each_benchmark_config_evaluates_a_checkpoint(
     if result["data"] == "nordland":
         # The protocol id (published lookups) keeps its name; the set's name says the traversals.
         assert result["set"] == "nordland ref→query ±0"
+
+
+needs_gardens = pytest.mark.skipif(
+    not all((REAL / "gardens_point" / t).is_dir() for t in ("day_left", "day_right", "night_right")),
+    reason="Gardens Point Walking (../shared/realdata/gardens_point) not present",
+)
+
+
+@needs_gardens
+@pytest.mark.parametrize(("database", "queries"), [("day_left", "night_right"), ("day_left", "day_right")])
+def test_real_gardens_point_reads_as_two_frame_aligned_traversals(database: str, queries: str) -> None:
+    """The preset on the real folder: 200 frames a side, frame i's positives the frames i-2 .. i+2."""
+    from semvpr.config.build import build_places
+    from tests.helpers import config
+
+    cfg = config(
+        "data=gardens_point", f"data.root={REAL / 'gardens_point'}", f"data.database={database}",
+        f"data.queries={queries}", "+ckpt=none", config_name="eval",
+    )  # fmt: skip
+    test = build_places(cfg, ("test",))["test"]
+    assert test.name == f"gardens_point {database}→{queries} ±2"
+    assert (len(test.db_paths), len(test.q_paths)) == (200, 200)
+    assert [p.name for p in test.q_paths[:2]] == ["Image000.jpg", "Image001.jpg"]
+    positives = test.positives()
+    assert [positives[i].tolist() for i in (0, 100, 199)] == [[0, 1, 2], list(range(98, 103)), [197, 198, 199]]

@@ -245,7 +245,7 @@ def untrained_aggregator(cfg: DictConfig, explicit: set[str]) -> None:
         forms = ", ".join(name for name in options("aggregator") if _untrained_form(name) is not None)
         raise SemvprError(
             f"ckpt=none: aggregator={cfg.aggregator.name} has no untrained form (its layers are random until "
-            f"VPR training); evaluate a trained checkpoint, or ckpt=none with aggregator={forms}"
+            f"VPR training); evaluate a trained checkpoint, or ckpt=none with one of aggregator={forms}"
         )
     settings = {k: v for k, v in OmegaConf.to_container(cfg.aggregator.module, resolve=True).items()}  # type: ignore[union-attr]
     untrained = cls.untrained_settings(settings)
@@ -271,11 +271,13 @@ def _untrained_form(choice: str) -> str | None:
 
 
 def init_config(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with its data replaced by the place set ``init.data`` names (``init.root`` its folder, where it
-    reads one), at that set's own image size, and no mask: what an untrained aggregator's k-means reads."""
+    """``cfg`` with its data replaced by the place set ``init.data`` names (``init.root`` its folder where it
+    reads one, ``init.overrides`` more of its settings), at that set's own image size, and no mask: what an
+    untrained aggregator's k-means reads."""
     overrides = [f"data={cfg.init.data}"]
     if cfg.init.get("root") is not None:
         overrides.append(f"data.root={cfg.init.root}")
+    overrides += [f"data.{o}" for o in cfg.init.get("overrides") or []]
     composed = _compose("train", overrides)
     out = cfg.copy()
     with open_dict(out):
@@ -296,13 +298,20 @@ def _compose(config_name: str, overrides: list[str]) -> DictConfig:
     except SemvprError:
         raise
     except Exception as err:  # noqa: BLE001 - an unknown data choice or a bad override: one line
-        raise SemvprError(f"init.data / init.root: {str(err).splitlines()[0] if str(err) else err!r}") from None
+        raise SemvprError(
+            f"init.data / init.root / init.overrides: {str(err).splitlines()[0] if str(err) else err!r}"
+        ) from None
 
 
 def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Callable[[], Iterable[Path]]) -> str:
     """Initialise the retriever's aggregator as training would, on ``init.data``'s training database images
     (refused if they include an evaluated image); returns what it used, in words."""
     init_cfg = init_config(cfg)
+    if init_cfg.data.get("train") is None:
+        raise SemvprError(
+            f"init.data={cfg.init.data} has no train split to initialise {cfg.aggregator.name} on; name a place "
+            "set with one (synthcity, or folder / pitts30k / msls with init.root=DIR)"
+        )
     places = build_places(init_cfg, ("train",))
     train = places["train"]
     seen = {p.resolve() for p in evaluated()}
