@@ -49,7 +49,8 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     db = place_descriptors(retriever, test, "db", size, cache)
     result = evaluate(db, place_descriptors(retriever, test, "q", size, cache), test.positives())
     source = retriever.mask_source
-    segmenter_dir = merged[source.needs].get("checkpoint") if source is not None and source.segmenter else None
+    has_segmenter = source is not None and source.segmenter is not None
+    segmenter_dir = merged[source.needs].get("checkpoint") if has_segmenter else None
     out = {
         "status": "ok",
         "checkpoint": "none" if is_untrained(cfg.ckpt) else str(cfg.ckpt),
