@@ -229,6 +229,17 @@ def test_the_segmenter_record_is_optional_and_checked(
         load(paths, "bad", tmp_path)
 
 
+def test_a_recorded_student_directory_is_never_read(world: dict[str, Path], tmp_path: Path) -> None:
+    """A checkpoint naming a local student directory (training never writes one) is refused unless the
+    command names that directory itself, as for a recorded teacher directory."""
+    data = torch.load(world["unet"], weights_only=True)
+    data["hyper_parameters"]["config"]["student"]["checkpoint"] = str(world["student"])
+    torch.save(data, tmp_path / "named.ckpt")
+    paths = {**world, "named": tmp_path / "named.ckpt"}
+    with pytest.raises(SemvprError, match=r"student.checkpoint='.*student_efficientnet_lite0' names a local path"):
+        load(paths, "named", tmp_path)
+
+
 # ---------------------------------------------------------------- student directories are data
 
 

@@ -174,8 +174,9 @@ def mask_trained_on(cfg: DictConfig, mask_source: MaskSource | None) -> TrainedO
     if known is not None:
         return known
     directory = cfg[mask_source.needs].get("checkpoint")
-    if directory:
-        return TrainedOn(Path(str(directory)).name or str(directory), "unknown")
+    if directory:  # a Hub id, or a directory without a record: its name, data unknown
+        local = Path(str(directory)).expanduser()
+        return TrainedOn(local.name if local.exists() else str(directory), "unknown")
     return TrainedOn(str(cfg.data.name), data_domain(cfg.data.get("domain")))
 
 
