@@ -10,8 +10,10 @@ checkpoint is loaded as ``semvpr.eval`` loads it (weights only, record validated
 dependencies = ["torch", "torchvision", "hydra", "omegaconf"]
 
 
-def semvpr(ckpt: str, image_size: list[int] | None = None):
-    """A semvpr checkpoint (``<run dir>/checkpoints/tested.ckpt``) as a descriptor model."""
+def semvpr(ckpt: str, image_size: list[int] | None = None, overrides: list[str] | None = None):
+    """A semvpr checkpoint (``<run dir>/checkpoints/tested.ckpt``) as a descriptor model; ``overrides`` as
+    ``semvpr.eval`` takes them (``["mask=student", "student.checkpoint=DIR"]``; ``ckpt="none"`` with
+    ``["aggregator=gem"]``: no VPR training)."""
     from semvpr.hub import load_model
 
-    return load_model(ckpt, image_size)
+    return load_model(ckpt, image_size, overrides or ())

@@ -1,7 +1,10 @@
 """Evaluate a checkpoint on any place set: ``python -m semvpr.eval ckpt=PATH [data=... data.root=...]``.
 
 The model is rebuilt from the checkpoint's record (``semvpr.config.restore``) and its descriptors cached
-(``semvpr.retrieval.descriptors``); the data comes from this invocation. The positives are the place set's
+(``semvpr.retrieval.descriptors``); the data comes from this invocation. ``mask=teacher
+teacher.checkpoint=DIR`` / ``mask=student student.checkpoint=DIR`` / ``mask=none`` replaces the
+checkpoint's mask source; ``ckpt=none`` evaluates the config's model with no VPR training (the
+off-the-shelf baseline). The positives are the place set's
 own (``PlaceSet.positives``: its shipped ground truth, or ``data.eval_radius``). Prints Recall@N over
 all queries (pytorch-NetVlad, the benchmark) and, where some query has no positive, over queries with
 positives (MSLS); the last line is one JSON object, also written as ``eval.json``. With ``-m`` over
@@ -11,6 +14,7 @@ several datasets (``data=a,b``, ``data.root=A,B``), a job's bad input fails its 
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import time
@@ -24,7 +28,7 @@ from omegaconf import DictConfig
 
 from semvpr.config.build import build_places
 from semvpr.config.checks import check_config, check_overrides_or_exit
-from semvpr.config.restore import explicit_keys, load_retriever
+from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
@@ -37,19 +41,26 @@ def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> di
     beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time."""
     start = time.perf_counter()
     check_config(cfg)
-    retriever, merged = load_retriever(cfg, explicit)
-    test = build_places(merged, ("test",))["test"]
+    # The data is the invocation's whatever the model; read after the checkpoint is validated.
+    test_set = functools.cache(lambda: build_places(cfg, ("test",))["test"])
+    retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
+    test = test_set()
     size, cache = merged.data.image_size, merged.paths.cache_dir
     db = place_descriptors(retriever, test, "db", size, cache)
     result = evaluate(db, place_descriptors(retriever, test, "q", size, cache), test.positives())
+    source = retriever.mask_source
+    has_segmenter = source is not None and source.segmenter is not None
+    segmenter_dir = merged[source.needs].get("checkpoint") if has_segmenter else None
     out = {
         "status": "ok",
-        "checkpoint": str(cfg.ckpt),
+        "checkpoint": "none" if is_untrained(cfg.ckpt) else str(cfg.ckpt),
         "data": merged.data.name,
         "set": test.name,
         "benchmark": merged.data.get("benchmark"),
         "aggregator": merged.aggregator.name,
         "mask": merged.mask.name,
+        # The directory (or Hub id) the mask's segmenter was read from; null: the checkpoint's own weights.
+        "mask_checkpoint": str(segmenter_dir) if segmenter_dir else None,
         "backbone": merged.backbone.name,
         "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
         "database": len(test.db_paths),

@@ -1,10 +1,11 @@
 """A semvpr checkpoint as other tools' scripts expect a VPR model (VPR-methods-evaluation style).
 
 :func:`load_model` rebuilds the checkpoint through the same trusted path as ``semvpr.eval``
-(``semvpr.core.checkpoint`` validates the record against the project's configs; ``eval.load_retriever``
-loads the weights) and wraps it in :class:`HubModel`: a module mapping a batch of images
-normalised with the ImageNet mean/std to L2-normalised global descriptors, with the matching
-preprocessing as ``model.transform`` (PIL image → normalised tensor) and ``model.feature_dim``.
+(``semvpr.core.checkpoint`` validates the record against the project's configs; ``config.restore``
+loads the weights and takes eval's overrides: another mask source, or ``ckpt="none"``) and wraps it
+in :class:`HubModel`: a module mapping a batch of images normalised with the ImageNet mean/std to
+L2-normalised global descriptors, with the matching preprocessing as ``model.transform`` (PIL image →
+normalised tensor) and ``model.feature_dim``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision import transforms
 
-from semvpr.config.restore import load_retriever
+from semvpr.config.restore import is_untrained, load_retriever
 from semvpr.core.io import CONF_DIR
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
@@ -44,11 +45,16 @@ class HubModel(nn.Module):
         return F.normalize(self.retriever(images * self.std + self.mean).float(), dim=1)
 
 
-def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None) -> HubModel:
-    """The checkpoint as a :class:`HubModel` in eval mode on the CPU (move it with ``.to``)."""
+def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None, overrides: Sequence[str] = ()) -> HubModel:
+    """The checkpoint as a :class:`HubModel` in eval mode on the CPU (move it with ``.to``). ``overrides``
+    are ``semvpr.eval``'s: ``["mask=student", "student.checkpoint=DIR"]`` replaces the checkpoint's mask
+    source; ``ckpt="none"`` with e.g. ``["aggregator=gem"]`` is the model with no VPR training."""
     from hydra import compose, initialize_config_dir
 
+    given = [str(o) for o in overrides]
+    target = "none" if is_untrained(ckpt) else Path(ckpt).expanduser()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="eval", overrides=[f"ckpt={Path(ckpt).expanduser()}"])
-    retriever, _ = load_retriever(cfg, new_images=True)
+        cfg = compose(config_name="eval", overrides=[f"ckpt={target}", *given])
+    explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
+    retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False)
     return HubModel(retriever, image_size).eval()

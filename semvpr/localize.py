@@ -2,12 +2,14 @@
 
 Each image in DIR is described with the checkpoint's full pipeline (backbone, mask, aggregator)
 and matched against the database of ``data``'s test split (its descriptors cached as in
-``semvpr.eval``). Prints, per query, the top-k database images with their UTM and descriptor
-distance; writes ``localize.json`` in the run directory.
+``semvpr.eval``). The model is the one ``semvpr.eval`` evaluates: a checkpoint (its mask source
+replaceable with ``mask=``), or ``ckpt=none``. Prints, per query, the top-k database images with their
+UTM and descriptor distance; writes ``localize.json`` in the run directory.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
@@ -45,8 +47,10 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
     """Top-k database matches (path, UTM, distance) for every query image."""
     check_config(cfg)
     paths = query_images(cfg.queries)
-    retriever, merged = load_retriever(cfg, explicit, new_images=True)
-    places = build_places(merged, ("test",))["test"]
+    # The data is the invocation's whatever the model; read after the checkpoint is validated.
+    database = functools.cache(lambda: build_places(cfg, ("test",))["test"])
+    retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
+    places = database()
     db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir)
     q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
     retriever.describe_images(paths, None, merged.data.image_size, q_desc, desc="queries")

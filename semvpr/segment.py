@@ -3,9 +3,10 @@
 Trains the embedded Mask2Former teacher on the set's train split (cached; its settings were chosen
 on val), scores it on val and test and saves it in Hugging Face format (``<run dir>/teacher``, for
 ``teacher.checkpoint=``); labels the train images with it and trains one U-Net student per entry of
-``backbones`` on those pseudo-labels, scored against the ground truth. Writes ``results.json``,
-``figure_masks.png`` and CSV / TensorBoard logs into ``outputs/segment/<date>/<time>``; the last
-stdout line is a JSON summary.
+``backbones`` on those pseudo-labels, scored against the ground truth, and saves each as
+``<run dir>/student_<backbone>`` (for ``student.checkpoint=``). Both directories record the data they
+were trained on. Writes ``results.json``, ``figure_masks.png`` and CSV / TensorBoard logs into
+``outputs/segment/<date>/<time>``; the last stdout line is a JSON summary naming the directories.
 """
 
 from __future__ import annotations
@@ -28,13 +29,14 @@ from semvpr.config.components import instantiate_node
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json
 from semvpr.core.logs import quiet_third_party
+from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.images import load_image
 from semvpr.data.places import common_root
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.backbones import Backbone
-from semvpr.models.student import Student, StudentSpec
-from semvpr.models.teacher import Teacher
+from semvpr.models.student import Student, StudentSpec, save_student
+from semvpr.models.teacher import Teacher, write_teacher_record
 from semvpr.segmentation.confusion import binary_pred
 from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmentation.training import build_student, build_teacher
@@ -51,9 +53,9 @@ def dataset_classes(seg: SegmentationSet) -> list[int]:
     return sorted({v for v in seg.label_lut if v != IGNORE})
 
 
-def save_teacher(teacher: Any, out: Path, image_size: list[int]) -> None:
-    """Hugging Face format (config.json, model.safetensors, preprocessor_config.json), renamed into place
-    when complete."""
+def save_teacher(teacher: Any, out: Path, image_size: list[int], trained_on: TrainedOn) -> None:
+    """Hugging Face format (config.json, model.safetensors, preprocessor_config.json) and semvpr.json (the
+    size it was trained at, its training data), renamed into place when complete."""
     from transformers import Mask2FormerImageProcessor
 
     with atomic_dir(out) as tmp:
@@ -62,6 +64,7 @@ def save_teacher(teacher: Any, out: Path, image_size: list[int]) -> None:
             image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist(),
             size={"height": image_size[0], "width": image_size[1]}, ignore_index=IGNORE, do_reduce_labels=False,
         ).save_pretrained(tmp)  # fmt: skip
+        write_teacher_record(tmp, image_size, trained_on)
 
 
 def replay_log(csv_path: Path, loggers: list[Any], prefix: str) -> None:
@@ -116,6 +119,8 @@ def train_students(
     backbones: dict[str, tuple[Backbone, str]],
     sets: dict[str, SegmentationSet],
     scored: tuple[str, ...],
+    run_dir: Path,
+    trained_on: TrainedOn,
     labels: Path,
     root: Path,
     image_size: list[int],
@@ -127,8 +132,8 @@ def train_students(
     results: dict[str, Any],
 ) -> dict[str, tuple[Student, Backbone]]:
     """A student per frozen backbone (with the name of its weights) on the teacher's labels, scored on the
-    ``scored`` splits against the teacher's static classes (into ``results``); returns them by name with
-    their backbones, for the figure."""
+    ``scored`` splits against the teacher's static classes (into ``results``) and saved as
+    ``run_dir/student_<name>``; returns them by name with their backbones, for the figure."""
     students = {}
     for name, (backbone, weights) in backbones.items():
         tic = time.time()
@@ -145,6 +150,10 @@ def train_students(
         entry.update(entry[scored[-1]])
         if scored[-1] == "test":
             del entry["test"]
+        folder = save_student(
+            student, spec, name, backbone.frozen_identity(), image_size, trained_on, run_dir / f"student_{name}"
+        )
+        entry["checkpoint"] = str(folder)
         results[f"student_{name}"] = entry
         students[f"student_{name}"] = (student, backbone)
     return students
@@ -173,7 +182,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
     trained = json.loads((artifact / "metrics.json").read_text())
     replay_log(artifact / "logs" / "metrics.csv", loggers, "teacher")
-    save_teacher(teacher, run_dir / "teacher", size)
+    trained_on = TrainedOn(str(cfg.seg.name), data_domain(cfg.seg.get("domain")))
+    save_teacher(teacher, run_dir / "teacher", size, trained_on)
     results: dict[str, Any] = {
         "teacher": {"train_s": trained["train_seconds"], "build_s": build_s, "checkpoint": str(run_dir / "teacher")}
     }
@@ -210,6 +220,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         backbones,
         sets,
         scored,
+        run_dir,
+        trained_on,
         labels,
         root,
         size,
@@ -249,11 +261,13 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 
 def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
-    """The last stdout line: run dir and the headline test numbers per model."""
+    """The last stdout line: run dir, the headline test numbers per model and the directory each model is
+    saved in (``teacher.checkpoint=`` / ``student.checkpoint=``)."""
     line: dict[str, Any] = {"run_dir": str(run_dir)}
     for model, entry in results.items():
         if model == "teacher" or model.startswith("student_"):
             line.update({f"{model}/{k}": round(float(entry[k]), 3) for k in SUMMARY_KEYS if k in entry})
+            line[f"{model}/checkpoint"] = entry["checkpoint"]
     return line
 
 

@@ -239,3 +239,77 @@ def labels_key(paths: list[Path], root: Path) -> dict:
         "images": image_list_identity(paths, root),
         "image_size": list(LABEL_SIZE),
     }
+
+
+# ---------------------------------------------------------------- real-street fixtures: frames, segmenter dirs
+
+#: Tiny frame-aligned sets: the eval size the frames are written at (no resize on reading).
+FRAME_SIZE = (64, 96)
+
+
+def write_frames(root: Path, traversals: dict[str, list[int]], name: str = "frame{:03d}.png") -> Path:
+    """One folder per traversal under ``root``; ``traversals[t][i]`` is the seed of frame i's pixels, so two
+    traversals show the same image where their seeds agree. Written at FRAME_SIZE."""
+    for traversal, seeds in traversals.items():
+        for i, seed in enumerate(seeds):
+            path = root / traversal / name.format(i)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            pixels = np.random.default_rng(seed).integers(0, 255, (*FRAME_SIZE, 3), dtype=np.uint8)
+            Image.fromarray(pixels).save(path)
+    return root
+
+
+def frame_images(root: Path, traversal: str) -> torch.Tensor:
+    """A traversal's frames as a (N,3,H,W) batch in [0, 1], in frame order (read with PIL, no resize)."""
+    paths = sorted((root / traversal).iterdir())
+    return (
+        torch.stack([torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths]).float()
+        / 255
+    )
+
+
+def mixed_student(backbone, images: torch.Tensor, width: int = 8):
+    """An untrained student whose dynamic-class bias is set so that about half of the pixels of ``images``
+    come out static: its binary mask keeps some locations and drops others (not all or nothing)."""
+    from semvpr.data.classes import STATIC_NAMES, TRAIN_ID_NAMES
+    from semvpr.models.student import StudentSpec, student_architecture
+
+    torch.manual_seed(0)
+    spec = StudentSpec(width=width)
+    student = student_architecture(spec, backbone).eval()
+    static = torch.tensor([n in STATIC_NAMES for n in TRAIN_ID_NAMES])
+    with torch.no_grad():
+        logits = student(backbone.forward_frozen(images)).float()
+        margin = logits[:, static].logsumexp(1) - logits[:, ~static].logsumexp(1)
+        student.head.bias[~static] += margin.median()
+    return student, spec
+
+
+def write_student_dir(folder: Path, backbone, images: torch.Tensor, domain: str = "real") -> Path:
+    """A student directory as semvpr.segment saves one (mixed_student's weights), trained_on camvid."""
+    from semvpr.core.provenance import TrainedOn
+    from semvpr.models.student import save_student
+
+    student, spec = mixed_student(backbone, images)
+    return save_student(
+        student, spec, "efficientnet_lite0", backbone.frozen_identity(), [32, 48], TrainedOn("camvid", domain), folder
+    )
+
+
+#: A Mask2Former small enough to build in a second (random-init Swin pixel-level backbone).
+TINY_TEACHER_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1],
+                      "num_heads": [1, 1, 2, 2], "window_size": 4, "hidden_dim": 32, "num_attention_heads": 2,
+                      "encoder_layers": 1, "decoder_layers": 2, "num_queries": 8, "train_num_points": 256}  # fmt: skip
+
+
+def write_teacher_dir(folder: Path, image_size: tuple[int, int] = (32, 48)) -> Path:
+    """A teacher directory as semvpr.segment saves one (an untrained tiny Mask2Former), trained_on camvid at
+    ``image_size``."""
+    from semvpr.core.provenance import TrainedOn
+    from semvpr.models.teacher import TeacherSpec, embedded_teacher
+    from semvpr.segment import save_teacher
+
+    torch.manual_seed(0)
+    teacher = embedded_teacher(TeacherSpec(image_size=image_size, model=TINY_TEACHER_MODEL)).eval()
+    save_teacher(teacher, folder, list(image_size), TrainedOn("camvid", "real"))
+    return folder

@@ -11,8 +11,8 @@ import pytest
 from semvpr.core.errors import SemvprError
 from semvpr.data.benchmarks import (
     load_npy,
+    read_frames,
     read_msls_val_npy,
-    read_nordland,
     read_npy_lists,
     read_patchnetvlad,
 )
@@ -228,23 +228,46 @@ def test_patchnetvlad_fixture_positives(tmp_path: Path) -> None:
     assert [p.tolist() for p in places.positives()] == [[0], [1], []]
 
 
-def test_nordland_positives_are_a_frame_window(tmp_path: Path) -> None:
+def test_frame_aligned_positives_are_a_frame_window(tmp_path: Path) -> None:
     for i in range(10):
         touch(tmp_path, f"ref/{i:05d}.png")
     for i in (0, 5, 9):
         touch(tmp_path, f"query/{i:05d}.png")
-    places = read_nordland(tmp_path, frame_window=1)
-    assert places.name == "nordland±1"
+    places = read_frames(tmp_path, "ref", "query", frame_window=1, name="nordland")
+    assert places.name == "nordland ref→query ±1"
     assert [p.tolist() for p in places.positives()] == [[0, 1], [4, 5, 6], [8, 9]]
-    assert [p.tolist() for p in read_nordland(tmp_path, frame_window=10).positives()] == [list(range(10))] * 3
-    assert [p.tolist() for p in read_nordland(tmp_path, frame_window=0).positives()] == [[0], [5], [9]]
+    assert [p.tolist() for p in read_frames(tmp_path, "ref", "query", 10).positives()] == [list(range(10))] * 3
+    assert [p.tolist() for p in read_frames(tmp_path, "ref", "query", 0).positives()] == [[0], [5], [9]]
+    assert read_frames(tmp_path, "ref", "query", 0).name == f"{tmp_path.name} ref→query ±0"
     with pytest.raises(SemvprError, match=r"data.frame_window=-1: expected a number of frames >= 0"):
-        read_nordland(tmp_path, frame_window=-1)
+        read_frames(tmp_path, "ref", "query", frame_window=-1)
+    with pytest.raises(SemvprError, match=r"data.database and data.queries are both 'ref'"):
+        read_frames(tmp_path, "ref", "ref", 1)
+    with pytest.raises(SemvprError, match=r"data.queries='../x': expected the name of a traversal folder"):
+        read_frames(tmp_path, "ref", "../x", 1)
     touch(tmp_path, "query/cover.png")
     with pytest.raises(SemvprError, match=r"cover.png: no frame number in the file name"):
-        read_nordland(tmp_path, frame_window=1)
-    with pytest.raises(SemvprError, match=r"Nordland folder .*summer not found"):
-        read_nordland(tmp_path, frame_window=1, database="summer")
+        read_frames(tmp_path, "ref", "query", frame_window=1)
+    with pytest.raises(SemvprError, match=r"traversal folder .*summer not found"):
+        read_frames(tmp_path, "summer", "query", frame_window=1)
+    touch(tmp_path, "query/frame_5.png")
+    (tmp_path / "query" / "cover.png").unlink()
+    with pytest.raises(SemvprError, match=r"00005.png and frame_5.png are both frame 5"):
+        read_frames(tmp_path, "ref", "query", frame_window=1)
+
+
+def test_a_frame_pattern_reads_the_frame_number_from_its_group(tmp_path: Path) -> None:
+    """Gardens Point's naming (ImageNNN.jpg): the number in the pattern's group, whatever else the name holds."""
+    for i in range(4):
+        touch(tmp_path, f"day/Image{i:03d}.jpg", f"night/Image{i:03d}.jpg")
+    places = read_frames(tmp_path, "day", "night", 1, name="gp", frame_pattern=r"Image(\d+)\.jpg")
+    assert [p.name for p in places.q_paths] == [f"Image{i:03d}.jpg" for i in range(4)]
+    assert [p.tolist() for p in places.positives()] == [[0, 1], [0, 1, 2], [1, 2, 3], [2, 3]]
+    touch(tmp_path, "night/Image004_v2.jpg")
+    with pytest.raises(SemvprError, match=r"Image004_v2.jpg: no frame number .*data.frame_pattern"):
+        read_frames(tmp_path, "day", "night", 1, frame_pattern=r"Image(\d+)\.jpg")
+    with pytest.raises(SemvprError, match=r"data.frame_pattern='Image\(' is not a regular expression"):
+        read_frames(tmp_path, "day", "night", 1, frame_pattern="Image(")
 
 
 @pytest.fixture(scope="module")
@@ -332,3 +355,31 @@ def test_each_benchmark_config_evaluates_a_checkpoint(
             result["data"]
         ]
     )
+    if result["data"] == "nordland":
+        # The protocol id (published lookups) keeps its name; the set's name says the traversals.
+        assert result["set"] == "nordland ref→query ±0"
+
+
+needs_gardens = pytest.mark.skipif(
+    not all((REAL / "gardens_point" / t).is_dir() for t in ("day_left", "day_right", "night_right")),
+    reason="Gardens Point Walking (../shared/realdata/gardens_point) not present",
+)
+
+
+@needs_gardens
+@pytest.mark.parametrize(("database", "queries"), [("day_left", "night_right"), ("day_left", "day_right")])
+def test_real_gardens_point_reads_as_two_frame_aligned_traversals(database: str, queries: str) -> None:
+    """The preset on the real folder: 200 frames a side, frame i's positives the frames i-2 .. i+2."""
+    from semvpr.config.build import build_places
+    from tests.helpers import config
+
+    cfg = config(
+        "data=gardens_point", f"data.root={REAL / 'gardens_point'}", f"data.database={database}",
+        f"data.queries={queries}", "+ckpt=none", config_name="eval",
+    )  # fmt: skip
+    test = build_places(cfg, ("test",))["test"]
+    assert test.name == f"gardens_point {database}→{queries} ±2"
+    assert (len(test.db_paths), len(test.q_paths)) == (200, 200)
+    assert [p.name for p in test.q_paths[:2]] == ["Image000.jpg", "Image001.jpg"]
+    positives = test.positives()
+    assert [positives[i].tolist() for i in (0, 100, 199)] == [[0, 1, 2], list(range(98, 103)), [197, 198, 199]]

@@ -103,6 +103,38 @@ def test_score_test_false_scores_val_only(
     )
 
 
+def test_run_saves_each_student_where_eval_reads_it_and_says_where(
+    segment_run: tuple[Path, DictConfig], tmp_path: Path
+) -> None:
+    """<run>/student_<backbone>: safetensors and student.json, named in results.json and the summary line;
+    it loads over its own backbone with the trained student's weights (and is refused over another)."""
+    from safetensors.torch import load_file
+
+    from semvpr.config.build import build_backbone
+    from semvpr.models.student import load_student
+    from semvpr.models.teacher import read_teacher_record
+    from semvpr.segment import summary
+
+    run_dir, cfg = segment_run
+    results = json.loads((run_dir / "results.json").read_text())
+    line = summary(results, run_dir)
+    assert line["teacher/checkpoint"] == str(run_dir / "teacher")
+    backbones = {name: build_backbone(node, int(cfg.seed)).eval() for name, node in cfg.backbones.items()}
+    for name, backbone in backbones.items():
+        folder = run_dir / f"student_{name}"
+        assert results[f"student_{name}"]["checkpoint"] == line[f"student_{name}/checkpoint"] == str(folder)
+        assert {p.name for p in folder.iterdir()} == {"model.safetensors", "student.json"}
+        student = load_student(folder, backbone)
+        stored = load_file(folder / "model.safetensors")
+        assert stored.keys() == student.state_dict().keys()
+        assert student.head.weight.shape[1] == cfg.student.width
+        assert (student.trained_on.name, student.trained_on.domain) == ("camvid", "real")
+    with pytest.raises(SemvprError, match=r"decodes the frozen trunk of vgg16 .* this model's is EfficientNetLite0"):
+        load_student(run_dir / "student_vgg16", backbones["efficientnet_lite0"])
+    record = read_teacher_record(run_dir / "teacher")
+    assert record["image_size"] == [32, 48] and record["trained_on"].name == "camvid"
+
+
 def test_saved_teacher_is_a_checkpoint_with_equal_predictions(
     segment_run: tuple[Path, DictConfig], tmp_path: Path
 ) -> None:
@@ -117,6 +149,7 @@ def test_saved_teacher_is_a_checkpoint_with_equal_predictions(
         tmp_path / "other-cache",
     )
     assert loaded.teacher_key.startswith("pretrained-") and not (tmp_path / "other-cache").exists()
+    assert loaded.inference_size == (32, 48) and loaded.trained_on.name == "camvid"  # from its semvpr.json
     images = torch.rand(2, 3, 32, 48)
     assert torch.equal(loaded.predict_train_ids(images), trained.predict_train_ids(images))
     assert torch.equal(loaded.class_prob(images), trained.class_prob(images))

@@ -193,7 +193,8 @@ def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_pa
     from semvpr.models.backbones import EFFICIENTNET_LITE_STD, EfficientNetLite0Backbone
     from semvpr.models.teacher import embedded_teacher
 
-    teacher = embedded_teacher(tiny_spec(model=LITE_MODEL)).eval()
+    # At the size it trains at (it sees other sizes resized to that one).
+    teacher = embedded_teacher(tiny_spec(model=LITE_MODEL, image_size=[64, 80])).eval()
     assert torch.allclose(teacher.std.flatten(), torch.tensor(EFFICIENTNET_LITE_STD))
     # The pixel-level backbone's stride 4-16 features are the VPR backbone's (same weights, same input).
     images = torch.rand(2, 3, 64, 80)
@@ -208,6 +209,21 @@ def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_pa
     loaded = Mask2FormerForUniversalSegmentation.from_pretrained(tmp_path / "ckpt", local_files_only=True)
     again = Teacher(loaded, image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist()).eval()
     torch.testing.assert_close(again.class_prob(images), teacher.class_prob(images))
+
+
+def test_the_embedded_teacher_sees_images_at_the_size_it_trains_at() -> None:
+    """teacher.inference_size=null: the embedded teacher resizes other sizes to its image_size (predictions
+    come back at the input size); an explicit inference_size wins."""
+    from semvpr.models.teacher import embedded_teacher
+
+    teacher = embedded_teacher(tiny_spec()).eval()
+    assert teacher.inference_size == (32, 48)
+    large = torch.rand(1, 3, 64, 96)
+    assert teacher._pixels(large).shape[-2:] == (32, 48)
+    expected = teacher._pixels(torch.nn.functional.interpolate(large, size=(32, 48), mode="bilinear"))
+    torch.testing.assert_close(teacher._pixels(large), expected)  # resize and normalisation commute
+    assert teacher.class_prob(large).shape == (1, 19, 64, 96)
+    assert embedded_teacher(tiny_spec(inference_size=[16, 24])).inference_size == (16, 24)
 
 
 def test_backbone_learns_at_its_lr_factor() -> None:

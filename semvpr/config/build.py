@@ -27,11 +27,12 @@ from semvpr.core.checkpoint import record_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import lightning_precision
+from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import ClassWeights, MaskSource
-from semvpr.models.student import Student, StudentSpec, student_architecture
+from semvpr.models.student import Student, StudentSpec, load_student, student_architecture
 from semvpr.models.teacher import Teacher, TeacherSpec, teacher_architecture
 from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.features import (
@@ -142,8 +143,10 @@ def build_aggregator(cfg: DictConfig, backbone: Backbone) -> Aggregator:
 
 
 def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | None = None) -> MaskSource | None:
-    """The run's mask source, given what its class ``needs``: trained (from ``semantic``), or untrained for
-    weights to be loaded into (``semantic=None``: a checkpoint carries them)."""
+    """The run's mask source, given what its class ``needs``: trained (from ``semantic``), read from a
+    directory (``teacher.checkpoint`` / ``student.checkpoint``), or untrained for weights to be loaded into
+    (``semantic=None``: a checkpoint carries them). A student directory is checked against ``backbone``'s
+    frozen trunk, so the backbone must hold its final weights."""
     cls = component_class(cfg, "mask")
     if cls is None:
         return None
@@ -151,10 +154,30 @@ def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | 
     if cls.needs == "teacher":
         given["teacher"] = semantic.teacher if semantic is not None else teacher_architecture(teacher_spec(cfg))
     elif cls.needs == "student":
-        given["student"] = (
-            semantic.student if semantic is not None else student_architecture(student_spec(cfg), backbone)
-        )
+        spec = student_spec(cfg)
+        if semantic is not None:
+            given["student"] = semantic.student
+        elif spec.checkpoint:
+            given["student"] = load_student(spec.checkpoint, backbone)
+        else:
+            given["student"] = student_architecture(spec, backbone)
     return instantiate_node(cfg.mask.module, **given)
+
+
+def mask_trained_on(cfg: DictConfig, mask_source: MaskSource | None) -> TrainedOn | None:
+    """The data the mask source's segmenter was trained on, as a checkpoint records it: what a segmenter
+    directory says, else (a segmenter trained in the run) the run's data; None without a segmenter."""
+    segmenter = mask_source.segmenter if mask_source is not None else None
+    if segmenter is None:
+        return None
+    known = getattr(segmenter, "trained_on", None)
+    if known is not None:
+        return known
+    directory = cfg[mask_source.needs].get("checkpoint")
+    if directory:  # a Hub id, or a directory without a record: its name, data unknown
+        local = Path(str(directory)).expanduser()
+        return TrainedOn(local.name if local.exists() else str(directory), "unknown")
+    return TrainedOn(str(cfg.data.name), data_domain(cfg.data.get("domain")))
 
 
 def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
@@ -179,7 +202,7 @@ def build_retriever(
         optimization_of(cfg) if training else None,
         int(cfg.model.eval_batch_size),
         int(cfg.data.num_workers),
-        record=record_of(cfg),
+        record=record_of(cfg, mask_trained_on(cfg, mask_source)),
         class_weights=build_class_weights(cfg),
     )
 
@@ -244,12 +267,19 @@ def build_semantic(
 
 
 def mask_key(mask_source: MaskSource | None, cfg: DictConfig) -> str | None:
-    """What a mask source's output depends on: its weights (and, for the oracle, the class list)."""
+    """What a mask source's output depends on: its weights, the static classes, and the size its segmenter
+    sees the images at where that is not data.image_size."""
     if mask_source is None:
         return None
-    return config_hash(
-        [type(mask_source).__name__, state_hash(mask_source.state_dict()), list(cfg.teacher.static_classes)]
-    )
+    key: list[Any] = [
+        type(mask_source).__name__,
+        state_hash(mask_source.state_dict()),
+        list(cfg.teacher.static_classes),
+    ]
+    seen = mask_source.input_size(tuple(cfg.data.image_size))
+    if seen is not None:
+        key.append({"input_size": list(seen)})
+    return config_hash(key)
 
 
 def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet]) -> str:

@@ -129,6 +129,11 @@ def _check_retrieval(cfg: DictConfig) -> None:
     weighting = cfg.mask.weights
     if weighting not in WEIGHTINGS:
         raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+    if "ckpt" not in cfg and cfg.student.get("checkpoint"):
+        raise SemvprError(
+            f"student.checkpoint={cfg.student.checkpoint}: a saved student is read by semvpr.eval, localize and "
+            "the hub (mask=student student.checkpoint=DIR); a training run trains its own: drop it"
+        )
     if weighting == "learned" and cfg.mask.get("module") is None:
         raise SemvprError(
             "mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "

@@ -1,58 +1,344 @@
-"""A trained retriever rebuilt from its checkpoint: what the commands that read checkpoints
-(``semvpr.eval``, ``semvpr.localize``) and the hub share.
+"""The retriever a command evaluates: a trained checkpoint rebuilt from its record, or (``ckpt=none``) the
+model the config describes with no VPR training. What ``semvpr.eval``, ``semvpr.localize`` and the hub
+share.
 
-The model comes from the checkpoint's record (``semvpr.core.checkpoint``: validated against the
-project's own configs, nothing stored in the file is run) and is assembled by the same builder as a
-training run; a command-line choice that would change the model is refused.
+A checkpoint's model comes from its record (``semvpr.core.checkpoint``: validated against the project's
+own configs, nothing stored in the file is run) and is assembled by the same builder as a training run.
+A command-line choice that would change the model is refused, with one exception: the mask source.
+``mask=teacher teacher.checkpoint=DIR``, ``mask=student student.checkpoint=DIR`` (directories saved by
+``semvpr.segment``, read as data) or ``mask=none`` replaces the checkpoint's own; the backbone, the
+aggregator and its weights, and learned class weights stay the checkpoint's (ARCHITECTURE §3.2).
+
+``ckpt=none`` is the off-the-shelf baseline: the pretrained trunk and the aggregator's untrained form
+(``Aggregator.untrained_form``: plain GeM at p = 3; NetVLAD / SRAL from k-means on the training database
+images of the place set ``init.data`` names, never on the evaluated set), with or without a mask from a
+directory. Aggregators without an untrained form are refused.
 """
 
 from __future__ import annotations
 
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+import sys
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
 
-from semvpr.config.build import build_backbone, build_mask_source, build_retriever
-from semvpr.core.checkpoint import model_config, read_checkpoint
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from semvpr.config.build import (
+    Prepared,
+    build_backbone,
+    build_mask_source,
+    build_places,
+    build_retriever,
+    build_semantic,
+    feature_storage,
+    init_aggregator,
+)
+from semvpr.config.components import component_class, options
+from semvpr.core.checkpoint import check_recorded_paths, model_config, read_checkpoint, segmenter_of
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import CONF_DIR
+from semvpr.core.provenance import data_domain
+from semvpr.retrieval.features import place_features
 from semvpr.retrieval.retriever import Retriever
 
-#: Command-line group choices that would change the model, and the groups each one sets.
+#: Command-line group choices that would change the model, and the groups each one sets (``mask=`` is
+#: the exception: it replaces the mask source, see the module docstring).
 MODEL_OVERRIDES = {
     "backbone": ("backbone",),
     "aggregator": ("aggregator",),
-    "mask": ("mask",),
     "filter": ("aggregator", "mask"),
 }
+#: The mask sources read from a directory, by what they need: the config group naming the directory.
+SEGMENTER_GROUPS = ("teacher", "student")
+#: ``ckpt=`` values that mean "no checkpoint: the untrained model of the config".
+UNTRAINED = ("none", None)
+
+
+def is_untrained(ckpt: Any) -> bool:
+    """Whether ``ckpt`` asks for the untrained model (``ckpt=none``)."""
+    return ckpt in UNTRAINED
 
 
 def load_retriever(
-    cfg: DictConfig, explicit: set[str] = frozenset(), *, new_images: bool = False
+    cfg: DictConfig,
+    explicit: set[str] = frozenset(),
+    *,
+    new_images: bool = False,
+    evaluated: Callable[[], Iterable[Path]] = tuple,
+    warn: bool = True,
 ) -> tuple[Retriever, DictConfig]:
-    """The checkpoint ``cfg.ckpt`` as a retriever in eval mode, and the config it was rebuilt with.
-    ``new_images``: the caller describes images that come without label maps (localize, the hub), which
-    a mask source that reads ground truth cannot."""
+    """The retriever ``cfg.ckpt`` names, in eval mode, and the config it was built with.
+
+    ``explicit``: the keys the command line set (a ``mask=`` there replaces the checkpoint's mask source).
+    ``new_images``: the caller describes images that come without label maps (localize, the hub), which a
+    mask source that reads ground truth cannot. ``evaluated``: gives the images the retriever will be scored
+    on, which an untrained aggregator's initialisation must not see (called only then: a checkpoint is
+    validated before any data is read). ``warn``: print one line when the
+    checkpoint's own mask was trained on another kind of images than ``cfg.data`` holds.
+    """
+    if is_untrained(cfg.ckpt):
+        retriever, merged = untrained_retriever(cfg, explicit, evaluated)
+    else:
+        retriever, merged = _trained_retriever(cfg, explicit, warn)
+    source = retriever.mask_source
+    if new_images and source is not None and not source.describes_new_images:
+        raise SemvprError(
+            f"mask={merged.mask.name} needs ground-truth label maps for every image; it cannot describe new images"
+        )
+    return retriever.eval(), merged
+
+
+def _trained_retriever(cfg: DictConfig, explicit: set[str], warn: bool) -> tuple[Retriever, DictConfig]:
+    where = f"checkpoint {cfg.ckpt}"
     state, record = read_checkpoint(cfg.ckpt)
-    merged = model_config(record, cfg, where=f"checkpoint {cfg.ckpt}")
+    merged = model_config(record, cfg, where=where, check_paths=False)
     trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
     for override in sorted(explicit & set(MODEL_OVERRIDES)):
         if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):
             raise SemvprError(
-                f"checkpoint {cfg.ckpt} was trained with {trained}; drop the {override}= override "
-                "(the model comes from the checkpoint)"
+                f"{where} was trained with {trained}; drop the {override}= override "
+                "(the model comes from the checkpoint; only mask= may replace its mask source)"
             )
+    replaced = replace_mask(cfg, explicit, merged, where)
+    if replaced is None:
+        check_recorded_paths(record, cfg, where)
+    else:
+        merged = replaced
+        # The checkpoint's own segmenter weights are not loaded; without a mask, neither are class weights.
+        dropped = ("mask_source.",) if merged.mask.module is not None else ("mask_source.", "class_weights.")
+        state = {k: v for k, v in state.items() if not k.startswith(dropped)}
     backbone = build_backbone(merged.backbone, int(merged.seed), pretrained=False)
-    mask_source = build_mask_source(merged, backbone)
-    if new_images and mask_source is not None and not mask_source.describes_new_images:
-        raise SemvprError(
-            f"checkpoint {cfg.ckpt} uses mask={merged.mask.name}, which needs ground-truth label maps "
-            f"for every image; it cannot describe new images"
-        )
-    retriever = build_retriever(merged, backbone, mask_source, training=False)
+    retriever = build_retriever(
+        merged, backbone, build_mask_source(merged, backbone) if replaced is None else None, training=False
+    )
     try:
         retriever.load_state_dict(state, strict=True)
     except RuntimeError as err:
-        raise SemvprError(f"checkpoint {cfg.ckpt} does not fit {trained}: {str(err).splitlines()[0]}") from None
-    return retriever.eval(), merged
+        raise SemvprError(f"{where} does not fit {trained}: {str(err).splitlines()[0]}") from None
+    if replaced is not None:
+        # Built after the checkpoint's weights are in: a student directory is checked against the trunk.
+        retriever.mask_source = build_mask_source(merged, backbone)
+    elif warn:
+        warn_foreign_mask(record, merged, where)
+    return retriever, merged
+
+
+def replace_mask(cfg: DictConfig, explicit: set[str], merged: DictConfig, where: str) -> DictConfig | None:
+    """``merged`` with the invocation's mask source in place of the checkpoint's, or None when the
+    invocation keeps the checkpoint's. The learned class weights stay the checkpoint's (``mask.weights``);
+    a checkpoint trained without a mask takes a binary one. The directories come from the invocation only."""
+    given = {group: cfg[group].get("checkpoint") for group in SEGMENTER_GROUPS}
+    if "mask" not in explicit:
+        for group, value in given.items():
+            if f"{group}.checkpoint" in explicit and value and value != merged[group].get("checkpoint"):
+                raise SemvprError(
+                    f"{group}.checkpoint={value} is not read unless it replaces the checkpoint's mask source "
+                    f"(mask={merged.mask.name}): add mask={group}"
+                )
+        return None
+    cls = component_class(cfg, "mask")
+    needs = cls.needs if cls is not None else None
+    if cfg.mask.name == merged.mask.name and (
+        needs not in given or not given[needs] or given[needs] == merged[needs].get("checkpoint")
+    ):
+        return None  # the checkpoint's own
+    if cls is not None and needs not in SEGMENTER_GROUPS:
+        raise SemvprError(
+            f"mask={cfg.mask.name} cannot replace the mask source of {where}: only mask=teacher "
+            "teacher.checkpoint=DIR, mask=student student.checkpoint=DIR or mask=none can"
+        )
+    if needs in SEGMENTER_GROUPS and not given[needs]:
+        raise SemvprError(
+            f"mask={cfg.mask.name} replaces the mask source of {where} only with a saved {needs}: add "
+            f"{needs}.checkpoint=DIR ({_saved_as(needs)})"
+        )
+    out = merged.copy()
+    own = merged.mask.weights if merged.mask.module is not None else None
+    with open_dict(out):
+        out.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=False))
+        if cls is None:
+            out.mask.weights = "binary"
+        elif own is not None:
+            if "mask.weights" in explicit and cfg.mask.weights != own:
+                raise SemvprError(
+                    f"mask.weights={cfg.mask.weights} differs from {where}'s {own} weighting, which stays the "
+                    "checkpoint's; drop the override"
+                )
+            out.mask.weights = own
+        elif cfg.mask.weights != "binary":
+            raise SemvprError(
+                f"{where} was trained without a mask, so it has no learned class weights: "
+                f"mask.weights={cfg.mask.weights} needs a checkpoint trained with them; use mask.weights=binary"
+            )
+        for group in SEGMENTER_GROUPS:
+            # No directory recorded in the checkpoint is ever read: only the invocation's.
+            out[group].checkpoint = given[group] if group == needs else None
+        out.teacher.inference_size = cfg.teacher.get("inference_size")
+    return out
+
+
+def _saved_as(group: str) -> str:
+    return "<semvpr.segment run>/teacher" if group == "teacher" else "<semvpr.segment run>/student_<backbone>"
+
+
+def warn_foreign_mask(record: dict[str, Any], merged: DictConfig, where: str) -> None:
+    """One stderr line when the checkpoint's own mask comes from a segmenter trained on another kind of
+    images than the evaluated data holds, naming the override that replaces it."""
+    trained_on = segmenter_of(record, where)
+    cls = component_class(merged, "mask")
+    if trained_on is None or cls is None or cls.needs not in SEGMENTER_GROUPS or trained_on.domain == "unknown":
+        return
+    domain = data_domain(merged.data.get("domain"))
+    if trained_on.domain == domain:
+        return
+    print(
+        f"semvpr: warning: {where} has mask={merged.mask.name} from a segmenter trained on "
+        f"{trained_on.describe()}, here applied to {domain} images (data={merged.data.name}); a segmenter "
+        f"trained on {domain} images replaces it: mask={cls.needs} {cls.needs}.checkpoint=DIR "
+        f"({_saved_as(cls.needs)})",
+        file=sys.stderr,
+    )
+
+
+# ----------------------------------------------------------------------------------- ckpt=none
+def untrained_retriever(
+    cfg: DictConfig, explicit: set[str], evaluated: Callable[[], Iterable[Path]] = tuple
+) -> tuple[Retriever, DictConfig]:
+    """The config's model with no VPR training: the pretrained trunk, the aggregator's untrained form
+    (initialised on ``init.data``'s training database images where it has a sample initialisation) and
+    the mask source from its directory, if any."""
+    merged = cfg.copy()
+    untrained_aggregator(merged, explicit)
+    if merged.model.get("pca_dim"):
+        raise SemvprError(
+            f"ckpt=none: model.pca_dim={merged.model.pca_dim} is a whitening fitted after VPR training; "
+            "use model.pca_dim=null"
+        )
+    if merged.mask.weights != "binary":
+        raise SemvprError(
+            f"ckpt=none: mask.weights={merged.mask.weights} has class weights that only VPR training learns; "
+            "use mask.weights=binary"
+        )
+    cls = component_class(merged, "mask")
+    if cls is not None and cls.needs in SEGMENTER_GROUPS and not merged[cls.needs].get("checkpoint"):
+        raise SemvprError(
+            f"ckpt=none: mask={merged.mask.name} needs a saved {cls.needs}: add {cls.needs}.checkpoint=DIR "
+            f"({_saved_as(cls.needs)})"
+        )
+    backbone = build_backbone(merged.backbone, int(merged.seed)).eval()
+    retriever = build_retriever(merged, backbone, build_mask_source(merged, backbone), training=False)
+    if retriever.aggregator.init_sample != "none":
+        used = initialise_untrained(merged, retriever, evaluated)
+        print(f"semvpr: ckpt=none: {merged.aggregator.name} initialised on {used}", file=sys.stderr)
+    return retriever, merged
+
+
+def untrained_aggregator(cfg: DictConfig, explicit: set[str]) -> None:
+    """Set ``cfg.aggregator.module`` to the aggregator's untrained form, refusing (one line) an aggregator
+    that has none, or a command-line setting the untrained form would change."""
+    cls = component_class(cfg, "aggregator")
+    if cls.untrained_form is None:
+        forms = ", ".join(name for name in options("aggregator") if _untrained_form(name) is not None)
+        raise SemvprError(
+            f"ckpt=none: aggregator={cfg.aggregator.name} has no untrained form (its layers are random until "
+            f"VPR training); evaluate a trained checkpoint, or ckpt=none with one of aggregator={forms}"
+        )
+    settings = {k: v for k, v in OmegaConf.to_container(cfg.aggregator.module, resolve=True).items()}  # type: ignore[union-attr]
+    untrained = cls.untrained_settings(settings)
+    for key, value in untrained.items():
+        if settings.get(key) == value:
+            continue
+        if f"aggregator.module.{key}" in explicit:
+            raise SemvprError(
+                f"ckpt=none: aggregator.module.{key}={settings.get(key)!r} has no untrained form (random "
+                f"until VPR training); {cfg.aggregator.name}'s is {cls.untrained_form}: drop the override"
+            )
+        with open_dict(cfg):
+            cfg.aggregator.module[key] = value
+
+
+def _untrained_form(choice: str) -> str | None:
+    """The untrained form of ``conf/aggregator/<choice>.yaml``'s class (None where it has none)."""
+    node = OmegaConf.load(Path(CONF_DIR) / "aggregator" / f"{choice}.yaml").get("module")
+    try:
+        return get_class(str(node.get("_target_"))).untrained_form
+    except Exception:  # noqa: BLE001 - a file that names no aggregator has no form to offer
+        return None
+
+
+def init_config(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with its data replaced by the place set ``init.data`` names (``init.root`` its folder where it
+    reads one, ``init.overrides`` more of its settings), at that set's own image size, and no mask: what an
+    untrained aggregator's k-means reads."""
+    overrides = [f"data={cfg.init.data}"]
+    if cfg.init.get("root") is not None:
+        overrides.append(f"data.root={cfg.init.root}")
+    overrides += [f"data.{o}" for o in cfg.init.get("overrides") or []]
+    composed = _compose("train", overrides)
+    out = cfg.copy()
+    with open_dict(out):
+        out.data = composed.data
+        out.mask = composed.mask  # none: the k-means sample is the trunk's features alone
+    return out
+
+
+def _compose(config_name: str, overrides: list[str]) -> DictConfig:
+    """The project's config ``config_name`` with ``overrides``, inside or outside a running Hydra app."""
+    from hydra import compose, initialize_config_dir
+
+    try:
+        if GlobalHydra.instance().is_initialized():
+            return compose(config_name=config_name, overrides=overrides)
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            return compose(config_name=config_name, overrides=overrides)
+    except SemvprError:
+        raise
+    except Exception as err:  # noqa: BLE001 - an unknown data choice or a bad override: one line
+        raise SemvprError(
+            f"init.data / init.root / init.overrides: {str(err).splitlines()[0] if str(err) else err!r}"
+        ) from None
+
+
+def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Callable[[], Iterable[Path]]) -> str:
+    """Initialise the retriever's aggregator as training would, on ``init.data``'s training database images
+    (refused if they include an evaluated image); returns what it used, in words."""
+    init_cfg = init_config(cfg)
+    if init_cfg.data.get("train") is None:
+        raise SemvprError(
+            f"init.data={cfg.init.data} has no train split to initialise {cfg.aggregator.name} on; name a place "
+            "set with one (synthcity, or folder / pitts30k / msls with init.root=DIR)"
+        )
+    places = build_places(init_cfg, ("train",))
+    train = places["train"]
+    seen = {p.resolve() for p in evaluated()}
+    shared = [p for p in train.db_paths if p.resolve() in seen] if seen else []
+    if shared:
+        raise SemvprError(
+            f"init.data={cfg.init.data}: {len(shared)} of its training images are evaluated here (e.g. {shared[0]}); "
+            "an untrained aggregator's k-means must not see the evaluated set: name another init.data"
+        )
+    backbone = retriever.backbone
+    semantic = build_semantic(init_cfg, train, backbone)
+    storage = feature_storage(init_cfg, backbone, places)
+    features = place_features(
+        train,
+        backbone,
+        backbone.frozen_identity(),
+        None,
+        None,
+        init_cfg.data.image_size,
+        init_cfg.paths.cache_dir,
+        storage,
+        int(init_cfg.model.eval_batch_size),
+        int(init_cfg.data.num_workers),
+    )
+    job = Prepared(places, backbone, semantic, None, {"train": features}, storage)
+    used = init_aggregator(init_cfg, retriever, job)
+    return f"{train.name} ({len(train.db_paths)} database images at {list(init_cfg.data.image_size)}): {used}"
 
 
 def explicit_keys() -> set[str]:

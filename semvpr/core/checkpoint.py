@@ -11,6 +11,10 @@ else is refused with one line naming the key, before anything is built or writte
 value that names a file or directory to read (``PATH_KEYS``) may be a Hugging Face id, never a
 local path, unless the eval invocation names that same path itself.
 
+A checkpoint whose model has a mask also records where its segmenter was trained (``segmenter``: a
+:class:`~semvpr.core.provenance.TrainedOn`), so that an evaluation on another kind of images can say
+so; checkpoints written before that record have none and read as before.
+
 Resuming training reads Lightning's callback state from the checkpoint too: :class:`RunCheckpoint`
 drops any path in it that lies outside the run's checkpoint directory, so a tampered or foreign
 ``last.ckpt`` can never make Lightning read or delete another file.
@@ -34,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
+from semvpr.core.provenance import TrainedOn
 
 FORMAT = 3
 #: Older formats read here: 2 recorded the training protocol in a ``model`` group (``model=netvlad``).
@@ -45,18 +50,27 @@ GROUPS = ("backbone", "aggregator", "mask", "teacher", "student")
 NODES = ("model",)
 _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
 #: Recorded (group, key)s whose value names something to read: a Hugging Face id or null.
-PATH_KEYS = (("teacher", "checkpoint"),)
+PATH_KEYS = (("teacher", "checkpoint"), ("student", "checkpoint"))
 _HF_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9][A-Za-z0-9_.\-]*$")
 
 
-def record_of(cfg: DictConfig) -> dict[str, Any]:
-    """What a checkpoint records about a run's model: format, group choices, plain values, seed."""
+def record_of(cfg: DictConfig, segmenter: TrainedOn | None = None) -> dict[str, Any]:
+    """What a checkpoint records about a run's model: format, group choices, plain values, seed, and the data
+    the mask's segmenter was trained on (``segmenter``; absent without one)."""
     config: dict[str, Any] = {}
     for group in (*GROUPS, *NODES):
         node = OmegaConf.to_container(cfg[group], resolve=True)
         assert isinstance(node, dict)
         config[group] = _plain(node)
-    return {"format": FORMAT, "choices": {g: str(cfg[g].name) for g in GROUPS}, "config": config, "seed": int(cfg.seed)}
+    record = {
+        "format": FORMAT,
+        "choices": {g: str(cfg[g].name) for g in GROUPS},
+        "config": config,
+        "seed": int(cfg.seed),
+    }
+    if segmenter is not None:
+        record["segmenter"] = segmenter.as_dict()
+    return record
 
 
 def _plain(node: Any) -> Any:
@@ -104,11 +118,15 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
     return ckpt["state_dict"], record
 
 
-def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpoint") -> DictConfig:
+def model_config(
+    record: dict[str, Any], base: DictConfig, where: str = "checkpoint", check_paths: bool = True
+) -> DictConfig:
     """``base`` (the invocation's config: data, paths, ...) with the recorded model, validated.
 
     Each group is replaced by the project's own file for the recorded choice; the recorded values
-    are then checked against that file (see the module docstring) and applied.
+    are then checked against that file (see the module docstring) and applied. ``check_paths=False``
+    leaves the recorded paths to the caller (:func:`check_recorded_paths`), which replaces them when
+    the invocation names another mask source.
     """
     choices, config = record.get("choices"), record.get("config")
     if not isinstance(choices, dict) or not isinstance(config, dict):
@@ -138,9 +156,25 @@ def model_config(record: dict[str, Any], base: DictConfig, where: str = "checkpo
         schema = OmegaConf.to_container(cfg[group], resolve=True)
         _check(stored, schema, f"{where}: {group}")
         cfg[group] = OmegaConf.merge(cfg[group], stored)
-    for group, key in PATH_KEYS:
-        _check_path_value(config.get(group, {}).get(key), base[group].get(key), f"{where}: {group}.{key}")
+    segmenter_of(record, where)
+    if check_paths:
+        check_recorded_paths(record, base, where)
     return cfg
+
+
+def check_recorded_paths(record: dict[str, Any], base: DictConfig, where: str = "checkpoint") -> None:
+    """Refuse a recorded value naming a local path (``PATH_KEYS``) that the invocation does not name itself."""
+    config = record.get("config") or {}
+    for group, key in PATH_KEYS:
+        stored = config.get(group, {}).get(key) if isinstance(config.get(group), dict) else None
+        _check_path_value(stored, base[group].get(key), f"{where}: {group}.{key}")
+
+
+def segmenter_of(record: dict[str, Any], where: str = "checkpoint") -> TrainedOn | None:
+    """The data the checkpoint's mask segmenter was trained on; None where the record does not say."""
+    if "segmenter" not in record:
+        return None
+    return TrainedOn.from_value(record["segmenter"], f"{where}: segmenter")
 
 
 def _from_filter(choices: dict[str, Any], config: dict[str, Any], where: str) -> tuple[dict, dict]:

@@ -7,8 +7,8 @@
   scored) and ``msls_val_pIdx.npy`` (their positives): 740 queries, 18,871 database images.
 - Patch-NetVLAD's ``.npz`` (``utmDb``, ``utmQ``, ``posDistThr``) with its image-list text files
   (one path per line, in the order of the positions).
-- Nordland by frame index: the two traversals are frame-aligned, so the positives of query frame
-  ``f`` are the database frames ``f - N .. f + N``.
+- Frame-aligned traversals (Nordland, Gardens Point, ...): one folder per traversal, images named
+  by frame, so the positives of query frame ``f`` are the database frames ``f - N .. f + N``.
 
 Sets without positions (the first, second and last) carry NaN UTMs; their ground truth is the
 shipped one. A set recognised by name has its counts checked against ``published.yaml``.
@@ -202,40 +202,77 @@ def read_patchnetvlad(
     )
 
 
-def _frames(folder: Path) -> tuple[list[Path], np.ndarray]:
-    """Images of a Nordland traversal and their frame numbers (the integer in each file name)."""
+def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
+    """Images of one traversal and their frame numbers, sorted by frame: the last integer in each file
+    name, or ``pattern``'s first group (matched against the whole file name)."""
     if not folder.is_dir():
         raise SemvprError(
-            f"Nordland folder {folder} not found; data.root should hold the database and query traversals"
+            f"traversal folder {folder} not found; data.root should hold one folder per traversal "
+            "(data.database, data.queries)"
         )
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not images:
         raise SemvprError(f"{folder}: no images (.jpg/.png)")
+    try:
+        regex = re.compile(pattern) if pattern is not None else None
+    except re.error as err:
+        raise SemvprError(f"data.frame_pattern={pattern!r} is not a regular expression ({err})") from None
     frames = []
     for path in images:
-        digits = re.findall(r"\d+", path.stem)
+        if regex is not None:
+            match = regex.fullmatch(path.name)
+            digits = [match.group(1)] if match and match.groups() and (match.group(1) or "").isdigit() else []
+            expected = f"a name matching data.frame_pattern={pattern!r}"
+        else:
+            digits = re.findall(r"\d+", path.stem)
+            expected = "the frame number in the file name"
         if not digits:
-            raise SemvprError(f"{path}: no frame number in the file name (Nordland images are named by frame)")
+            raise SemvprError(f"{path}: no frame number in the file name (expected {expected})")
         frames.append(int(digits[-1]))
     order = np.argsort(frames, kind="stable")
-    return [images[i] for i in order], np.asarray(frames, dtype=np.int64)[order]
+    images, numbers = [images[i] for i in order], np.asarray(frames, dtype=np.int64)[order]
+    repeated = np.flatnonzero(numbers[1:] == numbers[:-1])
+    if len(repeated):
+        i = int(repeated[0])
+        raise SemvprError(f"{folder}: {images[i].name} and {images[i + 1].name} are both frame {numbers[i]}")
+    return images, numbers
 
 
-def read_nordland(root: str | Path, frame_window: int, database: str = "ref", queries: str = "query") -> PlaceSet:
-    """Nordland (two frame-aligned traversals): the positives of query frame f are the database
-    frames within ``frame_window`` of f. Positions are (frame, 0): one unit is one frame."""
+def frames_name(name: str, database: str, queries: str, frame_window: int) -> str:
+    """A frame-aligned set's name in tables: the set, its traversals and the window."""
+    return f"{name} {database}→{queries} ±{frame_window}"
+
+
+def read_frames(
+    root: str | Path,
+    database: str,
+    queries: str,
+    frame_window: int,
+    name: str | None = None,
+    frame_pattern: str | None = None,
+) -> PlaceSet:
+    """Two frame-aligned traversals of one route (Nordland, Gardens Point, ...): ``root/database`` and
+    ``root/queries``, one folder each, images named by frame; frame f of every traversal shows the same
+    place, so the positives of query frame f are the database frames within ``frame_window`` of f.
+    Positions are (frame, 0): one unit is one frame. ``name`` (default: the root folder's name) heads
+    the set's name in tables, which also says the traversals and the window."""
     root = Path(root).expanduser()
     if not isinstance(frame_window, int) or isinstance(frame_window, bool) or frame_window < 0:
+        raise SemvprError(f"data.frame_window={frame_window!r}: expected a number of frames >= 0")
+    for key, value in (("data.database", database), ("data.queries", queries)):
+        if not isinstance(value, str) or not value or Path(value).name != value or value in (".", ".."):
+            raise SemvprError(f"{key}={value!r}: expected the name of a traversal folder under data.root")
+    if database == queries:
         raise SemvprError(
-            f"data.frame_window={frame_window!r}: expected a number of frames >= 0 (the tables use 1 and 10)"
+            f"data.database and data.queries are both {database!r}: every query would find itself; pick two traversals"
         )
-    db_paths, db_frames = _frames(root / database)
-    q_paths, q_frames = _frames(root / queries)
+    db_paths, db_frames = _frames(root / database, frame_pattern)
+    q_paths, q_frames = _frames(root / queries, frame_pattern)
     lo = np.searchsorted(db_frames, q_frames - frame_window, side="left")
     hi = np.searchsorted(db_frames, q_frames + frame_window, side="right")
     truth = tuple(np.arange(a, b, dtype=np.int64) for a, b in zip(lo, hi))
     return PlaceSet(
-        name=f"nordland±{frame_window}",
+        name=frames_name(name or root.resolve().name, database, queries, frame_window),
         root=root,
         db_paths=tuple(db_paths),
         q_paths=tuple(q_paths),

@@ -71,6 +71,26 @@ class MaskSource(nn.Module):
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         raise NotImplementedError
 
+    @property
+    def segmenter(self) -> nn.Module | None:
+        """The network that makes the probabilities (its ``trained_on`` says on what data), None for
+        ground truth."""
+        return None
+
+    def input_size(self, image_size: Sequence[int]) -> tuple[int, int] | None:
+        """The size the segmenter sees images of ``image_size`` at, where it resizes them; None: as given."""
+        return None
+
+    def identity(self, image_size: Sequence[int]) -> dict[str, object]:
+        """What the output depends on besides the weights (which a cache key hashes with the state dict):
+        the class, the static classes and the segmenter's input size."""
+        seen = self.input_size(image_size)
+        return {
+            "source": type(self).__name__,
+            "static": [float(v) for v in self.static_weight.tolist()],
+            "input_size": list(seen) if seen is not None else None,
+        }
+
     def static_prob(self, class_prob: Tensor) -> Tensor:
         """Probability of a static class, (B,1,H,W)."""
         return weighted_classes(class_prob, self.static_weight)
@@ -105,6 +125,16 @@ class TeacherMask(MaskSource):
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         return self.teacher.class_prob(images)
 
+    @property
+    def segmenter(self) -> nn.Module:
+        return self.teacher
+
+    def input_size(self, image_size: Sequence[int]) -> tuple[int, int] | None:
+        size = getattr(self.teacher, "inference_size", None)
+        if size is None or [int(v) for v in size] == [int(v) for v in image_size]:
+            return None
+        return int(size[0]), int(size[1])
+
 
 class StudentMask(MaskSource):
     """Class probabilities from the U-Net student over the backbone's own multi-scale features."""
@@ -119,6 +149,10 @@ class StudentMask(MaskSource):
     @torch.no_grad()
     def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
         return self.student.class_prob(skips, out_hw=images.shape[-2:])
+
+    @property
+    def segmenter(self) -> nn.Module:
+        return self.student
 
 
 class OracleMask(MaskSource):

@@ -3,12 +3,19 @@
 It learns the Cityscapes classes of the teacher's pseudo-labels (cross-entropy, 19 outputs); its
 static map is the sum of the static classes' probabilities, which is what the binary filter reads.
 How it is trained (once, cached) is ``semvpr.segmentation.training``.
+
+A trained student travels as a directory (``semvpr.segment`` writes ``<run>/student_<backbone>/``):
+``model.safetensors`` (the weights) and ``student.json`` (its architecture, the frozen trunk it decodes
+and the data it was trained on). :func:`load_student` reads one as data: no pickle, no code, known
+keys only, the trunk and every weight's name and shape checked.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -16,8 +23,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import atomic_dir, write_json
+from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import from_mapping
-from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES
+from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.models.masks import static_vector
 
 
@@ -40,6 +49,8 @@ class StudentSpec:
     #: Train on at most this many of the given images (a fixed random subset; None = all).
     max_images: int | None = None
     seed: int = 0
+    #: A student directory saved by ``semvpr.segment`` (read by eval, localize and the hub); None = trained.
+    checkpoint: str | None = None
 
     @classmethod
     def from_mapping(cls, node: Mapping[str, Any]) -> StudentSpec:
@@ -118,3 +129,158 @@ def student_architecture(spec: StudentSpec, backbone: nn.Module) -> Student:
         width=int(spec.width),
         static_names=list(spec.static_classes),
     )
+
+
+#: The files of a student directory; nothing else in it is read.
+WEIGHTS_FILE, SPEC_FILE = "model.safetensors", "student.json"
+STUDENT_FORMAT = 1
+#: Files a student directory must not hold: code, and pickles (which can run code when loaded).
+_REFUSED_SUFFIXES = {".py": "code", ".pyc": "code", ".so": "code", ".pt": "a pickle", ".pth": "a pickle",
+                     ".bin": "a pickle", ".pkl": "a pickle", ".pickle": "a pickle", ".ckpt": "a pickle"}  # fmt: skip
+_SPEC_KEYS = {"format", "spec", "backbone", "image_size", "trained_on"}
+
+
+def save_student(
+    student: Student,
+    spec: StudentSpec,
+    backbone_name: str,
+    backbone_identity: Mapping[str, Any],
+    image_size: Sequence[int],
+    trained_on: TrainedOn,
+    out: Path,
+) -> Path:
+    """Write ``student`` as a directory :func:`load_student` reads: ``model.safetensors`` and
+    ``student.json``; renamed into place when complete."""
+    from safetensors.torch import save_file
+
+    with atomic_dir(out) as tmp:
+        save_file({k: v.detach().cpu().contiguous() for k, v in student.state_dict().items()}, tmp / WEIGHTS_FILE)
+        write_json(
+            tmp / SPEC_FILE,
+            {
+                "format": STUDENT_FORMAT,
+                "spec": {"strides": [int(s) for s in spec.strides], "width": int(spec.width),
+                         "static_classes": [str(c) for c in spec.static_classes]},
+                "backbone": {"name": backbone_name, "frozen": dict(backbone_identity)},
+                "image_size": [int(v) for v in image_size],
+                "trained_on": trained_on.as_dict(),
+            },
+        )  # fmt: skip
+    return out
+
+
+def load_student(folder: str | Path, backbone: Any) -> Student:
+    """The student saved in ``folder`` over ``backbone``'s frozen features, in eval mode; its training data
+    in ``student.trained_on``. Refused in one line: a missing or foreign directory, code or pickles in it,
+    a ``student.json`` with unknown keys or values, another frozen trunk than ``backbone``'s, weights whose
+    names or shapes the recorded architecture does not have, or that are not finite."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    folder = Path(folder).expanduser()
+    where = f"student directory {folder}"
+    if not folder.is_dir():
+        raise SemvprError(
+            f"{where} not found; student.checkpoint=DIR names a student saved by semvpr.segment "
+            "(<segment run>/student_<backbone>)"
+        )
+    for path in sorted(folder.rglob("*")):
+        kind = _REFUSED_SUFFIXES.get(path.suffix.lower())
+        if kind is not None:
+            raise SemvprError(
+                f"{where} holds {path.relative_to(folder)} ({kind}); a student directory is {WEIGHTS_FILE} and "
+                f"{SPEC_FILE} only, and nothing in it is run or unpickled"
+            )
+    record = _read_spec(folder / SPEC_FILE)
+    spec, trunk = record["spec"], record["backbone"]
+    identity = dict(backbone.frozen_identity())
+    if trunk["frozen"] != identity:
+        raise SemvprError(
+            f"{where} decodes the frozen trunk of {trunk['name']} ({_trunk(trunk['frozen'])}); this model's is "
+            f"{_trunk(identity)}: use a student trained on this backbone (semvpr.segment backbones=...)"
+        )
+    student = Student(
+        backbone.frozen_channels,
+        backbone.frozen_strides,
+        strides=spec["strides"],
+        width=spec["width"],
+        static_names=spec["static_classes"],
+    )
+    weights = folder / WEIGHTS_FILE
+    if not weights.is_file():
+        raise SemvprError(f"{where} has no {WEIGHTS_FILE} (only safetensors weights are read)")
+    try:
+        state = load_file(weights)
+    except (SafetensorError, OSError, ValueError) as err:
+        detail = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise SemvprError(f"{weights} is not readable safetensors ({detail})") from None
+    expected = student.state_dict()
+    missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
+    if missing or unexpected:
+        first = f"lacks {missing[0]!r}, which" if missing else f"has {unexpected[0]!r}, which"
+        raise SemvprError(
+            f"{weights} {first} the architecture in {SPEC_FILE} {'has' if missing else 'does not have'} "
+            f"({len(missing)} missing, {len(unexpected)} unexpected weights)"
+        )
+    for name, tensor in state.items():
+        if tuple(tensor.shape) != tuple(expected[name].shape):
+            raise SemvprError(
+                f"{weights}: {name!r} is {list(tensor.shape)}, the architecture in {SPEC_FILE} makes "
+                f"{list(expected[name].shape)}"
+            )
+        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+            raise SemvprError(f"{weights}: {name!r} is not finite; the student is damaged")
+    student.load_state_dict(state, strict=True)
+    student.trained_on = TrainedOn.from_value(record["trained_on"], f"{folder / SPEC_FILE}: trained_on")  # type: ignore[attr-defined]
+    return student.eval().requires_grad_(False)
+
+
+def _trunk(identity: Mapping[str, Any]) -> str:
+    return f"{identity.get('class')}, train_from={identity.get('train_from')}, weights {identity.get('frozen')}"
+
+
+def _read_spec(path: Path) -> dict[str, Any]:
+    """``student.json``, every key and value checked (a plain record of the project's own values)."""
+    if not path.is_file():
+        raise SemvprError(f"{path} not found; a student directory holds {SPEC_FILE} beside {WEIGHTS_FILE}")
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, UnicodeDecodeError) as err:
+        raise SemvprError(f"{path} is not readable JSON ({type(err).__name__})") from None
+    if not isinstance(record, dict):
+        raise SemvprError(f"{path} is not a JSON object")
+    unknown = sorted(set(record) - _SPEC_KEYS)
+    if unknown:
+        raise SemvprError(f"{path}: key {unknown[0]!r} is not part of a student record (keys: {sorted(_SPEC_KEYS)})")
+    if record.get("format") != STUDENT_FORMAT:
+        raise SemvprError(f"{path}: format={record.get('format')!r}, this semvpr reads format {STUDENT_FORMAT}")
+    spec = record.get("spec")
+    if not isinstance(spec, dict) or set(spec) != {"strides", "width", "static_classes"}:
+        raise SemvprError(f"{path}: spec must hold exactly strides, width and static_classes")
+    strides, width, classes = spec["strides"], spec["width"], spec["static_classes"]
+    if not (isinstance(strides, list) and strides and all(_count(s, 64) for s in strides)):
+        raise SemvprError(f"{path}: spec.strides={strides!r} is not a list of strides from 1 to 64")
+    if not _count(width, 4096):
+        raise SemvprError(f"{path}: spec.width={width!r} is not a whole number from 1 to 4096")
+    if not (isinstance(classes, list) and all(isinstance(c, str) and c in TRAIN_ID_NAMES for c in classes)):
+        raise SemvprError(f"{path}: spec.static_classes must be Cityscapes class names")
+    trunk = record.get("backbone")
+    frozen = trunk.get("frozen") if isinstance(trunk, dict) else None
+    if not (
+        isinstance(trunk, dict)
+        and set(trunk) == {"name", "frozen"}
+        and isinstance(trunk["name"], str)
+        and isinstance(frozen, dict)
+        and set(frozen) == {"class", "train_from", "frozen"}
+        and all(v is None or isinstance(v, str) for v in frozen.values())
+    ):
+        raise SemvprError(f"{path}: backbone must be {{'name': str, 'frozen': the trunk's frozen identity}}")
+    size = record.get("image_size")
+    if not (isinstance(size, list) and len(size) == 2 and all(_count(v, 100_000) for v in size)):
+        raise SemvprError(f"{path}: image_size={size!r} is not [H, W]")
+    TrainedOn.from_value(record.get("trained_on"), f"{path}: trained_on")
+    return record
+
+
+def _count(value: Any, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= high

@@ -21,7 +21,9 @@ from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation,
 
 from semvpr.core.cache import config_hash
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import write_json
 from semvpr.core.precision import autocast
+from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import from_mapping, plain
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
 from semvpr.models.backbones import (
@@ -79,7 +81,9 @@ class TeacherSpec:
     name: str = "mask2former"
     #: A Hugging Face id (local cache only) or a local directory; None = the embedded teacher.
     checkpoint: str | None = None
-    #: [H, W] a pretrained checkpoint sees; None = as given.
+    #: [H, W] the teacher sees (images are resized, predictions resized back); None = the size it was
+    #: trained at where that is known (the embedded teacher's image_size, a semvpr.segment directory's
+    #: semvpr.json), else as given.
     inference_size: Sequence[int] | None = None
     static_classes: Sequence[str] = STATIC_NAMES
     dynamic_classes: Sequence[str] = DYNAMIC_NAMES
@@ -127,6 +131,8 @@ class Teacher(L.LightningModule):
             self.model.model.pixel_level_module.encoder.requires_grad_(False)
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
         self.source_hash = ""  # a pretrained checkpoint's content hash (load_pretrained)
+        #: The data it was trained on, where known (a semvpr.segment directory's semvpr.json).
+        self.trained_on: TrainedOn | None = None
         names = {_norm_name(n): i for i, n in enumerate(TRAIN_ID_NAMES)}
         model_to_train = [names.get(_norm_name(self.id2label[i]), IGNORE) for i in range(len(self.id2label))]
         if all(t == IGNORE for t in model_to_train):
@@ -323,10 +329,15 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
     Nothing in the directory is run or asked about: its ``config.json`` must describe a plain
     Mask2Former (``model_type`` mask2former, no ``auto_map``), the weights are read from
     ``model.safetensors`` (or ``pytorch_model.bin`` with a weights-only load), and the image
-    normalisation comes from ``preprocessor_config.json`` (ImageNet's when there is none).
+    normalisation comes from ``preprocessor_config.json`` (ImageNet's when there is none). A directory
+    written by ``semvpr.segment`` also holds ``semvpr.json`` (:func:`write_teacher_record`): the size the
+    teacher was trained at, its inference size unless ``inference_size`` is given, and its training data.
     """
     folder = _checkpoint_dir(checkpoint)
     config = _mask2former_config(folder)
+    record = read_teacher_record(folder)
+    if record is not None and kwargs.get("inference_size") is None:
+        kwargs["inference_size"] = record["image_size"]
     weights = next((folder / name for name in WEIGHT_FILES if (folder / name).is_file()), None)
     if weights is None:
         raise SemvprError(
@@ -349,7 +360,47 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
     teacher = Teacher(model, image_mean=mean, image_std=std, **kwargs)
     # What makes its predictions: the bytes of its weights and config, and the normalisation.
     teacher.source_hash = config_hash([file_hash(weights), file_hash(folder / "config.json"), mean, std])
+    if record is not None:
+        teacher.trained_on = record["trained_on"]
     return teacher
+
+
+#: What ``semvpr.segment`` writes beside a teacher's Hugging Face files.
+TEACHER_RECORD = "semvpr.json"
+TEACHER_RECORD_FORMAT = 1
+
+
+def write_teacher_record(folder: Path, image_size: Sequence[int], trained_on: TrainedOn) -> None:
+    """``semvpr.json`` in a teacher directory: the size it was trained at and the data it was trained on."""
+    write_json(
+        folder / TEACHER_RECORD,
+        {
+            "format": TEACHER_RECORD_FORMAT,
+            "image_size": [int(v) for v in image_size],
+            "trained_on": trained_on.as_dict(),
+        },
+    )
+
+
+def read_teacher_record(folder: Path) -> dict[str, Any] | None:
+    """A teacher directory's ``semvpr.json`` checked (``image_size`` a list, ``trained_on`` a
+    :class:`TrainedOn`), or None where there is none (a Hub checkpoint)."""
+    path = folder / TEACHER_RECORD
+    if not path.is_file():
+        return None
+    data = _read_json(path)
+    if set(data) != {"format", "image_size", "trained_on"} or data["format"] != TEACHER_RECORD_FORMAT:
+        raise SemvprError(
+            f"{path}: expected exactly format {TEACHER_RECORD_FORMAT}, image_size and trained_on, got {sorted(data)}"
+        )
+    size = data["image_size"]
+    if not (
+        isinstance(size, list)
+        and len(size) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 100_000 for v in size)
+    ):
+        raise SemvprError(f"{path}: image_size={size!r} is not [H, W]")
+    return {"image_size": list(size), "trained_on": TrainedOn.from_value(data["trained_on"], f"{path}: trained_on")}
 
 
 def _checkpoint_dir(checkpoint: str) -> Path:
@@ -446,12 +497,16 @@ def teacher_architecture(spec: TeacherSpec) -> Teacher:
     if spec.checkpoint:
         teacher = load_pretrained(str(spec.checkpoint), **_teacher_kwargs(spec))
         # Keyed by content, not by name: a directory whose weights changed is another teacher.
-        inference_size = list(spec.inference_size) if spec.inference_size is not None else None
+        inference_size = list(teacher.inference_size) if teacher.inference_size is not None else None
         teacher.teacher_key = f"pretrained-{config_hash([teacher.source_hash, inference_size])}"
         return teacher
     return embedded_teacher(spec)
 
 
 def embedded_teacher(spec: TeacherSpec) -> Teacher:
-    """The embedded teacher this spec describes, untrained (its backbone's ImageNet weights loaded)."""
-    return Teacher(embedded_model(spec.model), **embedded_normalisation(spec.model), **_teacher_kwargs(spec))
+    """The embedded teacher this spec describes, untrained (its backbone's ImageNet weights loaded); it sees
+    images at ``spec.inference_size``, by default the ``image_size`` it trains at."""
+    kwargs = _teacher_kwargs(spec)
+    if kwargs["inference_size"] is None:
+        kwargs["inference_size"] = list(spec.image_size)
+    return Teacher(embedded_model(spec.model), **embedded_normalisation(spec.model), **kwargs)

@@ -84,7 +84,8 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
                 "database": result["database"],
                 "descriptor_dim": result["descriptor_dim"],
                 "wall_s": result["wall_s"],
-                "source": f"measured: {result['model']} ({result['aggregator']}, mask={result['mask']}), "
+                "source": f"measured: {result['model']} ({result['aggregator']}, mask={result['mask']}"
+                f"{' from ' + str(result['mask_checkpoint']) if result.get('mask_checkpoint') else ''}), "
                 f"{result['checkpoint']}",
             }
         )

@@ -18,9 +18,14 @@ from semvpr.retrieval.retriever import Retriever
 def place_descriptors(
     retriever: Retriever, places: PlaceSet, side: str, image_size: Sequence[int], cache_dir: str | Path
 ) -> np.ndarray:
-    """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``)."""
+    """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
+    the model's weights (the mask source's included), the mask source's settings and weighting, and the
+    images."""
     paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
     key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
+    if retriever.mask_source is not None:
+        # Another mask source (or the same weights at another input size) gives other descriptors.
+        key["mask"] = {**retriever.mask_source.identity(image_size), "weighting": retriever.weighting}
     dim = retriever.descriptor_dim
 
     def build(tmp: Path) -> None:

@@ -180,7 +180,8 @@ def build_student(
         keep = torch.randperm(len(paths), generator=torch.Generator().manual_seed(int(spec.seed)))[: spec.max_images]
         paths = [paths[i] for i in sorted(keep.tolist())]
     size = [int(image_size[0]), int(image_size[1])]
-    key = {"version": STUDENT_VERSION, "student": dataclasses.asdict(spec),
+    settings = {k: v for k, v in dataclasses.asdict(spec).items() if k != "checkpoint"}  # read, never trained
+    key = {"version": STUDENT_VERSION, "student": settings,
            "backbone": backbone.frozen_identity(), "labels": label_dir.name, "image_size": size}  # fmt: skip
 
     def build(out: Path) -> None:

@@ -16,13 +16,16 @@ this interface:
 - ``init_sample`` / ``init_from_sample``: what initialisation sample the aggregator needs, if any
   (NetVLAD: k-means on local features; SRAL: the same features with static / dynamic labels), and
   ``init_min_static``: how many sampled locations a labelled init needs to call static;
-- ``attention(features)``: an optional per-location map (B,1,h,w) for the report figures.
+- ``attention(features)``: an optional per-location map (B,1,h,w) for the report figures;
+- ``untrained_form`` / ``untrained_settings``: what the aggregator is with no VPR training (``semvpr.eval
+  ckpt=none``: its weights at construction, and its sample initialisation where it has one), or None
+  where that would be random layers (MixVPR, SALAD, BoQ).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor, nn
@@ -36,6 +39,14 @@ class Aggregator(nn.Module, ABC):
 
     #: What ``init_from_sample`` needs; "labelled" makes the run build the teacher's pseudo-labels.
     init_sample: ClassVar[InitSample] = "none"
+    #: What the aggregator is with no VPR training, in words (``ckpt=none``); None: nothing meaningful (its
+    #: layers would be random).
+    untrained_form: ClassVar[str | None] = None
+
+    @classmethod
+    def untrained_settings(cls, settings: dict[str, Any]) -> dict[str, Any]:
+        """The constructor settings of the untrained form, from the configured ones (by default the same)."""
+        return dict(settings)
 
     @property
     def init_min_static(self) -> int:

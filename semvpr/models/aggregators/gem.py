@@ -16,6 +16,8 @@ BoQ have.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -26,6 +28,13 @@ from semvpr.models.aggregators.base import Aggregator, check_weights
 class GeM(Aggregator):
     """Weighted generalised-mean pooling: (B,D,h,w) [+ (B,1,h,w) mask] → (B,D) L2-normalised, or
     (B,fc_dim) with CosPlace's head."""
+
+    untrained_form = "the plain GeM at its initial p (3), no head"
+
+    @classmethod
+    def untrained_settings(cls, settings: dict[str, Any]) -> dict[str, Any]:
+        """The plain GeM: the head is a linear layer that only VPR training makes meaningful."""
+        return {**settings, "fc_dim": None}
 
     def __init__(self, dim: int, p: float = 3.0, eps: float = 1e-6, fc_dim: int | None = None) -> None:
         super().__init__()

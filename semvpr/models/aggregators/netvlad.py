@@ -121,6 +121,7 @@ class NetVLAD(Aggregator):
     """
 
     init_sample = "features"
+    untrained_form = "k-means centroids of a training set's local features"
 
     def __init__(self, num_clusters: int = 64, dim: int = 512) -> None:
         super().__init__()

@@ -47,6 +47,7 @@ class SRAL(NetVLAD):
     """
 
     init_sample = "labelled"
+    untrained_form = "semantic k-means of a training set's local features, labelled by the teacher"
 
     def __init__(self, num_clusters: int = 64, dim: int = 512, num_shadows: int = 4) -> None:
         super().__init__(num_clusters, dim)

@@ -1,0 +1,137 @@
+"""What a mask costs at evaluation: the teacher's and the student's images/s against the trunk pass alone,
+on this CPU, measured in one run.
+
+Evaluation describes each image once: the frozen trunk (EfficientNet-Lite0 to its stride-16 stage, the
+default) then the aggregator, and with a mask also the mask source. The student is a U-Net decoder on the
+trunk's own skip features, so its mask costs the decoder alone (the trunk pass is shared); the teacher is
+a second network (Mask2Former on its own EfficientNet-Lite0) that sees every image too. Each is built from
+the project's configs as ``semvpr.segment`` trains them for CamVid (teacher model of
+``conf/teacher/mask2former.yaml``, student width 64 of ``conf/segment.yaml``); speed does not depend on
+the weights, so they are untrained. Images are random, at 270x480 (Gardens Point's size in
+``data=gardens_point``), under the pipeline's precision (bf16 autocast where the CPU runs it natively).
+
+Timed, each the median over ``--repeats`` batches after one warm-up:
+- ``trunk``: the trunk pass alone (``forward_frozen``, no skips kept): an evaluation without a mask;
+- ``trunk+student``: the trunk pass keeping the skips, the decoder and the grid mask: what an evaluation
+  with ``mask=student`` runs per image;
+- ``student decoder``: the decoder and grid mask alone on the trunk's skips (the student's own cost);
+- ``teacher@HxW``: the teacher's grid mask with the teacher seeing the images at HxW: 270x480 (as given)
+  and 180x240 (the size the CamVid teacher trains at: a semvpr.segment teacher's ``semvpr.json`` makes it
+  its inference size, and the embedded teacher's is its ``image_size``).
+
+    python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1]
+
+Last line: ``name=value`` pairs, ratios of times measured in this run: ``student_over_trunk`` (an
+evaluation with the student's mask over one without), ``trunk_share_of_student`` (the part of the
+student's pass that is the shared trunk), ``teacher_over_trunk`` (trunk + teacher at 270x480 over the
+trunk), ``teacher_inference_over_trunk`` (the same with the teacher at 180x240) and ``teacher_cut``
+(teacher at 270x480 over teacher at 180x240).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from semvpr.core.io import CONF_DIR
+from semvpr.core.precision import autocast, bf16_native
+from semvpr.models.backbones import EfficientNetLite0Backbone
+from semvpr.models.masks import StudentMask, TeacherMask
+from semvpr.models.student import StudentSpec, student_architecture
+from semvpr.models.teacher import TeacherSpec, embedded_teacher
+from semvpr.retrieval.features import grid_size
+
+SIZE = (270, 480)
+TEACHER_TRAINED_AT = (180, 240)
+
+
+def seconds_per_image(run: Callable[[], object], batch: int, repeats: int) -> float:
+    """Median seconds per image of ``run`` (one batch), after one warm-up call."""
+    times = []
+    for i in range(repeats + 1):
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            run()
+        if i:
+            times.append(time.perf_counter() - t0)
+    return sorted(times)[len(times) // 2] / batch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    bf16 = bf16_native("cpu")
+    conf = Path(CONF_DIR)
+    backbone = EfficientNetLite0Backbone(weights="imagenet").eval()
+    student_node = OmegaConf.load(conf / "student" / "unet.yaml")
+    student_node.width = OmegaConf.load(conf / "segment.yaml").student.width
+    del student_node["static_classes"]  # the teacher's list there; the default list here
+    student_spec = StudentSpec.from_mapping(student_node)
+    student = StudentMask(student_architecture(student_spec, backbone))
+    teacher_node = OmegaConf.load(conf / "teacher" / "mask2former.yaml")
+    teacher_node.image_size = list(TEACHER_TRAINED_AT)
+    teachers = {
+        size: TeacherMask(
+            embedded_teacher(
+                TeacherSpec.from_mapping({**OmegaConf.to_container(teacher_node), "inference_size": list(size)})
+            )
+        )
+        for size in (SIZE, TEACHER_TRAINED_AT)
+    }
+    images = torch.rand(args.batch, 3, *SIZE, generator=torch.Generator().manual_seed(0)).contiguous(
+        memory_format=torch.channels_last
+    )
+    grid = grid_size(backbone, SIZE)
+    with autocast("cpu"):
+        skips = backbone.forward_frozen(images)
+    print(
+        f"{args.batch} images at {SIZE[0]}x{SIZE[1]}, grid {grid}, {'bf16' if bf16 else 'fp32'}, "
+        f"{args.threads} thread(s); student width {student_spec.width}"
+    )
+
+    def timed(label: str, run: Callable[[], object]) -> float:
+        def under_autocast() -> object:
+            with autocast("cpu"):
+                return run()
+
+        s = seconds_per_image(under_autocast, args.batch, args.repeats)
+        print(f"{label:>28}: {1 / s:7.2f} images/s ({1000 * s:7.1f} ms per image)")
+        return s
+
+    t = {
+        "trunk": timed("trunk", lambda: backbone.forward_frozen(images, keep_scales=False)),
+        "trunk+student": timed(
+            "trunk+student (mask=student)",
+            lambda: student.grid_mask(images, backbone.forward_frozen(images), None, grid),
+        ),
+        "student": timed("student decoder alone", lambda: student.grid_mask(images, skips, None, grid)),
+    }
+    for size, teacher in teachers.items():
+        t[f"teacher@{size[0]}x{size[1]}"] = timed(
+            f"teacher seeing {size[0]}x{size[1]}", lambda teacher=teacher: teacher.grid_mask(images, [], None, grid)
+        )
+    teacher_full = t[f"teacher@{SIZE[0]}x{SIZE[1]}"]
+    teacher_small = t[f"teacher@{TEACHER_TRAINED_AT[0]}x{TEACHER_TRAINED_AT[1]}"]
+    print(
+        f"trunk_ips={1 / t['trunk']:.2f} student_ips={1 / t['trunk+student']:.2f} "
+        f"teacher_ips={1 / (t['trunk'] + teacher_full):.2f} "
+        f"teacher_inference_ips={1 / (t['trunk'] + teacher_small):.2f} "
+        f"student_over_trunk={t['trunk+student'] / t['trunk']:.2f} "
+        f"trunk_share_of_student={t['trunk'] / t['trunk+student']:.2f} "
+        f"teacher_over_trunk={(t['trunk'] + teacher_full) / t['trunk']:.2f} "
+        f"teacher_inference_over_trunk={(t['trunk'] + teacher_small) / t['trunk']:.2f} "
+        f"teacher_cut={teacher_full / teacher_small:.2f}"
+    )
+
+
+if __name__ == "__main__":
+    main()
