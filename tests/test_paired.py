@@ -1,0 +1,52 @@
+"""Paired bootstrap gains: the mean difference of hit rates and an interval that covers what it should."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semvpr.reporting.paired import paired_gain
+
+
+def test_the_gain_is_the_difference_of_hit_rates_in_points() -> None:
+    ref = np.array([1, 0, 0, 1, 0, 1, 0, 0, 1, 0] * 20, bool)
+    new = ref.copy()
+    new[[1, 2, 4]] = True  # three more queries found, out of 200
+    gain = paired_gain(new, ref)
+    assert gain.gain == pytest.approx(1.5) and gain.queries == 200
+    assert gain.low <= gain.gain <= gain.high and gain.low >= 0.0  # no query got worse: never below 0
+
+
+def test_identical_runs_give_a_zero_width_interval_and_no_significance() -> None:
+    hits = np.random.default_rng(0).random(150) < 0.6
+    gain = paired_gain(hits, hits)
+    assert (gain.gain, gain.low, gain.high, gain.significant) == (0.0, 0.0, 0.0, False)
+
+
+def test_the_interval_matches_the_normal_approximation_on_a_large_sample() -> None:
+    """For n paired differences d_i in {-1, 0, 1} the 95 % interval of the mean is about mean ± 1.96 s/√n."""
+    rng = np.random.default_rng(1)
+    ref = rng.random(2000) < 0.5
+    new = np.where(rng.random(2000) < 0.1, ~ref, ref) | (rng.random(2000) < 0.05)
+    gain = paired_gain(new, ref, resamples=4000)
+    d = 100.0 * (new.astype(float) - ref.astype(float))
+    half = 1.96 * d.std(ddof=1) / np.sqrt(len(d))
+    assert gain.low == pytest.approx(d.mean() - half, abs=0.35) and gain.high == pytest.approx(
+        d.mean() + half, abs=0.35
+    )
+
+
+def test_a_small_gain_on_few_queries_is_not_significant_and_a_large_one_is() -> None:
+    rng = np.random.default_rng(2)
+    ref = rng.random(200) < 0.5
+    small = ref.copy()
+    small[np.flatnonzero(~ref)[:3]] = True
+    small[np.flatnonzero(ref)[:1]] = False  # +2 points net on 200 queries
+    assert not paired_gain(small, ref).significant
+    large = ref | (rng.random(200) < 0.3)
+    assert paired_gain(large, ref).significant and paired_gain(ref, large).high < 0
+
+
+def test_the_pairing_must_be_on_the_same_queries() -> None:
+    with pytest.raises(ValueError, match="same length"):
+        paired_gain(np.ones(5), np.ones(6))
