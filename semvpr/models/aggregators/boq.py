@@ -13,8 +13,9 @@ the flattened d·row_dim matrix is L2-normalised.
 Mask: log w_i is added to the attention logit of every key i, in the cross-attention and in the
 encoder's self-attention (otherwise a masked token would still reach the others through the
 encoder), so each softmax over locations becomes w_i·exp(s_i) / Σ_j w_j·exp(s_j). A weight of 0
-removes the location exactly (its bias is −10⁴, whose exp is 0 in float32). The k×k projection is a
-normalised convolution, so that a masked location cannot leak into its neighbours' tokens either:
+removes the location exactly (its bias is −10⁴, whose exp is 0 in float32). A k×k projection (k > 1)
+is a normalised convolution (in fp32), so that a masked location cannot leak into its neighbours'
+tokens either:
 
     P(x)_p = b + K * (w ⊙ x)_p · |N_p| / Σ_{q ∈ N_p} w_q,
 
