@@ -20,7 +20,11 @@ from tests.helpers import config
 torch.set_num_threads(2)
 D, H, W = 32, 4, 5
 #: Variants beyond the shipped files, as overrides of them.
-AGGREGATOR_VARIANTS = {"gem (plain)": ("gem", ["aggregator.module.fc_dim=null"])}
+AGGREGATOR_VARIANTS = {
+    "gem (plain)": ("gem", ["aggregator.module.fc_dim=null"]),
+    "boq (1x1)": ("boq", ["aggregator.module.proj_kernel=1"]),
+    "boq (3x3)": ("boq", ["aggregator.module.proj_kernel=3"]),
+}
 AGGREGATORS = {name: (name, []) for name in options("aggregator")} | AGGREGATOR_VARIANTS
 
 
@@ -75,15 +79,20 @@ def test_a_mask_that_keeps_nothing_gives_the_unmasked_descriptor(name: str) -> N
         assert not torch.allclose(out[0], unmasked[0], atol=1e-4)
 
 
+#: Feature scale of the zero-weight test: trained-like activations, which give SALAD's cluster scores a
+#: std of about 5 (unscaled random features give about 0.25, at which a leak stays below the tolerance).
+TRAINED_SCALE = 20.0
+
+
 @pytest.mark.parametrize("name", AGGREGATORS)
 def test_zero_weight_location_has_no_influence(name: str) -> None:
-    agg, x = build_aggregator(name), torch.randn(2, D, H, W)
+    agg, x = build_aggregator(name), TRAINED_SCALE * torch.randn(2, D, H, W)
     weights = torch.rand(2, 1, H, W) * 0.9 + 0.1
     weights[:, :, 1, 2] = 0.0
     weights[1, :, 3, 0] = 0.0
     moved = x.clone()
-    moved[:, :, 1, 2] += 5.0 * torch.randn(2, D)
-    moved[1, :, 3, 0] = -7.0
+    moved[:, :, 1, 2] += 5.0 * TRAINED_SCALE * torch.randn(2, D)
+    moved[1, :, 3, 0] = -7.0 * TRAINED_SCALE
     with torch.no_grad():
         base, after = agg(x, weights), agg(moved, weights)
         torch.testing.assert_close(after, base, rtol=0, atol=1e-6)

@@ -1,8 +1,9 @@
 """BoQ: Bag-of-Queries aggregation (Ali-bey, Chaib-draa & Giguère, CVPR 2024), with a per-location mask.
 
-The (B,C,h,w) map is projected to d channels and layer-normalised into n = h·w tokens X⁰. Each of L
-blocks runs a Transformer encoder layer on the tokens (post-norm, ReLU MLP of width 4d, no dropout:
-PyTorch's ``TransformerEncoderLayer`` as the authors), then lets Q learnable queries attend to them:
+The (B,C,h,w) map is projected to d channels by a k×k convolution (the authors' 3×3, padding 1, with
+a bias) and layer-normalised into n = h·w tokens X⁰. Each of L blocks runs a Transformer encoder
+layer on the tokens (post-norm, ReLU MLP of width 4d, no dropout: PyTorch's
+``TransformerEncoderLayer`` as the authors), then lets Q learnable queries attend to them:
 
     X^l = Encoder(X^{l−1});   Q̂ = LN(Q + SelfAttn(Q, Q, Q));   O^l = LN(CrossAttn(Q̂, X^l, X^l)).
 
@@ -12,9 +13,15 @@ the flattened d·row_dim matrix is L2-normalised.
 Mask: log w_i is added to the attention logit of every key i, in the cross-attention and in the
 encoder's self-attention (otherwise a masked token would still reach the others through the
 encoder), so each softmax over locations becomes w_i·exp(s_i) / Σ_j w_j·exp(s_j). A weight of 0
-removes the location exactly (its bias is −10⁴, whose exp is 0 in float32). The authors project with
-a 3×3 convolution (ResNet); here the projection is 1×1 so that a masked location cannot leak into
-its neighbours before the attention sees the mask.
+removes the location exactly (its bias is −10⁴, whose exp is 0 in float32). A k×k projection (k > 1)
+is a normalised convolution (in fp32), so that a masked location cannot leak into its neighbours'
+tokens either:
+
+    P(x)_p = b + K * (w ⊙ x)_p · |N_p| / Σ_{q ∈ N_p} w_q,
+
+with N_p the in-image locations of p's window (zero padding, as the authors). With w ≡ 1 the ratio is
+exactly 1, at the border too, and this is the authors' convolution. ``proj_kernel=1`` is a
+per-location projection instead (no renormalisation needed).
 """
 
 from __future__ import annotations
@@ -23,9 +30,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from semvpr.core.errors import SemvprError
 from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
 
 HEAD_DIM = 64  # the authors' heads: d // 64 of them
+#: A projection window whose mean weight is below this is masked out whole: its token is the bias.
+WINDOW_EPS = 1.0e-6
 
 
 class EncoderLayer(nn.Module):
@@ -75,11 +85,21 @@ class BoQ(Aggregator):
     """Bag-of-Queries: (B,C,h,w) [+ mask] → (B, proj_channels·row_dim) L2-normalised."""
 
     def __init__(
-        self, dim: int, proj_channels: int = 256, num_queries: int = 32, num_layers: int = 2, row_dim: int = 8
+        self,
+        dim: int,
+        proj_channels: int = 256,
+        num_queries: int = 32,
+        num_layers: int = 2,
+        row_dim: int = 8,
+        proj_kernel: int = 3,
     ) -> None:
+        """``proj_kernel``: the input projection's odd kernel size (3: the authors' 3×3, as a normalised
+        convolution under a mask; 1: per location)."""
         super().__init__()
-        self.proj_channels, self.row_dim = proj_channels, row_dim
-        self.proj_c = nn.Conv2d(dim, proj_channels, kernel_size=1)
+        if proj_kernel < 1 or proj_kernel % 2 == 0:
+            raise SemvprError(f"aggregator.module.proj_kernel must be an odd kernel size (1 or 3), got {proj_kernel}")
+        self.proj_channels, self.row_dim, self.proj_kernel = proj_channels, row_dim, proj_kernel
+        self.proj_c = nn.Conv2d(dim, proj_channels, kernel_size=proj_kernel, padding=proj_kernel // 2)
         self.norm_input = nn.LayerNorm(proj_channels)
         self.blocks = nn.ModuleList([BoQBlock(proj_channels, num_queries) for _ in range(num_layers)])
         self.fc = nn.Linear(num_layers * num_queries, row_dim)
@@ -89,10 +109,27 @@ class BoQ(Aggregator):
         """Descriptor length proj_channels · row_dim."""
         return self.proj_channels * self.row_dim
 
+    def project(self, x: Tensor, weights: Tensor | None) -> Tensor:
+        """The input projection (B,d,h,w) of (B,C,h,w) features: the plain convolution for a 1×1 kernel,
+        else the normalised convolution of the module docstring (w ≡ 1 without a mask)."""
+        if self.proj_kernel == 1:
+            return self.proj_c(x)
+        # In fp32 (autocast off): the renormalisation divides by window weights down to WINDOW_EPS, which
+        # would magnify bf16 rounding.
+        with torch.autocast(x.device.type, enabled=False):
+            x = x.float()
+            w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
+            k = self.proj_kernel
+            # Σ_{q∈N_p} w_q / |N_p|: the window's mean weight over its in-image locations (1 exactly for w ≡ 1).
+            mean_w = F.avg_pool2d(w, k, stride=1, padding=k // 2, count_include_pad=False)
+            y = self.proj_c(x * w)  # b + K * (w ⊙ x)
+            # b + (y − b) / mean_w, written so that y stays untouched (bit for bit) where mean_w = 1.
+            return y + (y - self.proj_c.bias[:, None, None]) * (1.0 / mean_w.clamp_min(WINDOW_EPS) - 1.0)
+
     def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
         """Tokens through the blocks with the mask as a key bias, query outputs → rows → L2."""
         weights = check_weights(x, weights)
-        tokens = self.norm_input(self.proj_c(x).flatten(2).transpose(1, 2))  # (B, n, d)
+        tokens = self.norm_input(self.project(x, weights).flatten(2).transpose(1, 2))  # (B, n, d)
         b, n, _ = tokens.shape
         # Without a mask the bias is 0 everywhere: one code path, so w ≡ 1 is the unmasked model exactly.
         key_bias = tokens.new_zeros(b, n) if weights is None else log_weights(weights).flatten(1).expand(b, n)

@@ -2,8 +2,10 @@
 
 The (B,C,h,w) map is flattened to C rows of h·w values; L Feature-Mixer layers each add an MLP of
 the row (LayerNorm → Linear(hw, r·hw) → ReLU → Linear(r·hw, hw)) to it; a channel projection
-(Linear C → out_channels) and a row projection (Linear hw → out_rows, no bias) give an
-out_channels × out_rows matrix, flattened and L2-normalised (descriptor out_channels · out_rows).
+(Linear C → out_channels) and a row projection (Linear hw → out_rows), both with a bias, give an
+out_channels × out_rows matrix, flattened (index c·out_rows + r) and L2-normalised (descriptor
+out_channels · out_rows). Initialisation as the authors: the mixers' linears are truncated-normal
+with std 0.02 and a zero bias; the LayerNorms and the two projections keep PyTorch's defaults.
 
 Mask: the weight multiplies each location's features before the mixer (x_i ← w_i·x_i), so a
 location of weight 0 enters as a zero feature whatever it held.
@@ -23,6 +25,8 @@ from torch import Tensor, nn
 
 from semvpr.models.aggregators.base import Aggregator, check_weights
 
+MIXER_INIT_STD = 0.02  # the authors' truncated-normal std for the mixers' linears
+
 
 class FeatureMixer(nn.Module):
     """One Feature-Mixer layer on rows of length ``width``: x + MLP(LayerNorm(x))."""
@@ -32,6 +36,9 @@ class FeatureMixer(nn.Module):
         hidden = int(width * mlp_ratio)
         self.norm = nn.LayerNorm(width)
         self.fc1, self.fc2 = nn.Linear(width, hidden), nn.Linear(hidden, width)
+        for linear in (self.fc1, self.fc2):
+            nn.init.trunc_normal_(linear.weight, std=MIXER_INIT_STD)
+            nn.init.zeros_(linear.bias)
 
     def forward(self, x: Tensor) -> Tensor:
         return x + self.fc2(F.relu(self.fc1(self.norm(x))))
@@ -55,7 +62,7 @@ class MixVPR(Aggregator):
         width = self.grid[0] * self.grid[1]
         self.mix = nn.Sequential(*[FeatureMixer(width, mlp_ratio) for _ in range(mix_depth)])
         self.channel_proj = nn.Linear(dim, out_channels)
-        self.row_proj = nn.Linear(width, out_rows, bias=False)
+        self.row_proj = nn.Linear(width, out_rows)
 
     @property
     def output_dim(self) -> int:

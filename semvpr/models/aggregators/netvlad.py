@@ -1,10 +1,12 @@
 """NetVLAD aggregation (Arandjelović et al., CVPR'16) and its k-means/α initialisation.
 
 Soft-assignment is a 1×1 conv initialised as w_k = 2α·ĉ_k, b_k = −α‖ĉ_k‖², i.e. a softmax over
-−α‖x − ĉ_k‖² (pytorch-NetVlad "vladv2"), from the unit-norm k-means centroids ĉ_k (α is set on them
-too); the residuals x − c_k use the raw k-means means c_k of the clustered unit features (norm < 1),
-as Relja's addLayers.m, pytorch-NetVlad and the VPR benchmark. Conv and residual centroids are
-separate learnable parameters.
+−α‖x − ĉ_k‖² (the paper's form, Relja's addLayers.m "vladv2"), from the unit-norm k-means centroids
+ĉ_k, with α = −log(0.01) / mean gap of the two best logits (set on them too). Because ĉ_k has unit
+norm, the bias is the same −α for every k and cancels in the softmax: this is pytorch-NetVlad's
+"vladv1" assignment (weights α₁·ĉ_k, no bias) with its α₁ = 2α. The residuals x − c_k use the raw
+means c_k of the clustered unit features (norm < 1), as addLayers.m, pytorch-NetVlad and the VPR
+benchmark. Conv and residual centroids are separate learnable parameters.
 A mask m (B,1,h,w) weights each location's contribution: V(:,k) = Σ_i m_i·a_k(x_i)·(x_i − c_k).
 The aggregation always runs in fp32 (autocast off): α is in the thousands at init, so bf16 logits
 would flip assignments.

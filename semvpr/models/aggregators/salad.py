@@ -12,8 +12,10 @@ the cluster masses a = (1, …, 1, n − m) / (m + n) and the location masses b 
 with g = MLP_g(t) the global scene token. The authors' t is a ViT's class token; this CNN version
 takes the mask-weighted mean of the local features, t = Σ_i w_i x_i / Σ_i w_i.
 
-Mask: the weight scales each location's mass, b_i = w_i / (m + n) (log b_i = log w_i − log(m + n),
-weight 0 → mass exactly 0, so the location receives no transport); the dustbin's mass is unchanged.
+Mask: the weight scales each location's mass, b_i = w_i / (m + n) (log b_i = log w_i − log(m + n));
+the dustbin's mass is unchanged. The iterations start from the column masses (v = log w, u = 0; the
+authors' u = v = 0 when w ≡ 1), so a location of weight 0 takes no part in any normalisation, from
+the first row update on, and receives no transport.
 The cluster MLPs use dropout (0.3 as the authors) in training only.
 """
 
@@ -31,8 +33,14 @@ from semvpr.models.aggregators.base import Aggregator, check_weights, log_weight
 
 def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Tensor:
     """log of the transport plan of (B,M,N) scores between row masses exp(log_a) (B,M) and column
-    masses exp(log_b) (B,N), after ``iters`` alternating row/column normalisations in log space."""
-    u, v = torch.zeros_like(log_a), torch.zeros_like(log_b)
+    masses exp(log_b) (B,N), after ``iters`` alternating row/column normalisations in log space.
+
+    u starts at 0 and v at the log column masses relative to the largest, log_b − max log_b: 0 where
+    all column masses are equal (u = v = 0, the authors' start, bit for bit), and a column of mass 0
+    is out of the first row normalisation already (exp(v) = 0), so it has no influence on the plan.
+    A constant added to v's start moves through u and back and leaves the plan unchanged."""
+    u = torch.zeros_like(log_a)
+    v = log_b - log_b.amax(dim=1, keepdim=True)
     for _ in range(iters):
         u = log_a - torch.logsumexp(scores + v[:, None, :], dim=2)
         v = log_b - torch.logsumexp(scores + u[:, :, None], dim=1)
