@@ -62,6 +62,10 @@ def train_and_test(
     cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float], start: float
 ) -> dict[str, Any] | None:
     """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
+    # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them):
+    # seed before the aggregator's random layers are drawn and again before its initialisation, so that a
+    # job gives the same numbers whether its artifacts were built just now or read from the cache.
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     retriever = build_retriever(cfg, job.backbone, job.mask_source)
     describe = sharded(retriever.describe_store, int(cfg.model.eval_batch_size))
     evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
@@ -78,9 +82,7 @@ def train_and_test(
         job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size), int(cfg.data.num_workers)
     )
     leader = trainer.global_rank == 0
-    # Building artifacts in this job draws from the global RNGs; re-seed so that a job gives the
-    # same numbers whether its artifacts were built just now or read from the cache. The other
-    # ranks skip the initialisation: DDP gives them rank 0's weights.
+    # The other ranks skip the initialisation: DDP gives them rank 0's weights.
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     tic = time.time()
     init_info = init_aggregator(cfg, retriever, job) if leader else None

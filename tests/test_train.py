@@ -344,6 +344,20 @@ def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(
     _assert_same_run(built, cached, streamed)
 
 
+def test_a_randomly_initialised_aggregator_is_the_same_whether_the_student_was_built_or_cached(tmp_path: Path) -> None:
+    """Training the student re-seeds the global RNGs; the aggregator's random layers (GeM's head) must not
+    depend on whether this job trained it or read it from the cache."""
+    cfg = tiny_config(tmp_path / "cache", "aggregator=gem", "mask=student", "trainer.max_epochs=1")
+    built = run_job(cfg, tmp_path / "built")
+    assert built["timings"]["student_s"] > 0
+    cached = run_job(cfg, tmp_path / "cached")
+    assert built["untrained/test/R@1"] == cached["untrained/test/R@1"]
+    first, again = (
+        torch.load(tmp_path / d / "checkpoints" / "tested.ckpt", weights_only=True) for d in ("built", "cached")
+    )
+    assert all(torch.equal(first["state_dict"][k], again["state_dict"][k]) for k in first["state_dict"])
+
+
 @pytest.mark.parametrize("weights,passes_per_seed", [("imagenet", [6, 0]), ("none", [6, 6])])
 def test_seeds_share_the_pretrained_trunk_pass(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, weights: str, passes_per_seed: list[int]
