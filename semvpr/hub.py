@@ -48,7 +48,9 @@ def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None) -> Hub
     """The checkpoint as a :class:`HubModel` in eval mode on the CPU (move it with ``.to``)."""
     from hydra import compose, initialize_config_dir
 
+    # The path is passed as a value, never through Hydra's override syntax: there ',' '=' and quotes
+    # are syntax and '${...}' an interpolation, so the file loaded would not be the one named.
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="eval", overrides=[f"ckpt={Path(ckpt).expanduser()}"])
-    retriever, _ = load_retriever(cfg, new_images=True)
+        cfg = compose(config_name="eval")
+    retriever, _ = load_retriever(cfg, new_images=True, ckpt=Path(ckpt).expanduser())
     return HubModel(retriever, image_size).eval()
