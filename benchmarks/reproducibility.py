@@ -1,6 +1,11 @@
 """Same seed, same numbers? One job four ways: artifacts built cold, built again cold in another cache,
 read warm, and stopped after half the epochs then resumed (``ckpt_path=last``).
 
+The stop is made deterministic: the job runs half the epochs, then its run record
+(``.hydra/config.yaml``) is given the full ``trainer.max_epochs``, which is what a run started for the
+full count and killed after half of them leaves behind; the resume (``ckpt_path=last`` with the
+full count, as the README's resume rule requires the run's own values) continues from its ``last.ckpt``.
+
     python benchmarks/reproducibility.py [--filters attention unet] [--seed 0] [overrides ...]
 
 Each way runs in a fresh process (as a user would); caches go to a temporary directory. Last line:
@@ -19,6 +24,7 @@ import time
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -39,6 +45,18 @@ def job(run_dir: Path, cache: Path, seed: int, filter_: str, extra: list[str]) -
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
     return json.loads((run_dir / "metrics.json").read_text())
+
+
+def record_full_epochs(run_dir: Path, epochs: int) -> None:
+    """Make a finished half run look like a run started for ``epochs`` and stopped after half of them:
+    its recorded config and overrides say ``trainer.max_epochs=epochs``."""
+    record = run_dir / ".hydra" / "config.yaml"
+    config = OmegaConf.load(record)
+    config.trainer.max_epochs = epochs
+    OmegaConf.save(config, record)
+    overrides = run_dir / ".hydra" / "overrides.yaml"
+    items = [o for o in OmegaConf.to_container(OmegaConf.load(overrides)) if not o.startswith("trainer.max_epochs=")]
+    OmegaConf.save(OmegaConf.create([*items, f"trainer.max_epochs={epochs}"]), overrides)
 
 
 def same_weights(a: dict, b: dict) -> bool:
@@ -69,6 +87,7 @@ def main() -> None:
             }
             half = [f"trainer.max_epochs={args.epochs // 2}", *args.overrides]
             job(tmp / filter_ / "resumed", tmp / "cache-a", args.seed, filter_, half)
+            record_full_epochs(tmp / filter_ / "resumed", args.epochs)
             runs["stopped + resumed"] = job(
                 tmp / filter_ / "resumed", tmp / "cache-a", args.seed, filter_, [*extra, "ckpt_path=last"]
             )

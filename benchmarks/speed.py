@@ -88,10 +88,15 @@ def bench_extract(batch: int, reps: int, hw: tuple[int, int] = (120, 160)) -> fl
     return ips_ours / roofline_ips
 
 
-def netvlad_loop_reference(x: Tensor, centroids: Tensor, alpha: float, mask: Tensor | None = None) -> Tensor:
-    """Naive NetVLAD with a Python loop over clusters: the baseline the vectorised layer is timed against."""
+def netvlad_loop_reference(
+    x: Tensor, conv_weight: Tensor, conv_bias: Tensor, centroids: Tensor, mask: Tensor | None = None
+) -> Tensor:
+    """Naive NetVLAD with a Python loop over clusters: the baseline the vectorised layer is timed against.
+
+    As the layer: the soft assignment comes from the 1x1 conv (w_k, b_k, set from the unit k-means
+    centroids), the residuals x - c_k from the raw-mean residual centroids c_k."""
     x = F.normalize(x.float(), dim=1)
-    logits = torch.stack([2 * alpha * torch.einsum("bdhw,d->bhw", x, c) - alpha * c.dot(c) for c in centroids], 1)
+    logits = torch.stack([torch.einsum("bdhw,d->bhw", x, w) + b for w, b in zip(conv_weight, conv_bias)], 1)
     assign = F.softmax(logits, dim=1)
     m = torch.ones_like(x[:, :1]) if mask is None else mask.float()
     parts = []
@@ -107,7 +112,8 @@ def bench_aggregate(batch: int, reps: int) -> float:
     torch.manual_seed(0)
     layer = NetVLAD(64, 512).eval()
     layer.init_from_features(torch.relu(torch.randn(10_000, 512)), seed=0, niter=10)
-    c, alpha = layer.centroids.detach(), float(layer.alpha)
+    c = layer.centroids.detach()
+    conv_w, conv_b = layer.conv.weight.detach()[:, :, 0, 0], layer.conv.bias.detach()
     speedups = []
     with torch.inference_mode():
         # 7x10 is a 120x160 image's grid (SynthCity's size before 180x240); 30x40 the 480x640 paper grid
@@ -115,9 +121,11 @@ def bench_aggregate(batch: int, reps: int) -> float:
         for b, h, w in ((batch, 7, 10), (max(1, batch // 4), 30, 40)):
             x = torch.relu(torch.randn(b, 512, h, w))
             mask = (torch.rand(b, 1, h, w) > 0.3).float()
-            torch.testing.assert_close(layer(x, mask), netvlad_loop_reference(x, c, alpha, mask), rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(
+                layer(x, mask), netvlad_loop_reference(x, conv_w, conv_b, c, mask), rtol=1e-4, atol=1e-5
+            )
             t_vec = best_time(lambda x=x, mask=mask: layer(x, mask), reps)
-            t_loop = best_time(lambda x=x, mask=mask: netvlad_loop_reference(x, c, alpha, mask), reps)
+            t_loop = best_time(lambda x=x, mask=mask: netvlad_loop_reference(x, conv_w, conv_b, c, mask), reps)
             speedups.append(t_loop / t_vec)
             print(
                 f"aggregate: K=64 D=512 batch {b} grid {h}x{w}: vectorised {t_vec * 1e3:.1f} ms, "

@@ -36,15 +36,18 @@ from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import RECALL_NS, evaluate
 
 
-def evaluate_checkpoint(cfg: DictConfig, explicit: set[str] = frozenset()) -> dict[str, Any]:
+def evaluate_checkpoint(
+    cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None
+) -> dict[str, Any]:
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
     beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time."""
     start = time.perf_counter()
-    check_config(cfg)
+    check_config(cfg, run_dir)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(cfg, ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
     test = test_set()
+    test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
     size, cache = merged.data.image_size, merged.paths.cache_dir
     db = place_descriptors(retriever, test, "db", size, cache)
     result = evaluate(db, place_descriptors(retriever, test, "q", size, cache), test.positives())
@@ -81,13 +84,14 @@ def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        result = evaluate_checkpoint(cfg, explicit_keys())
-    except SemvprError as err:
+        result = evaluate_checkpoint(cfg, explicit_keys(), out_dir)
+    except Exception as err:  # noqa: BLE001 - in a sweep every failure becomes its job's row
         if HydraConfig.get().mode != RunMode.MULTIRUN:
             raise
-        # In a sweep one dataset's bad input must not stop the others; the table shows the line.
-        write_json(out_dir / "eval.json", {"status": "failed", "error": one_line(err)})
-        print(f"semvpr: job failed ({out_dir}): {one_line(err)}", file=sys.stderr)
+        # In a sweep one dataset's failure must not stop the others; the table shows its line.
+        line = one_line(err) if isinstance(err, SemvprError) else f"{type(err).__name__}: {one_line(err)}"
+        write_json(out_dir / "eval.json", {"status": "failed", "error": line})
+        print(f"semvpr: job failed ({out_dir}): {line}", file=sys.stderr)
         return
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
@@ -98,7 +102,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point."""
-    check_overrides_or_exit(sys.argv[1:])
+    check_overrides_or_exit(sys.argv[1:], "eval")
     _hydra_main()
 
 

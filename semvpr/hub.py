@@ -51,10 +51,13 @@ def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None, overri
     source; ``ckpt="none"`` with e.g. ``["aggregator=gem"]`` is the model with no VPR training."""
     from hydra import compose, initialize_config_dir
 
+    # The path is passed as a value, never through Hydra's override syntax: there ',' '=' and quotes
+    # are syntax and '${...}' an interpolation, so the file loaded would not be the one named.
     given = [str(o) for o in overrides]
-    target = "none" if is_untrained(ckpt) else Path(ckpt).expanduser()
+    untrained = is_untrained(ckpt)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="eval", overrides=[f"ckpt={target}", *given])
+        cfg = compose(config_name="eval", overrides=[*(["ckpt=none"] if untrained else []), *given])
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
-    retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False)
+    target = None if untrained else Path(ckpt).expanduser()
+    retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
     return HubModel(retriever, image_size).eval()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import json
+import stat
 import sys
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.retrieval.descriptors import place_descriptors
-from semvpr.retrieval.recall import knn
+from semvpr.retrieval.recall import check_finite, knn
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
@@ -40,12 +41,19 @@ def query_images(folder: str | Path) -> list[Path]:
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not paths:
         raise SemvprError(f"no .jpg/.png images in {folder}")
+    for path in paths:
+        try:
+            regular = stat.S_ISREG(path.stat().st_mode)
+        except OSError as err:
+            raise SemvprError(f"query image {path} cannot be read ({err.strerror or type(err).__name__})") from None
+        if not regular:
+            raise SemvprError(f"query image {path} is not a regular file (a folder, FIFO or device)")
     return paths
 
 
-def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str, Any]]:
+def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None) -> list[dict[str, Any]]:
     """Top-k database matches (path, UTM, distance) for every query image."""
-    check_config(cfg)
+    check_config(cfg, run_dir)
     paths = query_images(cfg.queries)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(cfg, ("test",))["test"])
@@ -54,6 +62,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
     db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir)
     q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
     retriever.describe_images(paths, None, merged.data.image_size, q_desc, desc="queries")
+    check_finite(q_desc, f"the query images in {cfg.queries}")
     top = knn(db_desc, q_desc, int(cfg.top_k))
     out = []
     for path, row, desc in zip(paths, top, q_desc):
@@ -74,8 +83,9 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset()) -> list[dict[str
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
-    results = localize(cfg, explicit_keys())
-    output = Path(HydraConfig.get().runtime.output_dir) / "localize.json"
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    results = localize(cfg, explicit_keys(), run_dir)
+    output = run_dir / "localize.json"
     write_json(output, results)
     for result in results:
         best = result["matches"][0]
@@ -88,7 +98,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point."""
-    check_overrides_or_exit(sys.argv[1:])
+    check_overrides_or_exit(sys.argv[1:], "localize")
     _hydra_main()
 
 

@@ -42,7 +42,7 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
     """Run one training job: check, build, fit, test, write; returns the metrics to write (None on the
     ranks other than 0)."""
     start, timings = time.time(), {}
-    check_config(cfg)
+    check_config(cfg, run_dir)
     devices, nodes = ranks_of(cfg.trainer)
     if devices * nodes > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
@@ -94,6 +94,12 @@ def train_and_test(
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
+    if datamodule.num_tuples and not any(datamodule.num_tuples):
+        raise SemvprError(
+            f"training mined no tuple in {len(datamodule.num_tuples)} epoch(s): no training query had a "
+            f"positive within recipe.positive_radius={cfg.recipe.positive_radius} m and a negative violating "
+            f"recipe.margin={cfg.recipe.margin}; nothing was trained"
+        )
     tic = time.time()
     trainer.strategy.barrier("best checkpoint written")
     if checkpoint.best_model_path:
@@ -239,13 +245,18 @@ def _hydra_main(cfg: DictConfig) -> None:
     run_dir = Path(hydra_cfg.runtime.output_dir)
     record = run_dir / ".hydra" / "config.yaml"
     if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
-        cfg = resumed_config(cfg, hydra.compose(config_name="train"), record, list(hydra_cfg.overrides.task))
+        cfg = resumed_config(
+            cfg,
+            record,
+            list(hydra_cfg.overrides.task),
+            lambda overrides: hydra.compose(config_name="train", overrides=overrides),
+        )
     run_job(cfg, run_dir, multirun=hydra_cfg.mode == RunMode.MULTIRUN)
 
 
 def main() -> None:
     """Console entry point; user errors become one line on stderr and exit code 2."""
-    check_overrides_or_exit(sys.argv[1:])
+    check_overrides_or_exit(sys.argv[1:], "train")
     sys.argv[1:] = keep_run_record(sys.argv[1:])
     _hydra_main()
 

@@ -48,3 +48,50 @@ def test_failed_build_leaves_nothing_and_the_next_call_builds(tmp_path: Path) ->
     assert [p.name for p in tmp_path.iterdir() if p.name != LOCK_DIR] == []
     final = build_once(tmp_path, "thing", {"a": 2}, lambda tmp: (tmp / "ok.txt").write_text("ok"))
     assert (final / "ok.txt").read_text() == "ok" and (final / "key.json").is_file()
+
+
+def test_a_file_replaced_by_one_of_the_same_size_and_mtime_gets_another_key(tmp_path: Path) -> None:
+    import os
+
+    from semvpr.core.cache import files_identity
+
+    for size in (100, 6000, 50_000):  # shorter than one end, than both ends, and longer
+        path = tmp_path / f"a{size}.jpg"
+        path.write_bytes(bytes(size))
+        before = files_identity(["a.jpg"], [path])
+        st = path.stat()
+        for offset in (0, size // 2, size - 1):
+            changed = bytearray(size)
+            changed[offset] = 1
+            path.write_bytes(bytes(changed))
+            os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+            assert path.stat().st_size == st.st_size and path.stat().st_mtime_ns == st.st_mtime_ns
+            moved = files_identity(["a.jpg"], [path])
+            # Only a change in the middle of a file longer than 8 KiB goes unseen (it would need forging).
+            assert (moved != before) == (size <= 8192 or offset != size // 2), (size, offset)
+        path.write_bytes(bytes(size))
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+        assert files_identity(["a.jpg"], [path]) == before
+
+
+def test_files_that_are_not_regular_files_are_one_line(tmp_path: Path) -> None:
+    import os
+
+    from semvpr.core.cache import files_identity
+    from semvpr.core.errors import SemvprError
+
+    os.mkfifo(tmp_path / "fifo.jpg")  # opening it would block forever
+    (tmp_path / "dangling.jpg").symlink_to(tmp_path / "nothing")
+    (tmp_path / "a.jpg").symlink_to("b.jpg")
+    (tmp_path / "b.jpg").symlink_to("a.jpg")
+    for name, message in (
+        ("fifo.jpg", "not a regular file"),
+        ("dangling.jpg", "not found"),
+        ("a.jpg", "Too many levels of symbolic links"),
+        ("x\0.jpg", "cannot name a file"),
+        ("folder", "not a regular file"),
+    ):
+        (tmp_path / "folder").mkdir(exist_ok=True)
+        with pytest.raises(SemvprError, match=message) as err:
+            files_identity([name], [f"{tmp_path}/{name}"])
+        assert "\n" not in str(err.value)

@@ -59,8 +59,11 @@ def test_a_place_set_refuses_an_image_key_that_climbs_out(tmp_path: Path) -> Non
             np.zeros((1, 2)),
             root=root,
         )
-    # Queries under a separate folder are fine: the root becomes their common folder.
-    ok = PlaceSet("x", (root / "a.jpg",), (tmp_path / "q" / "q.jpg",), np.zeros((1, 2)), np.zeros((1, 2)), root=root)
+    # An image outside a given root is refused too (it used to widen the root to the images' common
+    # folder without a word); without a root, the images' common folder is the root.
+    with pytest.raises(SemvprError, match=r"q\.jpg is not under the dataset root"):
+        PlaceSet("x", (root / "a.jpg",), (tmp_path / "q" / "q.jpg",), np.zeros((1, 2)), np.zeros((1, 2)), root=root)
+    ok = PlaceSet("x", (root / "a.jpg",), (tmp_path / "q" / "q.jpg",), np.zeros((1, 2)), np.zeros((1, 2)))
     assert ok.root == tmp_path and ok.relative(ok.q_paths[0]) == "q/q.jpg"
 
 

@@ -212,3 +212,65 @@ def test_submitit_local_runs_one_task_per_device(tmp_path: Path) -> None:
     )
     failed = json.loads(next((tmp_path / "one").rglob("metrics.json")).read_text())
     assert failed["status"] == "failed" and "tasks_per_node=2" in failed["error"]
+
+
+def test_a_rank_that_exits_before_joining_ends_the_wait_at_once() -> None:
+    """Rank 0 waits for the ranks it started in Python, watching them: one that dies (a bad command line,
+    a crash reading its caches) is one line at once, not a 30-minute hang in the process group's rendezvous."""
+    import socket
+    import time
+
+    from semvpr.retrieval.launch import await_ranks
+
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        child = subprocess.Popen([sys.executable, "-c", "import sys; sys.exit(3)"])
+        tic = time.monotonic()
+        with pytest.raises(SemvprError, match=r"rank 1 of the DDP job exited \(code 3\) before joining it"):
+            await_ranks(listener, [child], poll_s=0.1)
+        assert time.monotonic() - tic < 30
+
+
+def test_sigterm_stops_rank_0_while_it_waits_for_the_other_ranks(tmp_path: Path) -> None:
+    import signal
+    import time
+
+    script = tmp_path / "wait.py"
+    script.write_text(
+        "import signal, socket, subprocess, sys\n"
+        "from semvpr.retrieval.launch import await_ranks\n"
+        "def stop(signum, frame):\n"
+        "    raise SystemExit(143)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'])\n"
+        "try:\n"
+        "    with socket.create_server(('127.0.0.1', 0)) as listener:\n"
+        "        print('waiting', flush=True)\n"
+        "        await_ranks(listener, [child])\n"
+        "finally:\n"
+        "    child.kill()\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=REPO, env={"PYTHONPATH": str(REPO)}
+    )
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "waiting"
+    tic = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 143 and time.monotonic() - tic < 30
+
+
+def test_child_run_dirs_are_quoted_for_hydra() -> None:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from semvpr.retrieval.launch import hydra_quoted
+
+    parser = OverridesParser.create()
+    for run_dir in ['/tmp/ru"n', "/tmp/it's", "/tmp/a,b=c", "/tmp/back\\slash", "/tmp/end\\", "/tmp/x y\\'"]:
+        assert parser.parse_override(f"hydra.run.dir={hydra_quoted(run_dir)}").value() == run_dir
+
+
+@pytest.mark.slow
+def test_a_ddp_run_dir_holding_a_quote_trains(tmp_path: Path) -> None:
+    """Its rank 1 once failed to parse the run dir and rank 0 hung in the rendezvous, ignoring SIGTERM."""
+    run = tmp_path / 'ru"n'
+    _train(tmp_path, *DDP, f"hydra.run.dir='{run}'")
+    assert json.loads((run / "metrics.json").read_text())["status"] == "ok"

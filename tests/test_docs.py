@@ -99,3 +99,15 @@ def test_the_top_of_the_package_holds_the_commands() -> None:
         re.findall(r"^\| `python -m semvpr\.(\w+)", (REPO / "docs" / "ARCHITECTURE.md").read_text(), flags=re.M)
     )
     assert set(top) <= commands | {"hub"}, set(top) - commands
+
+
+def test_committed_results_carry_no_absolute_path_of_the_machine_that_made_them() -> None:
+    """The report writes no sweep path (a results.md is read on other machines); the committed ones agree."""
+    pattern = re.compile(r"(?<![\w.])/(?:work|home|tmp|root|Users|mnt|data)/")
+    found = {
+        str(path.relative_to(REPO)): line
+        for path in REPO.glob("experiments/**/results.md")
+        for line in path.read_text(encoding="utf-8").splitlines()
+        if pattern.search(line)
+    }
+    assert not found, found

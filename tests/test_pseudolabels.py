@@ -104,3 +104,34 @@ def test_a_corrupt_cached_label_is_one_line_naming_it(tmp_path: Path) -> None:
     label_path(out, paths[0], tmp_path / "img").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     with pytest.raises(SemvprError, match=r"pseudo-label .*@000@img@\.png\.png is unreadable.*delete"):
         read_label(out, paths[0], tmp_path / "img")
+
+
+def test_a_planted_partial_directory_is_checked_before_its_labels_are_kept(tmp_path: Path) -> None:
+    """Anyone may leave a `.labels-*.partial` in a cache: a kept label must be one this module writes."""
+    paths = make_images(tmp_path / "img")
+    root = tmp_path / "img"
+    final = artifact_dir(tmp_path / "cache", "labels", labels_key(paths, root))
+    partial = final.parent / f".{final.name}.partial"
+    partial.mkdir(parents=True)
+    for i, path in enumerate(paths):
+        target = label_path(partial, path, root)
+        if i == 0:
+            (tmp_path / "victim.png").write_bytes(b"x")
+            target.symlink_to(tmp_path / "victim.png")  # a link is never kept
+        elif i == 1:
+            Image.fromarray(np.zeros(SIZE, np.uint8)).save(target)  # a good label: kept
+        elif i == 2:
+            Image.fromarray(np.full(SIZE, 77, np.uint8)).save(target)  # not a trainId
+        elif i == 3:
+            Image.fromarray(np.zeros((*SIZE, 3), np.uint8)).save(target)  # RGB, not ids
+        else:
+            Image.fromarray(np.zeros((1, 1), np.uint8)).save(target)  # the wrong size
+    teacher = CountingTeacher()
+    out = pseudo_labels(teacher, "teacher-abc", paths, SIZE, tmp_path / "cache", root, batch_size=4, num_workers=0)
+    assert out == final and teacher.seen == len(paths) - 1
+    for path in paths:
+        label = label_path(out, path, root)
+        assert not label.is_symlink()
+        with Image.open(label) as img:
+            assert img.mode == "L" and img.size == SIZE[::-1]
+    assert (tmp_path / "victim.png").read_bytes() == b"x"

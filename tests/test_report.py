@@ -158,21 +158,22 @@ def test_markdown_order_gains_failures_and_figures(sweep: Path) -> None:
     assert md == sweep / "results.md"
     text = md.read_text()
     table = [ln for ln in text.splitlines() if ln.startswith("| vgg16 |")]
+    # Runs asked for by a preset are named by it, with the aggregator and mask it selected.
     assert [ln.split("|")[2].strip() for ln in table] == [
-        "netvlad · none",
-        "sral · none",
-        "sral · student",
-        "sral · teacher",
-        "sral · oracle (upper bound)",
+        "none (netvlad · none)",
+        "attention (sral · none)",
+        "unet (sral · student)",
+        "mask2former (sral · teacher)",
+        "oracle (sral · oracle, upper bound)",
     ]
     assert "| 42.0 ± 2.8 | 46.0 ± 2.8 | 51.0 ± 2.8 | 61.0 ± 2.8 | 2 | 1, 2 | 0 | 15.0 |" in table[0]
     assert "| 70.0 ± – |" in table[4]
     # Paired by seed: attention 38-40, 40-44; the oracle has seed 1 only (70-40), not 70-mean(none).
     assert (
-        "**R@1 gain over `netvlad · none` (vgg16)**, per seed (same backbone init and data), then mean ± std: "
-        "sral · none −3.0 ± 1.4 (better in 0 of 2 seeds), sral · student +7.0 ± 1.4 (better in 2 of 2 seeds), "
-        "sral · teacher +11.0 ± 1.4 (better in 2 of 2 seeds), sral · oracle (upper bound) +30.0 "
-        "(better in 1 of 1 seeds)"
+        "**R@1 gain over none (netvlad · none) (vgg16)**, per seed (same backbone init and data), then mean ± std: "
+        "attention (sral · none) −3.0 ± 1.4 (better in 0 of 2 seeds), unet (sral · student) +7.0 ± 1.4 "
+        "(better in 2 of 2 seeds), mask2former (sral · teacher) +11.0 ± 1.4 (better in 2 of 2 seeds), "
+        "oracle (sral · oracle, upper bound) +30.0 (better in 1 of 1 seeds)"
     ) in text
     # the same aggregator without a mask: student 48-38, 50-40; teacher 50-38, 56-40; oracle 70-38
     assert (
@@ -199,8 +200,8 @@ def test_missing_inputs_skip_figures_with_note(tmp_path: Path) -> None:
     assert "- `figure3.png` skipped: no job wrote maps.npz" in text
     assert "- `retrievals.png` skipped: no job wrote retrievals.json" in text
     assert "](recall_at_n.png)" in text and (tmp_path / "recall_at_n.png").stat().st_size > 0
-    assert "**R@1 gain over `netvlad · none` (resnet50):** no finished `netvlad · none` run" in text
-    assert "| resnet50 | sral · student | 30.0 ± – |" in text
+    assert "**R@1 gain over none (netvlad · none) (resnet50):** no finished none (netvlad · none) run" in text
+    assert "| resnet50 | unet (sral · student) | 30.0 ± – |" in text
 
 
 def test_runs_that_differ_only_in_backbone_weights_get_their_own_rows(tmp_path: Path) -> None:
@@ -223,8 +224,8 @@ def test_runs_that_differ_only_in_backbone_weights_get_their_own_rows(tmp_path: 
         "hydra:\n  runtime:\n    choices:\n      backbone: efficientnet_lite0\n"
     )
     text = write_report(tmp_path).read_text()
-    assert "| efficientnet_lite0 | netvlad · none | 71.0 ± 1.4 |" in text
-    assert "| efficientnet_lite0 (random init) | netvlad · none | 13.0 ± 1.4 |" in text
+    assert "| efficientnet_lite0 | none (netvlad · none) | 71.0 ± 1.4 |" in text
+    assert "| efficientnet_lite0 (random init) | none (netvlad · none) | 13.0 ± 1.4 |" in text
     assert {job.backbone for job in load_sweep(tmp_path).jobs} == {
         "efficientnet_lite0",
         "efficientnet_lite0 (random init)",
@@ -246,7 +247,7 @@ def test_callback_resolves_relative_sweep_dir(sweep: Path, capsys: pytest.Captur
     cfg = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep.relative_to(root))}, "runtime": {"cwd": str(root)}}})
     ReportCallback().on_multirun_end(cfg)
     out = capsys.readouterr().out
-    assert str(sweep / "results.md") in out and "| vgg16 | netvlad · none | 42.0 ± 2.8 |" in out
+    assert str(sweep / "results.md") in out and "| vgg16 | none (netvlad · none) | 42.0 ± 2.8 |" in out
     # a report failure is one stderr line, never an exception that would hide the sweep's results
     bad = OmegaConf.create({"hydra": {"sweep": {"dir": str(root / "nope")}}})
     ReportCallback().on_multirun_end(bad)
@@ -310,10 +311,10 @@ def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
             _job(tmp_path, f"filter=oracle,filter.weights={filter_.partition('+')[2] or 'binary'},seed={seed}", metrics)
     text = write_report(tmp_path).read_text()
     rows = [ln.split("|")[2].strip() for ln in text.splitlines() if ln.startswith("| vgg16 |")]
-    assert rows == ["sral · oracle (upper bound)", "sral · oracle+learned (upper bound)"]
+    assert rows == ["oracle (sral · oracle, upper bound)", "oracle (sral · oracle+learned, upper bound)"]
     assert (
         "**R@1 gain of learned class weights over binary weights (vgg16)**, paired by seed: "
-        "sral · oracle+learned (upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)"
+        "oracle (sral · oracle+learned, upper bound) +1.0 ± 2.8 (better in 1 of 2 seeds)"
     ) in text
     assert "| vegetation | 0.40 ± 0.14 |" in text and "| road | 0.90 ± 0.00 |" in text
     assert "](class_weights.png)" in text

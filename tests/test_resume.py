@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.resume import keep_run_record, resumed_config
@@ -31,28 +31,110 @@ def train_cli(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
     )
 
 
+CHOICES = {
+    "data": "synthcity",
+    "backbone": "efficientnet_lite0",
+    "aggregator": "sral",
+    "mask": "student",
+    "filter": "unet",
+    "teacher": "mask2former",
+    "student": "unet",
+    "recipe": "triplet",
+    "trainer": "cpu",
+    "logger": "default",
+    "experiment": "tiny",
+    "hydra/launcher": "basic",
+}
+
+
+def write_run_record(run: Path, own: DictConfig, choices: dict | None = None) -> Path:
+    """A run's .hydra record as Hydra writes it: the composed config (unresolved) and its choices."""
+    (run / ".hydra").mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(own, run / ".hydra" / "config.yaml")
+    hydra_yaml = {"hydra": {"runtime": {"choices": choices or CHOICES}}}
+    (run / ".hydra" / "hydra.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(hydra_yaml)))
+    return run / ".hydra" / "config.yaml"
+
+
+def compose(overrides: list[str]) -> DictConfig:
+    return config(*overrides)
+
+
 def test_a_resume_takes_the_runs_own_config_and_refuses_what_contradicts_it(tmp_path: Path) -> None:
     own = tiny_config(tmp_path / "cache", "trainer.max_epochs=3", "filter=unet")
-    record = tmp_path / "run" / ".hydra" / "config.yaml"
-    record.parent.mkdir(parents=True)
-    OmegaConf.save(own, record)
-    default = config()
-    resumed = resumed_config(config("ckpt_path=last"), default, record, ["ckpt_path=last"])
+    record = write_run_record(tmp_path / "run", own)
+    resumed = resumed_config(config("ckpt_path=last"), record, ["ckpt_path=last"], compose)
     assert (resumed.trainer.max_epochs, resumed.filter.name, resumed.ckpt_path) == (3, "unet", "last")
     assert resumed.data.preset == own.data.preset == "tiny" and resumed.paths.cache_dir == own.paths.cache_dir
+    assert OmegaConf.to_container(resumed, resolve=True) == {
+        **OmegaConf.to_container(own, resolve=True),
+        "ckpt_path": "last",
+    }
     # Repeating the original overrides agrees with the record; another value does not.
     again = ["ckpt_path=last", "experiment=tiny", "filter=unet", "trainer.max_epochs=3"]
-    assert resumed_config(config(*again), default, record, again).trainer.max_epochs == 3
+    assert resumed_config(config(*again), record, again, compose).trainer.max_epochs == 3
     for override, message in (
         ("trainer.max_epochs=5", "trainer.max_epochs=5 contradicts the run's own trainer.max_epochs=3"),
         ("filter=none", r"filter\..* contradicts the run's own filter\."),
     ):
         with pytest.raises(SemvprError, match=message):
-            resumed_config(config("ckpt_path=last", override), default, record, ["ckpt_path=last", override])
+            resumed_config(config("ckpt_path=last", override), record, ["ckpt_path=last", override], compose)
     # Hydra is told not to rewrite the run's .hydra record; a fresh run is left alone.
     argv = ["ckpt_path=last", f"hydra.run.dir={tmp_path / 'run'}"]
     assert keep_run_record(argv) == [*argv, "hydra.output_subdir=null"]
     assert keep_run_record([f"hydra.run.dir={tmp_path / 'new'}", "ckpt_path=last"])[-1] != "hydra.output_subdir=null"
+
+
+def _tampered(own: DictConfig, dotted: str, value: object) -> DictConfig:
+    data = OmegaConf.to_container(own, resolve=False)
+    node = data
+    *parents, last = dotted.split(".")
+    for key in parents:
+        node = node.setdefault(key, {})
+    node[last] = value
+    return OmegaConf.create(data)
+
+
+@pytest.mark.parametrize(
+    "dotted,value,message",
+    [
+        # The run dir's record used to be instantiated as it was: this created a file outside the run.
+        (
+            "data.train",
+            {"_target_": "builtins.open", "file": "PWNED", "mode": "w"},
+            r"data\.train\._target_ is refused",
+        ),
+        ("recipe.optimizer._target_", "shutil.copyfile", r"recipe\.optimizer\._target_ is refused"),
+        ("paths.cache_dir", "${oc.env:HOME}/x", r"paths\.cache_dir=.*interpolations are never read"),
+        ("model.evil", 1, r"model\.evil is not a key"),
+        ("model.num_clusters", "8", r"model\.num_clusters='8' has the wrong type"),
+    ],
+)
+def test_a_tampered_run_record_is_refused_before_anything_runs(
+    tmp_path: Path, dotted: str, value: object, message: str
+) -> None:
+    own = tiny_config(tmp_path / "cache", "filter=unet")
+    record = write_run_record(tmp_path / "run", _tampered(own, dotted, value))
+    with pytest.raises(SemvprError, match=message) as err:
+        resumed_config(config("ckpt_path=last"), record, ["ckpt_path=last"], compose)
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "PWNED").exists()
+
+
+@pytest.mark.parametrize(
+    "choices,message",
+    [
+        ({**CHOICES, "data": "../../evil"}, r"choice data='\.\./\.\./evil' is not one of the project's config files"),
+        ({**CHOICES, "evil": "x"}, r"choice evil='x' is not one of"),
+        (None, "does not record the run's config choices"),
+    ],
+)
+def test_a_run_record_must_name_the_projects_own_choices(tmp_path: Path, choices: dict | None, message: str) -> None:
+    record = write_run_record(tmp_path / "run", tiny_config(tmp_path / "cache"), choices)
+    if choices is None:
+        (tmp_path / "run" / ".hydra" / "hydra.yaml").write_text("hydra: {}\n")
+    with pytest.raises(SemvprError, match=message):
+        resumed_config(config("ckpt_path=last"), record, ["ckpt_path=last"], compose)
 
 
 @pytest.mark.slow

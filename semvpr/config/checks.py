@@ -4,13 +4,15 @@ anything is read or written, so a bad value is one line naming its key instead o
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.components import COMPONENTS, component_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import CONF_DIR, check_dir_path
+from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.features import STORAGES
@@ -33,12 +35,12 @@ PRECISIONS = (
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
 
 
-def whole_number(value: object, key: str, low: int, high: int | None = None) -> int:
-    """``value`` as an int in [low, high], or one line naming ``key``."""
+def whole_number(value: object, key: str, low: int, high: int | None = None, also: str = "") -> int:
+    """``value`` as an int in [low, high], or one line naming ``key`` (``also``: the other values allowed)."""
     ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
     if not ok:
         bounds = f"from {low} to {high}" if high is not None else f">= {low}"
-        raise SemvprError(f"{key}={value!r} must be a whole number {bounds}")
+        raise SemvprError(f"{key}={value!r} must be a whole number {bounds}{f' ({also})' if also else ''}")
     return int(value)  # type: ignore[arg-type]
 
 
@@ -49,9 +51,34 @@ def _leaves(node: object, prefix: str = "") -> set[str]:
     return set().union(*(_leaves(v, f"{prefix}{k}.") for k, v in node.items())) if node else set()
 
 
-def check_overrides(argv: list[str]) -> None:
-    """An override that names the training protocol as a ``model`` group or ``model.`` setting (it is the
-    ``recipe`` group) gets one line saying where it is, instead of Hydra's error."""
+def _open_nodes(node: object, prefix: str = "") -> set[str]:
+    """Dotted keys of the empty mappings of a config: where it leaves room for keys of the user's own
+    (``data.render: {}`` takes any SynthCity knob)."""
+    if not isinstance(node, dict):
+        return set()
+    if not node:
+        return {prefix.rstrip(".")}
+    return set().union(*(_open_nodes(v, f"{prefix}{k}.") for k, v in node.items()))
+
+
+#: Nodes that take keys the project's files do not list: Lightning Trainer arguments (+trainer.sync_batchnorm=true).
+OPEN_NODES = ("trainer",)
+#: Command-line flags after which the arguments are not all overrides (the pre-flight then leaves them to Hydra).
+_HYDRA_FLAGS = ("-m", "--multirun")
+
+
+def check_overrides(argv: list[str], config_name: str = "train") -> None:
+    """Check a command line's overrides before Hydra runs, so that a bad one is one line:
+
+    - one that names the training protocol as a ``model`` group or ``model.`` setting (it is the
+      ``recipe`` group) says where it is;
+    - one Hydra cannot parse or apply (a typo'd key, a value with unquoted ``,`` or ``"``) is Hydra's
+      reason in one line;
+    - one that adds a key the project's config does not have (``+model.fooo=1``) is refused: nothing
+      would read it, so the run would silently be another than asked;
+    - ``hydra.run.dir`` / ``hydra.sweep.dir`` must be a directory semvpr can write as written
+      (``core.io.check_dir_path``), checked before Hydra makes it and opens its log there.
+    """
     recipe = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "recipe" / "triplet.yaml")))
     model = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "train.yaml").model))
     for arg in argv:
@@ -68,26 +95,180 @@ def check_overrides(argv: list[str]) -> None:
             and any(r == rest or r.startswith(f"{rest}.") for r in recipe)
         ):
             raise SemvprError(f"{arg}: {key} is a setting of the training protocol now: recipe.{rest}={value}")
+    args = [a for a in argv if a not in _HYDRA_FLAGS]
+    if any(a.startswith("-") for a in args):
+        return  # --cfg, --config-name, ...: Hydra's own modes
+    _check_composition(args, config_name, multirun=len(args) < len(argv))
+
+
+def _check_composition(args: list[str], config_name: str, multirun: bool) -> None:
+    """Parse the overrides as Hydra does, check the run or sweep dir, compose the config with them and
+    refuse keys the project's config has no room for (see :func:`check_overrides`). In a sweep, a key
+    is known if the config of one of the swept group choices has it (``data=a,b ++data.set=x``)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(args)
+    except Exception as err:  # noqa: BLE001 - Hydra's parse errors: one line with its reason
+        raise SemvprError(f"cannot parse the overrides: {_first_line(err)}") from None
+    for override in parsed:
+        if override.key_or_group in ("hydra.run.dir", "hydra.sweep.dir") and not override.is_sweep_override():
+            value = override.value()
+            if isinstance(value, str) and "${" not in value:
+                check_dir_path(value, override.key_or_group)
+
+    def is_group(override: Any) -> bool:
+        return (Path(CONF_DIR) / override.key_or_group.split("@")[0]).is_dir()
+
+    ours = [o for o in parsed if o.key_or_group != "hydra" and not o.key_or_group.startswith(("hydra.", "hydra/"))]
+    kept = [o.input_line for o in ours if not (multirun and o.is_sweep_override())]
+    variants: list[list[str]] = []
+    for override in (o for o in ours if multirun and o.is_sweep_override()):
+        if not is_group(override):
+            continue  # a swept value: the key is checked by Hydra in each job
+        try:
+            values = list(override.sweep_string_iterator())
+        except Exception:  # noqa: BLE001 - a glob or range over a group: left to Hydra
+            return
+        key = override.input_line.partition("=")[0]
+        variants += [[f"{key}={value}"] for value in values]
+    groups = [o.input_line for o in ours if is_group(o) and not (multirun and o.is_sweep_override())]
+    given: set[str] = set()
+    known: set[str] = set()
+    room: set[str] = set(OPEN_NODES)
+    failures: list[str] = []
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        for variant in variants or [[]]:
+            try:
+                cfg = compose(config_name=config_name, overrides=[*kept, *variant])
+                plain = OmegaConf.to_container(compose(config_name=config_name, overrides=[*groups, *variant]))
+            except Exception as err:  # noqa: BLE001 - Hydra's composition errors: one line with its reason
+                failures.append(_first_line(err))
+                continue
+            given |= _leaves(OmegaConf.to_container(cfg, resolve=False))
+            known |= _leaves(plain)
+            room |= _open_nodes(plain)
+    # In a sweep over groups, a choice the overrides do not fit fails its own job (Hydra says why there).
+    if failures and len(failures) == len(variants or [[]]):
+        unknown = re.match(r"Could not override '([^']+)'", failures[0])
+        if unknown:  # Hydra's hint (append it with +) would only meet the refusal below
+            raise SemvprError(_unknown(unknown.group(1)))
+        raise SemvprError(f"cannot apply the overrides: {failures[0]}")
+    for key in sorted(given - known):
+        if not any(key == r or key.startswith(f"{r}.") for r in room):
+            raise SemvprError(_unknown(key))
+
+
+def _unknown(key: str) -> str:
+    return (
+        f"{key} is not a setting of the project's config (a typo?); nothing would read it, "
+        f"so the run would not be the one asked for"
+    )
+
+
+def _first_line(err: BaseException) -> str:
+    """An exception's reason in one line (Hydra's messages run over several)."""
+    cause = err
+    while cause.__cause__ is not None and not str(cause).strip():
+        cause = cause.__cause__
+    lines = [ln.strip() for ln in str(cause).splitlines() if ln.strip() and not ln.strip().startswith("See http")]
+    return " ".join(lines)[:300] or type(err).__name__
 
 
 @exit_on_user_error
-def check_overrides_or_exit(argv: list[str]) -> None:
+def check_overrides_or_exit(argv: list[str], config_name: str = "train") -> None:
     """:func:`check_overrides` as a command's first step: one line and exit code 2."""
-    check_overrides(argv)
+    check_overrides(argv, config_name)
 
 
-def check_config(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
     """Reject config values that would fail deep inside a run with a cryptic error (or none at all).
 
     One function for every command's config: the retrieval settings where the config has them (train,
-    eval, localize), the segmentation set's where it has one (segment).
+    eval, localize), the segmentation set's where it has one (segment); ``run_dir``, the directory the
+    command writes into, must be usable as written (``core.io.check_dir_path``).
     """
     whole_number(cfg.seed, "seed", 0, SEED_MAX)
-    check_dir_path(Path(str(cfg.paths.cache_dir)), "paths.cache_dir")
+    check_dir_path(str(cfg.paths.cache_dir), "paths.cache_dir", writable=False)
+    if run_dir is not None:
+        check_dir_path(str(run_dir), "the run dir (hydra.run.dir)")
+    for key in PATH_KEYS:
+        value = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
+        if isinstance(value, str):
+            check_path_text(value, key)
     if "model" in cfg:
         _check_retrieval(cfg)
     if "seg" in cfg:
         _check_segmentation(cfg)
+
+
+#: Settings that name a file or folder to read; a NUL or an over-long name is refused before any reader.
+PATH_KEYS = (
+    "data.root",
+    "data.seg_root",
+    "data.gt_dir",
+    "data.npz",
+    "data.db_list",
+    "data.q_list",
+    "ckpt",
+    "ckpt_path",
+    "queries",
+    "teacher.checkpoint",
+    "student.checkpoint",
+    "init.root",
+    "seg.root",
+)
+
+
+def number(value: object, key: str, low: float, *, above: bool = False, high: float | None = None) -> float:
+    """``value`` as a finite float >= low (> low with ``above``; <= high if given), or one line naming ``key``."""
+    try:
+        ok = not isinstance(value, bool) and math.isfinite(float(value))  # type: ignore[arg-type]
+        number_ = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        ok, number_ = False, math.nan
+    ok = ok and (number_ > low if above else number_ >= low) and (high is None or number_ <= high)
+    if not ok:
+        bound = f"> {low:g}" if above else f">= {low:g}"
+        raise SemvprError(f"{key}={value!r} must be a finite number {bound}" + (f" and <= {high:g}" if high else ""))
+    return number_
+
+
+def check_model(cfg: DictConfig, where: str = "") -> None:
+    """The model's structure (the ``model`` node and the aggregator's sizes): what a checkpoint records,
+    so eval checks it again on the config merged from the checkpoint (``where`` says so)."""
+    prefix = f"{where}: " if where else ""
+    try:
+        for key in ("num_clusters", "num_shadows", "eval_batch_size", "init_features", "init_per_image"):
+            whole_number(cfg.model[key], f"model.{key}", 1)
+        if cfg.model.get("pca_dim") is not None:
+            whole_number(cfg.model.pca_dim, "model.pca_dim", 1, also="or null: no whitening")
+        number(cfg.model.class_weights.init_logit, "model.class_weights.init_logit", 0)
+        module = cfg.aggregator.get("module")
+        for key, value in (OmegaConf.to_container(module, resolve=True) if module is not None else {}).items():
+            if key.startswith("_"):
+                continue
+            _check_size(value, f"aggregator.module.{key}")
+    except SemvprError as err:
+        raise SemvprError(f"{prefix}{err}") from None
+
+
+def _check_size(value: Any, key: str) -> None:
+    """An aggregator size: whole numbers >= 1 (a list of them, or null), finite numbers > 0 (dropout in [0, 1))."""
+    if value is None or isinstance(value, str):
+        return
+    if isinstance(value, list):
+        for i, item in enumerate(value):
+            whole_number(item, f"{key}[{i}]", 1)
+    elif isinstance(value, bool):
+        return
+    elif isinstance(value, int):
+        whole_number(value, key, 1)
+    elif key.endswith(".dropout"):
+        number(value, key, 0, high=0.999)
+    else:
+        number(value, key, 0, above=True)
 
 
 def _check_retrieval(cfg: DictConfig) -> None:
@@ -104,28 +285,38 @@ def _check_retrieval(cfg: DictConfig) -> None:
         raise SemvprError(f"recipe.optimizer.lr={lr!r} must be a number > 0")
     if str(cfg.trainer.precision) not in PRECISIONS:
         raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
+    _check_trainer(cfg.trainer)
     if cfg.get("ckpt_path") not in (None, "last"):
         from semvpr.core.checkpoint import read_checkpoint
 
         read_checkpoint(cfg.ckpt_path)
     for group in COMPONENTS:
         component_class(cfg, group)
-    for key in ("num_clusters", "eval_batch_size", "init_features", "init_per_image"):
-        whole_number(cfg.model[key], f"model.{key}", 1)
-    for key in ("batch_size", "num_negatives", "cache_refresh"):
+    check_model(cfg)
+    for key in ("batch_size", "num_negatives", "negative_candidates", "cache_refresh"):
         whole_number(cfg.recipe[key], f"recipe.{key}", 1)
     if cfg.recipe.get("queries_per_epoch") is not None:
-        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch (or null = all)", 1)
+        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch", 1, also="or null: all")
+    number(cfg.recipe.margin, "recipe.margin", 0)
+    number(cfg.recipe.class_weights.lr, "recipe.class_weights.lr", 0, above=True)
     positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
     if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
         raise SemvprError(
             f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
             f"{cfg.recipe.positive_radius}: a negative could then be a positive"
         )
-    if len(cfg.data.image_size) != 2:
-        raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
+    size = cfg.data.get("image_size")
+    if not OmegaConf.is_list(size) or len(size) != 2:
+        raise SemvprError(f"data.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
+    for i, side in enumerate(size):
+        whole_number(side, f"data.image_size[{i}]", 1, also="data.image_size is [H, W]")
+    whole_number(cfg.data.get("num_workers"), "data.num_workers", 0)
+    if cfg.data.get("eval_radius") is not None:
+        check_radius(cfg.data.eval_radius, "data.eval_radius")
     if cfg.features.storage not in STORAGES:
         raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
+    for key in ("ram_gb", "disk_gb"):
+        number(cfg.features[key], f"features.{key}", 0)
     weighting = cfg.mask.weights
     if weighting not in WEIGHTINGS:
         raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
@@ -141,13 +332,39 @@ def _check_retrieval(cfg: DictConfig) -> None:
         )
 
 
+def _shown(value: Any) -> Any:
+    """A config value as the user wrote it (lists as lists)."""
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
+def _check_trainer(trainer: DictConfig) -> None:
+    """Epochs, devices and nodes: whole numbers Lightning accepts, and more than one device only with a
+    DDP strategy (Lightning would otherwise relaunch the whole command line in a second process)."""
+    epochs = trainer.get("max_epochs")
+    if epochs != -1:
+        whole_number(epochs, "trainer.max_epochs", 1, also="or -1: no limit")
+    devices = trainer.get("devices")
+    if devices != -1:
+        whole_number(devices, "trainer.devices", 1, also="or -1: every GPU")
+    whole_number(trainer.get("num_nodes", 1), "trainer.num_nodes", 1)
+    ddp = str(trainer.get("strategy", "auto")).startswith("ddp")
+    if not ddp and (devices != 1 or trainer.get("num_nodes", 1) != 1):
+        raise SemvprError(
+            f"trainer.devices={devices} needs trainer=ddp (one process per device, started by semvpr); "
+            f"without it use trainer.devices=1"
+        )
+
+
 def _check_segmentation(cfg: DictConfig) -> None:
     if OmegaConf.is_missing(cfg.seg, "root"):
         raise SemvprError(
             f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid"
         )
-    if len(cfg.seg.image_size) != 2:
-        raise SemvprError(f"seg.image_size={list(cfg.seg.image_size)} must be [H, W]")
+    size = cfg.seg.get("image_size")
+    if not OmegaConf.is_list(size) or len(size) != 2:
+        raise SemvprError(f"seg.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
+    for i, side in enumerate(size):
+        whole_number(side, f"seg.image_size[{i}]", 1, also="seg.image_size is [H, W]")
     if not cfg.backbones:
         raise SemvprError(
             "backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)"

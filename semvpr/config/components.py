@@ -58,4 +58,9 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
             raise user from None
         if isinstance(err, MissingMandatoryValue):
             raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. {err.full_key}=DIR") from None
+        cause: BaseException | None = err
+        while cause is not None and not (isinstance(cause, OSError) and cause.filename is not None):
+            cause = cause.__cause__ or cause.__context__
+        if cause is not None:
+            raise cause from None  # a file system refusal about a named file: the CLIs print it in one line
         raise

@@ -37,6 +37,7 @@ from semvpr.config.build import (
     feature_storage,
     init_aggregator,
 )
+from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
 from semvpr.core.checkpoint import check_recorded_paths, model_config, read_checkpoint, segmenter_of
 from semvpr.core.errors import SemvprError
@@ -70,6 +71,7 @@ def load_retriever(
     new_images: bool = False,
     evaluated: Callable[[], Iterable[Path]] = tuple,
     warn: bool = True,
+    ckpt: str | Path | None = None,
 ) -> tuple[Retriever, DictConfig]:
     """The retriever ``cfg.ckpt`` names, in eval mode, and the config it was built with.
 
@@ -78,12 +80,18 @@ def load_retriever(
     mask source that reads ground truth cannot. ``evaluated``: gives the images the retriever will be scored
     on, which an untrained aggregator's initialisation must not see (called only then: a checkpoint is
     validated before any data is read). ``warn``: print one line when the
-    checkpoint's own mask was trained on another kind of images than ``cfg.data`` holds.
+    checkpoint's own mask was trained on another kind of images than ``cfg.data`` holds. ``ckpt``: the
+    checkpoint file when it is not ``cfg.ckpt`` (the hub passes its path as a value, never through Hydra's
+    override syntax, where ``,``, ``=`` and quotes are syntax and ``${...}`` an interpolation).
+
+    A trained checkpoint's model values are checked as a run's are (``check_model``): a record may hold
+    values of the right type that no run could use.
     """
-    if is_untrained(cfg.ckpt):
+    target = cfg.ckpt if ckpt is None else ckpt
+    if is_untrained(target):
         retriever, merged = untrained_retriever(cfg, explicit, evaluated)
     else:
-        retriever, merged = _trained_retriever(cfg, explicit, warn)
+        retriever, merged = _trained_retriever(cfg, explicit, warn, Path(str(target)))
     source = retriever.mask_source
     if new_images and source is not None and not source.describes_new_images:
         raise SemvprError(
@@ -92,10 +100,11 @@ def load_retriever(
     return retriever.eval(), merged
 
 
-def _trained_retriever(cfg: DictConfig, explicit: set[str], warn: bool) -> tuple[Retriever, DictConfig]:
-    where = f"checkpoint {cfg.ckpt}"
-    state, record = read_checkpoint(cfg.ckpt)
+def _trained_retriever(cfg: DictConfig, explicit: set[str], warn: bool, path: Path) -> tuple[Retriever, DictConfig]:
+    where = f"checkpoint {path}"
+    state, record = read_checkpoint(path)
     merged = model_config(record, cfg, where=where, check_paths=False)
+    check_model(merged, where=where)
     trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
     for override in sorted(explicit & set(MODEL_OVERRIDES)):
         if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):

@@ -15,6 +15,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -48,17 +49,52 @@ def state_hash(state: dict[str, Any], length: int = 16) -> str:
     return digest.hexdigest()[:length]
 
 
-def files_identity(names: Sequence[str], paths: Sequence[str | Path]) -> str:
-    """Hash of each file's name (as the caller keys it), size and modification time in ns.
+#: Bytes of each end of a file that its content key hashes (the whole file when it is shorter than both).
+CONTENT_BYTES = 4096
 
-    What a cache built from files is keyed by: the same names with other bytes (a dataset whose
-    images were replaced) give another key. One ``stat`` per file, no read.
+
+def files_identity(names: Sequence[str], paths: Sequence[str | Path]) -> str:
+    """Hash of each file's name (as the caller keys it), size, modification time in ns and content
+    (a SHA-256 of its first and last ``CONTENT_BYTES``).
+
+    What a cache built from files is keyed by: the same names with other bytes give another key, even
+    an image replaced by another of the same size and mtime (its first and last 4 KiB differ unless
+    forged to match). Two reads of 4 KiB per file; a file that cannot be read as a regular file
+    (missing, a dangling or looping link, a FIFO or device, a NUL in its name) is one line naming it.
     """
-    digest = hashlib.sha256()
+    digest = hashlib.sha256(b"files-identity v2\n")
     for name, path in zip(names, paths, strict=True):
-        st = os.stat(path)
-        digest.update(f"{name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        size, mtime, content = _file_fingerprint(path)
+        digest.update(f"{name}\0{size}\0{mtime}\0".encode())
+        digest.update(content)
+        digest.update(b"\n")
     return digest.hexdigest()[:16]
+
+
+def _file_fingerprint(path: str | Path) -> tuple[int, int, bytes]:
+    """(size, mtime_ns, SHA-256 of the first and last CONTENT_BYTES) of a regular file, or one line."""
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise SemvprError(
+                f"{path} is not a regular file (a folder, FIFO or device); image lists must name image files"
+            )
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            opened = os.fstat(fd)
+            if not stat.S_ISREG(opened.st_mode):
+                raise SemvprError(f"{path} is not a regular file; image lists must name image files")
+            head = os.pread(fd, CONTENT_BYTES, 0)
+            tail = os.pread(fd, CONTENT_BYTES, max(opened.st_size - CONTENT_BYTES, CONTENT_BYTES))
+        finally:
+            os.close(fd)
+    except FileNotFoundError:
+        raise SemvprError(f"image {path} not found (missing, or a link to nothing)") from None
+    except OSError as err:
+        raise SemvprError(f"image {path} cannot be read ({err.strerror or type(err).__name__})") from None
+    except ValueError as err:  # an embedded NUL byte
+        raise SemvprError(f"image name {str(path)!r} cannot name a file ({err})") from None
+    return opened.st_size, opened.st_mtime_ns, hashlib.sha256(head + tail).digest()
 
 
 def artifact_dir(cache_dir: str | Path, kind: str, key: Any) -> Path:
@@ -78,13 +114,20 @@ def build_once(
     ``build`` writes into a temporary directory; on success it is renamed into place and ``key``
     is saved beside the content as ``key.json``. A failed build leaves nothing behind, unless
     ``resumable``: then the temporary directory is kept under a fixed name and handed to the next
-    ``build`` call, which may skip the files already there.
+    ``build`` call, which may keep a file already there only after checking it is one it would have
+    written (that directory may have been left by anyone; pseudo-labels check size, mode and ids).
     """
     final = artifact_dir(cache_dir, kind, key)
     if final.is_dir():
         return final
-    (final.parent / LOCK_DIR).mkdir(parents=True, exist_ok=True)
-    reclaim_orphans(final.parent)
+    try:
+        (final.parent / LOCK_DIR).mkdir(parents=True, exist_ok=True)
+        reclaim_orphans(final.parent)
+    except OSError as err:
+        raise SemvprError(
+            f"cache dir {final.parent} cannot be written ({err.strerror or type(err).__name__}) and holds no "
+            f"{kind} artifact for this run; point paths.cache_dir at a writable folder"
+        ) from None
     with _exclusive(final.parent / LOCK_DIR / f"{final.name}.lock"):
         if final.is_dir():  # another job built it while we waited for the lock
             return final

@@ -224,27 +224,68 @@ def _check_path_value(stored: Any, given: Any, path: str) -> None:
 
 def _check(stored: Any, schema: Any, path: str) -> None:
     """Refuse a stored value that the project's config could not have produced."""
+    check_values(stored, schema, path, source="a checkpoint")
+
+
+def check_values(stored: Any, schema: Any, path: str, *, source: str, project_values: Any = None) -> None:
+    """Refuse a stored value (a checkpoint's record, a resumed run's config) that the project's config
+    could not have produced: only keys of ``schema`` (an empty mapping there takes keys of the user's
+    own: ``data.render: {}``), values of the same kind, no ``_`` keys and no ``${...}``, unless
+    ``project_values`` (the project's config at the same place, unresolved) holds exactly the same
+    entry: a resumed run's record carries the ``_target_``s and interpolations of the files it was
+    composed from, which add nothing. ``source`` names what was read, for the one-line refusal; ``path``
+    prefixes every key named (a path ending in ": " is a heading, not a key)."""
     if isinstance(stored, dict):
         if not isinstance(schema, dict):
             raise SemvprError(f"{path} is a mapping where the project's config has {schema!r}")
+        project = project_values if isinstance(project_values, dict) else {}
         for key, value in stored.items():
+            if isinstance(key, str) and key in project and project[key] == value and _project_only(key, value):
+                continue  # the project's own _target_ / interpolation, unchanged
             if not isinstance(key, str) or key.startswith("_"):
-                raise SemvprError(f"{path}.{key} is refused: keys such as _target_ are never read from a checkpoint")
+                raise SemvprError(
+                    f"{_join(path, key)} is refused: keys such as _target_ are never read from {source} "
+                    "(the project's config files supply them)"
+                )
             if key not in schema:
-                raise SemvprError(f"{path}.{key} is not a key of the project's config")
-            _check(value, schema[key], f"{path}.{key}")
+                if schema:
+                    raise SemvprError(f"{_join(path, key)} is not a key of the project's config")
+                if isinstance(value, (dict, list)):
+                    raise SemvprError(f"{_join(path, key)} is not a plain value")
+                check_values(value, None, f"{_join(path, key)}", source=source)
+                continue
+            check_values(value, schema[key], f"{_join(path, key)}", source=source, project_values=project.get(key))
     elif isinstance(stored, list):
         if schema is not None and not isinstance(schema, list):
             raise SemvprError(f"{path} is a list where the project's config has {schema!r}")
         for i, value in enumerate(stored):
             if isinstance(value, (dict, list)):
                 raise SemvprError(f"{path}[{i}] is not a plain value")
-            _check(value, None, f"{path}[{i}]")
+            check_values(value, None, f"{path}[{i}]", source=source)
     else:
         if isinstance(stored, str) and "${" in stored:
-            raise SemvprError(f"{path}={stored!r} is refused: interpolations are never read from a checkpoint")
-        if not _same_kind(stored, schema):
+            raise SemvprError(f"{path}={stored!r} is refused: interpolations are never read from {source}")
+        derived = isinstance(project_values, str) and "${" in project_values
+        if not derived and not _same_kind(stored, schema):
             raise SemvprError(f"{path}={stored!r} has the wrong type (the project's config has {schema!r})")
+
+
+def _join(path: str, key: object) -> str:
+    """``path.key``, or ``path key`` after a heading (``"resuming <run>: "``)."""
+    return f"{path}{key}" if path.endswith(": ") else f"{path}.{key}"
+
+
+def _project_only(key: str, value: Any) -> bool:
+    """Whether an entry is one only the project's files may supply (a ``_`` key, or text with ``${``)."""
+    if key.startswith("_"):
+        return True
+    if isinstance(value, str):
+        return "${" in value
+    if isinstance(value, dict):
+        return any(_project_only(str(k), v) for k, v in value.items())
+    if isinstance(value, list):
+        return any(isinstance(v, str) and "${" in v for v in value)
+    return False
 
 
 def _same_kind(value: Any, schema: Any) -> bool:

@@ -15,7 +15,8 @@ class SemvprError(Exception):
 
 
 def exit_on_user_error(fn: F) -> F:
-    """Wrap a CLI entry point so a SemvprError prints one line on stderr and exits with code 2."""
+    """Wrap a CLI entry point so a SemvprError, or an OSError about a named file, prints one line on
+    stderr and exits with code 2."""
 
     @functools.wraps(fn)
     def wrapper(*args: object, **kwargs: object) -> object:
@@ -26,11 +27,18 @@ def exit_on_user_error(fn: F) -> F:
             # which would print a traceback.
             print(f"semvpr: error: {one_line(err)}", file=sys.stderr)
             raise SystemExit(2) from None
+        except OSError as err:
+            # A file system refusal about a named path (permission, a read-only or full disk, a name
+            # too long, a link loop) is the user's to fix: one line naming the file, not a traceback.
+            if err.filename is None:
+                raise
+            print(f"semvpr: error: {err.filename}: {err.strerror or type(err).__name__}", file=sys.stderr)
+            raise SystemExit(2) from None
 
     return wrapper  # type: ignore[return-value]
 
 
-def one_line(err: SemvprError) -> str:
+def one_line(err: BaseException) -> str:
     """The user-facing line of an error; one raised in a DataLoader worker arrives wrapped in its traceback."""
     lines = [line for line in str(err).splitlines() if line.strip()]
     return lines[-1].removeprefix(f"{SemvprError.__module__}.{SemvprError.__name__}: ") if lines else repr(err)

@@ -8,15 +8,24 @@ temporary name records its writer (``.<name>.<host>-<pid>.<random>.tmp``): what 
 left is reclaimed by the next build there (:func:`reclaim_orphans`).
 Per-item paths inside an artifact (one file per image) go through :func:`inside`, which refuses
 any that would leave the artifact's directory.
+
+Directories a command writes into (its run directory, ``paths.cache_dir``) are used exactly as written:
+:func:`check_dir_path` refuses ``$`` and a leading ``~`` (a logger would expand them and write
+elsewhere), names the file system cannot hold, a file on the way and a folder that cannot be written,
+before anything is written. Files that runs and other people write (a sweep's ``.hydra`` YAML, job JSON)
+are read as plain data with limits (:func:`read_yaml`, :func:`read_json`): no YAML aliases, bounded
+size and nesting, so a small hostile file cannot cost minutes or gigabytes.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
 import shutil
 import socket
+import stat
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -26,12 +35,17 @@ from typing import IO, Any
 from semvpr.core.errors import SemvprError
 
 CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+#: Largest YAML / JSON file a run directory may hand to the readers (a .hydra record is a few KiB).
+MAX_RECORD_BYTES = 16 * 2**20
+#: Deepest nesting a record may have (a config is a few levels deep).
+MAX_RECORD_DEPTH = 64
 
 
 @contextmanager
 def atomic_file(final: Path) -> Iterator[IO[bytes]]:
     """A binary file object to write ``final``'s content to; renamed onto ``final`` on success."""
     final = Path(final)
+    check_replaceable(final)
     final.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent)
     try:
@@ -85,14 +99,136 @@ def inside(base: Path, rel: str | Path) -> Path:
     return path
 
 
-def check_dir_path(path: Path, what: str) -> None:
-    """Refuse a directory path that cannot be made because a file sits on the way."""
-    path = Path(path).expanduser()
+def check_replaceable(final: Path) -> None:
+    """Refuse to write a file where a directory stands (a rename onto it would fail after the work)."""
+    if final.is_dir() and not final.is_symlink():
+        raise SemvprError(f"{final} is a directory, not a file; remove or rename it to write {final.name}")
+
+
+def check_path_text(path: str | Path, what: str) -> None:
+    """Refuse a path the file system cannot hold: a NUL byte, a name longer than 255 bytes, a path
+    longer than 4,095 bytes."""
+    text = str(path)
+    if "\0" in text:
+        raise SemvprError(f"{what}={text!r} holds a NUL byte; no file can be named that")
+    if len(os.fsencode(text)) > 4095:
+        raise SemvprError(f"{what}: the path is {len(os.fsencode(text))} bytes long; the limit is 4,095")
+    long = next((part for part in Path(text).parts if len(os.fsencode(part)) > 255), None)
+    if long is not None:
+        raise SemvprError(
+            f"{what}: the name {long[:40]}... is {len(os.fsencode(long))} bytes long; the limit is 255 per name"
+        )
+
+
+def check_dir_path(path: str | Path, what: str, *, writable: bool = True) -> None:
+    """Refuse a directory to write into that would not be the one named or could not be written.
+
+    The path is used as written: ``$`` and a leading ``~`` are refused (a logger would expand them and
+    write elsewhere). Then: a name the file system cannot hold, a file on the way, or (``writable``) a
+    deepest existing folder where no file can be created (read-only, immutable, another user's) is one
+    line here, before anything is written. Nothing is created: the probe file is removed at once. A
+    cache dir is checked without ``writable``: a complete cache may be read-only, and a build that
+    must write there says so in one line (``core.cache.build_once``).
+    """
+    text = str(path)
+    if "$" in text or text.startswith("~"):
+        raise SemvprError(
+            f"{what}={text!r}: '$' and a leading '~' are not expanded in directories semvpr writes into "
+            f"(a logger would expand them and write elsewhere); write the path out"
+        )
+    check_path_text(text, what)
+    path = Path(text)
     for folder in (path, *path.parents):
-        if folder.exists():
-            if not folder.is_dir():
-                raise SemvprError(f"{what}={path}: {folder} is a file, not a directory")
+        try:
+            exists = folder.exists()
+        except OSError as err:
+            raise SemvprError(f"{what}={text}: {folder} cannot be checked ({err.strerror})") from None
+        if not exists:
+            continue
+        if not folder.is_dir():
+            raise SemvprError(f"{what}={text}: {folder} is a file, not a directory")
+        if not writable:
             return
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".semvpr-write-check.", dir=folder)
+        except OSError as err:
+            reason = err.strerror or type(err).__name__
+            if err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+                reason = f"read-only or immutable: {reason}"
+            raise SemvprError(f"{what}={text}: {folder} cannot be written ({reason})") from None
+        os.close(fd)
+        os.unlink(probe)
+        return
+
+
+def read_yaml(path: Path, what: str) -> Any:
+    """A YAML file someone else wrote, as plain data: safe types only, no aliases (a 400-byte alias
+    bomb expands to gigabytes), at most ``MAX_RECORD_BYTES`` and ``MAX_RECORD_DEPTH`` levels; nothing
+    is resolved. A file that breaks a rule is one line naming it."""
+    import yaml
+
+    class _Loader(yaml.SafeLoader):
+        def compose_node(self, parent: Any, index: Any) -> Any:
+            if self.check_event(yaml.AliasEvent):
+                raise SemvprError(f"{what} {path} uses a YAML alias (*name); a run's record never does")
+            self._depth = getattr(self, "_depth", 0) + 1
+            try:
+                if self._depth > MAX_RECORD_DEPTH:
+                    raise SemvprError(f"{what} {path} is nested deeper than {MAX_RECORD_DEPTH} levels")
+                return super().compose_node(parent, index)
+            finally:
+                self._depth -= 1
+
+    text = _read_limited(path, what)
+    try:
+        return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+    except SemvprError:
+        raise
+    except Exception as err:  # noqa: BLE001 - every malformed file gets the same one line
+        raise SemvprError(f"{what} {path} is not readable YAML ({type(err).__name__})") from None
+
+
+def read_json(path: Path, what: str) -> Any:
+    """A JSON file someone else wrote, at most ``MAX_RECORD_BYTES`` and ``MAX_RECORD_DEPTH`` levels deep;
+    a file that breaks a rule (or is no JSON) is one line naming it."""
+    text = _read_limited(path, what)
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError) as err:
+        raise SemvprError(f"{what} {path} is not readable JSON ({type(err).__name__})") from None
+    if _depth(data) > MAX_RECORD_DEPTH:
+        raise SemvprError(f"{what} {path} is nested deeper than {MAX_RECORD_DEPTH} levels")
+    return data
+
+
+def _read_limited(path: Path, what: str) -> str:
+    """The text of a regular file of at most ``MAX_RECORD_BYTES`` (a FIFO or device is never opened)."""
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise SemvprError(f"{what} {path} is not a regular file")
+        if st.st_size > MAX_RECORD_BYTES:
+            raise SemvprError(f"{what} {path} is {st.st_size} bytes; the limit is {MAX_RECORD_BYTES}")
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_RECORD_BYTES + 1)
+    except OSError as err:
+        raise SemvprError(f"{what} {path} cannot be read ({err.strerror or type(err).__name__})") from None
+    if len(data) > MAX_RECORD_BYTES:
+        raise SemvprError(f"{what} {path} is over {MAX_RECORD_BYTES} bytes")
+    return data.decode("utf-8", errors="replace")
+
+
+def _depth(node: Any) -> int:
+    """Nesting depth of plain JSON data, without recursion."""
+    deepest, stack = 0, [(node, 1)]
+    while stack:
+        item, level = stack.pop()
+        deepest = max(deepest, level)
+        if isinstance(item, dict):
+            stack.extend((v, level + 1) for v in item.values())
+        elif isinstance(item, list):
+            stack.extend((v, level + 1) for v in item)
+    return deepest
 
 
 _TEMP = re.compile(r"^\..+\.(?P<host>[^.]+)-(?P<pid>\d+)\.[A-Za-z0-9_]+\.tmp$")

@@ -1,23 +1,33 @@
-"""Resuming a run continues it as it was composed.
+"""Resuming a run continues it as it was composed, from the project's own config files.
 
-``python -m semvpr.train ckpt_path=last hydra.run.dir=<run>`` reloads ``<run>/.hydra/config.yaml``
-(what the run was started with), not today's defaults: a resume without the original overrides
-is the same run. Overrides given with the resume must agree with that config; one that
+``python -m semvpr.train ckpt_path=last hydra.run.dir=<run>`` continues the run with what it was
+started with, not today's defaults: a resume without the original overrides is the same run. The run
+directory is data written by someone, so its record is never run: the config is composed again from
+the project's files with the config choices the run recorded (``<run>/.hydra/hydra.yaml``: e.g.
+``filter=unet``, ``experiment=tiny``), which alone supply every ``_target_``, and the run's plain values
+(``<run>/.hydra/config.yaml``) are checked against it as a checkpoint's record is
+(``checkpoint.check_values``: known keys, the same kind of value, no ``_`` keys or interpolations
+of its own) and applied. Overrides given with the resume must agree with that config; one that
 contradicts it (another filter, another ``trainer.max_epochs``) is refused in one line before
 anything is written. The run's ``.hydra`` record is left as it is (Hydra is told not to rewrite it).
 """
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from semvpr.core.checkpoint import check_values
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import CONF_DIR, read_yaml
 
 #: Overrides a resume may give freely: which checkpoint, and Hydra's own settings.
 RESUME_KEYS = ("ckpt_path",)
+_CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
 
 
 def _value(argv: list[str], key: str) -> str | None:
@@ -31,11 +41,12 @@ def _value(argv: list[str], key: str) -> str | None:
 
 
 def record_of_resumed_run(argv: list[str]) -> Path | None:
-    """``<run>/.hydra/config.yaml`` if ``argv`` resumes an existing run (ckpt_path and hydra.run.dir)."""
+    """``<run>/.hydra/config.yaml`` if ``argv`` resumes an existing run (ckpt_path and hydra.run.dir);
+    the run dir is taken as written, as Hydra takes it (no ``~`` expansion)."""
     ckpt, run = _value(argv, "ckpt_path"), _value(argv, "hydra.run.dir")
     if ckpt in (None, "", "null") or not run:
         return None
-    record = Path(run).expanduser() / ".hydra" / "config.yaml"
+    record = Path(run) / ".hydra" / "config.yaml"
     return record if record.is_file() else None
 
 
@@ -44,20 +55,56 @@ def keep_run_record(argv: list[str]) -> list[str]:
     return [*argv, "hydra.output_subdir=null"] if record_of_resumed_run(argv) is not None else argv
 
 
-def resumed_config(cfg: DictConfig, default: DictConfig, record: Path, overrides: list[str]) -> DictConfig:
-    """The run's own config (``record``) with this invocation's ``ckpt_path``.
+def recorded_choices(record: Path) -> list[str]:
+    """The config choices a run recorded (``hydra.yaml``'s ``runtime.choices``) as overrides, each
+    naming one of the project's own config files."""
+    hydra_record = record.parent / "hydra.yaml"
+    data = read_yaml(hydra_record, "run record") if hydra_record.is_file() else None
+    choices = data.get("hydra", {}).get("runtime", {}).get("choices") if isinstance(data, dict) else None
+    if not isinstance(choices, dict):
+        raise SemvprError(f"{hydra_record} does not record the run's config choices; resume needs it")
+    conf = Path(CONF_DIR)
+    out = []
+    for group, choice in choices.items():
+        if not isinstance(group, str) or group == "hydra" or group.startswith("hydra/") or choice is None:
+            continue
+        if (
+            not _CHOICE.match(group)
+            or not isinstance(choice, str)
+            or not _CHOICE.match(choice)
+            or not (conf / group / f"{choice}.yaml").is_file()
+        ):
+            raise SemvprError(
+                f"{hydra_record}: choice {group}={choice!r} is not one of the project's config files; "
+                "a resume composes the run from them"
+            )
+        out.append(f"{group}={choice}")
+    return out
 
-    ``cfg`` is what this invocation composed from ``overrides``, ``default`` what it would compose
-    without them: every key an override names (a group: every key below it), and every key where
-    the two differ, must equal the run's own value.
+
+def resumed_config(
+    cfg: DictConfig, record: Path, overrides: list[str], compose: Callable[[list[str]], DictConfig]
+) -> DictConfig:
+    """The run's own config, rebuilt (module docstring), with this invocation's ``ckpt_path``.
+
+    ``cfg`` is what this invocation composed from ``overrides``; ``compose(overrides)`` composes the
+    project's config with other overrides. Every key an override names (a group: every key below
+    it), and every key where ``cfg`` differs from the plain default, must equal the run's own value.
     """
-    named = {o.lstrip("+~").partition("=")[0] for o in overrides}
-    try:
-        own = OmegaConf.load(record)
-    except Exception as err:  # noqa: BLE001 - a damaged record gets one line
-        raise SemvprError(f"{record} is not a readable run config ({type(err).__name__}); resume needs it") from None
-    if not isinstance(own, DictConfig):
+    where = f"resuming {record.parent.parent}"
+    own_values = read_yaml(record, "run config")
+    if not isinstance(own_values, dict):
         raise SemvprError(f"{record} is not a run config (a mapping)")
+    schema = compose(recorded_choices(record))
+    project = OmegaConf.to_container(schema, resolve=False)
+    check_values(own_values, project, f"{where}: ", source=f"a run's record ({record})", project_values=project)
+    own = schema.copy()
+    OmegaConf.set_struct(own, False)
+    own.merge_with(own_values)
+    OmegaConf.set_struct(own, True)
+
+    named = {o.lstrip("+~").partition("=")[0] for o in overrides}
+    default = compose([])
     given, base, theirs = (_leaves(OmegaConf.to_container(c, resolve=False)) for c in (cfg, default, own))
     for key in sorted(given.keys() | base.keys()):
         set_here = given.get(key) != base.get(key) or any(key == n or key.startswith(f"{n}.") for n in named)
@@ -65,7 +112,7 @@ def resumed_config(cfg: DictConfig, default: DictConfig, record: Path, overrides
             continue
         if given.get(key) != theirs.get(key):
             raise SemvprError(
-                f"resuming {record.parent.parent}: {key}={given.get(key)!r} contradicts the run's "
+                f"{where}: {key}={given.get(key)!r} contradicts the run's "
                 f"own {key}={theirs.get(key)!r}; a resume continues the run as it was started: "
                 f"drop the override"
             )

@@ -25,13 +25,18 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.core.errors import SemvprError
-from semvpr.data.places import IMAGE_SUFFIXES, PlaceSet
+from semvpr.data.places import IMAGE_SUFFIXES, MAX_POSITION, PlaceSet, listed_image
 from semvpr.data.published import check_counts
 
 #: What a pickled numpy object array of index arrays may reference (numpy 1.x and 2.x names).
 _ARRAY_CLASSES = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
                   ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
                   ("numpy", "ndarray"), ("numpy", "dtype")}  # fmt: skip
+
+
+#: Largest frame number or window (a frame is a position: one unit is one frame, within MAX_POSITION;
+#: frame + window stays far inside int64).
+MAX_FRAME = int(MAX_POSITION)
 
 
 class _ArrayUnpickler(pickle.Unpickler):
@@ -56,9 +61,10 @@ def load_npy(path: Path) -> np.ndarray:
                 fh.seek(0)
                 return np.load(fh, allow_pickle=False)
             array = _ArrayUnpickler(fh).load()
-    except (ValueError, OSError, EOFError, pickle.UnpicklingError) as err:
+    except Exception as err:  # noqa: BLE001 - numpy's allowed classes raise anything on crafted arguments
+        detail = str(err).splitlines()[0][:200] if str(err) else ""
         raise SemvprError(
-            f"{path}: not a readable .npy array ({str(err).splitlines()[0] if str(err) else type(err).__name__})"
+            f"{path}: not a readable .npy array ({type(err).__name__}{': ' if detail else ''}{detail})"
         ) from None
     if not isinstance(array, np.ndarray) or array.shape != shape:
         raise SemvprError(f"{path}: the pickled content is not the {shape} array its header announces")
@@ -93,23 +99,24 @@ def _index_lists(path: Path, count: int) -> list[np.ndarray]:
 
 
 def _check_images(image_root: Path, db: list[str], q: list[str], where: Path) -> None:
-    """The image folder exists and holds the first listed image of each side (one stat each)."""
+    """The image folder exists and holds the first listed image of each side (one stat each; every
+    image is checked when the set's cache key is taken)."""
     if not image_root.is_dir():
         raise SemvprError(
             f"image folder {image_root} does not exist; set data.root=... to the folder the "
             f"paths in {where} are relative to"
         )
     for side, names in (("database", db), ("query", q)):
-        if not (image_root / names[0]).is_file():
+        if not listed_image(image_root, names[0], where).is_file():
             raise SemvprError(f"{where}: first {side} image {names[0]!r} not found under {image_root}")
 
 
-def _set(name: str, image_root: Path, db: list[str], q: list[str], **truth: object) -> PlaceSet:
+def _set(name: str, image_root: Path, db: list[str], q: list[str], where: Path, **truth: object) -> PlaceSet:
     return PlaceSet(
         name=name,
         root=image_root,
-        db_paths=tuple(image_root / n for n in db),
-        q_paths=tuple(image_root / n for n in q),
+        db_paths=tuple(listed_image(image_root, n, where) for n in db),
+        q_paths=tuple(listed_image(image_root, n, where) for n in q),
         db_utm=np.full((len(db), 2), np.nan),
         q_utm=np.full((len(q), 2), np.nan),
         **truth,
@@ -124,7 +131,7 @@ def read_npy_lists(gt_dir: str | Path, image_root: str | Path, set_name: str) ->
     truth = _index_lists(gt_dir / f"{set_name}_gt.npy", len(q))
     check_counts(set_name, len(db), len(q), str(gt_dir / f"{set_name}_*.npy"))
     _check_images(image_root, db, q, gt_dir / f"{set_name}_dbImages.npy")
-    return _set(set_name, image_root, db, q, ground_truth=tuple(truth))
+    return _set(set_name, image_root, db, q, gt_dir / f"{set_name}_*Images.npy", ground_truth=tuple(truth))
 
 
 def read_msls_val_npy(gt_dir: str | Path, image_root: str | Path) -> PlaceSet:
@@ -147,7 +154,7 @@ def read_msls_val_npy(gt_dir: str | Path, image_root: str | Path) -> PlaceSet:
     truth = _index_lists(gt_dir / "msls_val_pIdx.npy", len(q))
     check_counts("msls_val", len(db), len(q), str(gt_dir / "msls_val_*.npy"))
     _check_images(image_root, db, q, gt_dir / "msls_val_dbImages.npy")
-    return _set("msls_val", image_root, db, q, ground_truth=tuple(truth))
+    return _set("msls_val", image_root, db, q, gt_dir / "msls_val_*Images.npy", ground_truth=tuple(truth))
 
 
 def _lines(path: Path) -> list[str]:
@@ -181,25 +188,30 @@ def read_patchnetvlad(
         )
     db, q = _lines(Path(db_list).expanduser()), _lines(Path(q_list).expanduser())
     for key, names in (("utmDb", db), ("utmQ", q)):
-        if fields[key].shape != (len(names), 2) or not np.issubdtype(fields[key].dtype, np.number):
+        if fields[key].shape != (len(names), 2) or not _real(fields[key]):
             raise SemvprError(
                 f"{npz_path}: {key} is {fields[key].dtype}{list(fields[key].shape)}, expected "
                 f"({len(names)}, 2) positions for the {len(names)} images listed"
             )
     radius = fields["posDistThr"]
-    if radius.size != 1 or not np.issubdtype(radius.dtype, np.number) or not float(radius) > 0:
+    if radius.size != 1 or not _real(radius) or not 0 < float(radius.ravel()[0]) < np.inf:
         raise SemvprError(f"{npz_path}: posDistThr is {radius.tolist()!r}, expected one positive radius in metres")
     check_counts(npz_path.stem, len(db), len(q), str(npz_path))
     _check_images(image_root, db, q, Path(db_list))
     return PlaceSet(
         name=npz_path.stem,
         root=image_root,
-        db_paths=tuple(image_root / n for n in db),
-        q_paths=tuple(image_root / n for n in q),
+        db_paths=tuple(listed_image(image_root, n, Path(db_list)) for n in db),
+        q_paths=tuple(listed_image(image_root, n, Path(q_list)) for n in q),
         db_utm=fields["utmDb"],
         q_utm=fields["utmQ"],
         eval_radius=float(radius),
     )
+
+
+def _real(array: np.ndarray) -> bool:
+    """Whether an array holds real numbers (integers or floats; not complex, not bool, not objects)."""
+    return np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)
 
 
 def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
@@ -228,7 +240,10 @@ def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
             expected = "the frame number in the file name"
         if not digits:
             raise SemvprError(f"{path}: no frame number in the file name (expected {expected})")
-        frames.append(int(digits[-1]))
+        frame = int(digits[-1])
+        if frame > MAX_FRAME:
+            raise SemvprError(f"{path}: frame number {digits[-1][:40]} is beyond {MAX_FRAME:.0e}; not a frame number")
+        frames.append(frame)
     order = np.argsort(frames, kind="stable")
     images, numbers = [images[i] for i in order], np.asarray(frames, dtype=np.int64)[order]
     repeated = np.flatnonzero(numbers[1:] == numbers[:-1])
@@ -257,8 +272,10 @@ def read_frames(
     Positions are (frame, 0): one unit is one frame. ``name`` (default: the root folder's name) heads
     the set's name in tables, which also says the traversals and the window."""
     root = Path(root).expanduser()
-    if not isinstance(frame_window, int) or isinstance(frame_window, bool) or frame_window < 0:
-        raise SemvprError(f"data.frame_window={frame_window!r}: expected a number of frames >= 0")
+    if not isinstance(frame_window, int) or isinstance(frame_window, bool) or not 0 <= frame_window <= MAX_FRAME:
+        raise SemvprError(
+            f"data.frame_window={frame_window!r}: expected a number of frames >= 0 and <= {MAX_FRAME:.0e}"
+        )
     for key, value in (("data.database", database), ("data.queries", queries)):
         if not isinstance(value, str) or not value or Path(value).name != value or value in (".", ".."):
             raise SemvprError(f"{key}={value!r}: expected the name of a traversal folder under data.root")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
+from semvpr.data.places import listed_image
 from semvpr.data.segmentation import SegmentationSet, check_pair
 
 #: SegNet's 11 CamVid classes by label index; index 11 is Unlabelled (ignored).
@@ -31,11 +32,12 @@ def camvid_lut() -> tuple[int, ...]:
     return tuple(lut)
 
 
-def _listed(root: Path, entry: str) -> Path:
+def _listed(root: Path, entry: str, listing: Path) -> Path:
     """A split-list path under ``root``: SegNet's lists hold absolute paths (/SegNet/CamVid/train/x.png),
-    so only the last two components (folder and file) are kept."""
+    so only the last two components (folder and file) are kept, under the rule every list reader shares
+    (``places.listed_image``)."""
     path = Path(entry)
-    return root / path.parent.name / path.name
+    return listed_image(root, f"{path.parent.name}/{path.name}".lstrip("/"), listing)
 
 
 def read_camvid(root: str | Path, split: str) -> SegmentationSet:
@@ -59,7 +61,7 @@ def read_camvid(root: str | Path, split: str) -> SegmentationSet:
         entries = line.split()
         if len(entries) != 2:
             raise SemvprError(f"{listing}:{number}: expected '<image> <label map>', got {line.strip()!r}")
-        image, label = (_listed(root, e) for e in entries)
+        image, label = (_listed(root, e, listing) for e in entries)
         for path, what in ((image, "image"), (label, "label map")):
             if not path.is_file():
                 raise SemvprError(f"{listing}:{number}: {what} {path} is missing")

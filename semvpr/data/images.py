@@ -1,8 +1,16 @@
 """Images as every stage reads them: decoded whole (a corrupt file fails with its name), RGB in
-[0, 1], resized to [H, W] where asked, and a dataset of image files for batched passes."""
+[0, 1], resized to [H, W] where asked, and a dataset of image files for batched passes.
+
+Only regular files are opened (a FIFO named ``.jpg`` would block the reader forever), and only 8-bit
+images are decoded: a 16-bit or float image (PIL modes ``I``, ``I;16*``, ``F``: a 16-bit PNG, a float
+TIFF) has no single right mapping to [0, 1] (PIL's RGB conversion saturates or blacks it out), so it is
+refused in one line naming the file; convert it to 8 bits first.
+"""
 
 from __future__ import annotations
 
+import os
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -17,15 +25,34 @@ from semvpr.core.errors import SemvprError
 Size = tuple[int, int] | list[int]
 
 
+#: PIL modes of 8-bit images, which convert to RGB without loss of meaning.
+EIGHT_BIT_MODES = frozenset(
+    {"1", "L", "LA", "La", "P", "PA", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"}
+)
+
+
 def open_image(path: Path, what: str) -> Image.Image:
-    """Open and decode fully, so truncated files fail here with their name, not deep in a worker."""
+    """Open and decode fully, so truncated files fail here with their name, not deep in a worker; only
+    a regular file is opened."""
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise SemvprError(f"{what} {path} is not a regular file (a folder, FIFO or device)")
         img = Image.open(path)
         img.load()
     except FileNotFoundError:
         raise SemvprError(f"{what} {path} not found") from None
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as err:
-        raise SemvprError(f"{what} {path} is unreadable or corrupt ({err})") from None
+        raise SemvprError(f"{what} {path} is unreadable or corrupt ({' '.join(str(err).split())})") from None
+    return img
+
+
+def check_eight_bit(img: Image.Image, path: Path) -> Image.Image:
+    """``img`` if it is an 8-bit image; a 16-bit or float one is refused in one line."""
+    if img.mode not in EIGHT_BIT_MODES:
+        raise SemvprError(
+            f"image {path} has PIL mode {img.mode} (16-bit or float pixels); semvpr reads 8-bit images: "
+            f"convert it to 8 bits per channel"
+        )
     return img
 
 
@@ -38,7 +65,7 @@ def hw_of(size: Size | None) -> tuple[int, int] | None:
 
 def load_image(path: str | Path, size: Size | None = None) -> torch.Tensor:
     """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes bilinearly (antialiased)."""
-    img = open_image(Path(path), "image").convert("RGB")
+    img = check_eight_bit(open_image(Path(path), "image"), Path(path)).convert("RGB")
     hw = hw_of(size)
     if hw is not None and img.size != (hw[1], hw[0]):
         img = img.resize((hw[1], hw[0]), Image.BILINEAR)

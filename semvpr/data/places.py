@@ -32,7 +32,11 @@ DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numI
                    "numQueries", "posDistThr", "posDistSqThr", "nonTrivPosDistSqThr")  # fmt: skip
 
 
-# eq=False: the arrays make field-wise equality ambiguous and the set unhashable otherwise.
+#: Largest |coordinate| a place may have, in metres: far beyond any UTM value (MSLS shifts each city by
+#: 10,000 km) and far below the float64 range, whose squares the radius search takes.
+MAX_POSITION = 1e15
+
+
 def check_radius(radius: float, what: str) -> float:
     """A search radius in metres: a finite number > 0 (scipy squares it, so -25 would act as 25)."""
     try:
@@ -58,6 +62,7 @@ def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> li
     return out
 
 
+# eq=False: the arrays make field-wise equality ambiguous and the set unhashable otherwise.
 @dataclass(frozen=True, eq=False)
 class PlaceSet:
     """A database and a query set of images with (east, north) UTM positions in metres."""
@@ -71,7 +76,7 @@ class PlaceSet:
     q_labels: tuple[Path, ...] | None = None
     #: Dataset root: per-image artifacts are keyed by the image path relative to it, since file
     #: stems repeat (Pitts30k has the same stem as a database and as a query image). None = the
-    #: deepest folder holding every image of the set.
+    #: deepest folder holding every image of the set; a given root must hold every image.
     root: Path | None = None
     #: Evaluation ground truth shipped with the set's release (gsv-cities ``_gt.npy``, MSLS-val
     #: ``pIdx``, Nordland frame windows): per query, the database indices that count as correct.
@@ -87,17 +92,21 @@ class PlaceSet:
             if value is not None:
                 object.__setattr__(self, field, tuple(Path(p) for p in value))
         for paths, utm_field in ((self.db_paths, "db_utm"), (self.q_paths, "q_utm")):
+            raw = getattr(self, utm_field)
             try:
-                utm = np.asarray(getattr(self, utm_field), dtype=np.float64).reshape(-1, 2)
+                if np.iscomplexobj(raw):
+                    raise TypeError
+                utm = np.asarray(raw, dtype=np.float64).reshape(-1, 2)
             except (TypeError, ValueError):
-                raise SemvprError(f"place set {self.name!r}: {utm_field} is not (east, north) numbers") from None
-            bad = np.flatnonzero(~np.isfinite(utm).all(1))
+                raise SemvprError(f"place set {self.name!r}: {utm_field} is not (east, north) real numbers") from None
+            with np.errstate(invalid="ignore"):
+                bad = np.flatnonzero(~(np.isfinite(utm) & (np.abs(utm) <= MAX_POSITION)).all(1))
             # A set scored by shipped ground truth may have no positions at all (NaN throughout).
             no_positions = self.ground_truth is not None and bool(np.isnan(utm).all())
             if len(bad) and not no_positions:
                 raise SemvprError(
-                    f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), "
-                    f"the first at row {bad[0]} ({utm[bad[0]].tolist()})"
+                    f"place set {self.name!r}: {utm_field} has {len(bad)} non-finite position(s), the first at "
+                    f"row {bad[0]} ({utm[bad[0]].tolist()}); positions must be finite, within ±{MAX_POSITION:.0e} m"
                 )
             if len(utm) != len(paths):
                 raise SemvprError(
@@ -114,8 +123,9 @@ class PlaceSet:
             object.__setattr__(self, "ground_truth", self._checked_ground_truth(self.ground_truth))
         images = self.db_paths + self.q_paths
         root = Path(self.root) if self.root is not None else common_root(images)
-        if any(not p.is_relative_to(root) for p in images):
-            root = common_root(images)  # e.g. queries under a separate query_root
+        outside = next((p for p in images if not p.is_relative_to(root)), None)
+        if outside is not None:
+            raise SemvprError(f"place set {self.name!r}: image {outside} is not under the dataset root {root}")
         # An image's key (its path below the root) names its cached artifacts: it must not climb out.
         climbing = next((p for p in images if ".." in p.relative_to(root).parts), None)
         if climbing is not None:
@@ -127,11 +137,15 @@ class PlaceSet:
         return Path(path).relative_to(self.root).as_posix()
 
     def identity(self, side: str) -> str:
-        """Hash of one side's ("db" or "q") images and labels by key, size and mtime (``files_identity``)."""
-        paths, labels = (self.db_paths, self.db_labels) if side == "db" else (self.q_paths, self.q_labels)
-        files = [*paths, *(labels or ())]
-        names = [self.relative(p) for p in paths] + [f"label:{p}" for p in labels or ()]
-        return files_identity(names, files)
+        """Hash of one side's ("db" or "q") images and labels by key, size, mtime and content
+        (``files_identity``: every file is checked to be a readable regular file). Taken once per set."""
+        known = self.__dict__.setdefault("_identities", {})
+        if side not in known:
+            paths, labels = (self.db_paths, self.db_labels) if side == "db" else (self.q_paths, self.q_labels)
+            files = [*paths, *(labels or ())]
+            names = [self.relative(p) for p in paths] + [f"label:{p}" for p in labels or ()]
+            known[side] = files_identity(names, files)
+        return known[side]
 
     def _checked_ground_truth(self, truth: tuple[np.ndarray, ...] | list[np.ndarray]) -> tuple[np.ndarray, ...]:
         if len(truth) != len(self.q_paths):
@@ -208,8 +222,11 @@ def parse_utm_name(path: str | Path) -> tuple[float, float]:
 
 
 def listed_image(folder: Path, name: str, source: Path) -> Path:
-    """``folder / name`` for an image name read from a list file, refused if it leaves ``folder``."""
+    """``folder / name`` for an image name read from a list file (every reader's one rule): the name must
+    be relative, without ``..`` and without control characters (a NUL cannot name a file)."""
     rel = Path(name)
+    if not name or any(ord(c) < 32 or ord(c) == 127 for c in name):
+        raise SemvprError(f"{source}: image name {name!r} is empty or holds a control character")
     if rel.is_absolute() or ".." in rel.parts:
         raise SemvprError(
             f"{source}: image name {name!r} leaves the folder {folder}; names must be relative, without '..'"
@@ -269,9 +286,13 @@ def _mat_strings(cell: np.ndarray) -> list[str]:
 
 def _mat_utm(value: np.ndarray, count: int, mat_path: Path, field: str) -> np.ndarray:
     try:
+        if np.iscomplexobj(value):
+            raise TypeError
         utm = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise SemvprError(f"{mat_path}: dbStruct.{field} is not numeric (found {np.asarray(value).dtype})") from None
+        raise SemvprError(
+            f"{mat_path}: dbStruct.{field} is not real numbers (found {np.asarray(value).dtype})"
+        ) from None
     if utm.size == 0 and count == 0:
         return np.zeros((0, 2))
     if utm.ndim == 2 and utm.shape[0] == 2 and utm.shape[1] == count:
@@ -347,7 +368,7 @@ def read_dbstruct_mat(
     q_root = _resolve_root(q_names, q_candidates, mat_path, "query")
     return PlaceSet(
         name=name or f"{mat_path.stem}" + (f"/{which[0]}" if which and which[0] else ""),
-        root=image_root,
+        root=image_root if q_root.is_relative_to(image_root) else common_root([image_root / "x", q_root / "x"]),
         db_paths=tuple(listed_image(db_root, n, mat_path) for n in db_names),
         q_paths=tuple(listed_image(q_root, n, mat_path) for n in q_names),
         db_utm=db_utm,

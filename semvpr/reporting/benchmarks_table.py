@@ -6,14 +6,12 @@ from __future__ import annotations
 
 import csv
 import io
-import json
+import os
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
-
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import write_text
+from semvpr.core.io import check_replaceable, read_json, read_yaml, write_text
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.retrieval.recall import RECALL_NS
@@ -41,21 +39,59 @@ def _job_dirs(sweep_dir: Path) -> list[Path]:
 
 
 def _overrides(job_dir: Path) -> str:
-    """A failed job's label: its data= and data.root= overrides (the job dir's name without them)."""
+    """A failed job's label: its data= and data.root= overrides (the job dir's name without them), read
+    as plain YAML (``core.io.read_yaml``: nothing resolved, no aliases)."""
     path = job_dir / ".hydra" / "overrides.yaml"
     try:
-        picked = (
-            [str(o) for o in OmegaConf.load(path) if str(o).startswith(("data=", "data.root="))]
-            if path.is_file()
-            else []
-        )
-        return " ".join(picked) or job_dir.name
-    except Exception:  # noqa: BLE001 - a damaged .hydra dir only costs the label
+        items = read_yaml(path, "run record") if path.is_file() else []
+    except SemvprError:  # a damaged .hydra dir only costs the label
         return job_dir.name
+    picked = (
+        [o for o in items if isinstance(o, str) and o.startswith(("data=", "data.root="))]
+        if isinstance(items, list)
+        else []
+    )
+    return " ".join(picked) or job_dir.name
+
+
+#: What an ok eval.json must hold for its row, and the types each may have.
+_RESULT_KEYS: dict[str, tuple[type, ...]] = {
+    "data": (str,),
+    "set": (str,),
+    "model": (str,),
+    "aggregator": (str,),
+    "mask": (str,),
+    "checkpoint": (str,),
+    **{f"test/R@{n}": (int, float) for n in RECALL_NS},
+    "queries": (int,),
+    "database": (int,),
+    "descriptor_dim": (int,),
+    "wall_s": (int, float),
+}
+
+
+def _malformed(result: dict[str, Any]) -> str | None:
+    """Why an ok eval.json cannot make a row (a missing key or a value of the wrong type), or None."""
+    for key, types in _RESULT_KEYS.items():
+        value = result.get(key)
+        if not isinstance(value, types) or isinstance(value, bool):
+            return f"eval.json has no usable {key!r} ({type(value).__name__})"
+    if result.get("benchmark") is not None and not isinstance(result["benchmark"], str):
+        return "eval.json has no usable 'benchmark'"
+    return None
+
+
+def _source(checkpoint: str, sweep_dir: Path) -> str:
+    """A checkpoint path as the table shows it: relative to the sweep dir (a table never carries the
+    absolute paths of the machine that made it)."""
+    try:
+        return os.path.relpath(checkpoint, sweep_dir.resolve()) if os.path.isabs(checkpoint) else checkpoint
+    except ValueError:
+        return Path(checkpoint).name
 
 
 def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
-    """A row per job (failed ones say why), each followed by its published rows."""
+    """A row per job (failed or malformed ones say why), each followed by its published rows."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise SemvprError(
@@ -67,12 +103,15 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for job in jobs:
         try:
-            result = json.loads((job / "eval.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError) as err:
-            result = {"status": "failed", "error": f"no readable eval.json ({type(err).__name__})"}
-        if not isinstance(result, dict) or result.get("status") != "ok":
-            error = result.get("error") if isinstance(result, dict) else "eval.json is not an object"
-            rows.append({"data": _overrides(job), "source": f"failed: {error}"})
+            result = read_json(job / "eval.json", "job result")
+        except SemvprError as err:
+            result = {"status": "failed", "error": f"no readable eval.json ({err})"}
+        if not isinstance(result, dict):
+            result = {"status": "failed", "error": "eval.json is not an object"}
+        elif result.get("status") == "ok" and (why := _malformed(result)) is not None:
+            result = {"status": "failed", "error": why}
+        if result.get("status") != "ok":
+            rows.append({"data": _overrides(job), "source": f"failed: {result.get('error')}"})
             continue
         rows.append(
             {
@@ -86,7 +125,7 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
                 "wall_s": result["wall_s"],
                 "source": f"measured: {result['model']} ({result['aggregator']}, mask={result['mask']}"
                 f"{' from ' + str(result['mask_checkpoint']) if result.get('mask_checkpoint') else ''}), "
-                f"{result['checkpoint']}",
+                f"{_source(result['checkpoint'], sweep_dir)}",
             }
         )
         for published in results_for(result["model"], result.get("benchmark")):
@@ -104,6 +143,8 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
 
 def write_table(sweep_dir: Path) -> Path:
     """Write results.csv and results.md in the sweep dir; returns results.md."""
+    for name in ("results.csv", "results.md"):  # both targets checked before either is written
+        check_replaceable(Path(sweep_dir) / name)
     rows = table_rows(sweep_dir)
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=COLUMNS, restval="", lineterminator="\n")

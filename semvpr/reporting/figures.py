@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import zipfile
 from functools import lru_cache
@@ -14,7 +13,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from semvpr.core.io import atomic_file
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import atomic_file, read_json
 from semvpr.reporting.sweep import LEARNED, Job, Sweep, cell_name, mean_std
 
 if TYPE_CHECKING:
@@ -108,7 +108,7 @@ def recall_curves(sweep: Sweep, out: Path) -> str | None:
                 mean,
                 marker="o",
                 ms=3,
-                ls="--" if sweep.label(f) != f else "-",
+                ls="--" if sweep.upper_bound(f) else "-",
                 color=f"C{sweep.cells.index(f) % 10}",  # same colour per row in every panel
                 label=f"{sweep.label(f)} (n={len(ys)})",
             )
@@ -158,7 +158,7 @@ def matrix_bars(sweep: Sweep, out: Path) -> str | None:
                 yerr=[sd if math.isfinite(sd) else 0.0 for _, sd in stats],
                 capsize=2,
                 color=f"C{i % 10}",
-                label=sweep.label(m),
+                label=sweep.mask_label(m),
             )
         ax.set_xticks(range(len(aggs)), aggs)
         ax.set(title=f"backbone: {bb}", ylabel="test R@1 (%)", ylim=(0, 100))
@@ -278,9 +278,9 @@ def _utm_distance(a: Any, b: Any) -> float:
 def _retrievals(job: Job) -> dict[str, dict]:
     """retrievals.json of a job as {query path: entry}, empty when missing or damaged."""
     try:
-        data = json.loads((job.dir / "retrievals.json").read_text(encoding="utf-8"))
+        data = read_json(job.dir / "retrievals.json", "job retrievals")
         return {str(q["query"]): q for q in data["queries"] if isinstance(q, dict) and "query" in q}
-    except (OSError, ValueError, KeyError, TypeError):
+    except (SemvprError, KeyError, TypeError):
         return {}
 
 

@@ -6,7 +6,13 @@ from __future__ import annotations
 
 
 def md_cell(text: object) -> str:
-    """Text from a run as one markdown table cell or list item: no HTML tag or entity ('&', '<'
-    escaped), no '|', '`' or line break."""
+    """Text from a run as one markdown table cell, list item or part of a line: no HTML tag or entity
+    ('&', '<' escaped), no link ('[' escaped), no '|', '`' or line break (so no heading either)."""
     flat = " ".join(str(text).split())
-    return flat.replace("&", "&amp;").replace("<", "&lt;").replace("|", "&#124;").replace("`", "&#96;")
+    return (
+        flat.replace("&", "&amp;")
+        .replace("<", "&lt;")
+        .replace("[", "&#91;")
+        .replace("|", "&#124;")
+        .replace("`", "&#96;")
+    )

@@ -4,18 +4,19 @@ the report's tables and figures share. Nothing here writes; ``semvpr.reporting.s
 
 from __future__ import annotations
 
-import json
+import functools
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import CONF_DIR, read_json, read_yaml
 
 LEARNED = "+learned"  # a mask run with mask.weights=learned is reported as "<mask>+learned"
 NO_MASK = "none"  # the mask choice every other mask is paired against
@@ -36,6 +37,8 @@ class Job:
     metrics: dict[str, Any]
     #: Dataset roots the run recorded (data.root, paths.cache_dir): the only places images are drawn from.
     roots: tuple[Path, ...] = ()
+    #: The filter preset the run was asked for on its command line (``filter=unet``), if any.
+    preset: str | None = None
 
     @property
     def cell(self) -> str:
@@ -65,6 +68,26 @@ def backbone_label(name: str, kind: str | None) -> str:
 def cell_name(aggregator: str, mask: str) -> str:
     """Display key of an (aggregator, mask) pair."""
     return f"{aggregator} · {mask}"
+
+
+_PRESET = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
+
+
+@functools.cache
+def preset_choices(preset: str) -> tuple[str, str] | None:
+    """The (aggregator, mask) a filter preset of the project selects (conf/filter/<preset>.yaml), or None
+    for a name that is not one."""
+    path = Path(CONF_DIR) / "filter" / f"{preset}.yaml"
+    if not _PRESET.match(preset) or not path.is_file():
+        return None
+    chosen: dict[str, str] = {}
+    for entry in read_yaml(path, "filter preset").get("defaults", []):
+        if isinstance(entry, dict):
+            for key, value in entry.items():  # "override /aggregator": "sral"
+                chosen[str(key).split("/")[-1]] = str(value)
+    if "aggregator" not in chosen or "mask" not in chosen:
+        return None
+    return chosen["aggregator"], chosen["mask"]
 
 
 @dataclass
@@ -120,10 +143,31 @@ class Sweep:
         present = {j.cell for j in self.jobs}
         return [c for a in self.aggregators for m in self.masks if (c := cell_name(a, m)) in present]
 
+    def upper_bound(self, cell: str) -> bool:
+        """Whether a row's (or a mask's) mask is an upper bound."""
+        return cell.rpartition(" · ")[2].removesuffix(LEARNED) in self.upper_bounds
+
+    def preset(self, cell: str) -> str | None:
+        """The filter preset every run of a row was asked for, if they all were and it selects the row's
+        aggregator and mask (``filter=unet aggregator=gem`` is not ``unet``)."""
+        presets = {j.preset for j in self.jobs if j.cell == cell}
+        if len(presets) != 1 or (preset := presets.pop()) is None:
+            return None
+        aggregator, _, mask = cell.partition(" · ")
+        return preset if preset_choices(preset) == (aggregator, mask.removesuffix(LEARNED)) else None
+
     def label(self, cell: str) -> str:
-        """Display name of a row."""
-        mask = cell.rpartition(" · ")[2].removesuffix(LEARNED)
-        return f"{cell} (upper bound)" if mask in self.upper_bounds else cell
+        """Display name of a row: by its preset where the runs were asked for one (``unet (sral ·
+        student)``), marked when its mask is an upper bound."""
+        preset = self.preset(cell)
+        bound = self.upper_bound(cell)
+        if preset is not None:
+            return f"{preset} ({cell}, upper bound)" if bound else f"{preset} ({cell})"
+        return f"{cell} (upper bound)" if bound else cell
+
+    def mask_label(self, mask: str) -> str:
+        """Display name of a mask column: marked when it is an upper bound."""
+        return f"{mask} (upper bound)" if self.upper_bound(mask) else mask
 
     def jobs_of(self, cell: str, backbone: str, needs: str | None = None) -> list[Job]:
         """Jobs of one row, ok runs first then by seed, optionally only those holding file `needs`."""
@@ -169,12 +213,13 @@ def _error_line(error: object) -> str:
     return lines[-1][:200] if lines else ""
 
 
-FACT_KEYS = ("aggregator", "mask", "backbone", "seed", "mask.weights")
+FACT_KEYS = ("aggregator", "mask", "backbone", "seed", "mask.weights", "filter")
 
 
 def _yaml(path: Path) -> Any:
-    """A .hydra file as plain YAML data: interpolations stay text, nothing is resolved."""
-    return yaml.safe_load(path.read_text(encoding="utf-8")) if path.is_file() else None
+    """A .hydra file as plain YAML data (``core.io.read_yaml``: no aliases, bounded size; interpolations
+    stay text, nothing is resolved); None when missing."""
+    return read_yaml(path, "run record") if path.is_file() else None
 
 
 def _select(node: Any, dotted: str) -> Any:
@@ -201,14 +246,17 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
             ("backbone.weights", "backbone.weights"),
         ):
             value = _select(config, key)
-            if value is not None and "${" not in str(value):
+            if isinstance(value, (str, int, float)) and "${" not in str(value):
                 facts[fact] = weights_kind(value) if fact == "backbone.weights" else str(value)
         choices = _select(hydra_cfg, "hydra.runtime.choices")
         for key in ("aggregator", "mask", "backbone"):
-            if isinstance(choices, dict) and choices.get(key) is not None:
-                facts[key] = str(choices[key])
-        for item in _yaml(hydra_dir / "overrides.yaml") or []:
-            key, _, value = str(item).lstrip("+~").partition("=")
+            if isinstance(choices, dict) and isinstance(choices.get(key), str):
+                facts[key] = choices[key]
+        overrides = _yaml(hydra_dir / "overrides.yaml")
+        for item in overrides if isinstance(overrides, list) else []:
+            if not isinstance(item, str):
+                continue
+            key, _, value = item.lstrip("+~").partition("=")
             key = "mask.weights" if key == "filter.weights" else key
             if key in FACT_KEYS:
                 facts[key] = value
@@ -217,7 +265,7 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
             value = _select(config, key)
             if isinstance(value, str) and value and "${" not in value:
                 roots.append(launch / Path(value).expanduser())
-    except Exception:  # a damaged .hydra dir only costs us labels and images, never the report
+    except Exception:  # noqa: BLE001 - a damaged .hydra dir only costs us labels and images, never the report
         pass
     return facts, tuple(roots)
 
@@ -233,10 +281,10 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         error = "no metrics.json"
     else:
         try:
-            loaded = json.loads(path.read_text(encoding="utf-8"))
+            loaded = read_json(path, "job metrics")
             metrics = loaded if isinstance(loaded, dict) else {}
             error = "" if metrics else "metrics.json is not a JSON object"
-        except (OSError, ValueError) as err:
+        except SemvprError as err:
             error = f"unreadable metrics.json ({err})"
     ok = not error and metrics.get("status") == "ok"
     if not ok and not error:
@@ -250,6 +298,11 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     mask = str(metrics.get("mask") or facts.get("mask") or "?")
     if (metrics.get("weights") or facts.get("mask.weights")) == "learned":
         mask += LEARNED
+    # The preset asked for on the command line (overrides.yaml, else the job dir's name); a run that
+    # recorded another preset than that is not labelled by one.
+    preset = facts.get("filter")
+    if preset is not None and metrics.get("filter", preset) != preset:
+        preset = None
     return Job(
         job_dir,
         name,
@@ -264,6 +317,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         error,
         metrics,
         roots,
+        preset,
     )
 
 

@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from semvpr.core.io import write_text
+from semvpr.core.io import check_replaceable, write_text
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.sweep import LEARNED, NO_MASK, Sweep, cell_name, load_sweep, mean_std, numeric_weights
 from semvpr.retrieval.recall import RECALL_NS
@@ -125,7 +125,7 @@ def _mask_gains(sweep: Sweep, backbone: str, aggregator: str) -> str:
     """R@1 of each mask minus no mask, same aggregator and seed (binary weights against binary)."""
     none = _r1_by_seed(sweep, cell_name(aggregator, NO_MASK), backbone)
     parts = [
-        _paired_summary(sweep, cell_name(aggregator, m), backbone, none, label=sweep.label(m))
+        _paired_summary(sweep, cell_name(aggregator, m), backbone, none, label=sweep.mask_label(m))
         for m in sweep.masks
         if m != NO_MASK
     ]
@@ -154,7 +154,7 @@ def _matrix(sweep: Sweep, backbone: str) -> list[str]:
         "",
         "R@1 / R@5 in %, mean ± std over seeds.",
         "",
-        "| aggregator | " + " | ".join(md_cell(sweep.label(m)) for m in masks) + " |",
+        "| aggregator | " + " | ".join(md_cell(sweep.mask_label(m)) for m in masks) + " |",
         "|---|" + "---:|" * len(masks),
     ]
     for a in aggregators:
@@ -203,7 +203,7 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
     out = [
         "# semvpr sweep results",
         "",
-        f"Sweep `{md_cell(sweep.dir)}`: {len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
+        f"{len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
         "Recall@N in %, mean ± sample std over seeds.",
         "",
         "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
@@ -216,7 +216,7 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
             f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |"
         )
     out.append("")
-    reference = f"`{cell_name(sweep.baseline, NO_MASK)}`" if sweep.baseline else ""
+    reference = md_cell(sweep.label(cell_name(sweep.baseline, NO_MASK))) if sweep.baseline else ""
     for bb in sweep.backbones:
         gains = _baseline_gains(sweep, bb)
         if gains is None:
@@ -270,6 +270,9 @@ def write_report(sweep_dir: Path) -> Path:
     ]
     if any(numeric_weights(j.metrics.get("class_weights")) for j in sweep.jobs):
         drawings.append(("class_weights.png", plots.class_weights))
+    names = [fname for fname, _ in drawings] + ["results.csv", "results.md"]
+    for name in names:  # every target is checked before anything is made or moved
+        check_replaceable(sweep.dir / name)
     scratch = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=sweep.dir))
     try:
         for fname, draw in drawings:

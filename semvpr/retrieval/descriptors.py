@@ -12,6 +12,7 @@ from semvpr.core.cache import build_once, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
 from semvpr.data.places import PlaceSet
+from semvpr.retrieval.recall import check_finite
 from semvpr.retrieval.retriever import Retriever
 
 
@@ -32,6 +33,7 @@ def place_descriptors(
         out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
         retriever.describe_images(paths, labels, image_size, out, desc=f"{places.name} {side}")
         out.flush()
+        check_finite(out, f"{places.name} {side}")  # a non-finite cache is never kept
 
     folder = build_once(cache_dir, "descriptors", key, build)
     try:

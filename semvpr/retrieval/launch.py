@@ -9,6 +9,11 @@
   with the job's own overrides (never the sweep's ``-m``) in the job's run directory. Lightning would
   relaunch ``sys.argv`` instead, which re-runs a whole sweep in every rank.
 
+The ranks this process starts check in with it (a local socket) once they are about to train; until all
+have, rank 0 waits in Python, watching them: a rank that exits first (a bad command line, a crash while
+reading its caches) ends the job at once with one line, and SIGTERM / Ctrl-C stop it, where waiting in
+the process group's rendezvous would hang for its 30-minute timeout and ignore signals.
+
 When the job ends the process group is destroyed and the variables are restored, so that the next
 job of a sweep starts afresh.
 """
@@ -16,6 +21,8 @@ job of a sweep starts afresh.
 from __future__ import annotations
 
 import os
+import re
+import select
 import socket
 import subprocess
 import sys
@@ -29,6 +36,8 @@ from semvpr.core.errors import SemvprError
 
 _RANK_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
 CHILD_TIMEOUT_S = 600  # how long rank 0 waits for the other ranks to exit after its own job ended
+#: The port of rank 0's check-in socket, for the ranks it starts.
+CHECK_IN = "SEMVPR_DDP_CHECK_IN"
 
 
 def _submitit_ranks(devices: int) -> dict[str, str] | None:
@@ -71,17 +80,55 @@ def _free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def hydra_quoted(value: str) -> str:
+    """``value`` as a single-quoted Hydra override value that parses back to exactly ``value`` (quotes
+    escaped, and the backslashes Hydra would read as escapes: those before a quote or at the end)."""
+    body = re.sub(r"(\\+)(?='|$)", lambda m: m.group(1) * 2, value).replace("'", "\\'")
+    return f"'{body}'"
+
+
 def _child_command(overrides: list[str], run_dir: Path, rank: int) -> list[str]:
     return [
         sys.executable,
         "-m",
         "semvpr.train",
         *overrides,
-        f'hydra.run.dir="{run_dir}"',
+        f"hydra.run.dir={hydra_quoted(str(run_dir))}",
         "hydra.output_subdir=null",
         f"hydra.job.name=ddp_rank{rank}",
         "hydra/job_logging=stdout",
     ]
+
+
+def await_ranks(listener: socket.socket, children: list[subprocess.Popen], poll_s: float = 0.5) -> None:
+    """Wait until every started rank (``children``: ranks 1..n) has checked in on ``listener``; a rank
+    that exits before is one line. The wait returns to Python every ``poll_s``, so signals are handled."""
+    pending = set(range(1, len(children) + 1))
+    while pending:
+        for rank, child in enumerate(children, start=1):
+            code = child.poll()
+            if rank in pending and code is not None:
+                raise SemvprError(
+                    f"rank {rank} of the DDP job exited (code {code}) before joining it; its output above says why"
+                )
+        ready, _, _ = select.select([listener], [], [], poll_s)
+        if ready:
+            conn, _ = listener.accept()
+            with conn:
+                conn.settimeout(5)
+                try:
+                    pending.discard(int(conn.recv(16).decode() or -1))
+                except (OSError, ValueError):
+                    continue
+
+
+def _check_in() -> None:
+    """Tell the rank-0 process that started this rank that it is about to train."""
+    port = os.environ.pop(CHECK_IN, None)
+    if port is None:
+        return
+    with socket.create_connection(("127.0.0.1", int(port)), timeout=30) as conn:
+        conn.sendall(os.environ.get("LOCAL_RANK", "0").encode())
 
 
 @contextmanager
@@ -111,12 +158,18 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
                         "LOCAL_RANK": "0",
                     }
                 )
-                children = [
-                    subprocess.Popen(
-                        _child_command(overrides, run_dir, rank), env={**os.environ, "LOCAL_RANK": str(rank)}
-                    )
-                    for rank in range(1, world_size)
-                ]
+                listener = socket.create_server(("127.0.0.1", 0))
+                try:
+                    env = {**os.environ, CHECK_IN: str(listener.getsockname()[1])}
+                    children = [
+                        subprocess.Popen(_child_command(overrides, run_dir, rank), env={**env, "LOCAL_RANK": str(rank)})
+                        for rank in range(1, world_size)
+                    ]
+                    await_ranks(listener, children)
+                finally:
+                    listener.close()
+        elif world_size > 1:
+            _check_in()
         yield
     except BaseException:
         for child in children:

@@ -122,11 +122,26 @@ def recall_curve(predictions: np.ndarray, positives: Sequence[np.ndarray], max_n
     return recall_at_n(predictions, positives, range(1, max_n + 1))
 
 
+def check_finite(desc: np.ndarray, what: str, chunk_rows: int = 4096) -> None:
+    """Refuse descriptors holding NaN or inf (weights that overflow give them; every distance to them is
+    NaN, so recall would read 0 with nothing said). Checked in chunks: ``desc`` may be memory-mapped."""
+    for start in range(0, len(desc), chunk_rows):
+        rows = np.flatnonzero(~np.isfinite(np.asarray(desc[start : start + chunk_rows])).all(1))
+        if rows.size:
+            raise SemvprError(
+                f"the descriptors of {what} are not finite (row {start + int(rows[0])} first): the model's "
+                f"weights overflow on these images; the checkpoint is unusable as it is"
+            )
+
+
 def evaluate(
     db_desc: np.ndarray, q_desc: np.ndarray, positives: Sequence[np.ndarray], max_n: int = 20
 ) -> dict[str, Any]:
     """Top-k retrieval and Recall@1..max_n in percent: of all queries (``recalls``, ``curve``, as
-    pytorch-NetVlad and the benchmark) and of queries with a positive (``recalls_pos``, as MSLS)."""
+    pytorch-NetVlad and the benchmark) and of queries with a positive (``recalls_pos``, as MSLS).
+    Non-finite descriptors are refused (:func:`check_finite`)."""
+    check_finite(db_desc, "the database")
+    check_finite(q_desc, "the queries")
     k = min(max_n, len(db_desc))
     predictions = knn(db_desc, q_desc, k)
     result = recall_result(predictions, positives, ns=tuple(range(1, k + 1)))

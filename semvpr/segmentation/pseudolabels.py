@@ -21,8 +21,11 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_file, inside
 from semvpr.core.logs import Progress
 from semvpr.core.precision import autocast
+from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
+#: The values a label PNG may hold: Cityscapes trainIds and the ignore id.
+VALID_IDS = np.array([*range(len(TRAIN_ID_NAMES)), IGNORE], dtype=np.uint8)
 
 
 def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Path:
@@ -58,6 +61,26 @@ def _write_png(ids: np.ndarray, final: Path) -> None:
         Image.fromarray(ids.astype(np.uint8)).save(fh, format="PNG")
 
 
+def _label_ok(path: Path, image_size: tuple[int, int]) -> bool:
+    """Whether a label left in a resumed build is one this module writes: a regular 8-bit PNG at
+    ``image_size`` holding trainIds (or 255). Anything else is removed, to be labelled again."""
+    if not path.is_file() or path.is_symlink():
+        if path.is_symlink() or path.exists():
+            path.unlink()
+        return False
+    try:
+        with Image.open(path) as img:
+            ok = img.format == "PNG" and img.mode == "L" and img.size == (image_size[1], image_size[0])
+            ids = np.asarray(img) if ok else None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        ok, ids = False, None
+    if ids is not None:
+        ok = bool(np.isin(ids, VALID_IDS).all())
+    if not ok:
+        path.unlink()
+    return ok
+
+
 def _label_missing(
     teacher: Any,
     paths: Sequence[Path],
@@ -67,10 +90,11 @@ def _label_missing(
     batch_size: int,
     num_workers: int,
 ) -> None:
-    """Label the images whose PNG is not in ``out`` yet (a resumed run skips the finished ones)."""
+    """Label the images whose PNG is not in ``out`` yet; a resumed run keeps the finished ones that pass
+    :func:`_label_ok` (``out`` may be a ``.partial`` directory left by anyone)."""
     from semvpr.data.images import ImageDataset
 
-    todo = [p for p in paths if not label_path(out, p, root).is_file()]
+    todo = [p for p in paths if not _label_ok(label_path(out, p, root), image_size)]
     bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
     if not todo:
         return

@@ -1,0 +1,67 @@
+"""Every script in benchmarks/ runs, with small arguments, as a user would start it: a benchmark that
+nothing runs rots unseen (speed.py's NetVLAD reference once did). Slow: each starts Python with torch,
+several train on the tiny preset."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: script -> (its small arguments given a scratch dir, a fragment of its last stdout line)
+SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
+    "aggregator_cost.py": (lambda t: ["--batch", "2", "--repeats", "1"], ""),
+    "cache_keys.py": (lambda t: ["--dir", str(t / "keys"), "--repeat", "2", "--limit", "50"], "ratio="),
+    "calibrate_synthcity.py": (
+        lambda t: (
+            ["--preset", "tiny", "--init-images", "10", "--clusters", "4", "--threads", "1"]
+            + ["--cache-dir", str(t / "cache")]
+        ),
+        "",
+    ),
+    "ddp.py": (lambda t: ["--db", "8", "--batch", "2", "--steps", "1", "--reps", "1"], "world=2"),
+    "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "ratio="),
+    "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=1/1"),
+    "scale.py": (
+        lambda t: (
+            ["--sizes", "10", "20", "--image-size", "64", "80", "--batch", "4", "--workers", "0"] + ["--clusters", "4"]
+        ),
+        "",
+    ),
+    "semantic.py": (
+        lambda t: (
+            ["--preset", "tiny", "--eval-images", "4", "--threads", "1", "--data-cache", str(t / "cache")]
+            + ["teacher.train.epochs=1", "student.epochs=1"]
+        ),
+        "",
+    ),
+    "speed.py": (lambda t: ["--batch", "1", "--agg-batch", "2", "--reps", "1"], "aggregate_speedup="),
+    "sweep_cost.py": (lambda t: ["--before", "HEAD", "--after", "HEAD", "--override", "experiment=tiny"], "ratio="),
+}
+
+
+def test_every_benchmark_script_has_a_smoke_run() -> None:
+    assert {p.name for p in (REPO / "benchmarks").glob("*.py")} == set(SCRIPTS)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(SCRIPTS))
+def test_benchmark_script_runs_with_small_arguments(tmp_path: Path, script: str) -> None:
+    args, fragment = SCRIPTS[script]
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / script), *args(tmp_path)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert proc.returncode == 0, (proc.stdout[-2000:], proc.stderr[-3000:])
+    last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
+    assert fragment in last, last
