@@ -8,7 +8,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.components import COMPONENTS, component_class, options
+from semvpr.config.components import COMPONENTS, component_class, loss_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path
 from semvpr.data.places import check_radius
@@ -61,6 +61,13 @@ def check_overrides(argv: list[str]) -> None:
                 f"{arg}: the training protocol is the recipe group now: model=netvlad is recipe=triplet "
                 f"({', '.join(options('recipe'))})"
             )
+        if key.startswith(("recipe.optimizer.", "recipe.scheduler.")) and "recipe=gsv" in argv:
+            group, rest = key.split(".")[1], key.removeprefix("recipe.")
+            raise SemvprError(
+                f"{arg}: recipe=gsv takes the aggregator's published {group} (an interpolation); override "
+                f"aggregator.gsv.{rest}={value}, or recipe.default.{rest}={value} for an aggregator without "
+                "a gsv node (GeM, NetVLAD)"
+            )
         rest = key.removeprefix("model.")
         if (
             key.startswith("model.")
@@ -112,16 +119,13 @@ def _check_retrieval(cfg: DictConfig) -> None:
         component_class(cfg, group)
     for key in ("num_clusters", "eval_batch_size", "init_features", "init_per_image"):
         whole_number(cfg.model[key], f"model.{key}", 1)
-    for key in ("batch_size", "num_negatives", "cache_refresh"):
-        whole_number(cfg.recipe[key], f"recipe.{key}", 1)
-    if cfg.recipe.get("queries_per_epoch") is not None:
-        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch (or null = all)", 1)
-    positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
-    if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
-        raise SemvprError(
-            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
-            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
-        )
+    if loss_class(cfg).batches == "places":
+        _check_place_recipe(cfg)
+    else:
+        _check_tuple_recipe(cfg)
+    eval_sets = cfg.data.get("eval_sets")
+    if eval_sets is not None and cfg.data.get("eval_on") not in eval_sets:
+        raise SemvprError(f"data.eval_on={cfg.data.get('eval_on')!r} is not one of {list(eval_sets)}")
     if len(cfg.data.image_size) != 2:
         raise SemvprError(f"data.image_size={list(cfg.data.image_size)} must be [H, W]")
     if cfg.features.storage not in STORAGES:
@@ -133,6 +137,38 @@ def _check_retrieval(cfg: DictConfig) -> None:
         raise SemvprError(
             "mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
             "mask=student, teacher or oracle (filter=unet, mask2former or oracle)"
+        )
+
+
+def _check_tuple_recipe(cfg: DictConfig) -> None:
+    """recipe=triplet: mining and batching of tuples."""
+    for key in ("batch_size", "num_negatives", "cache_refresh"):
+        whole_number(cfg.recipe[key], f"recipe.{key}", 1)
+    if cfg.recipe.get("queries_per_epoch") is not None:
+        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch (or null = all)", 1)
+    positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
+    if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
+        raise SemvprError(
+            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
+            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
+        )
+
+
+def _check_place_recipe(cfg: DictConfig) -> None:
+    """recipe=gsv: place batches, warm-up, scheduler interval; one device."""
+    recipe = cfg.recipe
+    whole_number(recipe.places_per_batch, "recipe.places_per_batch", 2)
+    whole_number(recipe.images_per_place, "recipe.images_per_place", 2)
+    whole_number(recipe.warmup_steps, "recipe.warmup_steps", 0)
+    separation = recipe.place_separation
+    ok = isinstance(separation, (int, float)) and not isinstance(separation, bool) and math.isfinite(separation)
+    if not ok or separation < 0:
+        raise SemvprError(f"recipe.place_separation={separation!r} must be a finite distance >= 0 (metres)")
+    if recipe.scheduler_interval not in ("epoch", "step"):
+        raise SemvprError(f"recipe.scheduler_interval={recipe.scheduler_interval!r} is not one of ['epoch', 'step']")
+    if str(cfg.trainer.get("strategy", "auto")).startswith("ddp"):
+        raise SemvprError(
+            f"recipe={recipe.name} mines its pairs within the whole batch on one device; use trainer=cpu or trainer=gpu"
         )
 
 
