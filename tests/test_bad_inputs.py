@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.helpers import make_folder, write_image, write_pitts_mat
+from tests.helpers import make_folder, write_gsv_cities, write_image, write_pitts_mat
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL_SIZE = ["data.image_size=[32,48]"]
@@ -60,6 +60,13 @@ def _string_utm_pitts(tmp: Path) -> str:
     return str(tmp / "pitts")
 
 
+def _bad_year_gsv(tmp: Path) -> str:
+    root = write_gsv_cities(tmp / "gsv")
+    csv = root / "Dataframes" / "London.csv"
+    csv.write_text(csv.read_text().replace("\n130,", "\n130.5,", 1))
+    return str(root)
+
+
 TRAIN = ["semvpr.train", "experiment=tiny"]
 EVAL = ["semvpr.eval", "experiment=tiny", *EVAL_SIZE]
 # (cli and fixed args, bad args given tmp dir and checkpoint, a fragment of the one line)
@@ -75,6 +82,23 @@ CASES: dict[str, tuple[list[str], Callable[[Path, Path], list[str]], str]] = {
     "negative radius": (TRAIN, lambda t, c: ["recipe.positive_radius=-5"], "recipe.positive_radius=-5"),
     "model=netvlad": (TRAIN, lambda t, c: ["model=netvlad"], "model=netvlad is recipe=triplet"),
     "model.margin": (TRAIN, lambda t, c: ["model.margin=0.2"], "recipe.margin=0.2"),
+    "gsv recipe.optimizer.lr": (
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "recipe.optimizer.lr=0.1"],
+        "override aggregator.gsv.optimizer.lr=0.1, or recipe.default.optimizer.lr=0.1",
+    ),
+    "gsv places_per_batch=1": (TRAIN, lambda t, c: ["recipe=gsv", "recipe.places_per_batch=1"], "places_per_batch=1"),
+    "gsv under ddp": (
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"],
+        "use trainer=cpu or trainer=gpu",
+    ),
+    "gsv_cities bad place_id": (
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "data=gsv_cities", f"data.root={_bad_year_gsv(t)}"],
+        "place_id='130.5' is not a whole number",
+    ),
+    "traversals=-1": (TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
     "eval model=netvlad": (EVAL, lambda t, c: [f"ckpt={c}", "model=netvlad"], "recipe=triplet"),
     "eval 0-byte ckpt": (EVAL, lambda t, c: [f"ckpt={_empty(t)}"], "empty.ckpt"),
     "eval seed 2**70": (EVAL, lambda t, c: [f"ckpt={_seed_2_70(t, c)}"], "seed=1180591620717411303424"),
@@ -126,7 +150,7 @@ def files(folder: Path) -> set[Path]:
 
 
 #: One row per CLI runs by default; the whole table with -m slow (each row starts a Python with torch).
-FAST = {"seed=abc", "eval 0-byte ckpt", "localize top_k=abc", "synthcity --seed -5"}
+FAST = {"seed=abc", "eval 0-byte ckpt", "localize top_k=abc", "synthcity --seed -5", "gsv recipe.optimizer.lr"}
 
 
 @pytest.mark.parametrize("case", [c if c in FAST else pytest.param(c, marks=pytest.mark.slow) for c in sorted(CASES)])

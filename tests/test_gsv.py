@@ -153,6 +153,18 @@ def test_the_recipe_loss_is_pytorch_metric_learning_ms_loss_with_its_miner() -> 
     assert torch.allclose(ours_x.grad, direct_x.grad, atol=1e-7) and ours_x.grad.abs().sum() > 0
 
 
+def test_the_loss_runs_in_float32_under_bf16_autocast() -> None:
+    """Training runs under bf16 autocast; similarities rounded to bf16 would move exp(50·s) by e^0.4."""
+    gen = torch.Generator().manual_seed(1)
+    x = F.normalize(torch.randn(16, 64, generator=gen), dim=1)
+    labels = torch.arange(4).repeat_interleave(K)
+    loss = MultiSimilarity()
+    exact = loss(x, {"labels": labels})
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under = loss(x, {"labels": labels})
+    assert under.dtype == torch.float32 and under.item() == pytest.approx(exact.item(), rel=1e-6)
+
+
 def test_each_aggregator_takes_its_published_schedule_else_gsv_cities_own() -> None:
     def schedule(aggregator: str) -> tuple:
         r = config("recipe=gsv", f"aggregator={aggregator}").recipe

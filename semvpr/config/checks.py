@@ -51,9 +51,11 @@ def _leaves(node: object, prefix: str = "") -> set[str]:
 
 def check_overrides(argv: list[str]) -> None:
     """An override that names the training protocol as a ``model`` group or ``model.`` setting (it is the
-    ``recipe`` group) gets one line saying where it is, instead of Hydra's error."""
+    ``recipe`` group), or a key of recipe=gsv's interpolated optimiser or scheduler, gets one line saying
+    where it is, instead of Hydra's error."""
     recipe = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "recipe" / "triplet.yaml")))
     model = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "train.yaml").model))
+    gsv = any(a.partition("=")[0] == "recipe" and "gsv" in a.partition("=")[2].split(",") for a in argv)
     for arg in argv:
         key, sep, value = arg.lstrip("+~").partition("=")
         if key == "model" and sep:
@@ -61,7 +63,7 @@ def check_overrides(argv: list[str]) -> None:
                 f"{arg}: the training protocol is the recipe group now: model=netvlad is recipe=triplet "
                 f"({', '.join(options('recipe'))})"
             )
-        if key.startswith(("recipe.optimizer.", "recipe.scheduler.")) and "recipe=gsv" in argv:
+        if key.startswith(("recipe.optimizer.", "recipe.scheduler.")) and gsv:
             group, rest = key.split(".")[1], key.removeprefix("recipe.")
             raise SemvprError(
                 f"{arg}: recipe=gsv takes the aggregator's published {group} (an interpolation); override "

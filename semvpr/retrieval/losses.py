@@ -55,8 +55,9 @@ class MultiSimilarity(Loss):
     """GSV-Cities' loss: pytorch-metric-learning's ``MultiSimilarityLoss`` (dot-product similarity) on the
     pairs its ``MultiSimilarityMiner`` (cosine similarity, margin ``epsilon``) mines from the batch,
     every image of a place a positive of the others and every other place's a negative (``labels``: the
-    place of each row). The descriptors are L2-normalised, so both similarities are the cosine; the loss
-    runs in float32 (exp(β·s) with β = 50)."""
+    place of each row). The descriptors are L2-normalised, so both similarities are the cosine. Miner and
+    loss run in float32 outside autocast: bf16 similarities (a step of 2^-7 near 1) would move exp(β·s),
+    β = 50, by a factor of e^0.4 and blur the miner's ε = 0.1."""
 
     batches = "places"
 
@@ -70,5 +71,7 @@ class MultiSimilarity(Loss):
         self.miner = miners.MultiSimilarityMiner(epsilon=self.epsilon, distance=distances.CosineSimilarity())
 
     def __call__(self, desc: Tensor, batch: dict[str, Any]) -> Tensor:
-        desc, labels = desc.float(), batch["labels"]
-        return self.loss(desc, labels, self.miner(desc, labels))
+        labels = batch["labels"]
+        with torch.autocast(desc.device.type, enabled=False):
+            desc = desc.float()
+            return self.loss(desc, labels, self.miner(desc, labels))
