@@ -1,8 +1,8 @@
 """Training entry point: ``python -m semvpr.train [overrides]`` (sweeps: ``-m aggregator=a,b mask=c,d``).
 
 One job: build what the aggregator and mask need (cached), init the aggregator, evaluate the untrained
-model, fit with triplet mining, test the best checkpoint, and write ``metrics.json``,
-``retrievals.json`` and ``maps.npz`` into the run directory for the sweep-end report.
+model, fit with the recipe (triplet mining, or GSV-Cities' place batches), test the best checkpoint, and
+write ``metrics.json``, ``retrievals.json`` and ``maps.npz`` into the run directory for the sweep-end report.
 """
 
 from __future__ import annotations
@@ -20,9 +20,17 @@ import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.build import Prepared, build_retriever, build_trainer, init_aggregator, mining_of, prepare, ranks_of
+from semvpr.config.build import (
+    Prepared,
+    build_datamodule,
+    build_retriever,
+    build_trainer,
+    init_aggregator,
+    prepare,
+    ranks_of,
+)
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
@@ -31,7 +39,6 @@ from semvpr.core.logs import quiet_third_party
 from semvpr.core.resume import keep_run_record, resumed_config
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
-from semvpr.retrieval.datamodule import RetrievalDataModule
 from semvpr.retrieval.distributed import sharded
 from semvpr.retrieval.launch import job_ranks, launched_rank
 from semvpr.retrieval.retriever import Retriever
@@ -47,7 +54,7 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
     if devices * nodes > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
     overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
-    if 0 < int(cfg.recipe.batch_size) < devices * nodes:
+    if 0 < int(cfg.recipe.get("batch_size", devices * nodes)) < devices * nodes:
         print(
             f"semvpr: recipe.batch_size={cfg.recipe.batch_size} is the global batch: "
             f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step",
@@ -78,9 +85,7 @@ def train_and_test(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
     )
     trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
-    datamodule = RetrievalDataModule(
-        job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size), int(cfg.data.num_workers)
-    )
+    datamodule = build_datamodule(cfg, job.features, describe)
     leader = trainer.global_rank == 0
     # The other ranks skip the initialisation: DDP gives them rank 0's weights.
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
@@ -134,7 +139,7 @@ def train_and_test(
             "checkpoint": str(tested_ckpt),
             "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
             "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
-            "tuples_per_epoch": datamodule.num_tuples,
+            **datamodule.epoch_facts(),
             "aggregator_init": init_info,
             "timings": timings,
             "wall_time_s": time.time() - start,
@@ -159,6 +164,10 @@ def job_metrics(
         "descriptor_dim": retriever.descriptor_dim,
         "class_weights": class_weights.named_weights() if class_weights is not None else None,
         "data": cfg.data.name,
+        # The recipe's settings as this run resolved them (each aggregator's schedule under recipe=gsv).
+        "recipe_settings": {
+            k: v for k, v in OmegaConf.to_container(cfg.recipe, resolve=True).items() if k != "default"
+        },
         **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
         **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
         **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
@@ -170,11 +179,12 @@ def job_metrics(
 
 
 def run_labels(cfg: DictConfig) -> dict[str, Any]:
-    """What the report groups a run by: aggregator, mask, its weighting, backbone and what its weights are
-    (imagenet, none or file), seed; ``filter`` is the preset the config started from (an explicit
-    aggregator= or mask= may have replaced its choices)."""
+    """What the report groups a run by: aggregator, the recipe it trained with, mask, its weighting,
+    backbone and what its weights are (imagenet, none or file), seed; ``filter`` is the preset the config
+    started from (an explicit aggregator= or mask= may have replaced its choices)."""
     return {
         "aggregator": cfg.aggregator.get("name"),
+        "recipe": cfg.recipe.get("name"),
         "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
         "mask": cfg.mask.get("name"),
         "weights": cfg.mask.get("weights"),

@@ -313,3 +313,50 @@ def write_teacher_dir(folder: Path, image_size: tuple[int, int] = (32, 48)) -> P
     teacher = embedded_teacher(TeacherSpec(image_size=image_size, model=TINY_TEACHER_MODEL)).eval()
     save_teacher(teacher, folder, list(image_size), TrainedOn("camvid", "real"))
     return folder
+
+
+#: GSV-Cities fixture: csv name -> (city_id, [(place_id, images)]). London has a place with fewer than
+#: 4 images; OSL's place ids repeat London's (another city, other places).
+GSV_CITIES: dict[str, tuple[str, list[tuple[int, int]]]] = {
+    "London": ("London", [(130, 4), (131, 5), (132, 6), (133, 4), (7, 2)]),
+    "OSL": ("OSL", [(130, 4), (131, 4), (5, 5)]),
+    "Boston": ("Boston", [(0, 5), (1, 4)]),
+}
+
+
+def gsv_row(city_id: str, place_id: int, k: int) -> dict[str, object]:
+    """Image k of a fixture place: year/month/heading vary, lat has a csv form that Python prints shorter."""
+    return {
+        "place_id": place_id,
+        "year": 2007 + k,
+        "month": 1 + (k * 5) % 12,
+        "northdeg": (place_id * 37 + k * 90) % 360,
+        "city_id": city_id,
+        "lat": f"{51.4861 + place_id * 1e-3:.7f}",  # e.g. 51.6161000 in the csv, 51.6161 in the name
+        "lon": -0.0895151 - 0.001 * place_id,
+        "panoid": f"p{place_id}-{k}_Xy{k}",
+    }
+
+
+def gsv_name(row: dict[str, object]) -> str:
+    """The file name gsv-cities' dataloader builds from a row (city_id, zero-padded place id mod 10^5,
+    year, month, heading, then lat and lon as Python prints the floats, panoid)."""
+    return (
+        f"{row['city_id']}_{int(row['place_id']) % 100000:07d}_{int(row['year']):04d}_{int(row['month']):02d}_"
+        f"{int(row['northdeg']):03d}_{float(row['lat'])!r}_{float(row['lon'])!r}_{row['panoid']}.jpg"
+    )
+
+
+def write_gsv_cities(root: Path, cities: dict[str, tuple[str, list[tuple[int, int]]]] | None = None) -> Path:
+    """The GSV-Cities layout: Dataframes/<City>.csv (place_id, year, month, northdeg, city_id, lat, lon, panoid)
+    and Images/<city_id>/<name>.jpg, one small image per row; rows of a city in shuffled place order."""
+    columns = ["place_id", "year", "month", "northdeg", "city_id", "lat", "lon", "panoid"]
+    for index, (city, (city_id, places)) in enumerate((cities or GSV_CITIES).items()):
+        rows = [gsv_row(city_id, pid, k) for pid, n in places for k in range(n)]
+        rows = [rows[i] for i in np.random.default_rng(index).permutation(len(rows))]
+        lines = [",".join(columns)] + [",".join(str(r[c]) for c in columns) for r in rows]
+        (root / "Dataframes").mkdir(parents=True, exist_ok=True)
+        (root / "Dataframes" / f"{city}.csv").write_text("\n".join(lines) + "\n")
+        for i, row in enumerate(rows):
+            write_image(root / "Images" / city_id / gsv_name(row), 1000 * index + i)
+    return root

@@ -26,7 +26,15 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
-from tests.helpers import make_folder, object_array, tiny_config, write_image, write_lists, write_pitts_mat
+from tests.helpers import (
+    make_folder,
+    object_array,
+    tiny_config,
+    write_gsv_cities,
+    write_image,
+    write_lists,
+    write_pitts_mat,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 EVAL_SIZE = ["data.image_size=[32,48]"]
@@ -255,6 +263,13 @@ def _immutable(folder: Path) -> Path:
 LONG = "x" * 300
 
 
+def _bad_year_gsv(tmp: Path) -> str:
+    root = write_gsv_cities(tmp / "gsv")
+    csv = root / "Dataframes" / "London.csv"
+    csv.write_text(csv.read_text().replace("\n130,", "\n130.5,", 1))
+    return str(root)
+
+
 TRAIN = ["semvpr.train", "experiment=tiny"]
 EVAL = ["semvpr.eval", "experiment=tiny", *EVAL_SIZE]
 LOCALIZE = ["semvpr.localize", *EVAL_SIZE, "data.num_workers=0"]
@@ -312,6 +327,26 @@ CASES: dict[str, Case] = {
     "synthcity --out under a file": Case(
         ["semvpr.data.synthcity"], lambda t, c: ["--out", f"{_a_file(t)}/city"], "is a file"
     ),
+    # ---- recipe=gsv and its data
+    "gsv recipe.optimizer.lr": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "recipe.optimizer.lr=0.1"],
+        "override aggregator.gsv.optimizer.lr=0.1, or recipe.default.optimizer.lr=0.1",
+    ),
+    "gsv places_per_batch=1": Case(
+        TRAIN, lambda t, c: ["recipe=gsv", "recipe.places_per_batch=1"], "places_per_batch=1"
+    ),
+    "gsv under ddp": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"],
+        "use trainer=cpu or trainer=gpu",
+    ),
+    "gsv_cities bad place_id": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "data=gsv_cities", f"data.root={_bad_year_gsv(t)}"],
+        "place_id='130.5' is not a whole number",
+    ),
+    "traversals=-1": Case(TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
     # ---- a run directory is data: resume composes from the project's files, checks the record's values
     "resume a run whose record names a _target_": Case(TRAIN[:1], _tampered_run, "data.train._target_ is refused"),
     # ---- list files: one rule for every reader (relative, no '..', no control characters)
@@ -441,6 +476,7 @@ FAST = {
     "dangling symlink",
     "eval data.eval_radius=0",
     "unknown key +model.fooo",
+    "gsv recipe.optimizer.lr",
 }
 
 

@@ -232,6 +232,27 @@ def test_runs_that_differ_only_in_backbone_weights_get_their_own_rows(tmp_path: 
     }
 
 
+def test_a_sweep_over_recipes_gives_each_recipe_its_own_rows(tmp_path: Path) -> None:
+    """recipe=triplet,gsv must not average the two protocols: the other recipe is marked in the aggregator."""
+    for seed, (r1_triplet, r1_gsv) in enumerate([(60.0, 70.0), (62.0, 74.0)]):
+        for recipe, r1 in (("triplet", r1_triplet), ("gsv", r1_gsv)):
+            _job(
+                tmp_path,
+                f"aggregator=mixvpr,mask=none,recipe={recipe},seed={seed}",
+                {**_metrics("none", seed, r1, aggregator="mixvpr", mask="none"), "recipe": recipe},
+            )
+    # a job that died before metrics.json: its recipe comes from its composed choices
+    died = _job(tmp_path, "aggregator=mixvpr,mask=none,recipe=gsv,seed=2", None)
+    (died / ".hydra" / "hydra.yaml").write_text(
+        "hydra:\n  runtime:\n    choices:\n      aggregator: mixvpr\n      recipe: gsv\n      mask: none\n"
+    )
+    text = write_report(tmp_path).read_text()
+    assert "| vgg16 | mixvpr · none | 61.0 ± 1.4 |" in text
+    assert "| vgg16 | mixvpr (gsv) · none | 72.0 ± 2.8 |" in text
+    assert {job.aggregator for job in load_sweep(tmp_path).jobs} == {"mixvpr", "mixvpr (gsv)"}
+    assert [j.ok for j in load_sweep(tmp_path).jobs if j.aggregator == "mixvpr (gsv)"].count(False) == 1
+
+
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
     for target in (tmp_path, tmp_path / "missing"):
         proc = subprocess.run(

@@ -182,16 +182,16 @@ def test_resume_never_touches_a_file_named_by_a_tampered_checkpoint(cache_dir: P
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(
     cache_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from semvpr.retrieval import retriever as retriever_mod
+    from semvpr.retrieval import losses
 
     last = tmp_path / "checkpoints" / "last.ckpt"
-    original = retriever_mod.triplet_loss
+    original = losses.triplet_loss
 
     def nan_after_first_epoch(*args):  # type: ignore[no-untyped-def]
         loss = original(*args)
         return loss * float("nan") if last.exists() else loss
 
-    monkeypatch.setattr(retriever_mod, "triplet_loss", nan_after_first_epoch)
+    monkeypatch.setattr(losses, "triplet_loss", nan_after_first_epoch)
     with pytest.raises(SemvprError, match="loss became nan"):
         run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=3"), tmp_path)
     assert torch.load(last, weights_only=True)["epoch"] == 0

@@ -21,7 +21,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from semvpr.config.components import component_class, instantiate_node
+from semvpr.config.components import component_class, instantiate_node, loss_class
 from semvpr.core.cache import config_hash, state_hash
 from semvpr.core.checkpoint import record_of
 from semvpr.core.errors import SemvprError
@@ -35,6 +35,8 @@ from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.models.student import Student, StudentSpec, load_student, student_architecture
 from semvpr.models.teacher import Teacher, TeacherSpec, teacher_architecture
 from semvpr.models.whitening import PCAWhitening
+from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
+from semvpr.retrieval.distributed import Describe
 from semvpr.retrieval.features import (
     PlaceFeatures,
     choose_storage,
@@ -44,7 +46,9 @@ from semvpr.retrieval.features import (
     trunk_shape,
 )
 from semvpr.retrieval.initialisation import InitSample, StaticLabels, initialise_aggregator
+from semvpr.retrieval.losses import Loss, TripletLoss
 from semvpr.retrieval.mining import Mining
+from semvpr.retrieval.places import PlaceBatching
 from semvpr.retrieval.retriever import Optimization, Retriever
 
 
@@ -87,13 +91,36 @@ def mining_of(cfg: DictConfig) -> Mining:
     )
 
 
+def place_batching_of(cfg: DictConfig) -> PlaceBatching:
+    """The place batches of ``cfg.recipe`` (recipe=gsv): P places × K images, the places' separation."""
+    recipe = cfg.recipe
+    return PlaceBatching(
+        places_per_batch=int(recipe.places_per_batch),
+        images_per_place=int(recipe.images_per_place),
+        separation=float(recipe.place_separation),
+        seed=int(cfg.seed),
+    )
+
+
+def loss_of(cfg: DictConfig) -> Loss:
+    """The recipe's loss (a recipe without ``loss``: the triplet loss with ``recipe.margin``)."""
+    loss_class(cfg)
+    node = cfg.recipe.get("loss")
+    return TripletLoss(float(cfg.recipe.margin)) if node is None else instantiate_node(node)
+
+
 def optimization_of(cfg: DictConfig) -> Optimization:
-    """Optimizer and scheduler factories, margin and class-weight learning rate of ``cfg.recipe``."""
+    """Optimizer and scheduler factories, loss, warm-up and class-weight learning rate of ``cfg.recipe``."""
+    recipe = cfg.recipe
+    scheduler = recipe.get("scheduler")
     return Optimization(
-        instantiate(cfg.recipe.optimizer),
-        instantiate(cfg.recipe.scheduler),
-        float(cfg.recipe.margin),
-        float(cfg.recipe.class_weights.lr),
+        instantiate(recipe.optimizer),
+        instantiate(scheduler) if scheduler is not None else None,
+        float(recipe.get("margin", 0.1)),
+        float(recipe.class_weights.lr),
+        loss=loss_of(cfg),
+        warmup_steps=int(recipe.get("warmup_steps", 0)),
+        scheduler_interval=str(recipe.get("scheduler_interval", "epoch")),
     )
 
 
@@ -207,6 +234,15 @@ def build_retriever(
     )
 
 
+def build_datamodule(cfg: DictConfig, features: dict[str, PlaceFeatures], describe: Describe) -> EvalDataModule:
+    """The datamodule the recipe's loss trains on: mined tuples (``describe`` is what mining describes
+    with) or place batches."""
+    eval_batch, workers = int(cfg.model.eval_batch_size), int(cfg.data.num_workers)
+    if loss_class(cfg).batches == "places":
+        return PlaceDataModule(features, place_batching_of(cfg), eval_batch, workers)
+    return RetrievalDataModule(features, mining_of(cfg), describe, eval_batch, workers)
+
+
 def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
     """The configured Lightning Trainer with the run's loggers and checkpoints."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
@@ -252,15 +288,24 @@ def build_semantic(
     tic = time.time()
     teacher = build_teacher(teacher_settings, seg_train, seg_val, cfg.paths.cache_dir)
     timings["teacher_s"], tic = time.time() - tic, time.time()
-    images = list(train.db_paths) + list(train.q_paths)
+    # The set the semantic side is made from: SynthCity's training split as drawn even where the recipe
+    # trains on extra traversals of it, so every recipe gets the same labels and student.
+    source = train.for_semantics
+    images = list(source.db_paths) + list(source.q_paths)
     labels_dir = pseudo_labels(
-        teacher, teacher.teacher_key, images, tuple(cfg.data.image_size), cfg.paths.cache_dir, train.root
+        teacher, teacher.teacher_key, images, tuple(cfg.data.image_size), cfg.paths.cache_dir, source.root
     )
     timings["labels_s"], tic = time.time() - tic, time.time()
-    semantic = Semantic(teacher, labels_dir, train.root)
+    semantic = Semantic(teacher, labels_dir, source.root)
     if needs == "student":
         semantic.student = build_student(
-            student_spec(cfg), backbone, images, labels_dir, train.root, tuple(cfg.data.image_size), cfg.paths.cache_dir
+            student_spec(cfg),
+            backbone,
+            images,
+            labels_dir,
+            source.root,
+            tuple(cfg.data.image_size),
+            cfg.paths.cache_dir,
         )
         timings["student_s"] = time.time() - tic
     return semantic

@@ -10,7 +10,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.components import COMPONENTS, component_class, options
+from semvpr.config.components import COMPONENTS, component_class, loss_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
 from semvpr.data.places import check_radius
@@ -71,7 +71,7 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
     """Check a command line's overrides before Hydra runs, so that a bad one is one line:
 
     - one that names the training protocol as a ``model`` group or ``model.`` setting (it is the
-      ``recipe`` group) says where it is;
+      ``recipe`` group), or a key of recipe=gsv's interpolated optimiser or scheduler, says where it is;
     - one Hydra cannot parse or apply (a typo'd key, a value with unquoted ``,`` or ``"``) is Hydra's
       reason in one line;
     - one that adds a key the project's config does not have (``+model.fooo=1``) is refused: nothing
@@ -81,12 +81,20 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
     """
     recipe = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "recipe" / "triplet.yaml")))
     model = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "train.yaml").model))
+    gsv = any(a.partition("=")[0] == "recipe" and "gsv" in a.partition("=")[2].split(",") for a in argv)
     for arg in argv:
         key, sep, value = arg.lstrip("+~").partition("=")
         if key == "model" and sep:
             raise SemvprError(
                 f"{arg}: the training protocol is the recipe group now: model=netvlad is recipe=triplet "
                 f"({', '.join(options('recipe'))})"
+            )
+        if key.startswith(("recipe.optimizer.", "recipe.scheduler.")) and gsv:
+            group, rest = key.split(".")[1], key.removeprefix("recipe.")
+            raise SemvprError(
+                f"{arg}: recipe=gsv takes the aggregator's published {group} (an interpolation); override "
+                f"aggregator.gsv.{rest}={value}, or recipe.default.{rest}={value} for an aggregator without "
+                "a gsv node (GeM, NetVLAD)"
             )
         rest = key.removeprefix("model.")
         if (
@@ -293,18 +301,14 @@ def _check_retrieval(cfg: DictConfig) -> None:
     for group in COMPONENTS:
         component_class(cfg, group)
     check_model(cfg)
-    for key in ("batch_size", "num_negatives", "negative_candidates", "cache_refresh"):
-        whole_number(cfg.recipe[key], f"recipe.{key}", 1)
-    if cfg.recipe.get("queries_per_epoch") is not None:
-        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch", 1, also="or null: all")
-    number(cfg.recipe.margin, "recipe.margin", 0)
+    if loss_class(cfg).batches == "places":
+        _check_place_recipe(cfg)
+    else:
+        _check_tuple_recipe(cfg)
     number(cfg.recipe.class_weights.lr, "recipe.class_weights.lr", 0, above=True)
-    positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
-    if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
-        raise SemvprError(
-            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
-            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
-        )
+    eval_sets = cfg.data.get("eval_sets")
+    if eval_sets is not None and cfg.data.get("eval_on") not in eval_sets:
+        raise SemvprError(f"data.eval_on={cfg.data.get('eval_on')!r} is not one of {list(eval_sets)}")
     size = cfg.data.get("image_size")
     if not OmegaConf.is_list(size) or len(size) != 2:
         raise SemvprError(f"data.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
@@ -352,6 +356,39 @@ def _check_trainer(trainer: DictConfig) -> None:
         raise SemvprError(
             f"trainer.devices={devices} needs trainer=ddp (one process per device, started by semvpr); "
             f"without it use trainer.devices=1"
+        )
+
+
+def _check_tuple_recipe(cfg: DictConfig) -> None:
+    """recipe=triplet: mining and batching of tuples."""
+    for key in ("batch_size", "num_negatives", "negative_candidates", "cache_refresh"):
+        whole_number(cfg.recipe[key], f"recipe.{key}", 1)
+    if cfg.recipe.get("queries_per_epoch") is not None:
+        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch", 1, also="or null: all")
+    number(cfg.recipe.margin, "recipe.margin", 0)
+    positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
+    if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
+        raise SemvprError(
+            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
+            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
+        )
+
+
+def _check_place_recipe(cfg: DictConfig) -> None:
+    """recipe=gsv: place batches, warm-up, scheduler interval; one device."""
+    recipe = cfg.recipe
+    whole_number(recipe.places_per_batch, "recipe.places_per_batch", 2)
+    whole_number(recipe.images_per_place, "recipe.images_per_place", 2)
+    whole_number(recipe.warmup_steps, "recipe.warmup_steps", 0)
+    separation = recipe.place_separation
+    ok = isinstance(separation, (int, float)) and not isinstance(separation, bool) and math.isfinite(separation)
+    if not ok or separation < 0:
+        raise SemvprError(f"recipe.place_separation={separation!r} must be a finite distance >= 0 (metres)")
+    if recipe.scheduler_interval not in ("epoch", "step"):
+        raise SemvprError(f"recipe.scheduler_interval={recipe.scheduler_interval!r} is not one of ['epoch', 'step']")
+    if str(cfg.trainer.get("strategy", "auto")).startswith("ddp"):
+        raise SemvprError(
+            f"recipe={recipe.name} mines its pairs within the whole batch on one device; use trainer=cpu or trainer=gpu"
         )
 
 

@@ -1,7 +1,8 @@
 """Components are classes named in their yaml by a ``module`` node: a backbone (``conf/backbone``), an
 aggregator (``conf/aggregator``) and a mask source (``conf/mask``, ``module: null`` for none). Each
 class declares what it needs (an aggregator's ``init_sample``, a mask source's ``needs``), so no builder
-switches on a name; adding one is one class and one yaml file."""
+switches on a name; adding one is one class and one yaml file. A recipe's loss (``recipe.loss``) declares
+the batches it trains on (``batches``) the same way."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from semvpr.core.io import CONF_DIR
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
+from semvpr.retrieval.losses import Loss, TripletLoss
 
 #: The component groups and the class each group's ``module`` must be.
 COMPONENTS: dict[str, type] = {"backbone": Backbone, "aggregator": Aggregator, "mask": MaskSource}
@@ -64,3 +66,21 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
         if cause is not None:
             raise cause from None  # a file system refusal about a named file: the CLIs print it in one line
         raise
+
+
+def loss_class(cfg: DictConfig) -> type[Loss]:
+    """The class of the recipe's loss (``recipe.loss``; a recipe without one trains with the triplet
+    loss), checked without building it: its ``batches`` say which datamodule the run needs."""
+    node = cfg.recipe.get("loss")
+    if node is None:
+        return TripletLoss
+    target = node.get("_target_") if isinstance(node, DictConfig) else None
+    try:
+        cls = get_class(str(target))
+    except Exception:  # noqa: BLE001 - an unimportable name is the same user error
+        cls = None
+    if not (isinstance(cls, type) and issubclass(cls, Loss)):
+        raise SemvprError(
+            f"recipe={cfg.recipe.get('name')}: recipe.loss._target_={target!r} is not a {Loss.__module__}.Loss"
+        )
+    return cls

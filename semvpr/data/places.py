@@ -64,6 +64,34 @@ def positives_within(db_utm: np.ndarray, q_utm: np.ndarray, radius: float) -> li
 
 # eq=False: the arrays make field-wise equality ambiguous and the set unhashable otherwise.
 @dataclass(frozen=True, eq=False)
+class PlaceIds:
+    """Which place each image of a set shows: the supervision of GSV-Cities-style training (P places × K
+    images per batch). ``db`` and ``q`` hold a place index in ``[0, num_places)`` per database image and
+    per query; ``groups`` holds, per place, the group it belongs to (a GSV-Cities city, a SynthCity
+    route): batches are drawn group by group, as gsv-cities draws them city by city."""
+
+    db: np.ndarray
+    q: np.ndarray
+    groups: np.ndarray
+
+    def __post_init__(self) -> None:
+        for field in ("db", "q", "groups"):
+            value = np.asarray(getattr(self, field))
+            if value.ndim != 1 or (value.size and not np.issubdtype(value.dtype, np.integer)):
+                raise SemvprError(f"place ids: {field} must be a 1-D array of whole numbers")
+            object.__setattr__(self, field, value.astype(np.int64))
+        for field in ("db", "q"):
+            ids = getattr(self, field)
+            if ids.size and (ids.min() < 0 or ids.max() >= self.num_places):
+                raise SemvprError(f"place ids: {field} holds ids outside [0, {self.num_places}) (one group per place)")
+
+    @property
+    def num_places(self) -> int:
+        return len(self.groups)
+
+
+# eq=False: the arrays make field-wise equality ambiguous and the set unhashable otherwise.
+@dataclass(frozen=True, eq=False)
 class PlaceSet:
     """A database and a query set of images with (east, north) UTM positions in metres."""
 
@@ -84,6 +112,13 @@ class PlaceSet:
     #: Without ``ground_truth``, the database images within this many metres are the positives
     #: (``data.eval_radius``, applied by :meth:`with_eval_radius`).
     eval_radius: float | None = None
+    #: The place each image shows, where the set is grouped into places (SynthCity's training split,
+    #: GSV-Cities): what ``recipe=gsv`` trains on. None: the set has only positions.
+    place_ids: PlaceIds | None = None
+    #: The set semantic artifacts are made from (the teacher's pseudo-labels of its images, keyed below its
+    #: root, and the student trained on them); None: this one. SynthCity's training split with extra
+    #: traversals names the split as drawn, so the student is the same whichever recipe trains.
+    semantic_source: PlaceSet | None = None
 
     def __post_init__(self) -> None:
         # Normalise here so every reader (and hand-built sets) gets the same types and checks.
@@ -121,6 +156,13 @@ class PlaceSet:
                 raise SemvprError(f"place set {self.name!r}: {len(paths)} images but {len(labels)} {field}")
         if self.ground_truth is not None:
             object.__setattr__(self, "ground_truth", self._checked_ground_truth(self.ground_truth))
+        if self.place_ids is not None and (
+            len(self.place_ids.db) != len(self.db_paths) or len(self.place_ids.q) != len(self.q_paths)
+        ):
+            raise SemvprError(
+                f"place set {self.name!r}: place ids for {len(self.place_ids.db)} database images and "
+                f"{len(self.place_ids.q)} queries, but the set has {len(self.db_paths)} and {len(self.q_paths)}"
+            )
         images = self.db_paths + self.q_paths
         root = Path(self.root) if self.root is not None else common_root(images)
         outside = next((p for p in images if not p.is_relative_to(root)), None)
@@ -192,9 +234,16 @@ class PlaceSet:
             )
         return dataclasses.replace(self, eval_radius=float(radius))
 
+    @property
+    def for_semantics(self) -> PlaceSet:
+        """The set the semantic side labels and trains the student on (:attr:`semantic_source`)."""
+        return self.semantic_source if self.semantic_source is not None else self
+
     def summary(self) -> str:
         """Short human-readable description: counts and UTM extent."""
         lines = [f"{self.name}: {len(self.db_paths)} database, {len(self.q_paths)} queries"]
+        if self.place_ids is not None:
+            lines[0] += f", {self.place_ids.num_places} places"
         for label, utm in (("database", self.db_utm), ("queries", self.q_utm)):
             if len(utm) and np.isfinite(utm).all():
                 lo, hi = utm.min(0), utm.max(0)

@@ -4,6 +4,13 @@ Each route is a long strip of facades (``synthcity_render``) over a road seen in
 (``synthcity_ground``). The database traversal captures it every 5 m in June; the query traversal
 at random positions in November (autumn foliage), at another time of day, with other vehicles and
 people. Everything is a pure function of (preset, seed, GENERATOR_VERSION).
+
+The training split is also a set of places (``PlaceIds``): one per database position, holding its
+database image and the queries within 2.5 m of it. ``traversals`` > 0 adds that many traversals of the
+training routes, each revisiting every database position at another date (November and June in turn,
+another time of day each), drawn into an artifact of their own so that the dataset itself is never
+touched: every training place then has 1 + ``traversals`` images from different traversals, the
+P places × K images that ``recipe=gsv`` trains on (GSV-Cities has several years per place).
 """
 
 from __future__ import annotations
@@ -16,10 +23,10 @@ import math
 import multiprocessing
 import os
 import signal
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from PIL import Image
@@ -30,7 +37,15 @@ from semvpr.core.io import atomic_dir, check_dir_path, reclaim_orphans
 from semvpr.core.logs import Progress
 from semvpr.data.classes import TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.synthcity_ground import make_ground_pool
-from semvpr.data.synthcity_render import DYNAMIC_MIN, SKY, RenderSpec, build_panorama, make_texture_pool, render_capture
+from semvpr.data.synthcity_render import (
+    DYNAMIC_MIN,
+    SKY,
+    Panorama,
+    RenderSpec,
+    build_panorama,
+    make_texture_pool,
+    render_capture,
+)
 
 # 2: calibrated difficulty (coverage 0.64, lighting 0.25, 3 liveries).
 # 3: static classes of different value: seasonal vegetation (June database, November queries), ground in
@@ -42,6 +57,10 @@ ZONE, LETTER = "17", "T"
 EAST0, NORTH0, ROUTE_SPACING_M = 580_000.0, 4_470_000.0, 1_000.0  # one northing line per route
 DATES = ("20240612", "20241119")  # database / query traversal timestamps
 JPEG_QUALITY = 90
+#: What the extra training traversals are (in their artifact's key): 1 = every database position, the
+#: November layer for even traversals and June for odd ones, the query traversal's lighting change.
+TRAVERSALS_VERSION = 1
+TRAVERSAL_LIGHTING = 1.0
 
 
 @dataclass(frozen=True)
@@ -161,14 +180,20 @@ def _routes(p: Preset) -> list[Route]:
 PARALLEL_MIN_IMAGES = 1000
 
 
+def _route_world(seed: int, spec: RenderSpec, route: Route) -> tuple[np.ndarray, Panorama]:
+    """The texture pool of the dataset and the static street of one route (each drawn from its own seed)."""
+    pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
+    ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
+    length = route.spec.db_per_route * DB_STEP_M
+    return pool, build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, route.rid]), length, spec, ground_pool)
+
+
 def _draw_route(root: Path, seed: int, spec: RenderSpec, route: Route) -> tuple[list[tuple[float, float]], np.ndarray]:
     """Render and save one route's captures; returns their (dynamic, sky) fractions and, for a VPR route,
     its per-class pixel counts. A pure function of its arguments (every random draw is seeded by them)."""
     kind, split, rid, s = route
-    pool = make_texture_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_777]), spec.liveries)
-    ground_pool = make_ground_pool(np.random.default_rng([seed, GENERATOR_VERSION, 7_778]))
+    pool, pano = _route_world(seed, spec, route)
     length = s.db_per_route * DB_STEP_M
-    pano = build_panorama(np.random.default_rng([seed, GENERATOR_VERSION, rid]), length, spec, ground_pool)
     q_x = np.sort(np.random.default_rng([seed, GENERATOR_VERSION, rid, 99]).uniform(0, length, s.q_per_route))
     if kind == "vpr":
         captures = [(DB_STEP_M * (i + 0.5), 0, i) for i in range(s.db_per_route)]
@@ -199,6 +224,27 @@ def _draw_route(root: Path, seed: int, spec: RenderSpec, route: Route) -> tuple[
     return fractions, class_pixels
 
 
+def traversal_date(t: int) -> str:
+    """Timestamp of extra traversal ``t``: November and June in turn, a year earlier every two."""
+    return f"{2023 - t // 2}{'11' if t % 2 == 0 else '06'}15"
+
+
+def _draw_traversals(root: Path, seed: int, spec: RenderSpec, traversals: int, route: Route) -> None:
+    """Render and save ``traversals`` revisits of every database position of one VPR route, under
+    ``images/<split>/traversal<t>/`` (labels under ``labels/``). Seeded by (seed, route, 2 + t, position),
+    draws the database (0) and query (1) traversals never use."""
+    _, split, rid, s = route
+    pool, pano = _route_world(seed, spec, route)
+    for t in range(traversals):
+        for i in range(s.db_per_route):
+            x = DB_STEP_M * (i + 0.5)
+            rng = np.random.default_rng([seed, GENERATOR_VERSION, rid, 2 + t, i])
+            img, label = render_capture(pano, x, rng, spec, pool, query=t % 2 == 0, lighting=TRAVERSAL_LIGHTING)
+            name = utm_name(EAST0 + x, NORTH0 + ROUTE_SPACING_M * rid, traversal_date(t), f"r{rid}t{t}p{i:04d}")
+            _save(img, root / "images" / split / f"traversal{t}" / name, format="JPEG", quality=JPEG_QUALITY)
+            _save(label, root / "labels" / split / f"traversal{t}" / (name[:-4] + ".png"), format="PNG")
+
+
 def _cores() -> int:
     """Cores this process may run on (the affinity mask, not the host's count, where the OS tells it)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
@@ -208,6 +254,38 @@ def _quiet_worker() -> None:
     """A drawing process leaves Ctrl-C to its parent, which stops the pool, and ends quietly when stopped."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _map_routes(
+    draw: Callable[[Route], Any], routes: list[Route], sizes: dict[int, int], label: str, workers: int | None = None
+) -> dict[int, Any]:
+    """``draw`` of every route (by route id) in ``workers`` processes (None: one per core when the routes
+    hold PARALLEL_MIN_IMAGES images or more, else inline). Routes are independent, so the files do not
+    depend on it."""
+    total = sum(sizes.values())
+    if workers is None:
+        workers = min(_cores(), len(routes)) if total >= PARALLEL_MIN_IMAGES else 1
+    bar = Progress(label, total)
+    results: dict[int, Any] = {}
+    if workers <= 1:
+        for route in routes:
+            results[route.rid] = draw(route)
+            bar.update(sizes[route.rid])
+    else:
+        # Longest routes first, so that the cores finish together; `with` terminates the pool on an error
+        # or a signal (the caller's atomic directory then removes what was drawn). fork: the children draw
+        # with NumPy and PIL only (never torch), and a spawned child would re-run a calling script that
+        # has no `if __name__ == "__main__"` guard.
+        with multiprocessing.get_context("fork").Pool(workers, initializer=_quiet_worker) as pool:
+            pending = [
+                (route, pool.apply_async(draw, (route,)))
+                for route in sorted(routes, key=lambda r: sizes[r.rid], reverse=True)
+            ]
+            for route, result in pending:
+                results[route.rid] = result.get()
+                bar.update(sizes[route.rid])
+    bar.close()
+    return results
 
 
 def generate(
@@ -224,30 +302,9 @@ def generate(
     inline). Routes are independent, so the files and statistics do not depend on it."""
     p = get_preset(preset, render, image_size)
     routes = _routes(p)
-    total = sum(r.images for r in routes)
-    if workers is None:
-        workers = min(_cores(), len(routes)) if total >= PARALLEL_MIN_IMAGES else 1
     draw = functools.partial(_draw_route, root, seed, p.render)
-    bar = Progress(f"SynthCity {preset} seed {seed}", total)
-    results: dict[int, tuple[list[tuple[float, float]], np.ndarray]] = {}
-    if workers <= 1:
-        for route in routes:
-            results[route.rid] = draw(route)
-            bar.update(route.images)
-    else:
-        # Longest routes first, so that the cores finish together; `with` terminates the pool on an error
-        # or a signal (the caller's atomic directory then removes what was drawn). fork: the children draw
-        # with NumPy and PIL only (never torch), and a spawned child would re-run a calling script that
-        # has no `if __name__ == "__main__"` guard.
-        with multiprocessing.get_context("fork").Pool(workers, initializer=_quiet_worker) as pool:
-            pending = [
-                (route, pool.apply_async(draw, (route,)))
-                for route in sorted(routes, key=lambda r: r.images, reverse=True)
-            ]
-            for route, result in pending:
-                results[route.rid] = result.get()
-                bar.update(route.images)
-    bar.close()
+    sizes = {r.rid: r.images for r in routes}
+    results = _map_routes(draw, routes, sizes, f"SynthCity {preset} seed {seed}", workers)
     fractions: dict[str, list[tuple[float, float]]] = {}
     class_pixels = np.zeros(len(TRAIN_ID_NAMES), np.int64)  # over every VPR capture
     for kind, split, rid, _ in routes:
@@ -292,6 +349,67 @@ def ensure_synthcity(
     return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), render, image_size))
 
 
+def generate_traversals(
+    root: Path,
+    preset: str,
+    seed: int,
+    traversals: int,
+    render: Mapping[str, float] | None = None,
+    image_size: Sequence[int] | None = None,
+    workers: int | None = None,
+) -> None:
+    """Write ``traversals`` extra traversals of the dataset's training routes under ``root`` (module
+    docstring); the dataset's own files are never read or written."""
+    p = get_preset(preset, render, image_size)
+    routes = [r for r in _routes(p) if r.kind == "vpr" and r.split == "train"]
+    draw = functools.partial(_draw_traversals, root, seed, p.render, traversals)
+    sizes = {r.rid: traversals * r.spec.db_per_route for r in routes}
+    _map_routes(draw, routes, sizes, f"SynthCity {preset} seed {seed}: {traversals} traversals", workers)
+
+
+def _traversals_key(
+    preset: str, seed: int, render: Mapping[str, float] | None, image_size: Sequence[int] | None, traversals: int
+) -> dict:
+    """Cache key of the extra traversals: the dataset's key, their number and what they are."""
+    if isinstance(traversals, bool) or not isinstance(traversals, int) or traversals < 0:
+        raise SemvprError(f"data.traversals={traversals!r} must be a whole number >= 0 (extra training traversals)")
+    return {"dataset": _key(preset, seed, render, image_size), "traversals": traversals, "version": TRAVERSALS_VERSION}
+
+
+def ensure_traversals(
+    cache_dir: str | Path,
+    preset: str,
+    seed: int,
+    traversals: int,
+    render: Mapping[str, float] | None = None,
+    image_size: Sequence[int] | None = None,
+) -> Path:
+    """Root of the extra training traversals in the artifact cache (kind "synthcity_traversals"), drawn on
+    first use."""
+    key = _traversals_key(preset, seed, render, image_size, traversals)
+    return build_once(
+        cache_dir,
+        "synthcity_traversals",
+        key,
+        lambda tmp: generate_traversals(tmp, preset, int(seed), traversals, render, image_size),
+    )
+
+
+def training_places(db_utm: np.ndarray, q_utm: np.ndarray, db_per_route: int):
+    """The places of a training split: one per database position (route, 5 m step), holding every image
+    whose route position is within half a step of it; grouped by route. Read from the images' UTM
+    (``utm_name``), so it holds for the split as drawn and for its extra traversals alike."""
+    from semvpr.data.places import PlaceIds
+
+    utm = np.concatenate([np.asarray(db_utm).reshape(-1, 2), np.asarray(q_utm).reshape(-1, 2)])
+    route = np.rint((utm[:, 1] - NORTH0) / ROUTE_SPACING_M).astype(np.int64)
+    step = np.clip(np.floor((utm[:, 0] - EAST0) / DB_STEP_M).astype(np.int64), 0, db_per_route - 1)
+    places, ids = np.unique(route * db_per_route + step, return_inverse=True)
+    groups = np.unique(places // db_per_route, return_inverse=True)[1]
+    n_db = len(np.asarray(db_utm).reshape(-1, 2))
+    return PlaceIds(db=ids[:n_db], q=ids[n_db:], groups=groups)
+
+
 def read_split(
     preset: str,
     seed: int,
@@ -299,24 +417,53 @@ def read_split(
     split: str,
     render: Mapping[str, float] | None = None,
     image_size: Sequence[int] | None = None,
+    traversals: int = 0,
 ):
     """PlaceSet of one VPR split (train/val/test), with the trainId label maps attached; the city is
-    drawn at ``image_size`` (``data.image_size``), so the loader never resamples it."""
-    from semvpr.data.places import read_utm_folder
+    drawn at ``image_size`` (``data.image_size``), so the loader never resamples it. The training split
+    also carries its places (:func:`training_places`); ``traversals`` > 0 adds that many extra traversals
+    of it as queries (``data.traversals``, which ``recipe=gsv`` sets; val and test never change)."""
+    from semvpr.data.places import PlaceSet, parse_utm_name, read_utm_folder
 
     if split not in get_preset(preset).vpr:
         raise SemvprError(f"SynthCity has no VPR split {split!r}; choose one of {sorted(get_preset(preset).vpr)}")
+    if split == "train":
+        _traversals_key(preset, seed, render, image_size, traversals)  # validate before drawing anything
     root = ensure_synthcity(cache_dir, preset, seed, render, image_size)
     places = read_utm_folder(root, split)
 
-    def labels(paths: tuple[Path, ...]) -> tuple[Path, ...]:
-        return tuple(root / "labels" / split / p.parent.name / f"{p.stem}.png" for p in paths)
+    def labels(paths: tuple[Path, ...], base: Path = root) -> tuple[Path, ...]:
+        return tuple(base / "labels" / split / p.parent.name / f"{p.stem}.png" for p in paths)
 
-    return dataclasses.replace(
+    drawn = dataclasses.replace(
         places,
         name=f"synthcity-{preset}-s{seed}/{split}",
         db_labels=labels(places.db_paths),
         q_labels=labels(places.q_paths),
+    )
+    if split != "train":
+        return drawn
+    db_per_route = get_preset(preset).vpr[split].db_per_route
+    drawn = dataclasses.replace(drawn, place_ids=training_places(drawn.db_utm, drawn.q_utm, db_per_route))
+    if not traversals:
+        return drawn
+    extra_root = ensure_traversals(cache_dir, preset, seed, traversals, render, image_size)
+    extra = tuple(
+        image
+        for t in range(traversals)
+        for image in sorted((extra_root / "images" / split / f"traversal{t}").glob("*.jpg"))
+    )
+    q_utm = np.concatenate([drawn.q_utm, np.array([parse_utm_name(p) for p in extra]).reshape(-1, 2)])
+    return PlaceSet(
+        name=f"{drawn.name}+{traversals}traversals",
+        db_paths=drawn.db_paths,
+        q_paths=drawn.q_paths + extra,
+        db_utm=drawn.db_utm,
+        q_utm=q_utm,
+        db_labels=drawn.db_labels,
+        q_labels=drawn.q_labels + labels(extra, extra_root),
+        place_ids=training_places(drawn.db_utm, q_utm, db_per_route),
+        semantic_source=drawn,
     )
 
 

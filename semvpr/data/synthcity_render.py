@@ -375,11 +375,19 @@ def _sky(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 
 def render_capture(
-    pano: Panorama, x: float, rng: np.random.Generator, spec: RenderSpec, pool: np.ndarray, query: bool
+    pano: Panorama,
+    x: float,
+    rng: np.random.Generator,
+    spec: RenderSpec,
+    pool: np.ndarray,
+    query: bool,
+    lighting: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One capture around route position ``x``: (H,W,3) uint8 image and (H,W) uint8 trainIds.
 
-    Query captures see the November panorama layer and a stronger lighting change."""
+    Query captures see the November panorama layer and a stronger lighting change. ``lighting`` scales
+    ``spec.lighting`` for this capture (None: 1 for a query, 0.25 for the database traversal); the
+    random draws are the same whatever it is."""
     h, w = spec.height, spec.width
     ppm = w / (spec.view_m * (1 + rng.uniform(-spec.scale_jitter, spec.scale_jitter)))
     xc = x + rng.uniform(-spec.jitter_m, spec.jitter_m)
@@ -400,7 +408,7 @@ def render_capture(
     target = float(np.clip(spec.coverage + rng.normal(0, COVERAGE_SPREAD), 0.05, 0.9))
     add_dynamic_objects(rgb, label, rng, pool, ppm, z_top, target)
     # Lighting: the query traversal is at another time of day; the database one varies a little.
-    d = spec.lighting * (1.0 if query else 0.25)
+    d = spec.lighting * ((1.0 if query else 0.25) if lighting is None else lighting)
     gain = rng.uniform(1 - 0.5 * d, 1 + 0.3 * d)
     gamma = np.exp(rng.uniform(-0.4 * d, 0.4 * d))
     cast = rng.uniform(-0.12 * d, 0.12 * d, 3).astype(np.float32)

@@ -28,7 +28,7 @@ class Job:
 
     dir: Path
     name: str
-    aggregator: str
+    aggregator: str  # the aggregator choice, marked with its recipe unless that is the default (aggregator_label)
     mask: str  # the mask choice, with LEARNED appended for learned class weights
     backbone: str
     seed: int | None
@@ -63,6 +63,16 @@ def backbone_label(name: str, kind: str | None) -> str:
     in backbone.weights must not share a row)."""
     marks = {"none": "random init", "file": "own weights"}
     return f"{name} ({marks[kind]})" if kind in marks else name
+
+
+#: The recipe runs are recorded with when they name none, and the one a table leaves unmarked.
+DEFAULT_RECIPE = "triplet"
+
+
+def aggregator_label(name: str, recipe: str | None) -> str:
+    """A table's aggregator: its name, marked with the recipe it trained with when that is not the default
+    (runs that differ only in recipe must not share a row)."""
+    return name if recipe in (None, DEFAULT_RECIPE) else f"{name} ({recipe})"
 
 
 def cell_name(aggregator: str, mask: str) -> str:
@@ -213,7 +223,7 @@ def _error_line(error: object) -> str:
     return lines[-1][:200] if lines else ""
 
 
-FACT_KEYS = ("aggregator", "mask", "backbone", "seed", "mask.weights", "filter")
+FACT_KEYS = ("aggregator", "recipe", "mask", "backbone", "seed", "mask.weights", "filter")
 
 
 def _yaml(path: Path) -> Any:
@@ -229,7 +239,7 @@ def _select(node: Any, dotted: str) -> Any:
 
 
 def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
-    """aggregator / mask / backbone / seed / mask weighting of a job from its .hydra files (for jobs that
+    """aggregator / recipe / mask / backbone / seed / mask weighting of a job from its .hydra files (for jobs that
     died before metrics.json), read as plain YAML (nothing resolved), and the dataset roots it recorded.
     The composed choices are used, so a filter preset counts as the aggregator and mask it chose."""
     # lowest priority: the dir name itself, Hydra's override_dirname "aggregator=gem,mask=student,seed=1"
@@ -249,7 +259,7 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
             if isinstance(value, (str, int, float)) and "${" not in str(value):
                 facts[fact] = weights_kind(value) if fact == "backbone.weights" else str(value)
         choices = _select(hydra_cfg, "hydra.runtime.choices")
-        for key in ("aggregator", "mask", "backbone"):
+        for key in ("aggregator", "recipe", "mask", "backbone"):
             if isinstance(choices, dict) and isinstance(choices.get(key), str):
                 facts[key] = choices[key]
         overrides = _yaml(hydra_dir / "overrides.yaml")
@@ -306,7 +316,10 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     return Job(
         job_dir,
         name,
-        str(metrics.get("aggregator") or facts.get("aggregator") or "?"),
+        aggregator_label(
+            str(metrics.get("aggregator") or facts.get("aggregator") or "?"),
+            metrics.get("recipe") or facts.get("recipe"),
+        ),
         mask,
         backbone_label(
             str(metrics.get("backbone") or facts.get("backbone") or "?"),

@@ -1,4 +1,6 @@
-"""The VPR DataModule: train/val/test feature stores; training tuples re-mined per sub-epoch (semvpr.retrieval.mining).
+"""The VPR DataModules: train/val/test feature stores, one training protocol each. ``RetrievalDataModule``
+(recipe=triplet) re-mines training tuples per sub-epoch (semvpr.retrieval.mining); ``PlaceDataModule``
+(recipe=gsv) draws P places × K images per batch (semvpr.retrieval.places). Both validate and test alike.
 
 Data flows one way: the descriptor function that mining needs is given at construction (the model's
 ``describe_store``, sharded across ranks by semvpr.retrieval.distributed), and the datamodule never reads the
@@ -16,9 +18,18 @@ import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader, Sampler
 
+from semvpr.core.errors import SemvprError
 from semvpr.retrieval.distributed import Describe, batch_block, world
 from semvpr.retrieval.features import PlaceFeatures, StoreDataset
 from semvpr.retrieval.mining import Mining, TrainingEpoch, trainable_queries
+from semvpr.retrieval.places import (
+    PlaceBatching,
+    PlaceImages,
+    collate_places,
+    epoch_batches,
+    report_left_out,
+    training_places,
+)
 
 
 class RankBatches(Sampler[list[int]]):
@@ -40,7 +51,32 @@ class RankBatches(Sampler[list[int]]):
         return (list(rows[s : s + self.batch_size]) for s in range(0, len(rows), self.batch_size))
 
 
-class RetrievalDataModule(L.LightningDataModule):
+class EvalDataModule(L.LightningDataModule):
+    """Feature stores of train/val/test, and the val/test loaders every training protocol shares."""
+
+    def __init__(self, features: dict[str, PlaceFeatures], eval_batch_size: int = 64, num_workers: int = 0) -> None:
+        super().__init__()
+        self.features = features
+        self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
+
+    def epoch_facts(self) -> dict[str, Any]:
+        """What the training epochs held, for metrics.json."""
+        return {}
+
+    def val_dataloader(self) -> DataLoader:
+        return self._eval_loader(self.features["val"])
+
+    def test_dataloader(self) -> DataLoader:
+        return self._eval_loader(self.features["test"])
+
+    def _eval_loader(self, features: PlaceFeatures) -> DataLoader:
+        # Database first, then queries: semvpr.retrieval.validation splits the descriptors at len(db).
+        dataset = ConcatDataset([StoreDataset(features.db), StoreDataset(features.q)])
+        workers = self.num_workers if features.db.streams else 0
+        return DataLoader(dataset, batch_sampler=RankBatches(len(dataset), self.eval_batch_size), num_workers=workers)
+
+
+class RetrievalDataModule(EvalDataModule):
     """Feature stores of train/val/test; training batches re-mined per sub-epoch (semvpr.retrieval.mining)."""
 
     def __init__(
@@ -51,14 +87,18 @@ class RetrievalDataModule(L.LightningDataModule):
         eval_batch_size: int = 64,
         num_workers: int = 0,
     ) -> None:
-        super().__init__()
-        self.features, self.mining, self.describe = features, mining, describe
-        self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
+        super().__init__(features, eval_batch_size, num_workers)
+        self.mining, self.describe = mining, describe
         # Tuples mined per epoch (the last epoch's count goes into metrics.json).
         self.num_tuples: list[int] = []
         self._epoch: TrainingEpoch | None = None
         train = features.get("train")
         if train is not None:
+            if not len(train.q):
+                raise SemvprError(
+                    f"recipe=triplet mines training queries, and {train.places.name} has none (it is a set of "
+                    "places): train it with recipe=gsv"
+                )
             self.trainable_queries = trainable_queries(train.places, mining.positive_radius)
             self.neg_cache = np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64)
 
@@ -84,17 +124,8 @@ class RetrievalDataModule(L.LightningDataModule):
             self._count_tuples()
             self._epoch = None
 
-    def val_dataloader(self) -> DataLoader:
-        return self._eval_loader(self.features["val"])
-
-    def test_dataloader(self) -> DataLoader:
-        return self._eval_loader(self.features["test"])
-
-    def _eval_loader(self, features: PlaceFeatures) -> DataLoader:
-        # Database first, then queries: semvpr.retrieval.validation splits the descriptors at len(db).
-        dataset = ConcatDataset([StoreDataset(features.db), StoreDataset(features.q)])
-        workers = self.num_workers if features.db.streams else 0
-        return DataLoader(dataset, batch_sampler=RankBatches(len(dataset), self.eval_batch_size), num_workers=workers)
+    def epoch_facts(self) -> dict[str, Any]:
+        return {"tuples_per_epoch": self.num_tuples}
 
     def state_dict(self) -> dict[str, Any]:
         """The negative cache: a resumed run mines with the hard negatives of the epochs before."""
@@ -103,3 +134,49 @@ class RetrievalDataModule(L.LightningDataModule):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "neg_cache" in state and "train" in self.features:
             self.neg_cache = state["neg_cache"].numpy().copy()
+
+
+class PlaceDataModule(EvalDataModule):
+    """Feature stores of train/val/test; training batches of P places × K images (semvpr.retrieval.places),
+    drawn anew every epoch from ``rng(seed, epoch)``: nothing to carry in a checkpoint."""
+
+    def __init__(
+        self,
+        features: dict[str, PlaceFeatures],
+        batching: PlaceBatching,
+        eval_batch_size: int = 64,
+        num_workers: int = 0,
+    ) -> None:
+        super().__init__(features, eval_batch_size, num_workers)
+        self.batching = batching
+        # Batches and places per epoch (the last epoch's go into metrics.json).
+        self.batches: list[list[list[int]]] = []
+        train = features.get("train")
+        if train is not None:
+            self.places = training_places(train.places, batching.images_per_place)
+            report_left_out(self.places, train.places.name, batching.images_per_place)
+            if len(self.places.rows) < 2:
+                raise SemvprError(
+                    f"{train.places.name}: {len(self.places.rows)} place(s) with {batching.images_per_place} or more "
+                    "images (recipe.images_per_place); a batch needs two (with SynthCity: data.traversals >= "
+                    f"{batching.images_per_place - 1})"
+                )
+
+    def train_dataloader(self) -> DataLoader:
+        train = self.features["train"]
+        batches = epoch_batches(self.places, self.batching, self.trainer.current_epoch)
+        self.batches.append(batches)
+        return DataLoader(
+            PlaceImages(train, self.places.labels),
+            batch_sampler=batches,
+            collate_fn=collate_places,
+            num_workers=self.num_workers if train.db.streams else 0,
+        )
+
+    def epoch_facts(self) -> dict[str, Any]:
+        last = self.batches[-1] if self.batches else []
+        return {
+            "places": len(self.places.rows) if "train" in self.features else 0,
+            "batches_per_epoch": len(last),
+            "places_per_epoch": sum(len(b) for b in last) // self.batching.images_per_place,
+        }

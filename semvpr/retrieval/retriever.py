@@ -25,22 +25,31 @@ from semvpr.data.images import ImageDataset
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.retrieval.distributed import Describe
 from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
-from semvpr.retrieval.losses import triplet_loss
+from semvpr.retrieval.losses import Loss, TripletLoss
 
 
 @dataclass(frozen=True)
 class Optimization:
-    """How the retriever trains: optimizer and scheduler factories (Hydra partials), the triplet
-    margin, and the learning rate of the learned class weights."""
+    """How the retriever trains: optimizer and scheduler factories (Hydra partials), the learning rate of
+    the learned class weights, the loss (None: the triplet loss with ``margin``), a linear warm-up over
+    the first ``warmup_steps`` optimizer steps, and whether the scheduler steps per ``epoch`` or ``step``."""
 
     optimizer: Callable[..., torch.optim.Optimizer]
     scheduler: Callable[..., Any] | None = None
     margin: float = 0.1
     class_weights_lr: float | None = None
+    loss: Loss | None = None
+    warmup_steps: int = 0
+    scheduler_interval: str = "epoch"
+
+    @property
+    def loss_fn(self) -> Loss:
+        return self.loss if self.loss is not None else TripletLoss(self.margin)
 
 
 class Retriever(L.LightningModule):
-    """Weakly-supervised VPR model trained with the triplet loss on mined tuples."""
+    """VPR model trained with its recipe's loss: the triplet loss on mined tuples, or the multi-similarity
+    loss on place batches (``Optimization.loss``)."""
 
     def __init__(
         self,
@@ -161,23 +170,36 @@ class Retriever(L.LightningModule):
 
     # ------------------------------------------------------------------- training
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
-        """The triplet loss of this rank's tuples, summed and divided by ``batch["pairs"]`` (semvpr.retrieval.mining:
-        the global pair count over the world size, so DDP's averaged gradient is the single-process one)."""
+        """The recipe's loss of this rank's batch. Tuples: the triplet loss summed and divided by
+        ``batch["pairs"]`` (semvpr.retrieval.mining: the global pair count over the world size, so DDP's
+        averaged gradient is the single-process one). Places: the multi-similarity loss of the batch."""
         if batch is None:
             return None  # no query of this batch had a violating negative (pytorch-NetVlad skips it too)
-        if "tuples" not in batch:
+        if "pairs" in batch and "tuples" not in batch:
             # An empty slice of a global batch: a zero loss through every trainable parameter, so that
             # this rank's zero gradients still join DDP's all-reduce.
             return sum(p.sum() for p in self.parameters() if p.requires_grad) * 0.0
         assert self.optimization is not None
-        loss = triplet_loss(self.describe_batch(batch), batch["tuples"], self.optimization.margin, batch["pairs"])
+        loss = self.optimization.loss_fn(self.describe_batch(batch), batch)
         if not torch.isfinite(loss):
             raise SemvprError(
                 f"training loss became {loss.item()} at epoch {self.current_epoch} step "
                 f"{self.global_step}; the last good checkpoint is left as it was (lower recipe.optimizer.lr?)"
             )
-        self.log("train/loss", loss, prog_bar=True, batch_size=len(batch["tuples"]))
+        rows = batch["tuples"] if "tuples" in batch else batch["labels"]
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(rows))
         return loss
+
+    def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any, optimizer_closure: Any = None) -> None:
+        """The step, its learning rates scaled by (step + 1) / warmup_steps during the warm-up (as
+        gsv-cities, MixVPR and BoQ warm up: every group from its configured rate; the scheduler takes
+        over from the rate the warm-up ends at)."""
+        warmup = self.optimization.warmup_steps if self.optimization is not None else 0
+        if self.trainer.global_step < warmup:
+            scale = min(1.0, (self.trainer.global_step + 1) / warmup)
+            for group, base in zip(optimizer.param_groups, self._base_lrs):
+                group["lr"] = scale * base
+        super().optimizer_step(epoch, batch_idx, optimizer, optimizer_closure)
 
     @property
     def weighting(self) -> str:
@@ -201,9 +223,13 @@ class Retriever(L.LightningModule):
                 }
             )
         optimizer = self.optimization.optimizer(groups)
+        self._base_lrs = [group["lr"] for group in optimizer.param_groups]
         if self.optimization.scheduler is None:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": self.optimization.scheduler(optimizer)}
+        scheduler = self.optimization.scheduler(optimizer)
+        if self.optimization.scheduler_interval == "epoch":
+            return {"optimizer": optimizer, "lr_scheduler": scheduler}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     # ----------------------------------------------------------------- evaluation
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:

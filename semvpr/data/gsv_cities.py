@@ -1,0 +1,144 @@
+"""GSV-Cities (Ali-bey et al., Neurocomputing 2022) as training places: the layout its dataloader reads.
+
+``<root>/Dataframes/<City>.csv`` holds one row per image with the columns ``place_id, year, month,
+northdeg, city_id, lat, lon, panoid``; the image is ``<root>/Images/<city_id>/<name>``, its name built
+from the row as gsv-cities builds it::
+
+    <city_id>_<place_id mod 10^5, 7 digits>_<year, 4>_<month, 2>_<northdeg, 3>_<lat>_<lon>_<panoid>.jpg
+
+(numbers zero-padded, ``lat`` / ``lon`` as Python prints the float read from the file). A place is a
+(city, place_id) pair; places are grouped by city, in the order the cities are given. Images are the
+set's database side (there are no queries); their positions are metres on a local equirectangular
+projection of each city, cities 10,000 km apart, so that places of two cities are never within any
+radius of each other.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from semvpr.core.errors import SemvprError
+from semvpr.data.places import PlaceIds, PlaceSet, listed_image
+
+COLUMNS = ("place_id", "year", "month", "northdeg", "city_id", "lat", "lon", "panoid")
+WHOLE = ("place_id", "year", "month", "northdeg")
+#: Metres per degree of latitude (mean Earth radius 6,371 km).
+M_PER_DEGREE = 6_371_000.0 * math.pi / 180.0
+CITY_SHIFT_M = 1e7
+
+
+def image_name(
+    city_id: str, place_id: int, year: int, month: int, northdeg: int, lat: float, lon: float, panoid: str
+) -> str:
+    """The file name of one row, as gsv-cities' dataloader builds it."""
+    fields = [
+        city_id,
+        str(place_id % 10**5).zfill(7),
+        str(year).zfill(4),
+        str(month).zfill(2),
+        str(northdeg).zfill(3),
+        str(lat),
+        str(lon),
+        panoid,
+    ]
+    return "_".join(fields) + ".jpg"
+
+
+def _row(row: dict[str, str], line: int, path: Path) -> tuple[int, int, int, int, str, float, float, str]:
+    """One csv row as typed values, or one line naming the file, the line and the field."""
+    values: dict[str, object] = {}
+    for key in COLUMNS:
+        text = (row.get(key) or "").strip()
+        try:
+            if key in WHOLE:
+                values[key] = int(text)
+            elif key in ("lat", "lon"):
+                values[key] = float(text)
+                if not math.isfinite(values[key]):  # type: ignore[arg-type]
+                    raise ValueError
+            else:
+                if not text or "/" in text or "\\" in text or text in (".", ".."):
+                    raise ValueError
+                values[key] = text
+        except ValueError:
+            kind = "a whole number" if key in WHOLE else "a number" if key in ("lat", "lon") else "a name"
+            raise SemvprError(f"{path}: line {line}: {key}={text!r} is not {kind}") from None
+    return tuple(values[k] for k in COLUMNS)  # type: ignore[return-value]
+
+
+def _city_rows(path: Path) -> list[tuple[int, int, int, int, str, float, float, str]]:
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in COLUMNS if c not in (reader.fieldnames or ())]
+        if missing:
+            raise SemvprError(f"{path}: missing column(s) {missing}; a GSV-Cities dataframe has {list(COLUMNS)}")
+        rows = [_row(row, line, path) for line, row in enumerate(reader, start=2)]
+    if not rows:
+        raise SemvprError(f"{path}: no rows")
+    return rows
+
+
+def read_gsv_cities(root: str | Path, cities: list[str] | None = None) -> PlaceSet:
+    """The images of ``cities`` (csv names in ``Dataframes/``; None: every csv there, sorted) as places."""
+    root = Path(root).expanduser()
+    frames = root / "Dataframes"
+    if not frames.is_dir() or not (root / "Images").is_dir():
+        raise SemvprError(
+            f"GSV-Cities folders {frames} / {root / 'Images'} not found; set data.root=... to the folder "
+            "holding Dataframes/ and Images/"
+        )
+    found = sorted(p.stem for p in frames.glob("*.csv"))
+    cities = found if cities is None else [str(c) for c in cities]
+    if not cities:
+        raise SemvprError(f"{frames}: no <City>.csv dataframe")
+    unknown = [c for c in cities if c not in found]
+    if unknown:
+        raise SemvprError(f"{frames}: no dataframe for city {unknown[0]!r} (found {found}); check data.cities")
+    paths: list[Path] = []
+    utm: list[np.ndarray] = []
+    place_of: dict[tuple[int, int], int] = {}
+    ids: list[int] = []
+    groups: list[int] = []
+    for city_index, city in enumerate(cities):
+        csv_path = frames / f"{city}.csv"
+        rows = _city_rows(csv_path)
+        listed: dict[str, set[str]] = {}
+        missing: list[Path] = []
+        for place_id, year, month, northdeg, city_id, lat, lon, panoid in rows:
+            folder = root / "Images" / city_id
+            if city_id not in listed:
+                listed[city_id] = {p.name for p in folder.iterdir()} if folder.is_dir() else set()
+            name = image_name(city_id, place_id, year, month, northdeg, lat, lon, panoid)
+            path = listed_image(folder, name, csv_path)
+            if name not in listed[city_id]:
+                missing.append(path)
+            paths.append(path)
+            key = (city_index, place_id)
+            if key not in place_of:
+                place_of[key] = len(place_of)
+                groups.append(city_index)
+            ids.append(place_of[key])
+        if missing:
+            raise SemvprError(
+                f"{csv_path}: {len(missing)} of its {len(rows)} images are missing, the first {missing[0]}; "
+                "the names are built from each row as gsv-cities builds them"
+            )
+        lat_lon = np.array([(r[5], r[6]) for r in rows], dtype=np.float64)
+        lat0, lon0 = lat_lon.mean(0)
+        east = (lat_lon[:, 1] - lon0) * M_PER_DEGREE * math.cos(math.radians(lat0)) + city_index * CITY_SHIFT_M
+        north = (lat_lon[:, 0] - lat0) * M_PER_DEGREE
+        utm.append(np.stack([east, north], 1))
+    label = "+".join(cities) if len(cities) <= 3 else f"{len(cities)} cities"
+    return PlaceSet(
+        name=f"gsv-cities/{label}",
+        db_paths=tuple(paths),
+        q_paths=(),
+        db_utm=np.concatenate(utm),
+        q_utm=np.zeros((0, 2)),
+        root=root,
+        place_ids=PlaceIds(db=np.array(ids), q=np.zeros(0, np.int64), groups=np.array(groups)),
+    )
