@@ -22,13 +22,23 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.config.build import Prepared, build_retriever, build_trainer, init_aggregator, mining_of, prepare, ranks_of
+from semvpr.config.build import (
+    Prepared,
+    build_retriever,
+    build_trainer,
+    init_aggregator,
+    mining_of,
+    prepare,
+    ranks_of,
+    thread_plan,
+)
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.resume import keep_run_record, resumed_config
+from semvpr.core.threads import Threads
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
 from semvpr.retrieval.datamodule import RetrievalDataModule
@@ -53,13 +63,19 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
             f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step",
             file=sys.stderr,
         )
-    job = prepare(cfg, timings)  # generates SynthCity, builds the teacher, labels, student, trunk caches
-    with job_ranks(devices, nodes, overrides, run_dir):
-        return train_and_test(cfg, run_dir, job, timings, start)
+    threads = thread_plan(cfg)
+    job = prepare(cfg, timings, threads)  # generates SynthCity, builds the teacher, labels, student, trunk caches
+    with job_ranks(devices, nodes, overrides, run_dir), threads.stage("retriever"):
+        return train_and_test(cfg, run_dir, job, timings, start, threads)
 
 
 def train_and_test(
-    cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float], start: float
+    cfg: DictConfig,
+    run_dir: Path,
+    job: Prepared,
+    timings: dict[str, float],
+    start: float,
+    threads: Threads | None = None,
 ) -> dict[str, Any] | None:
     """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
     retriever = build_retriever(cfg, job.backbone, job.mask_source)
@@ -73,7 +89,8 @@ def train_and_test(
     latest = RunCheckpoint(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
     )
-    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
+    threads = threads or thread_plan(cfg)
+    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))])
     datamodule = RetrievalDataModule(
         job.features, mining_of(cfg), describe, int(cfg.model.eval_batch_size), int(cfg.data.num_workers)
     )
@@ -128,10 +145,22 @@ def train_and_test(
             "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
             "tuples_per_epoch": datamodule.num_tuples,
             "aggregator_init": init_info,
+            "threads": threads.record(),
             "timings": timings,
             "wall_time_s": time.time() - start,
         },
     )
+
+
+class KeepThreads(L.Callback):
+    """Keep the retriever stage's thread count inside fit and test: Lightning's DDP launcher sets its own
+    (cores / ranks) when OMP_NUM_THREADS is unset."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = threads
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        torch.set_num_threads(self.threads)
 
 
 def job_metrics(

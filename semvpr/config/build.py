@@ -30,6 +30,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
+from semvpr.core.threads import Threads, usable_cores
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
@@ -243,6 +244,27 @@ def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
     return devices, int(trainer_cfg.get("num_nodes", 1))
 
 
+def launcher_jobs() -> int:
+    """How many jobs the sweep's launcher runs side by side: ``hydra.launcher.n_jobs`` under the joblib launcher
+    (-1: one per core), else 1."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return 1
+    launcher = HydraConfig.get().get("launcher") or {}
+    if "joblib" not in str(launcher.get("_target_", "")).lower():
+        return 1
+    n = launcher.get("n_jobs")
+    return usable_cores() if n in (None, -1) else max(1, int(n))
+
+
+def thread_plan(cfg: DictConfig) -> Threads:
+    """The threads of this process (``threads``: auto or a number; semvpr.core.threads), given the job's DDP
+    ranks on this node and the jobs its launcher runs beside it."""
+    ranks = ranks_of(cfg.trainer)[0] if "trainer" in cfg else 1
+    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs())
+
+
 # ----------------------------------------------------------------------------------- semantic artifacts
 def needs_semantic(cfg: DictConfig) -> bool:
     """Whether the run needs the teacher (the aggregator's labelled init, or a teacher or student mask)."""
@@ -251,7 +273,7 @@ def needs_semantic(cfg: DictConfig) -> bool:
     return component_class(cfg, "aggregator").init_sample == "labelled" or needs in ("teacher", "student")
 
 
-def semantic_teacher(cfg: DictConfig, backbone: Backbone) -> Teacher:
+def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | None = None) -> Teacher:
     """The run's teacher, trained once (cached) or loaded, linked to ``backbone``'s frozen prefix where its
     pixel encoder is that prefix (``Teacher.link_trunk``)."""
     from semvpr.segmentation.training import build_teacher
@@ -261,7 +283,8 @@ def semantic_teacher(cfg: DictConfig, backbone: Backbone) -> Teacher:
     needs_training = settings.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
     seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
-    teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir)
+    with (threads or thread_plan(cfg)).stage("teacher"):
+        teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir)
     if settings.share_trunk:
         teacher.link_trunk(backbone)
     return teacher
@@ -325,7 +348,8 @@ def trunk_outputs(features: PlaceFeatures) -> Callable[[Sequence[Path]], list[Te
             part = store.outputs([found[i][1] for i in at], levels)
             for level in levels:
                 if out[level] is None:
-                    out[level] = part[level].new_empty((len(paths), *part[level].shape[1:]))
+                    shape, dtype = (len(paths), *part[level].shape[1:]), part[level].dtype
+                    out[level] = torch.empty(shape, dtype=dtype, memory_format=torch.channels_last)
                 out[level][torch.tensor(at)] = part[level]
         return out
 
@@ -340,6 +364,7 @@ def build_semantic(
     storage: str = "disk",
     skip_levels: Sequence[int] | None = None,
     teacher: Teacher | None = None,
+    threads: Threads | None = None,
 ) -> Semantic:
     """Teacher (``teacher`` if given), pseudo-labels and student, as far as the aggregator's init and the mask
     source need them; the seconds each took (built or read from the cache) into ``timings`` as teacher_s,
@@ -354,11 +379,13 @@ def build_semantic(
     timings = {} if timings is None else timings
     if not needs_semantic(cfg):
         return Semantic()
+    threads = threads or thread_plan(cfg)
+    workers = threads.workers(int(cfg.data.num_workers))
     mask = component_class(cfg, "mask")
     size = tuple(int(v) for v in cfg.data.image_size)
     tic = time.time()
     if teacher is None:
-        teacher = semantic_teacher(cfg, backbone)
+        teacher = semantic_teacher(cfg, backbone, threads)
         timings["teacher_s"] = time.time() - tic
     tic = time.time()
     if skip_levels is None:
@@ -366,29 +393,39 @@ def build_semantic(
     trunk, held = None, set()
     if skip_levels:
         # Memory-mapped: these are read once, here; the job's stores come later.
-        frozen = place_features(
-            train, backbone, backbone.frozen_identity(), None, None, size, cfg.paths.cache_dir,
-            "disk" if storage == "ram" else storage, int(cfg.model.eval_batch_size), int(cfg.data.num_workers),
-            skip_levels=skip_levels,
-        )  # fmt: skip
+        with threads.stage("frozen"):
+            frozen = place_features(
+                train, backbone, backbone.frozen_identity(), None, None, size, cfg.paths.cache_dir,
+                "disk" if storage == "ram" else storage, int(cfg.model.eval_batch_size), workers,
+                skip_levels=skip_levels,
+            )  # fmt: skip
         trunk, held = trunk_outputs(frozen), frozen.db.levels() & frozen.q.levels()
     timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
     tic = time.time()
     images = list(train.db_paths) + list(train.q_paths)
     on_trunk = teacher.on_trunk(size) and set(teacher.trunk_levels or ()) <= held
-    labels_dir = pseudo_labels(
-        teacher, teacher.teacher_key, images, size, cfg.paths.cache_dir, train.root,
-        batch_size=int(teacher_spec(cfg).predict_batch_size), num_workers=int(cfg.data.num_workers),
-        trunk=trunk if on_trunk else None,
-    )  # fmt: skip
+    with threads.stage("frozen"):
+        labels_dir = pseudo_labels(
+            teacher, teacher.teacher_key, images, size, cfg.paths.cache_dir, train.root,
+            batch_size=int(teacher_spec(cfg).predict_batch_size), num_workers=workers,
+            trunk=trunk if on_trunk else None,
+        )  # fmt: skip
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, train.root)
     if mask is not None and mask.needs == "student":
         spec = student_spec(cfg)
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
-        semantic.student = build_student(
-            spec, backbone, images, labels_dir, train.root, size, cfg.paths.cache_dir, trunk=trunk if reads else None
-        )
+        with threads.stage("student"):
+            semantic.student = build_student(
+                spec,
+                backbone,
+                images,
+                labels_dir,
+                train.root,
+                size,
+                cfg.paths.cache_dir,
+                trunk=trunk if reads else None,
+            )
         timings["student_s"] = time.time() - tic
     return semantic
 
@@ -436,43 +473,45 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
     return storage
 
 
-def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
+def prepare(cfg: DictConfig, timings: dict[str, float], threads: Threads | None = None) -> Prepared:
     """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job; the
     seconds of each stage into ``timings`` (data, teacher, labels, student, features: the trunk passes and
     the masks; semantic = teacher + labels + student)."""
     tic = time.time()
     places = build_places(cfg)  # generates SynthCity on first use
     timings["data_s"] = time.time() - tic
+    threads = threads or thread_plan(cfg)
     backbone = build_backbone(cfg.backbone, int(cfg.seed))
     storage = feature_storage(cfg, backbone, places)
     plan = {split: () for split in places}
     semantic = Semantic()
     if needs_semantic(cfg):
         tic = time.time()
-        teacher = semantic_teacher(cfg, backbone)
+        teacher = semantic_teacher(cfg, backbone, threads)
         timings["teacher_s"] = time.time() - tic
         plan = skip_plan(cfg, backbone, places, teacher, storage)
-        semantic = build_semantic(cfg, places["train"], backbone, timings, storage, plan["train"], teacher)
+        semantic = build_semantic(cfg, places["train"], backbone, timings, storage, plan["train"], teacher, threads)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()
-    features = {
-        split: place_features(
-            places[split],
-            backbone,
-            backbone.frozen_identity(),
-            mask_source,
-            mask_key(mask_source, cfg),
-            cfg.data.image_size,
-            cfg.paths.cache_dir,
-            storage,
-            int(cfg.model.eval_batch_size),
-            int(cfg.data.num_workers),
-            weighting=cfg.mask.weights,
-            skip_levels=plan[split],
-        )
-        for split in places
-    }
+    with threads.stage("frozen"):
+        features = {
+            split: place_features(
+                places[split],
+                backbone,
+                backbone.frozen_identity(),
+                mask_source,
+                mask_key(mask_source, cfg),
+                cfg.data.image_size,
+                cfg.paths.cache_dir,
+                storage,
+                int(cfg.model.eval_batch_size),
+                threads.workers(int(cfg.data.num_workers)),
+                weighting=cfg.mask.weights,
+                skip_levels=plan[split],
+            )
+            for split in places
+        }
     timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
     return Prepared(places, backbone, semantic, mask_source, features, storage)
 

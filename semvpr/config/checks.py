@@ -11,6 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.components import COMPONENTS, component_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path
+from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.features import STORAGES
@@ -83,6 +84,7 @@ def check_config(cfg: DictConfig) -> None:
     eval, localize), the segmentation set's where it has one (segment).
     """
     whole_number(cfg.seed, "seed", 0, SEED_MAX)
+    parse_setting(cfg.get("threads", "auto"))
     check_dir_path(Path(str(cfg.paths.cache_dir)), "paths.cache_dir")
     if "model" in cfg:
         _check_retrieval(cfg)

@@ -105,12 +105,13 @@ class FeatureStore:
 
     def outputs(self, index: Sequence[int], levels: Sequence[int]) -> list[Tensor | None]:
         """The cached ``forward_frozen`` outputs ``levels`` of the rows ``index`` as a list shaped like
-        ``forward_frozen``'s (None at the levels not asked for)."""
-        rows = np.asarray(index, dtype=np.int64)
+        ``forward_frozen``'s (None at the levels not asked for), channels-last as the trunk pass gives them
+        (a layer reading them rounds as it would on that pass's outputs)."""
+        rows = torch.from_numpy(np.asarray(index, dtype=np.int64))
         out: list[Tensor | None] = [None] * (self.trunk_level + 1)
         for level in levels:
             held = self.trunk if level == self.trunk_level else self.skips[level]
-            out[level] = held[torch.from_numpy(rows)]
+            out[level] = held[rows].contiguous(memory_format=torch.channels_last)
         return out
 
 
