@@ -26,7 +26,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places
+from semvpr.config.build import build_places, thread_plan
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
@@ -84,7 +84,9 @@ def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        result = evaluate_checkpoint(cfg, explicit_keys(), out_dir)
+        threads = thread_plan(cfg)
+        with threads.stage("frozen"):  # images through the whole model: the trunk pass dominates
+            result = {**evaluate_checkpoint(cfg, explicit_keys(), out_dir), "threads": threads.record()}
     except Exception as err:  # noqa: BLE001 - in a sweep every failure becomes its job's row
         if HydraConfig.get().mode != RunMode.MULTIRUN:
             raise

@@ -21,7 +21,7 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places
+from semvpr.config.build import build_places, thread_plan
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error
@@ -84,7 +84,8 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
 def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    results = localize(cfg, explicit_keys(), run_dir)
+    with thread_plan(cfg).stage("frozen"):  # images through the whole model: the trunk pass dominates
+        results = localize(cfg, explicit_keys(), run_dir)
     output = run_dir / "localize.json"
     write_json(output, results)
     for result in results:

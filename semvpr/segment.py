@@ -23,7 +23,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.build import build_backbone, student_spec, teacher_spec
+from semvpr.config.build import build_backbone, student_spec, teacher_spec, thread_plan
 from semvpr.config.checks import check_config
 from semvpr.config.components import instantiate_node
 from semvpr.core.errors import exit_on_user_error
@@ -176,8 +176,10 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     loggers = [instantiate_node(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
 
+    threads = thread_plan(cfg)
     tic = time.time()
-    teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir)
+    with threads.stage("teacher"):
+        teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir)
     build_s = time.time() - tic
     artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
     trained = json.loads((artifact / "metrics.json").read_text())
@@ -189,7 +191,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     }
     scored = ("val", "test") if cfg.score_test else ("val",)
     for split in scored:
-        scores = score_teacher(teacher, sets[split], size, classes, static_names, batch, workers)
+        with threads.stage("frozen"):
+            scores = score_teacher(teacher, sets[split], size, classes, static_names, batch, workers)
         log_scores(loggers, "teacher", split, scores)
         results["teacher"][split] = scores
     # The last scored split's numbers at the top level (test, or val when settings are being chosen).
@@ -199,39 +202,41 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     tic = time.time()
     root = common_root(list(sets["train"].images))
-    labels = pseudo_labels(
-        teacher,
-        teacher.teacher_key,
-        list(sets["train"].images),
-        size,
-        cfg.paths.cache_dir,
-        root,
-        batch_size=int(teacher_settings.predict_batch_size),
-        num_workers=workers,
-    )
+    with threads.stage("frozen"):
+        labels = pseudo_labels(
+            teacher,
+            teacher.teacher_key,
+            list(sets["train"].images),
+            size,
+            cfg.paths.cache_dir,
+            root,
+            batch_size=int(teacher_settings.predict_batch_size),
+            num_workers=workers,
+        )
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 
     backbones = {
         name: (build_backbone(node, int(cfg.seed)).eval(), str(node.get("weights", "none")))
         for name, node in cfg.backbones.items()
     }
-    students = train_students(
-        student_settings,
-        backbones,
-        sets,
-        scored,
-        run_dir,
-        trained_on,
-        labels,
-        root,
-        size,
-        static_names,
-        cfg.paths.cache_dir,
-        batch,
-        workers,
-        loggers,
-        results,
-    )
+    with threads.stage("student"):
+        students = train_students(
+            student_settings,
+            backbones,
+            sets,
+            scored,
+            run_dir,
+            trained_on,
+            labels,
+            root,
+            size,
+            static_names,
+            cfg.paths.cache_dir,
+            batch,
+            workers,
+            loggers,
+            results,
+        )
 
     columns = {
         "gt": "ground truth\n(bright = static)",
@@ -253,7 +258,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "dataset": {"name": cfg.seg.name, "root": str(cfg.seg.root), "image_size": size,
                     "classes": [TRAIN_ID_NAMES[c] for c in classes], **{s: len(sets[s]) for s in SPLITS}},
         "scored_on": "test (val under each model's 'val')" if cfg.score_test else "val only (test not scored)",
-        "threads": torch.get_num_threads(),
+        "threads": threads.record(),
         "config": OmegaConf.to_container(cfg, resolve=True), "wall_time_s": time.time() - start,
     })  # fmt: skip
     write_json(run_dir / "results.json", results)
@@ -275,8 +280,6 @@ def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
 @exit_on_user_error
 def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))  # process-wide, so here and not in run()
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     print(json.dumps(summary(run(cfg, run_dir), run_dir)))
 

@@ -30,6 +30,7 @@ from semvpr.config.build import (
     init_aggregator,
     prepare,
     ranks_of,
+    thread_plan,
 )
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.core.checkpoint import RunCheckpoint
@@ -37,6 +38,7 @@ from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.resume import keep_run_record, resumed_config
+from semvpr.core.threads import Threads
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
 from semvpr.retrieval.distributed import sharded
@@ -60,13 +62,19 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
             f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step",
             file=sys.stderr,
         )
-    job = prepare(cfg, timings)  # generates SynthCity, builds the teacher, labels, student, trunk caches
-    with job_ranks(devices, nodes, overrides, run_dir):
-        return train_and_test(cfg, run_dir, job, timings, start)
+    threads = thread_plan(cfg)
+    job = prepare(cfg, timings, threads)  # generates SynthCity, builds the teacher, labels, student, trunk caches
+    with job_ranks(devices, nodes, overrides, run_dir), threads.stage("retriever"):
+        return train_and_test(cfg, run_dir, job, timings, start, threads)
 
 
 def train_and_test(
-    cfg: DictConfig, run_dir: Path, job: Prepared, timings: dict[str, float], start: float
+    cfg: DictConfig,
+    run_dir: Path,
+    job: Prepared,
+    timings: dict[str, float],
+    start: float,
+    threads: Threads | None = None,
 ) -> dict[str, Any] | None:
     """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
     # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them):
@@ -84,7 +92,8 @@ def train_and_test(
     latest = RunCheckpoint(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
     )
-    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest])
+    threads = threads or thread_plan(cfg)
+    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))])
     datamodule = build_datamodule(cfg, job.features, describe)
     leader = trainer.global_rank == 0
     # The other ranks skip the initialisation: DDP gives them rank 0's weights.
@@ -141,10 +150,22 @@ def train_and_test(
             "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
             **datamodule.epoch_facts(),
             "aggregator_init": init_info,
+            "threads": threads.record(),
             "timings": timings,
             "wall_time_s": time.time() - start,
         },
     )
+
+
+class KeepThreads(L.Callback):
+    """Keep the retriever stage's thread count inside fit and test: Lightning's DDP launcher sets its own
+    (cores / ranks) when OMP_NUM_THREADS is unset."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = threads
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        torch.set_num_threads(self.threads)
 
 
 def job_metrics(

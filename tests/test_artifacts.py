@@ -38,6 +38,51 @@ def test_concurrent_jobs_build_an_artifact_once(tmp_path: Path) -> None:
     assert (Path(paths.pop()) / "content.txt").read_text() == "done"
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux /proc), in seconds."""
+    import os
+
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="reads /proc")
+def test_a_job_waiting_for_a_build_sleeps(tmp_path: Path) -> None:
+    """A job that needs an artifact another job is building blocks on the lock in the kernel: it takes no CPU
+    while it waits (a sweep's jobs side by side share the cores)."""
+    cache, log = tmp_path / "cache", tmp_path / "builds.log"
+    ctx = mp.get_context("fork")
+    out: mp.Queue[str] = ctx.Queue()
+    builder = ctx.Process(target=_job_slow, args=(str(cache), str(log), out, 3.0))
+    builder.start()
+    while not log.is_file():  # the builder holds the lock
+        time.sleep(0.05)
+    waiter = ctx.Process(target=_job, args=(str(cache), str(log), out))
+    waiter.start()
+    time.sleep(0.5)
+    before = _cpu_seconds(waiter.pid)
+    time.sleep(1.5)
+    spent = _cpu_seconds(waiter.pid) - before
+    state = next(
+        line for line in Path(f"/proc/{waiter.pid}/status").read_text().splitlines() if line.startswith("State")
+    )
+    for job in (builder, waiter):
+        job.join(timeout=30)
+        assert job.exitcode == 0
+    assert spent < 0.1, spent  # 1.5 s of waiting; a spinning wait would take ~1.5 s of CPU
+    assert "S (sleeping)" in state
+    assert log.read_text().count("built") == 1
+
+
+def _job_slow(cache: str, log: str, out: mp.Queue[str], seconds: float) -> None:
+    def build(tmp: Path) -> None:
+        with open(log, "a") as handle:
+            handle.write("built\n")
+        time.sleep(seconds)
+
+    out.put(str(build_once(cache, "thing", {"a": 1}, build)))
+
+
 def test_failed_build_leaves_nothing_and_the_next_call_builds(tmp_path: Path) -> None:
     def failing(tmp: Path) -> None:
         (tmp / "half.txt").write_text("partial")

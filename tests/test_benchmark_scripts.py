@@ -26,7 +26,15 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         "",
     ),
     "ddp.py": (lambda t: ["--db", "8", "--batch", "2", "--steps", "1", "--reps", "1"], "world=2"),
+    "mask_cost.py": (lambda t: ["--batch", "1", "--repeats", "1"], "teacher_cut="),
     "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "ratio="),
+    "recipe_cost.py": (
+        lambda t: (
+            ["--cache-dir", str(t / "cache"), "--aggregators", "gem", "--override", "experiment=tiny"]
+            + ["--override", "data.image_size=[64,80]"]
+        ),
+        "gsv·gem=",
+    ),
     "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=1/1"),
     "scale.py": (
         lambda t: (

@@ -315,7 +315,7 @@ def _count_trunk_passes(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     extract = features._extract
 
     def counted(*args, **kwargs):
-        if args[6] is not None:  # trunk_out
+        if args[6]:  # frozen outputs written (trunk, skips)
             passes.append(args[-1])
         return extract(*args, **kwargs)
 

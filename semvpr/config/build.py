@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,14 +21,16 @@ import numpy as np
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
+from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
 from semvpr.core.cache import config_hash, state_hash
 from semvpr.core.checkpoint import record_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
-from semvpr.core.precision import lightning_precision
+from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
+from semvpr.core.threads import Threads, usable_cores
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
@@ -42,6 +45,7 @@ from semvpr.retrieval.features import (
     choose_storage,
     grid_size,
     place_features,
+    skip_bytes,
     trunk_cached,
     trunk_shape,
 )
@@ -188,7 +192,17 @@ def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | 
             given["student"] = load_student(spec.checkpoint, backbone)
         else:
             given["student"] = student_architecture(spec, backbone)
-    return instantiate_node(cfg.mask.module, **given)
+    source = instantiate_node(cfg.mask.module, **given)
+    if semantic is not None or teacher_spec(cfg).checkpoint:  # the teacher's weights are final
+        link_segmenter(cfg, source, backbone)
+    return source
+
+
+def link_segmenter(cfg: DictConfig, mask_source: MaskSource | None, backbone: Backbone) -> None:
+    """Let a teacher mask source read ``backbone``'s frozen outputs where its pixel encoder is that trunk
+    (``Teacher.link_trunk``) and ``teacher.share_trunk`` allows it; called once the weights of both are final."""
+    if mask_source is not None and mask_source.needs == "teacher" and teacher_spec(cfg).share_trunk:
+        mask_source.segmenter.link_trunk(backbone)
 
 
 def mask_trained_on(cfg: DictConfig, mask_source: MaskSource | None) -> TrainedOn | None:
@@ -266,47 +280,191 @@ def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
     return devices, int(trainer_cfg.get("num_nodes", 1))
 
 
-# ----------------------------------------------------------------------------------- semantic artifacts
-def build_semantic(
-    cfg: DictConfig, train: PlaceSet, backbone: Backbone, timings: dict[str, float] | None = None
-) -> Semantic:
-    """Teacher, pseudo-labels and student, as far as the aggregator's init and the mask source need them;
-    the seconds each took (built or read from the cache) into ``timings`` as teacher_s, labels_s, student_s."""
-    from semvpr.segmentation.pseudolabels import pseudo_labels
-    from semvpr.segmentation.training import build_student, build_teacher
+def launcher_jobs() -> int:
+    """How many jobs the sweep's launcher runs side by side: ``hydra.launcher.n_jobs`` under the joblib launcher
+    (-1: one per core), else 1."""
+    from hydra.core.hydra_config import HydraConfig
 
-    timings = {} if timings is None else timings
+    if not HydraConfig.initialized():
+        return 1
+    launcher = HydraConfig.get().get("launcher") or {}
+    if "joblib" not in str(launcher.get("_target_", "")).lower():
+        return 1
+    n = launcher.get("n_jobs")
+    return usable_cores() if n in (None, -1) else max(1, int(n))
+
+
+def thread_plan(cfg: DictConfig) -> Threads:
+    """The threads of this process (``threads``: auto or a number; semvpr.core.threads), given the job's DDP
+    ranks on this node and the jobs its launcher runs beside it."""
+    ranks = ranks_of(cfg.trainer)[0] if "trainer" in cfg else 1
+    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs())
+
+
+# ----------------------------------------------------------------------------------- semantic artifacts
+def needs_semantic(cfg: DictConfig) -> bool:
+    """Whether the run needs the teacher (the aggregator's labelled init, or a teacher or student mask)."""
     mask = component_class(cfg, "mask")
     needs = mask.needs if mask is not None else None
-    if component_class(cfg, "aggregator").init_sample != "labelled" and needs not in ("teacher", "student"):
-        return Semantic()
-    teacher_settings = teacher_spec(cfg)
+    return component_class(cfg, "aggregator").init_sample == "labelled" or needs in ("teacher", "student")
+
+
+def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | None = None) -> Teacher:
+    """The run's teacher, trained once (cached) or loaded, linked to ``backbone``'s frozen prefix where its
+    pixel encoder is that prefix (``Teacher.link_trunk``)."""
+    from semvpr.segmentation.training import build_teacher
+
+    settings = teacher_spec(cfg)
     seg = cfg.data.get("segmentation")
-    needs_training = teacher_settings.checkpoint is None
+    needs_training = settings.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
     seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
+    with (threads or thread_plan(cfg)).stage("teacher"):
+        teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir)
+    if settings.share_trunk:
+        teacher.link_trunk(backbone)
+    return teacher
+
+
+def skip_plan(
+    cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet], teacher: Teacher | None, storage: str
+) -> dict[str, tuple[int, ...]]:
+    """Which frozen outputs besides the trunk each split's trunk pass keeps (``skips`` caches), so that the
+    semantic side reads them instead of passing the images through the frozen weights again: the teacher's
+    encoder levels where it is linked to the trunk (train: its pseudo-labels; every split: its masks), the
+    student's skips (train: its training; every split: its masks). None where the trunk is streamed, where
+    they would not fit ``features.disk_gb`` and the free disk (then each stage makes its own pass, as it does
+    without a linked teacher)."""
+    none = {split: () for split in places}
+    if storage == "stream":
+        return none
+    size = tuple(int(v) for v in cfg.data.image_size)
+    mask = component_class(cfg, "mask")
+    needs = mask.needs if mask is not None else None
+    teacher_levels = set(teacher.trunk_levels or ()) if teacher is not None and teacher.on_trunk(size) else set()
+    student_levels: set[int] = set()
+    spec = student_spec(cfg)
+    # The trunk pass runs in bf16 where that is native; the student's own pass in bf16 only if asked for.
+    if needs == "student" and (spec.bf16 or not bf16_native(next(backbone.parameters()).device.type)):
+        student_levels = set(student_architecture(spec, backbone).skip_indices)
+    last = len(backbone.frozen_strides) - 1
+    plan = {}
+    for split in places:
+        levels = set(teacher_levels) if split == "train" else set()
+        levels |= student_levels if split == "train" or needs == "student" else set()
+        levels |= teacher_levels if needs == "teacher" else set()
+        plan[split] = tuple(sorted(levels - {last}))
+    total = sum(
+        skip_bytes(backbone, size, plan[split], len(p.db_paths) + len(p.q_paths)) for split, p in places.items()
+    )
+    if total and choose_storage("auto", total, cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream":
+        print(
+            f"semvpr: the frozen outputs the semantic side reads ({total / 2**30:.2f} GiB) exceed the disk budget: "
+            "each stage passes the images through the trunk itself",
+            file=sys.stderr,
+        )
+        return none
+    return plan
+
+
+def trunk_outputs(features: PlaceFeatures) -> Callable[[Sequence[Path]], list[Tensor | None]]:
+    """The cached ``forward_frozen`` outputs of a place set's images, by path (database or query)."""
+    where = {Path(p): ("q", i) for i, p in enumerate(features.q.paths)}
+    where.update({Path(p): ("db", i) for i, p in enumerate(features.db.paths)})
+    stores = {"db": features.db, "q": features.q}
+    levels = sorted(features.db.levels() & features.q.levels())
+
+    def outputs(paths: Sequence[Path]) -> list[Tensor | None]:
+        found = [where[Path(p)] for p in paths]
+        out: list[Tensor | None] = [None] * (features.db.trunk_level + 1)
+        for side, store in stores.items():
+            at = [i for i, (s, _) in enumerate(found) if s == side]
+            if not at:
+                continue
+            part = store.outputs([found[i][1] for i in at], levels)
+            for level in levels:
+                if out[level] is None:
+                    shape, dtype = (len(paths), *part[level].shape[1:]), part[level].dtype
+                    out[level] = torch.empty(shape, dtype=dtype, memory_format=torch.channels_last)
+                out[level][torch.tensor(at)] = part[level]
+        return out
+
+    return outputs
+
+
+def build_semantic(
+    cfg: DictConfig,
+    train: PlaceSet,
+    backbone: Backbone,
+    timings: dict[str, float] | None = None,
+    storage: str = "disk",
+    skip_levels: Sequence[int] | None = None,
+    teacher: Teacher | None = None,
+    threads: Threads | None = None,
+) -> Semantic:
+    """Teacher (``teacher`` if given), pseudo-labels and student, as far as the aggregator's init and the mask
+    source need them; the seconds each took (built or read from the cache) into ``timings`` as teacher_s,
+    labels_s, student_s, and the trunk pass that keeps what they read into features_s.
+
+    Where the teacher is linked to the trunk and the student reads its skips, both read the train images'
+    frozen outputs from the trunk pass's cache (``skip_levels``, by default :func:`skip_plan`'s), so the
+    images go through the frozen weights once."""
+    from semvpr.segmentation.pseudolabels import pseudo_labels
+    from semvpr.segmentation.training import build_student
+
+    timings = {} if timings is None else timings
+    if not needs_semantic(cfg):
+        return Semantic()
+    threads = threads or thread_plan(cfg)
+    workers = threads.workers(int(cfg.data.num_workers))
+    mask = component_class(cfg, "mask")
+    size = tuple(int(v) for v in cfg.data.image_size)
     tic = time.time()
-    teacher = build_teacher(teacher_settings, seg_train, seg_val, cfg.paths.cache_dir)
-    timings["teacher_s"], tic = time.time() - tic, time.time()
+    if teacher is None:
+        teacher = semantic_teacher(cfg, backbone, threads)
+        timings["teacher_s"] = time.time() - tic
+    tic = time.time()
     # The set the semantic side is made from: SynthCity's training split as drawn even where the recipe
     # trains on extra traversals of it, so every recipe gets the same labels and student.
     source = train.for_semantics
+    if skip_levels is None or source is not train:
+        skip_levels = skip_plan(cfg, backbone, {"train": source}, teacher, storage)["train"]
+    trunk, held = None, set()
+    if skip_levels:
+        # Memory-mapped: these are read once, here; the job's stores come later.
+        with threads.stage("frozen"):
+            frozen = place_features(
+                source, backbone, backbone.frozen_identity(), None, None, size, cfg.paths.cache_dir,
+                "disk" if storage == "ram" else storage, int(cfg.model.eval_batch_size), workers,
+                skip_levels=skip_levels,
+            )  # fmt: skip
+        trunk, held = trunk_outputs(frozen), frozen.db.levels() & frozen.q.levels()
+    timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
+    tic = time.time()
     images = list(source.db_paths) + list(source.q_paths)
-    labels_dir = pseudo_labels(
-        teacher, teacher.teacher_key, images, tuple(cfg.data.image_size), cfg.paths.cache_dir, source.root
-    )
+    on_trunk = teacher.on_trunk(size) and set(teacher.trunk_levels or ()) <= held
+    with threads.stage("frozen"):
+        labels_dir = pseudo_labels(
+            teacher, teacher.teacher_key, images, size, cfg.paths.cache_dir, source.root,
+            batch_size=int(teacher_spec(cfg).predict_batch_size), num_workers=workers,
+            trunk=trunk if on_trunk else None,
+        )  # fmt: skip
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, source.root)
-    if needs == "student":
-        semantic.student = build_student(
-            student_spec(cfg),
-            backbone,
-            images,
-            labels_dir,
-            source.root,
-            tuple(cfg.data.image_size),
-            cfg.paths.cache_dir,
-        )
+    if mask is not None and mask.needs == "student":
+        spec = student_spec(cfg)
+        reads = set(student_architecture(spec, backbone).skip_indices) <= held
+        with threads.stage("student"):
+            semantic.student = build_student(
+                spec,
+                backbone,
+                images,
+                labels_dir,
+                source.root,
+                size,
+                cfg.paths.cache_dir,
+                trunk=trunk if reads else None,
+            )
         timings["student_s"] = time.time() - tic
     return semantic
 
@@ -324,6 +482,9 @@ def mask_key(mask_source: MaskSource | None, cfg: DictConfig) -> str | None:
     seen = mask_source.input_size(tuple(cfg.data.image_size))
     if seen is not None:
         key.append({"input_size": list(seen)})
+    arithmetic = mask_source.arithmetic(tuple(cfg.data.image_size))
+    if arithmetic:
+        key.append(arithmetic)
     return config_hash(key)
 
 
@@ -351,36 +512,46 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
     return storage
 
 
-def prepare(cfg: DictConfig, timings: dict[str, float]) -> Prepared:
+def prepare(cfg: DictConfig, timings: dict[str, float], threads: Threads | None = None) -> Prepared:
     """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job; the
-    seconds of each stage into ``timings`` (data, semantic = teacher + labels + student, features)."""
+    seconds of each stage into ``timings`` (data, teacher, labels, student, features: the trunk passes and
+    the masks; semantic = teacher + labels + student)."""
     tic = time.time()
     places = build_places(cfg)  # generates SynthCity on first use
     timings["data_s"] = time.time() - tic
+    threads = threads or thread_plan(cfg)
     backbone = build_backbone(cfg.backbone, int(cfg.seed))
-    tic = time.time()
-    semantic = build_semantic(cfg, places["train"], backbone, timings)
-    mask_source = build_mask_source(cfg, backbone, semantic)
-    timings["semantic_s"] = time.time() - tic
-    tic = time.time()
     storage = feature_storage(cfg, backbone, places)
-    features = {
-        split: place_features(
-            places[split],
-            backbone,
-            backbone.frozen_identity(),
-            mask_source,
-            mask_key(mask_source, cfg),
-            cfg.data.image_size,
-            cfg.paths.cache_dir,
-            storage,
-            int(cfg.model.eval_batch_size),
-            int(cfg.data.num_workers),
-            weighting=cfg.mask.weights,
-        )
-        for split in places
-    }
-    timings["features_s"] = time.time() - tic
+    plan = {split: () for split in places}
+    semantic = Semantic()
+    if needs_semantic(cfg):
+        tic = time.time()
+        teacher = semantic_teacher(cfg, backbone, threads)
+        timings["teacher_s"] = time.time() - tic
+        plan = skip_plan(cfg, backbone, places, teacher, storage)
+        semantic = build_semantic(cfg, places["train"], backbone, timings, storage, plan["train"], teacher, threads)
+    mask_source = build_mask_source(cfg, backbone, semantic)
+    timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
+    tic = time.time()
+    with threads.stage("frozen"):
+        features = {
+            split: place_features(
+                places[split],
+                backbone,
+                backbone.frozen_identity(),
+                mask_source,
+                mask_key(mask_source, cfg),
+                cfg.data.image_size,
+                cfg.paths.cache_dir,
+                storage,
+                int(cfg.model.eval_batch_size),
+                threads.workers(int(cfg.data.num_workers)),
+                weighting=cfg.mask.weights,
+                skip_levels=plan[split],
+            )
+            for split in places
+        }
+    timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
     return Prepared(places, backbone, semantic, mask_source, features, storage)
 
 

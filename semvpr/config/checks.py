@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.components import COMPONENTS, component_class, loss_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
+from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.features import STORAGES
@@ -198,6 +199,7 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
     command writes into, must be usable as written (``core.io.check_dir_path``).
     """
     whole_number(cfg.seed, "seed", 0, SEED_MAX)
+    parse_setting(cfg.get("threads", "auto"))
     check_dir_path(str(cfg.paths.cache_dir), "paths.cache_dir", writable=False)
     if run_dir is not None:
         check_dir_path(str(run_dir), "the run dir (hydra.run.dir)")

@@ -36,6 +36,7 @@ from semvpr.config.build import (
     build_semantic,
     feature_storage,
     init_aggregator,
+    link_segmenter,
 )
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
@@ -131,8 +132,10 @@ def _trained_retriever(cfg: DictConfig, explicit: set[str], warn: bool, path: Pa
     if replaced is not None:
         # Built after the checkpoint's weights are in: a student directory is checked against the trunk.
         retriever.mask_source = build_mask_source(merged, backbone)
-    elif warn:
-        warn_foreign_mask(record, merged, where)
+    else:
+        link_segmenter(merged, retriever.mask_source, backbone)  # now that the teacher's weights are the checkpoint's
+        if warn:
+            warn_foreign_mask(record, merged, where)
     return retriever, merged
 
 
@@ -331,8 +334,8 @@ def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Calla
             "an untrained aggregator's k-means must not see the evaluated set: name another init.data"
         )
     backbone = retriever.backbone
-    semantic = build_semantic(init_cfg, train, backbone)
     storage = feature_storage(init_cfg, backbone, places)
+    semantic = build_semantic(init_cfg, train, backbone, storage=storage)
     features = place_features(
         train,
         backbone,

@@ -48,6 +48,8 @@ CONF = Path(CONF_DIR)
 GROUPS = ("backbone", "aggregator", "mask", "teacher", "student")
 #: Plain nodes of the train config that define the model (checked against the invocation's own).
 NODES = ("model",)
+#: Settings a checkpoint records now, with the value a run that did not record them ran with.
+BEFORE_RECORDED = {"teacher": {"share_trunk": False}}
 _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
 #: Recorded (group, key)s whose value names something to read: a Hugging Face id or null.
 PATH_KEYS = (("teacher", "checkpoint"), ("student", "checkpoint"))
@@ -156,6 +158,9 @@ def model_config(
         schema = OmegaConf.to_container(cfg[group], resolve=True)
         _check(stored, schema, f"{where}: {group}")
         cfg[group] = OmegaConf.merge(cfg[group], stored)
+        for key, value in BEFORE_RECORDED.get(group, {}).items():
+            if isinstance(stored, dict) and key not in stored and key in cfg[group]:
+                cfg[group][key] = value
     segmenter_of(record, where)
     if check_paths:
         check_recorded_paths(record, base, where)

@@ -426,3 +426,24 @@ class EfficientNetLite0Backbone(Backbone):
             EFFICIENTNET_LITE_STD,
             expansion=6.0,
         )
+        #: timm's name of the architecture (a teacher whose pixel encoder is this network can share the prefix).
+        self.timm_name = EFFICIENTNET_LITE["efficientnet_lite0"][0]
+        # Each unit's children under their timm names: (unit index, child index, timm module name).
+        self._timm_children = [(0, 0, "conv_stem"), (0, 1, "bn1"), (0, 2, "blocks.0")] + [
+            (u, j, f"blocks.{a + j}")
+            for u, (a, b) in enumerate(EFFICIENTNET_LITE0_BLOCKS[:n])
+            if u > 0
+            for j in range(b - a)
+        ]
+
+    def timm_frozen_prefix(self) -> tuple[dict[str, nn.Module], dict[str, int]]:
+        """The frozen prefix as timm's EfficientNet names it: its modules by timm name (``conv_stem``, ``bn1``,
+        ``blocks.K``), and for each ``blocks.K`` that ends a frozen output, that output's index in
+        ``forward_frozen(x)``."""
+        modules = {
+            name: self.units[u][j] for u, j, name in self._timm_children if u < self.split
+        }  # the frozen units only
+        ends = {}
+        for level, u in enumerate(u for u in range(self.split) if self.is_scale[u]):
+            ends[f"blocks.{EFFICIENTNET_LITE0_BLOCKS[u][1] - 1}"] = level
+        return modules, ends

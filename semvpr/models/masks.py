@@ -58,8 +58,6 @@ class MaskSource(nn.Module):
     """
 
     needs: ClassVar[Needs]
-    #: Whether it reads the backbone's features (else the frozen pass can be skipped for it).
-    needs_features: ClassVar[bool] = False
     #: Whether it can describe images that come without label maps (a folder of queries, the hub).
     describes_new_images: ClassVar[bool] = True
 
@@ -68,8 +66,26 @@ class MaskSource(nn.Module):
         # Derived from the config, so not part of the state dict.
         self.register_buffer("static_weight", static_vector(static_names), persistent=False)
 
-    def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
+    def forward(
+        self,
+        images: Tensor | None,
+        skips: Sequence[Tensor | None],
+        label_paths: Sequence[Path] | None,
+        out_hw: Sequence[int] | None = None,
+    ) -> Tensor:
+        """Class probabilities (B,C,H,W) at ``out_hw`` (default: the images' size). ``skips`` are the backbone's
+        ``forward_frozen`` outputs (only the :meth:`trunk_levels` are read; the others may be None);
+        ``images`` may be None where :meth:`reads_pixels` is False."""
         raise NotImplementedError
+
+    def trunk_levels(self, image_size: Sequence[int]) -> tuple[int, ...]:
+        """Which ``forward_frozen`` outputs it reads for images of ``image_size`` (none: the frozen pass can be
+        skipped for it)."""
+        return ()
+
+    def reads_pixels(self, image_size: Sequence[int]) -> bool:
+        """Whether it reads the images themselves (else cached trunk outputs, or label maps, are enough)."""
+        return True
 
     @property
     def segmenter(self) -> nn.Module | None:
@@ -89,7 +105,13 @@ class MaskSource(nn.Module):
             "source": type(self).__name__,
             "static": [float(v) for v in self.static_weight.tolist()],
             "input_size": list(seen) if seen is not None else None,
+            **self.arithmetic(image_size),
         }
+
+    def arithmetic(self, image_size: Sequence[int]) -> dict[str, str]:
+        """How the output is computed where that moves its last bits (a teacher reading the trunk's features
+        instead of its own encoder's): part of every cache key of its masks and descriptors; {} by default."""
+        return {}
 
     def static_prob(self, class_prob: Tensor) -> Tensor:
         """Probability of a static class, (B,1,H,W)."""
@@ -97,14 +119,15 @@ class MaskSource(nn.Module):
 
     def grid_mask(
         self,
-        images: Tensor,
-        skips: list[Tensor],
+        images: Tensor | None,
+        skips: Sequence[Tensor | None],
         label_paths: Sequence[Path] | None,
         grid_hw: tuple[int, int],
         weighting: str = "binary",
+        out_hw: Sequence[int] | None = None,
     ) -> Tensor:
         """The mask the aggregator reads: (B,1,h,w) binary, or (B,C,h,w) pooled class probabilities."""
-        class_prob = self(images, skips, label_paths)
+        class_prob = self(images, skips, label_paths, out_hw)
         if weighting == "binary":
             return pool_to_grid(self.static_prob(class_prob), grid_hw)
         if weighting == "learned":
@@ -113,7 +136,8 @@ class MaskSource(nn.Module):
 
 
 class TeacherMask(MaskSource):
-    """Class probabilities from the Mask2Former teacher, run on the images themselves."""
+    """Class probabilities from the Mask2Former teacher, run on the images themselves, or on the trunk's
+    frozen outputs where its pixel encoder is that trunk (``Teacher.link_trunk``)."""
 
     needs = "teacher"
 
@@ -122,8 +146,27 @@ class TeacherMask(MaskSource):
         self.teacher = teacher.eval().requires_grad_(False)
 
     @torch.no_grad()
-    def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
+    def forward(
+        self,
+        images: Tensor | None,
+        skips: Sequence[Tensor | None],
+        label_paths: Sequence[Path] | None,
+        out_hw: Sequence[int] | None = None,
+    ) -> Tensor:
+        size = tuple(out_hw) if out_hw is not None else tuple(images.shape[-2:])
+        if self.teacher.on_trunk(size) and skips:
+            return self.teacher.trunk_class_prob(skips, size)
+        assert images is not None, "the teacher reads the images at this size"
         return self.teacher.class_prob(images)
+
+    def trunk_levels(self, image_size: Sequence[int]) -> tuple[int, ...]:
+        return tuple(self.teacher.trunk_levels) if self.teacher.on_trunk(image_size) else ()
+
+    def reads_pixels(self, image_size: Sequence[int]) -> bool:
+        return not self.teacher.on_trunk(image_size)
+
+    def arithmetic(self, image_size: Sequence[int]) -> dict[str, str]:
+        return {"encoder": "trunk"} if self.teacher.on_trunk(image_size) else {}
 
     @property
     def segmenter(self) -> nn.Module:
@@ -140,15 +183,26 @@ class StudentMask(MaskSource):
     """Class probabilities from the U-Net student over the backbone's own multi-scale features."""
 
     needs = "student"
-    needs_features = True
 
     def __init__(self, student: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
         super().__init__(static_names)
         self.student = student.eval().requires_grad_(False)
 
     @torch.no_grad()
-    def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
-        return self.student.class_prob(skips, out_hw=images.shape[-2:])
+    def forward(
+        self,
+        images: Tensor | None,
+        skips: Sequence[Tensor | None],
+        label_paths: Sequence[Path] | None,
+        out_hw: Sequence[int] | None = None,
+    ) -> Tensor:
+        return self.student.class_prob(skips, out_hw=out_hw if out_hw is not None else images.shape[-2:])
+
+    def trunk_levels(self, image_size: Sequence[int]) -> tuple[int, ...]:
+        return tuple(self.student.skip_indices)
+
+    def reads_pixels(self, image_size: Sequence[int]) -> bool:
+        return False
 
     @property
     def segmenter(self) -> nn.Module:
@@ -161,13 +215,22 @@ class OracleMask(MaskSource):
     needs = "ground_truth"
     describes_new_images = False
 
-    def forward(self, images: Tensor, skips: list[Tensor], label_paths: Sequence[Path] | None) -> Tensor:
+    def forward(
+        self,
+        images: Tensor | None,
+        skips: Sequence[Tensor | None],
+        label_paths: Sequence[Path] | None,
+        out_hw: Sequence[int] | None = None,
+    ) -> Tensor:
         if label_paths is None:
             raise SemvprError("mask=oracle needs ground-truth label maps; only SynthCity provides them")
         labels = torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in label_paths]).astype(np.int64))
         one_hot = F.one_hot(labels.clamp(max=NUM_CLASSES), NUM_CLASSES + 1)[..., :NUM_CLASSES]  # ignore → zeros
         assert IGNORE >= NUM_CLASSES
-        return one_hot.permute(0, 3, 1, 2).float().to(images.device)
+        return one_hot.permute(0, 3, 1, 2).float().to(self.static_weight.device)
+
+    def reads_pixels(self, image_size: Sequence[int]) -> bool:
+        return False
 
 
 class ClassWeights(nn.Module):

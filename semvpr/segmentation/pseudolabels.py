@@ -7,13 +7,14 @@ database image, ``queries_real/000/000546_pitch1_yaw1.jpg`` a query).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from PIL import Image
+from torch import Tensor
 from torch.utils.data import DataLoader
 
 from semvpr.core.cache import build_once, files_identity
@@ -26,6 +27,9 @@ from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
 #: The values a label PNG may hold: Cityscapes trainIds and the ignore id.
 VALID_IDS = np.array([*range(len(TRAIN_ID_NAMES)), IGNORE], dtype=np.uint8)
+
+#: The linked trunk's cached ``forward_frozen`` outputs of some images (``Teacher.link_trunk``).
+TrunkOutputs = Callable[[Sequence[Path]], list[Tensor | None]]
 
 
 def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Path:
@@ -89,8 +93,10 @@ def _label_missing(
     out: Path,
     batch_size: int,
     num_workers: int,
+    trunk: TrunkOutputs | None = None,
 ) -> None:
-    """Label the images whose PNG is not in ``out`` yet; a resumed run keeps the finished ones that pass
+    """Label the images whose PNG is not in ``out`` yet, from the images or, given ``trunk``, from the linked
+    trunk's cached outputs (no image is read); a resumed run keeps the finished ones that pass
     :func:`_label_ok` (``out`` may be a ``.partial`` directory left by anyone)."""
     from semvpr.data.images import ImageDataset
 
@@ -99,13 +105,22 @@ def _label_missing(
     if not todo:
         return
     device = getattr(teacher, "device", torch.device("cpu"))
-    loader = DataLoader(ImageDataset(todo, image_size), batch_size=batch_size, num_workers=num_workers)
     with torch.no_grad(), autocast(device):
-        for images, index in loader:
-            ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
-            for i, k in enumerate(index.tolist()):
-                _write_png(ids[i], label_path(out, todo[k], root))
-            bar.update(len(index))
+        if trunk is not None:
+            for first in range(0, len(todo), batch_size):
+                chunk = todo[first : first + batch_size]
+                outputs = [o.to(device) if o is not None else None for o in trunk(chunk)]
+                ids = teacher.trunk_train_ids(outputs, image_size).cpu().numpy()
+                for i, path in enumerate(chunk):
+                    _write_png(ids[i], label_path(out, path, root))
+                bar.update(len(chunk))
+        else:
+            loader = DataLoader(ImageDataset(todo, image_size), batch_size=batch_size, num_workers=num_workers)
+            for images, index in loader:
+                ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
+                for i, k in enumerate(index.tolist()):
+                    _write_png(ids[i], label_path(out, todo[k], root))
+                bar.update(len(index))
     bar.close()
 
 
@@ -119,8 +134,13 @@ def pseudo_labels(
     *,
     batch_size: int = 16,
     num_workers: int = 2,
+    trunk: TrunkOutputs | None = None,
 ) -> Path:
-    """Directory of one trainId PNG per image (at ``image_size``, see ``label_path``), built once and resumable."""
+    """Directory of one trainId PNG per image (at ``image_size``, see ``label_path``), built once and resumable.
+
+    ``trunk``: the images' cached outputs of the trunk the teacher is linked to (``Teacher.link_trunk``); the
+    teacher then runs only its decoder. Its labels differ from those of the teacher's own encoder by float
+    rounding at most, and are cached apart from them."""
     root = Path(root)
     paths = list(dict.fromkeys(Path(p) for p in paths))  # each image once, first-seen order
     if not paths:
@@ -134,8 +154,10 @@ def pseudo_labels(
         "images": image_list_identity(paths, root),
         "image_size": list(size),
     }
+    if trunk is not None:
+        key["encoder"] = "trunk"
     return build_once(
         cache_dir, "labels", key,
-        lambda out: _label_missing(teacher, paths, root, size, out, batch_size, num_workers),
+        lambda out: _label_missing(teacher, paths, root, size, out, batch_size, num_workers, trunk),
         resumable=True,
     )  # fmt: skip

@@ -29,7 +29,7 @@ from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import Student, StudentSpec, student_architecture
 from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher, teacher_architecture
 from semvpr.segmentation.datamodule import SegmentationDataModule
-from semvpr.segmentation.pseudolabels import label_path, read_label
+from semvpr.segmentation.pseudolabels import TrunkOutputs, label_path, read_label
 
 STUDENT_VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
 
@@ -172,8 +172,13 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, spec: St
 def build_student(
     spec: StudentSpec, backbone: nn.Module, image_paths: Sequence[str | Path],
     label_dir: str | Path, root: str | Path, image_size: Sequence[int], cache_dir: str | Path,
+    trunk: TrunkOutputs | None = None,
 ) -> Student:  # fmt: skip
-    """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode."""
+    """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode.
+
+    ``trunk``: the images' cached ``forward_frozen`` outputs in the precision :func:`cache_skips` would compute
+    them at; the student then reads its skips from there instead of passing the images through the trunk again
+    (the same values: the frozen pass gives the same outputs whatever the batch)."""
     paths, label_dir, root = [Path(p) for p in image_paths], Path(label_dir), Path(root)
     if spec.max_images and len(paths) > spec.max_images:
         # The frozen trunk pass dominates the cost; a fixed random subset is plenty for a small decoder.
@@ -189,15 +194,19 @@ def build_student(
         student = student_architecture(spec, backbone)
         start = time.perf_counter()
         targets = load_targets(paths, label_dir, root, size)
-        skips = cache_skips(
-            backbone,
-            student.skip_indices,
-            paths,
-            size,
-            int(spec.batch_size),
-            int(spec.num_workers),
-            bf16=bool(spec.bf16),
-        )
+        if trunk is not None:
+            outputs = trunk(paths)
+            skips = [outputs[i].contiguous() for i in student.skip_indices]
+        else:
+            skips = cache_skips(
+                backbone,
+                student.skip_indices,
+                paths,
+                size,
+                int(spec.batch_size),
+                int(spec.num_workers),
+                bf16=bool(spec.bf16),
+            )
         student.to(next(backbone.parameters()).device)
         metrics = fit_student(student, skips, targets, spec)
         metrics["train_seconds"] = time.perf_counter() - start

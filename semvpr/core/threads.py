@@ -1,0 +1,114 @@
+"""How many threads each stage of a job runs: one ``threads`` setting (``auto`` or a whole number).
+
+A job may use the cores of its CPU affinity (``os.sched_getaffinity``), shared with the other processes it
+starts (DDP ranks on the node) and with the jobs a launcher runs beside it (Hydra's joblib launcher,
+``hydra.launcher.n_jobs``): each process gets ``cores // (ranks x jobs)`` (at least 1), its *share*.
+
+- ``threads=N``: the job's N threads split the same way (``N // (ranks x jobs)``), never over the share.
+- ``threads=auto`` (the default): each stage takes what it was measured to gain from, within the share:
+  passes of conv networks over batches of images (the frozen trunk, the teacher's and the student's inference,
+  training the teacher and the student) take the whole share; the retriever's training and evaluation on
+  cached features, small steps of a few tuples each, take 1 thread (two threads measured no faster, and
+  twice as slow beside another job). An ``OMP_NUM_THREADS`` set in the environment caps ``auto``.
+
+Data-loader workers decode images single-threaded (torch's default in a worker); a loader starts at most
+``share`` of them.
+
+Threads that wait must not spin: OpenMP's wait policy is passive (``semvpr/__init__.py`` sets
+``OMP_WAIT_POLICY=PASSIVE`` before torch loads libgomp), so a thread blocked at a barrier sleeps instead of
+taking a core from the job beside it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import torch
+
+from semvpr.core.errors import SemvprError
+
+#: ``threads=auto`` per stage: None = the whole share, else that many threads (within the share).
+AUTO: dict[str, int | None] = {
+    "frozen": None,  # the trunk pass, skips, masks, pseudo-labels, eval descriptors of images
+    "teacher": None,  # training the embedded teacher
+    "student": None,  # training the student
+    "retriever": 1,  # aggregator init, fit, untrained and tested evaluation on cached features
+}
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity; all of them where the platform has none)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def parse_setting(value: object) -> int | None:
+    """``threads`` as None (auto) or a whole number >= 1; anything else is one line naming the key."""
+    if value is None or value == "auto":
+        return None
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
+        return value
+    raise SemvprError(f"threads={value!r} must be auto or a whole number >= 1")
+
+
+@dataclass(frozen=True)
+class Threads:
+    """The threads of one process of a job: its ``setting`` (None = auto), its ``share`` of the cores."""
+
+    setting: int | None
+    share: int
+    cores: int
+    processes: int
+    env_cap: int | None = None
+
+    @classmethod
+    def resolve(cls, setting: object, ranks: int = 1, jobs: int = 1, cores: int | None = None) -> Threads:
+        """The plan for one process of a job of ``ranks`` processes among ``jobs`` jobs side by side."""
+        cores = usable_cores() if cores is None else cores
+        processes = max(1, ranks) * max(1, jobs)
+        share = max(1, cores // processes)
+        chosen = parse_setting(setting)
+        env = os.environ.get("OMP_NUM_THREADS", "")
+        env_cap = int(env) if env.isdigit() and int(env) >= 1 and chosen is None else None
+        return cls(chosen, share, cores, processes, env_cap)
+
+    def of(self, stage: str) -> int:
+        """Threads of ``stage`` (a key of :data:`AUTO`)."""
+        if stage not in AUTO:
+            raise KeyError(stage)
+        if self.setting is not None:
+            return max(1, min(self.share, self.setting // self.processes or 1))
+        wanted = AUTO[stage] or self.share
+        return max(1, min(wanted, self.share, self.env_cap or self.share))
+
+    def workers(self, requested: int) -> int:
+        """Data-loader workers for a loader asked to use ``requested``: at most the share."""
+        return max(0, min(int(requested), self.share))
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[int]:
+        """Run a stage with its threads (restored after); yields the count."""
+        n = self.of(name)
+        before = torch.get_num_threads()
+        torch.set_num_threads(n)
+        try:
+            yield n
+        finally:
+            torch.set_num_threads(before)
+
+    def record(self) -> dict[str, object]:
+        """What a run's metrics record: the setting, the cores, the processes sharing them, each stage's count."""
+        return {
+            "setting": "auto" if self.setting is None else self.setting,
+            "cores": self.cores,
+            "processes": self.processes,
+            "share": self.share,
+            "omp_num_threads": self.env_cap,
+            "wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "stages": {name: self.of(name) for name in AUTO},
+        }

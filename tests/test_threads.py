@@ -1,0 +1,126 @@
+"""The ``threads`` setting: auto per stage, the affinity cap, the split among DDP ranks and side-by-side jobs,
+loader workers, what a run records, and OpenMP threads that sleep while they wait."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from semvpr.core import threads as threads_mod
+from semvpr.core.errors import SemvprError
+from semvpr.core.threads import AUTO, Threads, parse_setting
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def no_env_cap(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The suite runs with OMP_NUM_THREADS set; these tests set it where they mean to."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+
+
+def test_auto_gives_the_frozen_passes_the_share_and_the_retriever_one_thread() -> None:
+    plan = Threads.resolve("auto", cores=8)
+    assert plan.share == 8
+    assert [plan.of(s) for s in ("frozen", "teacher", "student", "retriever")] == [8, 8, 8, 1]
+    assert set(AUTO) == {"frozen", "teacher", "student", "retriever"}
+    with pytest.raises(KeyError):
+        plan.of("training")
+
+
+def test_the_share_is_the_affinity_split_among_ranks_and_jobs(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(threads_mod.os, "sched_getaffinity", lambda _pid: {0, 1, 2})  # e.g. taskset -c 0-2
+    assert Threads.resolve("auto").cores == 3 and Threads.resolve("auto").of("frozen") == 3
+    assert Threads.resolve("auto", ranks=2).of("frozen") == 1  # 3 cores, 2 DDP ranks: 1 each
+    assert Threads.resolve("auto", cores=16, ranks=2, jobs=2).of("frozen") == 4  # 2 jobs x 2 ranks on 16 cores
+    assert Threads.resolve("auto", cores=2, jobs=2).of("frozen") == 1  # the quick start: 2 jobs on 2 cores
+    assert Threads.resolve("auto", cores=2, jobs=4).of("frozen") == 1  # never below one thread
+    assert Threads.resolve("auto", cores=2, jobs=2).of("retriever") == 1
+
+
+def test_a_number_is_the_jobs_total_split_among_its_processes_and_capped_at_its_cores() -> None:
+    assert Threads.resolve(4, cores=8).of("retriever") == 4  # explicit: every stage, the retriever's too
+    assert Threads.resolve(4, cores=8, ranks=2).of("frozen") == 2
+    assert Threads.resolve(64, cores=8).of("frozen") == 8  # never more than the cores
+    assert Threads.resolve(1, cores=8, ranks=4).of("frozen") == 1
+    assert Threads.resolve(8, cores=8, jobs=2).of("teacher") == 4
+
+
+def test_an_omp_num_threads_in_the_environment_caps_auto_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert Threads.resolve("auto", cores=8).of("frozen") == 1
+    assert Threads.resolve(4, cores=8).of("frozen") == 4  # an explicit setting is the user's word
+
+
+def test_loaders_start_at_most_the_share_of_workers() -> None:
+    plan = Threads.resolve("auto", cores=2, jobs=2)
+    assert plan.workers(2) == 1 and plan.workers(0) == 0
+    assert Threads.resolve("auto", cores=16).workers(2) == 2
+
+
+@pytest.mark.parametrize("bad", [0, -1, "two", 1.5, True])
+def test_a_bad_setting_is_one_line(bad: object) -> None:
+    with pytest.raises(SemvprError, match=r"^threads=.* must be auto or a whole number >= 1$"):
+        parse_setting(bad)
+    assert parse_setting("auto") is None and parse_setting(3) == 3
+
+
+def test_a_stage_sets_its_threads_and_restores_them() -> None:
+    before = torch.get_num_threads()
+    plan = Threads.resolve("auto", cores=2)
+    with plan.stage("retriever") as n:
+        assert n == 1 and torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    record = plan.record()
+    assert record["setting"] == "auto" and record["cores"] == 2 and record["stages"]["retriever"] == 1
+    assert record["stages"]["frozen"] == 2
+
+
+def test_the_config_splits_among_ddp_ranks_and_check_config_refuses_a_bad_value(tmp_path: Path) -> None:
+    from semvpr.config.build import thread_plan
+    from semvpr.config.checks import check_config
+    from tests.helpers import tiny_config
+
+    ddp = tiny_config(tmp_path, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2")
+    assert thread_plan(ddp).processes == 2
+    assert thread_plan(tiny_config(tmp_path)).processes == 1
+    with pytest.raises(SemvprError, match=r"threads=0 must be auto"):
+        check_config(tiny_config(tmp_path, "threads=0"))
+
+
+def test_joblib_jobs_side_by_side_split_the_cores(monkeypatch: pytest.MonkeyPatch) -> None:
+    from omegaconf import OmegaConf
+
+    from semvpr.config import build
+
+    class Fake:
+        @staticmethod
+        def initialized() -> bool:
+            return True
+
+        @staticmethod
+        def get():
+            target = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+            return OmegaConf.create({"launcher": {"_target_": target, "n_jobs": 2}})
+
+    monkeypatch.setattr("hydra.core.hydra_config.HydraConfig", Fake)
+    assert build.launcher_jobs() == 2
+
+
+def test_importing_semvpr_first_makes_waiting_openmp_threads_sleep(tmp_path: Path) -> None:
+    """libgomp's spin count is 0 under OMP_WAIT_POLICY=PASSIVE (300000 busy iterations per wait otherwise),
+    as it reports itself (OMP_DISPLAY_ENV); a policy the environment sets is kept."""
+    code = "import semvpr, torch; torch.ones(4).sum()"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | {"OMP_DISPLAY_ENV": "VERBOSE"}
+
+    def reported(environment: dict[str, str]) -> str:
+        out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=environment, capture_output=True, text=True)
+        return next(line.strip() for line in out.stderr.splitlines() if "GOMP_SPINCOUNT" in line)
+
+    assert reported(env) == "GOMP_SPINCOUNT = '0'"
+    assert reported(env | {"OMP_WAIT_POLICY": "ACTIVE"}) != "GOMP_SPINCOUNT = '0'"
