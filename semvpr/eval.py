@@ -1,15 +1,18 @@
 """Evaluate a checkpoint on any place set: ``python -m semvpr.eval ckpt=PATH [data=... data.root=...]``.
 
-The model is rebuilt from the checkpoint's record (``semvpr.config.restore``) and its descriptors cached
-(``semvpr.retrieval.descriptors``); the data comes from this invocation. ``mask=teacher
-teacher.checkpoint=DIR`` / ``mask=student student.checkpoint=DIR`` / ``mask=none`` replaces the
-checkpoint's mask source; ``ckpt=none`` evaluates the config's model with no VPR training (the
-off-the-shelf baseline). The positives are the place set's
-own (``PlaceSet.positives``: its shipped ground truth, or ``data.eval_radius``). Prints Recall@N over
-all queries (pytorch-NetVlad, the benchmark) and, where some query has no positive, over queries with
-positives (MSLS); the last line is one JSON object, also written as ``eval.json``. With ``-m`` over
-several datasets (``data=a,b``, ``data.root=A,B``), a job's bad input fails its own row only, and
-``semvpr.evaltable`` writes one table for the sweep.
+The model is rebuilt from the checkpoint's record (``semvpr.config.restore``); the data comes from this
+invocation. The frozen trunk's outputs and the masks of the images are cached (``retrieval.descriptors``),
+so evaluating many checkpoints, or one with several mask sources, passes each image through the trunk
+once. ``mask=teacher teacher.checkpoint=DIR`` / ``mask=student student.checkpoint=DIR`` / ``mask=none``
+replaces the checkpoint's mask source; ``ckpt=none`` evaluates the config's model with no VPR training
+(the off-the-shelf baseline). The positives are the place set's own (``PlaceSet.positives``: its shipped
+ground truth, or ``data.eval_radius``). Prints Recall@N over all queries (pytorch-NetVlad, the
+benchmark) and, where some query has no positive, over queries with positives (MSLS); the last line is
+one JSON object, also written as ``eval.json``. Beside it, ``ranks.npy`` holds each query's first-hit
+rank (0-based; k, the number retrieved, when no positive is in the top k; -1 when the query has no
+positive), in the set's query order: what paired comparisons of two evaluations of the same queries
+resample. With ``-m`` over several datasets (``data=a,b``, ``data.root=A,B``) or mask sources, a job's
+bad input fails its own row only, and ``semvpr.evaltable`` writes one table for the sweep.
 """
 
 from __future__ import annotations
@@ -22,25 +25,38 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places, thread_plan
+from semvpr.config.build import build_places, feature_storage, thread_plan
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
-from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.io import CONF_DIR, write_json, write_npy
 from semvpr.core.logs import quiet_third_party
+from semvpr.data.places import PlaceSet
+from semvpr.reporting.benchmarks_table import RANKS_FILE
 from semvpr.retrieval.descriptors import place_descriptors
-from semvpr.retrieval.recall import RECALL_NS, evaluate
+from semvpr.retrieval.recall import RECALL_NS, evaluate, first_hit_ranks
+from semvpr.retrieval.retriever import Retriever
+
+
+def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[np.ndarray, np.ndarray]:
+    """Database and query descriptors of ``places`` (``retrieval.descriptors``: from the cached trunk outputs
+    and masks, held as ``features.storage`` and the set's size decide)."""
+    storage = feature_storage(cfg, retriever.backbone, {"test": places})
+    size, cache = cfg.data.image_size, cfg.paths.cache_dir
+    return tuple(place_descriptors(retriever, places, side, size, cache, storage) for side in ("db", "q"))  # type: ignore[return-value]
 
 
 def evaluate_checkpoint(
     cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None
 ) -> dict[str, Any]:
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
-    beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time."""
+    beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time; under
+    ``ranks`` (not written to eval.json) each query's first-hit rank."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
@@ -48,9 +64,8 @@ def evaluate_checkpoint(
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
     test = test_set()
     test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
-    size, cache = merged.data.image_size, merged.paths.cache_dir
-    db = place_descriptors(retriever, test, "db", size, cache)
-    result = evaluate(db, place_descriptors(retriever, test, "q", size, cache), test.positives())
+    db, q = describe(retriever, merged, test)
+    result = evaluate(db, q, test.positives())
     source = retriever.mask_source
     has_segmenter = source is not None and source.segmenter is not None
     segmenter_dir = merged[source.needs].get("checkpoint") if has_segmenter else None
@@ -75,6 +90,7 @@ def evaluate_checkpoint(
     if result["num_without_positives"]:
         out.update({f"test/R@{n}_pos": round(v, 2) for n, v in result["recalls_pos"].items()})
     out["wall_s"] = round(time.perf_counter() - start, 1)
+    out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
     return out
 
 
@@ -95,6 +111,8 @@ def _hydra_main(cfg: DictConfig) -> None:
         write_json(out_dir / "eval.json", {"status": "failed", "error": line})
         print(f"semvpr: job failed ({out_dir}): {line}", file=sys.stderr)
         return
+    # ranks.npy first: an eval.json beside it says both are complete.
+    write_npy(out_dir / RANKS_FILE, np.asarray(result.pop("ranks"), dtype=np.int32))
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""

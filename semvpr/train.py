@@ -108,12 +108,9 @@ def train_and_test(
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
-    if datamodule.num_tuples and not any(datamodule.num_tuples):
-        raise SemvprError(
-            f"training mined no tuple in {len(datamodule.num_tuples)} epoch(s): no training query had a "
-            f"positive within recipe.positive_radius={cfg.recipe.positive_radius} m and a negative violating "
-            f"recipe.margin={cfg.recipe.margin}; nothing was trained"
-        )
+    reason = datamodule.nothing_trained()
+    if reason is not None:
+        raise SemvprError(f"{reason}; nothing was trained")
     tic = time.time()
     trainer.strategy.barrier("best checkpoint written")
     if checkpoint.best_model_path:

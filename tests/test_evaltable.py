@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from semvpr.reporting.benchmarks_table import table_rows, write_table
 from tests.helpers import make_folder, object_array, same_images_as_lists, tiny_config, write_checkpoint, write_lists
@@ -55,6 +58,8 @@ def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> No
     failed = [r for r in rows if not r["set"]]
     assert len(failed) == 2 and all(r["source"].startswith("failed: ") and "missing" in r["source"] for r in failed)
     assert [r["data"] for r in failed] == [f"data={d} data.root={tmp_path / 'missing'}" for d in ("folder", "gsv_npy")]
+    for job in (sweep / "0", sweep / "1"):  # the per-query first-hit ranks beside each job's eval.json
+        assert np.load(job / "ranks.npy").tolist() == [0, 0, 0, 0]
     md = (sweep / "results.md").read_text()
     assert md.count("| folder | city/test |") == 1 and "semvpr eval table:" in proc.stdout
     assert "semvpr: job failed" in proc.stderr and "Traceback" not in proc.stderr
@@ -98,3 +103,41 @@ def test_published_numbers_stand_beside_the_same_model_and_protocol(tmp_path: Pa
     )
     assert "| published | pitts30k-test | pitts30k_test | 85.20 | 94.80 | 97.00 |  |" in md
     assert (tmp_path / "results.csv").read_text().count("\n") == len(rows) + 1
+
+
+def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a_mask(tmp_path: Path) -> None:
+    base = {
+        "status": "ok",
+        "data": "gardens_point",
+        "set": "gp day_left→night_right ±2",
+        "aggregator": "sral",
+        "backbone": "efficientnet_lite0",
+        "model": "efficientnet_lite0-sral",
+        "database": 200,
+        "queries": 200,
+        "descriptor_dim": 4096,
+        "wall_s": 1.0,
+        **{f"test/R@{n}": 50.0 for n in (1, 5, 10, 20)},
+    }
+    rng = np.random.default_rng(3)
+    none_ranks = rng.integers(0, 4, 200)  # rank 0: a hit at R@1
+    mask_ranks = np.where(rng.random(200) < 0.3, 0, none_ranks)  # the mask turns some misses into hits
+    jobs = [
+        ({**base, "checkpoint": "a.ckpt", "mask": "none"}, none_ranks),
+        ({**base, "checkpoint": "a.ckpt", "mask": "student"}, mask_ranks),
+        ({**base, "checkpoint": "b.ckpt", "mask": "student"}, mask_ranks),  # b was never evaluated without
+        ({**base, "checkpoint": "a.ckpt", "mask": "teacher"}, None),  # no ranks.npy: no paired gain
+    ]
+    for num, (result, ranks) in enumerate(jobs):
+        _job(tmp_path, num, result)
+        if ranks is not None:
+            np.save(tmp_path / str(num) / "ranks.npy", ranks.astype(np.int32))
+    rows = [r for r in table_rows(tmp_path) if r["data"] != "published"]
+    expected = 100.0 * ((mask_ranks == 0).mean() - (none_ranks == 0).mean())
+    assert expected > 5  # the fixture has a real gain
+    match = re.fullmatch(r"([+−][\d.]+) \[([+−][\d.]+), ([+−][\d.]+)\]", rows[1]["R@1 vs no mask"])
+    assert match, rows[1]["R@1 vs no mask"]
+    value, low, high = (float(g.replace("−", "-")) for g in match.groups())
+    assert value == round(expected, 1) and low < value < high and low > 0  # 30 % of misses flipped: significant
+    assert [r.get("R@1 vs no mask", "") for r in (rows[0], rows[2], rows[3])] == ["", "", ""]
+    assert "R@1 vs no mask" in write_table(tmp_path).read_text()

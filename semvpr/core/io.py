@@ -81,6 +81,14 @@ def write_text(path: Path, text: str) -> None:
         fh.write(text.encode("utf-8"))
 
 
+def write_npy(path: Path, array: Any) -> None:
+    """Write a NumPy array as ``.npy`` atomically (no pickled objects: ``allow_pickle=False``)."""
+    import numpy as np
+
+    with atomic_file(Path(path)) as handle:
+        np.save(handle, np.asarray(array), allow_pickle=False)
+
+
 def write_json(path: Path, obj: Any) -> None:
     """Write JSON atomically (numpy scalars as floats)."""
     write_text(path, json.dumps(obj, indent=1, default=float))

@@ -1,6 +1,11 @@
 """One checkpoint on several benchmarks: the table of an evaluation multirun (``results.csv`` /
 ``results.md``), a row per job's ``eval.json`` followed by the published numbers of the same model family
-on the same protocol (``semvpr/data/published.yaml``)."""
+on the same protocol (``semvpr/data/published.yaml``).
+
+A row evaluated with a mask whose sweep also evaluated the same checkpoint on the same set without one
+gets ``R@1 vs no mask``: the paired R@1 difference over the queries (each job's ``ranks.npy``) with its
+95 % bootstrap interval (``semvpr.reporting.paired``), so a few hundred queries say which gains they
+support."""
 
 from __future__ import annotations
 
@@ -10,10 +15,13 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import check_replaceable, read_json, read_yaml, write_text
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
+from semvpr.reporting.paired import paired_gain
 from semvpr.retrieval.recall import RECALL_NS
 
 COLUMNS = (
@@ -25,8 +33,11 @@ COLUMNS = (
     "database",
     "descriptor_dim",
     "wall_s",
+    "R@1 vs no mask",
     "source",
 )
+#: Each eval job's per-query first-hit ranks (``semvpr.eval``), in the set's query order.
+RANKS_FILE = "ranks.npy"
 
 
 def _job_dirs(sweep_dir: Path) -> list[Path]:
@@ -101,6 +112,7 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
     if not jobs:
         raise SemvprError(f"no evaluation jobs in {sweep_dir} (no subdir holds eval.json or .hydra/)")
     rows: list[dict[str, Any]] = []
+    measured: list[tuple[dict[str, Any], dict[str, Any], Path]] = []
     for job in jobs:
         try:
             result = read_json(job / "eval.json", "job result")
@@ -128,6 +140,7 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
                 f"{_source(result['checkpoint'], sweep_dir)}",
             }
         )
+        measured.append((rows[-1], result, job))
         for published in results_for(result["model"], result.get("benchmark")):
             rows.append(
                 {
@@ -138,7 +151,34 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
                     "source": f"{published['model']}: {published['source']}",
                 }
             )
+    _mask_gains(measured)
     return rows
+
+
+def _ranks(job: Path, queries: int) -> np.ndarray | None:
+    """A job's ``ranks.npy`` if it is a 1-D integer array of one rank per query, else None."""
+    path = job / RANKS_FILE
+    if not path.is_file():
+        return None
+    try:
+        ranks = np.load(path, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    ok = ranks.ndim == 1 and len(ranks) == queries and np.issubdtype(ranks.dtype, np.integer)
+    return ranks if ok else None
+
+
+def _mask_gains(measured: list[tuple[dict[str, Any], dict[str, Any], Path]]) -> None:
+    """Fill ``R@1 vs no mask`` of each masked row whose checkpoint the sweep also evaluated on the same set
+    without a mask (both with readable ranks)."""
+    unmasked = {(r["set"], r["checkpoint"], r["queries"]): job for _, r, job in measured if r["mask"] == "none"}
+    for row, result, job in measured:
+        reference = unmasked.get((result["set"], result["checkpoint"], result["queries"]))
+        if result["mask"] == "none" or reference is None:
+            continue
+        ranks, base = _ranks(job, result["queries"]), _ranks(reference, result["queries"])
+        if ranks is not None and base is not None:
+            row["R@1 vs no mask"] = paired_gain(ranks == 0, base == 0).text()
 
 
 def write_table(sweep_dir: Path) -> Path:
@@ -160,7 +200,9 @@ def write_table(sweep_dir: Path) -> Path:
         "",
         (
             "Recall@N in percent over all queries; `published` rows: the same model family on the same "
-            "protocol, as cited (semvpr/data/published.yaml)."
+            "protocol, as cited (semvpr/data/published.yaml). `R@1 vs no mask`: the paired R@1 difference "
+            "from the same checkpoint on the same set without a mask, in points, with its 95 % bootstrap "
+            "interval over the queries."
         ),
         "",
         "| " + " | ".join(COLUMNS) + " |",

@@ -63,6 +63,10 @@ class EvalDataModule(L.LightningDataModule):
         """What the training epochs held, for metrics.json."""
         return {}
 
+    def nothing_trained(self) -> str | None:
+        """Why the fit that ended trained nothing, or None (a job then fails instead of reporting ok)."""
+        return None
+
     def val_dataloader(self) -> DataLoader:
         return self._eval_loader(self.features["val"])
 
@@ -126,6 +130,16 @@ class RetrievalDataModule(EvalDataModule):
 
     def epoch_facts(self) -> dict[str, Any]:
         return {"tuples_per_epoch": self.num_tuples}
+
+    def nothing_trained(self) -> str | None:
+        """Why the fit trained nothing (no epoch mined a tuple), or None."""
+        if self.num_tuples and not any(self.num_tuples):
+            return (
+                f"training mined no tuple in {len(self.num_tuples)} epoch(s): no training query had a positive "
+                f"within recipe.positive_radius={self.mining.positive_radius} m and a negative violating "
+                f"recipe.margin={self.mining.margin}"
+            )
+        return None
 
     def state_dict(self) -> dict[str, Any]:
         """The negative cache: a resumed run mines with the hard negatives of the epochs before."""

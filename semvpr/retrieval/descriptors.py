@@ -1,5 +1,11 @@
 """A trained retriever's descriptors of a place set's database or queries: computed once per model and
-image set, cached memory-mapped (artifact kind ``descriptors``), so memory does not grow with the set."""
+image set, cached memory-mapped (artifact kind ``descriptors``), so memory does not grow with the set.
+
+They are computed as training's validation computes them: from the feature cache
+(``retrieval.features.place_features``: the frozen trunk's outputs keyed by the frozen weights and the
+images, the masks by the mask source's weights and settings), so every checkpoint on the same trunk shares
+one trunk pass per image set and every checkpoint with the same mask source one mask pass; the
+checkpoint's trainable part and aggregator then run on them."""
 
 from __future__ import annotations
 
@@ -8,20 +14,27 @@ from pathlib import Path
 
 import numpy as np
 
-from semvpr.core.cache import build_once, state_hash
+from semvpr.core.cache import build_once, config_hash, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
 from semvpr.data.places import PlaceSet
+from semvpr.retrieval.features import place_features
 from semvpr.retrieval.recall import check_finite
 from semvpr.retrieval.retriever import Retriever
 
 
 def place_descriptors(
-    retriever: Retriever, places: PlaceSet, side: str, image_size: Sequence[int], cache_dir: str | Path
+    retriever: Retriever,
+    places: PlaceSet,
+    side: str,
+    image_size: Sequence[int],
+    cache_dir: str | Path,
+    storage: str = "disk",
 ) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
     the model's weights (the mask source's included), the mask source's settings and weighting, and the
-    images."""
+    images. ``storage``: where the frozen features are held while they are read (``ram``, ``disk`` or
+    ``stream``: from the images, where they fit neither)."""
     paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
     key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
     if retriever.mask_source is not None:
@@ -30,8 +43,22 @@ def place_descriptors(
     dim = retriever.descriptor_dim
 
     def build(tmp: Path) -> None:
+        source, backbone = retriever.mask_source, retriever.backbone
+        features = place_features(
+            places,
+            backbone,
+            backbone.frozen_identity(),
+            source,
+            None if source is None else config_hash([state_hash(source.state_dict()), key["mask"]]),
+            image_size,
+            cache_dir,
+            storage,
+            retriever.eval_batch_size,
+            retriever.num_workers,
+            weighting=retriever.weighting,
+        )
         out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
-        retriever.describe_images(paths, labels, image_size, out, desc=f"{places.name} {side}")
+        out[:] = retriever.describe_store(features.db if side == "db" else features.q)
         out.flush()
         check_finite(out, f"{places.name} {side}")  # a non-finite cache is never kept
 

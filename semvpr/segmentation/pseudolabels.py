@@ -32,13 +32,18 @@ VALID_IDS = np.array([*range(len(TRAIN_ID_NAMES)), IGNORE], dtype=np.uint8)
 TrunkOutputs = Callable[[Sequence[Path]], list[Tensor | None]]
 
 
-def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Path:
-    """Where the pseudo-label of ``image`` (under dataset ``root``) lives in a labels directory."""
+def _label_name(image: str | Path, root: str | Path) -> Path:
+    """The pseudo-label's path of ``image`` (under dataset ``root``) relative to a labels directory."""
     try:
         rel = Path(image).relative_to(root)
     except ValueError:
         raise SemvprError(f"image {image} is not under the dataset root {root}") from None
-    return inside(Path(label_dir), rel.parent / f"{rel.name}.png")
+    return rel.parent / f"{rel.name}.png"
+
+
+def label_path(label_dir: str | Path, image: str | Path, root: str | Path) -> Path:
+    """Where the pseudo-label of ``image`` (under dataset ``root``) lives in a labels directory."""
+    return inside(Path(label_dir), _label_name(image, root))
 
 
 def read_label(label_dir: str | Path, image: str | Path, root: str | Path) -> np.ndarray:
@@ -100,6 +105,10 @@ def _label_missing(
     :func:`_label_ok` (``out`` may be a ``.partial`` directory left by anyone)."""
     from semvpr.data.images import ImageDataset
 
+    for p in paths:  # a link left in a resumed build is never followed, never kept
+        planted = out / _label_name(p, root)
+        if planted.is_symlink():
+            planted.unlink()
     todo = [p for p in paths if not _label_ok(label_path(out, p, root), image_size)]
     bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
     if not todo:
