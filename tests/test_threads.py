@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from semvpr.core import threads as threads_mod
 from semvpr.core.errors import SemvprError
@@ -124,3 +125,20 @@ def test_importing_semvpr_first_makes_waiting_openmp_threads_sleep(tmp_path: Pat
 
     assert reported(env) == "GOMP_SPINCOUNT = '0'"
     assert reported(env | {"OMP_WAIT_POLICY": "ACTIVE"}) != "GOMP_SPINCOUNT = '0'"
+
+
+def _load_in_worker() -> list[int]:
+    """What a job in a joblib worker does: its thread plan, then a data loader with a worker process."""
+    from torch.utils.data import DataLoader
+
+    from semvpr.config.build import thread_plan
+
+    thread_plan(OmegaConf.create({"threads": "auto"}))
+    return [int(x) for batch in DataLoader(list(range(4)), batch_size=2, num_workers=1) for x in batch]
+
+
+def test_a_job_in_a_joblib_worker_starts_data_loader_workers() -> None:
+    """Hydra's joblib launcher runs jobs in loky workers, whose start method a data loader cannot use."""
+    from joblib import Parallel, delayed
+
+    assert Parallel(n_jobs=2, backend="loky")(delayed(_load_in_worker)() for _ in range(1)) == [[0, 1, 2, 3]]

@@ -30,7 +30,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
-from semvpr.core.threads import Threads, usable_cores
+from semvpr.core.threads import Threads, standard_start_method, usable_cores
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
@@ -296,8 +296,9 @@ def launcher_jobs() -> int:
 
 def thread_plan(cfg: DictConfig) -> Threads:
     """The threads of this process (``threads``: auto or a number; semvpr.core.threads), given the job's DDP
-    ranks on this node and the jobs its launcher runs beside it."""
+    ranks on this node and the jobs its launcher runs beside it; every command calls it as its job starts."""
     ranks = ranks_of(cfg.trainer)[0] if "trainer" in cfg else 1
+    standard_start_method()  # a job in a joblib worker: data loaders need a standard start method
     return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs())
 
 

@@ -14,6 +14,10 @@ starts (DDP ranks on the node) and with the jobs a launcher runs beside it (Hydr
 Data-loader workers decode images single-threaded (torch's default in a worker); a loader starts at most
 ``share`` of them.
 
+A job that Hydra's joblib launcher runs lives in a loky worker, whose default start method (``loky``) a
+data loader cannot start its workers with; :func:`standard_start_method` gives such a job the platform's
+standard one before its first loader.
+
 Threads that wait must not spin: OpenMP's wait policy is passive (``semvpr/__init__.py`` sets
 ``OMP_WAIT_POLICY=PASSIVE`` before torch loads libgomp), so a thread blocked at a barrier sleeps instead of
 taking a core from the job beside it.
@@ -21,7 +25,9 @@ taking a core from the job beside it.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -112,3 +118,12 @@ class Threads:
             "wait_policy": os.environ.get("OMP_WAIT_POLICY"),
             "stages": {name: self.of(name) for name in AUTO},
         }
+
+
+def standard_start_method() -> None:
+    """Give a job started by a third-party launcher's process pool (joblib's ``loky`` workers) the standard
+    start method for the processes it starts (data-loader workers): ``fork`` on Linux, ``spawn`` elsewhere
+    (Python's defaults). A process already on a standard method keeps it."""
+    if multiprocessing.get_start_method(allow_none=True) in (None, "fork", "spawn", "forkserver"):
+        return
+    multiprocessing.set_start_method("fork" if sys.platform == "linux" else "spawn", force=True)
