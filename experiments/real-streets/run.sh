@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# The real-streets experiment: SynthCity-trained checkpoints and off-the-shelf baselines on Gardens Point
+# Walking, each with no mask, its own SynthCity mask, the CamVid student's and the CamVid teacher's.
+# Usage, from the repository root (each step is cached; a second run only re-reads):
+#   bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
+# OUT receives the training sweep (OUT/synthcity), the CamVid segmenters (OUT/camvid) and one evaluation
+# sweep per pair and mask source (OUT/eval/<pair>/<mask>); summarize.py and figure.py read OUT.
+set -euo pipefail
+OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
+GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
+CAMVID=$(realpath "${3:-../shared/realdata/camvid}")
+CACHE="$OUT/cache"
+export HF_HUB_OFFLINE=1
+
+# 1. The checkpoints: the four-way comparison on SynthCity, 3 seeds (synthcity-default's command; the
+#    oracle's checkpoints are not evaluated here: Gardens Point has no label maps).
+[ -f "$OUT/synthcity/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=none,attention,unet,mask2former,oracle \
+  paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/synthcity"
+
+# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
+[ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
+  hydra.run.dir="$OUT/camvid"
+TEACHER="$OUT/camvid/teacher"
+STUDENT="$OUT/camvid/student_efficientnet_lite0"
+
+# 3. Every checkpoint and baseline on every pair, with each mask source.
+ckpts() {  # the sweep's best checkpoints whose filter is one of "$@": a Hydra sweep of quoted paths
+  local out=()
+  for f in "$@"; do for s in 0 1 2; do out+=("'$OUT/synthcity/filter=$f,seed=$s/checkpoints/best.ckpt'"); done; done
+  local IFS=,; echo "${out[*]}"
+}
+ALL=$(ckpts none attention unet mask2former)
+OWN=$(ckpts unet mask2former)
+for pair in day_left:night_right day_right:night_right day_left:day_right; do
+  db=${pair%%:*}; q=${pair##*:}
+  data=(data=gardens_point data.root="$GARDENS" data.database="$db" data.queries="$q" paths.cache_dir="$CACHE")
+  dir="$OUT/eval/${db}-${q}"
+  run() {  # run NAME OVERRIDES...: one evaluation sweep, skipped when its table exists
+    local name=$1; shift
+    [ -f "$dir/$name/results.md" ] || python -m semvpr.eval -m "${data[@]}" "$@" hydra.sweep.dir="$dir/$name"
+  }
+  run none ckpt="$ALL" mask=none
+  run own ckpt="$OWN"
+  run camvid-student ckpt="$ALL" mask=student student.checkpoint="$STUDENT"
+  run camvid-teacher ckpt="$ALL" mask=teacher teacher.checkpoint="$TEACHER"
+  run untrained-none ckpt=none aggregator=gem,netvlad mask=none
+  run untrained-camvid-student ckpt=none aggregator=gem,netvlad mask=student student.checkpoint="$STUDENT"
+  run untrained-camvid-teacher ckpt=none aggregator=gem,netvlad mask=teacher teacher.checkpoint="$TEACHER"
+done
+echo "done: python experiments/real-streets/summarize.py $OUT"
