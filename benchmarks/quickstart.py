@@ -6,11 +6,16 @@ times one pass of the default frozen trunk over every image of the dataset it ge
 val and test; database and queries) at the run's image size and precision, images read from disk
 as the sweep reads them.
 
-    python benchmarks/quickstart.py [--keep DIR] [--fp32] [--override seed=0,1,2 ...]
+    python benchmarks/quickstart.py [--install] [--keep DIR] [--fp32] [--override seed=0,1,2 ...]
+
+``--install`` first times the README's install from a fresh clone of this repository's committed HEAD
+(``git clone``, ``python3 -m venv``, ``pip install -e '.[dev]'``: the packages come from the index, or
+pip's cache where it has them) and runs the sweep with that clone's Python, as a newcomer would.
 
 Prints each job's time per stage (``timings`` of its ``metrics.json``), the stages summed over the
 sweep (generation, trunk and mask caching, teacher, pseudo-labels, student, training, ...); last line:
-``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk>``.
+``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk>``, then ``install_s=<t> total_s=<install + sweep>``
+with ``--install``.
 """
 
 from __future__ import annotations
@@ -29,10 +34,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sweep_cost import FILTERS, REPO, describe, job_timings  # noqa: E402
 
 
-def cold_sweep(work: Path, overrides: list[str]) -> float:
-    """Wall time of the four-way sweep from an empty cache under ``work``."""
+def fresh_install(work: Path) -> tuple[float, Path]:
+    """(seconds, the clone's Python) of the README's install in a fresh clone of HEAD under ``work``."""
+    clone = work / "clone"
+    t0 = time.perf_counter()
+    subprocess.run(["git", "clone", "--quiet", "--no-local", str(REPO), str(clone)], check=True)
+    subprocess.run(["python3", "-m", "venv", str(clone / ".venv")], check=True)
+    python = clone / ".venv" / "bin" / "python"
+    subprocess.run([str(python), "-m", "pip", "install", "--quiet", "-e", ".[dev]"], cwd=clone, check=True)
+    return time.perf_counter() - t0, python
+
+
+def cold_sweep(work: Path, overrides: list[str], python: Path | None = None, cwd: Path = REPO) -> float:
+    """Wall time of the four-way sweep from an empty cache under ``work`` (``python`` in ``cwd``: a clone's)."""
     cmd = [
-        sys.executable,
+        str(python or sys.executable),
         "-m",
         "semvpr.train",
         "-m",
@@ -43,7 +59,7 @@ def cold_sweep(work: Path, overrides: list[str]) -> float:
     ]
     print(" ".join(cmd[1:]), flush=True)
     t0 = time.perf_counter()
-    subprocess.run(cmd, cwd=REPO, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(cmd, cwd=cwd, check=True, stdout=subprocess.DEVNULL)
     return time.perf_counter() - t0
 
 
@@ -105,16 +121,25 @@ def main() -> None:
     ap.add_argument(
         "--fp32", action="store_true", help="time the trunk pass in fp32 (default: as the caches, bf16 where native)"
     )
+    ap.add_argument("--install", action="store_true", help="time the install from a fresh clone first")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="semvpr-quickstart-") as tmp:
         work = args.keep or Path(tmp)
-        sweep_s = cold_sweep(work, args.override)
+        install_s, python, cwd = None, None, REPO
+        if args.install:
+            install_s, python = fresh_install(work)
+            cwd = python.parents[2]
+            print(f"install from a fresh clone: {install_s:.0f} s", flush=True)
+        sweep_s = cold_sweep(work, args.override, python, cwd)
         jobs = job_timings(work / "sweep")
         print(describe(sweep_s, jobs), flush=True)
         print(stage_breakdown(sweep_s, jobs), flush=True)
         trunk_s, n = trunk_pass(work, args.override, args.fp32)
         print(f"trunk pass: {n} images in {trunk_s:.1f} s", flush=True)
-    print(f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f}")
+    line = f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f}"
+    if install_s is not None:
+        line += f" install_s={install_s:.0f} total_s={install_s + sweep_s:.0f}"
+    print(line)
 
 
 if __name__ == "__main__":

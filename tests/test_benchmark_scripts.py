@@ -35,7 +35,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         ),
         "gsv·gem=",
     ),
-    "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=1/1"),
+    "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=3/3"),
     "scale.py": (
         lambda t: (
             ["--sizes", "10", "20", "--image-size", "64", "80", "--batch", "4", "--workers", "0"] + ["--clusters", "4"]
@@ -49,6 +49,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         ),
         "",
     ),
+    "shared_cpu.py": (lambda t: ["--work", str(t / "work"), "--override", "experiment=tiny"], "ratio="),
     "speed.py": (lambda t: ["--batch", "1", "--agg-batch", "2", "--reps", "1"], "aggregate_speedup="),
     "sweep_cost.py": (lambda t: ["--before", "HEAD", "--after", "HEAD", "--override", "experiment=tiny"], "ratio="),
 }

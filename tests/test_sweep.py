@@ -42,8 +42,13 @@ def test_four_filter_sweep_writes_report_and_reuses_artifacts(tmp_path: Path) ->
     proc, sweep = _sweep(tmp_path, "sweep1", "filter=none,attention,unet,mask2former")
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = _table_rows(sweep / "results.md")
-    # the presets' aggregator · mask rows, in the report's order (baseline aggregator first)
-    assert [row[1] for row in rows] == ["netvlad · none", "sral · none", "sral · student", "sral · teacher"]
+    # rows named by the preset asked for, with what it selected, in the report's order (baseline first)
+    assert [row[1] for row in rows] == [
+        "none (netvlad · none)",
+        "attention (sral · none)",
+        "unet (sral · student)",
+        "mask2former (sral · teacher)",
+    ]
     assert all(row[-2] == "0" for row in rows)  # no failed job
     for figure in ("recall_at_n.png", "figure3.png", "retrievals.png"):
         assert (sweep / figure).stat().st_size > 10_000

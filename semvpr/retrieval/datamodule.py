@@ -120,7 +120,7 @@ class RetrievalDataModule(EvalDataModule):
         return self._epoch
 
     def _count_tuples(self) -> None:
-        if self._epoch is not None:
+        if self._epoch is not None and self._epoch.iterated:
             self.num_tuples.append(self._epoch.num_tuples)
 
     def teardown(self, stage: str) -> None:

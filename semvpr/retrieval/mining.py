@@ -209,7 +209,8 @@ class TrainingEpoch:
     ) -> None:
         self.train, self.mining, self.describe, self.num_workers = train, mining, describe, num_workers
         self.neg_cache = neg_cache
-        self.num_tuples = 0
+        # Tuples mined, and whether the epoch ran at all (a resumed, finished fit builds it and never iterates).
+        self.num_tuples, self.iterated = 0, False
         self.rng = np.random.default_rng([mining.seed, epoch])
         order = self.rng.permutation(queries)[: mining.queries_per_epoch]
         self.chunks = np.array_split(order, max(1, -(-len(order) // mining.cache_refresh)))
@@ -224,6 +225,7 @@ class TrainingEpoch:
         gradient; a rank whose slice is empty gets ``{"pairs": ...}`` alone and still joins the all-reduce."""
         rank, size = world()
         train = self.train
+        self.iterated = True
         for chunk in self.chunks:
             db_desc, q_desc = self.describe(train.db, None), self.describe(train.q, chunk)
             if rank == 0:
