@@ -21,7 +21,7 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places, thread_plan
+from semvpr.config.build import build_places, feature_storage, thread_plan
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.errors import SemvprError, exit_on_user_error
@@ -59,7 +59,8 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     database = functools.cache(lambda: build_places(cfg, ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
     places = database()
-    db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir)
+    storage = feature_storage(merged, retriever.backbone, {"test": places})
+    db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir, storage)
     q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
     retriever.describe_images(paths, None, merged.data.image_size, q_desc, desc="queries")
     check_finite(q_desc, f"the query images in {cfg.queries}")

@@ -35,7 +35,7 @@ def place_descriptors(
     the model's weights (the mask source's included), the mask source's settings and weighting, and the
     images. ``storage``: where the frozen features are held while they are read (``ram``, ``disk`` or
     ``stream``: from the images, where they fit neither)."""
-    paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
+    paths = places.db_paths if side == "db" else places.q_paths
     key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
     if retriever.mask_source is not None:
         # Another mask source (or the same weights at another input size) gives other descriptors.
