@@ -24,7 +24,6 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
-from semvpr.core.cache import config_hash, state_hash
 from semvpr.core.checkpoint import record_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
@@ -470,25 +469,6 @@ def build_semantic(
     return semantic
 
 
-def mask_key(mask_source: MaskSource | None, cfg: DictConfig) -> str | None:
-    """What a mask source's output depends on: its weights, the static classes, and the size its segmenter
-    sees the images at where that is not data.image_size."""
-    if mask_source is None:
-        return None
-    key: list[Any] = [
-        type(mask_source).__name__,
-        state_hash(mask_source.state_dict()),
-        list(cfg.teacher.static_classes),
-    ]
-    seen = mask_source.input_size(tuple(cfg.data.image_size))
-    if seen is not None:
-        key.append({"input_size": list(seen)})
-    arithmetic = mask_source.arithmetic(tuple(cfg.data.image_size))
-    if arithmetic:
-        key.append(arithmetic)
-    return config_hash(key)
-
-
 def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet]) -> str:
     """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.retrieval.features). Under
     DDP every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
@@ -541,7 +521,7 @@ def prepare(cfg: DictConfig, timings: dict[str, float], threads: Threads | None 
                 backbone,
                 backbone.frozen_identity(),
                 mask_source,
-                mask_key(mask_source, cfg),
+                None if mask_source is None else mask_source.cache_key(cfg.data.image_size),
                 cfg.data.image_size,
                 cfg.paths.cache_dir,
                 storage,

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor, nn
 
+from semvpr.core.cache import config_hash, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 
@@ -112,6 +113,11 @@ class MaskSource(nn.Module):
         """How the output is computed where that moves its last bits (a teacher reading the trunk's features
         instead of its own encoder's): part of every cache key of its masks and descriptors; {} by default."""
         return {}
+
+    def cache_key(self, image_size: Sequence[int]) -> str:
+        """The key of its masks of images at ``image_size``: its weights and :meth:`identity` (the one key
+        training's and evaluation's mask caches share)."""
+        return config_hash([state_hash(self.state_dict()), self.identity(image_size)])
 
     def static_prob(self, class_prob: Tensor) -> Tensor:
         """Probability of a static class, (B,1,H,W)."""

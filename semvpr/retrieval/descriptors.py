@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semvpr.core.cache import build_once, config_hash, state_hash
+from semvpr.core.cache import build_once, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
 from semvpr.data.places import PlaceSet
@@ -49,7 +49,7 @@ def place_descriptors(
             backbone,
             backbone.frozen_identity(),
             source,
-            None if source is None else config_hash([state_hash(source.state_dict()), key["mask"]]),
+            None if source is None else source.cache_key(image_size),
             image_size,
             cache_dir,
             storage,
