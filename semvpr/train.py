@@ -145,6 +145,8 @@ def train_and_test(
             "checkpoint": str(tested_ckpt),
             "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
             "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
+            # The epoch the tested weights come from (chosen on val): None for a checkpoint from before it was kept.
+            "best/epoch": evaluation.best_val.get("epoch") if evaluation.best_val else None,
             **datamodule.epoch_facts(),
             "aggregator_init": init_info,
             "threads": threads.record(),

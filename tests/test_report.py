@@ -74,6 +74,7 @@ def _metrics(filter_: str, seed: int, r1: float, backbone: str = "vgg16", **labe
         "backbone": backbone,
         "seed": seed,
         "wall_time_s": 10.0 * seed,
+        "best/epoch": seed + 3,
         "recalls": {str(n): min(100.0, r1 + n - 1) for n in range(1, 21)},
     }
     m.update({f"test/R@{n}": r1 + n - 1 for n in NS})
@@ -151,6 +152,7 @@ def test_csv_means_and_sample_stds(sweep: Path) -> None:
     assert rows["mask2former"]["failed"] == "1"  # the hard crash is grouped by its .hydra choices
     assert float(rows["none"]["wall_time_s"]) == pytest.approx(15.0)
     assert rows["none"]["backbone"] == "vgg16"
+    assert rows["none"]["best_epochs"] == "4 5" and rows["unet"]["best_epochs"] == "4 5"  # seeds 1, 2
 
 
 def test_markdown_order_gains_failures_and_figures(sweep: Path) -> None:
@@ -166,7 +168,7 @@ def test_markdown_order_gains_failures_and_figures(sweep: Path) -> None:
         "mask2former (sral · teacher)",
         "oracle (sral · oracle, upper bound)",
     ]
-    assert "| 42.0 ± 2.8 | 46.0 ± 2.8 | 51.0 ± 2.8 | 61.0 ± 2.8 | 2 | 1, 2 | 0 | 15.0 |" in table[0]
+    assert "| 42.0 ± 2.8 | 46.0 ± 2.8 | 51.0 ± 2.8 | 61.0 ± 2.8 | 2 | 1, 2 | 4, 5 | 0 | 15.0 |" in table[0]
     assert "| 70.0 ± – |" in table[4]
     # Paired by seed: attention 38-40, 40-44; the oracle has seed 1 only (70-40), not 70-mean(none).
     assert (

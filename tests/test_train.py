@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -111,8 +112,13 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     assert (trained_run / "checkpoints" / "last.ckpt").is_file()
     assert (trained_run / "checkpoints" / "best.ckpt").is_file()
     assert metrics["checkpoint"] == str(trained_run / "checkpoints" / "tested.ckpt")
-    assert list((trained_run / "csv").rglob("metrics.csv"))
     assert list((trained_run / "tensorboard").rglob("events.out.tfevents.*"))
+    # The tested weights' epoch is the first with the best val/R@5 in the run's own CSV log (1-based).
+    (log,) = list((trained_run / "csv").rglob("metrics.csv"))
+    rows = list(csv.DictReader(log.read_text().splitlines()))
+    val = [(int(r["epoch"]) + 1, float(r["val/R@5"])) for r in rows if r.get("val/R@5")]
+    assert len(val) == 2 and metrics["best/epoch"] == max(val, key=lambda e: (e[1], -e[0]))[0]
+    assert metrics["best/val/R@5"] == pytest.approx(max(r5 for _, r5 in val))
     retrievals = json.loads((trained_run / "retrievals.json").read_text())
     queries = [q["query"] for q in retrievals["queries"]]
     all_queries = sorted(p.name for p in Path(queries[0]).parent.iterdir())

@@ -43,6 +43,9 @@ def _rows(sweep: Sweep) -> list[dict[str, Any]]:
                 float(j.metrics["wall_time_s"]) for j in ok if isinstance(j.metrics.get("wall_time_s"), (int, float))
             ]
             row["wall_time_s"] = mean_std(walls)[0]
+            # The epoch each seed's tested weights come from (best val/R@5), in the order of "seeds".
+            seeded = sorted((j for j in ok if j.seed is not None), key=lambda j: j.seed)
+            row["best_epochs"] = [j.metrics.get("best/epoch") for j in seeded]
             rows.append(row)
     return rows
 
@@ -54,13 +57,18 @@ def _fmt(x: float, signed: bool = False) -> str:
     return (f"{x:+.1f}" if signed else f"{x:.1f}").replace("-", "−")
 
 
+def _epochs(epochs: list[Any], sep: str) -> str:
+    """Best epochs as recorded; ? for a job from before metrics.json kept its epoch."""
+    return sep.join(str(e) if isinstance(e, int) else "?" for e in epochs)
+
+
 def _csv_text(rows: list[dict[str, Any]]) -> str:
     """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing."""
     buf = io.StringIO()
     cols = (
         ["aggregator", "mask", "backbone", "n", "seeds"]
         + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")]
-        + ["wall_time_s", "failed"]
+        + ["wall_time_s", "failed", "best_epochs"]
     )
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
@@ -77,6 +85,7 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
                 *stats,
                 num(r["wall_time_s"]),
                 r["failed"],
+                _epochs(r["best_epochs"], " "),
             ]
         )
     return buf.getvalue()
@@ -206,14 +215,16 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
         f"{len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
         "Recall@N in %, mean ± sample std over seeds.",
         "",
-        "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | failed | wall time (s) |",
-        "|---|---|---:|---:|---:|---:|---:|---|---:|---:|",
+        "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | best epoch (val) | failed "
+        "| wall time (s) |",
+        "|---|---|---:|---:|---:|---:|---:|---|---|---:|---:|",
     ]
     for r in rows:
         cells = [f"{_fmt(r[f'R@{n}'][0])} ± {_fmt(r[f'R@{n}'][1])}" if r["n"] else "failed" for n in RECALL_NS]
         out.append(
             f"| {md_cell(r['backbone'])} | {md_cell(sweep.label(r['cell']))} | {' | '.join(cells)} | {r['n']} | "
-            f"{', '.join(map(str, r['seeds'])) or '–'} | {r['failed']} | {_fmt(r['wall_time_s'])} |"
+            f"{', '.join(map(str, r['seeds'])) or '–'} | {_epochs(r['best_epochs'], ', ') or '–'} | {r['failed']} | "
+            f"{_fmt(r['wall_time_s'])} |"
         )
     out.append("")
     reference = md_cell(sweep.label(cell_name(sweep.baseline, NO_MASK))) if sweep.baseline else ""

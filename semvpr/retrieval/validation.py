@@ -4,7 +4,7 @@ The model only turns batches into descriptors (``validation_step`` / ``test_step
 this callback collects them, gathers them across ranks in order (semvpr.retrieval.distributed), computes
 recall once on rank 0, and gives every rank the same numbers to log. The caller reads the results
 from here: the last result per stage (:attr:`results`, with the top-k predictions for the figures)
-and the validation R@1 of the epoch with the best val/R@5, the one ModelCheckpoint keeps
+and the validation R@1 and the epoch (1-based) with the best val/R@5, the one ModelCheckpoint keeps
 (:attr:`best_val`, saved in the checkpoint so that a resumed run reports it too).
 """
 
@@ -28,7 +28,7 @@ class RecallEvaluation(L.Callback):
     def __init__(self, sets: dict[str, PlaceFeatures], describe: Describe) -> None:
         self.sets, self.describe = sets, describe
         self.results: dict[str, dict[str, Any]] = {}
-        self.best_val: dict[str, float] | None = None
+        self.best_val: dict[str, float | int] | None = None
         self._rows: list[Tensor] = []
 
     def evaluate(self, features: PlaceFeatures) -> dict[str, Any]:
@@ -75,7 +75,7 @@ class RecallEvaluation(L.Callback):
             # As logged (float32), as ModelCheckpoint compares and keeps its best score.
             r1, r5 = (float(torch.tensor(result["recalls"][n], dtype=torch.float32)) for n in (1, 5))
             if self.best_val is None or r5 > self.best_val["R@5"]:  # strictly better, as ModelCheckpoint
-                self.best_val = {"R@1": r1, "R@5": r5}
+                self.best_val = {"R@1": r1, "R@5": r5, "epoch": int(pl_module.current_epoch) + 1}
 
     def _recall(self, features: PlaceFeatures, db: np.ndarray, q: np.ndarray) -> dict[str, Any]:
         """Recall computed once, on rank 0, and the same result on every rank."""
