@@ -16,16 +16,17 @@ Timed, each the median over ``--repeats`` batches after one warm-up:
   with ``mask=student`` runs per image;
 - ``student decoder``: the decoder and grid mask alone on the trunk's skips (the student's own cost);
 - ``teacher@HxW``: the teacher's grid mask with the teacher seeing the images at HxW: 270x480 (as given)
-  and 180x240 (the size the CamVid teacher trains at: a semvpr.segment teacher's ``semvpr.json`` makes it
-  its inference size, and the embedded teacher's is its ``image_size``).
+  and the size the CamVid teacher trains at (``seg.image_size`` of ``conf/seg/camvid.yaml``: a
+  semvpr.segment teacher's ``semvpr.json`` makes it its inference size, and the embedded teacher's is its
+  ``image_size``).
 
     python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1]
 
 Last line: ``name=value`` pairs, ratios of times measured in this run: ``student_over_trunk`` (an
 evaluation with the student's mask over one without), ``trunk_share_of_student`` (the part of the
 student's pass that is the shared trunk), ``teacher_over_trunk`` (trunk + teacher at 270x480 over the
-trunk), ``teacher_inference_over_trunk`` (the same with the teacher at 180x240) and ``teacher_cut``
-(teacher at 270x480 over teacher at 180x240).
+trunk), ``teacher_inference_over_trunk`` (the same with the teacher at its training size) and ``teacher_cut``
+(teacher at 270x480 over teacher at its training size).
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ from semvpr.models.teacher import TeacherSpec, embedded_teacher
 from semvpr.retrieval.features import grid_size
 
 SIZE = (270, 480)
-TEACHER_TRAINED_AT = (180, 240)
+#: The size the CamVid teacher trains at (``seg.image_size`` of conf/seg/camvid.yaml), its inference size.
+TEACHER_TRAINED_AT = tuple(OmegaConf.load(Path(CONF_DIR) / "seg" / "camvid.yaml").image_size)
 
 
 def seconds_per_image(run: Callable[[], object], batch: int, repeats: int) -> float:
