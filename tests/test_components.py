@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 import torch
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from semvpr.config.build import build_backbone, build_mask_source
 from semvpr.config.components import COMPONENTS, component_class, options
@@ -36,6 +37,15 @@ def test_every_group_has_components_and_each_names_its_kind_of_class() -> None:
             cls = component_class(config(f"{group}={name}"), group)
             assert cls is None or issubclass(cls, base), (group, name, cls)
     assert {"netvlad", "sral", "gem", "mixvpr", "salad", "boq"} <= set(options("aggregator"))
+
+
+@pytest.mark.parametrize("command", ["train", "eval", "localize"])
+@pytest.mark.parametrize("name", options("aggregator"))
+def test_every_aggregator_file_resolves_under_every_command(name: str, command: str) -> None:
+    # eval and localize compose no recipe: an aggregator's file may not lean on one (its recipe=gsv
+    # schedule is spelled out, not interpolated from recipe.default).
+    node = config(f"aggregator={name}", config_name=command).aggregator
+    assert OmegaConf.to_container(node, resolve=True)["name"] == name
 
 
 def build_aggregator(name: str) -> Aggregator:

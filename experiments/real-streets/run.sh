@@ -19,8 +19,7 @@ export HF_HUB_OFFLINE=1
   paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/synthcity"
 
 # 1b. Every other aggregator on its authors' recipe (recipe=gsv), with and without a mask, 3 seeds: the
-#     command of aggregators-x-masks (its converged matrix); its mask=none and mask=student checkpoints
-#     are evaluated here.
+#     command of aggregators-x-masks (its converged matrix); its mask=none checkpoints are evaluated here.
 [ -f "$OUT/gsv/results.md" ] || python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
   mask=none,student,teacher,oracle seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
 
@@ -36,18 +35,15 @@ ckpts() {  # the sweep's best checkpoints whose filter is one of "$@": a Hydra s
   for f in "$@"; do for s in 0 1 2; do out+=("'$OUT/synthcity/filter=$f,seed=$s/checkpoints/best.ckpt'"); done; done
   local IFS=,; echo "${out[*]}"
 }
-gsv_ckpts() {  # the recipe=gsv sweep's best checkpoints trained with mask "$1"
+gsv_ckpts() {  # the recipe=gsv sweep's best checkpoints trained with mask "$1" (none: without one)
   local out=()
   for a in gem mixvpr salad boq; do for s in 0 1 2; do
     out+=("'$OUT/gsv/aggregator=$a,mask=$1,recipe=gsv,seed=$s/checkpoints/best.ckpt'")
   done; done
   local IFS=,; echo "${out[*]}"
 }
-GSV_NONE=$(gsv_ckpts none)
-GSV_STUDENT=$(gsv_ckpts student)
-FOUR_WAY=$(ckpts none attention unet mask2former)
-ALL="$FOUR_WAY,$GSV_NONE,$GSV_STUDENT"
-OWN="$(ckpts unet mask2former),$GSV_STUDENT"
+ALL="$(ckpts none attention unet mask2former),$(gsv_ckpts none)"
+OWN=$(ckpts unet mask2former)
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
   db=${pair%%:*}; q=${pair##*:}
   data=(data=gardens_point data.root="$GARDENS" data.database="$db" data.queries="$q" paths.cache_dir="$CACHE")
@@ -59,7 +55,7 @@ for pair in day_left:night_right day_right:night_right day_left:day_right; do
   run none ckpt="$ALL" mask=none
   run own ckpt="$OWN"
   run camvid-student ckpt="$ALL" mask=student student.checkpoint="$STUDENT"
-  run camvid-teacher ckpt="$FOUR_WAY,$GSV_NONE" mask=teacher teacher.checkpoint="$TEACHER"
+  run camvid-teacher ckpt="$ALL" mask=teacher teacher.checkpoint="$TEACHER"
   run untrained-none ckpt=none aggregator=gem,netvlad mask=none
   run untrained-camvid-student ckpt=none aggregator=gem,netvlad mask=student student.checkpoint="$STUDENT"
   run untrained-camvid-teacher ckpt=none aggregator=gem,netvlad mask=teacher teacher.checkpoint="$TEACHER"

@@ -28,10 +28,8 @@ MASKS = {
     "camvid-student": "CamVid student",
     "camvid-teacher": "CamVid teacher",
 }
-#: recipe=gsv aggregators of run.sh's second training sweep, and the masks their evaluated checkpoints
-#: trained with.
+#: recipe=gsv aggregators of run.sh's second training sweep (their checkpoints trained without a mask).
 GSV_AGGREGATORS = ("gem", "mixvpr", "salad", "boq")
-GSV_MASKS = ("none", "student")
 #: Models in table order: the filter of a SynthCity checkpoint, a recipe=gsv aggregator and the mask it
 #: trained with, or an untrained aggregator.
 MODELS = {
@@ -41,11 +39,7 @@ MODELS = {
     "attention": "`filter=attention` (SRAL)",
     "unet": "`filter=unet` (SRAL + SynthCity student)",
     "mask2former": "`filter=mask2former` (SRAL + SynthCity teacher)",
-    **{
-        f"gsv {a} {m}": f"`{a}` (recipe=gsv" + (")" if m == "none" else " + SynthCity student)")
-        for a in GSV_AGGREGATORS
-        for m in GSV_MASKS
-    },
+    **{f"gsv {a}": f"`{a}` (recipe=gsv, trained without a mask)" for a in GSV_AGGREGATORS},
 }
 PAIRS = {
     "day_left-night_right": "day_left → night_right (day/night)",
@@ -61,9 +55,9 @@ def _model(result: dict) -> tuple[str, int]:
     found = re.search(r"filter=(\w+),seed=(\d+)", result["checkpoint"])
     if found:
         return found.group(1), int(found.group(2))
-    found = re.search(r"aggregator=(\w+),mask=(\w+),recipe=gsv,seed=(\d+)", result["checkpoint"])
+    found = re.search(r"aggregator=(\w+),mask=none,recipe=gsv,seed=(\d+)", result["checkpoint"])
     if found:
-        return f"gsv {found.group(1)} {found.group(2)}", int(found.group(3))
+        return f"gsv {found.group(1)}", int(found.group(2))
     raise SystemExit(f"{result['checkpoint']}: not a checkpoint of run.sh's training sweeps")
 
 
