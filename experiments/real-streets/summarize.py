@@ -28,10 +28,7 @@ MASKS = {
     "camvid-student": "CamVid student",
     "camvid-teacher": "CamVid teacher",
 }
-#: recipe=gsv aggregators of run.sh's second training sweep (their checkpoints trained without a mask).
-GSV_AGGREGATORS = ("gem", "mixvpr", "salad", "boq")
-#: Models in table order: the filter of a SynthCity checkpoint, a recipe=gsv aggregator and the mask it
-#: trained with, or an untrained aggregator.
+#: Models in table order: the filter of a SynthCity checkpoint, or an untrained aggregator.
 MODELS = {
     "untrained gem": "no VPR training: GeM (p = 3)",
     "untrained netvlad": "no VPR training: NetVLAD (k-means on SynthCity)",
@@ -39,7 +36,6 @@ MODELS = {
     "attention": "`filter=attention` (SRAL)",
     "unet": "`filter=unet` (SRAL + SynthCity student)",
     "mask2former": "`filter=mask2former` (SRAL + SynthCity teacher)",
-    **{f"gsv {a}": f"`{a}` (recipe=gsv, trained without a mask)" for a in GSV_AGGREGATORS},
 }
 PAIRS = {
     "day_left-night_right": "day_left → night_right (day/night)",
@@ -53,12 +49,9 @@ def _model(result: dict) -> tuple[str, int]:
     if result["checkpoint"] == "none":
         return f"untrained {result['aggregator']}", 0
     found = re.search(r"filter=(\w+),seed=(\d+)", result["checkpoint"])
-    if found:
-        return found.group(1), int(found.group(2))
-    found = re.search(r"aggregator=(\w+),mask=none,recipe=gsv,seed=(\d+)", result["checkpoint"])
-    if found:
-        return f"gsv {found.group(1)}", int(found.group(2))
-    raise SystemExit(f"{result['checkpoint']}: not a checkpoint of run.sh's training sweeps")
+    if not found:
+        raise SystemExit(f"{result['checkpoint']}: not a checkpoint of run.sh's training sweep")
+    return found.group(1), int(found.group(2))
 
 
 def collect(out: Path) -> dict[str, dict[tuple[str, str], dict[int, tuple[dict, np.ndarray]]]]:
