@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# The real-streets experiment: SynthCity-trained checkpoints and off-the-shelf baselines on Gardens Point
-# Walking, each with no mask, its own SynthCity mask, the CamVid student's and the CamVid teacher's.
+# The real-streets experiment: SynthCity-trained checkpoints (the four-way comparison, and GeM, MixVPR,
+# SALAD and BoQ on recipe=gsv) and off-the-shelf baselines on Gardens Point Walking, each with no mask, its
+# own SynthCity mask, the CamVid student's and the CamVid teacher's.
 # Usage, from the repository root (each step is cached; a second run only re-reads):
 #   bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
-# OUT receives the training sweep (OUT/synthcity), the CamVid segmenters (OUT/camvid) and one evaluation
+# OUT receives the training sweeps (OUT/synthcity, OUT/gsv), the CamVid segmenters (OUT/camvid) and one evaluation
 # sweep per pair and mask source (OUT/eval/<pair>/<mask>); summarize.py and figure.py read OUT.
 set -euo pipefail
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
@@ -17,6 +18,12 @@ export HF_HUB_OFFLINE=1
 [ -f "$OUT/synthcity/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=none,attention,unet,mask2former,oracle \
   paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/synthcity"
 
+# 1b. GeM, MixVPR, SALAD and BoQ on their authors' recipe, 3 seeds: the command of aggregators-x-masks
+#     (its converged matrix); the checkpoints trained without a mask and with the student's are
+#     evaluated here.
+[ -f "$OUT/gsv/results.md" ] || python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
+  mask=none,student,teacher,oracle seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
+
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
 [ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
   hydra.run.dir="$OUT/camvid"
@@ -29,8 +36,17 @@ ckpts() {  # the sweep's best checkpoints whose filter is one of "$@": a Hydra s
   for f in "$@"; do for s in 0 1 2; do out+=("'$OUT/synthcity/filter=$f,seed=$s/checkpoints/best.ckpt'"); done; done
   local IFS=,; echo "${out[*]}"
 }
+gsv_ckpts() {  # the recipe=gsv sweep's best checkpoints trained with a mask of "$@" (none: without one)
+  local out=()
+  for m in "$@"; do for a in gem mixvpr salad boq; do for s in 0 1 2; do
+    out+=("'$OUT/gsv/aggregator=$a,mask=$m,recipe=gsv,seed=$s/checkpoints/best.ckpt'")
+  done; done; done
+  local IFS=,; echo "${out[*]}"
+}
 ALL=$(ckpts none attention unet mask2former)
 OWN=$(ckpts unet mask2former)
+GSV_ALL=$(gsv_ckpts none student)
+GSV_OWN=$(gsv_ckpts student)
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
   db=${pair%%:*}; q=${pair##*:}
   data=(data=gardens_point data.root="$GARDENS" data.database="$db" data.queries="$q" paths.cache_dir="$CACHE")
@@ -43,6 +59,10 @@ for pair in day_left:night_right day_right:night_right day_left:day_right; do
   run own ckpt="$OWN"
   run camvid-student ckpt="$ALL" mask=student student.checkpoint="$STUDENT"
   run camvid-teacher ckpt="$ALL" mask=teacher teacher.checkpoint="$TEACHER"
+  run gsv-none ckpt="$GSV_ALL" mask=none
+  run gsv-own ckpt="$GSV_OWN"
+  run gsv-camvid-student ckpt="$GSV_ALL" mask=student student.checkpoint="$STUDENT"
+  run gsv-camvid-teacher ckpt="$GSV_ALL" mask=teacher teacher.checkpoint="$TEACHER"
   run untrained-none ckpt=none aggregator=gem,netvlad mask=none
   run untrained-camvid-student ckpt=none aggregator=gem,netvlad mask=student student.checkpoint="$STUDENT"
   run untrained-camvid-teacher ckpt=none aggregator=gem,netvlad mask=teacher teacher.checkpoint="$TEACHER"

@@ -28,7 +28,11 @@ MASKS = {
     "camvid-student": "CamVid student",
     "camvid-teacher": "CamVid teacher",
 }
-#: Models in table order: the filter of a SynthCity checkpoint, or an untrained aggregator.
+#: recipe=gsv aggregators of run.sh's second training sweep, and the masks their checkpoints trained with.
+GSV_AGGREGATORS = ("gem", "mixvpr", "salad", "boq")
+GSV_TRAINED_WITH = {"none": "without a mask", "student": "with the SynthCity student"}
+#: Models in table order: the filter of a SynthCity checkpoint, a recipe=gsv aggregator and the mask it
+#: trained with, or an untrained aggregator.
 MODELS = {
     "untrained gem": "no VPR training: GeM (p = 3)",
     "untrained netvlad": "no VPR training: NetVLAD (k-means on SynthCity)",
@@ -36,6 +40,11 @@ MODELS = {
     "attention": "`filter=attention` (SRAL)",
     "unet": "`filter=unet` (SRAL + SynthCity student)",
     "mask2former": "`filter=mask2former` (SRAL + SynthCity teacher)",
+    **{
+        f"gsv {a} {m}": f"`{a}` (recipe=gsv, trained {words})"
+        for a in GSV_AGGREGATORS
+        for m, words in GSV_TRAINED_WITH.items()
+    },
 }
 PAIRS = {
     "day_left-night_right": "day_left → night_right (day/night)",
@@ -45,13 +54,16 @@ PAIRS = {
 
 
 def _model(result: dict) -> tuple[str, int]:
-    """(model key, seed) of an evaluation: a checkpoint of the training sweep, or an untrained baseline."""
+    """(model key, seed) of an evaluation: a checkpoint of a training sweep, or an untrained baseline."""
     if result["checkpoint"] == "none":
         return f"untrained {result['aggregator']}", 0
     found = re.search(r"filter=(\w+),seed=(\d+)", result["checkpoint"])
-    if not found:
-        raise SystemExit(f"{result['checkpoint']}: not a checkpoint of run.sh's training sweep")
-    return found.group(1), int(found.group(2))
+    if found:
+        return found.group(1), int(found.group(2))
+    found = re.search(r"aggregator=(\w+),mask=(\w+),recipe=gsv,seed=(\d+)", result["checkpoint"])
+    if found:
+        return f"gsv {found.group(1)} {found.group(2)}", int(found.group(3))
+    raise SystemExit(f"{result['checkpoint']}: not a checkpoint of run.sh's training sweeps")
 
 
 def collect(out: Path) -> dict[str, dict[tuple[str, str], dict[int, tuple[dict, np.ndarray]]]]:
@@ -63,7 +75,7 @@ def collect(out: Path) -> dict[str, dict[tuple[str, str], dict[int, tuple[dict, 
         if result.get("status") != "ok":
             raise SystemExit(f"{job}: {result.get('error')}")
         model, seed = _model(result)
-        source = sweep.removeprefix("untrained-")
+        source = sweep.removeprefix("untrained-").removeprefix("gsv-")
         runs[pair][(model, source)][seed] = (result, np.load(job / "ranks.npy", allow_pickle=False))
     return runs
 
