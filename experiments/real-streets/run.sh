@@ -22,7 +22,7 @@ export HF_HUB_OFFLINE=1
 #     (its converged matrix); the checkpoints trained without a mask and with the student's are
 #     evaluated here.
 [ -f "$OUT/gsv/results.md" ] || python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
-  mask=none,student,teacher,oracle seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
+  mask=none,student,teacher seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
 
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
 [ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
