@@ -4,8 +4,9 @@
 # own SynthCity mask, the CamVid student's and the CamVid teacher's.
 # Usage, from the repository root (each step is cached; a second run only re-reads):
 #   bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
-# OUT receives the training sweeps (OUT/synthcity, OUT/gsv), the CamVid segmenters (OUT/camvid) and one evaluation
-# sweep per pair and mask source (OUT/eval/<pair>/<mask>); summarize.py and figure.py read OUT.
+# OUT receives the training sweeps (OUT/synthcity, OUT/gsv), the CamVid segmenters (OUT/camvid) and one
+# evaluation sweep per pair and mask source (OUT/eval/<pair>/<mask>; gsv-<mask> for the recipe=gsv
+# checkpoints); summarize.py and figure.py read OUT.
 set -euo pipefail
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
 GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
