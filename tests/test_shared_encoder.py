@@ -203,7 +203,8 @@ def test_a_teacher_that_is_not_the_trunk_runs_its_own_encoder(
         (own / artifact.name).symlink_to(artifact)
     for artifact in cache.glob("teacher-*"):
         (own / artifact.name).symlink_to(artifact)
-    cfg = tiny_config(own, "filter=mask2former", *overrides)
+    # Held on disk, the trunk pass keeps only what this job reads (in RAM it also keeps the student's skips).
+    cfg = tiny_config(own, "filter=mask2former", "features.storage=disk", *overrides)
     job = prepare(cfg, {})
     teacher = job.semantic.teacher
     assert teacher.trunk_levels is None and not job.mask_source.trunk_levels(tuple(cfg.data.image_size))

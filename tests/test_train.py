@@ -408,3 +408,27 @@ def _assert_same_run(first: dict, *others: dict) -> None:
     for run, w in zip(others, weights[1:]):
         assert run["recalls"] == first["recalls"] and run["best/val/R@5"] == first["best/val/R@5"]
         assert all(torch.equal(weights[0][k], w[k]) for k in weights[0])
+
+
+@pytest.mark.parametrize("storage,unet_passes", [("ram", 0), ("disk", 6)])
+def test_a_sweeps_jobs_share_the_trunk_pass_of_a_small_set(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, storage: str, unet_passes: int
+) -> None:
+    # A small set's first pass (here filter=none's) keeps what the student and the linked teacher read, so the
+    # filter=unet job after it passes no image through the trunk; a set held on disk keeps only its own levels.
+    passes = _count_trunk_passes(monkeypatch)
+
+    def job(cache: str, name: str) -> tuple[dict, int]:
+        before = len(passes)
+        cfg = tiny_config(tmp_path / cache, f"filter={name}", f"features.storage={storage}", "trainer.max_epochs=1")
+        return run_job(cfg, tmp_path / cache / name), len(passes) - before
+
+    assert job("shared", "none")[1] == 6  # train/val/test x database/queries
+    unet, made = job("shared", "unet")
+    assert made == unet_passes
+    assert len(list((tmp_path / "shared").glob("skips-*"))) == 6  # levels 1 and 2 (the trunk is 3) x 3 splits
+    if storage == "ram":
+        # The same job on its own makes its passes and gets the same run, bit for bit.
+        alone, made = job("alone", "unet")
+        assert made == 6
+        _assert_same_run(unet, alone)

@@ -35,7 +35,7 @@ from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.models.student import Student, StudentSpec, load_student, student_architecture
-from semvpr.models.teacher import Teacher, TeacherSpec, teacher_architecture
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher, teacher_architecture
 from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
 from semvpr.retrieval.distributed import Describe
@@ -326,13 +326,39 @@ def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | Non
     return teacher
 
 
+def semantic_levels(cfg: DictConfig, backbone: Backbone, teacher: Teacher | None) -> tuple[set[int], set[int]]:
+    """(the teacher's, the student's) frozen outputs the config's semantic side reads from the trunk pass: the
+    teacher's encoder levels where it is linked to the trunk (``teacher``, or where none is given the embedded
+    teacher the config trains, whose encoder stays frozen), the student's skips where its own pass would run
+    in the trunk pass's precision (bf16 where that is native)."""
+    size = tuple(int(v) for v in cfg.data.image_size)
+    if teacher is None:
+        wanted = teacher_spec(cfg)
+        if wanted.checkpoint is None and cfg.data.get("segmentation") is None:
+            return set(), set()  # no teacher to be had: no semantic side on this data
+        if wanted.checkpoint is None and wanted.share_trunk and float(wanted.train.backbone_lr_factor) == 0:
+            teacher = embedded_teacher(wanted)
+            teacher.link_trunk(backbone)
+    teacher_levels = set(teacher.trunk_levels or ()) if teacher is not None and teacher.on_trunk(size) else set()
+    spec = student_spec(cfg)
+    student_levels: set[int] = set()
+    if spec.bf16 or not bf16_native(next(backbone.parameters()).device.type):
+        student_levels = set(student_architecture(spec, backbone).skip_indices)
+    return teacher_levels, student_levels
+
+
 def skip_plan(
     cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet], teacher: Teacher | None, storage: str
 ) -> dict[str, tuple[int, ...]]:
     """Which frozen outputs besides the trunk each split's trunk pass keeps (``skips`` caches), so that the
     semantic side reads them instead of passing the images through the frozen weights again: the teacher's
     encoder levels where it is linked to the trunk (train: its pseudo-labels; every split: its masks), the
-    student's skips (train: its training; every split: its masks). None where the trunk is streamed, where
+    student's skips (train: its training; every split: its masks).
+
+    The jobs of a sweep share these caches. Where the set is small (its trunk held in RAM, and these outputs of
+    every split fit ``features.ram_gb`` too), every job's pass keeps all of :func:`semantic_levels` on every
+    split, whatever its own mask reads, so that a job with another mask (``filter=unet`` beside
+    ``filter=none``) reads them instead of making a pass of its own. None where the trunk is streamed, where
     they would not fit ``features.disk_gb`` and the free disk (then each stage makes its own pass, as it does
     without a linked teacher)."""
     none = {split: () for split in places}
@@ -341,26 +367,35 @@ def skip_plan(
     size = tuple(int(v) for v in cfg.data.image_size)
     mask = component_class(cfg, "mask")
     needs = mask.needs if mask is not None else None
-    teacher_levels = set(teacher.trunk_levels or ()) if teacher is not None and teacher.on_trunk(size) else set()
-    student_levels: set[int] = set()
-    spec = student_spec(cfg)
-    # The trunk pass runs in bf16 where that is native; the student's own pass in bf16 only if asked for.
-    if needs == "student" and (spec.bf16 or not bf16_native(next(backbone.parameters()).device.type)):
-        student_levels = set(student_architecture(spec, backbone).skip_indices)
+    teacher_levels, student_levels = semantic_levels(cfg, backbone, teacher)
     last = len(backbone.frozen_strides) - 1
-    plan = {}
-    for split in places:
-        levels = set(teacher_levels) if split == "train" else set()
-        levels |= student_levels if split == "train" or needs == "student" else set()
-        levels |= teacher_levels if needs == "teacher" else set()
-        plan[split] = tuple(sorted(levels - {last}))
-    total = sum(
-        skip_bytes(backbone, size, plan[split], len(p.db_paths) + len(p.q_paths)) for split, p in places.items()
-    )
-    if total and choose_storage("auto", total, cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream":
+
+    def total(plan: dict[str, tuple[int, ...]]) -> int:
+        return sum(
+            skip_bytes(backbone, size, plan[split], len(p.db_paths) + len(p.q_paths)) for split, p in places.items()
+        )
+
+    everything = {split: tuple(sorted((teacher_levels | student_levels) - {last})) for split in places}
+    if storage == "ram" and total(everything) <= float(cfg.features.ram_gb) * 2**30:
+        plan = everything
+    else:
+        if teacher is None:
+            teacher_levels = set()
+        if needs != "student":
+            student_levels = set()
+        plan = {}
+        for split in places:
+            levels = set(teacher_levels) if split == "train" else set()
+            levels |= student_levels if split == "train" or needs == "student" else set()
+            levels |= teacher_levels if needs == "teacher" else set()
+            plan[split] = tuple(sorted(levels - {last}))
+    if (
+        total(plan)
+        and choose_storage("auto", total(plan), cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream"
+    ):
         print(
-            f"semvpr: the frozen outputs the semantic side reads ({total / 2**30:.2f} GiB) exceed the disk budget: "
-            "each stage passes the images through the trunk itself",
+            f"semvpr: the frozen outputs the semantic side reads ({total(plan) / 2**30:.2f} GiB) exceed the disk "
+            "budget: each stage passes the images through the trunk itself",
             file=sys.stderr,
         )
         return none
@@ -503,13 +538,13 @@ def prepare(cfg: DictConfig, timings: dict[str, float], threads: Threads | None 
     threads = threads or thread_plan(cfg)
     backbone = build_backbone(cfg.backbone, int(cfg.seed))
     storage = feature_storage(cfg, backbone, places)
-    plan = {split: () for split in places}
-    semantic = Semantic()
+    semantic, teacher = Semantic(), None
     if needs_semantic(cfg):
         tic = time.time()
         teacher = semantic_teacher(cfg, backbone, threads)
         timings["teacher_s"] = time.time() - tic
-        plan = skip_plan(cfg, backbone, places, teacher, storage)
+    plan = skip_plan(cfg, backbone, places, teacher, storage)
+    if teacher is not None:
         semantic = build_semantic(cfg, places["train"], backbone, timings, storage, plan["train"], teacher, threads)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
