@@ -4,9 +4,9 @@
 # own SynthCity mask, the CamVid student's and the CamVid teacher's.
 # Usage, from the repository root (each step is cached; a second run only re-reads):
 #   bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
-# OUT receives the training sweeps (OUT/synthcity, OUT/gsv), the CamVid segmenters (OUT/camvid) and one
-# evaluation sweep per pair and mask source (OUT/eval/<pair>/<mask>; gsv-<mask> for the recipe=gsv
-# checkpoints); summarize.py and figure.py read OUT.
+# OUT receives the training sweeps (OUT/synthcity, OUT/gsv, OUT/learned), the CamVid segmenters (OUT/camvid)
+# and one evaluation sweep per pair and mask source (OUT/eval/<pair>/<mask>; gsv-<mask> for the recipe=gsv
+# checkpoints, learned-<mask> for those with learned class weights); summarize.py and figure.py read OUT.
 set -euo pipefail
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
 GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
@@ -24,6 +24,11 @@ export HF_HUB_OFFLINE=1
 #     evaluated here.
 [ -f "$OUT/gsv/results.md" ] || python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
   mask=none,student,teacher seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
+
+# 1c. The student's and the teacher's masks with learned class weights (mask.weights=learned), 3 seeds: the
+#     learned half of synthcity-class-weights' command.
+[ -f "$OUT/learned/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=unet,mask2former \
+  filter.weights=learned paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/learned"
 
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
 [ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
@@ -44,7 +49,15 @@ gsv_ckpts() {  # the recipe=gsv sweep's best checkpoints trained with a mask of 
   done; done; done
   local IFS=,; echo "${out[*]}"
 }
+learned_ckpts() {  # the learned class-weights sweep's best checkpoints
+  local out=()
+  for f in unet mask2former; do for s in 0 1 2; do
+    out+=("'$OUT/learned/filter.weights=learned,filter=$f,seed=$s/checkpoints/best.ckpt'")
+  done; done
+  local IFS=,; echo "${out[*]}"
+}
 ALL=$(ckpts none attention unet mask2former)
+LEARNED=$(learned_ckpts)
 OWN=$(ckpts unet mask2former)
 GSV_ALL=$(gsv_ckpts none student)
 GSV_OWN=$(gsv_ckpts student)
@@ -64,6 +77,10 @@ for pair in day_left:night_right day_right:night_right day_left:day_right; do
   run gsv-own ckpt="$GSV_OWN"
   run gsv-camvid-student ckpt="$GSV_ALL" mask=student student.checkpoint="$STUDENT"
   run gsv-camvid-teacher ckpt="$GSV_ALL" mask=teacher teacher.checkpoint="$TEACHER"
+  run learned-none ckpt="$LEARNED" mask=none
+  run learned-own ckpt="$LEARNED"
+  run learned-camvid-student ckpt="$LEARNED" mask=student student.checkpoint="$STUDENT"
+  run learned-camvid-teacher ckpt="$LEARNED" mask=teacher teacher.checkpoint="$TEACHER"
   run untrained-none ckpt=none aggregator=gem,netvlad mask=none
   run untrained-camvid-student ckpt=none aggregator=gem,netvlad mask=student student.checkpoint="$STUDENT"
   run untrained-camvid-teacher ckpt=none aggregator=gem,netvlad mask=teacher teacher.checkpoint="$TEACHER"

@@ -40,6 +40,8 @@ MODELS = {
     "attention": "`filter=attention` (SRAL)",
     "unet": "`filter=unet` (SRAL + SynthCity student)",
     "mask2former": "`filter=mask2former` (SRAL + SynthCity teacher)",
+    "learned unet": "`filter=unet` with learned class weights (SRAL + SynthCity student)",
+    "learned mask2former": "`filter=mask2former` with learned class weights (SRAL + SynthCity teacher)",
     **{
         f"gsv {a} {m}": f"`{a}` (recipe=gsv, trained {words})"
         for a in GSV_AGGREGATORS
@@ -57,6 +59,9 @@ def _model(result: dict) -> tuple[str, int]:
     """(model key, seed) of an evaluation: a checkpoint of a training sweep, or an untrained baseline."""
     if result["checkpoint"] == "none":
         return f"untrained {result['aggregator']}", 0
+    found = re.search(r"filter\.weights=learned,filter=(\w+),seed=(\d+)", result["checkpoint"])
+    if found:
+        return f"learned {found.group(1)}", int(found.group(2))
     found = re.search(r"filter=(\w+),seed=(\d+)", result["checkpoint"])
     if found:
         return found.group(1), int(found.group(2))
@@ -75,7 +80,7 @@ def collect(out: Path) -> dict[str, dict[tuple[str, str], dict[int, tuple[dict, 
         if result.get("status") != "ok":
             raise SystemExit(f"{job}: {result.get('error')}")
         model, seed = _model(result)
-        source = sweep.removeprefix("untrained-").removeprefix("gsv-")
+        source = sweep.removeprefix("untrained-").removeprefix("gsv-").removeprefix("learned-")
         runs[pair][(model, source)][seed] = (result, np.load(job / "ranks.npy", allow_pickle=False))
     return runs
 
