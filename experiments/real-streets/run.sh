@@ -6,7 +6,8 @@
 #   bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
 # OUT receives the training sweeps (OUT/synthcity, OUT/gsv, OUT/learned), the CamVid segmenters (OUT/camvid)
 # and one evaluation sweep per pair and mask source (OUT/eval/<pair>/<mask>; gsv-<mask> for the recipe=gsv
-# checkpoints, learned-<mask> for those with learned class weights); summarize.py and figure.py read OUT.
+# checkpoints trained without a mask or with the student's, gsv-teacher-<mask> for those trained with the
+# teacher's, learned-<mask> for those with learned class weights); summarize.py and figure.py read OUT.
 set -euo pipefail
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
 GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
@@ -20,8 +21,8 @@ export HF_HUB_OFFLINE=1
   paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/synthcity"
 
 # 1b. GeM, MixVPR, SALAD and BoQ on their authors' recipe, 3 seeds: the command of aggregators-x-masks
-#     (its converged matrix); the checkpoints trained without a mask and with the student's are
-#     evaluated here.
+#     (its converged matrix); the checkpoints trained without a mask, with the student's and with the
+#     teacher's are evaluated here.
 [ -f "$OUT/gsv/results.md" ] || python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
   mask=none,student,teacher seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
 
@@ -61,6 +62,7 @@ LEARNED=$(learned_ckpts)
 OWN=$(ckpts unet mask2former)
 GSV_ALL=$(gsv_ckpts none student)
 GSV_OWN=$(gsv_ckpts student)
+GSV_TEACHER=$(gsv_ckpts teacher)
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
   db=${pair%%:*}; q=${pair##*:}
   data=(data=gardens_point data.root="$GARDENS" data.database="$db" data.queries="$q" paths.cache_dir="$CACHE")
@@ -77,6 +79,10 @@ for pair in day_left:night_right day_right:night_right day_left:day_right; do
   run gsv-own ckpt="$GSV_OWN"
   run gsv-camvid-student ckpt="$GSV_ALL" mask=student student.checkpoint="$STUDENT"
   run gsv-camvid-teacher ckpt="$GSV_ALL" mask=teacher teacher.checkpoint="$TEACHER"
+  run gsv-teacher-none ckpt="$GSV_TEACHER" mask=none
+  run gsv-teacher-own ckpt="$GSV_TEACHER"
+  run gsv-teacher-camvid-student ckpt="$GSV_TEACHER" mask=student student.checkpoint="$STUDENT"
+  run gsv-teacher-camvid-teacher ckpt="$GSV_TEACHER" mask=teacher teacher.checkpoint="$TEACHER"
   run learned-none ckpt="$LEARNED" mask=none
   run learned-own ckpt="$LEARNED"
   run learned-camvid-student ckpt="$LEARNED" mask=student student.checkpoint="$STUDENT"

@@ -30,7 +30,11 @@ MASKS = {
 }
 #: recipe=gsv aggregators of run.sh's second training sweep, and the masks their checkpoints trained with.
 GSV_AGGREGATORS = ("gem", "mixvpr", "salad", "boq")
-GSV_TRAINED_WITH = {"none": "without a mask", "student": "with the SynthCity student"}
+GSV_TRAINED_WITH = {
+    "none": "without a mask",
+    "student": "with the SynthCity student",
+    "teacher": "with the SynthCity teacher",
+}
 #: Models in table order: the filter of a SynthCity checkpoint, a recipe=gsv aggregator and the mask it
 #: trained with, or an untrained aggregator.
 MODELS = {
@@ -80,7 +84,10 @@ def collect(out: Path) -> dict[str, dict[tuple[str, str], dict[int, tuple[dict, 
         if result.get("status") != "ok":
             raise SystemExit(f"{job}: {result.get('error')}")
         model, seed = _model(result)
-        source = sweep.removeprefix("untrained-").removeprefix("gsv-").removeprefix("learned-")
+        # run.sh names a sweep <checkpoints>-<mask source> (or just the source): the source is its ending.
+        source = next((m for m in MASKS if sweep == m or sweep.endswith(f"-{m}")), None)
+        if source is None:
+            raise SystemExit(f"{found.parent.parent}: not a mask source of run.sh ({', '.join(MASKS)})")
         runs[pair][(model, source)][seed] = (result, np.load(job / "ranks.npy", allow_pickle=False))
     return runs
 
