@@ -326,13 +326,15 @@ def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | Non
     return teacher
 
 
-def semantic_levels(cfg: DictConfig, backbone: Backbone, teacher: Teacher | None) -> tuple[set[int], set[int]]:
+def semantic_levels(
+    cfg: DictConfig, backbone: Backbone, teacher: Teacher | None, stand_in: bool = True
+) -> tuple[set[int], set[int]]:
     """(the teacher's, the student's) frozen outputs the config's semantic side reads from the trunk pass: the
-    teacher's encoder levels where it is linked to the trunk (``teacher``, or where none is given the embedded
-    teacher the config trains, whose encoder stays frozen), the student's skips where its own pass would run
-    in the trunk pass's precision (bf16 where that is native)."""
+    teacher's encoder levels where it is linked to the trunk (``teacher``, or where none is given and
+    ``stand_in``, the embedded teacher the config trains, whose encoder stays frozen), the student's skips where
+    its own pass would run in the trunk pass's precision (bf16 where that is native)."""
     size = tuple(int(v) for v in cfg.data.image_size)
-    if teacher is None:
+    if teacher is None and stand_in:
         wanted = teacher_spec(cfg)
         if wanted.checkpoint is None and cfg.data.get("segmentation") is None:
             return set(), set()  # no teacher to be had: no semantic side on this data
@@ -367,7 +369,8 @@ def skip_plan(
     size = tuple(int(v) for v in cfg.data.image_size)
     mask = component_class(cfg, "mask")
     needs = mask.needs if mask is not None else None
-    teacher_levels, student_levels = semantic_levels(cfg, backbone, teacher)
+    # Only a plan that may keep them for other jobs needs the levels of a teacher this job does not build.
+    teacher_levels, student_levels = semantic_levels(cfg, backbone, teacher, stand_in=storage == "ram")
     last = len(backbone.frozen_strides) - 1
 
     def total(plan: dict[str, tuple[int, ...]]) -> int:
@@ -379,7 +382,7 @@ def skip_plan(
     if storage == "ram" and total(everything) <= float(cfg.features.ram_gb) * 2**30:
         plan = everything
     else:
-        if teacher is None:
+        if teacher is None:  # a stand-in's levels are for other jobs only
             teacher_levels = set()
         if needs != "student":
             student_levels = set()
@@ -389,12 +392,10 @@ def skip_plan(
             levels |= student_levels if split == "train" or needs == "student" else set()
             levels |= teacher_levels if needs == "teacher" else set()
             plan[split] = tuple(sorted(levels - {last}))
-    if (
-        total(plan)
-        and choose_storage("auto", total(plan), cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream"
-    ):
+    kept = total(plan)
+    if kept and choose_storage("auto", kept, cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream":
         print(
-            f"semvpr: the frozen outputs the semantic side reads ({total(plan) / 2**30:.2f} GiB) exceed the disk "
+            f"semvpr: the frozen outputs the semantic side reads ({kept / 2**30:.2f} GiB) exceed the disk "
             "budget: each stage passes the images through the trunk itself",
             file=sys.stderr,
         )

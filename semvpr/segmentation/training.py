@@ -148,7 +148,6 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, spec: St
     bar = Progress("student", steps, unit="steps")
     for epoch in range(spec.epochs):
         order = torch.randperm(n, generator=gen)
-        inter = union = 0
         last = epoch == spec.epochs - 1
         for start in range(0, n, bs):
             idx = order[start : start + bs]
