@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -183,6 +184,43 @@ def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytes
     images = batch(2, seed=5)[0]
     assert torch.equal(first.class_prob(images), second.class_prob(images))
     assert not second.training and not any(p.requires_grad for p in second.parameters())
+
+
+def test_the_embedded_mask2former_starts_from_the_original_init() -> None:
+    """The authors' Mask2Former keeps nn.Embedding's N(0, 1) for its query features, query positions and
+    level embeddings, draws the pixel decoder's level embedding N(0, 1), and keeps nn.Linear's default
+    (kaiming-uniform, bound 1/sqrt(fan_in)) for the mask MLP; transformers < 5.23 started them at N(0, 0.02)
+    and 0, from which the teacher trains far worse."""
+    torch.manual_seed(0)
+    model = embedded_model({**TINY_MODEL, "hidden_dim": 64, "num_queries": 20})
+    transformer = model.model.transformer_module
+    embeddings = {
+        "query features": transformer.queries_features.weight,
+        "query positions": transformer.queries_embedder.weight,
+        "decoder level embedding": transformer.level_embed.weight,
+        "pixel decoder level embedding": model.model.pixel_level_module.decoder.level_embed,
+    }
+    for name, weights in embeddings.items():
+        assert 0.8 < float(weights.detach().std()) < 1.2, name
+    linears = [m for m in transformer.decoder.mask_predictor.mask_embedder.modules() if isinstance(m, torch.nn.Linear)]
+    assert len(linears) == 3
+    for layer in linears:
+        bound = 1 / math.sqrt(layer.in_features)
+        assert float(layer.weight.detach().abs().max()) <= bound
+        assert 0.9 < float(layer.weight.detach().std()) / (bound / math.sqrt(3)) < 1.1
+
+
+def test_training_the_teacher_refuses_a_transformers_without_the_original_init(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    write_cityscapes(tmp_path / "cs")
+    train, val = read_cityscapes(tmp_path / "cs", "train"), read_cityscapes(tmp_path / "cs", "val")
+    monkeypatch.setattr(teacher_mod, "transformers_version", lambda: "5.17.0")
+    with pytest.raises(SemvprError, match=r"^transformers 5\.17\.0 starts .* install transformers>=5\.23"):
+        build_teacher(tiny_spec(), train, val, tmp_path / "cache")
+    assert not list((tmp_path / "cache").glob("teacher-*"))  # nothing trained, nothing cached
+    monkeypatch.setattr(teacher_mod, "transformers_version", lambda: "5.23.0")
+    assert build_teacher(tiny_spec(), train, val, tmp_path / "cache").teacher_key.startswith("teacher-")
 
 
 LITE_MODEL = {**TINY_MODEL, "backbone": "efficientnet_lite0", "backbone_weights": "imagenet"}

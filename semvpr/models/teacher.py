@@ -408,6 +408,33 @@ def _pixel_backbone(c: Mapping[str, Any]) -> Any:
     raise SemvprError(f"teacher.model.backbone={c['backbone']!r} is not one of {list(BACKBONES)}")
 
 
+#: The first transformers release whose Mask2Former starts from the original model's init: query and level
+#: embeddings N(0, 1), the mask MLP's default nn.Linear init. Earlier releases start them at N(0, 0.02) and
+#: zero, from which the embedded teacher trains far worse (experiments/camvid-semantic measures it).
+MASK2FORMER_ORIGINAL_INIT = "5.23"
+
+
+def transformers_version() -> str:
+    """The installed transformers release."""
+    from importlib.metadata import version
+
+    return version("transformers")
+
+
+def check_mask2former_init() -> None:
+    """Refuse, in one line, to train the embedded teacher from a transformers release that does not start
+    Mask2Former from the original init."""
+    from packaging.version import Version
+
+    found = transformers_version()
+    if Version(found) < Version(MASK2FORMER_ORIGINAL_INIT):
+        raise SemvprError(
+            f"transformers {found} starts Mask2Former's queries at N(0, 0.02) and its level embeddings at 0, not "
+            f"at the original model's N(0, 1), and the embedded teacher trains far worse from there; install "
+            f"transformers>={MASK2FORMER_ORIGINAL_INIT} (pip install -U 'transformers>={MASK2FORMER_ORIGINAL_INIT}')"
+        )
+
+
 def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegmentation:
     """A small Mask2Former for the 19 Cityscapes classes on ``model.backbone`` (an EfficientNet-Lite with
     ``model.backbone_weights``: imagenet | none | path; Swin: random init)."""

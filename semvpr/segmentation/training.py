@@ -27,7 +27,13 @@ from semvpr.data.classes import IGNORE, NUM_CLASSES
 from semvpr.data.images import ImageDataset
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import Student, StudentSpec, student_architecture
-from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher, teacher_architecture
+from semvpr.models.teacher import (
+    Teacher,
+    TeacherSpec,
+    check_mask2former_init,
+    embedded_teacher,
+    teacher_architecture,
+)
 from semvpr.segmentation.datamodule import SegmentationDataModule
 from semvpr.segmentation.pseudolabels import TrunkOutputs, label_path, read_label
 
@@ -46,6 +52,7 @@ def _train(spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationS
     """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
     from lightning.pytorch.loggers import CSVLogger
 
+    check_mask2former_init()
     train = spec.train
     L.seed_everything(train.seed, workers=True, verbose=False)
     accelerator = "gpu" if torch.cuda.is_available() else "cpu"
