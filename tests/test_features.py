@@ -22,20 +22,25 @@ def test_storage_is_chosen_by_size(tmp_path: Path, monkeypatch: pytest.MonkeyPat
 
     from semvpr.retrieval import features
 
-    def disk(free_gib: float) -> None:
-        usage = shutil._ntuple_diskusage(500 * GiB, 500 * GiB - free_gib * GiB, free_gib * GiB)
+    def disk(free_gib: float, total_gib: float = 500) -> None:
+        usage = shutil._ntuple_diskusage(total_gib * GiB, (total_gib - free_gib) * GiB, free_gib * GiB)
         monkeypatch.setattr(features.shutil, "disk_usage", lambda _: usage)
 
     # Pitts30k at 480x640: ~52k images x 1.2 MB of bf16 pool4 maps = 59.5 GiB; SynthCity ~0.2 GiB.
     pitts = 52_000 * 512 * 30 * 40 * 2
-    disk(free_gib=300)  # room: 300 GiB free minus 10 % of the disk
+    disk(free_gib=300)  # room: 300 GiB free minus the 2 GiB headroom
     assert choose_storage("auto", 200 * 2**20, tmp_path, ram_gb=8, disk_gb=100) == "ram"
     assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=100) == "disk"
     assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=50) == "stream"  # over the disk budget
     assert choose_storage("auto", pitts, tmp_path, ram_gb=64, disk_gb=100) == "ram"
-    disk(free_gib=100)  # 50 GiB of room: too little for Pitts30k unless it is already cached
+    disk(free_gib=61)  # 59 GiB of room: too little for Pitts30k unless it is already cached
     assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=1000) == "stream"
+    disk(free_gib=62)  # 60 GiB of room: enough
+    assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=1000) == "disk"
     assert choose_storage("auto", pitts, tmp_path, ram_gb=8, disk_gb=1000, cached=True) == "disk"
+    disk(free_gib=1.5, total_gib=10)  # a small disk keeps a tenth of itself free: 0.5 GiB of room
+    assert choose_storage("auto", int(0.4 * GiB), tmp_path, ram_gb=0.1, disk_gb=100) == "disk"
+    assert choose_storage("auto", int(0.6 * GiB), tmp_path, ram_gb=0.1, disk_gb=100) == "stream"
     assert choose_storage("stream", 1, tmp_path, ram_gb=8, disk_gb=100) == "stream"
     with pytest.raises(SemvprError, match="features.storage='gpu'"):
         choose_storage("gpu", 1, tmp_path, ram_gb=8, disk_gb=100)

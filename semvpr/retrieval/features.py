@@ -9,7 +9,8 @@ How the trunk cache is held is chosen by its size (``features.storage``, ARCHITE
 VGG16 pool4 map is 1.2 MB in bf16, Pitts30k's three splits ~64 GB):
 
 - ``ram``: it fits ``features.ram_gb``: read into memory;
-- ``disk``: it fits ``features.disk_gb`` and the free disk: memory-mapped, pages read on demand;
+- ``disk``: it fits ``features.disk_gb`` and the free disk, less a headroom (``DISK_HEADROOM``): memory-mapped,
+  pages read on demand;
 - ``stream``: neither: nothing is cached but the masks; images go through the frozen prefix at
   every use, as pytorch-NetVlad does (mining keeps only descriptors).
 
@@ -48,6 +49,9 @@ from semvpr.data.places import PlaceSet
 from semvpr.models.masks import MaskSource
 
 STORAGES = ("auto", "ram", "disk", "stream")
+DISK_HEADROOM = 2 * 2**30
+"""Bytes a new disk cache leaves free (a tenth of the disk where that is less): a fixed margin, so that whether a
+small cache fits never depends on how full a large shared disk happens to be."""
 #: Trunk features are bf16 wherever they come from (cache or stream), so every path gives the same
 #: descriptors, and the cache is half the size.
 TRUNK_DTYPE = torch.bfloat16
@@ -188,9 +192,9 @@ def choose_storage(
     if trunk_bytes <= ram_gb * GiB:
         return "ram"
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
-    # An existing cache needs no room; a new one must leave 10 % of the disk free.
+    # An existing cache needs no room; a new one leaves the headroom free.
     usage = shutil.disk_usage(cache_dir)
-    room = math.inf if cached else usage.free - 0.1 * usage.total
+    room = math.inf if cached else usage.free - min(DISK_HEADROOM, 0.1 * usage.total)
     return "disk" if trunk_bytes <= min(disk_gb * GiB, room) else "stream"
 
 
