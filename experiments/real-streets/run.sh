@@ -31,9 +31,8 @@ export HF_HUB_OFFLINE=1
 [ -f "$OUT/learned/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=unet,mask2former \
   filter.weights=learned paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/learned"
 
-# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command, with its 8-epoch
-#    teacher: the one these evaluations were made with, T3 in camvid-semantic's log).
-[ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" teacher.train.epochs=8 \
+# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
+[ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" \
   paths.cache_dir="$CACHE" hydra.run.dir="$OUT/camvid"
 TEACHER="$OUT/camvid/teacher"
 STUDENT="$OUT/camvid/student_efficientnet_lite0"
