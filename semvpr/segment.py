@@ -2,7 +2,8 @@
 
 Trains the embedded Mask2Former teacher on the set's train split (cached; its settings were chosen
 on val), scores it on val and test and saves it in Hugging Face format (``<run dir>/teacher``, for
-``teacher.checkpoint=``); labels the train images with it and trains one U-Net student per entry of
+``teacher.checkpoint=``; given ``teacher.checkpoint=DIR`` it scores that teacher instead and leaves it
+where it is); labels the train images with it and trains one U-Net student per entry of
 ``backbones`` on those pseudo-labels, scored against the ground truth, and saves each as
 ``<run dir>/student_<backbone>`` (for ``student.checkpoint=``). Both directories record the data they
 were trained on. Writes ``results.json``, ``figure_masks.png`` and CSV / TensorBoard logs into
@@ -181,14 +182,19 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     with threads.stage("teacher"):
         teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir)
     build_s = time.time() - tic
-    artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
-    trained = json.loads((artifact / "metrics.json").read_text())
-    replay_log(artifact / "logs" / "metrics.csv", loggers, "teacher")
     trained_on = TrainedOn(str(cfg.seg.name), data_domain(cfg.seg.get("domain")))
-    save_teacher(teacher, run_dir / "teacher", size, trained_on)
-    results: dict[str, Any] = {
-        "teacher": {"train_s": trained["train_seconds"], "build_s": build_s, "checkpoint": str(run_dir / "teacher")}
-    }
+    if teacher_settings.checkpoint:
+        # A given teacher (teacher.checkpoint=): scored and distilled here, not trained; it stays where it is.
+        given = str(teacher_settings.checkpoint)
+        results: dict[str, Any] = {"teacher": {"train_s": None, "build_s": build_s, "checkpoint": given}}
+    else:
+        artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
+        trained = json.loads((artifact / "metrics.json").read_text())
+        replay_log(artifact / "logs" / "metrics.csv", loggers, "teacher")
+        save_teacher(teacher, run_dir / "teacher", size, trained_on)
+        results = {
+            "teacher": {"train_s": trained["train_seconds"], "build_s": build_s, "checkpoint": str(run_dir / "teacher")}
+        }
     scored = ("val", "test") if cfg.score_test else ("val",)
     for split in scored:
         with threads.stage("frozen"):
@@ -271,7 +277,7 @@ def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
     line: dict[str, Any] = {"run_dir": str(run_dir)}
     for model, entry in results.items():
         if model == "teacher" or model.startswith("student_"):
-            line.update({f"{model}/{k}": round(float(entry[k]), 3) for k in SUMMARY_KEYS if k in entry})
+            line.update({f"{model}/{k}": round(float(entry[k]), 3) for k in SUMMARY_KEYS if entry.get(k) is not None})
             line[f"{model}/checkpoint"] = entry["checkpoint"]
     return line
 

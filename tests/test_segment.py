@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.core.errors import SemvprError, one_line
 from semvpr.models.masks import TeacherMask
 from semvpr.models.teacher import TeacherSpec
-from semvpr.segment import run
+from semvpr.segment import run, summary
 from semvpr.segmentation.scoring import teacher_outputs
 from semvpr.segmentation.training import build_teacher
 from tests.camvid_fixture import write_camvid
@@ -113,7 +113,6 @@ def test_run_saves_each_student_where_eval_reads_it_and_says_where(
     from semvpr.config.build import build_backbone
     from semvpr.models.student import load_student
     from semvpr.models.teacher import read_teacher_record
-    from semvpr.segment import summary
 
     run_dir, cfg = segment_run
     results = json.loads((run_dir / "results.json").read_text())
@@ -158,6 +157,32 @@ def test_saved_teacher_is_a_checkpoint_with_equal_predictions(
     ids, prob = teacher_outputs(loaded, images, (32, 48), list(cfg.teacher.static_classes))
     assert torch.equal(ids, loaded.predict_train_ids(images))
     torch.testing.assert_close(prob, mask.static_prob(mask(images, [], None)), rtol=1e-5, atol=1e-5)
+
+
+def test_a_given_teacher_is_scored_and_distilled_not_trained(
+    segment_run: tuple[Path, DictConfig], tmp_path: Path
+) -> None:
+    """teacher.checkpoint=<a saved teacher>: the run scores that teacher (the trained run's numbers), labels the
+    train images with it and trains the students; nothing is trained for the teacher, nothing copied."""
+    run_dir, cfg = segment_run
+    trained = json.loads((run_dir / "results.json").read_text())
+    given = OmegaConf.merge(
+        cfg, {"teacher": {"checkpoint": str(run_dir / "teacher")}, "paths": {"cache_dir": str(tmp_path / "cache")}}
+    )
+    results = run(given, tmp_path / "run")
+    assert results["teacher"]["checkpoint"] == str(run_dir / "teacher") and results["teacher"]["train_s"] is None
+    same = [json.dumps(r["teacher"]["val"], sort_keys=True) for r in (results, trained)]  # NaN-aware
+    assert same[0] == same[1]
+    assert (results["teacher"]["dynamic_iou"], results["teacher"]["miou"]) == (  # test's, at the top level
+        trained["teacher"]["dynamic_iou"],
+        trained["teacher"]["miou"],
+    )
+    assert not list((tmp_path / "cache").glob("teacher-*")) and not (tmp_path / "run" / "teacher").exists()
+    student = results["student_efficientnet_lite0"]
+    assert student["train_s"] > 0 and (tmp_path / "run" / "student_efficientnet_lite0" / "model.safetensors").is_file()
+    line = summary(results, tmp_path / "run")  # the last stdout line: no training time for a teacher not trained
+    assert line["teacher/checkpoint"] == str(run_dir / "teacher") and "teacher/train_s" not in line
+    assert line["teacher/dynamic_iou"] == round(trained["teacher"]["dynamic_iou"], 3)
 
 
 def test_unset_root_is_a_user_error(tmp_path: Path) -> None:
