@@ -183,18 +183,15 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir)
     build_s = time.time() - tic
     trained_on = TrainedOn(str(cfg.seg.name), data_domain(cfg.seg.get("domain")))
-    if teacher_settings.checkpoint:
-        # A given teacher (teacher.checkpoint=): scored and distilled here, not trained; it stays where it is.
-        given = str(teacher_settings.checkpoint)
-        results: dict[str, Any] = {"teacher": {"train_s": None, "build_s": build_s, "checkpoint": given}}
-    else:
+    # A given teacher (teacher.checkpoint=) is scored and distilled here, not trained; it stays where it is.
+    checkpoint, train_s = teacher_settings.checkpoint, None
+    if not checkpoint:
         artifact = Path(cfg.paths.cache_dir) / teacher.teacher_key
-        trained = json.loads((artifact / "metrics.json").read_text())
+        train_s = json.loads((artifact / "metrics.json").read_text())["train_seconds"]
         replay_log(artifact / "logs" / "metrics.csv", loggers, "teacher")
-        save_teacher(teacher, run_dir / "teacher", size, trained_on)
-        results = {
-            "teacher": {"train_s": trained["train_seconds"], "build_s": build_s, "checkpoint": str(run_dir / "teacher")}
-        }
+        checkpoint = run_dir / "teacher"
+        save_teacher(teacher, checkpoint, size, trained_on)
+    results: dict[str, Any] = {"teacher": {"train_s": train_s, "build_s": build_s, "checkpoint": str(checkpoint)}}
     scored = ("val", "test") if cfg.score_test else ("val",)
     for split in scored:
         with threads.stage("frozen"):

@@ -32,8 +32,8 @@ export HF_HUB_OFFLINE=1
   filter.weights=learned paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/learned"
 
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
-[ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" \
-  paths.cache_dir="$CACHE" hydra.run.dir="$OUT/camvid"
+[ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
+  hydra.run.dir="$OUT/camvid"
 TEACHER="$OUT/camvid/teacher"
 STUDENT="$OUT/camvid/student_efficientnet_lite0"
 
