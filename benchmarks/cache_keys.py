@@ -1,15 +1,16 @@
-"""What keying the image caches by content costs on a Pitts30k-size name list, against the stat-only key.
+"""What keying the image caches by content costs on a Pitts30k-size name list, against a stat-only key.
 
 Every image cache (trunk, masks, descriptors, pseudo-labels) is keyed by each image's name below the
-dataset root, size, mtime and a SHA-256 of its first and last 4 KiB (``PlaceSet.identity`` through
-``core.cache.files_identity``), so an image replaced by another of the same size and mtime gets
-another key. The key before that was the name, size and mtime alone (one ``stat`` per file, no read):
-it is timed here in the same run as the reference. This writes the real Pitts30k-test names (10,000
-database + 6,816 query images, from ``../shared/realdata``; numbered placeholders when absent) as
+dataset root, size and a SHA-256 of its first, middle and last 4 KiB (``PlaceSet.identity`` through
+``core.cache.files_identity``), so an image replaced by another of the same size gets another key and a
+copied dataset (new mtimes) keeps its caches. A key of the name, size and mtime alone (one ``stat`` per
+file, no read) is timed in the same run as the reference. This writes the real Pitts30k-test names
+(10,000 database + 6,816 query images, from ``../shared/realdata``; numbered placeholders when absent) as
 placeholder files of ``--image-bytes`` (default 80 KiB, a Pitts30k JPEG's order: 4 KiB of data at each
-end, the middle left sparse) and times both keys over both sides: the first call and the median of the
-others. The files were just written, so both run on a warm page cache; a cold cache adds two disk reads
-per image to the new key (still far below decoding the image, which the trunk pass does anyway).
+end, the rest left sparse) and times both keys over both sides: the first call and the median of the
+others. The files were just written, so both run on a warm page cache; a cold cache adds three disk
+reads per image to the content key (still far below decoding the image, which the trunk pass does
+anyway).
 
     python benchmarks/cache_keys.py [--dir /tmp/cache-keys] [--repeat 5] [--image-bytes 81920]
 
@@ -60,7 +61,7 @@ def write_placeholder(path: Path, size: int, seed: int) -> None:
 
 
 def stat_identity(names_: list[str], paths: list[Path]) -> str:
-    """The previous key: each file's name, size and mtime (one stat, no read)."""
+    """The stat-only reference key: each file's name, size and mtime (one stat, no read)."""
     digest = hashlib.sha256()
     for name, path in zip(names_, paths, strict=True):
         st = os.stat(path)

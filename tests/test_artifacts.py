@@ -95,28 +95,35 @@ def test_failed_build_leaves_nothing_and_the_next_call_builds(tmp_path: Path) ->
     assert (final / "ok.txt").read_text() == "ok" and (final / "key.json").is_file()
 
 
-def test_a_file_replaced_by_one_of_the_same_size_and_mtime_gets_another_key(tmp_path: Path) -> None:
+def test_a_files_key_follows_its_bytes_not_its_mtime(tmp_path: Path) -> None:
     import os
+    import shutil
 
     from semvpr.core.cache import files_identity
 
-    for size in (100, 6000, 50_000):  # shorter than one end, than both ends, and longer
+    for size in (100, 12_288, 50_000):  # shorter than the three blocks, exactly them, and longer
         path = tmp_path / f"a{size}.jpg"
         path.write_bytes(bytes(size))
         before = files_identity(["a.jpg"], [path])
         st = path.stat()
-        for offset in (0, size // 2, size - 1):
+        for offset in (0, size // 4, size // 2, size - 1):
             changed = bytearray(size)
             changed[offset] = 1
             path.write_bytes(bytes(changed))
             os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
             assert path.stat().st_size == st.st_size and path.stat().st_mtime_ns == st.st_mtime_ns
             moved = files_identity(["a.jpg"], [path])
-            # Only a change in the middle of a file longer than 8 KiB goes unseen (it would need forging).
-            assert (moved != before) == (size <= 8192 or offset != size // 2), (size, offset)
+            # Only a change between the blocks of a file longer than 12 KiB goes unseen (it would need forging).
+            assert (moved != before) == (size <= 12_288 or offset != size // 4), (size, offset)
         path.write_bytes(bytes(size))
-        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
         assert files_identity(["a.jpg"], [path]) == before
+        # The same bytes copied elsewhere, with another mtime, keep the key; another name does not.
+        copy = tmp_path / "copied" / path.name
+        copy.parent.mkdir(exist_ok=True)
+        shutil.copyfile(path, copy)
+        os.utime(copy, ns=(st.st_atime_ns + 10**12, st.st_mtime_ns + 10**12))
+        assert files_identity(["a.jpg"], [copy]) == before
+        assert files_identity(["b.jpg"], [copy]) != before
 
 
 def test_files_that_are_not_regular_files_are_one_line(tmp_path: Path) -> None:

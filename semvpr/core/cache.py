@@ -49,30 +49,41 @@ def state_hash(state: dict[str, Any], length: int = 16) -> str:
     return digest.hexdigest()[:length]
 
 
-#: Bytes of each end of a file that its content key hashes (the whole file when it is shorter than both).
+#: Bytes of each of the three blocks (start, middle, end) of a file that its content key hashes (the whole
+#: file when it is no longer than the three).
 CONTENT_BYTES = 4096
 
 
 def files_identity(names: Sequence[str], paths: Sequence[str | Path]) -> str:
-    """Hash of each file's name (as the caller keys it), size, modification time in ns and content
-    (a SHA-256 of its first and last ``CONTENT_BYTES``).
+    """Hash of each file's name (as the caller keys it), size and content (a SHA-256 of its first, middle
+    and last ``CONTENT_BYTES``; the whole file when it is no longer than those three blocks).
 
-    What a cache built from files is keyed by: the same names with other bytes give another key, even
-    an image replaced by another of the same size and mtime (its first and last 4 KiB differ unless
-    forged to match). Two reads of 4 KiB per file; a file that cannot be read as a regular file
-    (missing, a dangling or looping link, a FIFO or device, a NUL in its name) is one line naming it.
+    What a cache built from files is keyed by: the same names with other bytes give another key, even an
+    image replaced by another of the same size (a JPEG's first block holds its tables and header, its last
+    the end of the entropy-coded data). The modification time is not part of it: a dataset copied to another
+    disk (``cp``, ``rsync`` without ``-t``, a container image) keeps its caches, which an mtime key would
+    rebuild, a trained teacher included. Three reads of 4 KiB per file; a file that cannot be read as a
+    regular file (missing, a dangling or looping link, a FIFO or device, a NUL in its name) is one line
+    naming it.
     """
-    digest = hashlib.sha256(b"files-identity v2\n")
+    digest = hashlib.sha256(b"files-identity v3\n")
     for name, path in zip(names, paths, strict=True):
-        size, mtime, content = _file_fingerprint(path)
-        digest.update(f"{name}\0{size}\0{mtime}\0".encode())
+        size, content = _file_fingerprint(path)
+        digest.update(f"{name}\0{size}\0".encode())
         digest.update(content)
         digest.update(b"\n")
     return digest.hexdigest()[:16]
 
 
-def _file_fingerprint(path: str | Path) -> tuple[int, int, bytes]:
-    """(size, mtime_ns, SHA-256 of the first and last CONTENT_BYTES) of a regular file, or one line."""
+def _content_offsets(size: int) -> tuple[int, ...]:
+    """Where the blocks a file's content key hashes start: the whole file in one read when it is short."""
+    if size <= 3 * CONTENT_BYTES:
+        return (0,)
+    return 0, (size - CONTENT_BYTES) // 2, size - CONTENT_BYTES
+
+
+def _file_fingerprint(path: str | Path) -> tuple[int, bytes]:
+    """(size, SHA-256 of the blocks of :func:`_content_offsets`) of a regular file, or one line."""
     try:
         st = os.stat(path)
         if not stat.S_ISREG(st.st_mode):
@@ -84,8 +95,9 @@ def _file_fingerprint(path: str | Path) -> tuple[int, int, bytes]:
             opened = os.fstat(fd)
             if not stat.S_ISREG(opened.st_mode):
                 raise SemvprError(f"{path} is not a regular file; image lists must name image files")
-            head = os.pread(fd, CONTENT_BYTES, 0)
-            tail = os.pread(fd, CONTENT_BYTES, max(opened.st_size - CONTENT_BYTES, CONTENT_BYTES))
+            offsets = _content_offsets(opened.st_size)
+            length = opened.st_size if len(offsets) == 1 else CONTENT_BYTES
+            content = b"".join(os.pread(fd, length, offset) for offset in offsets)
         finally:
             os.close(fd)
     except FileNotFoundError:
@@ -94,7 +106,7 @@ def _file_fingerprint(path: str | Path) -> tuple[int, int, bytes]:
         raise SemvprError(f"image {path} cannot be read ({err.strerror or type(err).__name__})") from None
     except ValueError as err:  # an embedded NUL byte
         raise SemvprError(f"image name {str(path)!r} cannot name a file ({err})") from None
-    return opened.st_size, opened.st_mtime_ns, hashlib.sha256(head + tail).digest()
+    return opened.st_size, hashlib.sha256(content).digest()
 
 
 def artifact_dir(cache_dir: str | Path, kind: str, key: Any) -> Path:

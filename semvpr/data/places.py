@@ -179,7 +179,7 @@ class PlaceSet:
         return Path(path).relative_to(self.root).as_posix()
 
     def identity(self, side: str) -> str:
-        """Hash of one side's ("db" or "q") images and labels by key, size, mtime and content
+        """Hash of one side's ("db" or "q") images and labels by key, size and content
         (``files_identity``: every file is checked to be a readable regular file). Taken once per set."""
         known = self.__dict__.setdefault("_identities", {})
         if side not in known:

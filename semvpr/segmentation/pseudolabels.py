@@ -59,7 +59,7 @@ def read_label(label_dir: str | Path, image: str | Path, root: str | Path) -> np
 
 
 def image_list_identity(paths: Sequence[Path], root: Path) -> str:
-    """Hash of the (sorted) relative paths, sizes and mtimes: the same images give the same labels."""
+    """Hash of the (sorted) relative paths, sizes and contents: the same images give the same labels."""
     named = sorted((p.relative_to(root).as_posix(), p) for p in paths)
     return files_identity([n for n, _ in named], [p for _, p in named])
 

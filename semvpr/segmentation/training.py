@@ -41,7 +41,7 @@ STUDENT_VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's class
 
 
 def dataset_identity(seg: SegmentationSet) -> str:
-    """Hash of a SegmentationSet's files (name, size, mtime: cheap, and survives moving the data) and label table."""
+    """Hash of a SegmentationSet's files (name, size and content: ``files_identity``) and label table."""
     paths = [*seg.images, *seg.labels]
     files = files_identity([p.name for p in paths], paths)
     lut = seg.label_lut  # the same PNGs read with another id table are other targets
