@@ -141,7 +141,7 @@ def test_missing_offline_checkpoint_is_one_line_error(checkpoint: str, tmp_path:
     msg = str(err.value)
     assert "\n" not in msg and checkpoint in msg and "teacher.checkpoint=null" in msg
     if checkpoint.startswith("/"):
-        assert "directory /no/such/dir/mask2former" in msg
+        assert "/no/such/dir/mask2former does not exist" in msg and "hf download" not in msg
     else:
         from huggingface_hub.constants import HF_HUB_CACHE
 
@@ -346,6 +346,33 @@ def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, 
     )
     assert not sentinel.exists()
     assert proc.returncode != 0 and "SemvprError" in proc.stderr and "evil" in proc.stderr.lower()
+
+
+def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
+    """A file, a folder without config.json, and a config.json that is a FIFO (read_text blocked on it forever)."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "empty").mkdir()
+    os.mkfifo((tmp_path / "fifo").mkdir() or tmp_path / "fifo" / "config.json")
+    big = _saved_teacher(tmp_path / "big")
+    (big / "preprocessor_config.json").unlink()
+    (big / "preprocessor_config.json").symlink_to("/dev/zero")
+    for name, message in (
+        ("a_file", "a_file is not a directory"),
+        ("empty", "empty has no config.json"),
+        ("fifo", "fifo/config.json is not a regular file"),
+        ("big", "preprocessor_config.json is not a regular file"),
+    ):
+        code = f"from semvpr.models.teacher import load_pretrained\nload_pretrained({str(tmp_path / name)!r})\n"
+        proc = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+            cwd=Path(__file__).resolve().parents[1], env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        )  # fmt: skip
+        assert proc.returncode != 0 and "SemvprError" in proc.stderr, proc.stderr[-2000:]
+        assert message in proc.stderr.strip().splitlines()[-1], (name, proc.stderr[-500:])
 
 
 @pytest.mark.parametrize(

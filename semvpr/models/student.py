@@ -12,7 +12,6 @@ keys only, the trunk and every weight's name and shape checked.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import atomic_dir, write_json
+from semvpr.core.io import atomic_dir, read_json, write_json
 from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import from_mapping
 from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES
@@ -243,10 +242,7 @@ def _read_spec(path: Path) -> dict[str, Any]:
     """``student.json``, every key and value checked (a plain record of the project's own values)."""
     if not path.is_file():
         raise SemvprError(f"{path} not found; a student directory holds {SPEC_FILE} beside {WEIGHTS_FILE}")
-    try:
-        record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, UnicodeDecodeError) as err:
-        raise SemvprError(f"{path} is not readable JSON ({type(err).__name__})") from None
+    record = read_json(path, "student record")
     if not isinstance(record, dict):
         raise SemvprError(f"{path} is not a JSON object")
     unknown = sorted(set(record) - _SPEC_KEYS)

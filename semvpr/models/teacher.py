@@ -11,7 +11,6 @@ transformer decoder (ARCHITECTURE §3.5)."""
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -28,7 +27,7 @@ from transformers.modeling_outputs import BackboneOutput
 
 from semvpr.core.cache import config_hash
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import write_json
+from semvpr.core.io import read_json, write_json
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import from_mapping, plain
@@ -574,27 +573,28 @@ def _checkpoint_dir(checkpoint: str) -> Path:
     from huggingface_hub.constants import HF_HUB_CACHE
 
     path = Path(checkpoint).expanduser()
-    local = path.is_dir() or checkpoint.startswith((".", "/", "~"))
-    if local and path.is_dir():
+    if path.is_dir():
         return path
-    if not local:
-        try:
-            return Path(snapshot_download(checkpoint, local_files_only=True))
-        except Exception:  # noqa: BLE001 - a bad id or a missing snapshot: the same advice
-            pass
-    where = f"directory {path}" if local else f"the Hugging Face cache {HF_HUB_CACHE}"
+    if path.exists() or checkpoint.startswith((".", "/", "~")):
+        raise SemvprError(
+            f"teacher checkpoint {path} {'is not a directory' if path.exists() else 'does not exist'}; give "
+            f"the folder semvpr.segment saved (<segment run>/teacher), a Hugging Face Mask2Former directory or "
+            "a Hub id in the local cache, or set teacher.checkpoint=null to train the embedded teacher"
+        )
+    try:
+        return Path(snapshot_download(checkpoint, local_files_only=True))
+    except Exception:  # noqa: BLE001 - a bad id or a missing snapshot: the same advice
+        pass
     raise SemvprError(
-        f"teacher checkpoint '{checkpoint}' is not available offline (looked in {where}); download it on "
-        f"a machine with internet into HF_HOME (`hf download {checkpoint}`) and copy that cache here, "
-        "or set teacher.checkpoint=null to train the embedded teacher"
+        f"teacher checkpoint '{checkpoint}' is not available offline (looked in the Hugging Face cache "
+        f"{HF_HUB_CACHE}); download it on a machine with internet into HF_HOME (`hf download {checkpoint}`) "
+        "and copy that cache here, or set teacher.checkpoint=null to train the embedded teacher"
     )
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise SemvprError(f"{path} is not readable JSON ({type(err).__name__})") from None
+    """A JSON object from a teacher directory (size- and depth-limited; a FIFO or device is never opened)."""
+    data = read_json(path, "teacher file")
     if not isinstance(data, dict):
         raise SemvprError(f"{path} is not a JSON object")
     return data
@@ -603,6 +603,11 @@ def _read_json(path: Path) -> dict[str, Any]:
 def _mask2former_config(folder: Path) -> Mask2FormerConfig:
     """The checkpoint's Mask2FormerConfig, refused if it asks for any other (or custom) class."""
     path = folder / "config.json"
+    if not path.exists():
+        raise SemvprError(
+            f"teacher checkpoint {folder} has no config.json; a teacher directory is the folder semvpr.segment "
+            "saved (<segment run>/teacher) or a Hugging Face Mask2Former snapshot"
+        )
     data = _read_json(path)
     if data.get("model_type") != "mask2former" or "auto_map" in data:
         raise SemvprError(
@@ -624,7 +629,7 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
 def _normalisation(folder: Path) -> tuple[Sequence[float], Sequence[float]]:
     """Mean and std on [0,1] pixels from ``preprocessor_config.json``; refused if it asks for more."""
     path = folder / "preprocessor_config.json"
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):  # present but no regular file (a device, a link to none): refused
         return IMAGENET_MEAN, IMAGENET_STD  # HF's Mask2Former default
     data = _read_json(path)
     kind = data.get("image_processor_type")
