@@ -268,6 +268,10 @@ def test_a_frame_pattern_reads_the_frame_number_from_its_group(tmp_path: Path) -
         read_frames(tmp_path, "day", "night", 1, frame_pattern=r"Image(\d+)\.jpg")
     with pytest.raises(SemvprError, match=r"data.frame_pattern='Image\(' is not a regular expression"):
         read_frames(tmp_path, "day", "night", 1, frame_pattern="Image(")
+    # A group that captures digits int() cannot read (a superscript is a digit to str.isdigit) is one line.
+    (tmp_path / "night" / "Image004_v2.jpg").rename(tmp_path / "night" / "Image\u00b2.jpg")
+    with pytest.raises(SemvprError, match="no frame number"):
+        read_frames(tmp_path, "day", "night", 1, frame_pattern=r"Image(\S+)\.jpg")
 
 
 @pytest.fixture(scope="module")

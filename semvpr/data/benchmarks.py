@@ -233,7 +233,7 @@ def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
     for path in images:
         if regex is not None:
             match = regex.fullmatch(path.name)
-            digits = [match.group(1)] if match and match.groups() and (match.group(1) or "").isdigit() else []
+            digits = [match.group(1)] if match and match.groups() and (match.group(1) or "").isdecimal() else []
             expected = f"a name matching data.frame_pattern={pattern!r}"
         else:
             digits = re.findall(r"\d+", path.stem)
