@@ -308,6 +308,9 @@ CASES: dict[str, Case] = {
     "model.margin": Case(TRAIN, lambda t, c: ["model.margin=0.2"], "recipe.margin=0.2"),
     "eval model=netvlad": Case(EVAL, lambda t, c: [f"ckpt={c}", "model=netvlad"], "recipe=triplet"),
     "eval 0-byte ckpt": Case(EVAL, lambda t, c: [f"ckpt={_empty(t)}"], "empty.ckpt"),
+    "eval ckpt in a sweep job's folder, unquoted": Case(
+        EVAL, lambda t, c: [f"ckpt={t}/filter=unet,seed=0/tested.ckpt"], "\"ckpt='"
+    ),
     "eval seed 2**70": Case(EVAL, lambda t, c: [f"ckpt={_seed_2_70(t, c)}"], "seed=1180591620717411303424"),
     "eval NaN UTMs": Case(
         EVAL, lambda t, c: [f"ckpt={c}", "data=folder", f"data.root={_nan_folder(t)}"], "non-finite position"
@@ -459,6 +462,20 @@ def _stage_line(line: str) -> bool:
     return line.startswith("semvpr: ") and not line.startswith("semvpr: error: ")
 
 
+def test_an_unparsable_override_is_named_with_the_quoted_form_that_parses(tmp_path: Path) -> None:
+    from semvpr.config.checks import check_overrides
+    from semvpr.core.errors import SemvprError
+
+    bad = f"ckpt={tmp_path}/filter=unet,seed=0/checkpoints/tested.ckpt"
+    with pytest.raises(SemvprError) as err:
+        check_overrides(["experiment=tiny", bad], "eval")
+    message = str(err.value)
+    assert f"cannot parse the override {bad!r}" in message and "\n" not in message
+    suggested = message.rsplit(": ", 1)[1].strip('"')
+    assert suggested == f"ckpt='{bad.partition('=')[2]}'"
+    check_overrides(["experiment=tiny", suggested], "eval")  # parses and composes
+
+
 def files(folder: Path) -> set[Path]:
     return {Path(d) / n for d, dirs, names in os.walk(folder) for n in names + dirs}
 
@@ -467,6 +484,7 @@ def files(folder: Path) -> set[Path]:
 FAST = {
     "seed=abc",
     "eval 0-byte ckpt",
+    "eval ckpt in a sweep job's folder, unquoted",
     "localize top_k=abc",
     "synthcity --seed -5",
     "resume a run whose record names a _target_",

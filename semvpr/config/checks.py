@@ -117,10 +117,11 @@ def _check_composition(args: list[str], config_name: str, multirun: bool) -> Non
     from hydra import compose, initialize_config_dir
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
+    parser = OverridesParser.create()
     try:
-        parsed = OverridesParser.create().parse_overrides(args)
+        parsed = parser.parse_overrides(args)
     except Exception as err:  # noqa: BLE001 - Hydra's parse errors: one line with its reason
-        raise SemvprError(f"cannot parse the overrides: {_first_line(err)}") from None
+        raise SemvprError(_parse_failure(parser, args, err)) from None
     for override in parsed:
         if override.key_or_group in ("hydra.run.dir", "hydra.sweep.dir") and not override.is_sweep_override():
             value = override.value()
@@ -174,6 +175,24 @@ def _unknown(key: str) -> str:
         f"{key} is not a setting of the project's config (a typo?); nothing would read it, "
         f"so the run would not be the one asked for"
     )
+
+
+def _parse_failure(parser: Any, args: list[str], err: BaseException) -> str:
+    """Hydra's reason a command line does not parse, naming the override at fault; where its value holds
+    ``=`` or ``,`` (a path through a sweep job's folder, ``filter=unet,seed=0``), the quoted form that parses."""
+    for arg in args:
+        try:
+            parser.parse_overrides([arg])
+        except Exception as one:  # noqa: BLE001 - the first override that fails alone
+            key, _, value = arg.partition("=")
+            hint = ""
+            if any(c in value for c in "=,") and "'" not in value:
+                hint = (
+                    f"; a value holding '=' or ',' (a sweep job's folder, e.g. filter=unet,seed=0) is quoted "
+                    f"inside the override: \"{key}='{value}'\""
+                )
+            return f"cannot parse the override {arg!r}: {_first_line(one)}{hint}"
+    return f"cannot parse the overrides: {_first_line(err)}"
 
 
 def _first_line(err: BaseException) -> str:
