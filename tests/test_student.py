@@ -137,3 +137,78 @@ def test_multi_class_student_static_sum_is_its_binary_mask(backbone: VGG16Backbo
     torch.testing.assert_close(
         learned[:, :3].sum(1, keepdim=True), torch.nn.functional.adaptive_avg_pool2d(by_hand[:, None], (2, 3))
     )
+
+
+def test_a_flipping_student_reads_each_image_or_its_mirror_with_its_labels(
+    backbone: VGG16Backbone, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """student.flip: every sample of a batch is an image's own features and labels, or its mirror image's
+    features and its labels mirrored; both occur, about half each."""
+    from semvpr.segmentation.training import fit_student
+
+    n, h, w = 24, SIZE[0] // 4, SIZE[1] // 4
+    student = Student(backbone.frozen_channels, backbone.frozen_strides, strides=(4,), width=8)
+    channels = backbone.frozen_channels[student.skip_indices[0]]
+    # Sample i's features are the constant i + 1, its mirror image's -(i + 1): each read names its source.
+    own = torch.arange(1, n + 1, dtype=torch.float32)[:, None, None, None].expand(n, channels, h, w).contiguous()
+    targets = torch.from_numpy(np.random.default_rng(0).integers(0, 19, (n, *SIZE), dtype=np.uint8))
+    seen: list[tuple[int, bool]] = []
+    reads: list[list[int]] = []
+
+    decode = student.decode
+
+    def spy_decode(chosen: list[torch.Tensor]) -> torch.Tensor:
+        values = chosen[0][:, 0, 0, 0].tolist()
+        reads.append([int(v) for v in values])
+        return decode(chosen)
+
+    real_ce = torch.nn.functional.cross_entropy
+
+    def spy_ce(logits: torch.Tensor, target: torch.Tensor, **kw: object) -> torch.Tensor:
+        for value, t in zip(reads[-1], target, strict=True):
+            i, mirrored = abs(value) - 1, value < 0
+            expected = targets[i].long().flip(-1) if mirrored else targets[i].long()
+            assert torch.equal(t, expected), (i, mirrored)
+            seen.append((i, mirrored))
+        return real_ce(logits, target, **kw)
+
+    monkeypatch.setattr(student, "decode", spy_decode)
+    monkeypatch.setattr(torch.nn.functional, "cross_entropy", spy_ce)
+    spec = StudentSpec(width=8, epochs=4, batch_size=8, bf16=False, flip=True)
+    fit_student(student, [own], targets, spec, mirrored=[-own])
+    assert sorted({i for i, _ in seen}) == list(range(n)) and len(seen) == 4 * n
+    share = sum(m for _, m in seen) / len(seen)
+    assert 0.3 < share < 0.7, share
+    seen.clear()
+    fit_student(student, [own], targets, StudentSpec(width=8, epochs=1, batch_size=8, bf16=False))
+    assert len(seen) == n and not any(m for _, m in seen)
+
+
+def test_a_flipping_student_caches_its_mirror_images_features(backbone: VGG16Backbone, tmp_path: Path) -> None:
+    """The mirrored features are the frozen trunk's of the mirrored images (fp32 here), and flip=true is
+    another student than flip=false (its own cache entry)."""
+    from semvpr.data.images import load_image
+    from semvpr.segmentation.training import cache_skips
+
+    paths, maps = toy_set(tmp_path / "img", 6, seed=0)
+    indices = [0, 1]
+    got = cache_skips(backbone, indices, paths, SIZE, batch_size=4, num_workers=0, bf16=False, mirror=True)
+    images = torch.stack([load_image(p, SIZE) for p in paths]).flip(-1)
+    with torch.no_grad():
+        expected = backbone.forward_frozen(images)
+    for level, i in enumerate(indices):
+        # Stored in bf16: one rounding step apart where the batches' fp32 sums differ in the last bits.
+        torch.testing.assert_close(got[level].float(), expected[i].float(), rtol=8e-3, atol=4e-3)
+    labels = tmp_path / "labels-abc"
+    labels.mkdir()
+    for p, ids in zip(paths, maps):
+        Image.fromarray(ids).save(labels / f"{p.name}.png")
+    cfg = tiny_cfg()
+    cfg.update(epochs=1)
+    build = lambda c: build_student(  # noqa: E731
+        StudentSpec.from_mapping(c), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+    )
+    build(cfg)
+    cfg.update(flip=True)
+    build(cfg)
+    assert len(list((tmp_path / "cache").glob("student-*"))) == 2

@@ -111,16 +111,19 @@ def build_teacher(
 @torch.no_grad()
 def cache_skips(
     backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
-    batch_size: int, num_workers: int, bf16: bool = True,
+    batch_size: int, num_workers: int, bf16: bool = True, mirror: bool = False,
 ) -> list[Tensor]:  # fmt: skip
     """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once);
-    ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower)."""
+    ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower);
+    ``mirror``: of each image's left-right mirror image."""
     device = next(backbone.parameters()).device
     loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
     out: list[list[Tensor]] = [[] for _ in indices]
     # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
     with autocast(device, enabled=bf16):
-        for images, _ in progress(loader, "student features", len(paths), size=lambda b: len(b[0])):
+        what = "student features (mirrored)" if mirror else "student features"
+        for images, _ in progress(loader, what, len(paths), size=lambda b: len(b[0])):
+            images = images.flip(-1) if mirror else images
             skips = backbone.forward_frozen(images.to(device).contiguous(memory_format=torch.channels_last))
             for level, i in enumerate(indices):
                 out[level].append(skips[i].to(torch.bfloat16).contiguous())
@@ -140,10 +143,15 @@ def load_targets(paths: Sequence[Path], label_dir: Path, root: Path, image_size:
     return torch.from_numpy(np.stack(maps))
 
 
-def fit_student(student: Student, skips: list[Tensor], targets: Tensor, spec: StudentSpec) -> dict[str, float]:
+def fit_student(
+    student: Student, skips: list[Tensor], targets: Tensor, spec: StudentSpec, mirrored: list[Tensor] | None = None
+) -> dict[str, float]:
     """Train the decoder on cached features with cross-entropy at image resolution; returns final metrics
     (the static-map IoU against the labels' static map over the last epoch, as that is what the filter uses;
-    it is measured in that epoch only: it reads the logits and nothing else, so training is the same)."""
+    it is measured in that epoch only: it reads the logits and nothing else, so training is the same).
+
+    ``mirrored``: the same features of each image's mirror image (``spec.flip``): a random half of each batch
+    (drawn from the run's seed) is read from there, its labels mirrored."""
     gen = torch.Generator().manual_seed(int(spec.seed))
     n, bs = len(targets), int(spec.batch_size)
     steps = max(1, spec.epochs * math.ceil(n / bs))
@@ -159,8 +167,16 @@ def fit_student(student: Student, skips: list[Tensor], targets: Tensor, spec: St
         for start in range(0, n, bs):
             idx = order[start : start + bs]
             target = targets[idx].to(device).long()
+            chosen = [s[idx].to(device) for s in skips]
+            if mirrored is not None:
+                flip = torch.rand(len(idx), generator=gen) < 0.5
+                target = torch.where(flip[:, None, None].to(device), target.flip(-1), target)
+                chosen = [
+                    torch.where(flip[:, None, None, None].to(device), m[idx].to(device), s)
+                    for m, s in zip(mirrored, chosen, strict=True)
+                ]
             with autocast(device, enabled=bool(spec.bf16)):
-                logits = student.decode([s[idx].to(device) for s in skips])
+                logits = student.decode(chosen)
             logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)
             loss = F.cross_entropy(logits, target, ignore_index=IGNORE)
             opt.zero_grad(set_to_none=True)
@@ -217,8 +233,20 @@ def build_student(
                 int(spec.num_workers),
                 bf16=bool(spec.bf16),
             )
+        mirrored = None
+        if spec.flip:
+            mirrored = cache_skips(
+                backbone,
+                student.skip_indices,
+                paths,
+                size,
+                int(spec.batch_size),
+                int(spec.num_workers),
+                bf16=bool(spec.bf16),
+                mirror=True,
+            )
         student.to(next(backbone.parameters()).device)
-        metrics = fit_student(student, skips, targets, spec)
+        metrics = fit_student(student, skips, targets, spec, mirrored)
         metrics["train_seconds"] = time.perf_counter() - start
         torch.save(student.cpu().state_dict(), out / "student.pt")
         (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
