@@ -349,30 +349,34 @@ def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, 
 
 
 def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
-    """A file, a folder without config.json, and a config.json that is a FIFO (read_text blocked on it forever)."""
+    """A file, a folder without config.json, a preprocessor config that is a device, and a config.json that
+    is a FIFO (read_text blocked on it forever: that one in a subprocess with a time limit)."""
     import os
     import subprocess
     import sys
 
     (tmp_path / "a_file").write_text("x")
     (tmp_path / "empty").mkdir()
-    os.mkfifo((tmp_path / "fifo").mkdir() or tmp_path / "fifo" / "config.json")
     big = _saved_teacher(tmp_path / "big")
     (big / "preprocessor_config.json").unlink()
     (big / "preprocessor_config.json").symlink_to("/dev/zero")
     for name, message in (
         ("a_file", "a_file is not a directory"),
         ("empty", "empty has no config.json"),
-        ("fifo", "fifo/config.json is not a regular file"),
         ("big", "preprocessor_config.json is not a regular file"),
     ):
-        code = f"from semvpr.models.teacher import load_pretrained\nload_pretrained({str(tmp_path / name)!r})\n"
-        proc = subprocess.run(
-            [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-            cwd=Path(__file__).resolve().parents[1], env={**os.environ, "HF_HUB_OFFLINE": "1"},
-        )  # fmt: skip
-        assert proc.returncode != 0 and "SemvprError" in proc.stderr, proc.stderr[-2000:]
-        assert message in proc.stderr.strip().splitlines()[-1], (name, proc.stderr[-500:])
+        with pytest.raises(SemvprError, match=message) as err:
+            teacher_mod.load_pretrained(str(tmp_path / name))
+        assert "\n" not in str(err.value)
+    (tmp_path / "fifo").mkdir()
+    os.mkfifo(tmp_path / "fifo" / "config.json")
+    code = f"from semvpr.models.teacher import load_pretrained\nload_pretrained({str(tmp_path / 'fifo')!r})\n"
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+        cwd=Path(__file__).resolve().parents[1], env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )  # fmt: skip
+    assert proc.returncode != 0, proc.stderr[-2000:]
+    assert "fifo/config.json is not a regular file" in proc.stderr.strip().splitlines()[-1], proc.stderr[-500:]
 
 
 @pytest.mark.parametrize(
