@@ -10,6 +10,7 @@ import json
 import math
 import time
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 
 import lightning as L
@@ -220,31 +221,16 @@ def build_student(
         student = student_architecture(spec, backbone)
         start = time.perf_counter()
         targets = load_targets(paths, label_dir, root, size)
+        features = partial(
+            cache_skips, backbone, student.skip_indices, paths, size, int(spec.batch_size), int(spec.num_workers),
+            bf16=bool(spec.bf16),
+        )  # fmt: skip
         if trunk is not None:
             outputs = trunk(paths)
             skips = [outputs[i].contiguous() for i in student.skip_indices]
         else:
-            skips = cache_skips(
-                backbone,
-                student.skip_indices,
-                paths,
-                size,
-                int(spec.batch_size),
-                int(spec.num_workers),
-                bf16=bool(spec.bf16),
-            )
-        mirrored = None
-        if spec.flip:
-            mirrored = cache_skips(
-                backbone,
-                student.skip_indices,
-                paths,
-                size,
-                int(spec.batch_size),
-                int(spec.num_workers),
-                bf16=bool(spec.bf16),
-                mirror=True,
-            )
+            skips = features()
+        mirrored = features(mirror=True) if spec.flip else None
         student.to(next(backbone.parameters()).device)
         metrics = fit_student(student, skips, targets, spec, mirrored)
         metrics["train_seconds"] = time.perf_counter() - start
