@@ -31,9 +31,11 @@ export HF_HUB_OFFLINE=1
 [ -f "$OUT/learned/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=unet,mask2former \
   filter.weights=learned paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/learned"
 
-# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command).
+# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command), the student
+#    trained without mirrored half-batches (camvid-semantic's S5), as this experiment evaluated it; the
+#    mirrored student chosen since (S8) has not been evaluated on Gardens Point.
 [ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
-  hydra.run.dir="$OUT/camvid"
+  student.flip=false hydra.run.dir="$OUT/camvid"
 TEACHER="$OUT/camvid/teacher"
 STUDENT="$OUT/camvid/student_efficientnet_lite0"
 
