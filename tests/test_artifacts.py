@@ -147,3 +147,30 @@ def test_files_that_are_not_regular_files_are_one_line(tmp_path: Path) -> None:
         with pytest.raises(SemvprError, match=message) as err:
             files_identity([name], [f"{tmp_path}/{name}"])
         assert "\n" not in str(err.value)
+
+
+def test_typed_settings_refuse_values_of_another_kind() -> None:
+    """A config value of the wrong kind is one line naming it: a string where a switch is expected was
+    truthy (``student.flip=maybe`` mirrored), a fraction where a count is expected reached range()."""
+    from semvpr.core.errors import SemvprError
+    from semvpr.models.student import StudentSpec
+    from semvpr.models.teacher import TeacherSpec
+
+    for node, message in (
+        ({"flip": "maybe"}, "student.flip='maybe': expected true or false"),
+        ({"epochs": 2.5}, "student.epochs=2.5: expected a whole number"),
+        ({"epochs": True}, "student.epochs=True: expected a whole number"),
+        ({"max_images": "all"}, "student.max_images='all': expected a whole number or null"),
+        ({"strides": [4, "8"]}, r"student.strides=\[4, '8'\]: expected a list of whole numbers"),
+        ({"lr": "fast"}, "student.lr='fast': expected a number"),
+    ):
+        with pytest.raises(SemvprError, match=message):
+            StudentSpec.from_mapping(node)
+    with pytest.raises(SemvprError, match="teacher.train.val_every='x': expected a whole number or null"):
+        TeacherSpec.from_mapping({"train": {"val_every": "x"}})
+    with pytest.raises(SemvprError, match="teacher.inference_size=7: expected a list of whole numbers or null"):
+        TeacherSpec.from_mapping({"inference_size": 7})
+    # What fits is taken as given: ints for floats, null where allowed, lists for sequences.
+    spec = StudentSpec.from_mapping({"flip": True, "lr": 1, "max_images": None, "strides": [8, 16]})
+    assert spec.flip is True and spec.lr == 1 and spec.max_images is None and list(spec.strides) == [8, 16]
+    assert TeacherSpec.from_mapping({"inference_size": None, "train": {"val_every": 3}}).train.val_every == 3

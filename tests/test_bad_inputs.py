@@ -297,6 +297,7 @@ def _no_descriptors(cache: Path) -> None:
 CASES: dict[str, Case] = {
     "num_clusters=abc": Case(TRAIN, lambda t, c: ["model.num_clusters=abc"], "model.num_clusters='abc'"),
     "seed=abc": Case(TRAIN, lambda t, c: ["seed=abc"], "seed='abc'"),
+    "student.flip=maybe": Case(TRAIN, lambda t, c: ["student.flip=maybe"], "student.flip='maybe': expected true"),
     "seed=-1": Case(TRAIN, lambda t, c: ["seed=-1"], "seed=-1"),
     "lr=-1": Case(TRAIN, lambda t, c: ["recipe.optimizer.lr=-1"], "recipe.optimizer.lr=-1"),
     "num_figure_queries=0": Case(TRAIN, lambda t, c: ["num_figure_queries=0"], "num_figure_queries=0"),
@@ -483,6 +484,7 @@ def files(folder: Path) -> set[Path]:
 #: The rows that run by default (each starts a Python with torch): one per class; the whole table with -m slow.
 FAST = {
     "seed=abc",
+    "student.flip=maybe",
     "eval 0-byte ckpt",
     "eval ckpt in a sweep job's folder, unquoted",
     "localize top_k=abc",

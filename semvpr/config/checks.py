@@ -226,10 +226,23 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         value = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
         if isinstance(value, str):
             check_path_text(value, key)
+    _check_semantic_settings(cfg)
     if "model" in cfg:
         _check_retrieval(cfg)
     if "seg" in cfg:
         _check_segmentation(cfg)
+
+
+def _check_semantic_settings(cfg: DictConfig) -> None:
+    """The teacher's and the student's typed settings, where the config has them: a value of the wrong
+    kind (``student.flip=maybe``) is one line before any work, not a truthy surprise after it."""
+    from semvpr.models.student import StudentSpec
+    from semvpr.models.teacher import TeacherSpec
+
+    if cfg.get("teacher") is not None:
+        TeacherSpec.from_mapping(cfg.teacher)
+    if cfg.get("student") is not None:
+        StudentSpec.from_mapping(cfg.student)
 
 
 #: Settings that name a file or folder to read; a NUL or an over-long name is refused before any reader.

@@ -4,7 +4,9 @@ takes named, typed values instead of a whole ``DictConfig``."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import types
+import typing
+from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
 from omegaconf import DictConfig, OmegaConf
@@ -38,4 +40,42 @@ def from_mapping(cls: type[S], node: Mapping[str, Any], where: str) -> S:
     ]
     if missing:
         raise SemvprError(f"{where}.{missing[0]} is not set")
+    hints = typing.get_type_hints(cls)
+    for name, value in values.items():
+        expected = _expected(hints[name], value)
+        if expected is not None:
+            raise SemvprError(f"{where}.{name}={value!r}: expected {expected}")
     return cls(**values)  # type: ignore[call-arg]
+
+
+def _expected(hint: Any, value: Any) -> str | None:
+    """What a setting of type ``hint`` takes, where ``value`` is not that (None where it fits, or where the
+    type is not one of the plain kinds checked here: bool, int, float, str, sequences of them, optional)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        kinds = [a for a in args if a is not type(None)]
+        wrong = [_expected(k, value) for k in kinds]
+        if any(w is None for w in wrong):
+            return None
+        return " or ".join(w for w in wrong if w) + (" or null" if type(None) in args else "")
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "a whole number"
+    if hint is float:
+        return None if isinstance(value, int | float) and not isinstance(value, bool) else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "a string"
+    if origin in (Sequence, list, tuple) and len(args) == 1 or (origin is tuple and args[-1:] == (Ellipsis,)):
+        item = args[0]
+        if not isinstance(value, list | tuple):
+            return f"a list of {_kind(item)}"
+        return None if all(_expected(item, v) is None for v in value) else f"a list of {_kind(item)}"
+    return None
+
+
+def _kind(hint: Any) -> str:
+    """A plain type's name in an error line."""
+    return {bool: "true / false", int: "whole numbers", float: "numbers", str: "strings"}.get(hint, str(hint))
