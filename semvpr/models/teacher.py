@@ -629,8 +629,8 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
 def _normalisation(folder: Path) -> tuple[Sequence[float], Sequence[float]]:
     """Mean and std on [0,1] pixels from ``preprocessor_config.json``; refused if it asks for more."""
     path = folder / "preprocessor_config.json"
-    if not (path.exists() or path.is_symlink()):  # present but no regular file (a device, a link to none): refused
-        return IMAGENET_MEAN, IMAGENET_STD  # HF's Mask2Former default
+    if not (path.exists() or path.is_symlink()):  # absent: HF's Mask2Former default
+        return IMAGENET_MEAN, IMAGENET_STD  # (anything there, a device or a dangling link too, is read or refused)
     data = _read_json(path)
     kind = data.get("image_processor_type")
     if kind not in PROCESSOR_TYPES or "auto_map" in data:
