@@ -226,11 +226,12 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         value = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
         if isinstance(value, str):
             check_path_text(value, key)
-    _check_semantic_settings(cfg)
     if "model" in cfg:
         _check_retrieval(cfg)
     if "seg" in cfg:
         _check_segmentation(cfg)
+    # After the keys they interpolate (teacher.image_size is ${data.image_size}): the error names the source.
+    _check_semantic_settings(cfg)
 
 
 def _check_semantic_settings(cfg: DictConfig) -> None:
