@@ -48,7 +48,8 @@ class StudentSpec:
     #: Train on at most this many of the given images (a fixed random subset; None = all).
     max_images: int | None = None
     #: Mirror a random half of each batch: the frozen features of each image's mirror image (one more trunk
-    #: pass, cached like the first) with its labels mirrored. Off: every step as without the option.
+    #: pass while the student is built; the student is cached) with its labels mirrored. Off: every step as
+    #: without the option.
     flip: bool = False
     seed: int = 0
     #: A student directory saved by ``semvpr.segment`` (read by eval, localize and the hub); None = trained.
