@@ -57,6 +57,34 @@ def test_epoch_lines_show_metrics_and_eta(monkeypatch: pytest.MonkeyPatch) -> No
     )
 
 
+def test_long_epochs_get_step_lines_with_an_eta(monkeypatch: pytest.MonkeyPatch) -> None:
+    # fit start t=0; steps end at t=30 (under every_s), 70 (a line), 100 (under every_s since 70), 140 (the
+    # epoch's last step: the epoch line follows instead), epoch end t=150; epoch 2's first step t=215.
+    clock = iter([0.0, 30.0, 70.0, 100.0, 140.0, 150.0, 215.0])
+    monkeypatch.setattr(logs.time, "monotonic", lambda: next(clock))
+    out = io.StringIO()
+    cb = logs.EpochLines("teacher", stream=out, every_s=60)
+    trainer = SimpleNamespace(
+        current_epoch=0, max_epochs=3, num_training_batches=4, sanity_checking=False, is_global_zero=True,
+        callback_metrics={},
+    )  # fmt: skip
+    cb.on_fit_start(trainer, None)  # type: ignore[arg-type]
+    cb.on_train_start(trainer, None)  # type: ignore[arg-type]
+    for step in range(4):
+        cb.on_train_batch_end(trainer, None, None, None, step)  # type: ignore[arg-type]
+    cb.on_train_epoch_end(trainer, None)  # type: ignore[arg-type]
+    trainer.current_epoch = 1
+    cb.on_train_batch_end(trainer, None, None, None, 0)  # type: ignore[arg-type]
+    assert out.getvalue().splitlines() == [
+        "semvpr: teacher: 3 epochs of 4 steps",
+        # 2 of 12 steps in 70 s: 10 left at 35 s each
+        "semvpr: teacher: epoch 1/3: step 2/4 (70 s elapsed, ETA 5.8 min)",
+        "semvpr: teacher: epoch 1/3 (2.5 min elapsed, ETA 5.0 min)",
+        # 5 of 12 steps in 215 s: 7 left at 43 s each
+        "semvpr: teacher: epoch 2/3: step 1/4 (3.6 min elapsed, ETA 5.0 min)",
+    ]
+
+
 def test_known_noise_is_hidden_and_the_rest_kept(caplog: pytest.LogCaptureFixture) -> None:
     logs.quiet_third_party()
     logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
@@ -106,4 +134,7 @@ def test_a_trainer_built_with_trainer_kwargs_prints_only_stage_lines(
     trainer.fit(Tiny(), data)
     captured = capfd.readouterr()
     lines = [line for line in (captured.out + captured.err).splitlines() if line.strip()]
-    assert len(lines) == 2 and all(re.match(r"semvpr: tiny: epoch [12]/2: train/loss ", line) for line in lines), lines
+    assert lines[0] == "semvpr: tiny: 2 epochs of 2 steps", lines
+    assert len(lines) == 3 and all(re.match(r"semvpr: tiny: epoch [12]/2: train/loss ", line) for line in lines[1:]), (
+        lines
+    )
