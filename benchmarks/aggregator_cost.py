@@ -25,6 +25,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from semvpr.config.components import options
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
 
@@ -58,6 +59,7 @@ def step_ms(agg: torch.nn.Module, batch: int, repeats: int, bf16: bool) -> float
     return 1000.0 * sorted(times)[len(times) // 2]
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batch", type=int, default=64)

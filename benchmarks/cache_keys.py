@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semvpr.core.errors import exit_on_user_error
 from semvpr.data.places import PlaceSet
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
@@ -79,6 +80,7 @@ def timed(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
     return times[0], statistics.median(times[1:]) if len(times) > 1 else times[0]
 
 
+@exit_on_user_error
 def main() -> None:
     """Write the placeholders once, then time both keys over both sides."""
     ap = argparse.ArgumentParser(description=main.__doc__)

@@ -42,6 +42,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from semvpr.config.build import build_backbone
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
@@ -166,6 +167,7 @@ def parse_weight(text: str) -> tuple[str, float]:
     return name, float(value)
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="default")

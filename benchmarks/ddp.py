@@ -29,6 +29,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from semvpr.core.errors import exit_on_user_error
 from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.retrieval.distributed import rank_slice, sharded
@@ -119,6 +120,7 @@ def measure(rank: int, world: int, args: argparse.Namespace, port: int, out: str
         dist.destroy_process_group()
 
 
+@exit_on_user_error
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--db", type=int, default=192)

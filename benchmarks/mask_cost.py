@@ -39,6 +39,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
 from semvpr.models.backbones import EfficientNetLite0Backbone
@@ -64,6 +65,7 @@ def seconds_per_image(run: Callable[[], object], batch: int, repeats: int) -> fl
     return sorted(times)[len(times) // 2] / batch
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batch", type=int, default=8)

@@ -33,6 +33,8 @@ from torch.utils.data import DataLoader
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sweep_cost import FILTERS, REPO, describe, job_timings  # noqa: E402
 
+from semvpr.core.errors import exit_on_user_error  # noqa: E402
+
 
 def fresh_install(work: Path) -> tuple[float, Path]:
     """(seconds, the clone's Python) of the README's install in a fresh clone of HEAD under ``work``."""
@@ -114,6 +116,7 @@ def stage_breakdown(sweep_s: float, jobs: dict[str, dict[str, float]]) -> str:
     return "stages: " + ", ".join(f"{name} {v:.0f} s" for name, v in totals.items()) + f", outside jobs {other:.0f} s"
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--override", action="append", default=[], help="extra Hydra override of the sweep")

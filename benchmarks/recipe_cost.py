@@ -26,6 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.build import build_datamodule, build_retriever, init_aggregator, prepare
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import lightning_precision
@@ -70,6 +71,7 @@ def epoch_seconds(cfg, job) -> tuple[float, float, dict]:
     return train_s, time.perf_counter() - tic, {**datamodule.epoch_facts(), "steps": trainer.global_step}
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache-dir", type=Path, default=Path("outputs/cache"))

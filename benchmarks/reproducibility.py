@@ -26,6 +26,8 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from semvpr.core.errors import exit_on_user_error
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -65,6 +67,7 @@ def same_weights(a: dict, b: dict) -> bool:
     return wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--filters", nargs="+", default=["attention", "unet"])

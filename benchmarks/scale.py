@@ -28,6 +28,7 @@ import torch
 from PIL import Image
 
 from semvpr.config.build import build_backbone, build_mask_source, build_retriever
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.precision import autocast
 
 REPO = Path(__file__).resolve().parents[1]
@@ -107,6 +108,7 @@ def trunk_images_per_s(hw: tuple[int, int], batch: int, reps: int = 2) -> float:
     return reps * batch / (time.perf_counter() - start)
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs=2, default=(250, 1000))

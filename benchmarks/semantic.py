@@ -28,6 +28,7 @@ from PIL import Image
 from torch.utils.data import DataLoader
 from torchmetrics.classification import MulticlassJaccardIndex
 
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.images import ImageDataset
@@ -99,6 +100,7 @@ def student_scores(student, backbone, teacher, paths, label_paths, size, lut) ->
     return {k: v.value() for k, v in scores.items()}
 
 
+@exit_on_user_error
 def main() -> None:
     """Run the three stages from scratch and print their timings and quality."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

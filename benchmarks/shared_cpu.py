@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from semvpr.core.errors import exit_on_user_error
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -47,6 +49,7 @@ def timed(work: Path, names: list[str], overrides: list[str]) -> list[float]:
     return out
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, help="work folder to keep (default: a temporary one, removed)")

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 from torch import Tensor
 
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
 from semvpr.data.places import positives_within
@@ -196,6 +197,7 @@ def bench_recall(dim: int = 4096) -> float:
     return total
 
 
+@exit_on_user_error
 def main() -> None:
     """Run the four measurements and print the summary line."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from semvpr.core.errors import exit_on_user_error
+
 REPO = Path(__file__).resolve().parents[1]
 FILTERS = "none,attention,unet,mask2former"
 
@@ -77,6 +79,7 @@ def describe(wall: float, jobs: dict[str, dict[str, float]]) -> str:
     return f"sweep {wall:.0f} s; " + "; ".join(parts)
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before", required=True, help="git revision of the baseline")

@@ -21,8 +21,10 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.build import build_backbone
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.data.camvid import read_camvid
+from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import load_student
 from semvpr.reporting.paired import RESAMPLES
 from semvpr.segmentation.confusion import Confusion, binary_pred, mask_scores
@@ -31,11 +33,13 @@ from semvpr.segmentation.scoring import loader, student_prob
 KEY = "dynamic_iou"
 
 
-def frame_counts(folder: Path, backbone: torch.nn.Module, root: Path, split: str, size: list[int]) -> np.ndarray:
+def frame_counts(
+    folder: Path, backbone: torch.nn.Module, frames: SegmentationSet, split: str, size: list[int]
+) -> np.ndarray:
     """(frames, 19, 3) confusion counts of one student's binary mask, frame by frame."""
     student = load_student(folder, backbone)
     counts = []
-    for images, labels, _ in loader(read_camvid(root, split), size, batch_size=8, num_workers=0):
+    for images, labels, _ in loader(frames, size, batch_size=8, num_workers=0):
         prob = student_prob(student, backbone, images, size, bf16=True)
         for frame, label in enumerate(labels):
             if tuple(label.shape) != tuple(size):
@@ -46,6 +50,7 @@ def frame_counts(folder: Path, backbone: torch.nn.Module, root: Path, split: str
     return np.stack(counts)
 
 
+@exit_on_user_error
 def main() -> None:
     """Score both students frame by frame and print the paired difference with its interval."""
     ap = argparse.ArgumentParser(description=main.__doc__)
@@ -59,7 +64,8 @@ def main() -> None:
         cfg = compose("segment", overrides=[f"seg.root={args.root.resolve()}"])
     backbone = build_backbone(cfg.backbones.efficientnet_lite0, int(cfg.seed)).eval()
     size, static = [int(v) for v in cfg.seg.image_size], list(cfg.teacher.static_classes)
-    a, b = (frame_counts(d, backbone, args.root, args.split, size) for d in (args.a, args.b))
+    frames = read_camvid(args.root, args.split)  # a wrong --root says so before any student is loaded
+    a, b = (frame_counts(d, backbone, frames, args.split, size) for d in (args.a, args.b))
     score = lambda counts: mask_scores(counts.sum(0), static)[KEY]  # noqa: E731
     rng = np.random.default_rng(0)
     diffs = []

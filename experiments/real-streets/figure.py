@@ -19,6 +19,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.restore import load_retriever
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
@@ -42,6 +43,7 @@ def grid_masks(overrides: list[str], images: torch.Tensor) -> np.ndarray:
     return torch.nn.functional.interpolate(grid, size=hw, mode="nearest")[:, 0].numpy()
 
 
+@exit_on_user_error
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="the OUT directory of run.sh")

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import read_json, write_text
 from semvpr.reporting.paired import paired_gain
 
@@ -128,6 +129,7 @@ def table(pair: str, cells: dict[tuple[str, str], dict[int, tuple[dict, np.ndarr
     return lines
 
 
+@exit_on_user_error
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="the OUT directory of run.sh")

@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from semvpr.core.errors import exit_on_user_error  # noqa: E402
 from semvpr.data.synthcity import read_split  # noqa: E402
 from semvpr.data.synthcity_render import (
     DYNAMIC_MIN,
@@ -48,6 +49,7 @@ def overlay(image: np.ndarray, label: np.ndarray) -> np.ndarray:
     return out
 
 
+@exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache-dir", default="outputs/cache")
