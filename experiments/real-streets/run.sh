@@ -33,9 +33,10 @@ export HF_HUB_OFFLINE=1
 
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command), the student
 #    trained without mirrored half-batches (camvid-semantic's S5), as this experiment evaluated it; the
-#    mirrored student chosen since (S8) has not been evaluated on Gardens Point.
+#    mirrored student chosen since (S8) has not been evaluated on Gardens Point. One thread, as they trained
+#    (another thread count trains other weights).
 [ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
-  student.flip=false hydra.run.dir="$OUT/camvid"
+  student.flip=false threads=1 hydra.run.dir="$OUT/camvid"
 TEACHER="$OUT/camvid/teacher"
 STUDENT="$OUT/camvid/student_efficientnet_lite0"
 

@@ -49,6 +49,15 @@ def dataset_identity(seg: SegmentationSet) -> str:
     return config_hash(files if lut is None else [files, list(lut)])
 
 
+def training_threads() -> int:
+    """The torch threads a training run here gets (the caller's ``Threads.stage``), part of its artifact's key:
+    a multi-threaded CPU reduction splits its sums by thread, so the same training at another thread count
+    ends with other weights (one teacher step's gradients measured to differ at 1 and 2 threads), and a
+    cached teacher or student must be the one this run's settings would train. Frozen passes (trunk, masks,
+    pseudo-labels) were measured bit-identical at 1 and 2 threads and keep their keys."""
+    return torch.get_num_threads()
+
+
 def _train(spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationSet, out: Path) -> None:
     """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
     from lightning.pytorch.loggers import CSVLogger
@@ -95,6 +104,7 @@ def build_teacher(
             "train": {k: v for k, v in dataclasses.asdict(spec.train).items() if k != "val_every"},
             "train_set": dataset_identity(seg_train),
             "val_set": dataset_identity(seg_val),
+            "threads": training_threads(),
         }  # fmt: skip
         art = build_once(cache_dir, "teacher", key, lambda tmp: _train(spec, seg_train, seg_val, tmp))
         # The architecture comes from the config, only weights from the (possibly shared) cache.
@@ -213,8 +223,8 @@ def build_student(
         paths = [paths[i] for i in sorted(keep.tolist())]
     size = [int(image_size[0]), int(image_size[1])]
     settings = {k: v for k, v in dataclasses.asdict(spec).items() if k != "checkpoint"}  # read, never trained
-    key = {"version": STUDENT_VERSION, "student": settings,
-           "backbone": backbone.frozen_identity(), "labels": label_dir.name, "image_size": size}  # fmt: skip
+    key = {"version": STUDENT_VERSION, "student": settings, "backbone": backbone.frozen_identity(),
+           "labels": label_dir.name, "image_size": size, "threads": training_threads()}  # fmt: skip
 
     def build(out: Path) -> None:
         torch.manual_seed(int(spec.seed))
