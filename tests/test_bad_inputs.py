@@ -833,12 +833,12 @@ def test_every_script_main_turns_a_user_error_into_one_line(script: Path) -> Non
     ("script", "args", "fragment"),
     [
         (
-            "experiments/camvid-semantic/paired_students.py",
+            "experiments/camvid-semantic/paired_masks.py",
             ["{tmp}/a", "{tmp}/b", "--root", "{tmp}/camvid"],
             "CamVid root",
         ),
         (
-            "experiments/camvid-semantic/paired_students.py",
+            "experiments/camvid-semantic/paired_masks.py",
             ["{tmp}/a", "{tmp}/b", "--root", "{camvid}"],
             "student directory",
         ),

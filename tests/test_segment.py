@@ -237,3 +237,26 @@ def test_vpr_run_uses_the_saved_teacher(segment_run: tuple[Path, DictConfig], tm
     metrics = run_job(cfg, tmp_path / "vpr")
     assert metrics["status"] == "ok" and 0.0 <= metrics["test/R@1"] <= 100.0
     assert not list((tmp_path / "cache").glob("teacher-*"))  # nothing trained: the saved teacher was used
+
+
+def test_paired_masks_scores_each_saved_source_as_the_run_did(segment_run: tuple[Path, DictConfig]) -> None:
+    """experiments/camvid-semantic/paired_masks.py on the run's saved teacher and student: each one's val
+    dynamic IoU, pooled from its frame-by-frame counts, is the run's own val score, and the paired interval
+    holds the observed difference."""
+    run_dir, cfg = segment_run
+    results = json.loads((run_dir / "results.json").read_text())
+    size = ",".join(str(v) for v in cfg.seg.image_size)
+    proc = subprocess.run(
+        [
+            sys.executable, str(REPO / "experiments/camvid-semantic/paired_masks.py"),
+            str(run_dir / "teacher"), str(run_dir / "student_efficientnet_lite0"), "--root", str(cfg.seg.root),
+            "--resamples", "200", f"seg.image_size=[{size}]",
+        ],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(REPO)},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    line = dict(field.split("=") for field in proc.stdout.strip().splitlines()[-1].split())
+    assert line["split"] == "val" and int(line["frames"]) == results["dataset"]["val"]
+    assert float(line["a"]) == pytest.approx(results["teacher"]["val"]["dynamic_iou"], abs=1e-4)
+    assert float(line["b"]) == pytest.approx(results["student_efficientnet_lite0"]["val"]["dynamic_iou"], abs=1e-4)
+    assert float(line["low"]) <= float(line["diff"]) <= float(line["high"])

@@ -77,7 +77,7 @@ def student_prob(student: nn.Module, backbone: nn.Module, images: Tensor, size: 
     return student.static_prob(skips, out_hw=size)
 
 
-def _by_size(labels: list[Tensor]) -> dict[tuple[int, ...], list[int]]:
+def by_size(labels: list[Tensor]) -> dict[tuple[int, ...], list[int]]:
     """Batch positions grouped by label size (usually one group)."""
     groups: dict[tuple[int, ...], list[int]] = {}
     for i, label in enumerate(labels):
@@ -99,7 +99,7 @@ def score_teacher(
     for images, labels, _ in progress(
         loader(seg, image_size, batch_size, num_workers), "teacher scores", len(seg), size=lambda b: len(b[0])
     ):
-        for size, pos in _by_size(labels).items():
+        for size, pos in by_size(labels).items():
             ids, prob = teacher_outputs(teacher, images[pos], size, static_names)
             target = torch.stack([labels[i] for i in pos])
             class_conf.update(ids, target)
@@ -122,7 +122,7 @@ def score_student(
     for images, labels, _ in progress(
         loader(seg, image_size, batch_size, num_workers), "student scores", len(seg), size=lambda b: len(b[0])
     ):
-        for size, pos in _by_size(labels).items():
+        for size, pos in by_size(labels).items():
             prob = student_prob(student, backbone, images[pos], size, bf16)
             conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))
     return mask_scores(conf.counts, static_names)
