@@ -138,3 +138,20 @@ def test_a_trainer_built_with_trainer_kwargs_prints_only_stage_lines(
     assert len(lines) == 3 and all(re.match(r"semvpr: tiny: epoch [12]/2: train/loss ", line) for line in lines[1:]), (
         lines
     )
+
+
+def test_loading_a_saved_teacher_prints_no_transformers_progress_bar(
+    tmp_path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    from transformers.utils import logging as hf_logging
+
+    from semvpr.models.teacher import load_pretrained
+    from tests.helpers import write_teacher_dir
+
+    folder = write_teacher_dir(tmp_path / "teacher")
+    capfd.readouterr()
+    assert hf_logging.is_progress_bar_enabled()
+    load_pretrained(str(folder))
+    captured = capfd.readouterr()
+    assert "Loading weights" not in captured.err + captured.out, captured.err
+    assert hf_logging.is_progress_bar_enabled()  # restored for whatever else the process loads

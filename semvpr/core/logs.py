@@ -15,6 +15,7 @@ import sys
 import time
 import warnings
 from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from typing import Any, TextIO, TypeVar
 
 import lightning as L
@@ -70,6 +71,21 @@ def quiet_third_party() -> None:
                 handler.addFilter(_FILTER)
     for pattern in NOISE_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
+
+
+@contextmanager
+def no_hf_progress_bars() -> Iterator[None]:
+    """Hide transformers' progress bars (``Loading weights: 100%|...``, printed at every checkpoint load:
+    once per evaluation with a teacher mask) for the block; the previous setting is restored."""
+    from transformers.utils import logging as hf_logging
+
+    shown = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if shown:
+            hf_logging.enable_progress_bar()
 
 
 def _duration(seconds: float) -> str:

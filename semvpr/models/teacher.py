@@ -28,6 +28,7 @@ from transformers.modeling_outputs import BackboneOutput
 from semvpr.core.cache import config_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import read_json, write_json
+from semvpr.core.logs import no_hf_progress_bars
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import from_mapping, plain
@@ -508,13 +509,14 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
             f"teacher checkpoint {folder} has none of {list(WEIGHT_FILES)} (sharded or other weight files are not read)"
         )
     try:
-        model = Mask2FormerForUniversalSegmentation.from_pretrained(
-            folder,
-            config=config,
-            local_files_only=True,
-            use_safetensors=weights.suffix == ".safetensors",
-            trust_remote_code=False,
-        )
+        with no_hf_progress_bars():
+            model = Mask2FormerForUniversalSegmentation.from_pretrained(
+                folder,
+                config=config,
+                local_files_only=True,
+                use_safetensors=weights.suffix == ".safetensors",
+                trust_remote_code=False,
+            )
     except Exception as err:  # noqa: BLE001 - any unreadable weight file gets the same one line
         raise SemvprError(
             f"teacher weights {weights} are unreadable ({type(err).__name__}: "
