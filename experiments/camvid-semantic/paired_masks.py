@@ -80,6 +80,8 @@ def main() -> None:
     ap.add_argument("--resamples", type=int, default=RESAMPLES)
     ap.add_argument("overrides", nargs="*", help="overrides of conf/segment.yaml, as the run that saved them had")
     args = ap.parse_intermixed_args()  # overrides may follow the options
+    if args.resamples < 1:
+        ap.error(f"--resamples {args.resamples}: at least 1")
     with initialize_config_dir(str(CONF_DIR), version_base=None):
         cfg = compose("segment", overrides=[f"seg.root={args.root.resolve()}", *args.overrides])
     frames = read_camvid(args.root, args.split)  # a wrong --root says so before any model is loaded
