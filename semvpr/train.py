@@ -225,11 +225,24 @@ def _seed_of(cfg: DictConfig) -> int | str | None:
 
 
 class Interrupted(BaseException):
-    """SIGTERM / SIGINT: stop the job and the whole sweep; not a job failure."""
+    """SIGTERM / SIGINT: stop the job and the whole sweep; not a job failure. ``run_dir``: the job it stopped."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+        self.run_dir: Path | None = None
 
 
 def _interrupt(signum: int, _frame: object) -> None:
-    raise Interrupted(f"stopped by {signal.Signals(signum).name}")
+    raise Interrupted(signum)
+
+
+def interrupted_line(stop: Interrupted) -> str:
+    """The one line a stopped job leaves: the signal, and how to resume it where it has a last.ckpt."""
+    if stop.run_dir is None:
+        return f"semvpr: error: {stop}"
+    if (stop.run_dir / "checkpoints" / "last.ckpt").is_file():
+        return f"semvpr: error: {stop}; resume it: python -m semvpr.train ckpt_path=last hydra.run.dir={stop.run_dir}"
+    return f"semvpr: error: {stop} before its first epoch ended ({stop.run_dir}: nothing to resume)"
 
 
 def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str, Any]:
@@ -247,6 +260,9 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     previous = {sig: signal.signal(sig, _interrupt) for sig in signals}
     try:
         metrics = fit_and_test(cfg, run_dir)
+    except Interrupted as stop:
+        stop.run_dir = stop.run_dir or run_dir
+        raise
     except Exception as err:  # noqa: BLE001 - every failure is recorded for the report
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         write_json(
@@ -285,10 +301,14 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 
 def main() -> None:
-    """Console entry point; user errors become one line on stderr and exit code 2."""
+    """Console entry point; user errors and a stopping signal become one line on stderr and exit code 2."""
     check_overrides_or_exit(sys.argv[1:], "train")
     sys.argv[1:] = keep_run_record(sys.argv[1:])
-    _hydra_main()
+    try:
+        _hydra_main()
+    except Interrupted as stop:  # a signal: one line, not the traceback of wherever it landed
+        print(interrupted_line(stop), file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

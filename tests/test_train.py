@@ -225,6 +225,34 @@ def test_signal_stops_the_sweep_instead_of_recording_a_failure(tmp_path: Path, m
     assert signal.getsignal(signal.SIGTERM) is before  # handler restored
 
 
+def test_a_signal_during_training_is_one_line_that_says_how_to_resume(tmp_path: Path) -> None:
+    """SIGTERM lands wherever the job is (inside Lightning's backward, say): the command prints one line with
+    the resume command, not that traceback, exits 2 and leaves no metrics.json, only the checkpoint to resume."""
+    run = tmp_path / "run"
+    args = [
+        "experiment=tiny", "filter=none", "threads=1", "trainer.max_epochs=400",
+        f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run}",
+    ]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "semvpr.train", *args], cwd=tmp_path, stderr=subprocess.PIPE, text=True, env=env
+    )
+    assert proc.stderr is not None
+    lines = []
+    for line in proc.stderr:  # wait until a few epochs (and so last.ckpt) exist
+        lines.append(line)
+        if "epoch 3/400" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    rest = proc.stderr.read()
+    assert proc.wait(timeout=120) == 2, rest[-3000:]
+    tail = [ln for ln in rest.splitlines() if ln.strip() and not ln.startswith("semvpr: retriever: epoch")]
+    assert tail == [
+        f"semvpr: error: stopped by SIGTERM; resume it: python -m semvpr.train ckpt_path=last hydra.run.dir={run}"
+    ], rest[-3000:]
+    assert not (run / "metrics.json").exists() and (run / "checkpoints" / "last.ckpt").is_file()
+
+
 def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [

@@ -11,6 +11,7 @@ warnings about settings semvpr makes on purpose (a frozen trunk in eval mode, sh
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import time
 import warnings
@@ -35,6 +36,9 @@ NOISE_LINES = (
     # transformers' Mask2Former lists only Swin as a backbone; timm's EfficientNet-Lite0 works through
     # its TimmBackbone (tests/test_teacher.py checks its features and a save/load round trip).
     "Backbone timm_backbone is not a supported model",
+    # Lightning's signal handler, before semvpr's own line for the stop (semvpr.train.interrupted_line).
+    "Received SIGTERM:",
+    "Received SIGINT:",
 )
 # Warnings about settings semvpr makes on purpose, with the reason each is harmless.
 NOISE_WARNINGS = (
@@ -48,7 +52,8 @@ NOISE_WARNINGS = (
 
 class _DropNoise(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.getMessage()).startswith(NOISE_LINES)
+        # Lightning prefixes some lines with the rank: "[rank: 0] Received SIGTERM: 15".
+        return not re.sub(r"^\[rank: \d+\] ", "", str(record.getMessage())).startswith(NOISE_LINES)
 
 
 _FILTER = _DropNoise()
