@@ -81,14 +81,19 @@ def toy_set(root: Path, n: int, seed: int) -> tuple[list[Path], list[np.ndarray]
     return paths, maps
 
 
+def write_labels(folder: Path, paths: list[Path], maps: list[np.ndarray]) -> Path:
+    """Pseudo-label PNGs of ``paths`` in ``folder``, as the pseudo-label stage names them."""
+    folder.mkdir()
+    for p, ids in zip(paths, maps, strict=True):
+        Image.fromarray(ids).save(folder / f"{p.name}.png")
+    return folder
+
+
 def test_short_fit_beats_chance_and_is_cached(
     backbone: VGG16Backbone, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     paths, maps = toy_set(tmp_path / "img", 24, seed=0)
-    labels = tmp_path / "labels-abc"
-    labels.mkdir()
-    for p, ids in zip(paths, maps):
-        Image.fromarray(ids).save(labels / f"{p.name}.png")
+    labels = write_labels(tmp_path / "labels-abc", paths, maps)
     student = build_student(
         StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
     )
@@ -199,10 +204,7 @@ def test_a_flipping_student_caches_its_mirror_images_features(backbone: VGG16Bac
     for level, i in enumerate(indices):
         # Stored in bf16: one rounding step apart where the batches' fp32 sums differ in the last bits.
         torch.testing.assert_close(got[level].float(), expected[i].float(), rtol=8e-3, atol=4e-3)
-    labels = tmp_path / "labels-abc"
-    labels.mkdir()
-    for p, ids in zip(paths, maps):
-        Image.fromarray(ids).save(labels / f"{p.name}.png")
+    labels = write_labels(tmp_path / "labels-abc", paths, maps)
     cfg = tiny_cfg()
     cfg.update(epochs=1)
     build = lambda c: build_student(  # noqa: E731
@@ -220,10 +222,7 @@ def test_a_student_trained_at_another_thread_count_is_another_cache_entry(
     """A multi-threaded CPU training splits its sums by thread, so the thread count it ran at is part of the
     student's key: the same settings at 1 and 2 threads are two entries, each reused at its own count."""
     paths, maps = toy_set(tmp_path / "img", 6, seed=0)
-    labels = tmp_path / "labels-abc"
-    labels.mkdir()
-    for p, ids in zip(paths, maps):
-        Image.fromarray(ids).save(labels / f"{p.name}.png")
+    labels = write_labels(tmp_path / "labels-abc", paths, maps)
     cfg = tiny_cfg()
     cfg.update(epochs=1)
     before = torch.get_num_threads()
