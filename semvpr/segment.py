@@ -29,7 +29,7 @@ from semvpr.config.checks import check_config
 from semvpr.config.components import instantiate_node
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json
-from semvpr.core.logs import quiet_third_party
+from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
 from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.images import load_image
@@ -59,7 +59,7 @@ def save_teacher(teacher: Any, out: Path, image_size: list[int], trained_on: Tra
     size it was trained at, its training data), renamed into place when complete."""
     from transformers import Mask2FormerImageProcessor
 
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out) as tmp, no_hf_progress_bars():
         teacher.model.save_pretrained(tmp)
         Mask2FormerImageProcessor(
             image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist(),

@@ -80,8 +80,9 @@ def quiet_third_party() -> None:
 
 @contextmanager
 def no_hf_progress_bars() -> Iterator[None]:
-    """Hide transformers' progress bars (``Loading weights: 100%|...``, printed at every checkpoint load:
-    once per evaluation with a teacher mask) for the block; the previous setting is restored."""
+    """Hide transformers' progress bars (``Loading weights: 100%|...`` at every checkpoint load, once per
+    evaluation with a teacher mask; ``Writing model shards`` at a save) for the block; the previous setting
+    is restored."""
     from transformers.utils import logging as hf_logging
 
     shown = hf_logging.is_progress_bar_enabled()
