@@ -17,7 +17,7 @@ Last line: ``split=<s> frames=<n> a=<IoU> b=<IoU> diff=<b-a> low=<2.5 %> high=<9
 from __future__ import annotations
 
 import argparse
-import tempfile
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,10 +33,10 @@ from semvpr.core.io import CONF_DIR
 from semvpr.data.camvid import read_camvid
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import load_student
+from semvpr.models.teacher import teacher_architecture
 from semvpr.reporting.paired import RESAMPLES
 from semvpr.segmentation.confusion import Confusion, binary_pred, mask_scores
 from semvpr.segmentation.scoring import by_size, loader, student_prob, teacher_outputs
-from semvpr.segmentation.training import build_teacher
 
 KEY = "dynamic_iou"
 
@@ -45,9 +45,8 @@ def mask_source(folder: Path, cfg: DictConfig, backbone: torch.nn.Module) -> Cal
     """``static probability (B,1,H,W) at size`` of a saved teacher (a folder with config.json) or student."""
     static = list(cfg.teacher.static_classes)
     if (folder / "config.json").is_file():  # a teacher directory (a student's is student.json + weights)
-        cfg.teacher.checkpoint = str(folder.resolve())
-        with tempfile.TemporaryDirectory() as unused:  # a given teacher is loaded, never trained or cached
-            teacher = build_teacher(teacher_spec(cfg), None, None, unused)
+        spec = dataclasses.replace(teacher_spec(cfg), checkpoint=str(folder.resolve()))
+        teacher = teacher_architecture(spec).eval()
         return lambda images, size: teacher_outputs(teacher, images, size, static)[1]
     student = load_student(folder, backbone)
     return lambda images, size: student_prob(student, backbone, images, size, bf16=True)
