@@ -155,3 +155,21 @@ def test_saving_and_loading_a_teacher_print_no_transformers_progress_bar(
     assert "Writing model shards" not in captured.err + captured.out, captured.err
     assert "Loading weights" not in captured.err + captured.out, captured.err
     assert hf_logging.is_progress_bar_enabled()  # restored for whatever else the process loads
+
+
+def test_building_a_teacher_on_a_timm_backbone_prints_nothing() -> None:
+    """transformers notes that Mask2Former's backbone is not Swin whenever its config is built on a timm
+    backbone; building the teacher (in a fresh process, from any script, not only the entry points) hides it."""
+    import subprocess
+    import sys
+
+    code = (
+        "from semvpr.models.teacher import embedded_model\n"
+        "embedded_model({'backbone': 'efficientnet_lite0', 'backbone_weights': 'none', 'hidden_dim': 32,"
+        " 'num_attention_heads': 2, 'encoder_layers': 1, 'decoder_layers': 1, 'num_queries': 4,"
+        " 'train_num_points': 64})\n"
+        "print('built')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert done.stdout.strip() == "built"
+    assert "not a supported model" not in done.stderr, done.stderr

@@ -28,7 +28,7 @@ from transformers.modeling_outputs import BackboneOutput
 from semvpr.core.cache import config_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import read_json, write_json
-from semvpr.core.logs import no_hf_progress_bars
+from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import from_mapping, plain
@@ -440,6 +440,7 @@ def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegme
     ``model.backbone_weights``: imagenet | none | path; Swin: random init)."""
     c = dict(cfg_model)
     dim = c["hidden_dim"]
+    quiet_third_party()  # transformers notes that a timm backbone is not Swin, whoever builds the teacher
     config = Mask2FormerConfig(
         backbone_config=_pixel_backbone(c), feature_size=dim, mask_feature_size=dim, hidden_dim=dim,
         encoder_feedforward_dim=2 * dim, dim_feedforward=2 * dim, num_attention_heads=c["num_attention_heads"],
@@ -619,6 +620,7 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
         )
     if data.get("use_pretrained_backbone") or data.get("use_timm_backbone") or data.get("backbone"):
         raise SemvprError(f"{path}: names a separate backbone checkpoint; only self-contained weights are loaded")
+    quiet_third_party()
     try:
         return Mask2FormerConfig.from_dict(data)
     except Exception as err:  # noqa: BLE001 - e.g. an unknown backbone model_type
