@@ -4,11 +4,12 @@ on this CPU, measured in one run.
 Evaluation describes each image once: the frozen trunk (EfficientNet-Lite0 to its stride-16 stage, the
 default) then the aggregator, and with a mask also the mask source. The student is a U-Net decoder on the
 trunk's own skip features, so its mask costs the decoder alone (the trunk pass is shared); the teacher is
-a second network (Mask2Former on its own EfficientNet-Lite0) that sees every image too. Each is built from
-the project's configs as ``semvpr.segment`` trains them for CamVid (teacher model of
-``conf/teacher/mask2former.yaml``, student width 64 of ``conf/segment.yaml``); speed does not depend on
-the weights, so they are untrained. Images are random, at 270x480 (Gardens Point's size in
-``data=gardens_point``), under the pipeline's precision (bf16 autocast where the CPU runs it natively).
+a second network (Mask2Former on its own encoder, EfficientNet-Lite2 for CamVid) that sees every image too.
+Each is built from the project's configs as ``semvpr.segment`` trains them for CamVid (the teacher model of
+``conf/teacher/mask2former.yaml`` with ``conf/segment.yaml``'s ``teacher.model`` over it, the student width
+of ``conf/segment.yaml``); speed does not depend on the weights, so they are untrained. Images are
+random, at 270x480 (Gardens Point's size in ``data=gardens_point``), under the pipeline's precision (bf16
+autocast where the CPU runs it natively). ``--teacher-backbone`` times another encoder for the teacher.
 
 Timed, each the median over ``--repeats`` batches after one warm-up:
 - ``trunk``: the trunk pass alone (``forward_frozen``, no skips kept): an evaluation without a mask;
@@ -20,7 +21,7 @@ Timed, each the median over ``--repeats`` batches after one warm-up:
   semvpr.segment teacher's ``semvpr.json`` makes it its inference size, and the embedded teacher's is its
   ``image_size``).
 
-    python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1]
+    python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1] [--teacher-backbone efficientnet_lite0]
 
 Last line: ``name=value`` pairs, ratios of times measured in this run: ``student_over_trunk`` (an
 evaluation with the student's mask over one without), ``trunk_share_of_student`` (the part of the
@@ -71,18 +72,27 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--teacher-backbone",
+        choices=["efficientnet_lite0", "efficientnet_lite2"],
+        help="the teacher's encoder (default: conf/segment.yaml's, the CamVid teacher's)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     bf16 = bf16_native("cpu")
     conf = Path(CONF_DIR)
+    segment = OmegaConf.load(conf / "segment.yaml")
     backbone = EfficientNetLite0Backbone(weights="imagenet").eval()
     student_node = OmegaConf.load(conf / "student" / "unet.yaml")
-    student_node.width = OmegaConf.load(conf / "segment.yaml").student.width
+    student_node.width = segment.student.width
     del student_node["static_classes"]  # the teacher's list there; the default list here
     student_spec = StudentSpec.from_mapping(student_node)
     student = StudentMask(student_architecture(student_spec, backbone))
     teacher_node = OmegaConf.load(conf / "teacher" / "mask2former.yaml")
     teacher_node.image_size = list(TEACHER_TRAINED_AT)
+    teacher_node.model = OmegaConf.merge(teacher_node.model, segment.teacher.get("model", {}))
+    if args.teacher_backbone:
+        teacher_node.model.backbone = args.teacher_backbone
     teachers = {
         size: TeacherMask(
             embedded_teacher(
@@ -99,7 +109,7 @@ def main() -> None:
         skips = backbone.forward_frozen(images)
     print(
         f"{args.batch} images at {SIZE[0]}x{SIZE[1]}, grid {grid}, {'bf16' if bf16 else 'fp32'}, "
-        f"{args.threads} thread(s); student width {student_spec.width}"
+        f"{args.threads} thread(s); student width {student_spec.width}; teacher on {teacher_node.model.backbone}"
     )
 
     def timed(label: str, run: Callable[[], object]) -> float:

@@ -12,6 +12,7 @@ over the route, fixed before anything was looked at.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.restore import load_retriever
-from semvpr.core.errors import exit_on_user_error
+from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
@@ -27,6 +28,15 @@ from semvpr.reporting.figures import mask_figure
 from semvpr.retrieval.features import grid_size
 
 TRAVERSALS = ("day_left", "night_right")
+
+
+def camvid_teacher(out: Path) -> Path:
+    """The CamVid teacher run.sh evaluated: the one its ``semvpr.segment`` run names (trained there, or
+    given as ``CAMVID_TEACHER``)."""
+    results = out / "camvid" / "results.json"
+    if not results.is_file():
+        raise SemvprError(f"{results}: not found (run run.sh first)")
+    return Path(json.loads(results.read_text())["teacher"]["checkpoint"])
 
 
 def grid_masks(overrides: list[str], images: torch.Tensor) -> np.ndarray:
@@ -70,7 +80,7 @@ def main() -> None:
             "ckpt=none",
             "aggregator=gem",
             "mask=teacher",
-            f"teacher.checkpoint={args.out / 'camvid' / 'teacher'}",
+            f"teacher.checkpoint={camvid_teacher(args.out)}",
         ],
     }
     size = [f"data.image_size=[{args.size[0]},{args.size[1]}]", f"paths.cache_dir={args.out / 'cache'}"]

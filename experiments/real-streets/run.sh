@@ -3,7 +3,7 @@
 # SALAD and BoQ on recipe=gsv) and off-the-shelf baselines on Gardens Point Walking, each with no mask, its
 # own SynthCity mask, the CamVid student's and the CamVid teacher's.
 # Usage, from the repository root (each step is cached; a second run only re-reads):
-#   bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
+#   [CAMVID_TEACHER=DIR] bash experiments/real-streets/run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]
 # OUT receives the training sweeps (OUT/synthcity, OUT/gsv, OUT/learned), the CamVid segmenters (OUT/camvid)
 # and one evaluation sweep per pair and mask source (OUT/eval/<pair>/<mask>; gsv-<mask> for the recipe=gsv
 # checkpoints trained without a mask or with the student's, gsv-teacher-<mask> for those trained with the
@@ -31,13 +31,15 @@ export HF_HUB_OFFLINE=1
 [ -f "$OUT/learned/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=unet,mask2former \
   filter.weights=learned paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/learned"
 
-# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command), the student
-#    trained without mirrored half-batches (camvid-semantic's S5), as this experiment evaluated it; the
-#    mirrored student chosen since (S8) has not been evaluated on Gardens Point. One thread, as they trained
-#    (another thread count trains other weights).
-[ -d "$OUT/camvid/teacher" ] || python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" \
-  student.flip=false threads=1 hydra.run.dir="$OUT/camvid"
-TEACHER="$OUT/camvid/teacher"
+# 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command: about 2 h of
+#    teacher training and 20 min of student on one thread, as they trained; another thread count trains other
+#    weights). CAMVID_TEACHER=DIR uses a teacher that command saved instead of training one (its student is
+#    still trained, or read from the cache).
+if [ ! -f "$OUT/camvid/results.json" ]; then
+  python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" threads=1 hydra.run.dir="$OUT/camvid" \
+    ${CAMVID_TEACHER:+teacher.checkpoint="$(realpath "$CAMVID_TEACHER")"}
+fi
+TEACHER=$(realpath "${CAMVID_TEACHER:-$OUT/camvid/teacher}")
 STUDENT="$OUT/camvid/student_efficientnet_lite0"
 
 # 3. Every checkpoint and baseline on every pair, with each mask source.
