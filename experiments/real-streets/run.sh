@@ -36,10 +36,14 @@ export HF_HUB_OFFLINE=1
 #    weights). CAMVID_TEACHER=DIR uses a teacher that command saved instead of training one (its student is
 #    still trained, or read from the cache).
 if [ ! -f "$OUT/camvid/results.json" ]; then
+  given=()
+  if [ -n "${CAMVID_TEACHER:-}" ]; then given=(teacher.checkpoint="$(realpath "$CAMVID_TEACHER")"); fi
   python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" threads=1 hydra.run.dir="$OUT/camvid" \
-    ${CAMVID_TEACHER:+teacher.checkpoint="$(realpath "$CAMVID_TEACHER")"}
+    "${given[@]}"
 fi
-TEACHER=$(realpath "${CAMVID_TEACHER:-$OUT/camvid/teacher}")
+# The teacher that run scored and labelled the student's training images with (trained there, or given).
+TEACHER=$(python -c 'import json, sys; print(json.load(open(sys.argv[1]))["teacher"]["checkpoint"])' \
+  "$OUT/camvid/results.json")
 STUDENT="$OUT/camvid/student_efficientnet_lite0"
 
 # 3. Every checkpoint and baseline on every pair, with each mask source.
