@@ -43,7 +43,7 @@ from omegaconf import OmegaConf
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
-from semvpr.models.backbones import EfficientNetLite0Backbone
+from semvpr.models.backbones import EFFICIENTNET_LITE, EfficientNetLite0Backbone
 from semvpr.models.masks import StudentMask, TeacherMask
 from semvpr.models.student import StudentSpec, student_architecture
 from semvpr.models.teacher import TeacherSpec, embedded_teacher
@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument(
         "--teacher-backbone",
-        choices=["efficientnet_lite0", "efficientnet_lite2"],
+        choices=sorted(EFFICIENTNET_LITE),
         help="the teacher's encoder (default: conf/segment.yaml's, the CamVid teacher's)",
     )
     args = ap.parse_args()
