@@ -13,14 +13,19 @@ as the sweep reads them.
 pip's cache where it has them) and runs the sweep with that clone's Python, as a newcomer would.
 
 Prints each job's time per stage (``timings`` of its ``metrics.json``), the stages summed over the
-sweep (generation, trunk and mask caching, teacher, pseudo-labels, student, training, ...); last line:
-``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk>``, then ``install_s=<t> total_s=<install + sweep>``
-with ``--install``.
+sweep (generation, trunk and mask caching, teacher, pseudo-labels, student, training, ...; a job waiting
+on a cache lock counts the wait in the stage it waits for), and the CPU time of the sweep's processes
+(user + system, its jobs' workers included): divided by the cores the sweep may use, that is the least wall
+time any schedule of the same work could take on them (``floor_s``); what lies between it and ``sweep_s``
+is all that running the stages in another order or with other threads could still win, the rest needs
+less work. Last line: ``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk> cpu_s=<t> cores=<n>
+floor_s=<cpu/cores>``, then ``install_s=<t> total_s=<install + sweep>`` with ``--install``.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import subprocess
 import sys
 import tempfile
@@ -34,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sweep_cost import FILTERS, REPO, describe, job_timings  # noqa: E402
 
 from semvpr.core.errors import exit_on_user_error  # noqa: E402
+from semvpr.core.threads import usable_cores  # noqa: E402
 
 
 def fresh_install(work: Path) -> tuple[float, Path]:
@@ -47,8 +53,9 @@ def fresh_install(work: Path) -> tuple[float, Path]:
     return time.perf_counter() - t0, python
 
 
-def cold_sweep(work: Path, overrides: list[str], python: Path | None = None, cwd: Path = REPO) -> float:
-    """Wall time of the four-way sweep from an empty cache under ``work`` (``python`` in ``cwd``: a clone's)."""
+def cold_sweep(work: Path, overrides: list[str], python: Path | None = None, cwd: Path = REPO) -> tuple[float, float]:
+    """(wall time, CPU seconds of its processes) of the four-way sweep from an empty cache under ``work``
+    (``python`` in ``cwd``: a clone's)."""
     cmd = [
         str(python or sys.executable),
         "-m",
@@ -60,9 +67,17 @@ def cold_sweep(work: Path, overrides: list[str], python: Path | None = None, cwd
         *overrides,
     ]
     print(" ".join(cmd[1:]), flush=True)
+    before = cpu_of_children()
     t0 = time.perf_counter()
     subprocess.run(cmd, cwd=cwd, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, cpu_of_children() - before
+
+
+def cpu_of_children() -> float:
+    """User + system CPU seconds of this process's finished children and all they waited for (a sweep's
+    launcher workers and data-loader workers included)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 @torch.no_grad()
@@ -133,13 +148,17 @@ def main() -> None:
             install_s, python = fresh_install(work)
             cwd = python.parents[2]
             print(f"install from a fresh clone: {install_s:.0f} s", flush=True)
-        sweep_s = cold_sweep(work, args.override, python, cwd)
+        sweep_s, cpu_s = cold_sweep(work, args.override, python, cwd)
         jobs = job_timings(work / "sweep")
         print(describe(sweep_s, jobs), flush=True)
         print(stage_breakdown(sweep_s, jobs), flush=True)
         trunk_s, n = trunk_pass(work, args.override, args.fp32)
         print(f"trunk pass: {n} images in {trunk_s:.1f} s", flush=True)
-    line = f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f}"
+    cores = usable_cores()
+    line = (
+        f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f} "
+        f"cpu_s={cpu_s:.0f} cores={cores} floor_s={cpu_s / cores:.0f}"
+    )
     if install_s is not None:
         line += f" install_s={install_s:.0f} total_s={install_s + sweep_s:.0f}"
     print(line)

@@ -27,7 +27,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     ),
     "ddp.py": (lambda t: ["--db", "8", "--batch", "2", "--steps", "1", "--reps", "1"], "world=2"),
     "mask_cost.py": (lambda t: ["--batch", "1", "--repeats", "1"], "teacher_cut="),
-    "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "ratio="),
+    "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "floor_s="),
     "recipe_cost.py": (
         lambda t: (
             ["--cache-dir", str(t / "cache"), "--aggregators", "gem", "--override", "experiment=tiny"]
@@ -74,3 +74,9 @@ def test_benchmark_script_runs_with_small_arguments(tmp_path: Path, script: str)
     assert proc.returncode == 0, (proc.stdout[-2000:], proc.stderr[-3000:])
     last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     assert fragment in last, last
+    if script == "quickstart.py":
+        # The sweep's processes did work, and no schedule beats its CPU time spread over the cores.
+        fields = {k: float(v) for k, v in (item.split("=") for item in last.split())}
+        assert fields["cpu_s"] > 0, last
+        assert fields["floor_s"] == pytest.approx(fields["cpu_s"] / fields["cores"], abs=1), last
+        assert fields["floor_s"] <= fields["sweep_s"] + 1, last
