@@ -43,12 +43,17 @@ class EvalTableCallback(Callback):
             )
 
 
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m semvpr.evaltable``."""
+    parser = argparse.ArgumentParser(prog="python -m semvpr.evaltable", description=__doc__.splitlines()[0])
+    parser.add_argument("sweep_dir", type=Path, help="multirun dir of `python -m semvpr.eval -m ...`")
+    return parser
+
+
 @exit_on_user_error
 def main(argv: list[str] | None = None) -> int:
     """CLI: python -m semvpr.evaltable <sweep dir>."""
-    parser = argparse.ArgumentParser(prog="python -m semvpr.evaltable", description=__doc__.splitlines()[0])
-    parser.add_argument("sweep_dir", type=Path, help="multirun dir of `python -m semvpr.eval -m ...`")
-    print(write_table(parser.parse_args(argv).sweep_dir))
+    print(write_table(parser().parse_args(argv).sweep_dir))
     return 0
 
 

@@ -34,14 +34,19 @@ class ReportCallback(Callback):
             )
 
 
-@exit_on_user_error
-def main(argv: list[str] | None = None) -> int:
-    """CLI: python -m semvpr.report <sweep dir>."""
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m semvpr.report``."""
     parser = argparse.ArgumentParser(
         prog="python -m semvpr.report", description="Write results.csv/.md and figures for a finished sweep."
     )
     parser.add_argument("sweep_dir", type=Path, help="multirun dir, e.g. outputs/multiruns/<date>/<time>")
-    print_summary(write_report(parser.parse_args(argv).sweep_dir))
+    return parser
+
+
+@exit_on_user_error
+def main(argv: list[str] | None = None) -> int:
+    """CLI: python -m semvpr.report <sweep dir>."""
+    print_summary(write_report(parser().parse_args(argv).sweep_dir))
     return 0
 
 

@@ -131,6 +131,9 @@ def _check_composition(args: list[str], config_name: str, multirun: bool) -> Non
     def is_group(override: Any) -> bool:
         return (Path(CONF_DIR) / override.key_or_group.split("@")[0]).is_dir()
 
+    launcher = [o for o in parsed if o.key_or_group.startswith(("hydra.launcher", "hydra/launcher"))]
+    if launcher:
+        _check_launcher([o.input_line for o in launcher], config_name)
     ours = [o for o in parsed if o.key_or_group != "hydra" and not o.key_or_group.startswith(("hydra.", "hydra/"))]
     kept = [o.input_line for o in ours if not (multirun and o.is_sweep_override())]
     variants: list[list[str]] = []
@@ -168,6 +171,36 @@ def _check_composition(args: list[str], config_name: str, multirun: bool) -> Non
     for key in sorted(given - known):
         if not any(key == r or key.startswith(f"{r}.") for r in room):
             raise SemvprError(_unknown(key))
+
+
+def _check_launcher(overrides: list[str], config_name: str) -> None:
+    """The launcher the command line chooses, with the settings it gives it: a setting the launcher does not
+    have (``hydra.launcher.n_jobs`` under ``hydra/launcher=basic``), or a launcher whose plugin is not
+    installed, is one line naming the launcher."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        chosen = [o for o in overrides if o.startswith("hydra/launcher=")]
+        try:
+            compose(config_name=config_name, overrides=chosen, return_hydra_config=True)
+        except Exception as err:  # noqa: BLE001 - an unknown launcher: Hydra lists the installed ones
+            name = chosen[-1].partition("=")[2]
+            hint = "; pip install -e '.[cluster]' adds the submitit launchers" if "submitit" in name else ""
+            found = re.search(r"Available options in 'hydra/launcher':\s*(.*?)\s*Config search path", str(err), re.S)
+            known = f" (installed: {' '.join(found.group(1).split())})" if found else f": {_first_line(err)}"
+            raise SemvprError(f"{chosen[-1]}: no such launcher here{known}{hint}") from None
+        try:
+            cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+        except Exception as err:  # noqa: BLE001 - a setting the chosen launcher does not have
+            unknown = re.search(r"Could not override '([^']+)'", str(err))
+            base = compose(config_name=config_name, overrides=chosen, return_hydra_config=True)
+            name = base.hydra.runtime.choices.get("hydra/launcher")
+            settings = ", ".join(k for k in base.hydra.launcher if k != "_target_") or "none"
+            what = unknown.group(1) if unknown else _first_line(err)
+            raise SemvprError(
+                f"{what} is not a setting of the {name} launcher (hydra/launcher={name}); its settings: {settings}"
+            ) from None
+        del cfg
 
 
 def _unknown(key: str) -> str:

@@ -59,9 +59,8 @@ def positive_stats(places: PlaceSet, radius: float | None = None) -> dict[str, f
     }
 
 
-@exit_on_user_error
-def main(argv: list[str] | None = None) -> None:
-    """Print a human summary, then the JSON stats as the last line."""
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m semvpr.data.inspect``."""
     parser = argparse.ArgumentParser(prog="python -m semvpr.data.inspect", description=__doc__)
     parser.add_argument("overrides", nargs="*", help="hydra overrides, e.g. data=pitts30k data.root=DIR")
     parser.add_argument("--config-dir", type=Path, default=DEFAULT_CONFIG_DIR)
@@ -73,7 +72,13 @@ def main(argv: list[str] | None = None) -> None:
         default=None,
         help="positive radius in metres (default: the set's evaluation ground truth)",
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+@exit_on_user_error
+def main(argv: list[str] | None = None) -> None:
+    """Print a human summary, then the JSON stats as the last line."""
+    args = parser().parse_args(argv)
     places = compose_place_set(args.config_dir.expanduser().resolve(), args.config_name, args.overrides, args.node)
     stats = positive_stats(places, args.radius)
     print(places.summary())

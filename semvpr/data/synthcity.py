@@ -512,15 +512,22 @@ def _stopped(signum: int, _frame: object) -> None:
     raise SemvprError(f"stopped by {signal.Signals(signum).name}; the unfinished dataset was removed")
 
 
-@exit_on_user_error
-def main(argv: list[str] | None = None) -> None:
-    """CLI: generate a SynthCity dataset into a new directory."""
-    ap = argparse.ArgumentParser(prog="python -m semvpr.data.synthcity", description=main.__doc__)
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m semvpr.data.synthcity``."""
+    ap = argparse.ArgumentParser(
+        prog="python -m semvpr.data.synthcity", description="Generate a SynthCity dataset into a new directory."
+    )
     ap.add_argument("--out", required=True, type=Path, help="new (or empty) output directory")
     ap.add_argument("--preset", default="default", choices=sorted(PRESETS))
     ap.add_argument("--seed", type=int, default=0)
     add_render_arguments(ap)
-    args = ap.parse_args(argv)
+    return ap
+
+
+@exit_on_user_error
+def main(argv: list[str] | None = None) -> None:
+    """CLI: generate a SynthCity dataset into a new directory."""
+    args = parser().parse_args(argv)
     out: Path = args.out
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SemvprError(f"--out {out} already exists and is not an empty directory; choose a new path or remove it")
