@@ -111,3 +111,85 @@ def test_committed_results_carry_no_absolute_path_of_the_machine_that_made_them(
         if pattern.search(line)
     }
     assert not found, found
+
+
+def _tracked_files() -> set[str]:
+    """The repository's committed files (the ones a clone has), relative to the root, with / separators."""
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(REPO), "ls-files", "-z"], capture_output=True, check=True, timeout=60
+        ).stdout
+    except (OSError, subprocess.SubprocessError):
+        out = b""
+    names = {name for name in out.decode("utf-8").split("\0") if name}
+    if names:
+        return names
+    # No git (an unpacked archive): everything on disk outside hidden, built and output folders.
+    skip = {"outputs", "multirun", "lightning_logs", "__pycache__"}
+    return {
+        path.relative_to(REPO).as_posix()
+        for path in REPO.rglob("*")
+        if path.is_file() and not any(p.startswith(".") or p in skip for p in path.relative_to(REPO).parts[:-1])
+    }
+
+
+def _github_anchors(markdown: str) -> set[str]:
+    """The anchors GitHub gives a page's headings: lower case, punctuation dropped, spaces to hyphens."""
+    anchors: set[str] = set()
+    for heading in re.findall(r"^#{1,6} +(.+?) *#* *$", _without_code_blocks(markdown), flags=re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        candidate, n = slug, 0
+        while candidate in anchors:
+            n += 1
+            candidate = f"{slug}-{n}"
+        anchors.add(candidate)
+    return anchors
+
+
+def _without_code_blocks(markdown: str) -> str:
+    """The text outside fenced code blocks (a link inside one is an example, not a link)."""
+    return re.sub(r"^ *```.*?^ *```", "", markdown, flags=re.M | re.S)
+
+
+def test_markdown_links_resolve() -> None:
+    """Every relative link and image in every committed .md file names a committed file, and its
+    #anchor a heading of that file: a reader of a clone never meets a broken link or image."""
+    tracked = _tracked_files()
+    folders = {"/".join(name.split("/")[:i]) for name in tracked for i in range(1, name.count("/") + 1)}
+    pages = sorted(name for name in tracked if name.endswith(".md"))
+    assert "README.md" in pages, pages
+    link = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+    broken = []
+    for page in pages:
+        text = _without_code_blocks((REPO / page).read_text(encoding="utf-8"))
+        text = re.sub(r"`[^`\n]*`", "", text)  # inline code
+        for target in link.findall(text):
+            if re.match(r"^[a-z][a-z0-9+.-]*:", target, flags=re.I):  # https:, mailto: ...
+                continue
+            path, _, anchor = target.partition("#")
+            if path:
+                resolved = (Path(page).parent / path).as_posix()
+                parts: list[str] = []
+                for part in resolved.split("/"):
+                    if part == "..":
+                        if not parts:
+                            parts.append("..")  # climbs out of the repository: never resolves
+                        else:
+                            parts.pop()
+                    elif part not in ("", "."):
+                        parts.append(part)
+                resolved = "/".join(parts).rstrip("/")
+                if resolved not in tracked and resolved not in folders:
+                    broken.append(f"{page}: {target} (no committed file {resolved})")
+                    continue
+            else:
+                resolved = page
+            if (
+                anchor
+                and resolved.endswith(".md")
+                and anchor not in _github_anchors((REPO / resolved).read_text(encoding="utf-8"))
+            ):
+                broken.append(f"{page}: {target} (no heading #{anchor} in {resolved})")
+    assert not broken, "broken links:\n" + "\n".join(broken)
