@@ -33,9 +33,11 @@ from omegaconf import DictConfig
 from semvpr.config.build import build_places, feature_storage, thread_plan
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
+from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.core.io import CONF_DIR, write_json, write_npy
 from semvpr.core.logs import quiet_third_party
+from semvpr.core.precision import job_precision
 from semvpr.data.places import PlaceSet
 from semvpr.reporting.benchmarks_table import RANKS_FILE
 from semvpr.retrieval.descriptors import place_descriptors
@@ -62,6 +64,7 @@ def evaluate_checkpoint(
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(cfg, ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
+    retriever.to(resolve(cfg.get("device")))
     test = test_set()
     test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
     db, q = describe(retriever, merged, test)
@@ -100,8 +103,10 @@ def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        threads = thread_plan(cfg)
-        with threads.stage("frozen"):  # images through the whole model: the trunk pass dominates
+        device = resolve(cfg.get("device"))
+        threads = thread_plan(cfg, gpu=device.type == "cuda")
+        # Images through the whole model: the trunk pass dominates.
+        with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
             result = {**evaluate_checkpoint(cfg, explicit_keys(), out_dir), "threads": threads.record()}
     except Exception as err:  # noqa: BLE001 - in a sweep every failure becomes its job's row
         if HydraConfig.get().mode != RunMode.MULTIRUN:

@@ -42,12 +42,19 @@ class HubModel(nn.Module):
     @torch.no_grad()
     def forward(self, images: Tensor) -> Tensor:
         """Descriptors of a normalised batch (the retriever itself takes [0, 1] images)."""
+        if self.retriever.device != images.device:  # moved as a submodule (.cuda()): Lightning's own device follows
+            self.retriever.to(images.device)
         return F.normalize(self.retriever(images * self.std + self.mean).float(), dim=1)
 
 
-def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None, overrides: Sequence[str] = ()) -> HubModel:
-    """The checkpoint as a :class:`HubModel` in eval mode on the CPU (move it with ``.to``). ``overrides``
-    are ``semvpr.eval``'s: ``["mask=student", "student.checkpoint=DIR"]`` replaces the checkpoint's mask
+def load_model(
+    ckpt: str | Path,
+    image_size: Sequence[int] | None = None,
+    overrides: Sequence[str] = (),
+    device: torch.device | str = "cpu",
+) -> HubModel:
+    """The checkpoint as a :class:`HubModel` in eval mode on ``device`` (move it with ``.to`` or ``.cuda``).
+    ``overrides`` are ``semvpr.eval``'s: ``["mask=student", "student.checkpoint=DIR"]`` replaces the checkpoint's mask
     source; ``ckpt="none"`` with e.g. ``["aggregator=gem"]`` is the model with no VPR training."""
     from hydra import compose, initialize_config_dir
 
@@ -60,4 +67,4 @@ def load_model(ckpt: str | Path, image_size: Sequence[int] | None = None, overri
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
     target = None if untrained else Path(ckpt).expanduser()
     retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
-    return HubModel(retriever, image_size).eval()
+    return HubModel(retriever, image_size).to(device).eval()

@@ -24,9 +24,11 @@ from omegaconf import DictConfig
 from semvpr.config.build import build_places, feature_storage, thread_plan
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.restore import explicit_keys, load_retriever
+from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
+from semvpr.core.precision import job_precision
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
 
@@ -58,6 +60,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(cfg, ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
+    retriever.to(resolve(cfg.get("device")))
     places = database()
     storage = feature_storage(merged, retriever.backbone, {"test": places})
     db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir, storage)
@@ -85,7 +88,12 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
 def _hydra_main(cfg: DictConfig) -> None:
     quiet_third_party()
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    with thread_plan(cfg).stage("frozen"):  # images through the whole model: the trunk pass dominates
+    device = resolve(cfg.get("device"))
+    # Images through the whole model: the trunk pass dominates.
+    with (
+        thread_plan(cfg, gpu=device.type == "cuda").stage("frozen"),
+        job_precision(str(cfg.trainer.precision), device.type),
+    ):
         results = localize(cfg, explicit_keys(), run_dir)
     output = run_dir / "localize.json"
     write_json(output, results)

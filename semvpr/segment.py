@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.build import build_backbone, student_spec, teacher_spec, thread_plan
 from semvpr.config.checks import check_config
 from semvpr.config.components import instantiate_node
+from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json
 from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
@@ -106,10 +107,12 @@ def figure_rows(
         size = ids.shape
         image = load_image(seg.images[i], image_size)[None]
         masks = {"gt": np.where(ids == IGNORE, np.nan, lut[np.clip(ids, 0, 255)])}
-        masks["teacher"] = binary_pred(teacher_outputs(teacher, image, size, static_names)[1][0, 0]).float().numpy()
+        masks["teacher"] = (
+            binary_pred(teacher_outputs(teacher, image, size, static_names)[1][0, 0]).float().cpu().numpy()
+        )
         for name, (student, backbone) in students.items():
             prob = student_prob(student, backbone, image, size, bf16)
-            masks[name] = binary_pred(prob[0, 0]).float().numpy()
+            masks[name] = binary_pred(prob[0, 0]).float().cpu().numpy()
         native = (load_image(seg.images[i]).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
         rows.append((native, seg.images[i].name, masks))
     return rows
@@ -177,10 +180,11 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     loggers = [instantiate_node(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
 
-    threads = thread_plan(cfg)
+    device = resolve(cfg.get("device"))
+    threads = thread_plan(cfg, gpu=device.type == "cuda")
     tic = time.time()
     with threads.stage("teacher"):
-        teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir)
+        teacher = build_teacher(teacher_settings, sets["train"], sets["val"], cfg.paths.cache_dir, device)
     build_s = time.time() - tic
     trained_on = TrainedOn(str(cfg.seg.name), data_domain(cfg.seg.get("domain")))
     # A given teacher (teacher.checkpoint=) is scored and distilled here, not trained; it stays where it is.
@@ -219,7 +223,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 
     backbones = {
-        name: (build_backbone(node, int(cfg.seed)).eval(), str(node.get("weights", "none")))
+        name: (build_backbone(node, int(cfg.seed), device=device).eval(), str(node.get("weights", "none")))
         for name, node in cfg.backbones.items()
     }
     with threads.stage("student"):

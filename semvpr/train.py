@@ -28,8 +28,10 @@ from semvpr.config.build import (
     build_retriever,
     build_trainer,
     init_aggregator,
+    job_device,
     prepare,
     ranks_of,
+    sweep_gpu,
     thread_plan,
 )
 from semvpr.config.checks import check_config, check_overrides_or_exit
@@ -37,6 +39,7 @@ from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
+from semvpr.core.precision import job_precision
 from semvpr.core.resume import keep_run_record, resumed_config
 from semvpr.core.threads import Threads
 from semvpr.reporting.job_files import write_job_figure_data
@@ -63,9 +66,13 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
             file=sys.stderr,
         )
     threads = thread_plan(cfg)
-    job = prepare(cfg, timings, threads)  # generates SynthCity, builds the teacher, labels, student, trunk caches
-    with job_ranks(devices, nodes, overrides, run_dir), threads.stage("retriever"):
-        return train_and_test(cfg, run_dir, job, timings, start, threads)
+    with sweep_gpu(cfg, run_dir) as leased, job_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)):
+        device = job_device(cfg, leased)  # every stage below runs here
+        if device.type == "cuda":
+            torch.cuda.set_device(device)
+        job = prepare(cfg, timings, threads, device)  # SynthCity, the teacher, labels, student, trunk caches
+        with job_ranks(devices, nodes, overrides, run_dir), threads.stage("retriever"):
+            return train_and_test(cfg, run_dir, job, timings, start, threads)
 
 
 def train_and_test(
@@ -93,7 +100,9 @@ def train_and_test(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
     )
     threads = threads or thread_plan(cfg)
-    trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))])
+    device = retriever.device
+    callbacks = [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))]
+    trainer = build_trainer(cfg, run_dir, callbacks, device)
     datamodule = build_datamodule(cfg, job.features, describe)
     leader = trainer.global_rank == 0
     # The other ranks skip the initialisation: DDP gives them rank 0's weights.
@@ -113,6 +122,7 @@ def train_and_test(
         raise SemvprError(f"{reason}; nothing was trained")
     tic = time.time()
     trainer.strategy.barrier("best checkpoint written")
+    retriever.to(device)  # Lightning's teardown moved it to the CPU: the whitening fit runs on the job's device
     if checkpoint.best_model_path:
         best = torch.load(checkpoint.best_model_path, map_location="cpu", weights_only=True)
         retriever.load_state_dict(best["state_dict"])

@@ -1,3 +1,14 @@
 """The one place where configs become objects: ``checks`` refuses bad values, ``components`` finds the
 classes the yaml files name, ``build`` assembles a run's parts and ``restore`` a checkpoint's model.
 Everything below this package takes typed values, not a ``DictConfig``."""
+
+from omegaconf import OmegaConf
+
+from semvpr.core.device import sweep_jobs
+
+# hydra/launcher=side_by_side's n_jobs: how many jobs of a sweep run at once on the job's accelerator.
+OmegaConf.register_new_resolver(
+    "semvpr_sweep_jobs",
+    lambda accelerator, devices, cpu_jobs: sweep_jobs(accelerator, devices, int(cpu_jobs)),
+    replace=True,
+)

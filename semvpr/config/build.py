@@ -9,10 +9,13 @@ Teacher, pseudo-labels, student and feature caches come from the artifact cache 
 
 from __future__ import annotations
 
+import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +28,7 @@ from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
 from semvpr.core.checkpoint import record_of
+from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
@@ -153,12 +157,15 @@ def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "te
     return places
 
 
-def build_backbone(node: DictConfig, seed: int, pretrained: bool = True) -> Backbone:
+def build_backbone(
+    node: DictConfig, seed: int, pretrained: bool = True, device: torch.device | str = "cpu"
+) -> Backbone:
     """The backbone a ``backbone`` config node names (``module``), with the seed's random init or its
-    pretrained weights (``pretrained=False`` skips them: a checkpoint carries every weight); channels_last."""
+    pretrained weights (``pretrained=False`` skips them: a checkpoint carries every weight); channels_last, on
+    ``device`` (drawn on the CPU first, so a seed gives the same weights on every device)."""
     torch.manual_seed(seed)
     extra = {} if pretrained else {"weights": "none"}
-    return instantiate_node(node.module, **extra).to(memory_format=torch.channels_last)
+    return instantiate_node(node.module, **extra).to(device, memory_format=torch.channels_last)
 
 
 def build_aggregator(cfg: DictConfig, backbone: Backbone) -> Aggregator:
@@ -234,7 +241,7 @@ def build_retriever(
     (:func:`init_aggregator`) or to be loaded from a checkpoint; ``training`` adds the optimizer."""
     aggregator = build_aggregator(cfg, backbone)
     whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
-    return Retriever(
+    retriever = Retriever(
         backbone,
         aggregator,
         mask_source,
@@ -245,6 +252,12 @@ def build_retriever(
         record=record_of(cfg, mask_trained_on(cfg, mask_source)),
         class_weights=build_class_weights(cfg),
     )
+    if whitening is not None:  # fixed outside training: DDP need not broadcast its 4096 x D projection each step
+        from torch.nn.parallel import DistributedDataParallel
+
+        fixed = [f"whitening.{name}" for name, _ in whitening.named_buffers()]
+        DistributedDataParallel._set_params_and_buffers_to_ignore_for_model(retriever, fixed)
+    return retriever.to(next(backbone.parameters()).device)
 
 
 def build_datamodule(cfg: DictConfig, features: dict[str, PlaceFeatures], describe: Describe) -> EvalDataModule:
@@ -256,16 +269,62 @@ def build_datamodule(cfg: DictConfig, features: dict[str, PlaceFeatures], descri
     return RetrievalDataModule(features, mining_of(cfg), describe, eval_batch, workers)
 
 
-def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
-    """The configured Lightning Trainer with the run's loggers and checkpoints."""
+def build_trainer(
+    cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback], device: torch.device | None = None
+) -> L.Trainer:
+    """The configured Lightning Trainer with the run's loggers and checkpoints, on the job's ``device`` (a
+    one-GPU job: that GPU, not the first one). A DDP strategy waits for the ranks as long as rank 0's work
+    before ``fit`` may take (:data:`DDP_TIMEOUT`)."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
+    extra: dict[str, Any] = {}
+    if device is not None and device.type == "cuda" and ranks_of(cfg.trainer) == (1, 1):
+        extra["devices"] = [device.index or 0]
+    if str(cfg.trainer.get("strategy", "auto")) == "ddp":
+        from lightning.pytorch.strategies import DDPStrategy
+
+        extra["strategy"] = DDPStrategy(timeout=DDP_TIMEOUT)
     return instantiate(
         cfg.trainer,
         default_root_dir=str(run_dir),
         logger=loggers,
         **trainer_kwargs("retriever", callbacks),
         precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)),
+        **extra,
     )
+
+
+#: How long a DDP rank waits for the others (process group and collectives): rank 0 alone initialises the
+#: aggregator and evaluates the untrained model before ``fit``, which at paper scale takes far more than the
+#: default 30 minutes.
+DDP_TIMEOUT = timedelta(hours=6)
+
+
+@contextmanager
+def sweep_gpu(cfg: DictConfig, run_dir: Path) -> Iterator[int | None]:
+    """The GPU a one-GPU job of a sweep takes for its life where several are visible (``GpuLease`` in the
+    sweep directory), so that the jobs a launcher runs side by side never share one; None elsewhere."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    gpus = visible_gpus()
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    gpu_job = str(cfg.trainer.accelerator).lower() in GPU_WORDS and ranks_of(cfg.trainer) == (1, 1)
+    if not (multirun and gpu_job and len(gpus) > 1):
+        yield None
+        return
+    with GpuLease(run_dir.parent / ".gpus", gpus) as lease:
+        yield lease.index
+
+
+def job_device(cfg: DictConfig, leased: int | None = None) -> torch.device:
+    """The one device of a training job, from its trainer: the CPU, or a GPU: a DDP rank's own
+    (``LOCAL_RANK``), a sweep job's leased one (``leased``), else the first."""
+    accelerator = str(cfg.trainer.accelerator)
+    if accelerator.lower() not in GPU_WORDS:
+        return resolve("cpu")
+    if ranks_of(cfg.trainer) != (1, 1):
+        return resolve("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return resolve("cuda", leased)
 
 
 def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
@@ -293,12 +352,15 @@ def launcher_jobs() -> int:
     return usable_cores() if n in (None, -1) else max(1, int(n))
 
 
-def thread_plan(cfg: DictConfig) -> Threads:
+def thread_plan(cfg: DictConfig, gpu: bool | None = None) -> Threads:
     """The threads of this process (``threads``: auto or a number; semvpr.core.threads), given the job's DDP
-    ranks on this node and the jobs its launcher runs beside it; every command calls it as its job starts."""
+    ranks on this node and the jobs its launcher runs beside it, and whether its networks run on a GPU
+    (``gpu``; by default its trainer's accelerator); every command calls it as its job starts."""
     ranks = ranks_of(cfg.trainer)[0] if "trainer" in cfg else 1
+    if gpu is None:
+        gpu = "trainer" in cfg and str(cfg.trainer.accelerator).lower() in GPU_WORDS
     standard_start_method()  # a job in a joblib worker: data loaders need a standard start method
-    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs())
+    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs(), gpu=gpu)
 
 
 # ----------------------------------------------------------------------------------- semantic artifacts
@@ -320,7 +382,7 @@ def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | Non
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
     seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
     with (threads or thread_plan(cfg)).stage("teacher"):
-        teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir)
+        teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir, next(backbone.parameters()).device)
     if settings.share_trunk:
         teacher.link_trunk(backbone)
     return teacher
@@ -529,15 +591,17 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
     return storage
 
 
-def prepare(cfg: DictConfig, timings: dict[str, float], threads: Threads | None = None) -> Prepared:
-    """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job; the
-    seconds of each stage into ``timings`` (data, teacher, labels, student, features: the trunk passes and
-    the masks; semantic = teacher + labels + student)."""
+def prepare(
+    cfg: DictConfig, timings: dict[str, float], threads: Threads | None = None, device: torch.device | None = None
+) -> Prepared:
+    """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job, all on
+    ``device`` (the job's: :func:`job_device`); the seconds of each stage into ``timings`` (data, teacher,
+    labels, student, features: the trunk passes and the masks; semantic = teacher + labels + student)."""
     tic = time.time()
     places = build_places(cfg)  # generates SynthCity on first use
     timings["data_s"] = time.time() - tic
     threads = threads or thread_plan(cfg)
-    backbone = build_backbone(cfg.backbone, int(cfg.seed))
+    backbone = build_backbone(cfg.backbone, int(cfg.seed), device=device or job_device(cfg))
     storage = feature_storage(cfg, backbone, places)
     semantic, teacher = Semantic(), None
     if needs_semantic(cfg):

@@ -13,26 +13,12 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.components import COMPONENTS, component_class, loss_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
+from semvpr.core.precision import lightning_precision
 from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.features import STORAGES
 
-#: Lightning 2's precision settings (``Trainer(precision=...)``).
-PRECISIONS = (
-    "transformer-engine",
-    "transformer-engine-float16",
-    "16-true",
-    "16-mixed",
-    "bf16-true",
-    "bf16-mixed",
-    "32-true",
-    "64-true",
-    "64",
-    "32",
-    "16",
-    "bf16",
-)
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
 
 
@@ -359,8 +345,7 @@ def _check_retrieval(cfg: DictConfig) -> None:
         lr_ok = False
     if not lr_ok:
         raise SemvprError(f"recipe.optimizer.lr={lr!r} must be a number > 0")
-    if str(cfg.trainer.precision) not in PRECISIONS:
-        raise SemvprError(f"trainer.precision={cfg.trainer.precision!r} is not one of {list(PRECISIONS)}")
+    lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator))  # supported here, or one line
     _check_trainer(cfg.trainer)
     if cfg.get("ckpt_path") not in (None, "last"):
         from semvpr.core.checkpoint import read_checkpoint

@@ -9,7 +9,9 @@ starts (DDP ranks on the node) and with the jobs a launcher runs beside it (Hydr
   passes of conv networks over batches of images (the frozen trunk, the teacher's and the student's inference,
   training the teacher and the student) take the whole share; the retriever's training and evaluation on
   cached features, small steps of a few tuples each, take 1 thread (two threads measured no faster, and
-  twice as slow beside another job). An ``OMP_NUM_THREADS`` set in the environment caps ``auto``.
+  twice as slow beside another job). A job whose networks run on a GPU gives every stage its whole share:
+  what stays on the CPU there is data loading and k-means, not small steps. An ``OMP_NUM_THREADS`` set in the
+  environment caps ``auto``.
 
 Data-loader workers decode images single-threaded (torch's default in a worker); a loader starts at most
 ``share`` of them.
@@ -71,17 +73,21 @@ class Threads:
     cores: int
     processes: int
     env_cap: int | None = None
+    gpu: bool = False
 
     @classmethod
-    def resolve(cls, setting: object, ranks: int = 1, jobs: int = 1, cores: int | None = None) -> Threads:
-        """The plan for one process of a job of ``ranks`` processes among ``jobs`` jobs side by side."""
+    def resolve(
+        cls, setting: object, ranks: int = 1, jobs: int = 1, cores: int | None = None, gpu: bool = False
+    ) -> Threads:
+        """The plan for one process of a job of ``ranks`` processes among ``jobs`` jobs side by side; ``gpu``: its
+        networks run on a GPU, so its CPU work (data loading, k-means, recall) takes the whole share."""
         cores = usable_cores() if cores is None else cores
         processes = max(1, ranks) * max(1, jobs)
         share = max(1, cores // processes)
         chosen = parse_setting(setting)
         env = os.environ.get("OMP_NUM_THREADS", "")
         env_cap = int(env) if env.isdigit() and int(env) >= 1 and chosen is None else None
-        return cls(chosen, share, cores, processes, env_cap)
+        return cls(chosen, share, cores, processes, env_cap, gpu)
 
     def of(self, stage: str) -> int:
         """Threads of ``stage`` (a key of :data:`AUTO`)."""
@@ -89,7 +95,7 @@ class Threads:
             raise KeyError(stage)
         if self.setting is not None:
             return max(1, min(self.share, self.setting // self.processes or 1))
-        wanted = AUTO[stage] or self.share
+        wanted = self.share if self.gpu else AUTO[stage] or self.share
         return max(1, min(wanted, self.share, self.env_cap or self.share))
 
     def workers(self, requested: int) -> int:
@@ -116,6 +122,7 @@ class Threads:
             "share": self.share,
             "omp_num_threads": self.env_cap,
             "wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "gpu": self.gpu,
             "stages": {name: self.of(name) for name in AUTO},
         }
 

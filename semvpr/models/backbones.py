@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from semvpr.core.cache import state_hash
 from semvpr.core.errors import SemvprError
+from semvpr.core.precision import compute_key
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -204,7 +205,9 @@ class Backbone(nn.Module):
             for k, v in self.state_dict().items()
             if not k.startswith("units.") or int(k.split(".")[1]) < self.split
         }
-        return {"class": type(self).__name__, "train_from": self.train_from, "frozen": state_hash(frozen)}
+        device = next(self.parameters()).device
+        identity = {"class": type(self).__name__, "train_from": self.train_from, "frozen": state_hash(frozen)}
+        return {**identity, **compute_key(device)}
 
 
 class VGG16Backbone(Backbone):

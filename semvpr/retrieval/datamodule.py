@@ -21,7 +21,7 @@ from torch.utils.data import ConcatDataset, DataLoader, Sampler
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.distributed import Describe, batch_block, world
 from semvpr.retrieval.features import PlaceFeatures, StoreDataset
-from semvpr.retrieval.mining import Mining, TrainingEpoch, trainable_queries
+from semvpr.retrieval.mining import Mining, TrainingEpoch, loader_settings, trainable_queries
 from semvpr.retrieval.places import (
     PlaceBatching,
     PlaceImages,
@@ -76,8 +76,13 @@ class EvalDataModule(L.LightningDataModule):
     def _eval_loader(self, features: PlaceFeatures) -> DataLoader:
         # Database first, then queries: semvpr.retrieval.validation splits the descriptors at len(db).
         dataset = ConcatDataset([StoreDataset(features.db), StoreDataset(features.q)])
-        workers = self.num_workers if features.db.streams else 0
-        return DataLoader(dataset, batch_sampler=RankBatches(len(dataset), self.eval_batch_size), num_workers=workers)
+        settings = loader_settings(self.num_workers, features.db.streams, self._device())
+        return DataLoader(dataset, batch_sampler=RankBatches(len(dataset), self.eval_batch_size), **settings)
+
+    def _device(self) -> torch.device:
+        """The device of the module this datamodule feeds (the CPU before a trainer holds one)."""
+        module = self.trainer.lightning_module if self.trainer is not None else None
+        return module.device if module is not None else torch.device("cpu")
 
 
 class RetrievalDataModule(EvalDataModule):
@@ -116,6 +121,7 @@ class RetrievalDataModule(EvalDataModule):
             self.trainer.current_epoch,
             self.describe,
             self.num_workers,
+            self._device(),
         )
         return self._epoch
 
@@ -184,7 +190,7 @@ class PlaceDataModule(EvalDataModule):
             PlaceImages(train, self.places.labels),
             batch_sampler=batches,
             collate_fn=collate_places,
-            num_workers=self.num_workers if train.db.streams else 0,
+            **loader_settings(self.num_workers, train.db.streams, self._device()),
         )
 
     def epoch_facts(self) -> dict[str, Any]:

@@ -46,21 +46,32 @@ def batch_block(n: int, batch_size: int, rank: int, world_size: int) -> slice:
     return slice(min(n, batches.start * batch_size), min(n, batches.stop * batch_size))
 
 
-def gather_rows(rows: torch.Tensor) -> torch.Tensor:
+def collective_device() -> torch.device:
+    """Where the process group's collectives take their tensors: this rank's GPU under NCCL (which has no CPU
+    backend), the CPU under gloo."""
+    if dist.is_available() and dist.is_initialized() and dist.get_backend() == "nccl":
+        return torch.device("cuda", torch.cuda.current_device())
+    return torch.device("cpu")
+
+
+def gather_rows(rows: torch.Tensor, device: torch.device | None = None) -> torch.Tensor:
     """Concatenate every rank's 2-D ``rows`` (N_r, D) in rank order; N_r may differ and be 0 (a
-    rank with no rows may pass any (0, x) tensor: the width is taken from the others)."""
+    rank with no rows may pass any (0, x) tensor: the width is taken from the others). The collectives run
+    on ``device`` (by default :func:`collective_device`); the result is on ``rows``' device."""
     size = world()[1]
     if size == 1:
         return rows
-    shapes = [torch.zeros(2, dtype=torch.long) for _ in range(size)]
-    dist.all_gather(shapes, torch.tensor(rows.shape[:2]))
+    home, device = rows.device, device or collective_device()
+    rows = rows.to(device)
+    shapes = [torch.zeros(2, dtype=torch.long, device=device) for _ in range(size)]
+    dist.all_gather(shapes, torch.tensor(rows.shape[:2], device=device))
     most, width = (int(max(s[i].item() for s in shapes)) for i in (0, 1))
     padded = rows.new_zeros(most, width)
     if len(rows):
         padded[: len(rows)] = rows
     parts = [torch.empty_like(padded) for _ in range(size)]
     dist.all_gather(parts, padded)
-    return torch.cat([part[: int(s[0].item())] for part, s in zip(parts, shapes)])
+    return torch.cat([part[: int(s[0].item())] for part, s in zip(parts, shapes)]).to(home)
 
 
 def from_rank_zero(obj: Any) -> Any:

@@ -9,6 +9,8 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from semvpr.core.precision import fp32
+
 
 def triplet_loss(desc: Tensor, tuples: Tensor, margin: float, pairs: float | None = None, eps: float = 1e-6) -> Tensor:
     """NetVLAD's loss: max(0, d(q,p) − d(q,n) + sqrt(margin)) on L2 distances (as
@@ -72,6 +74,6 @@ class MultiSimilarity(Loss):
 
     def __call__(self, desc: Tensor, batch: dict[str, Any]) -> Tensor:
         labels = batch["labels"]
-        with torch.autocast(desc.device.type, enabled=False):
+        with fp32(desc.device.type):
             desc = desc.float()
             return self.loss(desc, labels, self.miner(desc, labels))

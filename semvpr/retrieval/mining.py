@@ -32,6 +32,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.precision import fp32
 from semvpr.data.places import check_radius
 from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, world
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
@@ -50,6 +51,7 @@ def mine(
     num_negatives: int = 10,
     negative_candidates: int = 1000,
     margin: float = 0.1,
+    device: torch.device | str = "cpu",
 ) -> list[tuple[int, int, np.ndarray]]:
     """(query, positive, violating hard negatives) per minable query; ``q_desc`` rows follow ``query_ids``.
 
@@ -61,7 +63,10 @@ def mine(
     near = tree.query_ball_point(q_utm[query_ids], r=positive_radius)
     not_far = tree.query_ball_point(q_utm[query_ids], r=negative_radius)
     # One BLAS call for all query-database distances; the loop below only indexes into it.
-    dist = torch.cdist(torch.from_numpy(q_desc).float(), torch.from_numpy(db_desc).float()).numpy()
+    # On the job's device (a GPU's matmul in full fp32: the ranking must not move with TF32).
+    with fp32(torch.device(device).type):
+        q, db = (torch.from_numpy(d).float().to(device) for d in (q_desc, db_desc))
+        dist = torch.cdist(q, db).cpu().numpy()
     tuples = []
     for row, qi, pos, excluded in zip(dist, query_ids, near, not_far):
         if not pos:
@@ -158,8 +163,9 @@ class Mining:
         query_ids: np.ndarray,
         rng: np.random.Generator,
         neg_cache: np.ndarray | None,
+        device: torch.device | str = "cpu",
     ) -> list[tuple[int, int, np.ndarray]]:
-        """:func:`mine` with these radii, counts and margin."""
+        """:func:`mine` with these radii, counts and margin, its distances on ``device``."""
         return mine(
             db_desc,
             q_desc,
@@ -173,6 +179,7 @@ class Mining:
             num_negatives=self.num_negatives,
             negative_candidates=self.negative_candidates,
             margin=self.margin,
+            device=device,
         )
 
 
@@ -186,6 +193,14 @@ def trainable_queries(places: Any, positive_radius: float) -> np.ndarray:
             "check the training split's UTM coordinates"
         )
     return queries
+
+
+def loader_settings(num_workers: int, streams: bool, device: torch.device | str) -> dict[str, Any]:
+    """``num_workers`` and ``pin_memory`` of a loader over a feature store: on the CPU, workers only where the store
+    streams images (cached features are a memory copy away: a worker would only add start-up); on a GPU,
+    workers and pinned memory for cached stores too, so that the copies overlap the device's work."""
+    gpu = torch.device(device).type == "cuda"
+    return {"num_workers": num_workers if streams or gpu else 0, "pin_memory": gpu}
 
 
 class TrainingEpoch:
@@ -206,8 +221,10 @@ class TrainingEpoch:
         epoch: int,
         describe: Describe,
         num_workers: int = 0,
+        device: torch.device | str = "cpu",
     ) -> None:
         self.train, self.mining, self.describe, self.num_workers = train, mining, describe, num_workers
+        self.device = device
         self.neg_cache = neg_cache
         # Tuples mined, and whether the epoch ran at all (a resumed, finished fit builds it and never iterates).
         self.num_tuples, self.iterated = 0, False
@@ -229,7 +246,7 @@ class TrainingEpoch:
         for chunk in self.chunks:
             db_desc, q_desc = self.describe(train.db, None), self.describe(train.q, chunk)
             if rank == 0:
-                tuples = self.mining.mine(db_desc, q_desc, train.places, chunk, self.rng, self.neg_cache)
+                tuples = self.mining.mine(db_desc, q_desc, train.places, chunk, self.rng, self.neg_cache, self.device)
                 shared = (tuples, self.neg_cache)
             tuples, neg_cache = from_rank_zero(shared if rank == 0 else None)
             self.neg_cache[:] = neg_cache
@@ -240,7 +257,7 @@ class TrainingEpoch:
                 TupleDataset(tuples, train.db, train.q),
                 batch_sampler=[batch[rank_slice(len(batch), rank, size)] for batch in batches],
                 collate_fn=collate_tuples,
-                num_workers=self.num_workers if train.db.streams else 0,
+                **loader_settings(self.num_workers, train.db.streams, self.device),
             )
             for batch, n in zip(loader, pairs):
                 yield None if n == 0 else {**(batch or {}), "pairs": n / size}

@@ -32,7 +32,7 @@ class Confusion:
         """Add a batch of predicted labels and trainId targets of the same shape."""
         if pred.shape != target.shape:
             raise ValueError(f"prediction {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
-        target, pred = target.reshape(-1).long(), pred.reshape(-1).long()
+        target, pred = target.reshape(-1).long().cpu(), pred.reshape(-1).long().cpu()
         valid = (target >= 0) & (target < NUM_CLASSES)  # IGNORE and unknown ids are not scored
         pred = torch.where((pred >= 0) & (pred < self.num_pred), pred, self.num_pred)[valid]
         flat = target[valid] * (self.num_pred + 1) + pred

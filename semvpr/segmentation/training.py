@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader
 from semvpr.core.cache import build_once, config_hash, files_identity
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import Progress, progress, trainer_kwargs
-from semvpr.core.precision import autocast, lightning_precision
+from semvpr.core.precision import autocast, compute_key, lightning_precision
 from semvpr.data.classes import IGNORE, NUM_CLASSES
 from semvpr.data.images import ImageDataset
 from semvpr.data.segmentation import SegmentationSet
@@ -58,21 +58,23 @@ def training_threads() -> int:
     return torch.get_num_threads()
 
 
-def _train(spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationSet, out: Path) -> None:
+def _train(
+    spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationSet, out: Path, device: torch.device
+) -> None:
     """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
     from lightning.pytorch.loggers import CSVLogger
 
     check_mask2former_init()
     train = spec.train
     L.seed_everything(train.seed, workers=True, verbose=False)
-    accelerator = "gpu" if torch.cuda.is_available() else "cpu"
+    accelerator = "gpu" if device.type == "cuda" else "cpu"
     teacher = embedded_teacher(spec)
     data = SegmentationDataModule(
         seg_train, seg_val, image_size=tuple(spec.image_size), batch_size=train.batch_size,
         num_workers=train.num_workers, augment=train.augment, label_ids=True, seed=train.seed,
     )  # fmt: skip
     trainer = L.Trainer(
-        accelerator=accelerator, devices=1,
+        accelerator=accelerator, devices=[device.index or 0] if device.type == "cuda" else 1,
         precision=lightning_precision("bf16-mixed" if train.bf16 else "32-true", accelerator),
         max_epochs=train.epochs, check_val_every_n_epoch=train.val_every or train.epochs, num_sanity_val_steps=0,
         logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
@@ -88,9 +90,15 @@ def _train(spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationS
 
 
 def build_teacher(
-    spec: TeacherSpec, seg_train: SegmentationSet | None, seg_val: SegmentationSet | None, cache_dir: str | Path
+    spec: TeacherSpec,
+    seg_train: SegmentationSet | None,
+    seg_val: SegmentationSet | None,
+    cache_dir: str | Path,
+    device: torch.device | str = "cpu",
 ) -> Teacher:
-    """Load the pretrained teacher, or train the embedded one once (cached) and load it; eval mode, frozen."""
+    """Load the pretrained teacher, or train the embedded one once (cached) on ``device`` and load it; eval mode,
+    frozen, on ``device``."""
+    device = torch.device(device)
     teacher = teacher_architecture(spec)
     if not spec.checkpoint:
         if seg_train is None or seg_val is None:
@@ -105,8 +113,9 @@ def build_teacher(
             "train_set": dataset_identity(seg_train),
             "val_set": dataset_identity(seg_val),
             "threads": training_threads(),
+            **compute_key(device),
         }  # fmt: skip
-        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(spec, seg_train, seg_val, tmp))
+        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(spec, seg_train, seg_val, tmp, device))
         # The architecture comes from the config, only weights from the (possibly shared) cache.
         try:
             teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
@@ -115,8 +124,7 @@ def build_teacher(
                 f"teacher cache {art} does not hold this teacher's weights ({type(err).__name__}); delete it to rebuild"
             ) from None
         teacher.teacher_key = art.name
-    teacher.eval().requires_grad_(False)
-    return teacher
+    return teacher.to(device).eval().requires_grad_(False)
 
 
 @torch.no_grad()

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.precision import fp32
 from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
 
 HEAD_DIM = 64  # the authors' heads: d // 64 of them
@@ -116,7 +117,7 @@ class BoQ(Aggregator):
             return self.proj_c(x)
         # In fp32 (autocast off): the renormalisation divides by window weights down to WINDOW_EPS, which
         # would magnify bf16 rounding.
-        with torch.autocast(x.device.type, enabled=False):
+        with fp32(x.device.type):
             x = x.float()
             w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
             k = self.proj_kernel

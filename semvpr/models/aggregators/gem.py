@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from semvpr.core.precision import fp32
 from semvpr.models.aggregators.base import Aggregator, check_weights
 
 
@@ -50,7 +51,7 @@ class GeM(Aggregator):
     def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
         """Weighted GeM over the grid (in fp32), then the head if any."""
         weights = check_weights(x, weights)
-        with torch.autocast(x.device.type, enabled=False):
+        with fp32(x.device.type):
             x = x.float()
             if self.fc is not None:
                 x = F.normalize(x, dim=1)

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.precision import fp32
 from semvpr.models.aggregators.base import Aggregator, check_weights
 
 MAX_KMEANS_FEATURES = 50_000  # NetVLAD's recipe: cluster a 50k random sample of training local features
@@ -178,13 +179,13 @@ class NetVLAD(Aggregator):
 
     def assignment(self, x: Tensor) -> Tensor:
         """Soft-assignment a_k(x_i), (B,K,h,w)."""
-        with torch.autocast(x.device.type, enabled=False):
+        with fp32(x.device.type):
             return F.softmax(self.conv(self._prepare(x)), dim=1)
 
     def forward(self, x: Tensor, mask: Tensor | None = None) -> Tensor:
         """(B,D,h,w) features and optional (B,1,h,w) contribution weights → (B,K·D) descriptor."""
         mask = check_weights(x, mask)
-        with torch.autocast(x.device.type, enabled=False):
+        with fp32(x.device.type):
             x = self._prepare(x)
             weights = self._weights(x)
             if mask is not None:

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.precision import fp32
 from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
 
 
@@ -99,7 +100,7 @@ class SALAD(Aggregator):
     def forward(self, x: Tensor, weights: Tensor | None = None) -> Tensor:
         """Optimal-transport aggregation in fp32 (exp of log-plans)."""
         weights = check_weights(x, weights)
-        with torch.autocast(x.device.type, enabled=False):
+        with fp32(x.device.type):
             x = x.float()
             w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
             w = w.expand(x.shape[0], 1, *x.shape[2:])

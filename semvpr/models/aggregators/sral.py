@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from semvpr.core.precision import fp32
 from semvpr.models.aggregators.netvlad import (
     MAX_KMEANS_FEATURES,
     NetVLAD,
@@ -85,7 +86,7 @@ class SRAL(NetVLAD):
 
     def attention(self, x: Tensor) -> Tensor:
         """Σ_k a_k β_k per location, (B,1,h,w) in [0,1]."""
-        with torch.autocast(x.device.type, enabled=False):
+        with fp32(x.device.type):
             return self._weights(self._prepare(x)).sum(1, keepdim=True).clamp(0.0, 1.0)
 
     def init_from_sample(self, feats: Tensor, static: Tensor | None, seed: int) -> dict[str, float | int | str]:
