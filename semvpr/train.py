@@ -39,7 +39,7 @@ from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
 from semvpr.core.logs import quiet_third_party
-from semvpr.core.precision import job_precision
+from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.resume import keep_run_record, resumed_config
 from semvpr.core.threads import Threads
 from semvpr.reporting.job_files import write_job_figure_data
@@ -160,6 +160,9 @@ def train_and_test(
             **datamodule.epoch_facts(),
             "aggregator_init": init_info,
             "threads": threads.record(),
+            # Where every stage ran (the backbone's device: the builders put the rest there) and how.
+            "device": str(next(job.backbone.parameters()).device),
+            "precision": running_precision(),
             "timings": timings,
             "wall_time_s": time.time() - start,
         },

@@ -1,0 +1,194 @@
+"""One device per job: every stage built where the job runs, precision as asked, the fp32 sections in fp32,
+the NCCL-style gather, a sweep's GPUs leased one per job; the ``gpu`` tests run every stage on CUDA."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from semvpr.config.build import build_retriever, job_device, prepare, thread_plan
+from semvpr.core.device import GpuLease, resolve, sweep_jobs
+from semvpr.core.errors import SemvprError
+from semvpr.core.precision import autocast, compute_key, fp32, job_precision, lightning_precision, running_precision
+from tests.helpers import tiny_config
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+
+
+def _devices_of(module: torch.nn.Module) -> set[torch.device]:
+    return {t.device for t in [*module.parameters(), *module.buffers()]}
+
+
+def test_every_stage_is_built_on_the_job_device(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """prepare() hands its device to the backbone, and everything built from it (teacher, student, the mask
+    source, the retriever) lands there: a stage built elsewhere would show up as a second device."""
+    cfg = tiny_config(tmp_path / "cache", "filter=unet", "threads=1")
+    seen: list[torch.device] = []
+    real = torch.nn.Module.to
+
+    def spy(self: torch.nn.Module, *args: object, **kwargs: object) -> torch.nn.Module:
+        for a in [*args, kwargs.get("device")]:
+            if isinstance(a, (str, torch.device)) and str(a) not in ("", "None"):
+                seen.append(torch.device(a))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.nn.Module, "to", spy)
+    device = job_device(cfg)
+    assert device == torch.device("cpu")
+    job = prepare(cfg, {}, thread_plan(cfg), device)
+    retriever = build_retriever(cfg, job.backbone, job.mask_source)
+    assert seen and set(seen) == {device}, seen
+    assert _devices_of(retriever) == {device}
+    assert job.semantic.teacher is not None and _devices_of(job.semantic.teacher) == {device}
+
+
+def test_a_gpu_asked_for_where_none_is_visible_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(SemvprError, match="asks for a CUDA GPU and none is visible"):
+        resolve("gpu")
+    assert resolve("auto") == torch.device("cpu") and resolve(None) == torch.device("cpu")
+    with pytest.raises(SemvprError, match="must be auto, cpu, cuda or cuda:N"):
+        resolve("tpu")
+
+
+def test_precision_as_asked() -> None:
+    assert lightning_precision("32-true", "cpu") == "32-true" and lightning_precision("32", "gpu") == "32-true"
+    for half in ("16-true", "bf16-true", "64-true", "transformer-engine"):
+        with pytest.raises(SemvprError, match=r"is not supported: semvpr runs bf16-mixed, 16-mixed \(GPU\) or 32-true"):
+            lightning_precision(half, "gpu")
+    with pytest.raises(SemvprError, match="16-mixed needs a GPU"):
+        lightning_precision("16-mixed", "cpu")
+
+
+def test_bf16_on_a_gpu_without_bf16_units_is_fp16_with_a_scaler(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A V100 or T4 reports bf16 'supported' through emulation: only native support counts."""
+    from semvpr.core import precision
+
+    precision.bf16_native.cache_clear()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda including_emulation=True: including_emulation)
+    try:
+        assert lightning_precision("bf16-mixed", "gpu") == "16-mixed"
+    finally:
+        precision.bf16_native.cache_clear()
+
+
+def test_the_project_autocast_follows_the_job_precision() -> None:
+    default = running_precision()
+    with job_precision("32-true", "cpu") as run:
+        assert run == "32-true" and running_precision() == "32-true"
+        with autocast("cpu"):
+            assert not torch.is_autocast_enabled("cpu")
+        assert compute_key("cpu") in ({}, {"compute": "cpu/32-true"})
+    assert running_precision() == default
+    assert compute_key("cpu") == {}  # the CPU's default arithmetic keeps the caches' keys
+    assert compute_key("cuda") == {"compute": f"cuda/{default}"}
+
+
+def test_the_fp32_sections_turn_autocast_and_tf32_off_and_restore_them() -> None:
+    torch.backends.cuda.matmul.fp32_precision = "tf32"
+    try:
+        with torch.autocast("cpu", dtype=torch.bfloat16), fp32("cpu"):
+            assert not torch.is_autocast_enabled("cpu")
+            assert torch.backends.cuda.matmul.fp32_precision == "ieee"
+            assert torch.backends.cudnn.conv.fp32_precision == "ieee"
+            x = torch.randn(4, 4)
+            assert (x @ x).dtype == torch.float32
+        assert torch.backends.cuda.matmul.fp32_precision == "tf32"
+    finally:
+        torch.backends.cuda.matmul.fp32_precision = "none"
+
+
+def test_a_gpu_job_gives_its_cpu_stages_the_share() -> None:
+    from semvpr.core.threads import Threads
+
+    cpu, gpu = Threads.resolve("auto", cores=8), Threads.resolve("auto", cores=8, gpu=True)
+    assert cpu.of("retriever") == 1 and gpu.of("retriever") == 8 and gpu.record()["gpu"] is True
+
+
+def test_a_sweep_runs_one_job_per_visible_gpu() -> None:
+    assert sweep_jobs("cpu", 1, 2, gpus=[0, 1, 2, 3]) == 2
+    assert sweep_jobs("gpu", 1, 2, gpus=[0, 1, 2, 3]) == 4
+    assert sweep_jobs("gpu", 1, 2, gpus=[0]) == 1
+    assert sweep_jobs("gpu", -1, 2, gpus=[0, 1]) == 1  # DDP over every GPU: one job at a time
+
+
+def _lease(folder: str, gpus: list[int], start: mp.synchronize.Barrier, queue: mp.Queue) -> None:
+    with GpuLease(Path(folder), gpus) as lease:
+        queue.put(lease.index)
+        start.wait(timeout=60)  # hold it until every job has taken one
+
+
+def test_sweep_jobs_side_by_side_lease_distinct_gpus(tmp_path: Path) -> None:
+    """Jobs running at once (separate processes, as the launchers start them) each get a GPU of their own
+    from a fake visible list; a job that ends frees its GPU for the next."""
+    ctx = mp.get_context("spawn")
+    gpus = [3, 5, 7]
+    start, queue = ctx.Barrier(len(gpus)), ctx.Queue()
+    jobs = [ctx.Process(target=_lease, args=(str(tmp_path), gpus, start, queue)) for _ in gpus]
+    for job in jobs:
+        job.start()
+    taken = sorted(queue.get(timeout=60) for _ in jobs)
+    for job in jobs:
+        job.join(timeout=60)
+    assert taken == gpus
+    with GpuLease(tmp_path, gpus) as lease:
+        assert lease.index == 3
+
+
+def test_a_file_system_without_flock_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import fcntl
+
+    def no_flock(fd: int, op: int) -> None:
+        raise OSError(38, "Function not implemented")
+
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    with pytest.raises(SemvprError, match="a file system without flock"), GpuLease(tmp_path, [0, 1]):
+        pass
+
+
+def _gather(rank: int, port: int, queue: mp.Queue) -> None:
+    import torch.distributed as dist
+
+    from semvpr.retrieval.distributed import gather_rows
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    dist.init_process_group("gloo", rank=rank, world_size=2)
+    rows = torch.full((rank + 1, 3), float(rank))
+    out = gather_rows(rows, device=torch.device("cpu"))
+    queue.put((rank, out.tolist(), str(out.device)))
+    dist.destroy_process_group()
+
+
+def test_the_gather_runs_on_the_collective_device_and_returns_to_the_rows_device() -> None:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    procs = [ctx.Process(target=_gather, args=(r, port, queue)) for r in range(2)]
+    for p in procs:
+        p.start()
+    results = dict((r, (rows, dev)) for r, rows, dev in (queue.get(timeout=120) for _ in procs))
+    for p in procs:
+        p.join(timeout=60)
+    expected = [[0.0] * 3, [1.0] * 3, [1.0] * 3]
+    assert results[0] == (expected, "cpu") and results[1] == (expected, "cpu")
+
+
+@pytest.mark.gpu
+@CUDA
+def test_a_tiny_gpu_job_runs_every_stage_on_cuda(tmp_path: Path) -> None:
+    cfg = tiny_config(tmp_path / "cache", "filter=unet", "threads=1", "trainer=gpu")
+    with job_precision("bf16-mixed", "gpu"):
+        device = job_device(cfg)
+        job = prepare(cfg, {}, thread_plan(cfg), device)
+        retriever = build_retriever(cfg, job.backbone, job.mask_source)
+    assert device.type == "cuda" and _devices_of(retriever) == {device}
+    assert _devices_of(job.semantic.student) == {device}
