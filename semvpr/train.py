@@ -35,7 +35,7 @@ from semvpr.config.build import (
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.resume import keep_run_record, resumed_config
 from semvpr.core.threads import Threads
@@ -93,6 +93,7 @@ def train_and_test(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
     )
     threads = threads or thread_plan(cfg)
+    reclaim_orphans(run_dir / "checkpoints")  # what a killed save left (checkpoints are staged there)
     trainer = build_trainer(cfg, run_dir, [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))])
     datamodule = build_datamodule(cfg, job.features, describe)
     leader = trainer.global_rank == 0

@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
-from semvpr.core.checkpoint import record_of
+from semvpr.core.checkpoint import RunCheckpointIO, record_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
@@ -263,6 +263,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback]) -
         cfg.trainer,
         default_root_dir=str(run_dir),
         logger=loggers,
+        plugins=[RunCheckpointIO()],  # checkpoints staged in the run dir, not $TMPDIR
         **trainer_kwargs("retriever", callbacks),
         precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)),
     )
