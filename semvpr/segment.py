@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import build_backbone, student_spec, teacher_spec, thread_plan
-from semvpr.config.checks import check_config
+from semvpr.config.checks import check_config, refuse_private_keys_or_exit
 from semvpr.config.components import instantiate_node
 from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
@@ -293,6 +294,7 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry point; user errors become one line on stderr and exit code 2."""
+    refuse_private_keys_or_exit(sys.argv[1:])
     _hydra_main()
 
 

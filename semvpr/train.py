@@ -37,7 +37,7 @@ from semvpr.config.build import (
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.resume import keep_run_record, resumed_config
@@ -101,6 +101,7 @@ def train_and_test(
     )
     threads = threads or thread_plan(cfg)
     device = retriever.device
+    reclaim_orphans(run_dir / "checkpoints")  # what a killed save left (checkpoints are staged there)
     callbacks = [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))]
     trainer = build_trainer(cfg, run_dir, callbacks, device)
     datamodule = build_datamodule(cfg, job.features, describe)

@@ -271,6 +271,18 @@ def _bad_year_gsv(tmp: Path) -> str:
     return str(root)
 
 
+def _gsv_csv(tmp: Path, damage: str) -> list[str]:
+    """recipe=gsv on a GSV-Cities root whose London.csv is damaged: a field over the csv module's limit, or
+    bytes that are not UTF-8."""
+    root = write_gsv_cities(tmp / "gsv")
+    csv = root / "Dataframes" / "London.csv"
+    if damage == "long field":
+        csv.write_text(csv.read_text().replace("\n", "\n" + "9" * 140_000, 1))
+    else:
+        csv.write_bytes(csv.read_bytes().replace(b"\n", "\nM\u00fcnchen-".encode("cp1252"), 1))
+    return ["recipe=gsv", "data=gsv_cities", f"data.root={root}"]
+
+
 TRAIN = ["semvpr.train", "experiment=tiny"]
 EVAL = ["semvpr.eval", "experiment=tiny", *EVAL_SIZE]
 LOCALIZE = ["semvpr.localize", *EVAL_SIZE, "data.num_workers=0"]
@@ -352,6 +364,41 @@ CASES: dict[str, Case] = {
         "place_id='130.5' is not a whole number",
     ),
     "traversals=-1": Case(TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
+    "gsv_cities csv field over the limit": Case(
+        TRAIN, lambda t, c: _gsv_csv(t, "long field"), "London.csv: line 2: not a readable csv row"
+    ),
+    "gsv_cities csv not UTF-8": Case(TRAIN, lambda t, c: _gsv_csv(t, "cp1252"), "London.csv: not UTF-8 text"),
+    # ---- the command line names no _target_ (nor any _ key): only the project's files do
+    "train data.test._target_=builtins.print": Case(
+        TRAIN, lambda t, c: ["data.test._target_=builtins.print"], "the key _target_ is refused"
+    ),
+    "eval a mapping value holding _target_": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "+data.extra={_target_:os.getcwd}"], "the key _target_ is refused"
+    ),
+    "segment model._partial_": Case(
+        ["semvpr.segment"], lambda t, c: [f"seg.root={t}", "teacher.model._partial_=true"], "the key _partial_"
+    ),
+    # ---- patterns from the command line run with a bounded cost: a backtracking bomb is refused at once
+    "frame_pattern alternation in a repeat": Case(
+        EVAL,
+        lambda t, c: _nordland(t, c, "data.frame_pattern='(x|xx)*(\\d+)\\.jpg'", frame="x" * 40),
+        "repeats a repeat or an alternation",
+        timeout=90,
+    ),
+    "frame_pattern nested repeat": Case(
+        EVAL,
+        lambda t, c: _nordland(t, c, "data.frame_pattern='(?:y+)+z?(\\d+)\\.jpg'", frame="y" * 40),
+        "repeats a repeat or an alternation",
+        timeout=90,
+    ),
+    "frame_pattern backreference": Case(
+        EVAL, lambda t, c: _nordland(t, c, "data.frame_pattern='(\\d)\\1(\\d*)\\.jpg'"), "backreference"
+    ),
+    "frame_pattern four unbounded repeats": Case(
+        EVAL,
+        lambda t, c: _nordland(t, c, "data.frame_pattern='.*_.*_.*_(\\d+)\\.jpg'"),
+        "at most three unbounded repeats",
+    ),
     # ---- a run directory is data: resume composes from the project's files, checks the record's values
     "resume a run whose record names a _target_": Case(TRAIN[:1], _tampered_run, "data.train._target_ is refused"),
     # ---- list files: one rule for every reader (relative, no '..', no control characters)
@@ -498,6 +545,9 @@ FAST = {
     "eval data.eval_radius=0",
     "unknown key +model.fooo",
     "gsv recipe.optimizer.lr",
+    "gsv_cities csv not UTF-8",
+    "train data.test._target_=builtins.print",
+    "frame_pattern nested repeat",
 }
 
 

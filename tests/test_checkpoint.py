@@ -231,3 +231,34 @@ def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine
     torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "nan.ckpt")
     with pytest.raises(SemvprError, match=f"weight '{name}' is not a tensor of finite numbers"):
         load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'nan.ckpt'}", config_name="eval"))
+
+
+def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run's Trainer writes checkpoints through RunCheckpointIO: every file it creates or renames lies in
+    the checkpoint's own folder (Lightning's own writer stages them in $TMPDIR first)."""
+    import os
+    import shutil
+    import tempfile
+
+    from semvpr.config.build import build_trainer
+    from semvpr.core.checkpoint import RunCheckpointIO
+
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
+    trainer = build_trainer(tiny_config(tmp_path / "cache"), tmp_path / "run", [])
+    io = trainer.strategy.checkpoint_io
+    assert isinstance(io, RunCheckpointIO)
+    moves: list[str] = []
+    for module, name in ((os, "replace"), (os, "rename"), (shutil, "move")):
+        real = getattr(module, name)
+        monkeypatch.setattr(
+            module, name, lambda src, dst, *a, real=real, **k: (moves.append(str(src)), real(src, dst, *a, **k))[1]
+        )
+    target = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    io.save_checkpoint({"state_dict": {"w": torch.ones(3)}, "epoch": 1}, target)
+    assert torch.load(target, weights_only=True)["epoch"] == 1
+    assert moves and all(Path(m).parent == target.parent for m in moves), moves
+    assert list(tmpdir.iterdir()) == [] and sorted(p.name for p in target.parent.iterdir()) == ["last.ckpt"]

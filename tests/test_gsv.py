@@ -4,6 +4,7 @@ pytorch-metric-learning, the GSV-Cities layout reader, SynthCity's training plac
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from collections import Counter, defaultdict
@@ -237,6 +238,9 @@ def test_gsv_cities_reader_builds_names_as_gsv_cities_and_groups_places_by_city(
         ("missing image", "London.csv: 1 of its 21 images are missing, the first"),
         ("missing column", "London.csv: missing column(s) ['panoid']"),
         ("unknown city", "no dataframe for city 'Paris'"),
+        ("field over the csv limit", "London.csv: line 3: not a readable csv row (field larger than field limit"),
+        ("latin-1 bytes", "London.csv: not UTF-8 text (a byte 0xe9)"),
+        ("a FIFO", "London.csv is not a regular file"),
     ],
 )
 def test_gsv_cities_damage_is_one_line(tmp_path: Path, damage: str, fragment: str) -> None:
@@ -253,6 +257,13 @@ def test_gsv_cities_damage_is_one_line(tmp_path: Path, damage: str, fragment: st
         next((root / "Images" / "London").iterdir()).unlink()
     elif damage == "missing column":
         csv.write_text("\n".join(line.rsplit(",", 1)[0] for line in lines) + "\n")
+    elif damage == "field over the csv limit":
+        csv.write_text("\n".join([*lines[:2], lines[2] + "x" * 200_000, *lines[3:]]) + "\n")
+    elif damage == "latin-1 bytes":
+        csv.write_bytes(("\n".join(lines[:2]) + "\n").encode() + "caf\u00e9,1\n".encode("latin-1"))
+    elif damage == "a FIFO":
+        csv.unlink()
+        os.mkfifo(csv)
     else:
         cities = ["London", "Paris"]
     with pytest.raises(SemvprError) as err:

@@ -227,13 +227,15 @@ def test_signal_stops_the_sweep_instead_of_recording_a_failure(tmp_path: Path, m
 
 def test_a_signal_during_training_is_one_line_that_says_how_to_resume(tmp_path: Path) -> None:
     """SIGTERM lands wherever the job is (inside Lightning's backward, say): the command prints one line with
-    the resume command, not that traceback, exits 2 and leaves no metrics.json, only the checkpoint to resume."""
-    run = tmp_path / "run"
+    the resume command, not that traceback, exits 2 and leaves no metrics.json, only the checkpoint to resume.
+    Every checkpoint is staged inside the run directory: nothing is written to $TMPDIR, mid-save or not."""
+    run, tmpdir = tmp_path / "run", tmp_path / "tmpdir"
+    tmpdir.mkdir()
     args = [
         "experiment=tiny", "filter=none", "threads=1", "trainer.max_epochs=400",
         f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run}",
     ]  # fmt: skip
-    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1"}
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "TMPDIR": str(tmpdir)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "semvpr.train", *args], cwd=tmp_path, stderr=subprocess.PIPE, text=True, env=env
     )
@@ -251,6 +253,8 @@ def test_a_signal_during_training_is_one_line_that_says_how_to_resume(tmp_path: 
         f"semvpr: error: stopped by SIGTERM; resume it: python -m semvpr.train ckpt_path=last hydra.run.dir={run}"
     ], rest[-3000:]
     assert not (run / "metrics.json").exists() and (run / "checkpoints" / "last.ckpt").is_file()
+    # torch makes its compile cache folder (empty) in $TMPDIR as lightning imports it; nothing else is there.
+    assert [p for p in tmpdir.rglob("*") if not p.name.startswith("torchinductor_")] == []
 
 
 def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
-from semvpr.core.checkpoint import record_of
+from semvpr.core.checkpoint import RunCheckpointIO, record_of
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
@@ -287,6 +287,7 @@ def build_trainer(
         cfg.trainer,
         default_root_dir=str(run_dir),
         logger=loggers,
+        plugins=[RunCheckpointIO()],  # checkpoints staged in the run dir, not $TMPDIR
         **trainer_kwargs("retriever", callbacks),
         precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)),
         **extra,

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.components import COMPONENTS, component_class, loss_class, options
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
+from semvpr.core.patterns import bounded_regex
 from semvpr.core.precision import lightning_precision
 from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
@@ -64,7 +65,9 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
     - one that adds a key the project's config does not have (``+model.fooo=1``) is refused: nothing
       would read it, so the run would silently be another than asked;
     - ``hydra.run.dir`` / ``hydra.sweep.dir`` must be a directory semvpr can write as written
-      (``core.io.check_dir_path``), checked before Hydra makes it and opens its log there.
+      (``core.io.check_dir_path``), checked before Hydra makes it and opens its log there;
+    - a key starting with ``_`` (``data.test._target_=builtins.exec``, or inside a mapping value) is
+      refused: ``_target_``s come only from the project's config files, a class is chosen by its group.
     """
     recipe = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "recipe" / "triplet.yaml")))
     model = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "train.yaml").model))
@@ -90,10 +93,56 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
             and any(r == rest or r.startswith(f"{rest}.") for r in recipe)
         ):
             raise SemvprError(f"{arg}: {key} is a setting of the training protocol now: recipe.{rest}={value}")
+    for arg in argv:
+        _refuse_private_keys(arg)
     args = [a for a in argv if a not in _HYDRA_FLAGS]
     if any(a.startswith("-") for a in args):
         return  # --cfg, --config-name, ...: Hydra's own modes
     _check_composition(args, config_name, multirun=len(args) < len(argv))
+
+
+def _refuse_private_keys(arg: str) -> None:
+    """Refuse an override (outside ``hydra.``) whose key, or a key of whose mapping value, starts with ``_``
+    (``_target_``, ``_partial_``, ``_args_``, ...): only the project's config files name what is built."""
+    if arg.startswith("-"):
+        return
+    key, sep, value = arg.lstrip("+~").partition("=")
+    if key == "hydra" or key.startswith(("hydra.", "hydra/")):
+        return
+    named = next((part for part in re.split(r"[./@]", key) if part.startswith("_")), None)
+    if named is None and sep and "_" in value:
+        named = _private_key_in(_parsed_value(arg))
+    if named is not None:
+        raise SemvprError(
+            f"{arg}: the key {named} is refused on the command line: _target_ and the other _ keys come only from "
+            "the project's config files (choose a class by its group, e.g. aggregator=gem)"
+        )
+
+
+def _parsed_value(arg: str) -> Any:
+    """The value of one override as Hydra parses it (None where it does not parse: Hydra says why later)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        (override,) = OverridesParser.create().parse_overrides([arg])
+        return override.value()
+    except Exception:  # noqa: BLE001 - any parse failure is reported by the composition check
+        return None
+
+
+def _private_key_in(value: Any) -> str | None:
+    """The first mapping key starting with ``_`` anywhere in a parsed override value, or None."""
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, dict):
+            for k, v in item.items():
+                if str(k).startswith("_"):
+                    return str(k)
+                stack.append(v)
+        elif isinstance(item, list):
+            stack.extend(item)
+    return None
 
 
 def _check_composition(args: list[str], config_name: str, multirun: bool) -> None:
@@ -224,6 +273,14 @@ def _first_line(err: BaseException) -> str:
 
 
 @exit_on_user_error
+def refuse_private_keys_or_exit(argv: list[str]) -> None:
+    """The ``_`` key refusal of :func:`check_overrides` alone, as a command's first step (semvpr.segment,
+    whose overrides Hydra checks itself): one line and exit code 2."""
+    for arg in argv:
+        _refuse_private_keys(arg)
+
+
+@exit_on_user_error
 def check_overrides_or_exit(argv: list[str], config_name: str = "train") -> None:
     """:func:`check_overrides` as a command's first step: one line and exit code 2."""
     check_overrides(argv, config_name)
@@ -245,6 +302,9 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         value = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
         if isinstance(value, str):
             check_path_text(value, key)
+    pattern = OmegaConf.select(cfg, "data.frame_pattern", default=None, throw_on_missing=False)
+    if pattern is not None:
+        bounded_regex(pattern, "data.frame_pattern")
     if "model" in cfg:
         _check_retrieval(cfg)
     if "seg" in cfg:

@@ -17,7 +17,9 @@ so; checkpoints written before that record have none and read as before.
 
 Resuming training reads Lightning's callback state from the checkpoint too: :class:`RunCheckpoint`
 drops any path in it that lies outside the run's checkpoint directory, so a tampered or foreign
-``last.ckpt`` can never make Lightning read or delete another file.
+``last.ckpt`` can never make Lightning read or delete another file. Checkpoints are written by
+:class:`RunCheckpointIO`: staged beside their final name (``core.io.atomic_file``), never in ``$TMPDIR``,
+so a run killed mid-save leaves nothing outside its run directory.
 
 Checkpoints written before the aggregator and the mask were groups of their own record a ``filter``
 choice (SRAL + student for ``unet``, ...); they are read as the aggregator and mask that the
@@ -33,11 +35,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import CONF_DIR
+from semvpr.core.io import CONF_DIR, atomic_file
 from semvpr.core.provenance import TrainedOn
 
 FORMAT = 3
@@ -334,3 +337,15 @@ def confine_callback_state(state: dict[str, Any], dirpath: Path) -> dict[str, An
     if isinstance(state.get("best_k_models"), dict):
         state["best_k_models"] = {k: v for k, v in state["best_k_models"].items() if inside(k)}
     return state
+
+
+class RunCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer, staging each file beside its target (``core.io.atomic_file``: a fresh
+    hidden name in the same folder, renamed when complete) where Lightning's own stages it in ``$TMPDIR``
+    (fsspec's transaction), outside the run directory."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__}.save_checkpoint takes no storage_options, got {storage_options!r}")
+        with atomic_file(Path(path)) as handle:
+            torch.save(checkpoint, handle)

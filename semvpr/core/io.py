@@ -209,6 +209,21 @@ def read_json(path: Path, what: str) -> Any:
     return data
 
 
+def regular_file(path: Path, what: str) -> bool:
+    """Whether the file a reader may use is at ``path``: False where nothing is there, True for a regular
+    file (or a link to one). Anything else there (a FIFO, a device, a folder, a dangling or looping link)
+    is one line naming it, the same for every reader: never taken as absent, never opened."""
+    if not os.path.lexists(path):
+        return False
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as err:
+        raise SemvprError(f"{what} {path} cannot be read ({err.strerror or type(err).__name__})") from None
+    if not stat.S_ISREG(mode):
+        raise SemvprError(f"{what} {path} is not a regular file")
+    return True
+
+
 def _read_limited(path: Path, what: str) -> str:
     """The text of a regular file of at most ``MAX_RECORD_BYTES`` (a FIFO or device is never opened)."""
     try:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.patterns import bounded_regex, match_name
 from semvpr.data.places import IMAGE_SUFFIXES, MAX_POSITION, PlaceSet, listed_image
 from semvpr.data.published import check_counts
 
@@ -216,7 +217,8 @@ def _real(array: np.ndarray) -> bool:
 
 def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
     """Images of one traversal and their frame numbers, sorted by frame: the last integer in each file
-    name, or ``pattern``'s first group (matched against the whole file name)."""
+    name, or ``pattern``'s first group (matched against the whole file name, with a bounded cost:
+    ``core.patterns``)."""
     if not folder.is_dir():
         raise SemvprError(
             f"traversal folder {folder} not found; data.root should hold one folder per traversal "
@@ -225,14 +227,11 @@ def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not images:
         raise SemvprError(f"{folder}: no images (.jpg/.png)")
-    try:
-        regex = re.compile(pattern) if pattern is not None else None
-    except re.error as err:
-        raise SemvprError(f"data.frame_pattern={pattern!r} is not a regular expression ({err})") from None
+    regex = bounded_regex(pattern, "data.frame_pattern") if pattern is not None else None
     frames = []
     for path in images:
         if regex is not None:
-            match = regex.fullmatch(path.name)
+            match = match_name(regex, path.name, "data.frame_pattern")
             digits = [match.group(1)] if match and match.groups() and (match.group(1) or "").isdecimal() else []
             expected = f"a name matching data.frame_pattern={pattern!r}"
         else:

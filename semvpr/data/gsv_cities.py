@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import regular_file
 from semvpr.data.places import PlaceIds, PlaceSet, listed_image
 
 COLUMNS = ("place_id", "year", "month", "northdeg", "city_id", "lat", "lon", "panoid")
@@ -71,12 +72,24 @@ def _row(row: dict[str, str], line: int, path: Path) -> tuple[int, int, int, int
 
 
 def _city_rows(path: Path) -> list[tuple[int, int, int, int, str, float, float, str]]:
+    """The typed rows of one city's dataframe: a regular UTF-8 csv file; anything else is one line naming it."""
+    regular_file(path, "GSV-Cities dataframe")
     with path.open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        missing = [c for c in COLUMNS if c not in (reader.fieldnames or ())]
-        if missing:
-            raise SemvprError(f"{path}: missing column(s) {missing}; a GSV-Cities dataframe has {list(COLUMNS)}")
-        rows = [_row(row, line, path) for line, row in enumerate(reader, start=2)]
+        rows = []
+        try:
+            missing = [c for c in COLUMNS if c not in (reader.fieldnames or ())]
+            if missing:
+                raise SemvprError(f"{path}: missing column(s) {missing}; a GSV-Cities dataframe has {list(COLUMNS)}")
+            for row in reader:
+                rows.append(_row(row, reader.line_num, path))
+        except csv.Error as err:
+            raise SemvprError(f"{path}: line {reader.line_num + 1}: not a readable csv row ({err})") from None
+        except UnicodeDecodeError as err:
+            byte = err.object[err.start : err.start + 1].hex()
+            raise SemvprError(
+                f"{path}: not UTF-8 text (a byte 0x{byte}); a GSV-Cities dataframe is UTF-8 csv"
+            ) from None
     if not rows:
         raise SemvprError(f"{path}: no rows")
     return rows
