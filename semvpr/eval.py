@@ -47,7 +47,7 @@ from semvpr.retrieval.retriever import Retriever
 
 def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[np.ndarray, np.ndarray]:
     """Database and query descriptors of ``places`` (``retrieval.descriptors``: from the cached trunk outputs
-    and masks, held as ``features.storage`` and the set's size decide)."""
+    and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream)."""
     storage = feature_storage(cfg, retriever.backbone, {"test": places})
     size, cache = cfg.data.image_size, cfg.paths.cache_dir
     return tuple(place_descriptors(retriever, places, side, size, cache, storage) for side in ("db", "q"))  # type: ignore[return-value]

@@ -50,6 +50,20 @@ def record_first_unit_batches(backbone) -> list[int]:
     return seen
 
 
+def mapped_file(address: int) -> Path | None:
+    """The file whose memory map holds this address (``/proc/self/maps``), None where it is anonymous memory (the
+    heap, an anonymous mapping): where a tensor's or array's data lives (``tensor.data_ptr()``,
+    ``array.ctypes.data``)."""
+    with open("/proc/self/maps") as maps:
+        for line in maps:
+            fields = line.split(maxsplit=5)
+            start, end = (int(v, 16) for v in fields[0].split("-"))
+            if start <= address < end:
+                named = len(fields) == 6 and fields[4] != "0" and fields[5].startswith("/")
+                return Path(fields[5].strip()) if named else None
+    raise AssertionError(f"address {address:#x} is not mapped in this process")
+
+
 # ---------------------------------------------------------------- data fixtures the tests write
 
 

@@ -14,6 +14,7 @@ from tests.helpers import (
     EVAL_SIZE,
     config,
     make_folder,
+    mapped_file,
     place_utm,
     record_first_unit_batches,
     tiny_config,
@@ -156,3 +157,55 @@ def test_a_pickled_descriptor_cache_is_refused_unread(checkpoint: Path, tmp_path
         np.save(cache / "descriptors.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(SemvprError, match=r"descriptor cache .*descriptors-.* is unreadable \(ValueError\)"):
         evaluate_checkpoint(cfg)
+
+
+@pytest.mark.parametrize("ram_gb", [8, 1e-9])
+def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, ram_gb: float
+) -> None:
+    """Within ``features.ram_gb`` (the storage is ram) or beyond it (disk), a checkpoint's descriptors read every
+    image's trunk map from the pages of the cache file and write into the pages of the descriptor cache: the
+    process holds no per-image map or descriptor of the set in its own memory, and the descriptors are those of
+    the trunk held in RAM, bit for bit."""
+    from semvpr.config.build import build_places, feature_storage
+    from semvpr.config.restore import load_retriever
+    from semvpr.retrieval.descriptors import place_descriptors
+    from semvpr.retrieval.features import place_features
+    from semvpr.retrieval.retriever import Retriever
+
+    write_checkpoint(tiny_config(tmp_path, "filter=none"), tmp_path / "model.ckpt")
+    root = make_folder(tmp_path / "folder", n=5)
+    cfg = config(
+        "data=folder",
+        f"data.root={root}",
+        f"+ckpt={tmp_path / 'model.ckpt'}",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"features.ram_gb={ram_gb}",
+        "model.eval_batch_size=2",
+        *EVAL_SIZE,
+        config_name="eval",
+    )
+    retriever, merged = load_retriever(cfg)
+    test = build_places(merged, ("test",))["test"]
+    storage = feature_storage(merged, retriever.backbone, {"test": test})
+    assert storage == ("ram" if ram_gb == 8 else "disk")
+    seen: list[tuple[Path | None, Path | None]] = []
+    describe_store = Retriever.describe_store
+
+    def spy(self: Retriever, store, index=None, out=None) -> np.ndarray:
+        seen.append((mapped_file(store.trunk.data_ptr()), None if out is None else mapped_file(out.ctypes.data)))
+        return describe_store(self, store, index, out)
+
+    monkeypatch.setattr(Retriever, "describe_store", spy)
+    size, cache = merged.data.image_size, merged.paths.cache_dir
+    db = place_descriptors(retriever, test, "db", size, cache, storage)
+    q = place_descriptors(retriever, test, "q", size, cache, storage)
+    (trunk,) = (tmp_path / "cache").glob("trunk-*")
+    assert [t for t, _ in seen] == [trunk / "db.npy", trunk / "q.npy"]
+    assert all(d is not None and d.name == "descriptors.npy" and d.is_relative_to(tmp_path / "cache") for _, d in seen)
+    monkeypatch.setattr(Retriever, "describe_store", describe_store)
+    held = place_features(
+        test, retriever.backbone, retriever.backbone.frozen_identity(), None, None, size, cache, "ram"
+    )
+    assert mapped_file(held.db.trunk.data_ptr()) is None  # the RAM store: the process's own memory
+    assert np.array_equal(db, retriever.describe_store(held.db)) and np.array_equal(q, retriever.describe_store(held.q))

@@ -33,8 +33,9 @@ def place_descriptors(
 ) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
     the model's weights (the mask source's included), the mask source's settings and weighting, and the
-    images. ``storage``: where the frozen features are held while they are read (``ram``, ``disk`` or
-    ``stream``: from the images, where they fit neither)."""
+    images. ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once,
+    read memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
+    Anonymous memory holds a batch at a time: the descriptors are written into their memory-mapped cache."""
     paths = places.db_paths if side == "db" else places.q_paths
     key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
     if retriever.mask_source is not None:
@@ -52,13 +53,15 @@ def place_descriptors(
             None if source is None else source.cache_key(image_size),
             image_size,
             cache_dir,
-            storage,
+            # Each row is read once, in order: the cache's pages serve it, where a copy in RAM would add the
+            # set's trunk maps to the process's anonymous memory and the time to copy them.
+            "disk" if storage == "ram" else storage,
             retriever.eval_batch_size,
             retriever.num_workers,
             weighting=retriever.weighting,
         )
         out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
-        out[:] = retriever.describe_store(features.db if side == "db" else features.q)
+        retriever.describe_store(features.db if side == "db" else features.q, out=out)
         out.flush()
         check_finite(out, f"{places.name} {side}")  # a non-finite cache is never kept
 

@@ -14,7 +14,10 @@ VGG16 pool4 map is 1.2 MB in bf16, Pitts30k's three splits ~64 GB):
 - ``stream``: neither: nothing is cached but the masks; images go through the frozen prefix at
   every use, as pytorch-NetVlad does (mining keeps only descriptors).
 
-The three give the same features; only speed and memory differ.
+The three give the same features; only speed and memory differ. ``ram`` is for the stores a run reads many
+times (training's epochs, mining, validation); a checkpoint's descriptors (``retrieval.descriptors``) read each
+row once and map the cache whichever of ``ram`` and ``disk`` was chosen, so that no process holds the set's maps
+in anonymous memory only to read them once.
 
 Where the semantic side reads the frozen prefix too (the student's skips; a teacher whose pixel encoder is
 the trunk, ``Teacher.link_trunk``), the same pass also keeps those outputs (artifact kind ``skips``, one per

@@ -156,17 +156,27 @@ class Retriever(L.LightningModule):
                 out[rows] = self(images.to(self.device), batch_labels).float().cpu().numpy()
 
     @torch.no_grad()
-    def describe_store(self, store: FeatureStore, index: Sequence[int] | None = None) -> np.ndarray:
-        """Descriptors of a feature store (or of its rows ``index``), eval mode, as float32 numpy."""
+    def describe_store(
+        self, store: FeatureStore, index: Sequence[int] | None = None, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Descriptors of a feature store (or of its rows ``index``), eval mode, as float32 numpy (N, D).
+
+        Each batch's rows are written into ``out`` as they come (a memory-mapped array keeps them out of RAM);
+        without it, into an array allocated at the first batch. Returns the array written."""
         was_training = self.training
         self.eval()
-        out = []
+        rows = len(store) if index is None else len(index)
+        done = 0
         with autocast(self.device):
             for batch in store_loader(store, self.eval_batch_size, self.num_workers, index):
                 batch = {k: v.to(self.device) for k, v in batch.items()}
-                out.append(self.describe_batch(batch).float().cpu())
+                desc = self.describe_batch(batch).float().cpu().numpy()
+                if out is None:
+                    out = np.empty((rows, desc.shape[1]), np.float32)
+                out[done : done + len(desc)] = desc
+                done += len(desc)
         self.train(was_training)
-        return torch.cat(out).numpy()
+        return out if out is not None else np.zeros((0, self.descriptor_dim), np.float32)
 
     # ------------------------------------------------------------------- training
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
