@@ -192,3 +192,17 @@ def test_a_tiny_gpu_job_runs_every_stage_on_cuda(tmp_path: Path) -> None:
         retriever = build_retriever(cfg, job.backbone, job.mask_source)
     assert device.type == "cuda" and _devices_of(retriever) == {device}
     assert _devices_of(job.semantic.student) == {device}
+
+
+def test_a_cache_on_a_file_system_without_flock_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import fcntl
+
+    from semvpr.core.cache import build_once
+
+    def no_flock(fd: object, op: int) -> None:
+        raise OSError(38, "Function not implemented")
+
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    with pytest.raises(SemvprError, match="cannot lock .* point paths.cache_dir at a local or flock-capable folder"):
+        build_once(tmp_path, "thing", {"k": 1}, lambda out: (out / "x").write_text("1"))
+    assert not any(p.name.startswith("thing-") for p in tmp_path.iterdir())

@@ -10,6 +10,7 @@ the first takes the lock, the others wait and then reuse its result.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -157,7 +158,15 @@ def _exclusive(lock_path: Path) -> Iterator[None]:
             f"lock file {lock_path} cannot be opened ({err.strerror}); a link there is never followed: remove it"
         ) from None
     with os.fdopen(fd, "r+") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError as err:
+            if err.errno not in (errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOLCK):
+                raise
+            raise SemvprError(
+                f"the cache's file system cannot lock {lock_path} ({err.strerror}: Lustre or NFS without flock?); "
+                "point paths.cache_dir at a local or flock-capable folder"
+            ) from None
         try:
             yield
         finally:
