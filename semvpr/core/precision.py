@@ -53,7 +53,7 @@ def lightning_precision(requested: str, accelerator: str) -> str:
         return "32-true"
     if text not in MIXED:
         raise SemvprError(
-            f"trainer.precision={text} is not supported: semvpr runs bf16-mixed, 16-mixed (GPU) or 32-true "
+            f"trainer.precision={text!r} is not supported: semvpr runs bf16-mixed, 16-mixed (GPU) or 32-true "
             "(its fp32 sections, the soft-assignment and the VLAD sums, need fp32 weights)"
         )
     mixed = MIXED[text]
