@@ -234,10 +234,15 @@ def load_student(folder: str | Path, backbone: Any) -> Student:
             f"({len(missing)} missing, {len(unexpected)} unexpected weights)"
         )
     for name, tensor in state.items():
-        if tuple(tensor.shape) != tuple(expected[name].shape) or tensor.dtype != expected[name].dtype:
+        if tuple(tensor.shape) != tuple(expected[name].shape):
             raise SemvprError(
-                f"{weights}: {name!r} is {list(tensor.shape)} {tensor.dtype}, the architecture in {SPEC_FILE} makes "
-                f"{list(expected[name].shape)} {expected[name].dtype} (weights are never cast)"
+                f"{weights}: {name!r} is {list(tensor.shape)}, the architecture in {SPEC_FILE} makes "
+                f"{list(expected[name].shape)}"
+            )
+        if tensor.dtype != expected[name].dtype:
+            raise SemvprError(
+                f"{weights}: {name!r} is {tensor.dtype}, the architecture in {SPEC_FILE} makes "
+                f"{expected[name].dtype} (weights are never cast)"
             )
         check_tensor(tensor, name, weights)
     student.load_state_dict(state, strict=True)

@@ -520,7 +520,13 @@ LEGACY_CONFIG_KEYS = frozenset(
         "path_norm",
         "id2label",
         "label2id",
-    ]  # noqa: SIM905 - a word list
+        # what a backbone config records once its backbone is built (transformers' BackboneConfigMixin)
+        "stage_names",
+        "out_features",
+        "out_indices",
+        "_out_features",
+        "_out_indices",
+    ]
 )
 #: A timm model name: no ``local-dir:`` / ``hf-hub:`` prefix, no path.
 _TIMM_NAME = re.compile(r"^[A-Za-z0-9_]+(\.[A-Za-z0-9_]+)?$")
