@@ -118,7 +118,7 @@ def train_and_test(
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
-    reason = datamodule.nothing_trained()
+    reason = datamodule.nothing_trained() or retriever.nothing_learned()
     if reason is not None:
         raise SemvprError(f"{reason}; nothing was trained")
     tic = time.time()

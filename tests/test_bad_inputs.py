@@ -450,6 +450,34 @@ CASES: dict[str, Case] = {
         EVAL, lambda t, c: [f"ckpt={_model_value(t, c, 'pca_dim', -1)}"], "pca_dim.ckpt: model.pca_dim"
     ),
     "recipe.margin=nan": Case(TRAIN, lambda t, c: ["recipe.margin=nan"], "recipe.margin=nan"),
+    "recipe.loss.epsilon=nan": Case(
+        TRAIN, lambda t, c: ["recipe=gsv", "recipe.loss.epsilon=nan"], "recipe.loss.epsilon=nan is not a finite"
+    ),
+    "recipe.loss.beta=-inf": Case(
+        TRAIN, lambda t, c: ["recipe=gsv", "recipe.loss.beta=-inf"], "recipe.loss.beta=-inf is not a finite"
+    ),
+    # ---- a fit that learns nothing fails: a loss with no gradient at any step (no pair mined) is not ok
+    "gsv loss without a gradient": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "recipe.loss.epsilon=-5", "trainer.max_epochs=1", "threads=1"],
+        "the loss gave no parameter a gradient in any of",
+    ),
+    # ---- sizes and class lists of the teacher and student settings: bounded, as their directories' values
+    "teacher.model.num_queries=1e9": Case(
+        TRAIN, lambda t, c: ["teacher.model.num_queries=1e9"], "teacher.model.num_queries=1000000000.0"
+    ),
+    "teacher.model.hidden_dim past the bound": Case(
+        TRAIN, lambda t, c: ["teacher.model.hidden_dim=200000"], "teacher.model.hidden_dim=200000"
+    ),
+    "student.static_classes=[]": Case(
+        TRAIN, lambda t, c: ["student.static_classes=[]"], "student.static_classes=[]: expected a non-empty"
+    ),
+    "eval data.image_size past the bound": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "data.image_size=[48,20000]"], "data.image_size[1]=20000"
+    ),
+    "eval teacher.inference_size past the bound": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "teacher.inference_size=[9000,9000]"], "teacher.inference_size=[9000, 9000]"
+    ),
     "recipe.margin=-1": Case(TRAIN, lambda t, c: ["recipe.margin=-1"], "recipe.margin=-1"),
     "recipe.negative_candidates=0": Case(
         TRAIN, lambda t, c: ["recipe.negative_candidates=0"], "recipe.negative_candidates=0"
@@ -548,6 +576,8 @@ FAST = {
     "gsv_cities csv not UTF-8",
     "train data.test._target_=builtins.print",
     "frame_pattern nested repeat",
+    "gsv loss without a gradient",
+    "teacher.model.num_queries=1e9",
 }
 
 

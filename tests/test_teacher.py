@@ -383,8 +383,8 @@ def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
     "changes,message",
     [
         ({"rescale_factor": 1.0}, "rescale_factor=1.0"),
-        ({"image_std": [0.0, 0.25, 0.25]}, "image_std=.*finite numbers > 0"),
-        ({"image_mean": ["a", 0.5, 0.5]}, "image_mean=.*finite numbers"),
+        ({"image_std": [0.0, 0.25, 0.25]}, "image_std=.*finite in float32 and > 0"),
+        ({"image_mean": ["a", 0.5, 0.5]}, "image_mean=.*finite in float32"),
     ],
 )
 def test_a_processor_normalisation_is_used_or_refused(tmp_path: Path, changes: dict, message: str) -> None:

@@ -15,6 +15,7 @@ from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
 from semvpr.core.patterns import bounded_regex
 from semvpr.core.precision import lightning_precision
+from semvpr.core.spec import MAX_IMAGE_SIDE
 from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
@@ -311,6 +312,25 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         _check_segmentation(cfg)
     # After the keys they interpolate (teacher.image_size is ${data.image_size}): the error names the source.
     _check_semantic_settings(cfg)
+    _check_finite(cfg)
+
+
+def _check_finite(cfg: DictConfig) -> None:
+    """No setting is a non-finite number (``recipe.loss.epsilon=nan`` would mine nothing and train nothing,
+    silently); the settings with their own checks above say so in their own words first."""
+    try:
+        values = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # noqa: BLE001 - an unresolvable value is reported where it is read
+        values = OmegaConf.to_container(cfg, resolve=False)
+    stack: list[tuple[Any, str]] = [(values, "")]
+    while stack:
+        item, key = stack.pop()
+        if isinstance(item, dict):
+            stack.extend((v, f"{key}.{k}" if key else str(k)) for k, v in item.items() if k != "hydra")
+        elif isinstance(item, list):
+            stack.extend((v, f"{key}[{i}]") for i, v in enumerate(item))
+        elif isinstance(item, float) and not math.isfinite(item):
+            raise SemvprError(f"{key}={item} is not a finite number")
 
 
 def _check_semantic_settings(cfg: DictConfig) -> None:
@@ -426,7 +446,7 @@ def _check_retrieval(cfg: DictConfig) -> None:
     if not OmegaConf.is_list(size) or len(size) != 2:
         raise SemvprError(f"data.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
     for i, side in enumerate(size):
-        whole_number(side, f"data.image_size[{i}]", 1, also="data.image_size is [H, W]")
+        whole_number(side, f"data.image_size[{i}]", 1, MAX_IMAGE_SIDE, also="data.image_size is [H, W]")
     whole_number(cfg.data.get("num_workers"), "data.num_workers", 0)
     if cfg.data.get("eval_radius") is not None:
         check_radius(cfg.data.eval_radius, "data.eval_radius")
@@ -514,7 +534,7 @@ def _check_segmentation(cfg: DictConfig) -> None:
     if not OmegaConf.is_list(size) or len(size) != 2:
         raise SemvprError(f"seg.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
     for i, side in enumerate(size):
-        whole_number(side, f"seg.image_size[{i}]", 1, also="seg.image_size is [H, W]")
+        whole_number(side, f"seg.image_size[{i}]", 1, MAX_IMAGE_SIDE, also="seg.image_size is [H, W]")
     if not cfg.backbones:
         raise SemvprError(
             "backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)"

@@ -9,6 +9,7 @@ import typing
 from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
@@ -79,3 +80,28 @@ def _expected(hint: Any, value: Any) -> str | None:
 def _kind(hint: Any) -> str:
     """A plain type's name in an error line."""
     return {bool: "true / false", int: "whole numbers", float: "numbers", str: "strings"}.get(hint, str(hint))
+
+
+#: Largest side of an image size any setting or file may give ([H, W] of the data, a teacher's inference
+#: size, a saved teacher's or student's training size): a 4096 x 4096 RGB float image is 200 MB before
+#: any network sees it.
+MAX_IMAGE_SIDE = 4096
+#: Largest magnitude a float32 holds: a number read from a file is finite in the dtype it is used in.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def count(value: Any, low: int, high: int) -> bool:
+    """Whether ``value`` is a whole number (not a bool) in [low, high]."""
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+
+
+def image_size(value: Any, where: str) -> list[int]:
+    """``value`` as [H, W], each side a whole number from 1 to ``MAX_IMAGE_SIDE``, or one line naming ``where``."""
+    if isinstance(value, list | tuple) and len(value) == 2 and all(count(v, 1, MAX_IMAGE_SIDE) for v in value):
+        return [int(v) for v in value]
+    raise SemvprError(f"{where}={value!r} is not [H, W] (two whole numbers from 1 to {MAX_IMAGE_SIDE})")
+
+
+def float32_number(value: Any) -> bool:
+    """Whether ``value`` is a number (not a bool) that stays finite as a float32."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and abs(value) <= FLOAT32_MAX

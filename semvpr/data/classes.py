@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+
+from semvpr.core.errors import SemvprError
 
 IGNORE = 255
 
@@ -44,10 +48,20 @@ def static_lut(static_names: tuple[str, ...] | list[str] = STATIC_NAMES) -> np.n
     """Lookup table trainId → 1.0 (static) / 0.0 (dynamic or ignore), length 256."""
     unknown = set(static_names) - set(TRAIN_ID_NAMES)
     if unknown:
-        from semvpr.core.errors import SemvprError
-
         raise SemvprError(f"unknown static class names {sorted(unknown)}; known: {TRAIN_ID_NAMES}")
     lut = np.zeros(256, dtype=np.float32)
     for name in static_names:
         lut[TRAIN_ID_NAMES.index(name)] = 1.0
     return lut
+
+
+def check_class_names(names: Sequence[str], where: str, *, empty: bool = False) -> None:
+    """A list of Cityscapes class names (``empty``: may be empty), each once: a static list that keeps
+    nothing would make every mask empty without a word."""
+    if not isinstance(names, list | tuple) or (not names and not empty):
+        raise SemvprError(f"{where}={names!r}: expected a non-empty list of Cityscapes class names")
+    unknown = [n for n in names if not isinstance(n, str) or n not in TRAIN_ID_NAMES]
+    if unknown:
+        raise SemvprError(f"{where}: {unknown[0]!r} is not a Cityscapes class name ({', '.join(TRAIN_ID_NAMES)})")
+    if len(set(names)) != len(names):
+        raise SemvprError(f"{where}={list(names)!r} names a class twice")

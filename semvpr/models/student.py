@@ -22,11 +22,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import atomic_dir, read_json, write_json
+from semvpr.core.io import atomic_dir, read_json, regular_file, write_json
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import from_mapping
-from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES
+from semvpr.core.spec import from_mapping, image_size
+from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, check_class_names
 from semvpr.models.masks import static_vector
+from semvpr.models.weights import check_tensor
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,15 @@ class StudentSpec:
 
     @classmethod
     def from_mapping(cls, node: Mapping[str, Any]) -> StudentSpec:
-        """From a ``student`` config node (unknown keys refused in one line)."""
-        return from_mapping(cls, node, "student")
+        """From a ``student`` config node (unknown keys refused in one line; sizes and classes in range, by
+        the rule a saved student's ``student.json`` is read with)."""
+        spec = from_mapping(cls, node, "student")
+        if not (spec.strides and all(_count(s, 64) for s in spec.strides)):
+            raise SemvprError(f"student.strides={list(spec.strides)!r} is not a list of strides from 1 to 64")
+        if not _count(spec.width, 4096):
+            raise SemvprError(f"student.width={spec.width!r} is not a whole number from 1 to 4096")
+        check_class_names(spec.static_classes, "student.static_classes")
+        return spec
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
@@ -210,7 +218,7 @@ def load_student(folder: str | Path, backbone: Any) -> Student:
         static_names=spec["static_classes"],
     )
     weights = folder / WEIGHTS_FILE
-    if not weights.is_file():
+    if not regular_file(weights, "student weights"):
         raise SemvprError(f"{where} has no {WEIGHTS_FILE} (only safetensors weights are read)")
     try:
         state = load_file(weights)
@@ -231,8 +239,12 @@ def load_student(folder: str | Path, backbone: Any) -> Student:
                 f"{weights}: {name!r} is {list(tensor.shape)}, the architecture in {SPEC_FILE} makes "
                 f"{list(expected[name].shape)}"
             )
-        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
-            raise SemvprError(f"{weights}: {name!r} is not finite; the student is damaged")
+        if tensor.dtype != expected[name].dtype:
+            raise SemvprError(
+                f"{weights}: {name!r} is {tensor.dtype}, the architecture in {SPEC_FILE} makes "
+                f"{expected[name].dtype} (weights are never cast)"
+            )
+        check_tensor(tensor, name, weights)
     student.load_state_dict(state, strict=True)
     student.trained_on = TrainedOn.from_value(record["trained_on"], f"{folder / SPEC_FILE}: trained_on")  # type: ignore[attr-defined]
     return student.eval().requires_grad_(False)
@@ -244,7 +256,7 @@ def _trunk(identity: Mapping[str, Any]) -> str:
 
 def _read_spec(path: Path) -> dict[str, Any]:
     """``student.json``, every key and value checked (a plain record of the project's own values)."""
-    if not path.is_file():
+    if not regular_file(path, "student record"):
         raise SemvprError(f"{path} not found; a student directory holds {SPEC_FILE} beside {WEIGHTS_FILE}")
     record = read_json(path, "student record")
     if not isinstance(record, dict):
@@ -262,8 +274,7 @@ def _read_spec(path: Path) -> dict[str, Any]:
         raise SemvprError(f"{path}: spec.strides={strides!r} is not a list of strides from 1 to 64")
     if not _count(width, 4096):
         raise SemvprError(f"{path}: spec.width={width!r} is not a whole number from 1 to 4096")
-    if not (isinstance(classes, list) and all(isinstance(c, str) and c in TRAIN_ID_NAMES for c in classes)):
-        raise SemvprError(f"{path}: spec.static_classes must be Cityscapes class names")
+    check_class_names(classes, f"{path}: spec.static_classes")
     trunk = record.get("backbone")
     frozen = trunk.get("frozen") if isinstance(trunk, dict) else None
     if not (
@@ -275,9 +286,7 @@ def _read_spec(path: Path) -> dict[str, Any]:
         and all(v is None or isinstance(v, str) for v in frozen.values())
     ):
         raise SemvprError(f"{path}: backbone must be {{'name': str, 'frozen': the trunk's frozen identity}}")
-    size = record.get("image_size")
-    if not (isinstance(size, list) and len(size) == 2 and all(_count(v, 100_000) for v in size)):
-        raise SemvprError(f"{path}: image_size={size!r} is not [H, W]")
+    image_size(record.get("image_size"), f"{path}: image_size")
     TrainedOn.from_value(record.get("trained_on"), f"{path}: trained_on")
     return record
 

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import hashlib
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -27,12 +29,12 @@ from transformers.modeling_outputs import BackboneOutput
 
 from semvpr.core.cache import config_hash
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import read_json, write_json
+from semvpr.core.io import read_json, regular_file, write_json
 from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import from_mapping, plain
-from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES
+from semvpr.core.spec import MAX_IMAGE_SIDE, count, float32_number, from_mapping, image_size, plain
+from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES, check_class_names
 from semvpr.models.backbones import (
     EFFICIENTNET_LITE,
     EFFICIENTNET_LITE_MEAN,
@@ -41,6 +43,7 @@ from semvpr.models.backbones import (
     IMAGENET_STD,
     efficientnet_lite_state,
 )
+from semvpr.models.weights import check_tensor
 
 
 def _norm_name(name: str) -> str:
@@ -107,7 +110,23 @@ class TeacherSpec:
         """From a ``teacher`` config node (unknown keys refused in one line)."""
         values = dict(plain(node))
         values["train"] = from_mapping(TeacherTraining, values.get("train", {}), "teacher.train")
-        return from_mapping(cls, values, "teacher")
+        spec = from_mapping(cls, values, "teacher")
+        spec.check()
+        return spec
+
+    def check(self) -> None:
+        """Sizes and class lists in range (the same rule as the values a teacher directory gives): one line
+        naming the setting, before anything is built."""
+        if self.inference_size is not None:
+            image_size(list(self.inference_size), "teacher.inference_size")
+        image_size(list(self.image_size), "teacher.image_size")
+        check_class_names(self.static_classes, "teacher.static_classes")
+        check_class_names(self.dynamic_classes, "teacher.dynamic_classes", empty=True)
+        if not count(self.predict_batch_size, 1, 4096):
+            raise SemvprError(
+                f"teacher.predict_batch_size={self.predict_batch_size!r} is not a whole number from 1 to 4096"
+            )
+        check_embedded_model(self.model, "teacher.model")
 
 
 class Teacher(L.LightningModule):
@@ -392,6 +411,181 @@ def _inference_state(module: nn.Module) -> dict[str, Tensor]:
 BACKBONES = (*EFFICIENTNET_LITE, "swin")
 
 
+#: Largest sizes a Mask2Former may have, from the command line (``teacher.model``) or a teacher's
+#: ``config.json``, checked before anything is built (the published Cityscapes Mask2Formers: hidden 256,
+#: feed-forward 1,024 / 2,048, 200 queries, 10 decoder layers, 12,544 points).
+MODEL_LIMITS = {
+    "hidden_dim": 4096, "feature_size": 4096, "mask_feature_size": 4096, "encoder_feedforward_dim": 16384,
+    "dim_feedforward": 16384, "num_attention_heads": 256, "encoder_layers": 64, "decoder_layers": 64,
+    "num_queries": 1000, "train_num_points": 1 << 20, "common_stride": 64, "embed_dim": 4096, "window_size": 64,
+    "patch_size": 64, "num_layers": 16, "hidden_size": 16384, "encoder_stride": 64,
+}  # fmt: skip
+#: List-valued sizes: at most 16 entries, each within this.
+LIST_LIMITS = {"depths": 64, "num_heads": 256, "feature_strides": 64, "out_indices": 16}
+#: The settings of ``teacher.model`` (the embedded teacher); a saved teacher's sizes are its config.json's.
+EMBEDDED_KEYS = (
+    "backbone", "backbone_weights", "embed_dim", "depths", "num_heads", "window_size", "hidden_dim",
+    "num_attention_heads", "encoder_layers", "decoder_layers", "num_queries", "train_num_points",
+)  # fmt: skip
+
+
+def _check_size(key: str, value: Any, where: str) -> None:
+    """A size of ``MODEL_LIMITS`` / ``LIST_LIMITS`` in range (other keys pass)."""
+    if key in MODEL_LIMITS and not count(value, 1, MODEL_LIMITS[key]):
+        raise SemvprError(f"{where}.{key}={value!r} is not a whole number from 1 to {MODEL_LIMITS[key]:,}")
+    if key in LIST_LIMITS and not (
+        isinstance(value, list | tuple) and 0 < len(value) <= 16 and all(count(v, 0, LIST_LIMITS[key]) for v in value)
+    ):
+        raise SemvprError(f"{where}.{key}={value!r} is not a list of 1 to 16 whole numbers up to {LIST_LIMITS[key]}")
+
+
+def check_embedded_model(model: Mapping[str, Any], where: str) -> None:
+    """``teacher.model``: known keys only, every size bounded (``MODEL_LIMITS``), heads dividing the width."""
+    unknown = sorted(set(model) - set(EMBEDDED_KEYS))
+    if unknown:
+        raise SemvprError(f"{where}.{unknown[0]} is not a setting of the embedded teacher ({', '.join(EMBEDDED_KEYS)})")
+    for key, value in model.items():
+        _check_size(key, value, where)
+    if "backbone" in model and model["backbone"] not in BACKBONES:
+        raise SemvprError(f"{where}.backbone={model['backbone']!r} is not one of {list(BACKBONES)}")
+    if not isinstance(model.get("backbone_weights", ""), str):
+        raise SemvprError(f"{where}.backbone_weights={model['backbone_weights']!r}: expected imagenet, none or a path")
+    dim, heads = model.get("hidden_dim"), model.get("num_attention_heads")
+    if dim is not None and heads is not None and dim % heads:
+        raise SemvprError(f"{where}.hidden_dim={dim} is not a multiple of {where}.num_attention_heads={heads}")
+    depths, swin_heads = model.get("depths"), model.get("num_heads")
+    if depths is not None and swin_heads is not None and len(depths) != len(swin_heads):
+        raise SemvprError(f"{where}.depths and {where}.num_heads differ in length ({len(depths)}, {len(swin_heads)})")
+
+
+#: Pixel-level backbones a teacher's config.json may name, and the keys their config may hold: those of
+#: the config class (transformers' defaults) and of the older PretrainedConfig releases, plain values only.
+BACKBONE_TYPES = {"swin": SwinConfig, "timm_backbone": TimmBackboneConfig}
+LEGACY_CONFIG_KEYS = frozenset(
+    [
+        "add_cross_attention",
+        "bad_words_ids",
+        "begin_suppress_tokens",
+        "bos_token_id",
+        "chunk_size_feed_forward",
+        "cross_attention_hidden_size",
+        "decoder_start_token_id",
+        "diversity_penalty",
+        "do_sample",
+        "early_stopping",
+        "encoder_no_repeat_ngram_size",
+        "eos_token_id",
+        "exponential_decay_length_penalty",
+        "finetuning_task",
+        "forced_bos_token_id",
+        "forced_eos_token_id",
+        "is_decoder",
+        "is_encoder_decoder",
+        "length_penalty",
+        "max_length",
+        "min_length",
+        "no_repeat_ngram_size",
+        "num_beam_groups",
+        "num_beams",
+        "num_return_sequences",
+        "output_attentions",
+        "output_hidden_states",
+        "output_scores",
+        "pad_token_id",
+        "prefix",
+        "problem_type",
+        "pruned_heads",
+        "remove_invalid_values",
+        "repetition_penalty",
+        "return_dict",
+        "return_dict_in_generate",
+        "sep_token_id",
+        "suppress_tokens",
+        "task_specific_params",
+        "temperature",
+        "tf_legacy_loss",
+        "tie_encoder_decoder",
+        "tie_word_embeddings",
+        "tokenizer_class",
+        "top_k",
+        "top_p",
+        "torch_dtype",
+        "dtype",
+        "torchscript",
+        "transformers_version",
+        "typical_p",
+        "use_bfloat16",
+        "architectures",
+        "_name_or_path",
+        "path_norm",
+        "id2label",
+        "label2id",
+        # what a backbone config records once its backbone is built (transformers' BackboneConfigMixin)
+        "stage_names",
+        "out_features",
+        "out_indices",
+        "_out_features",
+        "_out_indices",
+    ]
+)
+#: A timm model name: no ``local-dir:`` / ``hf-hub:`` prefix, no path.
+_TIMM_NAME = re.compile(r"^[A-Za-z0-9_]+(\.[A-Za-z0-9_]+)?$")
+#: Model dtypes a config.json may record: the teacher runs in float32.
+CONFIG_DTYPES = (None, "float32")
+
+
+def check_config_values(data: Mapping[str, Any], path: Path) -> None:
+    """A teacher's config.json, checked as command-line values are before any class is built: every
+    number finite as a float32; sizes bounded (``MODEL_LIMITS``); ``dtype`` float32 or none; mappings
+    only where a config has them (the label maps, ``backbone_config``), and ``backbone_config`` a Swin or
+    timm backbone of allow-listed keys, plain values, its timm name a plain name (``local-dir:`` or
+    ``hf-hub:`` would make timm read a file or the network) and nothing pretrained."""
+    _check_plain(data, path, "")
+    for key, value in data.items():
+        _check_size(key, value, str(path))
+        if isinstance(value, dict) and key not in ("backbone_config", "id2label", "label2id"):
+            raise SemvprError(f"{path}: {key} is a mapping; a Mask2Former config has none there")
+    for key in ("dtype", "torch_dtype"):
+        if data.get(key) not in CONFIG_DTYPES:
+            raise SemvprError(f"{path}: {key}={data.get(key)!r}; the teacher runs in float32 (float32 or null)")
+    backbone = data.get("backbone_config")
+    if backbone is None:
+        return
+    where = f"{path}: backbone_config"
+    kind = backbone.get("model_type") if isinstance(backbone, dict) else None
+    if kind not in BACKBONE_TYPES:
+        raise SemvprError(f"{where}.model_type={kind!r} is not one of {sorted(BACKBONE_TYPES)}")
+    allowed = set(BACKBONE_TYPES[kind]().to_dict()) | LEGACY_CONFIG_KEYS
+    for key, value in backbone.items():
+        if key not in allowed:
+            raise SemvprError(f"{where}.{key} is not a key of a {kind} config; only known keys are read")
+        if isinstance(value, dict) and key not in ("id2label", "label2id", "task_specific_params", "pruned_heads"):
+            raise SemvprError(f"{where}.{key} is a mapping; only plain values are read")
+        _check_size(key, value, where)
+    if kind == "timm_backbone" and not (
+        isinstance(backbone.get("backbone"), str) and _TIMM_NAME.match(backbone["backbone"])
+    ):
+        raise SemvprError(f"{where}.backbone={backbone.get('backbone')!r} is not a plain timm model name")
+    if backbone.get("use_pretrained_backbone") or backbone.get("image_size", 1) not in range(1, MAX_IMAGE_SIDE + 1):
+        raise SemvprError(
+            f"{where}: use_pretrained_backbone={backbone.get('use_pretrained_backbone')!r}, "
+            f"image_size={backbone.get('image_size')!r}; only self-contained weights and sizes up to {MAX_IMAGE_SIDE}"
+        )
+
+
+def _check_plain(node: Any, path: Path, at: str) -> None:
+    """Every number in a JSON value finite as a float32 (``1e308`` is finite in float64 only)."""
+    stack = [(node, at)]
+    while stack:
+        item, key = stack.pop()
+        if isinstance(item, dict):
+            stack.extend((v, f"{key}.{k}" if key else str(k)) for k, v in item.items())
+        elif isinstance(item, list):
+            stack.extend((v, f"{key}[{i}]") for i, v in enumerate(item))
+        elif isinstance(item, int | float) and not isinstance(item, bool) and not float32_number(item):
+            raise SemvprError(f"{path}: {key}={item!r} is not a finite float32 number")
+
+
 def _pixel_backbone(c: Mapping[str, Any]) -> Any:
     """The backbone config of ``model.backbone``: a timm EfficientNet-Lite's stride 4-32 stages (BatchNorm
     frozen, as detectron2's Mask2Former freezes its ImageNet backbone's: batches of 4 cannot estimate it),
@@ -504,7 +698,7 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
     record = read_teacher_record(folder)
     if record is not None and kwargs.get("inference_size") is None:
         kwargs["inference_size"] = record["image_size"]
-    weights = next((folder / name for name in WEIGHT_FILES if (folder / name).is_file()), None)
+    weights = next((folder / name for name in WEIGHT_FILES if regular_file(folder / name, "teacher weights")), None)
     if weights is None:
         raise SemvprError(
             f"teacher checkpoint {folder} has none of {list(WEIGHT_FILES)} (sharded or other weight files are not read)"
@@ -523,6 +717,7 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
             f"teacher weights {weights} are unreadable ({type(err).__name__}: "
             f"{str(err).splitlines()[0] if str(err) else ''})"
         ) from None
+    check_loaded_weights(model, weights)
     mean, std = _normalisation(folder)
     teacher = Teacher(model, image_mean=mean, image_std=std, **kwargs)
     # What makes its predictions: the bytes of its weights and config, and the normalisation.
@@ -530,6 +725,33 @@ def load_pretrained(checkpoint: str, **kwargs: Any) -> Teacher:
     if record is not None:
         teacher.trained_on = record["trained_on"]
     return teacher
+
+
+def check_loaded_weights(model: nn.Module, weights: Path) -> None:
+    """The weights as loaded from ``weights``: each tensor the file holds of the kind the model has (a
+    float where the model has a float, an integer where it has one: no silent int to float cast), every
+    float finite, every BatchNorm ``running_var`` >= 0."""
+    state = model.state_dict()
+    for name, is_float in _file_kinds(weights).items():
+        if name in state and state[name].is_floating_point() != is_float:
+            raise SemvprError(
+                f"{weights}: {name!r} is {'a float' if is_float else 'an integer'} tensor where the model has "
+                f"{state[name].dtype}; the weights are not this model's"
+            )
+    for name, tensor in state.items():
+        check_tensor(tensor, name, weights)
+
+
+def _file_kinds(weights: Path) -> dict[str, bool]:
+    """Whether each tensor a weight file holds is a float (read from the safetensors header, or from a
+    weights-only, memory-mapped load)."""
+    if weights.suffix == ".safetensors":
+        from safetensors import safe_open
+
+        with safe_open(str(weights), framework="pt") as handle:
+            return {k: handle.get_slice(k).get_dtype() in ("F16", "BF16", "F32", "F64") for k in handle.keys()}  # noqa: SIM118 - not a dict
+    state = torch.load(weights, map_location="cpu", weights_only=True, mmap=True)
+    return {k: v.is_floating_point() for k, v in state.items() if isinstance(v, Tensor)}
 
 
 #: What ``semvpr.segment`` writes beside a teacher's Hugging Face files.
@@ -553,21 +775,15 @@ def read_teacher_record(folder: Path) -> dict[str, Any] | None:
     """A teacher directory's ``semvpr.json`` checked (``image_size`` a list, ``trained_on`` a
     :class:`TrainedOn`), or None where there is none (a Hub checkpoint)."""
     path = folder / TEACHER_RECORD
-    if not path.is_file():
+    if not regular_file(path, "teacher file"):
         return None
     data = _read_json(path)
     if set(data) != {"format", "image_size", "trained_on"} or data["format"] != TEACHER_RECORD_FORMAT:
         raise SemvprError(
             f"{path}: expected exactly format {TEACHER_RECORD_FORMAT}, image_size and trained_on, got {sorted(data)}"
         )
-    size = data["image_size"]
-    if not (
-        isinstance(size, list)
-        and len(size) == 2
-        and all(isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 100_000 for v in size)
-    ):
-        raise SemvprError(f"{path}: image_size={size!r} is not [H, W]")
-    return {"image_size": list(size), "trained_on": TrainedOn.from_value(data["trained_on"], f"{path}: trained_on")}
+    size = image_size(data["image_size"], f"{path}: image_size")
+    return {"image_size": size, "trained_on": TrainedOn.from_value(data["trained_on"], f"{path}: trained_on")}
 
 
 def _checkpoint_dir(checkpoint: str) -> Path:
@@ -606,7 +822,7 @@ def _read_json(path: Path) -> dict[str, Any]:
 def _mask2former_config(folder: Path) -> Mask2FormerConfig:
     """The checkpoint's Mask2FormerConfig, refused if it asks for any other (or custom) class."""
     path = folder / "config.json"
-    if not path.exists():
+    if not regular_file(path, "teacher file"):
         raise SemvprError(
             f"teacher checkpoint {folder} has no config.json; a teacher directory is the folder semvpr.segment "
             "saved (<segment run>/teacher) or a Hugging Face Mask2Former snapshot"
@@ -620,6 +836,7 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
         )
     if data.get("use_pretrained_backbone") or data.get("use_timm_backbone") or data.get("backbone"):
         raise SemvprError(f"{path}: names a separate backbone checkpoint; only self-contained weights are loaded")
+    check_config_values(data, path)
     quiet_third_party()
     try:
         return Mask2FormerConfig.from_dict(data)
@@ -633,26 +850,31 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
 def _normalisation(folder: Path) -> tuple[Sequence[float], Sequence[float]]:
     """Mean and std on [0,1] pixels from ``preprocessor_config.json``; refused if it asks for more."""
     path = folder / "preprocessor_config.json"
-    if not (path.exists() or path.is_symlink()):  # absent: HF's Mask2Former default
-        return IMAGENET_MEAN, IMAGENET_STD  # (anything there, a device or a dangling link too, is read or refused)
+    if not regular_file(path, "teacher file"):  # absent: HF's Mask2Former default
+        return IMAGENET_MEAN, IMAGENET_STD  # (anything else there, a device or a dangling link too, is refused)
     data = _read_json(path)
     kind = data.get("image_processor_type")
     if kind not in PROCESSOR_TYPES or "auto_map" in data:
         raise SemvprError(f"{path}: image_processor_type={kind!r}; only {list(PROCESSOR_TYPES)} are read")
-    if data.get("do_rescale", True) and not math.isclose(float(data.get("rescale_factor", 1 / 255)), 1 / 255):
-        raise SemvprError(f"{path}: rescale_factor={data.get('rescale_factor')!r}; only 1/255 is supported")
+    for key in ("do_rescale", "do_normalize"):
+        if not isinstance(data.get(key, True), bool):
+            raise SemvprError(f"{path}: {key}={data[key]!r}: expected true or false")
+    factor = data.get("rescale_factor", 1 / 255)
+    if data.get("do_rescale", True) and not (float32_number(factor) and math.isclose(factor, 1 / 255)):
+        raise SemvprError(f"{path}: rescale_factor={factor!r}; only 1/255 is supported")
     if not data.get("do_normalize", True):
         return (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
     mean, std = data.get("image_mean", IMAGENET_MEAN), data.get("image_std", IMAGENET_STD)
     for name, value in (("image_mean", mean), ("image_std", std)):
-        ok = (
-            isinstance(value, list | tuple)
-            and len(value) == 3
-            and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
-        )
-        if not ok or (name == "image_std" and min(value) <= 0):
+        # Used in float32: (x - mean) / std must stay finite there (1e308 is finite in float64 only).
+        ok = isinstance(value, list | tuple) and len(value) == 3 and all(float32_number(v) for v in value)
+        if ok and name == "image_std":
+            with np.errstate(over="ignore", divide="ignore"):
+                ok = all(v > 0 and np.isfinite(np.float32(1.0) / np.float32(v)) for v in value)
+        if not ok:
             raise SemvprError(
-                f"{path}: {name}={value!r} is not three finite numbers{' > 0' if name == 'image_std' else ''}"
+                f"{path}: {name}={value!r} is not three numbers finite in float32"
+                f"{' and > 0, whose inverse is too' if name == 'image_std' else ''}"
             )
     return tuple(float(v) for v in mean), tuple(float(v) for v in std)
 

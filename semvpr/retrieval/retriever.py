@@ -75,6 +75,9 @@ class Retriever(L.LightningModule):
         self.register_buffer("whitening_fitted", torch.tensor(False))
         self.optimization = optimization
         self.eval_batch_size, self.num_workers = eval_batch_size, num_workers
+        # What this process's fit did: optimiser steps, whether any gave a parameter a non-zero gradient, and
+        # the first loss (a fit whose loss never had a gradient learned nothing: nothing_learned).
+        self.steps, self.had_gradient, self.first_loss = 0, False, None
 
     # ----------------------------------------------------------------- descriptors
     @property
@@ -196,9 +199,30 @@ class Retriever(L.LightningModule):
                 f"training loss became {loss.item()} at epoch {self.current_epoch} step "
                 f"{self.global_step}; the last good checkpoint is left as it was (lower recipe.optimizer.lr?)"
             )
+        if self.first_loss is None:
+            self.first_loss = float(loss.detach())
         rows = batch["tuples"] if "tuples" in batch else batch["labels"]
         self.log("train/loss", loss, prog_bar=True, batch_size=len(rows))
         return loss
+
+    def on_before_optimizer_step(self, optimizer: Any) -> None:
+        """Count the step, and until one is found, look for a non-zero gradient (after DDP's all-reduce and
+        the mixed-precision unscale: what the optimiser is about to apply)."""
+        self.steps += 1
+        if not self.had_gradient:
+            self.had_gradient = any(
+                p.grad is not None and bool(p.grad.ne(0).any()) for g in optimizer.param_groups for p in g["params"]
+            )
+
+    def nothing_learned(self) -> str | None:
+        """Why the fit that ended learned nothing, or None: it took optimiser steps and none of them had a
+        non-zero gradient (a loss constant from the first step: nothing it could move)."""
+        if self.steps == 0 or self.had_gradient:
+            return None
+        return (
+            f"the loss gave no parameter a gradient in any of {self.steps} optimiser step(s) (its first value "
+            f"{self.first_loss}): it is constant from the first step; check the recipe's loss settings"
+        )
 
     def optimizer_step(self, epoch: int, batch_idx: int, optimizer: Any, optimizer_closure: Any = None) -> None:
         """The step, its learning rates scaled by (step + 1) / warmup_steps during the warm-up (as
