@@ -37,10 +37,21 @@ def test_every_stage_is_built_on_the_job_device(tmp_path: Path, monkeypatch: pyt
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(torch.nn.Module, "to", spy)
+    from semvpr.segmentation import training
+
+    asked: list[torch.device] = []
+    build_teacher = training.build_teacher
+
+    def teacher_spy(*args: object, **kwargs: object) -> object:
+        asked.append(torch.device(kwargs.get("device", args[4] if len(args) > 4 else "unset")))
+        return build_teacher(*args, **kwargs)
+
+    monkeypatch.setattr(training, "build_teacher", teacher_spy)
     device = job_device(cfg)
     assert device == torch.device("cpu")
     job = prepare(cfg, {}, thread_plan(cfg), device)
     retriever = build_retriever(cfg, job.backbone, job.mask_source)
+    assert asked == [device]  # the teacher is built (and would be trained) on the job's device
     assert seen and set(seen) == {device}, seen
     assert _devices_of(retriever) == {device}
     assert job.semantic.teacher is not None and _devices_of(job.semantic.teacher) == {device}
@@ -90,17 +101,18 @@ def test_the_project_autocast_follows_the_job_precision() -> None:
 
 
 def test_the_fp32_sections_turn_autocast_and_tf32_off_and_restore_them() -> None:
-    torch.backends.cuda.matmul.fp32_precision = "tf32"
-    try:
+    """Inside: autocast off, no TF32 for matmuls or convs; after: the job's settings again, and torch can still
+    report them (Lightning asks on a GPU)."""
+    with job_precision("bf16-mixed", "gpu"):
+        assert torch.get_float32_matmul_precision() == "high"
         with torch.autocast("cpu", dtype=torch.bfloat16), fp32("cpu"):
             assert not torch.is_autocast_enabled("cpu")
-            assert torch.backends.cuda.matmul.fp32_precision == "ieee"
-            assert torch.backends.cudnn.conv.fp32_precision == "ieee"
+            assert torch.get_float32_matmul_precision() == "highest" and not torch.backends.cuda.matmul.allow_tf32
+            assert not torch.backends.cudnn.allow_tf32
             x = torch.randn(4, 4)
             assert (x @ x).dtype == torch.float32
-        assert torch.backends.cuda.matmul.fp32_precision == "tf32"
-    finally:
-        torch.backends.cuda.matmul.fp32_precision = "none"
+        assert torch.get_float32_matmul_precision() == "high" and torch.backends.cudnn.allow_tf32
+    assert torch.get_float32_matmul_precision() == "highest"
 
 
 def test_a_gpu_job_gives_its_cpu_stages_the_share() -> None:

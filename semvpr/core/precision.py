@@ -70,15 +70,15 @@ def job_precision(requested: str, accelerator: str) -> Iterator[str]:
     fp32 matmuls outside the fp32 sections may use TF32. Yields the
     precision as run; restores the previous settings after."""
     precision = lightning_precision(requested, accelerator)
-    before = _JOB["precision"], torch.backends.cuda.matmul.fp32_precision
+    before = _JOB["precision"], torch.get_float32_matmul_precision()
     _JOB["precision"] = precision
     if str(accelerator).lower() in ("gpu", "cuda"):
-        torch.backends.cuda.matmul.fp32_precision = "tf32"
+        torch.set_float32_matmul_precision("high")
     try:
         yield precision
     finally:
         _JOB["precision"] = before[0]
-        torch.backends.cuda.matmul.fp32_precision = before[1]
+        torch.set_float32_matmul_precision(before[1])
 
 
 def running_precision() -> str:
@@ -100,17 +100,18 @@ def autocast(device: torch.device | str = "cpu", enabled: bool = True) -> torch.
 
 @contextmanager
 def fp32(device_type: str) -> Iterator[None]:
-    """A section that must run in fp32: autocast off, and TF32 off for CUDA matmuls and cuDNN convs (both
-    restored after)."""
-    matmul, conv = torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision
-    torch.backends.cuda.matmul.fp32_precision = "ieee"
-    torch.backends.cudnn.conv.fp32_precision = "ieee"
+    """A section that must run in fp32: autocast off, and TF32 off for matmuls and cuDNN convs (both restored
+    after). Through torch's float32 matmul precision and cuDNN's switch, the settings Lightning reads too:
+    mixing them with torch's per-backend ``fp32_precision`` makes torch refuse to report either."""
+    matmul, conv = torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32
+    torch.set_float32_matmul_precision("highest")
+    torch.backends.cudnn.allow_tf32 = False
     try:
         with torch.autocast(device_type, enabled=False):
             yield
     finally:
-        torch.backends.cuda.matmul.fp32_precision = matmul
-        torch.backends.cudnn.conv.fp32_precision = conv
+        torch.set_float32_matmul_precision(matmul)
+        torch.backends.cudnn.allow_tf32 = conv
 
 
 def compute_key(device: torch.device | str) -> dict[str, str]:
