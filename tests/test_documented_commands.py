@@ -89,25 +89,13 @@ def test_every_launcher_composes_with_its_own_settings(launcher: list[str], conf
 
 
 def test_a_setting_the_launcher_lacks_is_one_line_naming_it() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "semvpr.train", "-m", "hydra/launcher=basic", "hydra.launcher.n_jobs=3", "seed=0,1"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = _run("semvpr.train", ["-m", "hydra/launcher=basic", "hydra.launcher.n_jobs=3", "seed=0,1"], REPO)
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.strip() == (
         "semvpr: error: hydra.launcher.n_jobs is not a setting of the basic launcher (hydra/launcher=basic); "
         "its settings: none"
     )
-    proc = subprocess.run(
-        [sys.executable, "-m", "semvpr.eval", "-m", "hydra/launcher=slurm", "ckpt=none", "seed=0,1"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = _run("semvpr.eval", ["-m", "hydra/launcher=slurm", "ckpt=none", "seed=0,1"], REPO)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
     assert proc.stderr.startswith("semvpr: error: hydra/launcher=slurm: no such launcher here (installed: basic")
 
