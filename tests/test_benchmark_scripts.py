@@ -26,6 +26,10 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         "",
     ),
     "ddp.py": (lambda t: ["--db", "8", "--batch", "2", "--steps", "1", "--reps", "1"], "world=2"),
+    "eval_memory.py": (
+        lambda t: ["--sizes", "10", "20", "--image-size", "64", "80", "--batch", "2", "--workers", "0"],
+        "growth_mb=",
+    ),
     "gpu.py": (lambda t: ["--device", "cpu", "--quick", "--work", str(t / "gpu")], "gpu_check devices=cpu"),
     "mask_cost.py": (lambda t: ["--batch", "1", "--repeats", "1"], "teacher_cut="),
     "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "floor_s="),

@@ -211,3 +211,21 @@ def test_images_replaced_under_the_same_names_get_new_features(tmp_path: Path, b
         digest.update(f"{p.relative_to(tmp_path / 'img').as_posix()}\0{n}\0".encode())
         digest.update(hashlib.sha256(blocks).digest() + b"\n")
     assert places.identity("db") == digest.hexdigest()[:16]
+
+
+def test_a_training_job_holds_its_trunk_maps_in_ram_only_within_the_budget(tmp_path: Path) -> None:
+    """Every split's store (train, val, test: what training, mining and validation read) holds its maps in the
+    process's memory where they fit ``features.ram_gb``, and reads them from the cache file's pages beyond it."""
+    from semvpr.config.build import prepare
+    from tests.helpers import tiny_config
+
+    for ram_gb, storage in ((8, "ram"), (1e-9, "disk")):
+        job = prepare(tiny_config(tmp_path / "cache", f"features.ram_gb={ram_gb}"), {})
+        assert job.storage == storage and set(job.features) == {"train", "val", "test"}
+        for split, features in job.features.items():
+            for side, store in (("db", features.db), ("q", features.q)):
+                held = mapped_file(store.trunk.data_ptr())
+                if storage == "ram":
+                    assert held is None, (split, side, held)
+                else:
+                    assert held is not None and held.name == f"{side}.npy" and held.parent.name.startswith("trunk-")
