@@ -4,6 +4,7 @@ multirun (``semvpr.reporting.sweep_report`` writes results.csv / results.md and 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import sys
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,25 @@ from semvpr.reporting.sweep_report import print_summary, write_report
 
 
 class ReportCallback(Callback):
-    """Hydra callback: write the report when a multirun ends (hydra.callbacks.report._target_)."""
+    """Hydra callback (hydra.callbacks.report._target_): the table of the jobs finished so far after each
+    job of a multirun (marked partial), the whole report when the multirun ends."""
+
+    def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
+        """Rewrite the partial table after a sweep's job (one writer at a time); never raise."""
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        from semvpr.retrieval.launch import launched_rank
+
+        if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN or launched_rank() != 0:
+            return
+        try:
+            sweep_dir = Path(str(HydraConfig.get().sweep.dir))
+            with open(sweep_dir / ".report.lock", "a") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                write_report(sweep_dir, partial=True)
+        except Exception as err:  # noqa: BLE001 - the job's own files are the results
+            print(f"semvpr: the partial report was not written ({type(err).__name__}: {err})", file=sys.stderr)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Report on config.hydra.sweep.dir; never raise, the runs' own files are the results."""

@@ -408,3 +408,33 @@ def test_the_sweep_directory_is_read_as_data(sweep: Path, tmp_path: Path, monkey
         write_report(sweep)
     assert {name: (sweep / name).read_bytes() for name in before} == before
     assert not [p for p in sweep.iterdir() if p.name.startswith(".")]
+
+
+def test_a_partial_report_has_the_finished_jobs_and_says_so(sweep: Path) -> None:
+    """While a sweep runs, the table holds the jobs with a metrics.json (a started job's .hydra alone is not a
+    crash yet), says it is partial, and draws no figure; the final report replaces it."""
+    md = write_report(sweep, partial=True).read_text()
+    finished = len(list(sweep.rglob("metrics.json")))
+    assert md.splitlines()[2].startswith("**Partial: the sweep is still running.**")
+    assert f"{finished} job(s) finished so far" in md and f"{finished} jobs, " in md
+    assert not list(sweep.glob("*.png"))
+    assert "mask2former,seed=3" not in md  # still running, not listed as failed
+    final = write_report(sweep).read_text()
+    assert "Partial" not in final and f"{finished + 1} jobs, " in final and list(sweep.glob("*.png"))
+
+
+def test_the_callback_rewrites_the_partial_table_after_each_job_of_a_multirun(
+    sweep: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hydra = OmegaConf.create({"hydra": {"mode": RunMode.MULTIRUN, "sweep": {"dir": str(sweep)}}})
+    monkeypatch.setattr(HydraConfig, "initialized", staticmethod(lambda: True))
+    monkeypatch.setattr(HydraConfig, "get", staticmethod(lambda: hydra.hydra))
+    ReportCallback().on_job_end(OmegaConf.create({}), None)
+    assert "**Partial" in (sweep / "results.md").read_text()
+    hydra.hydra.mode = RunMode.RUN  # a single run (or a DDP rank started as one) writes no sweep report
+    (sweep / "results.md").unlink()
+    ReportCallback().on_job_end(OmegaConf.create({}), None)
+    assert not (sweep / "results.md").exists()

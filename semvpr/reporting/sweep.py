@@ -334,15 +334,17 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     )
 
 
-def load_sweep(sweep_dir: Path) -> Sweep:
-    """Discover job dirs (any dir holding metrics.json or a .hydra dir) and read them."""
+def load_sweep(sweep_dir: Path, finished_only: bool = False) -> Sweep:
+    """Discover job dirs (any dir holding metrics.json or a .hydra dir; ``finished_only``: metrics.json) and
+    read them."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise SemvprError(
             f"sweep dir {sweep_dir} does not exist; pass the multirun dir, e.g. outputs/multiruns/<date>/<time>"
         )
     dirs = {p.parent for p in sweep_dir.rglob("metrics.json")}
-    dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}
+    if not finished_only:
+        dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}
     if not dirs:
         raise SemvprError(
             f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "

@@ -262,15 +262,17 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
     return "\n".join(out).rstrip() + "\n"
 
 
-def write_report(sweep_dir: Path) -> Path:
+def write_report(sweep_dir: Path, partial: bool = False) -> Path:
     """Write results.csv, results.md and the figures into sweep_dir; return the results.md path.
+    ``partial``: the sweep is still running: the table of the jobs finished so far, marked as such, and no
+    figures (they are drawn when the sweep ends).
 
     Everything is made in a fresh scratch directory first and moved in only when all of it was
     made, so a failure leaves the previous report whole (never a new csv beside an old md).
     """
     from semvpr.reporting import figures as plots  # matplotlib is only needed here, not to import the callback
 
-    sweep = load_sweep(Path(sweep_dir))
+    sweep = load_sweep(Path(sweep_dir), finished_only=partial)
     rows = _rows(sweep)
     figures: dict[str, str | None] = {}
     drawings = [
@@ -281,6 +283,8 @@ def write_report(sweep_dir: Path) -> Path:
     ]
     if any(numeric_weights(j.metrics.get("class_weights")) for j in sweep.jobs):
         drawings.append(("class_weights.png", plots.class_weights))
+    if partial:
+        drawings = []
     names = [fname for fname, _ in drawings] + ["results.csv", "results.md"]
     for name in names:  # every target is checked before anything is made or moved
         check_replaceable(sweep.dir / name)
@@ -292,7 +296,15 @@ def write_report(sweep_dir: Path) -> Path:
             except Exception as err:  # one broken figure must not cost the table
                 figures[fname] = f"{type(err).__name__}: {err}"
         write_text(scratch / "results.csv", _csv_text(rows))
-        write_text(scratch / "results.md", _markdown(sweep, rows, figures))
+        text = _markdown(sweep, rows, figures)
+        if partial:
+            title, _, rest = text.partition("\n")
+            note = (
+                f"**Partial: the sweep is still running.** {len(sweep.jobs)} job(s) finished so far; this table "
+                "is rewritten as each job ends, and the figures are drawn when the sweep ends."
+            )
+            text = f"{title}\n\n{note}\n{rest}"
+        write_text(scratch / "results.md", text)
         for made in sorted(scratch.iterdir(), key=lambda p: p.name == "results.md"):  # the md last
             os.replace(made, sweep.dir / made.name)
     finally:
