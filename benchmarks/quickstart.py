@@ -18,8 +18,9 @@ on a cache lock counts the wait in the stage it waits for), and the CPU time of 
 (user + system, its jobs' workers included): divided by the cores the sweep may use, that is the least wall
 time any schedule of the same work could take on them (``floor_s``); what lies between it and ``sweep_s``
 is all that running the stages in another order or with other threads could still win, the rest needs
-less work. Last line: ``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk> cpu_s=<t> cores=<n>
-floor_s=<cpu/cores>``, then ``install_s=<t> total_s=<install + sweep>`` with ``--install``.
+less work. Last line: ``sweep_s=<t> trunk_pass_s=<t> ratio=<sweep/trunk> cpu_s=<t> user_s=<t> sys_s=<t>
+sys_share=<sys/cpu> cores=<n> floor_s=<cpu/cores>`` (``sys_s``: kernel time), then ``install_s=<t>
+total_s=<install + sweep>`` with ``--install``.
 """
 
 from __future__ import annotations
@@ -53,8 +54,10 @@ def fresh_install(work: Path) -> tuple[float, Path]:
     return time.perf_counter() - t0, python
 
 
-def cold_sweep(work: Path, overrides: list[str], python: Path | None = None, cwd: Path = REPO) -> tuple[float, float]:
-    """(wall time, CPU seconds of its processes) of the four-way sweep from an empty cache under ``work``
+def cold_sweep(
+    work: Path, overrides: list[str], python: Path | None = None, cwd: Path = REPO
+) -> tuple[float, tuple[float, float]]:
+    """(wall time, (user, system) CPU seconds of its processes) of the four-way sweep from an empty cache under ``work``
     (``python`` in ``cwd``: a clone's)."""
     cmd = [
         str(python or sys.executable),
@@ -70,14 +73,15 @@ def cold_sweep(work: Path, overrides: list[str], python: Path | None = None, cwd
     before = cpu_of_children()
     t0 = time.perf_counter()
     subprocess.run(cmd, cwd=cwd, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0, cpu_of_children() - before
+    after = cpu_of_children()
+    return time.perf_counter() - t0, (after[0] - before[0], after[1] - before[1])
 
 
-def cpu_of_children() -> float:
-    """User + system CPU seconds of this process's finished children and all they waited for (a sweep's
+def cpu_of_children() -> tuple[float, float]:
+    """(user, system) CPU seconds of this process's finished children and all they waited for (a sweep's
     launcher workers and data-loader workers included)."""
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+    return usage.ru_utime, usage.ru_stime
 
 
 @torch.no_grad()
@@ -148,7 +152,8 @@ def main() -> None:
             install_s, python = fresh_install(work)
             cwd = python.parents[2]
             print(f"install from a fresh clone: {install_s:.0f} s", flush=True)
-        sweep_s, cpu_s = cold_sweep(work, args.override, python, cwd)
+        sweep_s, (user_s, sys_s) = cold_sweep(work, args.override, python, cwd)
+        cpu_s = user_s + sys_s
         jobs = job_timings(work / "sweep")
         print(describe(sweep_s, jobs), flush=True)
         print(stage_breakdown(sweep_s, jobs), flush=True)
@@ -157,7 +162,8 @@ def main() -> None:
     cores = usable_cores()
     line = (
         f"sweep_s={sweep_s:.0f} trunk_pass_s={trunk_s:.1f} ratio={sweep_s / trunk_s:.1f} "
-        f"cpu_s={cpu_s:.0f} cores={cores} floor_s={cpu_s / cores:.0f}"
+        f"cpu_s={cpu_s:.0f} user_s={user_s:.0f} sys_s={sys_s:.0f} sys_share={sys_s / cpu_s:.2f} "
+        f"cores={cores} floor_s={cpu_s / cores:.0f}"
     )
     if install_s is not None:
         line += f" install_s={install_s:.0f} total_s={install_s + sweep_s:.0f}"

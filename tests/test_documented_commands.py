@@ -124,7 +124,7 @@ def test_the_documented_commands_run(tmp_path: Path) -> None:
         else:  # data.inspect: the tiny preset of the default set
             extra = ["experiment=tiny", cache]
         if module == "semvpr.eval" and "ckpt=none" in args:
-            extra += ["init.overrides=[preset=tiny]"]
+            extra += ["init.overrides=['preset=tiny']"]
         proc = _run(module, [*args, *extra], REPO)
         assert proc.returncode == 0, f"{command.where}: {command.text}\n{proc.stderr[-3000:]}"
         found = sorted(where.rglob("tested.ckpt"))
