@@ -86,6 +86,9 @@ def test_every_launcher_composes_with_its_own_settings(launcher: list[str], conf
     assert ("n_jobs" in cfg.hydra.launcher) == (chosen in ("joblib", "side_by_side"))
     if launcher == ["hydra.launcher.n_jobs=3"]:
         assert chosen == "side_by_side" and cfg.hydra.launcher.n_jobs == 3
+    if chosen == "submitit_slurm":  # the README's SLURM job: its settings reach the launcher's config
+        slurm = cfg.hydra.launcher
+        assert (slurm.partition, slurm.gpus_per_node, slurm.timeout_min) == ("gpu", 1, 720)
 
 
 def test_a_setting_the_launcher_lacks_is_one_line_naming_it() -> None:
