@@ -153,6 +153,11 @@ def first_of_each_sweep(args: tuple[str, ...]) -> list[str]:
     return out
 
 
+def placeholders(args: tuple[str, ...]) -> list[str]:
+    """The arguments whose value is a placeholder (rule 2)."""
+    return [a for a in args if PLACEHOLDER.search(a.partition("=")[2] if "=" in a else a)]
+
+
 def composable(args: tuple[str, ...]) -> list[str]:
     """The arguments with each ``<placeholder>`` replaced by a plain word, so that Hydra parses them; a
     config group chosen by a placeholder (``aggregator=A``) keeps its default."""

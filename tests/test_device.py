@@ -218,3 +218,20 @@ def test_a_cache_on_a_file_system_without_flock_is_one_line(tmp_path: Path, monk
     with pytest.raises(SemvprError, match="cannot lock .* point paths.cache_dir at a local or flock-capable folder"):
         build_once(tmp_path, "thing", {"k": 1}, lambda out: (out / "x").write_text("1"))
     assert not any(p.name.startswith("thing-") for p in tmp_path.iterdir())
+
+
+def test_a_ddp_rank_takes_the_gpu_of_its_local_rank(monkeypatch: pytest.MonkeyPatch) -> None:
+    """semvpr's own ranks and torchrun set LOCAL_RANK, SLURM sets SLURM_LOCALID: either picks the rank's GPU."""
+    from semvpr.retrieval.launch import local_rank
+
+    for key in ("LOCAL_RANK", "SLURM_LOCALID", "SUBMITIT_EXECUTOR"):
+        monkeypatch.delenv(key, raising=False)
+    assert local_rank() == 0
+    monkeypatch.setenv("SLURM_LOCALID", "3")
+    assert local_rank() == 3
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert local_rank() == 1
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 4)
+    cfg = tiny_config(Path("/nonexistent"), "trainer=ddp", "trainer.devices=4")
+    assert job_device(cfg) == torch.device("cuda", 1)

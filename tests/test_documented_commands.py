@@ -15,7 +15,15 @@ from hydra import compose, initialize_config_dir
 from semvpr.config.checks import check_overrides
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
-from tests.documented_commands import HYDRA_COMMANDS, REPO, Command, collect, composable, first_of_each_sweep
+from tests.documented_commands import (
+    HYDRA_COMMANDS,
+    REPO,
+    Command,
+    collect,
+    composable,
+    first_of_each_sweep,
+    placeholders,
+)
 
 COMMANDS = collect()
 PARSERS = {
@@ -134,10 +142,10 @@ def test_the_documented_commands_run(tmp_path: Path) -> None:
         checkpoint = checkpoint or (found[0] if found else None)
     assert checkpoint is not None
     with_checkpoint = [c for c in COMMANDS if c.needs and "ckpt=" in c.needs and c.module == "semvpr.eval"]
-    only_checkpoint = [c for c in with_checkpoint if sum("<" in a or a.isupper() for a in c.args) == 1]
+    only_checkpoint = [c for c in with_checkpoint if [a.partition("=")[0] for a in placeholders(c.args)] == ["ckpt"]]
     assert only_checkpoint, "no documented evaluation of a checkpoint"
     for number, command in enumerate(only_checkpoint):
-        args = [f"ckpt={checkpoint}" if a.startswith("ckpt=") else a for a in command.args]
+        args = [f"ckpt='{checkpoint}'" if a.startswith("ckpt=") else a for a in command.args]
         multirun = "-m" in args
         where = tmp_path / f"eval{number}"
         proc = _run(

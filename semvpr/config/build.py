@@ -9,7 +9,6 @@ Teacher, pseudo-labels, student and feature caches come from the artifact cache 
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -53,6 +52,7 @@ from semvpr.retrieval.features import (
     trunk_shape,
 )
 from semvpr.retrieval.initialisation import InitSample, StaticLabels, initialise_aggregator
+from semvpr.retrieval.launch import local_rank
 from semvpr.retrieval.losses import Loss, TripletLoss
 from semvpr.retrieval.mining import Mining
 from semvpr.retrieval.places import PlaceBatching
@@ -319,12 +319,12 @@ def sweep_gpu(cfg: DictConfig, run_dir: Path) -> Iterator[int | None]:
 
 def job_device(cfg: DictConfig, leased: int | None = None) -> torch.device:
     """The one device of a training job, from its trainer: the CPU, or a GPU: a DDP rank's own
-    (``LOCAL_RANK``), a sweep job's leased one (``leased``), else the first."""
+    (:func:`local_rank`), a sweep job's leased one (``leased``), else the first."""
     accelerator = str(cfg.trainer.accelerator)
     if accelerator.lower() not in GPU_WORDS:
         return resolve("cpu")
     if ranks_of(cfg.trainer) != (1, 1):
-        return resolve("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        return resolve("cuda", local_rank())
     return resolve("cuda", leased)
 
 

@@ -74,6 +74,19 @@ def launched_rank() -> int:
     return int(os.environ.get("LOCAL_RANK", 0))
 
 
+def local_rank() -> int:
+    """This process's rank on its node as its launcher set it (semvpr's own ranks, torchrun, SLURM, submitit),
+    0 where nothing did (the launching process): the GPU a DDP rank takes."""
+    for key in ("LOCAL_RANK", "SLURM_LOCALID"):
+        if key in os.environ:
+            return int(os.environ[key])
+    if "SUBMITIT_EXECUTOR" in os.environ:
+        import submitit
+
+        return int(submitit.JobEnvironment().local_rank)
+    return 0
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
