@@ -31,10 +31,21 @@ def sweep(work: Path, name: str, trainer: str, *overrides: str) -> tuple[float, 
     """A four-way sweep on ``trainer`` into ``work/name`` (cache ``work/cache-<name>``): wall time, job records."""
     tic = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "semvpr.train", "-m", FILTERS, f"trainer={trainer}", *overrides,
-         f"paths.cache_dir={work / f'cache-{name}'}", f"hydra.sweep.dir={work / name}"],
-        cwd=REPO, capture_output=True, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            "-m",
+            FILTERS,
+            f"trainer={trainer}",
+            *overrides,
+            f"paths.cache_dir={work / f'cache-{name}'}",
+            f"hydra.sweep.dir={work / name}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     wall = time.perf_counter() - tic
     if proc.returncode != 0:
         raise SemvprError(f"the {name} sweep failed: {proc.stderr.strip().splitlines()[-1:]}")
@@ -52,10 +63,20 @@ def precision_variants(work: Path, trainer: str) -> dict[str, float]:
     for precision in variants:
         run = work / f"precision-{precision}"
         proc = subprocess.run(
-            [sys.executable, "-m", "semvpr.train", "experiment=tiny", f"trainer={trainer}",
-             f"trainer.precision={precision}", f"paths.cache_dir={work / 'cache-tiny'}", f"hydra.run.dir={run}"],
-            cwd=REPO, capture_output=True, text=True,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "semvpr.train",
+                "experiment=tiny",
+                f"trainer={trainer}",
+                f"trainer.precision={precision}",
+                f"paths.cache_dir={work / 'cache-tiny'}",
+                f"hydra.run.dir={run}",
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+        )
         if proc.returncode != 0:
             raise SemvprError(f"trainer.precision={precision} failed: {proc.stderr.strip().splitlines()[-1:]}")
         metrics = json.loads((run / "metrics.json").read_text())
@@ -112,8 +133,25 @@ def vgg16_pass(device: torch.device, repeats: int) -> tuple[float, float]:
 
 def vgg16_flops(h: int, w: int) -> float:
     """Multiply-adds x 2 of VGG16's 13 convs up to conv5_3 at h x w."""
-    plan = [(3, 64), (64, 64), "M", (64, 128), (128, 128), "M", (128, 256), (256, 256), (256, 256), "M",
-            (256, 512), (512, 512), (512, 512), "M", (512, 512), (512, 512), (512, 512)]  # fmt: skip
+    plan = [
+        (3, 64),
+        (64, 64),
+        "M",
+        (64, 128),
+        (128, 128),
+        "M",
+        (128, 256),
+        (256, 256),
+        (256, 256),
+        "M",
+        (256, 512),
+        (512, 512),
+        (512, 512),
+        "M",
+        (512, 512),
+        (512, 512),
+        (512, 512),
+    ]
     total = 0.0
     for layer in plan:
         if layer == "M":

@@ -26,8 +26,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 START = re.compile(r"python -m (semvpr(?:\.[a-z_]+)+)")
 PLACEHOLDER = re.compile(r"<[^>]*>|\b[A-Z][A-Z0-9_]*(?:_DIR)?\b(?![a-z])|^/data/|^/shared/|\.\./shared/")
-HYDRA_COMMANDS = {"semvpr.train": "train", "semvpr.eval": "eval", "semvpr.localize": "localize",
-                  "semvpr.segment": "segment"}  # fmt: skip
+HYDRA_COMMANDS = {
+    "semvpr.train": "train",
+    "semvpr.eval": "eval",
+    "semvpr.localize": "localize",
+    "semvpr.segment": "segment",
+}
 
 
 @dataclass(frozen=True)

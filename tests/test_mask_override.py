@@ -77,7 +77,7 @@ def cli(tmp: Path, *args: str, module: str = "semvpr.eval") -> subprocess.Comple
             f"paths.cache_dir={tmp / 'cache'}",
             f"hydra.run.dir={tmp / 'run'}",
             "threads=1",
-        ],  # fmt: skip
+        ],
         cwd=tmp / "cwd",
         env={**os.environ, "PYTHONPATH": str(REPO)},
         capture_output=True,

@@ -216,27 +216,27 @@ def _check_launcher(overrides: list[str], config_name: str) -> None:
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        try:
+            compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+            return
+        except Exception as err:  # noqa: BLE001 - told apart below: an unknown launcher or an unknown setting
+            failure = err
         chosen = [o for o in overrides if o.startswith("hydra/launcher=")]
         try:
-            compose(config_name=config_name, overrides=chosen, return_hydra_config=True)
+            base = compose(config_name=config_name, overrides=chosen, return_hydra_config=True)
         except Exception as err:  # noqa: BLE001 - an unknown launcher: Hydra lists the installed ones
             name = chosen[-1].partition("=")[2]
             hint = "; pip install -e '.[cluster]' adds the submitit launchers" if "submitit" in name else ""
             found = re.search(r"Available options in 'hydra/launcher':\s*(.*?)\s*Config search path", str(err), re.S)
             known = f" (installed: {' '.join(found.group(1).split())})" if found else f": {_first_line(err)}"
             raise SemvprError(f"{chosen[-1]}: no such launcher here{known}{hint}") from None
-        try:
-            cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-        except Exception as err:  # noqa: BLE001 - a setting the chosen launcher does not have
-            unknown = re.search(r"Could not override '([^']+)'", str(err))
-            base = compose(config_name=config_name, overrides=chosen, return_hydra_config=True)
-            name = base.hydra.runtime.choices.get("hydra/launcher")
-            settings = ", ".join(k for k in base.hydra.launcher if k != "_target_") or "none"
-            what = unknown.group(1) if unknown else _first_line(err)
-            raise SemvprError(
-                f"{what} is not a setting of the {name} launcher (hydra/launcher={name}); its settings: {settings}"
-            ) from None
-        del cfg
+    unknown = re.search(r"Could not override '([^']+)'", str(failure))
+    name = base.hydra.runtime.choices.get("hydra/launcher")
+    settings = ", ".join(k for k in base.hydra.launcher if k != "_target_") or "none"
+    what = unknown.group(1) if unknown else _first_line(failure)
+    raise SemvprError(
+        f"{what} is not a setting of the {name} launcher (hydra/launcher={name}); its settings: {settings}"
+    )
 
 
 def _unknown(key: str) -> str:
