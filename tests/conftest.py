@@ -19,3 +19,11 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     tmp = tmp_path_factory.mktemp("ckpt")
     write_checkpoint(tiny_config(tmp, "filter=attention"), tmp / "tested.ckpt")
     return tmp / "tested.ckpt"
+
+
+@pytest.fixture(autouse=True)
+def no_adopted_thread_plan() -> None:
+    """Each test starts outside any job: no thread plan adopted by an earlier test's job."""
+    from semvpr.core import threads
+
+    threads._JOB["frozen"] = None

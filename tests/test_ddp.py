@@ -157,6 +157,7 @@ def test_two_job_ddp_sweep_writes_one_sweep_dir_with_two_ok_jobs_and_one_report(
         torch.testing.assert_close(weights[0][key], weights[1][key], rtol=0, atol=1e-4)
 
 
+@pytest.mark.reproducibility
 @pytest.mark.slow
 def test_ddp_resume_is_bit_identical_at_the_same_world_size(tmp_path: Path) -> None:
     _train(tmp_path, *DDP, "trainer.max_epochs=2", f"hydra.run.dir={tmp_path / 'whole'}")

@@ -13,7 +13,15 @@ import torch
 from semvpr.config.build import build_retriever, job_device, prepare, thread_plan
 from semvpr.core.device import GpuLease, resolve, sweep_jobs
 from semvpr.core.errors import SemvprError
-from semvpr.core.precision import autocast, compute_key, fp32, job_precision, lightning_precision, running_precision
+from semvpr.core.precision import (
+    autocast,
+    bf16_native,
+    compute_key,
+    fp32,
+    job_precision,
+    lightning_precision,
+    running_precision,
+)
 from tests.helpers import tiny_config
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -94,10 +102,11 @@ def test_the_project_autocast_follows_the_job_precision() -> None:
         assert run == "32-true" and running_precision() == "32-true"
         with autocast("cpu"):
             assert not torch.is_autocast_enabled("cpu")
-        assert compute_key("cpu") in ({}, {"compute": "cpu/32-true"})
+        fp32_machine = not bf16_native("cpu")
+        assert compute_key("cpu").get("compute") == (None if fp32_machine else "cpu/32-true")
     assert running_precision() == default
-    assert compute_key("cpu") == {}  # the CPU's default arithmetic keeps the caches' keys
-    assert compute_key("cuda") == {"compute": f"cuda/{default}"}
+    assert "compute" not in compute_key("cpu")  # the CPU's default arithmetic: the thread count only
+    assert compute_key("cuda") == {"compute": f"cuda/{default}"}  # a GPU's bits do not follow CPU threads
 
 
 def test_the_fp32_sections_turn_autocast_and_tf32_off_and_restore_them() -> None:

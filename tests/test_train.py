@@ -137,6 +137,7 @@ def test_training_beats_kmeans_only_model(tmp_path: Path) -> None:
     assert metrics["test/R@1"] > metrics["untrained/test/R@1"], metrics
 
 
+@pytest.mark.reproducibility
 def test_resumed_run_ends_as_the_uninterrupted_one(cache_dir: Path, trained_run: Path, tmp_path: Path) -> None:
     # Stopped after epoch 1 of 2 (what a kill leaves: last.ckpt of epoch 1), then resumed.
     run_dir = tmp_path / "run"
@@ -361,6 +362,7 @@ def _count_trunk_passes(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return passes
 
 
+@pytest.mark.reproducibility
 def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -382,6 +384,7 @@ def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(
     _assert_same_run(built, cached, streamed)
 
 
+@pytest.mark.reproducibility
 def test_a_randomly_initialised_aggregator_is_the_same_whether_the_student_was_built_or_cached(tmp_path: Path) -> None:
     """Training the student re-seeds the global RNGs; the aggregator's random layers (GeM's head) must not
     depend on whether this job trained it or read it from the cache."""
@@ -421,6 +424,7 @@ def test_seeds_share_the_pretrained_trunk_pass(
     assert len(list((tmp_path / "cache").glob("trunk-*"))) == (3 if weights == "imagenet" else 6)  # one per split
 
 
+@pytest.mark.reproducibility
 @pytest.mark.slow
 def test_same_numbers_whether_semantic_artifacts_are_built_or_cached(tmp_path: Path) -> None:
     cfg = tiny_config(tmp_path / "cache", "filter=unet", "trainer.max_epochs=2")

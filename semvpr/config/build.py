@@ -361,7 +361,7 @@ def thread_plan(cfg: DictConfig, gpu: bool | None = None) -> Threads:
     if gpu is None:
         gpu = "trainer" in cfg and str(cfg.trainer.accelerator).lower() in GPU_WORDS
     standard_start_method()  # a job in a joblib worker: data loaders need a standard start method
-    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs(), gpu=gpu)
+    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs(), gpu=gpu).adopt()
 
 
 # ----------------------------------------------------------------------------------- semantic artifacts
@@ -533,7 +533,7 @@ def build_semantic(
         # Memory-mapped: these are read once, here; the job's stores come later.
         with threads.stage("frozen"):
             frozen = place_features(
-                source, backbone, backbone.frozen_identity(), None, None, size, cfg.paths.cache_dir,
+                source, backbone, backbone.frozen_key(), None, None, size, cfg.paths.cache_dir,
                 "disk" if storage == "ram" else storage, int(cfg.model.eval_batch_size), workers,
                 skip_levels=skip_levels,
             )  # fmt: skip
@@ -575,7 +575,7 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
     per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
     images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
     cached = all(
-        trunk_cached(p, backbone.frozen_identity(), cfg.data.image_size, cfg.paths.cache_dir) for p in places.values()
+        trunk_cached(p, backbone.frozen_key(), cfg.data.image_size, cfg.paths.cache_dir) for p in places.values()
     )
     storage = choose_storage(
         cfg.features.storage,
@@ -620,7 +620,7 @@ def prepare(
             split: place_features(
                 places[split],
                 backbone,
-                backbone.frozen_identity(),
+                backbone.frozen_key(),
                 mask_source,
                 None if mask_source is None else mask_source.cache_key(cfg.data.image_size),
                 cfg.data.image_size,

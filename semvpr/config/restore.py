@@ -339,7 +339,7 @@ def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Calla
     features = place_features(
         train,
         backbone,
-        backbone.frozen_identity(),
+        backbone.frozen_key(),
         None,
         None,
         init_cfg.data.image_size,

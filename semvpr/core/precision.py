@@ -21,6 +21,7 @@ from contextlib import contextmanager
 import torch
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.threads import frozen_threads
 
 #: The precisions a job may ask for (Lightning's flags; ``bf16`` and ``16`` are Lightning's short forms).
 MIXED = {"bf16-mixed": "bf16-mixed", "bf16": "bf16-mixed", "16-mixed": "16-mixed", "16": "16-mixed"}
@@ -114,13 +115,15 @@ def fp32(device_type: str) -> Iterator[None]:
         torch.backends.cudnn.allow_tf32 = conv
 
 
-def compute_key(device: torch.device | str) -> dict[str, str]:
-    """What a cached artifact computed on ``device`` in the running precision adds to its key: nothing for
-    the CPU's default arithmetic (bf16 where native, else fp32), so CPU caches keep their keys; the device
-    kind and precision otherwise (a GPU's, or another precision asked for)."""
+def compute_key(device: torch.device | str) -> dict[str, str | int]:
+    """What a cached artifact computed on ``device`` in the running precision adds to its key: on a CPU, the
+    thread count of the job's frozen passes (``threads.frozen_threads``: a CPU reduction's bits depend on
+    it); the device kind and precision off the CPU's default arithmetic (bf16 where native, else fp32): a
+    GPU's, or another precision asked for."""
     device_type = torch.device(device).type
     precision = _JOB["precision"]
     default = "bf16-mixed" if bf16_native("cpu") else "32-true"
-    if device_type == "cpu" and precision in ("bf16-mixed", default):
-        return {}
-    return {"compute": f"{device_type}/{precision}"}
+    key: dict[str, str | int] = {"frozen_threads": frozen_threads()} if device_type == "cpu" else {}
+    if device_type != "cpu" or precision not in ("bf16-mixed", default):
+        key["compute"] = f"{device_type}/{precision}"
+    return key

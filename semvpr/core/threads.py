@@ -20,6 +20,13 @@ A job that Hydra's joblib launcher runs lives in a loky worker, whose default st
 data loader cannot start its workers with; :func:`standard_start_method` gives such a job the platform's
 standard one before its first loader.
 
+The frozen passes (trunk, masks, pseudo-labels) give other bits at other thread counts wherever the
+arithmetic splits a reduction by thread (fp32 convolutions on every CPU measured; bf16 ones were invariant
+on the AVX512-BF16 CPUs measured), and the same bits at any batch size. So a job runs every frozen pass at
+one count, its plan's ``frozen`` stage (:func:`frozen_pass`, also where images stream through the trunk
+inside the retriever's one-thread steps), and the caches of CPU passes are keyed by that count
+(:func:`frozen_threads`, read by ``precision.compute_key``): a cache holds what this job's settings compute.
+
 Threads that wait must not spin: OpenMP's wait policy is passive (``semvpr/__init__.py`` sets
 ``OMP_WAIT_POLICY=PASSIVE`` before torch loads libgomp), so a thread blocked at a barrier sleeps instead of
 taking a core from the job beside it.
@@ -37,6 +44,9 @@ from dataclasses import dataclass
 import torch
 
 from semvpr.core.errors import SemvprError
+
+#: The thread count of the running job's frozen passes (its plan's ``frozen`` stage), once a plan is adopted.
+_JOB: dict[str, int | None] = {"frozen": None}
 
 #: ``threads=auto`` per stage: None = the whole share, else that many threads (within the share).
 AUTO: dict[str, int | None] = {
@@ -113,6 +123,11 @@ class Threads:
         finally:
             torch.set_num_threads(before)
 
+    def adopt(self) -> Threads:
+        """Make this the running job's plan: its frozen passes run at ``of("frozen")`` threads (returns self)."""
+        _JOB["frozen"] = self.of("frozen")
+        return self
+
     def record(self) -> dict[str, object]:
         """What a run's metrics record: the setting, the cores, the processes sharing them, each stage's count."""
         return {
@@ -125,6 +140,24 @@ class Threads:
             "gpu": self.gpu,
             "stages": {name: self.of(name) for name in AUTO},
         }
+
+
+def frozen_threads() -> int:
+    """The thread count of the running job's frozen passes: its adopted plan's, else torch's current count."""
+    return _JOB["frozen"] or torch.get_num_threads()
+
+
+@contextmanager
+def frozen_pass() -> Iterator[int]:
+    """Run a frozen pass at the job's frozen thread count (restored after), wherever it happens; yields it."""
+    n, before = frozen_threads(), torch.get_num_threads()
+    if n != before:
+        torch.set_num_threads(n)
+    try:
+        yield n
+    finally:
+        if n != before:
+            torch.set_num_threads(before)
 
 
 def standard_start_method() -> None:

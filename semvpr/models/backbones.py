@@ -205,9 +205,12 @@ class Backbone(nn.Module):
             for k, v in self.state_dict().items()
             if not k.startswith("units.") or int(k.split(".")[1]) < self.split
         }
-        device = next(self.parameters()).device
-        identity = {"class": type(self).__name__, "train_from": self.train_from, "frozen": state_hash(frozen)}
-        return {**identity, **compute_key(device)}
+        return {"class": type(self).__name__, "train_from": self.train_from, "frozen": state_hash(frozen)}
+
+    def frozen_key(self) -> dict[str, Any]:
+        """What the frozen prefix's outputs here depend on, the key of their caches: :meth:`frozen_identity`
+        and the arithmetic they are computed in (``precision.compute_key``: device kind, precision, CPU threads)."""
+        return {**self.frozen_identity(), **compute_key(next(self.parameters()).device)}
 
 
 class VGG16Backbone(Backbone):

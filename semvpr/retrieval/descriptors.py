@@ -48,7 +48,7 @@ def place_descriptors(
         features = place_features(
             places,
             backbone,
-            backbone.frozen_identity(),
+            backbone.frozen_key(),
             source,
             None if source is None else source.cache_key(image_size),
             image_size,

@@ -46,6 +46,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array, temp_prefix
 from semvpr.core.logs import Progress, progress
 from semvpr.core.precision import autocast
+from semvpr.core.threads import frozen_pass
 from semvpr.data.classes import NUM_CLASSES
 from semvpr.data.images import ImageDataset, load_image
 from semvpr.data.places import PlaceSet
@@ -100,7 +101,7 @@ class FeatureStore:
             return torch.stack([self.trunk[int(i)] for i in index])
         images = torch.stack([load_image(self.paths[int(i)], self.image_size) for i in index])
         device = next(backbone.parameters()).device
-        with autocast(device):
+        with autocast(device), frozen_pass():
             out = backbone.forward_frozen(
                 images.to(device).contiguous(memory_format=torch.channels_last), keep_scales=False
             )[-1]

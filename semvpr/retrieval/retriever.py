@@ -21,6 +21,7 @@ from torch.utils.data import DataLoader
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import progress
 from semvpr.core.precision import autocast
+from semvpr.core.threads import frozen_pass
 from semvpr.data.images import ImageDataset
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.retrieval.distributed import Describe
@@ -99,7 +100,7 @@ class Retriever(L.LightningModule):
     def describe_batch(self, batch: dict[str, Tensor]) -> Tensor:
         """Descriptors of a feature-store batch: cached trunk rows, or images through the frozen prefix."""
         if "image" in batch:
-            with torch.no_grad():
+            with torch.no_grad(), frozen_pass():
                 trunk = self.backbone.forward_frozen(
                     batch["image"].contiguous(memory_format=torch.channels_last), keep_scales=False
                 )[-1]

@@ -53,8 +53,8 @@ def training_threads() -> int:
     """The torch threads a training run here gets (the caller's ``Threads.stage``), part of its artifact's key:
     a multi-threaded CPU reduction splits its sums by thread, so the same training at another thread count
     ends with other weights (one teacher step's gradients measured to differ at 1 and 2 threads), and a
-    cached teacher or student must be the one this run's settings would train. Frozen passes (trunk, masks,
-    pseudo-labels) were measured bit-identical at 1 and 2 threads and keep their keys."""
+    cached teacher or student must be the one this run's settings would train (frozen passes are keyed by
+    the job's frozen-pass count: ``core.threads``)."""
     return torch.get_num_threads()
 
 
@@ -231,7 +231,7 @@ def build_student(
         paths = [paths[i] for i in sorted(keep.tolist())]
     size = [int(image_size[0]), int(image_size[1])]
     settings = {k: v for k, v in dataclasses.asdict(spec).items() if k != "checkpoint"}  # read, never trained
-    key = {"version": STUDENT_VERSION, "student": settings, "backbone": backbone.frozen_identity(),
+    key = {"version": STUDENT_VERSION, "student": settings, "backbone": backbone.frozen_key(),
            "labels": label_dir.name, "image_size": size, "threads": training_threads()}  # fmt: skip
 
     def build(out: Path) -> None:
