@@ -1,0 +1,259 @@
+"""Numbers in the committed markdown held to the data files they come from (docs/trust.md, "Numbers
+in the docs").
+
+Two invisible markers, HTML comments, tie markdown to committed CSV, JSON or YAML files (paths from the
+repository root):
+
+- ``<!-- claim: SOURCE [SOURCE ...] -->`` ... ``<!-- /claim -->``: every *result-like* number in
+  between (one with a decimal point, an explicit sign or a ``%``) must equal a number of the sources at
+  the precision it is written with (``62.1`` matches a value in [62.05, 62.15]); a signed number must
+  have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``). Plain integers
+  (counts, seeds, sizes) are not checked.
+- ``<!-- table: SOURCE.csv KEYS METRICS -->`` ... ``<!-- /table -->``: the block is exactly the table
+  :func:`render_table` writes from the CSV (``KEYS``: comma-separated label columns; ``METRICS``:
+  comma-separated metrics, each shown as ``<m>_mean ± <m>_std`` at one decimal).
+
+Outside the markers a result-like number is *unsourced* (:func:`unsourced_numbers`), unless an
+allow-list pattern covers it; the test of the committed docs allows only hyper-parameters and
+definitions there. Code spans, fenced code, link targets and HTML comments are never read as claims.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import read_yaml, regular_file, write_text
+
+#: A marker's opening comment: kind, then its arguments.
+_OPEN = re.compile(r"<!--\s*(claim|table):\s*(.*?)\s*-->", re.S)
+_CLOSE = {"claim": "<!-- /claim -->", "table": "<!-- /table -->"}
+#: A number as prose writes it: an optional sign (ASCII or typographic minus), digits with optional
+#: thousands commas, optional decimals, an optional percent sign. Not part of a word (R@1, stage4, 8x,
+#: 180x240, 1e-3), a version or a path.
+_NUMBER = re.compile(
+    r"(?<![\w@.,\-−+])(?P<sign>[+\-−](?=\d))?(?P<int>\d{1,3}(?:,\d{3})+|\d+)(?P<frac>\.\d+)?"
+    r"(?P<pct>\s?%)?(?![\w@]|\.\d|,\d{3})"
+)
+#: Markdown that is not prose: fenced code, code spans, HTML comments, link targets.
+_NOT_PROSE = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)\s]*\)", re.S)
+
+
+@dataclass(frozen=True)
+class Stated:
+    """A number as written: its value, decimals, whether it carries a sign, its text and line."""
+
+    value: float
+    decimals: int
+    signed: bool
+    text: str
+    line: int
+
+    @property
+    def result_like(self) -> bool:
+        """A decimal point, an explicit sign or a percent sign: what a result is written with."""
+        return self.decimals > 0 or self.signed or self.text.endswith("%")
+
+    def matches(self, value: float) -> bool:
+        """``value`` rounds to this number at its precision (sign required only if one is written)."""
+        half = 0.5 * 10.0 ** (-self.decimals) + 1e-9
+        if self.signed:
+            return abs(value - self.value) <= half
+        return abs(abs(value) - abs(self.value)) <= half
+
+
+@dataclass(frozen=True)
+class Marked:
+    """One marked span of a markdown file: its kind, arguments, inner text and first line."""
+
+    kind: str
+    args: tuple[str, ...]
+    text: str
+    line: int
+    start: int
+    end: int
+
+
+def _blank(match: re.Match[str]) -> str:
+    """The match replaced by spaces, line breaks kept: offsets and line numbers stay."""
+    return re.sub(r"[^\n]", " ", match.group(0))
+
+
+def _stated(m: re.Match[str], line: int) -> Stated:
+    """One number match as a :class:`Stated`."""
+    sign = -1.0 if m["sign"] in ("-", "−") else 1.0
+    value = sign * float(m["int"].replace(",", "") + (m["frac"] or ""))
+    decimals = len(m["frac"]) - 1 if m["frac"] else 0
+    return Stated(value, decimals, bool(m["sign"]), m.group(0).strip(), line)
+
+
+def stated_numbers(text: str, first_line: int = 1) -> list[Stated]:
+    """Every number written in the prose of ``text`` (code, comments and link targets skipped)."""
+    prose = _NOT_PROSE.sub(_blank, text)
+    return [_stated(m, first_line + prose.count("\n", 0, m.start())) for m in _NUMBER.finditer(prose)]
+
+
+def marked_spans(markdown: str) -> list[Marked]:
+    """The claim and table markers of a markdown text, in order; an unclosed or nested one is an error."""
+    spans = []
+    pos = 0
+    while (m := _OPEN.search(markdown, pos)) is not None:
+        kind, close = m[1], _CLOSE[m[1]]
+        end = markdown.find(close, m.end())
+        line = markdown.count("\n", 0, m.start()) + 1
+        nested = _OPEN.search(markdown, m.end(), end if end >= 0 else len(markdown))
+        if end < 0 or nested is not None:
+            raise SemvprError(f"line {line}: '<!-- {kind}: ... -->' without its '{close}' before the next marker")
+        inner = markdown[m.end() : end]
+        spans.append(Marked(kind, tuple(m[2].split()), inner, line, m.end(), end))
+        pos = end + len(close)
+    return spans
+
+
+def _numbers_in(value: object) -> Iterable[float]:
+    """Every number a CSV cell or JSON value holds (strings read for numbers too, e.g. '0 1 2')."""
+    if isinstance(value, bool) or value is None:
+        return
+    if isinstance(value, int | float):
+        if math.isfinite(value):
+            yield float(value)
+    elif isinstance(value, str):
+        for stated in stated_numbers(value):
+            yield stated.value
+    elif isinstance(value, dict):
+        for item in value.values():
+            yield from _numbers_in(item)
+    elif isinstance(value, list):
+        for item in value:
+            yield from _numbers_in(item)
+
+
+def _require(path: Path) -> None:
+    """A marker's data file must be a committed regular file."""
+    if not regular_file(path, "data file"):
+        raise SemvprError(f"{path}: no such data file")
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """A committed CSV's rows."""
+    _require(path)
+    with path.open(encoding="utf-8", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def source_values(path: Path) -> list[float]:
+    """Every number of a committed CSV (each cell) or JSON file (each leaf)."""
+    if path.suffix == ".csv":
+        return [v for row in read_rows(path) for cell in row.values() for v in _numbers_in(cell)]
+    if path.suffix == ".json":
+        _require(path)
+        return list(_numbers_in(json.loads(path.read_text(encoding="utf-8"))))
+    if path.suffix in (".yaml", ".yml"):
+        _require(path)
+        return list(_numbers_in(read_yaml(path, "data file")))
+    raise SemvprError(f"{path}: a claim's source must be a .csv, .json or .yaml data file")
+
+
+def _cell(value: str) -> float:
+    """A CSV cell as a number."""
+    try:
+        return float(value)
+    except ValueError:
+        raise SemvprError(f"expected a number in the data file, got {value!r}") from None
+
+
+def render_table(path: Path, keys: Sequence[str], metrics: Sequence[str]) -> str:
+    """A markdown table of a CSV: the label columns ``keys`` (joined by ' · '), then each metric as
+    ``<m>_mean ± <m>_std`` (or ``<m>`` alone) at one decimal, one row per CSV row in file order."""
+    rows = read_rows(path)
+    header = f"| {' · '.join(keys)} | " + " | ".join(metrics) + " |"
+    lines = [header, "|---|" + "---:|" * len(metrics)]
+    for row in rows:
+        missing = [k for k in (*keys, *metrics) if k not in row and f"{k}_mean" not in row]
+        if missing:
+            raise SemvprError(f"{path}: no column {missing[0]!r} (columns: {', '.join(row)})")
+        cells = []
+        for m in metrics:
+            if f"{m}_mean" in row:
+                cells.append(f"{_cell(row[f'{m}_mean']):.1f} ± {_cell(row[f'{m}_std']):.1f}")
+            else:
+                cells.append(f"{_cell(row[m]):.1f}")
+        lines.append(f"| {' · '.join(row[k] for k in keys)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _table_args(span: Marked, where: str) -> tuple[str, list[str], list[str]]:
+    """A table marker's source, keys and metrics."""
+    if len(span.args) != 3:
+        raise SemvprError(f"{where}:{span.line}: expected '<!-- table: SOURCE.csv KEYS METRICS -->'")
+    source, keys, metrics = span.args
+    return source, keys.split(","), metrics.split(",")
+
+
+def check_markdown(path: Path, root: Path) -> list[str]:
+    """What does not hold in one markdown file: a number in a claim that no source has, a generated
+    table that differs from its CSV, a marker naming a file that is not there."""
+    markdown = path.read_text(encoding="utf-8")
+    where = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
+    problems = []
+    for span in marked_spans(markdown):
+        if span.kind == "table":
+            source, keys, metrics = _table_args(span, where)
+            expected = render_table(root / source, keys, metrics)
+            if span.text.strip() != expected:
+                problems.append(f"{where}:{span.line}: table differs from {source} (regenerate it)")
+            continue
+        if not span.args:
+            problems.append(f"{where}:{span.line}: a claim names no source")
+            continue
+        values = [v for source in span.args for v in source_values(root / source)]
+        for stated in stated_numbers(span.text, span.line):
+            if stated.result_like and not any(stated.matches(v) for v in values):
+                sources = ", ".join(span.args)
+                problems.append(f"{where}:{stated.line}: {stated.text} is in no source of its claim ({sources})")
+    return problems
+
+
+def unsourced_numbers(markdown: str, allow: Sequence[re.Pattern[str]] = ()) -> list[Stated]:
+    """Result-like numbers outside every marker, except where an ``allow`` pattern's match covers them."""
+    marked = [(s.start, s.end) for s in marked_spans(markdown)]
+    outside = "".join(
+        "\n" * markdown.count("\n", start, end) if any(a <= start < b for a, b in marked) else markdown[start:end]
+        for start, end in _segments(len(markdown), marked)
+    )
+    prose = _NOT_PROSE.sub(_blank, outside)
+    covered = [(m.start(), m.end()) for pattern in allow for m in pattern.finditer(prose)]
+    found = []
+    for m in _NUMBER.finditer(prose):
+        stated = _stated(m, 1 + prose.count("\n", 0, m.start()))
+        if stated.result_like and not any(a <= m.start() and m.end() <= b for a, b in covered):
+            found.append(stated)
+    return found
+
+
+def _segments(length: int, marked: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """[0, length) cut at the marked spans' edges: the spans themselves and what lies between them."""
+    cuts = sorted({0, length, *(p for span in marked for p in span)})
+    return list(zip(cuts, cuts[1:], strict=False))
+
+
+def write_tables(path: Path, root: Path) -> bool:
+    """Regenerate every table marker of a markdown file from its CSV; True if the file changed."""
+    markdown = path.read_text(encoding="utf-8")
+    out, pos = [], 0
+    for span in marked_spans(markdown):
+        if span.kind != "table":
+            continue
+        source, keys, metrics = _table_args(span, str(path))
+        out += [markdown[pos : span.start], "\n", render_table(root / source, keys, metrics), "\n"]
+        pos = span.end
+    updated = "".join(out) + markdown[pos:]
+    if updated != markdown:
+        write_text(path, updated)
+    return updated != markdown

@@ -1,0 +1,123 @@
+"""Every result the committed docs state is held to a committed data file (docs/trust.md, "Numbers in
+the docs"): numbers inside a claim marker must be in its sources, a generated table must equal what its
+CSV renders, and a result-like number outside every marker fails unless ``ALLOW`` names it as a
+hyper-parameter, a version or a definition."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from semvpr.core.errors import SemvprError
+from semvpr.reporting import claims
+
+REPO = Path(__file__).resolve().parents[1]
+#: The markdown that states results: the front page, the docs, each experiment's and the benchmarks' README.
+DOCS = sorted(
+    {
+        REPO / "README.md",
+        *REPO.glob("docs/*.md"),
+        *REPO.glob("experiments/*.md"),
+        *REPO.glob("experiments/*/README.md"),
+        REPO / "benchmarks" / "README.md",
+    }
+)
+#: Result-like numbers that are not results: each pattern's whole match is allowed, nothing else.
+ALLOW = [
+    re.compile(p, re.M)
+    for p in (
+        r"^#+ .*$",  # section numbers of headings
+        r"(?:Python|transformers) ≥ \d+\.\d+",  # required versions
+        r"95 % (?:percentile[- ])?(?:bootstrap|CI|interval)",  # what the intervals are
+        r"\[95 % CI\]",
+        r"thresholds? at 0\.5",  # the binary filter's threshold
+        r"starting at 0\.98 for static and 0\.02",  # the class weights' initial value
+    )
+]
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(REPO)))
+def test_marked_numbers_match_their_sources(doc: Path) -> None:
+    problems = claims.check_markdown(doc, REPO)
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(REPO)))
+def test_no_result_without_a_source(doc: Path) -> None:
+    loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"), ALLOW)
+    assert not loose, "results outside a claim marker (mark them with their data file, or drop them):\n" + "\n".join(
+        f"{doc.relative_to(REPO)}:{s.line}: {s.text}" for s in loose
+    )
+
+
+def test_the_committed_docs_mark_claims() -> None:
+    """The markers are in use where the front page states results (not an empty check)."""
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    kinds = {span.kind for span in claims.marked_spans(readme)}
+    assert kinds == {"claim", "table"}, kinds
+
+
+def _write(tmp_path: Path, markdown: str) -> Path:
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "r.csv").write_text(
+        "aggregator,mask,R@1_mean,R@1_std,gain\nnetvlad,none,70.6032,1.3345,\nsral,student,78.9841,1.1481,+8.4\n",
+        encoding="utf-8",
+    )
+    doc = tmp_path / "doc.md"
+    doc.write_text(markdown, encoding="utf-8")
+    return doc
+
+
+def test_a_right_claim_passes(tmp_path: Path) -> None:
+    text = "NetVLAD 70.6 ± 1.3, the student +8.4 (79.0 %)."
+    doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{text}\n<!-- /claim -->\n")
+    assert claims.check_markdown(doc, tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "wrong",
+    [
+        "NetVLAD 70.8 ± 1.3",  # a typo in the last digit
+        "NetVLAD 70.61 ± 1.3",  # a stated extra decimal is held to it (70.6032 is not 70.61)
+        "the student −8.4",  # the sign is part of a signed claim
+        "the student +8.4 in 78.9 %",  # 78.98 rounds to 79.0, not 78.9
+    ],
+)
+def test_a_wrong_number_in_a_claim_fails(tmp_path: Path, wrong: str) -> None:
+    doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{wrong}.\n<!-- /claim -->\n")
+    problems = claims.check_markdown(doc, tmp_path)
+    assert len(problems) == 1 and "doc.md:2:" in problems[0], problems
+
+
+def test_an_unsigned_magnitude_matches_a_loss(tmp_path: Path) -> None:
+    doc = _write(tmp_path, "<!-- claim: data/r.csv -->\na gain of 8.4 points\n<!-- /claim -->\n")
+    assert claims.check_markdown(doc, tmp_path) == []
+
+
+def test_a_generated_table_is_checked_and_rewritten(tmp_path: Path) -> None:
+    table = "| aggregator · mask | R@1 |\n|---|---:|\n| netvlad · none | 70.6 ± 1.3 |\n| sral · student | 79.0 ± 1.1 |"
+    doc = _write(tmp_path, f"<!-- table: data/r.csv aggregator,mask R@1 -->\n{table}\n<!-- /table -->\n")
+    assert claims.check_markdown(doc, tmp_path) == []
+    doc.write_text(doc.read_text(encoding="utf-8").replace("79.0 ± 1.1", "79.1 ± 1.1"), encoding="utf-8")
+    assert [p for p in claims.check_markdown(doc, tmp_path) if "table differs from data/r.csv" in p]
+    assert claims.write_tables(doc, tmp_path)
+    assert claims.check_markdown(doc, tmp_path) == []
+    assert table in doc.read_text(encoding="utf-8")
+
+
+def test_a_result_outside_a_marker_is_flagged(tmp_path: Path) -> None:
+    marked = "<!-- claim: data/r.csv -->\n70.6\n<!-- /claim -->\n"
+    doc = _write(tmp_path, marked + "New: 81.2 R@1, +3 over none, 12 %.\n`lr 0.5` 16 epochs\n")
+    loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"), ALLOW)
+    assert [(s.text, s.line) for s in loose] == [("81.2", 4), ("+3", 4), ("12 %", 4)]
+
+
+def test_a_marker_without_its_end_or_source_is_one_error(tmp_path: Path) -> None:
+    doc = _write(tmp_path, "<!-- claim: data/r.csv -->\n70.6\n")
+    with pytest.raises(SemvprError, match="without its '<!-- /claim -->'"):
+        claims.check_markdown(doc, tmp_path)
+    doc.write_text("<!-- claim: data/missing.csv -->\n70.6\n<!-- /claim -->\n", encoding="utf-8")
+    with pytest.raises(SemvprError, match="no such data file"):
+        claims.check_markdown(doc, tmp_path)
