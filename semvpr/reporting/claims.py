@@ -41,7 +41,9 @@ _NUMBER = re.compile(
     r"(?<![\w@.,\-−+])(?P<sign>[+\-−](?=\d))?(?P<int>\d{1,3}(?:,\d{3})+|\d+)(?P<frac>\.\d+)?"
     r"(?P<pct>\s?%)?(?![\w@]|\.\d|,\d{3})"
 )
-#: Markdown that is not prose: fenced code, code spans, HTML comments, link targets.
+#: Code: fenced blocks and spans (a marker written there is an example, not a marker).
+_CODE = re.compile(r"```.*?```|`[^`\n]*`", re.S)
+#: Markdown that is not prose: code, HTML comments, link targets.
 _NOT_PROSE = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)\s]*\)", re.S)
 
 
@@ -103,11 +105,12 @@ def marked_spans(markdown: str) -> list[Marked]:
     """The claim and table markers of a markdown text, in order; an unclosed or nested one is an error."""
     spans = []
     pos = 0
-    while (m := _OPEN.search(markdown, pos)) is not None:
+    code_free = _CODE.sub(_blank, markdown)  # same offsets, markers in code blanked
+    while (m := _OPEN.search(code_free, pos)) is not None:
         kind, close = m[1], _CLOSE[m[1]]
-        end = markdown.find(close, m.end())
+        end = code_free.find(close, m.end())
         line = markdown.count("\n", 0, m.start()) + 1
-        nested = _OPEN.search(markdown, m.end(), end if end >= 0 else len(markdown))
+        nested = _OPEN.search(code_free, m.end(), end if end >= 0 else len(markdown))
         if end < 0 or nested is not None:
             raise SemvprError(f"line {line}: '<!-- {kind}: ... -->' without its '{close}' before the next marker")
         inner = markdown[m.end() : end]
