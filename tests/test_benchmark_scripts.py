@@ -4,6 +4,7 @@ several train on the tiny preset."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -21,7 +22,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     "calibrate_synthcity.py": (
         lambda t: (
             ["--preset", "tiny", "--init-images", "10", "--clusters", "4", "--threads", "1"]
-            + ["--cache-dir", str(t / "cache")]
+            + ["--cache-dir", str(t / "cache"), "--json", str(t / "calibration.json")]
         ),
         "",
     ),
@@ -79,6 +80,13 @@ def test_benchmark_script_runs_with_small_arguments(tmp_path: Path, script: str)
     assert proc.returncode == 0, (proc.stdout[-2000:], proc.stderr[-3000:])
     last = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     assert fragment in last, last
+    if script == "calibrate_synthcity.py":
+        # --json holds the numbers the last line prints, with the command and the machine.
+        record = json.loads((tmp_path / "calibration.json").read_text(encoding="utf-8"))
+        gain = float(last.split("gain=")[1].split()[0])
+        assert round(record["mean_over_dataset_seeds"]["gain"], 1) == gain, (record, last)
+        assert record["command"].startswith("python benchmarks/calibrate_synthcity.py --preset tiny"), record
+        assert record["machine"]["precision"] == "fp32" and record["runs"], record
     if script == "quickstart.py":
         # The sweep's processes did work, and no schedule beats its CPU time spread over the cores.
         fields = {k: float(v) for k, v in (item.split("=") for item in last.split())}
