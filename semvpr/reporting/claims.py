@@ -7,7 +7,8 @@ repository root):
 - ``<!-- claim: SOURCE [SOURCE ...] -->`` ... ``<!-- /claim -->``: every *result-like* number in
   between (one with a decimal point, an explicit sign or a ``%``) must equal a number of the sources at
   the precision it is written with (``62.1`` matches a value in [62.05, 62.15]); a signed number must
-  have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``). Plain integers
+  have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``), and a percentage
+may be a fraction of the source (``87.7 %`` matches ``0.877``). Plain integers
   (counts, seeds, sizes) are not checked.
 - ``<!-- table: SOURCE.csv KEYS METRICS -->`` ... ``<!-- /table -->``: the block is exactly the table
   :func:`render_table` writes from the CSV (``KEYS``: comma-separated label columns; ``METRICS``:
@@ -68,6 +69,10 @@ class Stated:
         if self.signed:
             return abs(value - self.value) <= half
         return abs(abs(value) - abs(self.value)) <= half
+
+    def matches_fraction(self, value: float) -> bool:
+        """A percentage matches a fraction of the source (``87.7 %`` is ``0.877``)."""
+        return self.text.endswith("%") and self.matches(100.0 * value)
 
 
 @dataclass(frozen=True)
@@ -217,7 +222,7 @@ def check_markdown(path: Path, root: Path) -> list[str]:
             continue
         values = [v for source in span.args for v in source_values(root / source)]
         for stated in stated_numbers(span.text, span.line):
-            if stated.result_like and not any(stated.matches(v) for v in values):
+            if stated.result_like and not any(stated.matches(v) or stated.matches_fraction(v) for v in values):
                 sources = ", ".join(span.args)
                 problems.append(f"{where}:{stated.line}: {stated.text} is in no source of its claim ({sources})")
     return problems
