@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -46,6 +45,7 @@ from PIL import Image
 from semvpr.config.build import build_backbone
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.machine import describe
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
@@ -167,16 +167,6 @@ def paired(a: np.ndarray, b: np.ndarray) -> str:
     return f"{mean:+.1f}±{stderr:.1f}"
 
 
-def cpu_name() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), for the record; ``platform.processor()`` elsewhere."""
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text(encoding="utf-8", errors="replace").splitlines():
-            if line.startswith("model name"):
-                return line.partition(":")[2].strip()
-    return platform.processor() or platform.machine()
-
-
 def parse_weight(text: str) -> tuple[str, float]:
     """``name=value`` → (Cityscapes class name, weight >= 0)."""
     name, _, value = text.partition("=")
@@ -286,7 +276,7 @@ def main() -> None:
             summary |= {"gain_std": float(gain.std(ddof=1)), "weighted_gain_std": float(weighted_gain.std(ddof=1))}
         result = {
             "command": " ".join(["python", "benchmarks/calibrate_synthcity.py", *sys.argv[1:]]),
-            "machine": {"cpu": cpu_name(), "threads": args.threads, "precision": "bf16" if args.bf16 else "fp32"},
+            "machine": {**describe(), "threads": args.threads, "precision": "bf16" if args.bf16 else "fp32"},
             "split": args.split,
             "runs": record,
             "mean_over_dataset_seeds": summary,

@@ -41,6 +41,10 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         ),
         "gsv·gem=",
     ),
+    "record.py": (
+        lambda t: [str(t / "record.json"), "--", "python", "-c", "print('step 91.0 ms'); print('a=1 b=2.5 c=x')"],
+        "a=1 b=2.5",
+    ),
     "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=3/3"),
     "scale.py": (
         lambda t: (
@@ -87,9 +91,30 @@ def test_benchmark_script_runs_with_small_arguments(tmp_path: Path, script: str)
         assert round(record["mean_over_dataset_seeds"]["gain"], 1) == gain, (record, last)
         assert record["command"].startswith("python benchmarks/calibrate_synthcity.py --preset tiny"), record
         assert record["machine"]["precision"] == "fp32" and record["runs"], record
+    if script == "record.py":
+        # What the command printed, its last line's fields, the command as typed and the machine.
+        record = json.loads((tmp_path / "record.json").read_text(encoding="utf-8"))
+        assert record["output"] == ["step 91.0 ms", "a=1 b=2.5 c=x"], record
+        assert record["last"] == {"a": 1.0, "b": 2.5, "c": "x"}, record
+        assert record["command"].startswith("python -c "), record
+        assert record["machine"]["cores"] >= 1 and record["machine"]["cpu"], record
     if script == "quickstart.py":
         # The sweep's processes did work, and no schedule beats its CPU time spread over the cores.
         fields = {k: float(v) for k, v in (item.split("=") for item in last.split())}
         assert fields["cpu_s"] > 0, last
         assert fields["floor_s"] == pytest.approx(fields["cpu_s"] / fields["cores"], abs=1), last
         assert fields["floor_s"] <= fields["sweep_s"] + 1, last
+
+
+def test_record_writes_nothing_when_the_benchmark_fails(tmp_path: Path) -> None:
+    out = tmp_path / "record.json"
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "record.py"), str(out), "--", "python", "-c", "raise SystemExit(3)"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert proc.returncode != 0 and not out.exists(), (proc.stdout, proc.stderr)
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "failed (exit 3); nothing recorded" in lines[0], proc.stderr
