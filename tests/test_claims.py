@@ -98,7 +98,20 @@ def test_a_right_claim_passes(tmp_path: Path) -> None:
 def test_a_wrong_number_in_a_claim_fails(tmp_path: Path, wrong: str) -> None:
     doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{wrong}.\n<!-- /claim -->\n")
     problems = claims.check_markdown(doc, tmp_path)
-    assert len(problems) == 1 and "doc.md:2:" in problems[0], problems
+    assert problems and all(p.startswith("doc.md:2: ") for p in problems), problems
+
+
+@pytest.mark.parametrize(
+    "mixed",
+    [
+        "NetVLAD 70.6 ± 1.1",  # 1.1 is a std, but the student's: a mean and its std come from one row, side by side
+        "| netvlad | 70.6 ± 1.3 / 79.0 |",  # one table cell's numbers come from one row
+    ],
+)
+def test_numbers_written_together_come_from_one_record(tmp_path: Path, mixed: str) -> None:
+    doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{mixed}\n<!-- /claim -->\n")
+    problems = claims.check_markdown(doc, tmp_path)
+    assert problems and all("not side by side" in p or "not from one record" in p for p in problems), problems
 
 
 def test_an_unsigned_magnitude_matches_a_loss(tmp_path: Path) -> None:

@@ -155,17 +155,70 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-def source_values(path: Path) -> list[float]:
-    """Every number of a committed CSV (each cell) or JSON file (each leaf)."""
+class Record(list[float]):
+    """The numbers of one source record in field order; ``ordered``: a CSV row, whose adjacent fields
+    belong together (``R@1_mean, R@1_std``), not a JSON / YAML dict."""
+
+    ordered: bool = False
+
+
+def _record(values: Iterable[float], ordered: bool) -> Record:
+    """A :class:`Record` of ``values``."""
+    record = Record(values)
+    record.ordered = ordered
+    return record
+
+
+def _records_in(value: object) -> Iterable[Record]:
+    """Each dict of a JSON or YAML document as one record: the numbers of its direct values."""
+    if isinstance(value, dict):
+        own = [v for item in value.values() if not isinstance(item, dict | list) for v in _numbers_in(item)]
+        if own:
+            yield _record(own, ordered=False)
+        for item in value.values():
+            yield from _records_in(item)
+    elif isinstance(value, list):
+        scalars = [v for item in value if not isinstance(item, dict | list) for v in _numbers_in(item)]
+        if scalars:
+            yield _record(scalars, ordered=False)
+        for item in value:
+            yield from _records_in(item)
+
+
+def source_records(path: Path) -> list[Record]:
+    """The numbers of a committed data file by record: a CSV's rows, a JSON or YAML file's dicts."""
     if path.suffix == ".csv":
-        return [v for row in read_rows(path) for cell in row.values() for v in _numbers_in(cell)]
-    if path.suffix == ".json":
+        return [_record((v for cell in row.values() for v in _numbers_in(cell)), True) for row in read_rows(path)]
+    if path.suffix in (".json", ".yaml", ".yml"):
         _require(path)
-        return list(_numbers_in(json.loads(path.read_text(encoding="utf-8"))))
-    if path.suffix in (".yaml", ".yml"):
-        _require(path)
-        return list(_numbers_in(read_yaml(path, "data file")))
+        if path.suffix == ".json":
+            document = json.loads(path.read_text(encoding="utf-8"))
+        else:
+            document = read_yaml(path, "data file")
+        return list(_records_in(document))
     raise SemvprError(f"{path}: a claim's source must be a .csv, .json or .yaml data file")
+
+
+def source_values(path: Path) -> list[float]:
+    """Every number of a committed data file."""
+    return [v for record in source_records(path) for v in record]
+
+
+def _clauses(row: str) -> list[str]:
+    """A markdown table row cut into its cells, and each cell at ``;`` and ``, `` outside brackets: the
+    pieces whose numbers one source record must hold together (``54.5 ± 0.9 (−0.2 [−3.0, +2.5])``)."""
+    pieces, depth, current = [], 0, []
+    for i, char in enumerate(row):
+        depth += char in "([" and 1 or 0
+        depth -= char in ")]" and 1 or 0
+        if depth <= 0 and (char == "|" or char == ";" or (char == "," and row[i + 1 : i + 2] == " ")):
+            pieces.append("".join(current))
+            current = []
+            depth = 0
+        else:
+            current.append(char)
+    pieces.append("".join(current))
+    return [piece for piece in pieces if piece.strip()]
 
 
 def _cell(value: str) -> float:
@@ -220,11 +273,65 @@ def check_markdown(path: Path, root: Path) -> list[str]:
         if not span.args:
             problems.append(f"{where}:{span.line}: a claim names no source")
             continue
-        values = [v for source in span.args for v in source_values(root / source)]
-        for stated in stated_numbers(span.text, span.line):
-            if stated.result_like and not any(stated.matches(v) or stated.matches_fraction(v) for v in values):
-                sources = ", ".join(span.args)
-                problems.append(f"{where}:{stated.line}: {stated.text} is in no source of its claim ({sources})")
+        problems += _check_claim(span, [r for source in span.args for r in source_records(root / source)], where)
+    return problems
+
+
+def _holds(stated: Stated, record: Sequence[float]) -> bool:
+    """The number is one of the record's, at its precision (a percentage also as a fraction)."""
+    return any(stated.matches(v) or stated.matches_fraction(v) for v in record)
+
+
+def _chains(text: str, first_line: int) -> list[list[Stated]]:
+    """Numbers written as one value: ``mean ± std`` and ``estimate [low, high]``; a data file keeps them
+    in adjacent fields (``R@1_mean, R@1_std``; ``gain, ci_low, ci_high``; ``{"mean", "stderr"}``)."""
+    prose = _NOT_PROSE.sub(_blank, text)
+    matches = list(_NUMBER.finditer(prose))
+    chains, i = [], 0
+    while i < len(matches):
+        end = i
+        gaps = [prose[matches[k].end() : matches[k + 1].start()] for k in range(i, len(matches) - 1)]
+        if gaps[:1] == [" ± "]:
+            end = i + 1
+        elif len(gaps) >= 2 and gaps[0] == " [" and gaps[1] == ", " and prose[matches[i + 2].end()] == "]":
+            end = i + 2
+        if end > i:
+            chains.append([_stated(m, first_line + prose.count("\n", 0, m.start())) for m in matches[i : end + 1]])
+        i = end + 1
+    return chains
+
+
+def _in_sequence(chain: list[Stated], record: Record) -> bool:
+    """The chain's numbers are consecutive values of a CSV row, in order, or values of one JSON / YAML
+    dict (whose key order means nothing)."""
+    if not record.ordered:
+        return all(_holds(s, record) for s in chain)
+    return any(
+        all(_holds(s, record[start + k : start + k + 1]) for k, s in enumerate(chain))
+        for start in range(len(record) - len(chain) + 1)
+    )
+
+
+def _check_claim(span: Marked, records: list[Record], where: str) -> list[str]:
+    """A claim's numbers against its sources' records: each number in some record, and the numbers of one
+    table-cell clause (``70.6 ± 1.3``, ``−0.2 [−3.0, +2.5]``) all in the same record."""
+    sources = ", ".join(span.args)
+    problems = []
+    for stated in stated_numbers(span.text, span.line):
+        if stated.result_like and not any(_holds(stated, record) for record in records):
+            problems.append(f"{where}:{stated.line}: {stated.text} is in no source of its claim ({sources})")
+    for chain in _chains(span.text, span.line):
+        if not any(_in_sequence(chain, record) for record in records):
+            numbers = " ".join(s.text for s in chain)
+            problems.append(f"{where}:{chain[0].line}: {numbers} are not side by side in one record of {sources}")
+    for offset, line in enumerate(span.text.split("\n")):
+        if not line.lstrip().startswith("|"):
+            continue
+        for clause in _clauses(line):
+            together = [s for s in stated_numbers(clause, span.line + offset) if s.result_like]
+            if len(together) > 1 and not any(all(_holds(s, record) for s in together) for record in records):
+                numbers = ", ".join(s.text for s in together)
+                problems.append(f"{where}:{span.line + offset}: {numbers} are not from one record of {sources}")
     return problems
 
 
