@@ -1,11 +1,13 @@
 """Every result the committed docs state is held to a committed data file (docs/trust.md, "Numbers in
 the docs"): numbers inside a claim marker must be in its sources, a generated table must equal what its
-CSV renders, and a result-like number outside every marker fails unless ``ALLOW`` names it as a
+CSV renders, and a result-like number outside every marker fails unless ``claims.NOT_RESULTS`` names it as a
 hyper-parameter, a version or a definition."""
 
 from __future__ import annotations
 
-import re
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,36 +16,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.reporting import claims
 
 REPO = Path(__file__).resolve().parents[1]
-#: The markdown that states results: the front page, the docs, each experiment's and the benchmarks' README.
-DOCS = sorted(
-    {
-        REPO / "README.md",
-        *REPO.glob("docs/*.md"),
-        *REPO.glob("experiments/*.md"),
-        *REPO.glob("experiments/*/README.md"),
-        REPO / "benchmarks" / "README.md",
-    }
-)
-#: Experiment pages whose results are not yet all held to a data file: their per-seed values, val pilot
-#: tables and older runs have none committed. Each leaves this set once its numbers are marked or dropped.
-NOT_YET_SOURCED = {
-    "experiments/synthcity-calibration/README.md",
-}
-#: Result-like numbers that are not results: each pattern's whole match is allowed, nothing else.
-ALLOW = [
-    re.compile(p, re.M)
-    for p in (
-        r"^#+ .*$|§\d+(?:\.\d+)?",  # section numbers of headings and references to them
-        r"(?:Python|transformers|torch) ≥? ?\d+\.\d+",  # versions
-        r"95 % (?:percentile[- ])?(?:bootstrap|CI|interval)",  # what the intervals are
-        r"\[95 % CI\]",
-        r"thresholds? at 0\.5|≥ 0\.5",  # the binary filter's threshold
-        r"0\.98 for static(?: classes)?,? (?:and )?0\.02",  # the class weights' initial value
-        r"LR\s+0\.05",  # the class weights' learning rate
-        r"One query is 0\.5 points",  # the resolution of 200 queries
-        r"\(x − 0\.5\)/0\.5",  # an input normalisation
-    )
-]
+DOCS = claims.committed_docs(REPO)
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(REPO)))
@@ -54,9 +27,7 @@ def test_marked_numbers_match_their_sources(doc: Path) -> None:
 
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(REPO)))
 def test_no_result_without_a_source(doc: Path) -> None:
-    if str(doc.relative_to(REPO)) in NOT_YET_SOURCED:
-        pytest.xfail("results not yet all held to a data file (NOT_YET_SOURCED)")
-    loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"), ALLOW)
+    loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"))
     assert not loose, "results outside a claim marker (mark them with their data file, or drop them):\n" + "\n".join(
         f"{doc.relative_to(REPO)}:{s.line}: {s.text}" for s in loose
     )
@@ -133,7 +104,7 @@ def test_a_generated_table_is_checked_and_rewritten(tmp_path: Path) -> None:
 def test_a_result_outside_a_marker_is_flagged(tmp_path: Path) -> None:
     marked = "<!-- claim: data/r.csv -->\n70.6\n<!-- /claim -->\n"
     doc = _write(tmp_path, marked + "New: 81.2 R@1, +3 over none, 12 %.\n`lr 0.5` 16 epochs\n")
-    loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"), ALLOW)
+    loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"))
     assert [(s.text, s.line) for s in loose] == [("81.2", 4), ("+3", 4), ("12 %", 4)]
 
 
@@ -144,3 +115,37 @@ def test_a_marker_without_its_end_or_source_is_one_error(tmp_path: Path) -> None
     doc.write_text("<!-- claim: data/missing.csv -->\n70.6\n<!-- /claim -->\n", encoding="utf-8")
     with pytest.raises(SemvprError, match="no such data file"):
         claims.check_markdown(doc, tmp_path)
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "semvpr.reporting.claims", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+
+
+def test_the_command_checks_the_committed_docs() -> None:
+    proc = _run(cwd=REPO)
+    assert proc.returncode == 0 and "every stated number holds" in proc.stdout, (proc.stdout, proc.stderr)
+
+
+def test_the_command_names_each_problem_and_rewrites_tables(tmp_path: Path) -> None:
+    stale = "| aggregator · mask | R@1 |\n|---|---:|\n| netvlad · none | 70.0 ± 1.3 |"
+    doc = _write(
+        tmp_path,
+        f"<!-- table: data/r.csv aggregator,mask R@1 -->\n{stale}\n<!-- /table -->\n"
+        "<!-- claim: data/r.csv -->\nthe student +8.5\n<!-- /claim -->\nand 81.2 R@1 unmarked\n",
+    )
+    proc = _run("--root", str(tmp_path), str(doc), cwd=tmp_path)
+    assert proc.returncode == 1, (proc.stdout, proc.stderr)
+    assert proc.stdout.splitlines() == [
+        "doc.md:1: table differs from data/r.csv (regenerate it)",
+        "doc.md:7: +8.5 is in no source of its claim (data/r.csv)",
+        "doc.md:9: 81.2 is outside every claim marker",
+    ], proc.stdout
+    proc = _run("--write", "--root", str(tmp_path), str(doc), cwd=tmp_path)
+    assert "79.0 ± 1.1" in doc.read_text(encoding="utf-8") and "table differs" not in proc.stdout, proc.stdout

@@ -21,6 +21,7 @@ definitions there. Code spans, fenced code, link targets and HTML comments are n
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import math
@@ -29,7 +30,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from semvpr.core.errors import SemvprError
+from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import read_yaml, regular_file, write_text
 
 #: A marker's opening comment: kind, then its arguments.
@@ -46,6 +47,30 @@ _NUMBER = re.compile(
 _CODE = re.compile(r"```.*?```|`[^`\n]*`", re.S)
 #: Markdown that is not prose: code, HTML comments, link targets.
 _NOT_PROSE = re.compile(r"```.*?```|`[^`\n]*`|<!--.*?-->|\]\([^)\s]*\)", re.S)
+#: Result-like numbers that are not results (hyper-parameters, versions, definitions): each pattern's
+#: whole match is allowed outside the markers, nothing else.
+NOT_RESULTS = tuple(
+    re.compile(p, re.M)
+    for p in (
+        r"^#+ .*$|§\d+(?:\.\d+)?",  # section numbers of headings and references to them
+        r"(?:Python|transformers|torch) ≥? ?\d+\.\d+",  # versions
+        r"95 % (?:percentile[- ])?(?:bootstrap|CI|interval)|\[95 % CI\]",  # what the intervals are
+        r"thresholds? at 0\.5|≥ 0\.5",  # the binary filter's threshold
+        r"≥ \+\d+ R@1|further ≥ \+\d+",  # the calibration's targets
+        r"0\.98 for static(?: classes)?,? (?:and )?0\.02",  # the class weights' initial value
+        r"LR\s+0\.05",  # the class weights' learning rate
+        r"One query is 0\.5 points",  # the resolution of 200 queries
+        r"\(x − 0\.5\)/0\.5",  # an input normalisation
+    )
+)
+
+
+def committed_docs(root: Path) -> list[Path]:
+    """The markdown that states results: the front page, the docs, the experiments' and the benchmarks'
+    pages."""
+    pages = {root / "README.md", root / "benchmarks" / "README.md"}
+    pages |= {*root.glob("docs/*.md"), *root.glob("experiments/*.md"), *root.glob("experiments/*/README.md")}
+    return sorted(p for p in pages if p.is_file())
 
 
 @dataclass(frozen=True)
@@ -335,7 +360,7 @@ def _check_claim(span: Marked, records: list[Record], where: str) -> list[str]:
     return problems
 
 
-def unsourced_numbers(markdown: str, allow: Sequence[re.Pattern[str]] = ()) -> list[Stated]:
+def unsourced_numbers(markdown: str, allow: Sequence[re.Pattern[str]] = NOT_RESULTS) -> list[Stated]:
     """Result-like numbers outside every marker, except where an ``allow`` pattern's match covers them."""
     marked = [(s.start, s.end) for s in marked_spans(markdown)]
     outside = "".join(
@@ -372,3 +397,32 @@ def write_tables(path: Path, root: Path) -> bool:
     if updated != markdown:
         write_text(path, updated)
     return updated != markdown
+
+
+@exit_on_user_error
+def main() -> None:
+    """``python -m semvpr.reporting.claims [--write] [FILE ...]``: check the committed docs (or FILEs)
+    against their data files, after rewriting their generated tables with ``--write``; exit 1 on a
+    problem, one line each."""
+    ap = argparse.ArgumentParser(description="Check the numbers of the docs against their data files.")
+    ap.add_argument("files", type=Path, nargs="*", help="markdown files (default: the committed docs)")
+    ap.add_argument("--write", action="store_true", help="rewrite every generated table from its CSV first")
+    ap.add_argument("--root", type=Path, default=Path("."), help="where the markers' paths start (the repository)")
+    args = ap.parse_args()
+    root = args.root.resolve()
+    problems = []
+    for path in [p.resolve() for p in args.files] or committed_docs(root):
+        if args.write and write_tables(path, root):
+            print(f"{path}: tables rewritten")
+        problems += check_markdown(path, root)
+        where = path.relative_to(root) if path.is_relative_to(root) else path
+        problems += [
+            f"{where}:{s.line}: {s.text} is outside every claim marker"
+            for s in unsourced_numbers(path.read_text(encoding="utf-8"))
+        ]
+    print("\n".join(problems) or "every stated number holds")
+    raise SystemExit(1 if problems else 0)
+
+
+if __name__ == "__main__":
+    main()
