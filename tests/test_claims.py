@@ -103,9 +103,10 @@ def test_a_generated_table_is_checked_and_rewritten(tmp_path: Path) -> None:
 
 def test_a_result_outside_a_marker_is_flagged(tmp_path: Path) -> None:
     marked = "<!-- claim: data/r.csv -->\n70.6\n<!-- /claim -->\n"
-    doc = _write(tmp_path, marked + "New: 81.2 R@1, +3 over none, 12 %.\n`lr 0.5` 16 epochs\n")
+    text = "New: 81.2 R@1, +3 over none, 12 %, in 95 s.\n`lr 0.5` 16 epochs, 3 seeds, stage4, 180x240\n"
+    doc = _write(tmp_path, marked + text)
     loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"))
-    assert [(s.text, s.line) for s in loose] == [("81.2", 4), ("+3", 4), ("12 %", 4)]
+    assert [(s.text, s.line) for s in loose] == [("81.2", 4), ("+3", 4), ("12 %", 4), ("95 s", 4)]
 
 
 def test_a_marker_without_its_end_or_source_is_one_error(tmp_path: Path) -> None:

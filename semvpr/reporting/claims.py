@@ -5,18 +5,20 @@ Two invisible markers, HTML comments, tie markdown to committed CSV, JSON or YAM
 repository root):
 
 - ``<!-- claim: SOURCE [SOURCE ...] -->`` ... ``<!-- /claim -->``: every *result-like* number in
-  between (one with a decimal point, an explicit sign or a ``%``) must equal a number of the sources at
-  the precision it is written with (``62.1`` matches a value in [62.05, 62.15]); a signed number must
-  have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``), and a percentage
-may be a fraction of the source (``87.7 %`` matches ``0.877``). Plain integers
-  (counts, seeds, sizes) are not checked.
+  between (one with a decimal point, an explicit sign, a ``%`` or a unit of time) must equal a number of
+  the sources at the precision it is written with (``62.1`` matches a value in [62.05, 62.15]); a signed
+  number must have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``), and
+  a percentage may be a fraction (``87.7 %`` matches ``0.877``). ``mean ± std`` and ``x [low, high]``
+  must be adjacent fields of one record (a CSV row; a JSON / YAML object: any of its fields), and the
+  numbers of one table-cell clause must all come from one record. Plain integers (counts, seeds, sizes)
+  are not checked.
 - ``<!-- table: SOURCE.csv KEYS METRICS -->`` ... ``<!-- /table -->``: the block is exactly the table
   :func:`render_table` writes from the CSV (``KEYS``: comma-separated label columns; ``METRICS``:
   comma-separated metrics, each shown as ``<m>_mean ± <m>_std`` at one decimal).
 
-Outside the markers a result-like number is *unsourced* (:func:`unsourced_numbers`), unless an
-allow-list pattern covers it; the test of the committed docs allows only hyper-parameters and
-definitions there. Code spans, fenced code, link targets and HTML comments are never read as claims.
+Outside the markers a result-like number is *unsourced* (:func:`unsourced_numbers`) unless a
+``NOT_RESULTS`` pattern (hyper-parameters, versions, definitions) covers it. Code spans, fenced code,
+link targets and HTML comments are never read as claims.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ _CLOSE = {"claim": "<!-- /claim -->", "table": "<!-- /table -->"}
 #: 180x240, 1e-3), a version or a path.
 _NUMBER = re.compile(
     r"(?<![\w@.,\-−+])(?P<sign>[+\-−](?=\d))?(?P<int>\d{1,3}(?:,\d{3})+|\d+)(?P<frac>\.\d+)?"
-    r"(?P<pct>\s?%)?(?![\w@]|\.\d|,\d{3})"
+    r"(?P<pct>\s?%)?(?P<unit>\s(?:ms|s|min|minutes|h|hours)\b)?(?![\w@]|\.\d|,\d{3})"
 )
 #: Code: fenced blocks and spans (a marker written there is an example, not a marker).
 _CODE = re.compile(r"```.*?```|`[^`\n]*`", re.S)
@@ -61,6 +63,8 @@ NOT_RESULTS = tuple(
         r"LR\s+0\.05",  # the class weights' learning rate
         r"One query is 0\.5 points",  # the resolution of 200 queries
         r"\(x − 0\.5\)/0\.5",  # an input normalisation
+        r"up to 6 hours \(the process group's timeout\), not the default 30 minutes",  # a setting
+        r"about 10 minutes, so 30 epochs",  # an estimate from the work, said to be one
     )
 )
 
@@ -85,8 +89,13 @@ class Stated:
 
     @property
     def result_like(self) -> bool:
-        """A decimal point, an explicit sign or a percent sign: what a result is written with."""
-        return self.decimals > 0 or self.signed or self.text.endswith("%")
+        """A decimal point, an explicit sign, a percent sign or a unit of time: what a result is written with."""
+        return self.decimals > 0 or self.signed or self.text.endswith("%") or self.timed
+
+    @property
+    def timed(self) -> bool:
+        """Written with a unit of time (``791 s``, ``2 h``): a measured duration."""
+        return bool(re.search(r"\s(?:ms|s|min|minutes|h|hours)$", self.text))
 
     def matches(self, value: float) -> bool:
         """``value`` rounds to this number at its precision (sign required only if one is written)."""
