@@ -150,3 +150,15 @@ def test_the_command_names_each_problem_and_rewrites_tables(tmp_path: Path) -> N
     ], proc.stdout
     proc = _run("--write", "--root", str(tmp_path), str(doc), cwd=tmp_path)
     assert "79.0 ± 1.1" in doc.read_text(encoding="utf-8") and "table differs" not in proc.stdout, proc.stdout
+
+
+def test_a_json_pointer_narrows_a_source(tmp_path: Path) -> None:
+    (tmp_path / "r.json").write_text('{"teacher": {"car": 0.85}, "student": {"car": 0.81}}', encoding="utf-8")
+    doc = tmp_path / "doc.md"
+    doc.write_text("<!-- claim: r.json#/teacher -->\ncar IoU 0.85\n<!-- /claim -->\n", encoding="utf-8")
+    assert claims.check_markdown(doc, tmp_path) == []
+    doc.write_text("<!-- claim: r.json#/teacher -->\ncar IoU 0.81\n<!-- /claim -->\n", encoding="utf-8")
+    assert claims.check_markdown(doc, tmp_path) == ["doc.md:2: 0.81 is in no source of its claim (r.json#/teacher)"]
+    doc.write_text("<!-- claim: r.json#/teacher/bus -->\n0.81\n<!-- /claim -->\n", encoding="utf-8")
+    with pytest.raises(SemvprError, match="no '/teacher/bus' in it"):
+        claims.check_markdown(doc, tmp_path)

@@ -219,9 +219,25 @@ def _records_in(value: object) -> Iterable[Record]:
             yield from _records_in(item)
 
 
-def source_records(path: Path) -> list[Record]:
-    """The numbers of a committed data file by record: a CSV's rows, a JSON or YAML file's dicts."""
-    if path.suffix == ".csv":
+def _pointed(document: object, pointer: str, path: Path) -> object:
+    """The part of a JSON / YAML document a pointer names (``/teacher/class_iou``; list items by index)."""
+    node = document
+    for key in pointer.strip("/").split("/") if pointer.strip("/") else []:
+        if isinstance(node, dict) and key in node:
+            node = node[key]
+        elif isinstance(node, list) and key.isdigit() and int(key) < len(node):
+            node = node[int(key)]
+        else:
+            raise SemvprError(f"{path}: no {pointer!r} in it (a claim's source pointer)")
+    return node
+
+
+def source_records(source: Path) -> list[Record]:
+    """The numbers of a committed data file by record: a CSV's rows, a JSON or YAML file's dicts. A JSON or
+    YAML source may name a part of the file: ``results.json#/teacher/class_iou``."""
+    path, _, pointer = str(source).partition("#")
+    path = Path(path)
+    if path.suffix == ".csv" and not pointer:
         return [_record((v for cell in row.values() for v in _numbers_in(cell)), True) for row in read_rows(path)]
     if path.suffix in (".json", ".yaml", ".yml"):
         _require(path)
@@ -229,8 +245,8 @@ def source_records(path: Path) -> list[Record]:
             document = json.loads(path.read_text(encoding="utf-8"))
         else:
             document = read_yaml(path, "data file")
-        return list(_records_in(document))
-    raise SemvprError(f"{path}: a claim's source must be a .csv, .json or .yaml data file")
+        return list(_records_in(_pointed(document, pointer, path)))
+    raise SemvprError(f"{source}: a claim's source must be a .csv, or a .json or .yaml file with an optional #/pointer")
 
 
 def source_values(path: Path) -> list[float]:
