@@ -109,6 +109,13 @@ def test_a_result_outside_a_marker_is_flagged(tmp_path: Path) -> None:
     assert [(s.text, s.line) for s in loose] == [("81.2", 4), ("+3", 4), ("12 %", 4), ("95 s", 4)]
 
 
+def test_a_marker_opening_a_line_of_text_is_flagged(tmp_path: Path) -> None:
+    doc = _write(tmp_path, "Text <!-- claim: data/r.csv -->70.6\n<!-- /claim --> and more\n")
+    assert claims.check_markdown(doc, tmp_path) == [
+        "doc.md:2: a marker opens this line of text, which would render as raw HTML (move it up a line)"
+    ]
+
+
 def test_a_marker_without_its_end_or_source_is_one_error(tmp_path: Path) -> None:
     doc = _write(tmp_path, "<!-- claim: data/r.csv -->\n70.6\n")
     with pytest.raises(SemvprError, match="without its '<!-- /claim -->'"):

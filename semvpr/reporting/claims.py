@@ -45,6 +45,8 @@ _NUMBER = re.compile(
     r"(?<![\w@.,\-−+])(?P<sign>[+\-−](?=\d))?(?P<int>\d{1,3}(?:,\d{3})+|\d+)(?P<frac>\.\d+)?"
     r"(?P<pct>\s?%)?(?P<unit>\s(?:ms|s|min|minutes|h|hours)\b)?(?![\w@]|\.\d|,\d{3})"
 )
+#: A marker that starts a line with text after it: CommonMark reads that line as an HTML block.
+_LINE_OPENING_MARKER = re.compile(r"^\s*<!--\s*/?(?:claim|table)\b[^>]*-->.*\S")
 #: Code: fenced blocks and spans (a marker written there is an example, not a marker).
 _CODE = re.compile(r"```.*?```|`[^`\n]*`", re.S)
 #: Markdown that is not prose: code, HTML comments, link targets.
@@ -312,7 +314,11 @@ def check_markdown(path: Path, root: Path) -> list[str]:
     table that differs from its CSV, a marker naming a file that is not there."""
     markdown = path.read_text(encoding="utf-8")
     where = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
-    problems = []
+    problems = [
+        f"{where}:{n}: a marker opens this line of text, which would render as raw HTML (move it up a line)"
+        for n, line in enumerate(markdown.splitlines(), 1)
+        if _LINE_OPENING_MARKER.match(line)
+    ]
     for span in marked_spans(markdown):
         if span.kind == "table":
             source, keys, metrics = _table_args(span, where)
