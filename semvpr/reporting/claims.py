@@ -430,16 +430,21 @@ def write_tables(path: Path, root: Path) -> bool:
     return updated != markdown
 
 
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m semvpr.reporting.claims``."""
+    ap = argparse.ArgumentParser(description="Check the numbers of the docs against their data files.")
+    ap.add_argument("files", type=Path, nargs="*", help="markdown files (default: the committed docs)")
+    ap.add_argument("--write", action="store_true", help="rewrite every generated table from its CSV first")
+    ap.add_argument("--root", type=Path, default=Path("."), help="where the markers' paths start (the repository)")
+    return ap
+
+
 @exit_on_user_error
 def main() -> None:
     """``python -m semvpr.reporting.claims [--write] [FILE ...]``: check the committed docs (or FILEs)
     against their data files, after rewriting their generated tables with ``--write``; exit 1 on a
     problem, one line each."""
-    ap = argparse.ArgumentParser(description="Check the numbers of the docs against their data files.")
-    ap.add_argument("files", type=Path, nargs="*", help="markdown files (default: the committed docs)")
-    ap.add_argument("--write", action="store_true", help="rewrite every generated table from its CSV first")
-    ap.add_argument("--root", type=Path, default=Path("."), help="where the markers' paths start (the repository)")
-    args = ap.parse_args()
+    args = parser().parse_args()
     root = args.root.resolve()
     problems = []
     for path in [p.resolve() for p in args.files] or committed_docs(root):
