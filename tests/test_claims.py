@@ -169,3 +169,50 @@ def test_a_json_pointer_narrows_a_source(tmp_path: Path) -> None:
     doc.write_text("<!-- claim: r.json#/teacher/bus -->\n0.81\n<!-- /claim -->\n", encoding="utf-8")
     with pytest.raises(SemvprError, match="no '/teacher/bus' in it"):
         claims.check_markdown(doc, tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("script", "report"),
+    [
+        *(("experiments/report_gains.py", p.relative_to(REPO)) for p in sorted(REPO.glob("experiments/**/gains.csv"))),
+        ("experiments/real-streets/results_csv.py", Path("experiments/real-streets/results.csv")),
+    ],
+    ids=str,
+)
+def test_a_derived_data_file_is_what_its_script_makes_of_the_report(tmp_path: Path, script: str, report: Path) -> None:
+    """gains.csv and the real-streets results.csv are read back from the committed results.md: rerunning the
+    script on that results.md gives the committed file, byte for byte."""
+    copy = tmp_path / "results.md"
+    copy.write_text((REPO / report).with_name("results.md").read_text(encoding="utf-8"), encoding="utf-8")
+    proc = subprocess.run(
+        [sys.executable, str(REPO / script), str(copy)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / report.name).read_bytes() == (REPO / report).read_bytes()
+
+
+def test_gains_are_read_from_every_form_the_report_writes() -> None:
+    """The two sentences semvpr.report writes, with a comma inside a label's parentheses and a loss."""
+    sys.path.insert(0, str(REPO / "experiments"))
+    try:
+        from report_gains import gains
+    finally:
+        sys.path.remove(str(REPO / "experiments"))
+    report = (
+        "**R@1 gain over none (netvlad · none) (resnet50)**, per seed, then mean ± std: oracle (sral · oracle, "
+        "upper bound) +8.0 ± 2.2 (better in 3 of 3 seeds), unet (sral · student) −0.3 ± 2.7 (better in 1 of 3 seeds)\n"
+        "## Aggregator × mask (resnet50)\n"
+        "- boq (gsv): student +4.8 ± 0.7 (better in 3 of 3 seeds)\n"
+    )
+    assert [
+        (r["section"], r["baseline"], r["model"], r["gain_mean"], r["gain_std"], r["seeds_better"])
+        for r in gains(report)
+    ] == [
+        ("main", "over none (netvlad · none) (resnet50)", "oracle (sral · oracle, upper bound)", "+8.0", "2.2", "3"),
+        ("main", "over none (netvlad · none) (resnet50)", "unet (sral · student)", "-0.3", "2.7", "1"),
+        ("Aggregator × mask (resnet50)", "boq (gsv) · none", "student", "+4.8", "0.7", "3"),
+    ]
