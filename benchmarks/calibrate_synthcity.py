@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -43,7 +44,8 @@ from PIL import Image
 
 from semvpr.config.build import build_backbone
 from semvpr.core.errors import exit_on_user_error
-from semvpr.core.io import CONF_DIR
+from semvpr.core.io import CONF_DIR, write_json
+from semvpr.core.machine import describe
 from semvpr.data.classes import TRAIN_ID_NAMES, static_lut
 from semvpr.data.places import PlaceSet
 from semvpr.data.synthcity import add_render_arguments, ensure_synthcity, read_split
@@ -153,10 +155,16 @@ def calibrate(
     return {v: hits_at(db[v], q[v], positives) for v in VARIANTS}
 
 
-def paired(a: np.ndarray, b: np.ndarray) -> str:
-    """Mean difference b − a in points with its paired standard error over queries."""
+def paired_diff(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Mean difference b − a in points and its paired standard error over queries."""
     d = 100.0 * (b - a)
-    return f"{d.mean():+.1f}±{d.std(ddof=1) / np.sqrt(len(d)):.1f}"
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d)))
+
+
+def paired(a: np.ndarray, b: np.ndarray) -> str:
+    """``paired_diff`` as printed: ``+mean±stderr``."""
+    mean, stderr = paired_diff(a, b)
+    return f"{mean:+.1f}±{stderr:.1f}"
 
 
 def parse_weight(text: str) -> tuple[str, float]:
@@ -196,6 +204,7 @@ def main() -> None:
     # Off by default: the calibration numbers are fp32, and bf16 is emulated (~3x slower) on CPUs without
     # AVX512-BF16/AMX (measured on an AVX2 AMD EPYC: 64 images of 120x160 in 45-130 s vs 13-22 s in fp32).
     ap.add_argument("--bf16", action="store_true", help="conv trunk in bf16 autocast (fast on AMX CPUs)")
+    ap.add_argument("--json", type=Path, help="also write every number printed here, the command and the machine")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.time()
@@ -203,6 +212,7 @@ def main() -> None:
     render = dict(args.render)
     lut = class_weight_lut(weights)
     r1: dict[int, dict[str, float]] = {}  # dataset seed → variant → R@1 mean over model seeds
+    record: list[dict[str, object]] = []  # one entry per (dataset seed, model seed), for --json
     for data_seed in args.seed:
         root = ensure_synthcity(args.cache_dir, args.preset, data_seed, render, args.image_size)
         split = read_split(args.preset, data_seed, args.cache_dir, args.split, render, args.image_size)
@@ -222,6 +232,19 @@ def main() -> None:
         for seed in args.model_seed:
             hits = calibrate(split, train, args.backbone, seed, args.clusters, args.init_images, lut, args.bf16)
             runs.append(hits)
+            pairs = {
+                "oracle-none": paired_diff(hits["none"][1], hits["oracle"][1]),
+                "weighted-oracle": paired_diff(hits["oracle"][1], hits["oracle_weighted"][1]),
+                "weighted-soft": paired_diff(hits["oracle_soft"][1], hits["oracle_weighted"][1]),
+            }
+            record.append(
+                {
+                    "dataset_seed": data_seed,
+                    "model_seed": seed,
+                    "recall": {v: {f"R@{k}": 100 * float(h.mean()) for k, h in hits[v].items()} for v in VARIANTS},
+                    "paired_R@1": {k: {"mean": m, "stderr": e} for k, (m, e) in pairs.items()},
+                }
+            )
             tag = f"  data seed {data_seed} model seed {seed}"
             for v in VARIANTS:
                 print(f"{tag} {v:>15}: " + "  ".join(f"R@{k}={100 * h.mean():.1f}" for k, h in hits[v].items()))
@@ -247,6 +270,19 @@ def main() -> None:
             f"total {time.time() - t0:.0f}s"
         )
     mean = {v: float(np.mean([r[v] for r in r1.values()])) for v in VARIANTS}
+    if args.json is not None:
+        summary = {"R@1": mean, "gain": float(gain.mean()), "weighted_gain": float(weighted_gain.mean())}
+        if len(r1) > 1:
+            summary |= {"gain_std": float(gain.std(ddof=1)), "weighted_gain_std": float(weighted_gain.std(ddof=1))}
+        result = {
+            "command": " ".join(["python", "benchmarks/calibrate_synthcity.py", *sys.argv[1:]]),
+            "machine": {**describe(), "threads": args.threads, "precision": "bf16" if args.bf16 else "fp32"},
+            "split": args.split,
+            "runs": record,
+            "mean_over_dataset_seeds": summary,
+            "wall_time_s": time.time() - t0,
+        }
+        write_json(args.json, result)
     print(
         f"none_R@1={mean['none']:.1f} oracle_R@1={mean['oracle']:.1f} weighted_R@1={mean['oracle_weighted']:.1f} "
         f"gain={gain.mean():.1f} weighted_gain={weighted_gain.mean():.1f}"

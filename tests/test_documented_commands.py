@@ -31,6 +31,7 @@ PARSERS = {
     "semvpr.evaltable": "semvpr.evaltable",
     "semvpr.data.synthcity": "semvpr.data.synthcity",
     "semvpr.data.inspect": "semvpr.data.inspect",
+    "semvpr.reporting.claims": "semvpr.reporting.claims",
 }
 
 
