@@ -26,6 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.build import build_datamodule, build_retriever, init_aggregator, prepare
+from semvpr.config.plan import job_plan
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.logs import quiet_third_party
@@ -84,7 +85,8 @@ def main() -> None:
     quiet_third_party()
     seconds: dict[str, float] = {}
     for recipe in args.recipes:
-        job = prepare(job_config(args.cache_dir, recipe, args.aggregators[0], args.override), {})
+        first = job_config(args.cache_dir, recipe, args.aggregators[0], args.override)
+        job = prepare(first, job_plan(first), {})
         for aggregator in args.aggregators:
             cfg = job_config(args.cache_dir, recipe, aggregator, args.override)
             train_s, val_s, facts = epoch_seconds(cfg, job)

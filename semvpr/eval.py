@@ -30,8 +30,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from semvpr.config.build import build_places, feature_storage, thread_plan
+from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
+from semvpr.config.plan import thread_plan
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, exit_on_user_error, one_line

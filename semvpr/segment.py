@@ -25,9 +25,10 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.build import build_backbone, student_spec, teacher_spec, thread_plan
+from semvpr.config.build import build_backbone, student_spec, teacher_spec
 from semvpr.config.checks import check_config, refuse_private_keys_or_exit
 from semvpr.config.components import instantiate_node
+from semvpr.config.plan import thread_plan
 from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json

@@ -22,26 +22,15 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.build import (
-    Prepared,
-    build_datamodule,
-    build_retriever,
-    build_trainer,
-    init_aggregator,
-    job_device,
-    prepare,
-    ranks_of,
-    sweep_gpu,
-    thread_plan,
-)
+from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
 from semvpr.config.checks import check_config, check_overrides_or_exit
+from semvpr.config.plan import JobPlan, job_device, job_plan, ranks_of, sweep_gpu
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.resume import keep_run_record, resumed_config
-from semvpr.core.threads import Threads
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
 from semvpr.retrieval.distributed import sharded
@@ -65,23 +54,17 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
             f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step",
             file=sys.stderr,
         )
-    threads = thread_plan(cfg)
     with sweep_gpu(cfg, run_dir) as leased, job_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)):
-        device = job_device(cfg, leased)  # every stage below runs here
-        if device.type == "cuda":
-            torch.cuda.set_device(device)
-        job = prepare(cfg, timings, threads, device)  # SynthCity, the teacher, labels, student, trunk caches
-        with job_ranks(devices, nodes, overrides, run_dir), threads.stage("retriever"):
-            return train_and_test(cfg, run_dir, job, timings, start, threads)
+        plan = job_plan(cfg, job_device(cfg, leased))  # every stage below runs on plan.device
+        if plan.device.type == "cuda":
+            torch.cuda.set_device(plan.device)
+        job = prepare(cfg, plan, timings)  # SynthCity, the teacher, labels, student, trunk caches
+        with job_ranks(devices, nodes, overrides, run_dir), plan.threads.stage("retriever"):
+            return train_and_test(cfg, plan, run_dir, job, timings, start)
 
 
 def train_and_test(
-    cfg: DictConfig,
-    run_dir: Path,
-    job: Prepared,
-    timings: dict[str, float],
-    start: float,
-    threads: Threads | None = None,
+    cfg: DictConfig, plan: JobPlan, run_dir: Path, job: Prepared, timings: dict[str, float], start: float
 ) -> dict[str, Any] | None:
     """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
     # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them):
@@ -99,11 +82,10 @@ def train_and_test(
     latest = RunCheckpoint(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
     )
-    threads = threads or thread_plan(cfg)
-    device = retriever.device
+    threads, device = plan.threads, plan.device
     reclaim_orphans(run_dir / "checkpoints")  # what a killed save left (checkpoints are staged there)
     callbacks = [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))]
-    trainer = build_trainer(cfg, run_dir, callbacks, device)
+    trainer = build_trainer(cfg, plan, run_dir, callbacks)
     datamodule = build_datamodule(cfg, job.features, describe)
     leader = trainer.global_rank == 0
     # The other ranks skip the initialisation: DDP gives them rank 0's weights.

@@ -243,12 +243,14 @@ def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
     import tempfile
 
     from semvpr.config.build import build_trainer
+    from semvpr.config.plan import job_plan
     from semvpr.core.checkpoint import RunCheckpointIO
 
     tmpdir = tmp_path / "tmpdir"
     tmpdir.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
-    trainer = build_trainer(tiny_config(tmp_path / "cache"), tmp_path / "run", [])
+    cfg = tiny_config(tmp_path / "cache")
+    trainer = build_trainer(cfg, job_plan(cfg), tmp_path / "run", [])
     io = trainer.strategy.checkpoint_io
     assert isinstance(io, RunCheckpointIO)
     moves: list[str] = []

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from semvpr.config.build import build_retriever, job_device, prepare, thread_plan
+from semvpr.config.build import build_retriever, prepare
+from semvpr.config.plan import job_device, job_plan
 from semvpr.core.device import GpuLease, resolve, sweep_jobs
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import (
@@ -57,7 +58,7 @@ def test_every_stage_is_built_on_the_job_device(tmp_path: Path, monkeypatch: pyt
     monkeypatch.setattr(training, "build_teacher", teacher_spy)
     device = job_device(cfg)
     assert device == torch.device("cpu")
-    job = prepare(cfg, {}, thread_plan(cfg), device)
+    job = prepare(cfg, job_plan(cfg, device), {})
     retriever = build_retriever(cfg, job.backbone, job.mask_source)
     assert asked == [device]  # the teacher is built (and would be trained) on the job's device
     assert seen and set(seen) == {device}, seen
@@ -209,7 +210,7 @@ def test_a_tiny_gpu_job_runs_every_stage_on_cuda(tmp_path: Path) -> None:
     cfg = tiny_config(tmp_path / "cache", "filter=unet", "threads=1", "trainer=gpu")
     with job_precision("bf16-mixed", "gpu"):
         device = job_device(cfg)
-        job = prepare(cfg, {}, thread_plan(cfg), device)
+        job = prepare(cfg, job_plan(cfg, device), {})
         retriever = build_retriever(cfg, job.backbone, job.mask_source)
     assert device.type == "cuda" and _devices_of(retriever) == {device}
     assert _devices_of(job.semantic.student) == {device}

@@ -218,10 +218,12 @@ def test_a_training_job_holds_its_trunk_maps_in_ram_only_within_the_budget(tmp_p
     """Every split's store (train, val, test: what training, mining and validation read) holds its maps in the
     process's memory where they fit ``features.ram_gb``, and reads them from the cache file's pages beyond it."""
     from semvpr.config.build import prepare
+    from semvpr.config.plan import job_plan
     from tests.helpers import tiny_config
 
     for ram_gb, storage in ((8, "ram"), (1e-9, "disk")):
-        job = prepare(tiny_config(tmp_path / "cache", f"features.ram_gb={ram_gb}"), {})
+        cfg = tiny_config(tmp_path / "cache", f"features.ram_gb={ram_gb}")
+        job = prepare(cfg, job_plan(cfg), {})
         assert job.storage == storage and set(job.features) == {"train", "val", "test"}
         for split, features in job.features.items():
             for side, store in (("db", features.db), ("q", features.q)):

@@ -22,6 +22,7 @@ from semvpr.config.build import (
     teacher_spec,
     trunk_outputs,
 )
+from semvpr.config.plan import job_plan
 from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
 from semvpr.models.masks import StudentMask, TeacherMask, pool_to_grid
@@ -45,7 +46,7 @@ def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cache = tmp_path_factory.mktemp("shared")
     cfg = tiny_config(cache, "filter=mask2former")
     build_places(cfg)
-    semantic_teacher(cfg, build_backbone(cfg.backbone, 0))
+    semantic_teacher(cfg, job_plan(cfg), build_backbone(cfg.backbone, 0))
     return cache
 
 
@@ -92,7 +93,7 @@ def test_the_teacher_links_only_to_the_trunk_its_encoder_is(tmp_path: Path) -> N
 def test_the_teacher_on_the_trunk_equals_its_own_encoder_within_rounding(cache: Path) -> None:
     cfg = tiny_config(cache, "filter=mask2former")
     trunk = build_backbone(cfg.backbone, 0).eval()
-    teacher = semantic_teacher(cfg, trunk)
+    teacher = semantic_teacher(cfg, job_plan(cfg), trunk)
     assert teacher.trunk_levels == (1, 2, 3)
     _, images = _images(cfg)
     size = images.shape[-2:]
@@ -153,7 +154,7 @@ def test_one_trunk_pass_gives_the_trunk_the_skips_and_the_masks_of_separate_pass
     # Masks computed from the cached outputs equal those of the one pass that runs the trunk for them.
     torch.manual_seed(0)
     student = StudentMask(student_architecture(StudentSpec(width=8), trunk).eval())
-    teacher = TeacherMask(semantic_teacher(cfg, trunk), list(cfg.teacher.static_classes))
+    teacher = TeacherMask(semantic_teacher(cfg, job_plan(cfg), trunk), list(cfg.teacher.static_classes))
     for source, levels in ((student, (1, 2)), (teacher, (1, 2))):
         assert source.trunk_levels((64, 80)) and not source.reads_pixels((64, 80))
         cached = _stores(cfg, tmp_path / "one", places, trunk, source, levels, key=type(source).__name__)
@@ -205,7 +206,7 @@ def test_a_teacher_that_is_not_the_trunk_runs_its_own_encoder(
         (own / artifact.name).symlink_to(artifact)
     # Held on disk, the trunk pass keeps only what this job reads (in RAM it also keeps the student's skips).
     cfg = tiny_config(own, "filter=mask2former", "features.storage=disk", *overrides)
-    job = prepare(cfg, {})
+    job = prepare(cfg, job_plan(cfg), {})
     teacher = job.semantic.teacher
     assert teacher.trunk_levels is None and not job.mask_source.trunk_levels(tuple(cfg.data.image_size))
     assert job.mask_source.identity(tuple(cfg.data.image_size)).get("encoder") is None
@@ -227,7 +228,7 @@ def test_a_linked_run_keys_its_labels_and_masks_apart(cache: Path, tmp_path: Pat
     for artifact in [*cache.glob("synthcity-*"), *cache.glob("teacher-*")]:
         (own / artifact.name).symlink_to(artifact)
     cfg = tiny_config(own, "filter=mask2former")
-    job = prepare(cfg, {})
+    job = prepare(cfg, job_plan(cfg), {})
     assert job.semantic.teacher.trunk_levels == (1, 2, 3)
     assert _label_key(own)["encoder"] == "trunk"
     assert job.mask_source.identity((64, 80))["encoder"] == "trunk"

@@ -83,8 +83,8 @@ def test_a_stage_sets_its_threads_and_restores_them() -> None:
 
 
 def test_the_config_splits_among_ddp_ranks_and_check_config_refuses_a_bad_value(tmp_path: Path) -> None:
-    from semvpr.config.build import thread_plan
     from semvpr.config.checks import check_config
+    from semvpr.config.plan import thread_plan
     from tests.helpers import tiny_config
 
     ddp = tiny_config(tmp_path, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2")
@@ -97,7 +97,7 @@ def test_the_config_splits_among_ddp_ranks_and_check_config_refuses_a_bad_value(
 def test_joblib_jobs_side_by_side_split_the_cores(monkeypatch: pytest.MonkeyPatch) -> None:
     from omegaconf import OmegaConf
 
-    from semvpr.config import build
+    from semvpr.config import plan as build
 
     class Fake:
         @staticmethod
@@ -131,7 +131,7 @@ def _load_in_worker() -> list[int]:
     """What a job in a joblib worker does: its thread plan, then a data loader with a worker process."""
     from torch.utils.data import DataLoader
 
-    from semvpr.config.build import thread_plan
+    from semvpr.config.plan import thread_plan
 
     thread_plan(OmegaConf.create({"threads": "auto"}))
     return [int(x) for batch in DataLoader(list(range(4)), batch_size=2, num_workers=1) for x in batch]

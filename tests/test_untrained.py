@@ -176,11 +176,12 @@ def test_untrained_netvlad_and_sral_are_a_training_runs_initialisation(tmp_path:
     """Their untrained form is exactly what a training run on init.data starts from (the same k-means on the
     same sample of its training database images), not the construction's random centroids."""
     from semvpr.config.build import build_retriever, init_aggregator, prepare
+    from semvpr.config.plan import job_plan
     from tests.helpers import tiny_config
 
     retriever, _ = untrained(tmp_path, f"aggregator={aggregator}")
     train_cfg = tiny_config(tmp_path, f"aggregator={aggregator}")
-    job = prepare(train_cfg, {})
+    job = prepare(train_cfg, job_plan(train_cfg), {})
     reference = build_retriever(train_cfg, job.backbone, None, training=False)
     constructed = {k: v.clone() for k, v in reference.aggregator.state_dict().items()}
     init_aggregator(train_cfg, reference, job)

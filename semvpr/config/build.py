@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -26,13 +25,12 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
+from semvpr.config.plan import JobPlan, ranks_of
 from semvpr.core.checkpoint import RunCheckpointIO, record_of
-from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
-from semvpr.core.threads import Threads, standard_start_method, usable_cores
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
@@ -52,7 +50,6 @@ from semvpr.retrieval.features import (
     trunk_shape,
 )
 from semvpr.retrieval.initialisation import InitSample, StaticLabels, initialise_aggregator
-from semvpr.retrieval.launch import local_rank
 from semvpr.retrieval.losses import Loss, TripletLoss
 from semvpr.retrieval.mining import Mining
 from semvpr.retrieval.places import PlaceBatching
@@ -269,16 +266,14 @@ def build_datamodule(cfg: DictConfig, features: dict[str, PlaceFeatures], descri
     return RetrievalDataModule(features, mining_of(cfg), describe, eval_batch, workers)
 
 
-def build_trainer(
-    cfg: DictConfig, run_dir: Path, callbacks: list[L.Callback], device: torch.device | None = None
-) -> L.Trainer:
-    """The configured Lightning Trainer with the run's loggers and checkpoints, on the job's ``device`` (a
+def build_trainer(cfg: DictConfig, plan: JobPlan, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
+    """The configured Lightning Trainer with the run's loggers and checkpoints, on the plan's device (a
     one-GPU job: that GPU, not the first one). A DDP strategy waits for the ranks as long as rank 0's work
     before ``fit`` may take (:data:`DDP_TIMEOUT`)."""
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
     extra: dict[str, Any] = {}
-    if device is not None and device.type == "cuda" and ranks_of(cfg.trainer) == (1, 1):
-        extra["devices"] = [device.index or 0]
+    if plan.device.type == "cuda" and plan.ranks == (1, 1):
+        extra["devices"] = [plan.device.index or 0]
     if str(cfg.trainer.get("strategy", "auto")) == "ddp":
         from lightning.pytorch.strategies import DDPStrategy
 
@@ -300,79 +295,8 @@ def build_trainer(
 DDP_TIMEOUT = timedelta(hours=6)
 
 
-@contextmanager
-def sweep_gpu(cfg: DictConfig, run_dir: Path) -> Iterator[int | None]:
-    """The GPU a one-GPU job of a sweep takes for its life where several are visible (``GpuLease`` in the
-    sweep directory), so that the jobs a launcher runs side by side never share one; None elsewhere."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    gpus = visible_gpus()
-    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    gpu_job = str(cfg.trainer.accelerator).lower() in GPU_WORDS and ranks_of(cfg.trainer) == (1, 1)
-    if not (multirun and gpu_job and len(gpus) > 1):
-        yield None
-        return
-    with GpuLease(run_dir.parent / ".gpus", gpus) as lease:
-        yield lease.index
-
-
-def job_device(cfg: DictConfig, leased: int | None = None) -> torch.device:
-    """The one device of a training job, from its trainer: the CPU, or a GPU: a DDP rank's own
-    (:func:`local_rank`), a sweep job's leased one (``leased``), else the first."""
-    accelerator = str(cfg.trainer.accelerator)
-    if accelerator.lower() not in GPU_WORDS:
-        return resolve("cpu")
-    if ranks_of(cfg.trainer) != (1, 1):
-        return resolve("cuda", local_rank())
-    return resolve("cuda", leased)
-
-
-def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
-    """(processes per node, nodes) of a job: trainer.devices (-1: all GPUs) and trainer.num_nodes
-    under a DDP strategy; (1, 1) otherwise."""
-    if not str(trainer_cfg.get("strategy", "auto")).startswith("ddp"):
-        return 1, 1
-    devices = int(trainer_cfg.devices)
-    if devices == -1:  # Lightning's "all GPUs"
-        devices = torch.cuda.device_count()
-    return devices, int(trainer_cfg.get("num_nodes", 1))
-
-
-def launcher_jobs() -> int:
-    """How many jobs the sweep's launcher runs side by side: ``hydra.launcher.n_jobs`` under the joblib launcher
-    (-1: one per core), else 1."""
-    from hydra.core.hydra_config import HydraConfig
-
-    if not HydraConfig.initialized():
-        return 1
-    launcher = HydraConfig.get().get("launcher") or {}
-    if "joblib" not in str(launcher.get("_target_", "")).lower():
-        return 1
-    n = launcher.get("n_jobs")
-    return usable_cores() if n in (None, -1) else max(1, int(n))
-
-
-def thread_plan(cfg: DictConfig, gpu: bool | None = None) -> Threads:
-    """The threads of this process (``threads``: auto or a number; semvpr.core.threads), given the job's DDP
-    ranks on this node and the jobs its launcher runs beside it, and whether its networks run on a GPU
-    (``gpu``; by default its trainer's accelerator); every command calls it as its job starts."""
-    ranks = ranks_of(cfg.trainer)[0] if "trainer" in cfg else 1
-    if gpu is None:
-        gpu = "trainer" in cfg and str(cfg.trainer.accelerator).lower() in GPU_WORDS
-    standard_start_method()  # a job in a joblib worker: data loaders need a standard start method
-    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs(), gpu=gpu).adopt()
-
-
 # ----------------------------------------------------------------------------------- semantic artifacts
-def needs_semantic(cfg: DictConfig) -> bool:
-    """Whether the run needs the teacher (the aggregator's labelled init, or a teacher or student mask)."""
-    mask = component_class(cfg, "mask")
-    needs = mask.needs if mask is not None else None
-    return component_class(cfg, "aggregator").init_sample == "labelled" or needs in ("teacher", "student")
-
-
-def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | None = None) -> Teacher:
+def semantic_teacher(cfg: DictConfig, plan: JobPlan, backbone: Backbone) -> Teacher:
     """The run's teacher, trained once (cached) or loaded, linked to ``backbone``'s frozen prefix where its
     pixel encoder is that prefix (``Teacher.link_trunk``)."""
     from semvpr.segmentation.training import build_teacher
@@ -382,7 +306,7 @@ def semantic_teacher(cfg: DictConfig, backbone: Backbone, threads: Threads | Non
     needs_training = settings.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
     seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
-    with (threads or thread_plan(cfg)).stage("teacher"):
+    with plan.threads.stage("teacher"):
         teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir, next(backbone.parameters()).device)
     if settings.share_trunk:
         teacher.link_trunk(backbone)
@@ -413,7 +337,12 @@ def semantic_levels(
 
 
 def skip_plan(
-    cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet], teacher: Teacher | None, storage: str
+    cfg: DictConfig,
+    plan: JobPlan,
+    backbone: Backbone,
+    places: dict[str, PlaceSet],
+    teacher: Teacher | None,
+    storage: str,
 ) -> dict[str, tuple[int, ...]]:
     """Which frozen outputs besides the trunk each split's trunk pass keeps (``skips`` caches), so that the
     semantic side reads them instead of passing the images through the frozen weights again: the teacher's
@@ -430,32 +359,31 @@ def skip_plan(
     if storage == "stream":
         return none
     size = tuple(int(v) for v in cfg.data.image_size)
-    mask = component_class(cfg, "mask")
-    needs = mask.needs if mask is not None else None
+    needs = plan.mask_needs
     # Only a plan that may keep them for other jobs needs the levels of a teacher this job does not build.
     teacher_levels, student_levels = semantic_levels(cfg, backbone, teacher, stand_in=storage == "ram")
     last = len(backbone.frozen_strides) - 1
 
-    def total(plan: dict[str, tuple[int, ...]]) -> int:
+    def total(levels: dict[str, tuple[int, ...]]) -> int:
         return sum(
-            skip_bytes(backbone, size, plan[split], len(p.db_paths) + len(p.q_paths)) for split, p in places.items()
+            skip_bytes(backbone, size, levels[split], len(p.db_paths) + len(p.q_paths)) for split, p in places.items()
         )
 
     everything = {split: tuple(sorted((teacher_levels | student_levels) - {last})) for split in places}
     if storage == "ram" and total(everything) <= float(cfg.features.ram_gb) * 2**30:
-        plan = everything
+        kept_levels = everything
     else:
         if teacher is None:  # a stand-in's levels are for other jobs only
             teacher_levels = set()
         if needs != "student":
             student_levels = set()
-        plan = {}
+        kept_levels = {}
         for split in places:
             levels = set(teacher_levels) if split == "train" else set()
             levels |= student_levels if split == "train" or needs == "student" else set()
             levels |= teacher_levels if needs == "teacher" else set()
-            plan[split] = tuple(sorted(levels - {last}))
-    kept = total(plan)
+            kept_levels[split] = tuple(sorted(levels - {last}))
+    kept = total(kept_levels)
     if kept and choose_storage("auto", kept, cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream":
         print(
             f"semvpr: the frozen outputs the semantic side reads ({kept / 2**30:.2f} GiB) exceed the disk "
@@ -463,7 +391,7 @@ def skip_plan(
             file=sys.stderr,
         )
         return none
-    return plan
+    return kept_levels
 
 
 def trunk_outputs(features: PlaceFeatures) -> Callable[[Sequence[Path]], list[Tensor | None]]:
@@ -493,13 +421,13 @@ def trunk_outputs(features: PlaceFeatures) -> Callable[[Sequence[Path]], list[Te
 
 def build_semantic(
     cfg: DictConfig,
+    plan: JobPlan,
     train: PlaceSet,
     backbone: Backbone,
     timings: dict[str, float] | None = None,
     storage: str = "disk",
     skip_levels: Sequence[int] | None = None,
     teacher: Teacher | None = None,
-    threads: Threads | None = None,
 ) -> Semantic:
     """Teacher (``teacher`` if given), pseudo-labels and student, as far as the aggregator's init and the mask
     source need them; the seconds each took (built or read from the cache) into ``timings`` as teacher_s,
@@ -512,22 +440,21 @@ def build_semantic(
     from semvpr.segmentation.training import build_student
 
     timings = {} if timings is None else timings
-    if not needs_semantic(cfg):
+    if not plan.semantic:
         return Semantic()
-    threads = threads or thread_plan(cfg)
+    threads = plan.threads
     workers = threads.workers(int(cfg.data.num_workers))
-    mask = component_class(cfg, "mask")
     size = tuple(int(v) for v in cfg.data.image_size)
     tic = time.time()
     if teacher is None:
-        teacher = semantic_teacher(cfg, backbone, threads)
+        teacher = semantic_teacher(cfg, plan, backbone)
         timings["teacher_s"] = time.time() - tic
     tic = time.time()
     # The set the semantic side is made from: SynthCity's training split as drawn even where the recipe
     # trains on extra traversals of it, so every recipe gets the same labels and student.
     source = train.for_semantics
     if skip_levels is None or source is not train:
-        skip_levels = skip_plan(cfg, backbone, {"train": source}, teacher, storage)["train"]
+        skip_levels = skip_plan(cfg, plan, backbone, {"train": source}, teacher, storage)["train"]
     trunk, held = None, set()
     if skip_levels:
         # Memory-mapped: these are read once, here; the job's stores come later.
@@ -550,7 +477,7 @@ def build_semantic(
         )  # fmt: skip
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, source.root)
-    if mask is not None and mask.needs == "student":
+    if plan.mask_needs == "student":
         spec = student_spec(cfg)
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
         with threads.stage("student"):
@@ -592,26 +519,24 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
     return storage
 
 
-def prepare(
-    cfg: DictConfig, timings: dict[str, float], threads: Threads | None = None, device: torch.device | None = None
-) -> Prepared:
+def prepare(cfg: DictConfig, plan: JobPlan, timings: dict[str, float]) -> Prepared:
     """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job, all on
-    ``device`` (the job's: :func:`job_device`); the seconds of each stage into ``timings`` (data, teacher,
-    labels, student, features: the trunk passes and the masks; semantic = teacher + labels + student)."""
+    the plan's device; the seconds of each stage into ``timings`` (data, teacher, labels, student, features:
+    the trunk passes and the masks; semantic = teacher + labels + student)."""
     tic = time.time()
     places = build_places(cfg)  # generates SynthCity on first use
     timings["data_s"] = time.time() - tic
-    threads = threads or thread_plan(cfg)
-    backbone = build_backbone(cfg.backbone, int(cfg.seed), device=device or job_device(cfg))
+    threads = plan.threads
+    backbone = build_backbone(cfg.backbone, int(cfg.seed), device=plan.device)
     storage = feature_storage(cfg, backbone, places)
     semantic, teacher = Semantic(), None
-    if needs_semantic(cfg):
+    if plan.semantic:
         tic = time.time()
-        teacher = semantic_teacher(cfg, backbone, threads)
+        teacher = semantic_teacher(cfg, plan, backbone)
         timings["teacher_s"] = time.time() - tic
-    plan = skip_plan(cfg, backbone, places, teacher, storage)
+    levels = skip_plan(cfg, plan, backbone, places, teacher, storage)
     if teacher is not None:
-        semantic = build_semantic(cfg, places["train"], backbone, timings, storage, plan["train"], teacher, threads)
+        semantic = build_semantic(cfg, plan, places["train"], backbone, timings, storage, levels["train"], teacher)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()
@@ -629,7 +554,7 @@ def prepare(
                 int(cfg.model.eval_batch_size),
                 threads.workers(int(cfg.data.num_workers)),
                 weighting=cfg.mask.weights,
-                skip_levels=plan[split],
+                skip_levels=levels[split],
             )
             for split in places
         }

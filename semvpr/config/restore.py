@@ -40,6 +40,7 @@ from semvpr.config.build import (
 )
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
+from semvpr.config.plan import job_plan
 from semvpr.core.checkpoint import check_recorded_paths, model_config, read_checkpoint, segmenter_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
@@ -335,7 +336,8 @@ def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Calla
         )
     backbone = retriever.backbone
     storage = feature_storage(init_cfg, backbone, places)
-    semantic = build_semantic(init_cfg, train, backbone, storage=storage)
+    plan = job_plan(init_cfg, next(backbone.parameters()).device)
+    semantic = build_semantic(init_cfg, plan, train, backbone, storage=storage)
     features = place_features(
         train,
         backbone,
