@@ -40,6 +40,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         ),
         "gsv·gem=",
     ),
+    "released.py": (lambda t: ["--batch", "1", "--repeats", "1", "--only", "cosplace"], "cosplace.teacher_over_none="),
     "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=3/3"),
     "scale.py": (
         lambda t: (

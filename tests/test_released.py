@@ -398,3 +398,15 @@ def test_a_model_override_is_refused(tmp_path: Path) -> None:
 
 def save_state_dict(state: dict[str, Tensor], path: Path) -> None:
     torch.save(state, path)
+
+
+def test_the_hub_takes_a_release(tmp_path: Path) -> None:
+    from semvpr.hub import load_model
+
+    model = boq_model()
+    save_state(model, tmp_path / "b.pth")
+    hub = load_model(tmp_path / "b.pth", overrides=["ckpt_format=boq", f"paths.cache_dir={tmp_path}"])
+    x = images()
+    with torch.no_grad():
+        cosine = (hub(normalised(x)) * model(normalised(x))).sum(1)
+    assert hub.feature_dim == 512 and bool((cosine > 0.99).all()), cosine
