@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 from collections.abc import Callable
 from pathlib import Path
@@ -83,6 +84,17 @@ def time_architecture(
     return {k: seconds_per_image(_under_autocast(run), batch, repeats) for k, run in runs.items()}, size
 
 
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` says."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def _under_autocast(run: Callable[[], object]) -> Callable[[], object]:
     def wrapped() -> object:
         with autocast("cpu"):
@@ -103,9 +115,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     bf16 = bf16_native("cpu")
     teacher = camvid_teacher(TEACHER_TRAINED_AT)
+    load = os.getloadavg()[0]
     print(
         f"batch {args.batch}, {args.repeats} repeats, {'bf16' if bf16 else 'fp32'}, {args.threads} thread(s), "
-        f"{platform.processor() or platform.machine()}; teacher at {TEACHER_TRAINED_AT[0]}x{TEACHER_TRAINED_AT[1]}"
+        f"{cpu_name()} (load {load:.1f}); teacher at {TEACHER_TRAINED_AT[0]}x{TEACHER_TRAINED_AT[1]}"
     )
     results: dict[str, dict[str, float | list[int]]] = {}
     for name in args.only:
@@ -124,7 +137,9 @@ def main() -> None:
             flush=True,
         )
     if args.out is not None:
-        meta = {"batch": args.batch, "repeats": args.repeats, "threads": args.threads, "bf16": bf16}
+        meta = {"batch": args.batch, "repeats": args.repeats, "threads": args.threads, "bf16": bf16, "cpu": cpu_name()}
+        # Other processes on the cores slow every pass: the 1-minute load average at the start and the end.
+        meta["load_average"] = [round(load, 2), round(os.getloadavg()[0], 2)]
         args.out.write_text(json.dumps({"settings": meta, "architectures": results}, indent=1) + "\n")
     print(
         " ".join(

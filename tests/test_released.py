@@ -20,12 +20,13 @@ import torch.nn.functional as F
 import torchvision
 from torch import Tensor, nn
 
+from semvpr.config.build import build_backbone
 from semvpr.config.restore import load_retriever
 from semvpr.core.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
-from tests.helpers import make_folder, tiny_config, write_teacher_dir
+from tests.helpers import make_folder, tiny_config, write_student_dir, write_teacher_dir
 
 SMALL = 64  # image side of the fast tests: ResNet50's layer3 gives a 4 x 4 grid
 
@@ -340,6 +341,33 @@ def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path) -> No
     assert results["teacher"]["mask_checkpoint"] == str(teacher) and results["none"]["mask_checkpoint"] is None
 
 
+@pytest.mark.parametrize("fmt", ["mixvpr", "netvlad"])
+def test_a_student_trained_on_a_release_trunk_masks_that_release(tmp_path: Path, fmt: str) -> None:
+    """``backbone.weights=FILE`` builds the release's trunk (what ``semvpr.segment`` trains a student on); that
+    student is accepted by the release, and the CamVid student of another trunk is refused in one line."""
+    build, save, name, _ = CASES[fmt]
+    model = build()
+    save(model, tmp_path / name)
+    arch = "vgg16" if fmt == "netvlad" else "resnet50"
+    cfg = tiny_config(tmp_path / "cache", f"backbone={arch}", f"backbone.weights={tmp_path / name}")
+    trunk = build_backbone(cfg.backbone, 0).eval()
+    x = images()
+    with torch.no_grad():
+        author_trunk = (model.encoder if fmt == "netvlad" else model.backbone)(normalised(x))
+        ours = trunk.forward_trainable(trunk.forward_frozen(x)[-1])
+    # Random-weight activations reach the hundreds: float rounding, relative to their scale.
+    torch.testing.assert_close(ours, author_trunk, rtol=0, atol=1e-5 * float(author_trunk.abs().max()))
+    student = write_student_dir(tmp_path / "student", trunk, torch.rand(4, 3, 32, 48))
+    size = f"data.image_size=[{SMALL},{SMALL}]"
+    retriever, merged = released(tmp_path, tmp_path / name, size, "mask=student", f"student.checkpoint={student}")
+    assert merged.mask.name == "student" and retriever.mask_source is not None
+    with torch.no_grad():
+        assert torch.isfinite(retriever(x)).all()
+    lite = tiny_config(tmp_path / "cache")
+    other = write_student_dir(tmp_path / "lite", build_backbone(lite.backbone, 0), torch.rand(4, 3, 32, 48))
+    refused(tmp_path, tmp_path / name, "decodes the frozen trunk", "mask=student", f"student.checkpoint={other}")
+
+
 # ---------------------------------------------------------------------------------- refusals
 def refused(tmp_path: Path, path: Path, match: str, *overrides: str) -> str:
     with pytest.raises(SemvprError, match=match) as err:
@@ -410,3 +438,19 @@ def test_the_hub_takes_a_release(tmp_path: Path) -> None:
     with torch.no_grad():
         cosine = (hub(normalised(x)) * model(normalised(x))).sum(1)
     assert hub.feature_dim == 512 and bool((cosine > 0.99).all()), cosine
+
+
+def test_localize_takes_a_release(tmp_path: Path) -> None:
+    from semvpr.localize import localize
+    from tests.helpers import write_image
+
+    save_state(boq_model(), tmp_path / "b.pth")
+    root = make_folder(tmp_path / "places")
+    names = sorted(p.name for p in (root / "images" / "test" / "database").iterdir())
+    queries = tmp_path / "queries"
+    write_image(queries / "q.jpg", 3)  # the pixels of database image 3
+    overrides = [f"+ckpt={tmp_path / 'b.pth'}", "data=folder", f"data.root={root}", f"queries={queries}", "top_k=2"]
+    overrides += ["data.image_size=[32,48]", "data.num_workers=0"]
+    cfg = tiny_config(tmp_path / "cache", *overrides, config_name="localize")
+    results = localize(cfg, {o.split("=", 1)[0].lstrip("+") for o in overrides})
+    assert Path(results[0]["matches"][0]["path"]).name == names[3] and len(results[0]["matches"]) == 2

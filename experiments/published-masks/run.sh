@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
 # Masks on released models: each author's released file, evaluated without a mask, with the CamVid
-# teacher's mask and with the CamVid student's, on every place set given; one table per release and set
+# teacher's mask and with a CamVid student's, on every place set given; one table per release and set
 # (with R@1 vs no mask, paired by query) and OUT/results.md gathering them.
 # Usage, from the repository root:
 #   [PITTS30K=DIR] [TOKYO247=DIR] [MSLS_VAL=GT_DIR:MSLS_ROOT] [NORDLAND=DIR] [GARDENS=DIR] [FOLDER=DIR] \
 #     bash experiments/published-masks/run.sh OUT TEACHER_DIR STUDENT_DIR RELEASE...
 # TEACHER_DIR / STUDENT_DIR: directories saved by semvpr.segment ("-": leave that mask out).
-# RELEASE: FILE, or FILE:FORMAT where its keys do not say (cosplace and eigenplaces files share a layout).
+# RELEASE: FILE[:FORMAT][=STUDENT_DIR]. FORMAT where its keys do not say (cosplace and eigenplaces files
+# share a layout); STUDENT_DIR: a student trained on this release's trunk (semvpr.segment with
+# backbones.<arch>.weights=FILE), in place of the common one, which decodes another trunk.
 # EVAL_ARGS: more semvpr.eval overrides for every job (e.g. "threads=1").
 set -euo pipefail
 usage="usage: run.sh OUT TEACHER_DIR STUDENT_DIR RELEASE..."
@@ -18,11 +20,6 @@ shift 3
 export HF_HUB_OFFLINE=1
 read -r -a extra <<< "${EVAL_ARGS:-}"
 
-masks=(none)
-segmenters=()
-if [ "$TEACHER" != "-" ]; then masks+=(teacher); segmenters+=("teacher.checkpoint='$(realpath "$TEACHER")'"); fi
-if [ "$STUDENT" != "-" ]; then masks+=(student); segmenters+=("student.checkpoint='$(realpath "$STUDENT")'"); fi
-mask_list=$(IFS=,; echo "${masks[*]}")
 
 # Each place set given: its name and the overrides that read it.
 sets=()
@@ -37,10 +34,18 @@ fi
 [ "${#sets[@]}" -gt 0 ] || { echo "run.sh: no place set given (PITTS30K=DIR, ...)" >&2; exit 2; }
 
 for release in "$@"; do
-  file="${release%%:*}"
+  spec="$release"
+  student="$STUDENT"
+  if [[ "$spec" == *=* ]]; then student="${spec#*=}"; spec="${spec%%=*}"; fi
+  file="${spec%%:*}"
   format=auto
-  [ "$file" != "$release" ] && format="${release#*:}"
+  [ "$file" != "$spec" ] && format="${spec#*:}"
   name=$(basename "$file")
+  masks=(none)
+  segmenters=()
+  if [ "$TEACHER" != "-" ]; then masks+=(teacher); segmenters+=("teacher.checkpoint='$(realpath "$TEACHER")'"); fi
+  if [ "$student" != "-" ]; then masks+=(student); segmenters+=("student.checkpoint='$(realpath "$student")'"); fi
+  mask_list=$(IFS=,; echo "${masks[*]}")
   for entry in "${sets[@]}"; do
     set_name="${entry%%|*}"
     read -r -a data <<< "${entry#*|}"

@@ -289,6 +289,32 @@ def read_release(path: str | Path, fmt: str = "auto", contents: Any = None) -> R
     return Release(path, layout, state)
 
 
+#: semvpr's backbone keys → torchvision's names (what ``backbone.weights=FILE`` loads), per backbone choice.
+_TORCHVISION = {
+    "resnet50": tuple((f"backbone.units.{unit}.", f"{name}.") for name, unit in _RESNET_UNITS.items()),
+    "vgg16": tuple(
+        (f"backbone.units.{unit}.{n - a}.", f"features.{n}.")
+        for unit, (a, b) in enumerate(VGG16_SLICES)
+        for n in range(a, b)
+    ),
+}
+
+
+def release_trunk(state: dict[str, Any], path: Path, arch: str) -> dict[str, Tensor] | None:
+    """The trunk of a release file of an ``arch`` layout in torchvision's naming, or None when ``state`` is of
+    no release layout: ``backbone.weights=FILE`` then builds the release's trunk, and a student trained on it
+    (``semvpr.segment``) decodes the trunk the release evaluates with."""
+    layout = next((lo for lo in LAYOUTS.values() if lo.backbone == arch and all(k in state for k in lo.marks)), None)
+    if layout is None:
+        return None
+    trunk = {}
+    for key, value in weights_of(state, path).items():
+        ours = _rename(key, layout.prefixes)
+        if ours is not None and ours.startswith("backbone."):
+            trunk[_rename(ours, _TORCHVISION[arch]) or ours] = value
+    return trunk
+
+
 def _rename(key: str, pairs: tuple[tuple[str, str], ...]) -> str | None:
     """``key`` with its longest matching prefix replaced, or None when none matches."""
     best = max((p for p in pairs if key.startswith(p[0])), key=lambda p: len(p[0]), default=None)
