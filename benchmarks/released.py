@@ -8,8 +8,8 @@ evaluate images at their own size), MixVPR's ResNet50 layer3 + MixVPR (1024 × 4
 ResNet50 layer3 + BoQ (512 × 32) at 384x384. The student is a U-Net decoder of the CamVid student's
 width on that trunk's skips (a student trained on that trunk would cost the same); the teacher is the
 CamVid teacher (``benchmarks/mask_cost.py``'s) seeing the images at its training size. Timed, each the
-median over ``--repeats`` batches after one warm-up, under the pipeline's precision (bf16 autocast where
-the CPU runs it natively):
+fastest of ``--repeats`` batches after one warm-up round, the three interleaved (so that other processes
+on the cores slow them alike), under the pipeline's precision (bf16 autocast where the CPU runs it natively):
 
 - ``none``: trunk then aggregator;
 - ``student``: trunk keeping the skips, the decoder's grid mask, the masked aggregator;
@@ -27,11 +27,12 @@ import argparse
 import json
 import os
 import platform
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from mask_cost import TEACHER_TRAINED_AT, camvid_student, camvid_teacher, seconds_per_image
+from mask_cost import TEACHER_TRAINED_AT, camvid_student, camvid_teacher
 from torch import nn
 
 from semvpr.core.errors import exit_on_user_error
@@ -81,7 +82,15 @@ def time_architecture(
         "student": with_student,
         "teacher": with_teacher,
     }
-    return {k: seconds_per_image(_under_autocast(run), batch, repeats) for k, run in runs.items()}, size
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    for i in range(repeats + 1):  # interleaved, so that other processes on the cores slow each timing alike
+        for k, run in runs.items():
+            t0 = time.perf_counter()
+            with torch.no_grad(), autocast("cpu"):
+                run()
+            if i:  # the first round warms up
+                times[k].append(time.perf_counter() - t0)
+    return {k: min(v) / batch for k, v in times.items()}, size
 
 
 def cpu_name() -> str:
@@ -93,14 +102,6 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
-
-
-def _under_autocast(run: Callable[[], object]) -> Callable[[], object]:
-    def wrapped() -> object:
-        with autocast("cpu"):
-            return run()
-
-    return wrapped
 
 
 @exit_on_user_error

@@ -3,20 +3,16 @@
 A release file is a state dict (or a dict holding one under ``state_dict``, as pytorch-NetVlad's
 ``checkpoint.pth.tar`` and Lightning's ``.ckpt``) read by ``core.checkpoint.read_weights``: weights only,
 nothing in it is run. Its layout is recognised from its keys, or named (``ckpt_format=``). Each layout
-fixes what the author's own evaluation fixes:
+fixes what the author's own evaluation fixes (model, key names, image size):
 
-========== ================================================ ============ ===================================
-layout     model (the author's code)                        image size   key names
-========== ================================================ ============ ===================================
-netvlad    VGG16 ``features[:-2]`` (conv5_3, no ReLU) +     the data's   ``encoder.N``, ``pool.conv``,
-           NetVLAD (pytorch-NetVlad ``main.py``, vladv1)                 ``pool.centroids``
-mixvpr     ResNet50 to ``layer3`` + MixVPR (MixVPR          320 × 320    ``backbone.model.*``,
-           ``main.py`` ``VPRModel``)                                     ``aggregator.mix.I.mix.{0,1,3}``
-cosplace,  ResNet50 ``children()[:-2]`` + L2, GeM, Linear,  the data's   ``backbone.N``, ``aggregation.1.p``,
-eigenplaces L2 (``GeoLocalizationNet``)                                  ``aggregation.3``
-boq        ResNet50 to ``layer3`` + BoQ (3×3 projection;    384 × 384    ``backbone.net.N``,
-           Bag-of-Queries ``hubconf.py``)                                ``aggregator.boqs.I``
-========== ================================================ ============ ===================================
+- ``netvlad``: VGG16 ``features[:-2]`` (conv5_3, no ReLU) + NetVLAD, vladv1 (pytorch-NetVlad ``main.py``);
+  ``encoder.N``, ``pool.conv``, ``pool.centroids``; the images' own size.
+- ``mixvpr``: ResNet50 to ``layer3`` + MixVPR (MixVPR ``main.py`` ``VPRModel``); ``backbone.model.*``,
+  ``aggregator.mix.I.mix.{0,1,3}``, ``aggregator.{channel,row}_proj``; 320 × 320.
+- ``cosplace``, ``eigenplaces``: ResNet50 ``children()[:-2]`` + L2, GeM, Linear, L2 (``GeoLocalizationNet``);
+  ``backbone.N``, ``aggregation.1.p``, ``aggregation.3``; the images' own size.
+- ``boq``: ResNet50 to ``layer3`` + BoQ with its 3×3 projection (Bag-of-Queries ``hubconf.py``);
+  ``backbone.net.N``, ``aggregator.{proj_c,norm_input,boqs.I,fc}``; 384 × 384.
 
 Every author normalises with the ImageNet mean and std (what semvpr's torchvision backbones do) and
 L2-normalises the descriptor (what every semvpr aggregator does); none of these releases ships a PCA.
