@@ -419,6 +419,19 @@ def test_a_named_layout_the_file_is_not_is_refused(tmp_path: Path) -> None:
     refused(tmp_path, tmp_path / "c.pth", "not of the boq layout", "ckpt_format=boq")
 
 
+def test_an_unknown_ckpt_format_is_refused_before_anything_is_read(tmp_path: Path) -> None:
+    from semvpr.config.checks import check_config
+
+    cfg = tiny_config(tmp_path / "cache", f"+ckpt={tmp_path / 'absent.pth'}", "ckpt_format=salad", config_name="eval")
+    with pytest.raises(SemvprError, match="ckpt_format='salad' is not one of auto, semvpr, netvlad"):
+        check_config(cfg)
+
+
+def test_a_release_named_as_a_semvpr_checkpoint_is_refused(tmp_path: Path) -> None:
+    save_state(boq_model(), tmp_path / "b.pth")
+    refused(tmp_path, tmp_path / "b.pth", "is not a semvpr checkpoint", "ckpt_format=semvpr")
+
+
 def test_a_model_override_is_refused(tmp_path: Path) -> None:
     save_state(boq_model(), tmp_path / "b.pth")
     refused(tmp_path, tmp_path / "b.pth", "drop the aggregator= override", "aggregator=gem")
