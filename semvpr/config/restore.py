@@ -1,4 +1,5 @@
-"""The retriever a command evaluates: a trained checkpoint rebuilt from its record, or (``ckpt=none``) the
+"""The retriever a command evaluates: a trained checkpoint rebuilt from its record, an author's released file,
+or (``ckpt=none``) the
 model the config describes with no VPR training. What ``semvpr.eval``, ``semvpr.localize`` and the hub
 share.
 
@@ -8,6 +9,11 @@ A command-line choice that would change the model is refused, with one exception
 ``mask=teacher teacher.checkpoint=DIR``, ``mask=student student.checkpoint=DIR`` (directories saved by
 ``semvpr.segment``, read as data) or ``mask=none`` replaces the checkpoint's own; the backbone, the
 aggregator and its weights, and learned class weights stay the checkpoint's (ARCHITECTURE §3.2).
+
+An author's released file (pytorch-NetVlad, MixVPR, CosPlace, EigenPlaces, BoQ: ``models.released``; told
+from a semvpr checkpoint by its keys, or named with ``ckpt_format=``) becomes a record of the same form: the
+layout's backbone and aggregator choices and the sizes its weights' shapes give, validated and built the
+same way, at the author's image size, with no mask or the invocation's.
 
 ``ckpt=none`` is the off-the-shelf baseline: the pretrained trunk and the aggregator's untrained form
 (``Aggregator.untrained_form``: plain GeM at p = 3; NetVLAD / SRAL from k-means on the training database
