@@ -34,16 +34,16 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
-from semvpr.models.backbones import EFFICIENTNET_LITE, EfficientNetLite0Backbone
+from semvpr.models.backbones import EFFICIENTNET_LITE, Backbone, EfficientNetLite0Backbone
 from semvpr.models.masks import StudentMask, TeacherMask
 from semvpr.models.student import StudentSpec, student_architecture
 from semvpr.models.teacher import TeacherSpec, embedded_teacher
@@ -66,6 +66,35 @@ def seconds_per_image(run: Callable[[], object], batch: int, repeats: int) -> fl
     return sorted(times)[len(times) // 2] / batch
 
 
+def camvid_student(backbone: Backbone) -> tuple[StudentMask, StudentSpec]:
+    """An untrained student of the CamVid student's spec (``conf/segment.yaml``'s width) over ``backbone``."""
+    conf = Path(CONF_DIR)
+    node = OmegaConf.load(conf / "student" / "unet.yaml")
+    node.width = OmegaConf.load(conf / "segment.yaml").student.width
+    del node["static_classes"]  # the teacher's list there; the default list here
+    spec = StudentSpec.from_mapping(node)
+    return StudentMask(student_architecture(spec, backbone)), spec
+
+
+def camvid_teacher_node(encoder: str | None = None) -> DictConfig:
+    """The CamVid teacher's config (``conf/teacher/mask2former.yaml`` with ``conf/segment.yaml``'s model over
+    it; ``encoder``: another EfficientNet-Lite for its pixel encoder)."""
+    conf = Path(CONF_DIR)
+    node = OmegaConf.load(conf / "teacher" / "mask2former.yaml")
+    node.image_size = list(TEACHER_TRAINED_AT)
+    node.model = OmegaConf.merge(node.model, OmegaConf.load(conf / "segment.yaml").teacher.get("model", {}))
+    if encoder:
+        node.model.backbone = encoder
+    return node
+
+
+def camvid_teacher(inference_size: Sequence[int], encoder: str | None = None) -> TeacherMask:
+    """An untrained teacher of the CamVid teacher's model, seeing images at ``inference_size``."""
+    node = camvid_teacher_node(encoder)
+    spec = TeacherSpec.from_mapping({**OmegaConf.to_container(node), "inference_size": list(inference_size)})
+    return TeacherMask(embedded_teacher(spec))
+
+
 @exit_on_user_error
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -80,27 +109,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     bf16 = bf16_native("cpu")
-    conf = Path(CONF_DIR)
-    segment = OmegaConf.load(conf / "segment.yaml")
     backbone = EfficientNetLite0Backbone(weights="imagenet").eval()
-    student_node = OmegaConf.load(conf / "student" / "unet.yaml")
-    student_node.width = segment.student.width
-    del student_node["static_classes"]  # the teacher's list there; the default list here
-    student_spec = StudentSpec.from_mapping(student_node)
-    student = StudentMask(student_architecture(student_spec, backbone))
-    teacher_node = OmegaConf.load(conf / "teacher" / "mask2former.yaml")
-    teacher_node.image_size = list(TEACHER_TRAINED_AT)
-    teacher_node.model = OmegaConf.merge(teacher_node.model, segment.teacher.get("model", {}))
-    if args.teacher_backbone:
-        teacher_node.model.backbone = args.teacher_backbone
-    teachers = {
-        size: TeacherMask(
-            embedded_teacher(
-                TeacherSpec.from_mapping({**OmegaConf.to_container(teacher_node), "inference_size": list(size)})
-            )
-        )
-        for size in (SIZE, TEACHER_TRAINED_AT)
-    }
+    student, student_spec = camvid_student(backbone)
+    teachers = {size: camvid_teacher(size, args.teacher_backbone) for size in (SIZE, TEACHER_TRAINED_AT)}
+    teacher_node = camvid_teacher_node(args.teacher_backbone)
     images = torch.rand(args.batch, 3, *SIZE, generator=torch.Generator().manual_seed(0)).contiguous(
         memory_format=torch.channels_last
     )

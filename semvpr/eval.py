@@ -85,6 +85,9 @@ def evaluate_checkpoint(
         "mask_checkpoint": str(segmenter_dir) if segmenter_dir else None,
         "backbone": merged.backbone.name,
         "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
+        # An author's release file: its name in tables, e.g. "mixvpr (ResNet50, released)".
+        **({"release": str(merged.release)} if merged.get("release") else {}),
+        "image_size": list(merged.data.image_size),
         "database": len(test.db_paths),
         "queries": len(test.q_paths),
         "descriptor_dim": int(db.shape[1]),

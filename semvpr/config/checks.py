@@ -19,6 +19,7 @@ from semvpr.core.spec import MAX_IMAGE_SIDE
 from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
+from semvpr.models.released import FORMATS as CKPT_FORMATS
 from semvpr.retrieval.features import STORAGES
 
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
@@ -303,6 +304,9 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         value = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
         if isinstance(value, str):
             check_path_text(value, key)
+    fmt = cfg.get("ckpt_format")
+    if fmt is not None and fmt not in CKPT_FORMATS:
+        raise SemvprError(f"ckpt_format={fmt!r} is not one of {', '.join(CKPT_FORMATS)}")
     pattern = OmegaConf.select(cfg, "data.frame_pattern", default=None, throw_on_missing=False)
     if pattern is not None:
         bounded_regex(pattern, "data.frame_pattern")

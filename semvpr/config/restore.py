@@ -1,4 +1,5 @@
-"""The retriever a command evaluates: a trained checkpoint rebuilt from its record, or (``ckpt=none``) the
+"""The retriever a command evaluates: a trained checkpoint rebuilt from its record, an author's released file,
+or (``ckpt=none``) the
 model the config describes with no VPR training. What ``semvpr.eval``, ``semvpr.localize`` and the hub
 share.
 
@@ -8,6 +9,11 @@ A command-line choice that would change the model is refused, with one exception
 ``mask=teacher teacher.checkpoint=DIR``, ``mask=student student.checkpoint=DIR`` (directories saved by
 ``semvpr.segment``, read as data) or ``mask=none`` replaces the checkpoint's own; the backbone, the
 aggregator and its weights, and learned class weights stay the checkpoint's (ARCHITECTURE §3.2).
+
+An author's released file (pytorch-NetVlad, MixVPR, CosPlace, EigenPlaces, BoQ: ``models.released``; told
+from a semvpr checkpoint by its keys, or named with ``ckpt_format=``) becomes a record of the same form: the
+layout's backbone and aggregator choices and the sizes its weights' shapes give, validated and built the
+same way, at the author's image size, with no mask or the invocation's.
 
 ``ckpt=none`` is the off-the-shelf baseline: the pretrained trunk and the aggregator's untrained form
 (``Aggregator.untrained_form``: plain GeM at p = 3; NetVLAD / SRAL from k-means on the training database
@@ -41,10 +47,19 @@ from semvpr.config.build import (
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
 from semvpr.config.plan import job_plan
-from semvpr.core.checkpoint import check_recorded_paths, model_config, read_checkpoint, segmenter_of
+from semvpr.core.checkpoint import (
+    FORMAT,
+    check_recorded_paths,
+    is_semvpr_checkpoint,
+    model_config,
+    read_checkpoint,
+    read_weights,
+    segmenter_of,
+)
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 from semvpr.core.provenance import data_domain
+from semvpr.models.released import Release, map_release, read_release
 from semvpr.retrieval.features import place_features
 from semvpr.retrieval.retriever import Retriever
 
@@ -90,10 +105,16 @@ def load_retriever(
     values of the right type that no run could use.
     """
     target = cfg.ckpt if ckpt is None else ckpt
+    fmt = str(cfg.get("ckpt_format") or "auto")
     if is_untrained(target):
         retriever, merged = untrained_retriever(cfg, explicit, evaluated)
     else:
-        retriever, merged = _trained_retriever(cfg, explicit, warn, Path(str(target)))
+        path = Path(str(target))
+        contents = read_weights(path, "checkpoint" if fmt in ("auto", "semvpr") else "release file")
+        if fmt == "semvpr" or (fmt == "auto" and is_semvpr_checkpoint(contents)):
+            retriever, merged = _trained_retriever(cfg, explicit, warn, path, contents)
+        else:
+            retriever, merged = released_retriever(cfg, explicit, read_release(path, fmt, contents))
     source = retriever.mask_source
     if new_images and source is not None and not source.describes_new_images:
         raise SemvprError(
@@ -102,18 +123,14 @@ def load_retriever(
     return retriever.eval(), merged
 
 
-def _trained_retriever(cfg: DictConfig, explicit: set[str], warn: bool, path: Path) -> tuple[Retriever, DictConfig]:
+def _trained_retriever(
+    cfg: DictConfig, explicit: set[str], warn: bool, path: Path, contents: Any
+) -> tuple[Retriever, DictConfig]:
     where = f"checkpoint {path}"
-    state, record = read_checkpoint(path)
+    state, record = read_checkpoint(path, contents)
     merged = model_config(record, cfg, where=where, check_paths=False)
     check_model(merged, where=where)
-    trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
-    for override in sorted(explicit & set(MODEL_OVERRIDES)):
-        if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):
-            raise SemvprError(
-                f"{where} was trained with {trained}; drop the {override}= override "
-                "(the model comes from the checkpoint; only mask= may replace its mask source)"
-            )
+    trained = _refuse_model_overrides(cfg, explicit, merged, where)
     replaced = replace_mask(cfg, explicit, merged, where)
     if replaced is None:
         check_recorded_paths(record, cfg, where)
@@ -137,6 +154,61 @@ def _trained_retriever(cfg: DictConfig, explicit: set[str], warn: bool, path: Pa
         link_segmenter(merged, retriever.mask_source, backbone)  # now that the teacher's weights are the checkpoint's
         if warn:
             warn_foreign_mask(record, merged, where)
+    return retriever, merged
+
+
+def _refuse_model_overrides(cfg: DictConfig, explicit: set[str], merged: DictConfig, where: str) -> str:
+    """Refuse (one line) a command-line choice that would change the model ``where`` defines; returns the
+    model's choices as a phrase."""
+    trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
+    for override in sorted(explicit & set(MODEL_OVERRIDES)):
+        if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):
+            raise SemvprError(
+                f"{where} was trained with {trained}; drop the {override}= override "
+                "(the model comes from the checkpoint; only mask= may replace its mask source)"
+            )
+    return trained
+
+
+# ----------------------------------------------------------------------------------- released files
+def released_retriever(cfg: DictConfig, explicit: set[str], release: Release) -> tuple[Retriever, DictConfig]:
+    """The author's model of a release file (``models.released``) as semvpr's backbone and aggregator, with
+    no mask or the invocation's (``mask=teacher|student ...``), at the author's image size unless the
+    command line sets ``data.image_size``. Its config is validated as a checkpoint's record is."""
+    where = release.where
+    layout, settings = release.layout, release.settings()
+    record = {
+        "format": FORMAT,
+        "choices": {
+            "backbone": layout.backbone,
+            "aggregator": layout.aggregator,
+            "mask": "none",
+            "teacher": str(cfg.teacher.name),
+            "student": str(cfg.student.name),
+        },
+        "config": {
+            "backbone": {**settings["backbone"], "weights": "none", "train_from": None},
+            "aggregator": settings["aggregator"],
+            "model": {**settings["model"], "pca_dim": None},
+        },
+        "seed": int(cfg.seed),
+    }
+    merged = model_config(record, cfg, where=where, check_paths=False)
+    check_model(merged, where=where)
+    _refuse_model_overrides(cfg, explicit, merged, where)
+    with open_dict(merged):
+        merged.release = layout.label
+        if layout.image_size is not None and "data.image_size" not in explicit:
+            merged.data.image_size = list(layout.image_size)
+    replaced = replace_mask(cfg, explicit, merged, where)
+    merged = merged if replaced is None else replaced
+    backbone = build_backbone(merged.backbone, int(merged.seed), pretrained=False)
+    retriever = build_retriever(merged, backbone, None, training=False)
+    # A release holds the backbone and the aggregator; no whitening, no mask source, no class weights.
+    expected = {k: v for k, v in retriever.state_dict().items() if k.startswith(("backbone.", "aggregator."))}
+    retriever.load_state_dict(map_release(release, expected), strict=False)
+    # Built once the trunk holds the release's weights: a student directory is checked against that trunk.
+    retriever.mask_source = build_mask_source(merged, backbone)
     return retriever, merged
 
 

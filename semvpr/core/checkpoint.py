@@ -34,6 +34,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -87,18 +88,51 @@ def _plain(node: Any) -> Any:
     return node
 
 
-def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The state dict and the model record of a semvpr checkpoint (weights-only load)."""
+#: What a weights-only read lets a file hold besides tensors and plain containers: numpy scalars (the
+#: recall values pytorch-NetVlad's ``checkpoint.pth.tar`` stores beside its weights), rebuilt from bytes.
+#: A scalar pickled by numpy 1 names ``numpy.core.multiarray.scalar``, by numpy 2 ``numpy._core...``.
+_SAFE_NUMPY = (
+    *((np._core.multiarray.scalar, f"{module}.multiarray.scalar") for module in ("numpy.core", "numpy._core")),
+    np.dtype,
+    *(type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.bool_)),
+)
+_UNSUPPORTED = re.compile(r"Unsupported global: GLOBAL (\S+)")
+
+
+def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
+    """A torch file's contents read weights-only (tensors, plain values and numpy scalars; nothing in it
+    runs). A file that pickles any other object is refused in one line naming that object."""
     path = Path(path)
     if not path.is_file():
-        raise SemvprError(f"checkpoint {path} not found (a run writes <run dir>/checkpoints/tested.ckpt)")
+        hint = " (a run writes <run dir>/checkpoints/tested.ckpt)" if what == "checkpoint" else ""
+        raise SemvprError(f"{what} {path} not found{hint}")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        with torch.serialization.safe_globals(list(_SAFE_NUMPY)):
+            return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
+        pickled = _UNSUPPORTED.search(str(err))
+        if pickled is not None:
+            raise SemvprError(
+                f"{what} {path} is refused: it pickles an object ({pickled.group(1)}), and only weights are "
+                "read from a file (nothing in it is run)"
+            ) from None
         detail = (str(err).splitlines() or [""])[0]
         raise SemvprError(
-            f"{path} is not a readable checkpoint ({type(err).__name__}{': ' + detail if detail else ''})"
+            f"{path} is not a readable {what} ({type(err).__name__}{': ' + detail if detail else ''})"
         ) from None
+
+
+def is_semvpr_checkpoint(contents: Any) -> bool:
+    """Whether a file's contents carry a semvpr model record (of any format)."""
+    record = contents.get("hyper_parameters") if isinstance(contents, dict) else None
+    return isinstance(record, dict) and ("format" in record or "config" in record)
+
+
+def read_checkpoint(path: str | Path, contents: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The state dict and the model record of a semvpr checkpoint (weights-only load; ``contents``: the
+    file's, where already read)."""
+    path = Path(path)
+    ckpt = read_weights(path) if contents is None else contents
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
     broken = next(

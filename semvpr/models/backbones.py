@@ -22,6 +22,7 @@ import torchvision
 from torch import Tensor, nn
 
 from semvpr.core.cache import state_hash
+from semvpr.core.checkpoint import read_weights
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import compute_key
 
@@ -83,15 +84,14 @@ def _load_state_dict(arch: str, weights: str | Path) -> dict[str, Tensor] | None
                 f"backbone weights file {path} does not exist; pass a torchvision {arch} state dict "
                 "path, backbone.weights=imagenet or backbone.weights=none"
             )
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # corrupt/unsupported pickle: a user file problem, not a bug
-        raise SemvprError(f"cannot read backbone weights {path}: {type(err).__name__}: {err}") from None
+    state = read_weights(path, "backbone weights")
     if isinstance(state, dict) and "state_dict" in state:
         state = state["state_dict"]
     if not isinstance(state, dict):
         raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
-    return state
+    from semvpr.models.released import release_trunk  # released.py reads this module's unit tables
+
+    return release_trunk(state, path, arch) or state
 
 
 class Backbone(nn.Module):
@@ -240,8 +240,9 @@ class ResNet50Backbone(Backbone):
             raise SemvprError(f"backbone.stage={stage!r} is not one of ['layer3', 'layer4']")
         model = torchvision.models.resnet50()
         state = _load_state_dict("resnet50", weights)
-        if state is not None:
-            _load_into(model, state, prefix="layer1.", arch="resnet50", source=weights)
+        if state is not None:  # a layer3 trunk needs no layer4 weights (a release cut there has none)
+            head = ("fc.", "layer4.") if stage == "layer3" else "fc."
+            _load_into(model, state, prefix="layer1.", arch="resnet50", source=weights, head=head)
         table = RESNET50_UNITS[: 5 if stage == "layer3" else 6]
         stem = nn.Sequential(model.conv1, model.bn1, model.relu)
         modules = {
@@ -256,9 +257,15 @@ class ResNet50Backbone(Backbone):
 
 
 def _load_into(
-    model: nn.Module, state: dict[str, Tensor], prefix: str, arch: str, source: str | Path, head: str = "fc."
+    model: nn.Module,
+    state: dict[str, Tensor],
+    prefix: str,
+    arch: str,
+    source: str | Path,
+    head: str | tuple[str, ...] = "fc.",
 ) -> None:
-    """Load a state dict in the model's naming; the classifier ``head`` may be missing, extra keys are ignored."""
+    """Load a state dict in the model's naming; the classifier ``head`` (a prefix or several: layers the
+    trunk does not use) may be missing, extra keys are ignored."""
     try:
         missing, _ = model.load_state_dict(state, strict=False)
     except RuntimeError as err:  # shape mismatch: wrong architecture in the file

@@ -101,6 +101,12 @@ def _source(checkpoint: str, sweep_dir: Path) -> str:
         return Path(checkpoint).name
 
 
+def _model_name(result: dict[str, Any]) -> str:
+    """The model as a row names it: an author's release by its name, else semvpr's backbone-aggregator."""
+    release = result.get("release")
+    return release if isinstance(release, str) and release else result["model"]
+
+
 def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
     """A row per job (failed or malformed ones say why), each followed by its published rows."""
     sweep_dir = Path(sweep_dir)
@@ -135,7 +141,7 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
                 "database": result["database"],
                 "descriptor_dim": result["descriptor_dim"],
                 "wall_s": result["wall_s"],
-                "source": f"measured: {result['model']} ({result['aggregator']}, mask={result['mask']}"
+                "source": f"measured: {_model_name(result)} ({result['aggregator']}, mask={result['mask']}"
                 f"{' from ' + str(result['mask_checkpoint']) if result.get('mask_checkpoint') else ''}), "
                 f"{_source(result['checkpoint'], sweep_dir)}",
             }

@@ -367,8 +367,10 @@ def place_features(
             kinds[f"skips{level}"] = _Kind("skips", key, skip_shape(backbone, size, level), np.uint16, level)
     if mask_source is not None:
         channels = 1 if weighting == "binary" else NUM_CLASSES
-        key = {"mask": mask_key, "weighting": weighting, "data": data_key}
-        kinds["masks"] = _Kind("masks", key, (channels, *grid_size(backbone, size)), np.float16)
+        grid = grid_size(backbone, size)
+        # The grid too: a source that reads the images (the teacher) gives one mask per trunk stride.
+        key = {"mask": mask_key, "weighting": weighting, "data": data_key, "grid": list(grid)}
+        kinds["masks"] = _Kind("masks", key, (channels, *grid), np.float16)
     missing = [k for k, kind in kinds.items() if not artifact_dir(cache_dir, kind.kind, kind.key).is_dir()]
     held = {kind.level for kind in kinds.values() if kind.level is not None}
     from_cache = (

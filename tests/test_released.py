@@ -1,0 +1,469 @@
+"""The authors' released files load through ``ckpt=`` and give the authors' descriptors.
+
+Each author's model is written out here as the author's code defines it (torchvision's ResNet50 and VGG16
+layers, the author's head), with random weights and random BatchNorm statistics, saved in the author's
+file layout (the key names and nesting the author's code produces), read through ``load_retriever`` (what
+``ckpt=`` runs) and compared with the author's forward pass on ImageNet-normalised images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+import torchvision
+from torch import Tensor, nn
+
+from semvpr.config.build import build_backbone
+from semvpr.config.restore import load_retriever
+from semvpr.core.errors import SemvprError
+from semvpr.eval import evaluate_checkpoint
+from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
+from semvpr.retrieval.retriever import Retriever
+from tests.helpers import make_folder, tiny_config, write_student_dir, write_teacher_dir
+
+SMALL = 64  # image side of the fast tests: ResNet50's layer3 gives a 4 x 4 grid
+
+
+def randomise(model: nn.Module, seed: int) -> nn.Module:
+    """Random weights everywhere, and random BatchNorm statistics (a wrong mapping of them shows)."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                m.running_mean.copy_(torch.randn(m.num_features, generator=gen) * 0.1)
+                m.running_var.copy_(torch.rand(m.num_features, generator=gen) + 0.5)
+                m.weight.copy_(torch.rand(m.num_features, generator=gen) + 0.5)
+                m.bias.copy_(torch.randn(m.num_features, generator=gen) * 0.1)
+    return model.eval()
+
+
+def normalised(images: Tensor) -> Tensor:
+    """What the authors' transforms give: ImageNet mean / std."""
+    return (images - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+
+
+def images(n: int = 2, side: int = SMALL) -> Tensor:
+    return torch.rand(n, 3, side, side, generator=torch.Generator().manual_seed(7))
+
+
+# ---------------------------------------------------------------------------------- pytorch-NetVlad
+class NetVladPool(nn.Module):
+    """pytorch-NetVlad's ``netvlad.NetVLAD`` (vladv1: a 1x1 conv without bias, separate centroids)."""
+
+    def __init__(self, num_clusters: int, dim: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(dim, num_clusters, kernel_size=1, bias=False)
+        self.centroids = nn.Parameter(torch.rand(num_clusters, dim))
+
+    def forward(self, x: Tensor) -> Tensor:
+        n, c = x.shape[:2]
+        x = F.normalize(x, p=2, dim=1)
+        soft = F.softmax(self.conv(x).view(n, self.centroids.shape[0], -1), dim=1)
+        flat = x.view(n, c, -1)
+        vlad = torch.zeros(n, self.centroids.shape[0], c)
+        for k in range(self.centroids.shape[0]):  # the author's loop over clusters
+            residual = flat - self.centroids[k].view(1, c, 1)
+            vlad[:, k] = (residual * soft[:, k : k + 1]).sum(-1)
+        vlad = F.normalize(vlad, p=2, dim=2)
+        return F.normalize(vlad.view(n, -1), p=2, dim=1)
+
+
+def netvlad_model() -> nn.Module:
+    """pytorch-NetVlad ``main.py``: VGG16 ``features`` less its last ReLU and pool, then NetVLAD(64, 512)."""
+    model = nn.Module()
+    features = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"])
+    model.encoder = nn.Sequential(*list(features.children())[:-2])
+    model.pool = NetVladPool(64, 512)
+    model.forward = lambda x: model.pool(model.encoder(x))  # type: ignore[method-assign]
+    torch.manual_seed(1)
+    nn.init.normal_(model.pool.conv.weight, std=0.5)
+    return model.eval()
+
+
+def save_netvlad(model: nn.Module, path: Path) -> None:
+    """``checkpoint.pth.tar`` as pytorch-NetVlad's ``save_checkpoint`` writes it (numpy recalls included)."""
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.001, momentum=0.9)
+    recalls = {1: np.float64(0.81), 5: np.float64(0.9)}
+    state = {"epoch": 5, "state_dict": model.state_dict(), "recalls": recalls, "best_score": recalls[5]}
+    args = {"arch": "vgg16", "num_clusters": 64}
+    torch.save({**state, "optimizer": optimizer.state_dict(), "parse_args": args}, path)
+
+
+# ---------------------------------------------------------------------------------- MixVPR
+class MixVPRResNet(nn.Module):
+    """MixVPR's ``models/backbones/resnet.py`` with ``layers_to_crop=[4]``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.model = torchvision.models.resnet50()
+        self.model.avgpool, self.model.fc, self.model.layer4 = None, None, None
+
+    def forward(self, x: Tensor) -> Tensor:
+        m = self.model
+        x = m.maxpool(m.relu(m.bn1(m.conv1(x))))
+        return m.layer3(m.layer2(m.layer1(x)))
+
+
+class FeatureMixerLayer(nn.Module):
+    def __init__(self, width: int, ratio: float) -> None:
+        super().__init__()
+        self.mix = nn.Sequential(
+            nn.LayerNorm(width), nn.Linear(width, int(width * ratio)), nn.ReLU(), nn.Linear(int(width * ratio), width)
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x + self.mix(x)
+
+
+class AuthorsMixVPR(nn.Module):
+    def __init__(self, channels: int, hw: int, out_channels: int, out_rows: int, depth: int = 4) -> None:
+        super().__init__()
+        self.mix = nn.Sequential(*[FeatureMixerLayer(hw, 1.0) for _ in range(depth)])
+        self.channel_proj = nn.Linear(channels, out_channels)
+        self.row_proj = nn.Linear(hw, out_rows)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = self.mix(x.flatten(2))
+        x = self.channel_proj(x.permute(0, 2, 1)).permute(0, 2, 1)
+        return F.normalize(self.row_proj(x).flatten(1), p=2, dim=-1)
+
+
+class VPRModel(nn.Module):
+    """The authors' Lightning module's two parts (MixVPR ``main.py``; BoQ ``hubconf.py``)."""
+
+    def __init__(self, backbone: nn.Module, aggregator: nn.Module) -> None:
+        super().__init__()
+        self.backbone, self.aggregator = backbone, aggregator
+
+    def forward(self, x: Tensor) -> Tensor:
+        out = self.aggregator(self.backbone(x))
+        return out[0] if isinstance(out, tuple) else out
+
+
+def mixvpr_model(side: int = SMALL) -> nn.Module:
+    torch.manual_seed(2)
+    hw = (side // 16) ** 2
+    return randomise(VPRModel(MixVPRResNet(), AuthorsMixVPR(1024, hw, 256, 4)), 2)
+
+
+def save_mixvpr(model: nn.Module, path: Path) -> None:
+    """A Lightning ``.ckpt``: the state dict beside plain hyper-parameters, optimizer and loop state."""
+    hparams = {"backbone_arch": "resnet50", "layers_to_crop": [4], "agg_arch": "MixVPR", "lr": 0.05}
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.05)
+    ckpt = {"epoch": 3, "global_step": 99, "pytorch-lightning_version": "1.9.0", "state_dict": model.state_dict()}
+    torch.save({**ckpt, "hyper_parameters": hparams, "optimizer_states": [optimizer.state_dict()]}, path)
+
+
+# ---------------------------------------------------------------------------------- CosPlace / EigenPlaces
+class GeoLocalizationNet(nn.Module):
+    """CosPlace / EigenPlaces ``GeoLocalizationNet``: ResNet50 ``children()[:-2]``, L2, GeM, Flatten, Linear, L2."""
+
+    def __init__(self, fc_dim: int) -> None:
+        super().__init__()
+        self.backbone = nn.Sequential(*list(torchvision.models.resnet50().children())[:-2])
+        self.aggregation = nn.Sequential(L2Norm(), GeMPool(), nn.Flatten(), nn.Linear(2048, fc_dim), L2Norm())
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.aggregation(self.backbone(x))
+
+
+class L2Norm(nn.Module):
+    def forward(self, x: Tensor) -> Tensor:
+        return F.normalize(x, p=2, dim=1)
+
+
+class GeMPool(nn.Module):
+    def __init__(self, p: float = 3.0, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.p, self.eps = nn.Parameter(torch.ones(1) * p), eps
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.avg_pool2d(x.clamp(min=self.eps).pow(self.p), (x.size(-2), x.size(-1))).pow(1.0 / self.p)
+
+
+def cosplace_model() -> nn.Module:
+    torch.manual_seed(3)
+    model = randomise(GeoLocalizationNet(128), 3)
+    with torch.no_grad():
+        model.aggregation[1].p.fill_(2.5)  # a trained p, not the initial 3
+    return model
+
+
+# ---------------------------------------------------------------------------------- BoQ
+class BoQResNet(nn.Module):
+    """Bag-of-Queries ``src/backbones.py`` ResNet, ``crop_last_block=True``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        r = torchvision.models.resnet50()
+        self.net = nn.Sequential(r.conv1, r.bn1, r.relu, r.maxpool, r.layer1, r.layer2, r.layer3)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class BoQBlock(nn.Module):
+    def __init__(self, dim: int, num_queries: int, heads: int) -> None:
+        super().__init__()
+        self.encoder = nn.TransformerEncoderLayer(dim, heads, 4 * dim, batch_first=True, dropout=0.0)
+        self.queries = nn.Parameter(torch.randn(1, num_queries, dim))
+        self.self_attn = nn.MultiheadAttention(dim, num_heads=heads, batch_first=True)
+        self.norm_q = nn.LayerNorm(dim)
+        self.cross_attn = nn.MultiheadAttention(dim, num_heads=heads, batch_first=True)
+        self.norm_out = nn.LayerNorm(dim)
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        x = self.encoder(x)
+        q = self.queries.repeat(x.size(0), 1, 1)
+        q = self.norm_q(q + self.self_attn(q, q, q)[0])
+        return x, self.norm_out(self.cross_attn(q, x, x)[0])
+
+
+class AuthorsBoQ(nn.Module):
+    """Bag-of-Queries ``src/boq.py``."""
+
+    def __init__(self, channels: int, proj: int, num_queries: int, num_layers: int, row_dim: int) -> None:
+        super().__init__()
+        self.proj_c = nn.Conv2d(channels, proj, kernel_size=3, padding=1)
+        self.norm_input = nn.LayerNorm(proj)
+        self.boqs = nn.ModuleList([BoQBlock(proj, num_queries, proj // 64) for _ in range(num_layers)])
+        self.fc = nn.Linear(num_layers * num_queries, row_dim)
+
+    def forward(self, x: Tensor) -> tuple[Tensor, list]:
+        x = self.norm_input(self.proj_c(x).flatten(2).permute(0, 2, 1))
+        outs = []
+        for block in self.boqs:
+            x, out = block(x)
+            outs.append(out)
+        out = self.fc(torch.cat(outs, dim=1).permute(0, 2, 1)).flatten(1)
+        return F.normalize(out, p=2, dim=-1), []
+
+
+def boq_model() -> nn.Module:
+    torch.manual_seed(4)
+    return randomise(VPRModel(BoQResNet(), AuthorsBoQ(1024, 128, 8, 2, 4)), 4)
+
+
+# ---------------------------------------------------------------------------------- through ckpt=
+def save_state(model: nn.Module, path: Path) -> None:
+    """A plain state dict ``.pth``, as CosPlace, EigenPlaces and BoQ release theirs."""
+    torch.save(model.state_dict(), path)
+
+
+def released(tmp_path: Path, path: Path, *overrides: str) -> tuple[Retriever, object]:
+    cfg = tiny_config(tmp_path / "cache", f"+ckpt={path}", *overrides, config_name="eval")
+    keys = {o.split("=", 1)[0].lstrip("+") for o in overrides}
+    return load_retriever(cfg, keys)
+
+
+def fp32_descriptors(retriever: Retriever, x: Tensor) -> Tensor:
+    """The loaded model's descriptors in fp32 (``retriever(x)`` rounds the frozen trunk's output to bf16,
+    as the trunk cache stores it)."""
+    with torch.no_grad():
+        trunk = retriever.backbone.forward_frozen(x)[-1]
+        return retriever.aggregator(retriever.backbone.forward_trainable(trunk), None)
+
+
+CASES: dict[str, tuple[Callable[[], nn.Module], Callable[[nn.Module, Path], None], str, int]] = {
+    "netvlad": (netvlad_model, save_netvlad, "checkpoint.pth.tar", 64 * 512),
+    "mixvpr": (mixvpr_model, save_mixvpr, "mixvpr.ckpt", 256 * 4),
+    "eigenplaces": (cosplace_model, save_state, "eigenplaces.pth", 128),
+    "boq": (boq_model, save_state, "boq.pth", 128 * 4),
+}
+
+
+@pytest.mark.parametrize("fmt", sorted(CASES))
+def test_release_loads_and_gives_the_authors_descriptors(tmp_path: Path, fmt: str) -> None:
+    build, save, name, dim = CASES[fmt]
+    model = build()
+    save(model, tmp_path / name)
+    named = ["ckpt_format=eigenplaces"] if fmt == "eigenplaces" else []
+    retriever, merged = released(tmp_path, tmp_path / name, f"data.image_size=[{SMALL},{SMALL}]", *named)
+    assert merged.release == f"{fmt} ({'VGG16' if fmt == 'netvlad' else 'ResNet50'}, released)"
+    assert retriever.descriptor_dim == dim and retriever.mask_source is None
+    x = images()
+    with torch.no_grad():
+        expected = model(normalised(x))
+    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+    # The evaluation pass itself (trunk output rounded to bf16 as cached): the same descriptors to that rounding.
+    with torch.no_grad():
+        cosine = (retriever(x).float() * expected).sum(1)
+    assert bool((cosine > 0.99).all()), cosine
+
+
+def test_each_layout_fixes_the_authors_image_size(tmp_path: Path) -> None:
+    save_mixvpr(mixvpr_model(320), tmp_path / "m.ckpt")
+    save_state(cosplace_model(), tmp_path / "c.pth")
+    _, mixvpr = released(tmp_path, tmp_path / "m.ckpt")
+    _, cosplace = released(tmp_path, tmp_path / "c.pth", "ckpt_format=cosplace")
+    data_size = list(tiny_config(tmp_path, config_name="eval").data.image_size)
+    assert list(mixvpr.data.image_size) == [320, 320] and list(mixvpr.aggregator.module.grid) == [20, 20]
+    assert list(cosplace.data.image_size) == data_size  # CosPlace evaluates the images at their own size
+    assert (cosplace.backbone.stage, cosplace.aggregator.module.fc_dim) == ("layer4", 128)
+
+
+@pytest.mark.slow
+def test_mixvpr_at_the_authors_image_size(tmp_path: Path) -> None:
+    model = mixvpr_model(320)
+    save_mixvpr(model, tmp_path / "m.ckpt")
+    retriever, merged = released(tmp_path, tmp_path / "m.ckpt")
+    assert list(merged.data.image_size) == [320, 320]
+    x = images(1, 320)
+    with torch.no_grad():
+        expected = model(normalised(x))
+    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------- evaluation with a mask
+def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path) -> None:
+    save_state(cosplace_model(), tmp_path / "c.pth")
+    root = make_folder(tmp_path / "places")
+    teacher = write_teacher_dir(tmp_path / "teacher")
+    common = [f"+ckpt={tmp_path / 'c.pth'}", "ckpt_format=cosplace", "data=folder", f"data.root={root}"]
+    common += ["data.image_size=[32,48]", "data.num_workers=0"]
+    results = {}
+    for mask in ("none", "teacher"):
+        extra = [f"mask={mask}"] + ([f"teacher.checkpoint={teacher}"] if mask == "teacher" else [])
+        cfg = tiny_config(tmp_path / "cache", *common, *extra, config_name="eval")
+        keys = {o.split("=", 1)[0].lstrip("+") for o in [*common, *extra]}
+        results[mask] = evaluate_checkpoint(cfg, keys)
+    for mask, result in results.items():
+        assert result["release"] == "cosplace (ResNet50, released)" and result["mask"] == mask
+        assert result["descriptor_dim"] == 128 and result["image_size"] == [32, 48]
+        json.dumps({k: v for k, v in result.items() if k != "ranks"})
+    assert results["teacher"]["mask_checkpoint"] == str(teacher) and results["none"]["mask_checkpoint"] is None
+
+
+@pytest.mark.parametrize("fmt", ["mixvpr", "netvlad"])
+def test_a_student_trained_on_a_release_trunk_masks_that_release(tmp_path: Path, fmt: str) -> None:
+    """``backbone.weights=FILE`` builds the release's trunk (what ``semvpr.segment`` trains a student on); that
+    student is accepted by the release, and the CamVid student of another trunk is refused in one line."""
+    build, save, name, _ = CASES[fmt]
+    model = build()
+    save(model, tmp_path / name)
+    arch = "vgg16" if fmt == "netvlad" else "resnet50"
+    cfg = tiny_config(tmp_path / "cache", f"backbone={arch}", f"backbone.weights={tmp_path / name}")
+    trunk = build_backbone(cfg.backbone, 0).eval()
+    x = images()
+    with torch.no_grad():
+        author_trunk = (model.encoder if fmt == "netvlad" else model.backbone)(normalised(x))
+        ours = trunk.forward_trainable(trunk.forward_frozen(x)[-1])
+    # Random-weight activations reach the hundreds: float rounding, relative to their scale.
+    torch.testing.assert_close(ours, author_trunk, rtol=0, atol=1e-5 * float(author_trunk.abs().max()))
+    student = write_student_dir(tmp_path / "student", trunk, torch.rand(4, 3, 32, 48))
+    size = f"data.image_size=[{SMALL},{SMALL}]"
+    retriever, merged = released(tmp_path, tmp_path / name, size, "mask=student", f"student.checkpoint={student}")
+    assert merged.mask.name == "student" and retriever.mask_source is not None
+    with torch.no_grad():
+        assert torch.isfinite(retriever(x)).all()
+    lite = tiny_config(tmp_path / "cache")
+    other = write_student_dir(tmp_path / "lite", build_backbone(lite.backbone, 0), torch.rand(4, 3, 32, 48))
+    refused(tmp_path, tmp_path / name, "decodes the frozen trunk", "mask=student", f"student.checkpoint={other}")
+
+
+# ---------------------------------------------------------------------------------- refusals
+def refused(tmp_path: Path, path: Path, match: str, *overrides: str) -> str:
+    with pytest.raises(SemvprError, match=match) as err:
+        released(tmp_path, path, f"data.image_size=[{SMALL},{SMALL}]", *overrides)
+    assert "\n" not in str(err.value)
+    return str(err.value)
+
+
+def test_a_pickled_object_is_refused_and_never_run(tmp_path: Path) -> None:
+    state = cosplace_model().state_dict()
+    torch.save({"state_dict": state, "args": argparse.Namespace(lr=0.1)}, tmp_path / "p.pth")
+    line = refused(tmp_path, tmp_path / "p.pth", "pickles an object", "ckpt_format=cosplace")
+    assert "argparse.Namespace" in line and str(tmp_path / "p.pth") in line
+
+
+def test_a_weight_of_another_shape_is_named(tmp_path: Path) -> None:
+    state = mixvpr_model().state_dict()
+    state["aggregator.mix.1.mix.3.bias"] = torch.zeros(5)
+    torch.save({"state_dict": state}, tmp_path / "m.ckpt")
+    refused(tmp_path, tmp_path / "m.ckpt", r"'aggregator.mix.1.mix.3.bias' has shape \(5,\)")
+
+
+def test_an_extra_key_is_named(tmp_path: Path) -> None:
+    state = {**boq_model().state_dict(), "aggregator.extra_head.weight": torch.zeros(3)}
+    save_state_dict(state, tmp_path / "b.pth")
+    refused(tmp_path, tmp_path / "b.pth", "'aggregator.extra_head.weight' is not part of the boq model")
+
+
+def test_a_missing_key_is_named_in_the_authors_naming(tmp_path: Path) -> None:
+    state = netvlad_model().state_dict()
+    del state["encoder.28.bias"]
+    torch.save({"state_dict": state}, tmp_path / "n.pth.tar")
+    refused(tmp_path, tmp_path / "n.pth.tar", "no weight 'encoder.28.bias'")
+
+
+def test_an_unknown_layout_is_refused(tmp_path: Path) -> None:
+    salad_like = {"aggregator.dust_bin": torch.zeros(1), "backbone.model.cls_token": torch.zeros(1)}
+    save_state_dict(salad_like, tmp_path / "s.pth")
+    refused(tmp_path, tmp_path / "s.pth", "has no layout semvpr reads")
+
+
+def test_cosplace_and_eigenplaces_must_be_named(tmp_path: Path) -> None:
+    save_state(cosplace_model(), tmp_path / "c.pth")
+    refused(tmp_path, tmp_path / "c.pth", "ckpt_format=cosplace or ckpt_format=eigenplaces")
+
+
+def test_a_named_layout_the_file_is_not_is_refused(tmp_path: Path) -> None:
+    save_state(cosplace_model(), tmp_path / "c.pth")
+    refused(tmp_path, tmp_path / "c.pth", "not of the boq layout", "ckpt_format=boq")
+
+
+def test_an_unknown_ckpt_format_is_refused_before_anything_is_read(tmp_path: Path) -> None:
+    from semvpr.config.checks import check_config
+
+    cfg = tiny_config(tmp_path / "cache", f"+ckpt={tmp_path / 'absent.pth'}", "ckpt_format=salad", config_name="eval")
+    with pytest.raises(SemvprError, match="ckpt_format='salad' is not one of auto, semvpr, netvlad"):
+        check_config(cfg)
+
+
+def test_a_release_named_as_a_semvpr_checkpoint_is_refused(tmp_path: Path) -> None:
+    save_state(boq_model(), tmp_path / "b.pth")
+    refused(tmp_path, tmp_path / "b.pth", "is not a semvpr checkpoint", "ckpt_format=semvpr")
+
+
+def test_a_model_override_is_refused(tmp_path: Path) -> None:
+    save_state(boq_model(), tmp_path / "b.pth")
+    refused(tmp_path, tmp_path / "b.pth", "drop the aggregator= override", "aggregator=gem")
+
+
+def save_state_dict(state: dict[str, Tensor], path: Path) -> None:
+    torch.save(state, path)
+
+
+def test_the_hub_takes_a_release(tmp_path: Path) -> None:
+    from semvpr.hub import load_model
+
+    model = boq_model()
+    save_state(model, tmp_path / "b.pth")
+    hub = load_model(tmp_path / "b.pth", overrides=["ckpt_format=boq", f"paths.cache_dir={tmp_path}"])
+    x = images()
+    with torch.no_grad():
+        cosine = (hub(normalised(x)) * model(normalised(x))).sum(1)
+    assert hub.feature_dim == 512 and bool((cosine > 0.99).all()), cosine
+
+
+def test_localize_takes_a_release(tmp_path: Path) -> None:
+    from semvpr.localize import localize
+    from tests.helpers import write_image
+
+    save_state(boq_model(), tmp_path / "b.pth")
+    root = make_folder(tmp_path / "places")
+    names = sorted(p.name for p in (root / "images" / "test" / "database").iterdir())
+    queries = tmp_path / "queries"
+    write_image(queries / "q.jpg", 3)  # the pixels of database image 3
+    overrides = [f"+ckpt={tmp_path / 'b.pth'}", "data=folder", f"data.root={root}", f"queries={queries}", "top_k=2"]
+    overrides += ["data.image_size=[32,48]", "data.num_workers=0"]
+    cfg = tiny_config(tmp_path / "cache", *overrides, config_name="localize")
+    results = localize(cfg, {o.split("=", 1)[0].lstrip("+") for o in overrides})
+    assert Path(results[0]["matches"][0]["path"]).name == names[3] and len(results[0]["matches"]) == 2
