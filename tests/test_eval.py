@@ -170,7 +170,7 @@ def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
     from semvpr.config.build import build_places, feature_storage
     from semvpr.config.restore import load_retriever
     from semvpr.retrieval.descriptors import place_descriptors
-    from semvpr.retrieval.features import place_features
+    from semvpr.retrieval.features import StoreSettings, place_features
     from semvpr.retrieval.retriever import Retriever
 
     write_checkpoint(tiny_config(tmp_path, "filter=none"), tmp_path / "model.ckpt")
@@ -204,6 +204,6 @@ def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
     assert [t for t, _ in seen] == [trunk / "db.npy", trunk / "q.npy"]
     assert all(d is not None and d.name == "descriptors.npy" and d.is_relative_to(tmp_path / "cache") for _, d in seen)
     monkeypatch.setattr(Retriever, "describe_store", describe_store)
-    held = place_features(test, retriever.backbone, retriever.backbone.frozen_key(), None, None, size, cache, "ram")
+    held = place_features(test, retriever.backbone, StoreSettings(tuple(size), cache, "ram"))
     assert mapped_file(held.db.trunk.data_ptr()) is None  # the RAM store: the process's own memory
     assert np.array_equal(db, retriever.describe_store(held.db)) and np.array_equal(q, retriever.describe_store(held.q))

@@ -11,7 +11,7 @@ import torch
 
 from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16Backbone
-from semvpr.retrieval.features import FeatureStore, GiB, choose_storage, place_features
+from semvpr.retrieval.features import FeatureStore, GiB, StoreSettings, choose_storage, place_features
 from semvpr.retrieval.initialisation import sample_local_features, static_locations
 from tests.helpers import mapped_file
 
@@ -73,18 +73,7 @@ def _places(root: Path, n: int = 6):
 def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16Backbone) -> None:
     places = _places(tmp_path / "img")
     stores = {
-        s: place_features(
-            places,
-            backbone,
-            backbone.frozen_identity(),
-            None,
-            None,
-            (32, 48),
-            tmp_path / "cache",
-            s,
-            batch_size=4,
-            num_workers=0,
-        )
+        s: place_features(places, backbone, StoreSettings((32, 48), tmp_path / "cache", s, 4, 0))
         for s in ("ram", "disk", "stream")
     }
     assert stores["stream"].db.trunk is None and stores["stream"].db.streams
@@ -103,36 +92,15 @@ def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16
 
 def test_a_foreign_or_damaged_cache_is_refused(tmp_path: Path, backbone: VGG16Backbone) -> None:
     places = _places(tmp_path / "img")
-    place_features(
-        places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache", "disk", num_workers=0
-    )
+    disk = StoreSettings((32, 48), tmp_path / "cache", "disk", num_workers=0)
+    place_features(places, backbone, disk)
     (cache,) = (tmp_path / "cache").glob("trunk-*")
     np.save(cache / "db.npy", np.zeros((6, 3), np.uint16))
     with pytest.raises(SemvprError, match=r"holds uint16\[6, 3\].*delete .*trunk-"):
-        place_features(
-            places,
-            backbone,
-            backbone.frozen_identity(),
-            None,
-            None,
-            (32, 48),
-            tmp_path / "cache",
-            "disk",
-            num_workers=0,
-        )
+        place_features(places, backbone, disk)
     np.save(cache / "db.npy", np.array([{"x": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(SemvprError, match="unreadable"):  # never unpickled
-        place_features(
-            places,
-            backbone,
-            backbone.frozen_identity(),
-            None,
-            None,
-            (32, 48),
-            tmp_path / "cache",
-            "disk",
-            num_workers=0,
-        )
+        place_features(places, backbone, disk)
 
 
 def test_kmeans_sample_takes_a_few_locations_of_many_images(backbone: VGG16Backbone) -> None:
@@ -190,16 +158,12 @@ def test_images_replaced_under_the_same_names_get_new_features(tmp_path: Path, b
     from PIL import Image
 
     places = _places(tmp_path / "img")
-    first = place_features(
-        places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache", "disk", num_workers=0
-    )
+    first = place_features(places, backbone, StoreSettings((32, 48), tmp_path / "cache", "disk", num_workers=0))
     before = first.db.trunk.clone()
     path = places.db_paths[0]
     Image.fromarray(np.full((40, 56, 3), 255, np.uint8)).save(path)
     places = dataclasses.replace(places)  # the next run's set: a set hashes its files once
-    again = place_features(
-        places, backbone, backbone.frozen_identity(), None, None, (32, 48), tmp_path / "cache", "disk", num_workers=0
-    )
+    again = place_features(places, backbone, StoreSettings((32, 48), tmp_path / "cache", "disk", num_workers=0))
     assert len(list((tmp_path / "cache").glob("trunk-*"))) == 2
     assert not torch.equal(again.db.trunk[0], before[0]) and torch.equal(again.db.trunk[1:], before[1:])
     # The key re-derived by hand: sha256 over "<name below the root>\0<size>\0" + the sha256 of the file's

@@ -28,7 +28,7 @@ from semvpr.data.images import load_image
 from semvpr.models.masks import StudentMask, TeacherMask, pool_to_grid
 from semvpr.models.student import StudentSpec, student_architecture
 from semvpr.models.teacher import Teacher, embedded_teacher
-from semvpr.retrieval.features import grid_size, place_features
+from semvpr.retrieval.features import MaskPass, StoreSettings, grid_size, place_features
 from semvpr.segmentation.training import build_student
 from tests.helpers import tiny_config
 
@@ -127,11 +127,9 @@ def test_the_teacher_on_the_trunk_equals_its_own_encoder_within_rounding(cache: 
     assert torch.equal(pool_to_grid(static, grid)[clear], pool_to_grid(own_static, grid)[clear])
 
 
-def _stores(cfg, cache: Path, places, trunk, source=None, levels=(), key=None):
-    return place_features(
-        places, trunk, trunk.frozen_identity(), source, key, cfg.data.image_size, cache, "ram", 16, 0,
-        skip_levels=levels,
-    )  # fmt: skip
+def _stores(cfg, cache: Path, places, trunk, source=None, levels=()):
+    settings = StoreSettings(tuple(cfg.data.image_size), cache, "ram", 16, 0)
+    return place_features(places, trunk, settings, None if source is None else MaskPass(source), skip_levels=levels)
 
 
 def test_one_trunk_pass_gives_the_trunk_the_skips_and_the_masks_of_separate_passes(cache: Path, tmp_path: Path) -> None:
@@ -157,8 +155,8 @@ def test_one_trunk_pass_gives_the_trunk_the_skips_and_the_masks_of_separate_pass
     teacher = TeacherMask(semantic_teacher(cfg, job_plan(cfg), trunk), list(cfg.teacher.static_classes))
     for source, levels in ((student, (1, 2)), (teacher, (1, 2))):
         assert source.trunk_levels((64, 80)) and not source.reads_pixels((64, 80))
-        cached = _stores(cfg, tmp_path / "one", places, trunk, source, levels, key=type(source).__name__)
-        live = _stores(cfg, tmp_path / "two", places, trunk, source, (), key=type(source).__name__)
+        cached = _stores(cfg, tmp_path / "one", places, trunk, source, levels)
+        live = _stores(cfg, tmp_path / "two", places, trunk, source, ())
         for side in ("db", "q"):
             assert torch.equal(getattr(cached, side).mask, getattr(live, side).mask)
 

@@ -41,7 +41,9 @@ from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
 from semvpr.retrieval.distributed import Describe
 from semvpr.retrieval.features import (
+    MaskPass,
     PlaceFeatures,
+    StoreSettings,
     choose_storage,
     grid_size,
     place_features,
@@ -458,12 +460,9 @@ def build_semantic(
     trunk, held = None, set()
     if skip_levels:
         # Memory-mapped: these are read once, here; the job's stores come later.
+        settings = store_settings(cfg, "disk" if storage == "ram" else storage, workers)
         with threads.stage("frozen"):
-            frozen = place_features(
-                source, backbone, backbone.frozen_key(), None, None, size, cfg.paths.cache_dir,
-                "disk" if storage == "ram" else storage, int(cfg.model.eval_batch_size), workers,
-                skip_levels=skip_levels,
-            )  # fmt: skip
+            frozen = place_features(source, backbone, settings, skip_levels=skip_levels)
         trunk, held = trunk_outputs(frozen), frozen.db.levels() & frozen.q.levels()
     timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
     tic = time.time()
@@ -493,6 +492,18 @@ def build_semantic(
             )
         timings["student_s"] = time.time() - tic
     return semantic
+
+
+def store_settings(cfg: DictConfig, storage: str, workers: int | None = None) -> StoreSettings:
+    """How the job's place sets are cached and held (``storage``: :func:`feature_storage`'s choice) and its
+    frozen pass loads images (``workers``: default ``data.num_workers``)."""
+    return StoreSettings(
+        tuple(cfg.data.image_size),
+        Path(str(cfg.paths.cache_dir)),
+        storage,
+        int(cfg.model.eval_batch_size),
+        int(cfg.data.num_workers) if workers is None else workers,
+    )
 
 
 def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet]) -> str:
@@ -540,22 +551,11 @@ def prepare(cfg: DictConfig, plan: JobPlan, timings: dict[str, float]) -> Prepar
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()
+    settings = store_settings(cfg, storage, threads.workers(int(cfg.data.num_workers)))
+    masks = None if mask_source is None else MaskPass(mask_source, str(cfg.mask.weights))
     with threads.stage("frozen"):
         features = {
-            split: place_features(
-                places[split],
-                backbone,
-                backbone.frozen_key(),
-                mask_source,
-                None if mask_source is None else mask_source.cache_key(cfg.data.image_size),
-                cfg.data.image_size,
-                cfg.paths.cache_dir,
-                storage,
-                int(cfg.model.eval_batch_size),
-                threads.workers(int(cfg.data.num_workers)),
-                weighting=cfg.mask.weights,
-                skip_levels=levels[split],
-            )
+            split: place_features(places[split], backbone, settings, masks, skip_levels=levels[split])
             for split in places
         }
     timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic

@@ -43,6 +43,7 @@ from semvpr.config.build import (
     feature_storage,
     init_aggregator,
     link_segmenter,
+    store_settings,
 )
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
@@ -410,18 +411,7 @@ def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Calla
     storage = feature_storage(init_cfg, backbone, places)
     plan = job_plan(init_cfg, next(backbone.parameters()).device)
     semantic = build_semantic(init_cfg, plan, train, backbone, storage=storage)
-    features = place_features(
-        train,
-        backbone,
-        backbone.frozen_key(),
-        None,
-        None,
-        init_cfg.data.image_size,
-        init_cfg.paths.cache_dir,
-        storage,
-        int(init_cfg.model.eval_batch_size),
-        int(init_cfg.data.num_workers),
-    )
+    features = place_features(train, backbone, store_settings(init_cfg, storage))
     job = Prepared(places, backbone, semantic, None, {"train": features}, storage)
     used = init_aggregator(init_cfg, retriever, job)
     return f"{train.name} ({len(train.db_paths)} database images at {list(init_cfg.data.image_size)}): {used}"

@@ -18,7 +18,7 @@ from semvpr.core.cache import build_once, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
 from semvpr.data.places import PlaceSet
-from semvpr.retrieval.features import place_features
+from semvpr.retrieval.features import MaskPass, StoreSettings, place_features
 from semvpr.retrieval.recall import check_finite
 from semvpr.retrieval.retriever import Retriever
 
@@ -45,21 +45,12 @@ def place_descriptors(
 
     def build(tmp: Path) -> None:
         source, backbone = retriever.mask_source, retriever.backbone
-        features = place_features(
-            places,
-            backbone,
-            backbone.frozen_key(),
-            source,
-            None if source is None else source.cache_key(image_size),
-            image_size,
-            cache_dir,
-            # Each row is read once, in order: the cache's pages serve it, where a copy in RAM would add the
-            # set's trunk maps to the process's anonymous memory and the time to copy them.
-            "disk" if storage == "ram" else storage,
-            retriever.eval_batch_size,
-            retriever.num_workers,
-            weighting=retriever.weighting,
-        )
+        # Each row is read once, in order: the cache's pages serve it, where a copy in RAM would add the
+        # set's trunk maps to the process's anonymous memory and the time to copy them.
+        held = "disk" if storage == "ram" else storage
+        settings = StoreSettings(image_size, cache_dir, held, retriever.eval_batch_size, retriever.num_workers)
+        masks = None if source is None else MaskPass(source, retriever.weighting)
+        features = place_features(places, backbone, settings, masks)
         out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
         retriever.describe_store(features.db if side == "db" else features.q, out=out)
         out.flush()

@@ -202,30 +202,62 @@ def choose_storage(
     return "disk" if trunk_bytes <= min(disk_gb * GiB, room) else "stream"
 
 
+@dataclass(frozen=True)
+class StoreSettings:
+    """How a place set's stores are made and held: the image size, the artifact cache, the storage (``ram``,
+    ``disk`` or ``stream``: :func:`choose_storage` decides ``auto``) and the frozen pass's loader."""
+
+    image_size: tuple[int, int]
+    cache_dir: Path
+    storage: str
+    batch_size: int = 32
+    num_workers: int = 2
+
+    def __post_init__(self) -> None:
+        if self.storage not in ("ram", "disk", "stream"):
+            raise SemvprError(
+                f"feature storage {self.storage!r} must be ram, disk or stream (choose_storage decides 'auto')"
+            )
+        object.__setattr__(self, "image_size", (int(self.image_size[0]), int(self.image_size[1])))
+        object.__setattr__(self, "cache_dir", Path(self.cache_dir))
+
+
+@dataclass(frozen=True)
+class MaskPass:
+    """The grid masks a store holds: their source and weighting (``binary`` or per-class ``learned``)."""
+
+    source: MaskSource
+    weighting: str = "binary"
+
+
+#: One side of a place set: its image paths and (for the oracle) label maps.
+Side = tuple[Sequence[Path], Sequence[Path] | None]
+
+
 @torch.no_grad()
 def _extract(
     backbone: nn.Module,
-    mask_source: MaskSource | None,
-    weighting: str,
-    paths: Sequence[Path],
-    labels: Sequence[Path] | None,
-    image_size: tuple[int, int],
+    side: Side,
+    settings: StoreSettings,
     outs_to: dict[int, np.ndarray],
+    masks: MaskPass | None,
     mask_out: np.ndarray | None,
-    batch_size: int,
-    num_workers: int,
     desc: str,
 ) -> None:
     """One pass over the images, writing frozen outputs (bf16 bits, ``outs_to``: by ``forward_frozen`` level; the
-    trunk is the last) and grid masks into the arrays."""
+    trunk is the last) and grid masks into the arrays (``mask_out``, where ``masks`` is given)."""
+    paths, labels = side
+    image_size = settings.image_size
     grid = grid_size(backbone, image_size)
     device = next(backbone.parameters()).device
-    wanted = mask_source.trunk_levels(image_size) if mask_out is not None else ()
+    wanted = masks.source.trunk_levels(image_size) if masks is not None else ()
     keep = bool(wanted) or any(level != _last_level(backbone) for level in outs_to)
     run_backbone = bool(outs_to) or bool(wanted)
     # Chunks of images whose frozen-prefix activations (and kept skips) fit the backbone's budget.
     step = backbone.images_per_forward(image_size, keep_scales=keep)
-    loader = DataLoader(ImageDataset(list(paths), image_size), batch_size=batch_size, num_workers=num_workers)
+    loader = DataLoader(
+        ImageDataset(list(paths), image_size), batch_size=settings.batch_size, num_workers=settings.num_workers
+    )
     backbone.eval()
     for batch, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
         for start in range(0, len(index), step):
@@ -234,9 +266,10 @@ def _extract(
             rows = slice(first, first + len(images))
             with autocast(device):
                 outs = backbone.forward_frozen(images, keep_scales=keep) if run_backbone else []
-                if mask_out is not None:
+                if masks is not None and mask_out is not None:
                     chunk_labels = [labels[int(i)] for i in index[start : start + step]] if labels is not None else None
-                    mask_out[rows] = mask_source.grid_mask(images, outs, chunk_labels, grid, weighting).cpu().numpy()
+                    mask = masks.source.grid_mask(images, outs, chunk_labels, grid, masks.weighting)
+                    mask_out[rows] = mask.cpu().numpy()
             for level, arr in outs_to.items():
                 arr[rows] = outs[level if keep else -1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
 
@@ -249,8 +282,7 @@ def _last_level(backbone: nn.Module) -> int:
 @torch.no_grad()
 def _masks_from_cache(
     backbone: nn.Module,
-    mask_source: MaskSource,
-    weighting: str,
+    masks: MaskPass,
     store: FeatureStore,
     labels: Sequence[Path] | None,
     mask_out: np.ndarray,
@@ -261,14 +293,14 @@ def _masks_from_cache(
     size = store.image_size
     grid = grid_size(backbone, size)
     device = next(backbone.parameters()).device
-    levels = mask_source.trunk_levels(size)
+    levels = masks.source.trunk_levels(size)
     bar = Progress(desc, len(store))
     for first in range(0, len(store), batch_size):
         index = list(range(first, min(first + batch_size, len(store))))
         outs = [o.to(device) if o is not None else None for o in store.outputs(index, levels)]
         chunk_labels = [labels[i] for i in index] if labels is not None else None
         with autocast(device):
-            mask = mask_source.grid_mask(None, outs, chunk_labels, grid, weighting, out_hw=size)
+            mask = masks.source.grid_mask(None, outs, chunk_labels, grid, masks.weighting, out_hw=size)
         mask_out[first : first + len(index)] = mask.cpu().numpy()
         bar.update(len(index))
     bar.close()
@@ -337,92 +369,71 @@ class _Kind:
 def place_features(
     places: PlaceSet,
     backbone: nn.Module,
-    backbone_key: Any,
-    mask_source: MaskSource | None,
-    mask_key: Any,
-    image_size: Sequence[int],
-    cache_dir: str | Path,
-    storage: str,
-    batch_size: int = 32,
-    num_workers: int = 2,
-    weighting: str = "binary",
+    settings: StoreSettings,
+    masks: MaskPass | None = None,
     skip_levels: Sequence[int] = (),
 ) -> PlaceFeatures:
     """Feature stores of a place set: trunk (unless streamed), the frozen outputs ``skip_levels`` and masks from
-    the cache, built once. The frozen outputs come from one pass over the images; masks are computed from the
-    cached outputs where the mask source reads nothing else (else in the same pass, from the images)."""
-    size = (int(image_size[0]), int(image_size[1]))
-    if storage not in ("ram", "disk", "stream"):
-        raise SemvprError(f"feature storage {storage!r} must be ram, disk or stream (choose_storage decides 'auto')")
+    the cache, built once, keyed by what they depend on (the backbone's ``frozen_key``, the mask source's
+    ``cache_key``, the images). The frozen outputs come from one pass over the images; masks are computed from
+    the cached outputs where the mask source reads nothing else (else in the same pass, from the images)."""
+    size, cache_dir = settings.image_size, settings.cache_dir
+    backbone_key = backbone.frozen_key()
     data_key = _data_key(places, size)
-    sides = {"db": (places.db_paths, places.db_labels), "q": (places.q_paths, places.q_labels)}
+    sides: dict[str, Side] = {"db": (places.db_paths, places.db_labels), "q": (places.q_paths, places.q_labels)}
     last = _last_level(backbone)
     kinds: dict[str, _Kind] = {}
-    if storage != "stream":
+    if settings.storage != "stream":
         kinds["trunk"] = _Kind(
             "trunk", {"backbone": backbone_key, "data": data_key}, trunk_shape(backbone, size), np.uint16, last
         )
         for level in sorted(set(skip_levels) - {last}):
             key = {"backbone": backbone_key, "data": data_key, "level": level}
             kinds[f"skips{level}"] = _Kind("skips", key, skip_shape(backbone, size, level), np.uint16, level)
-    if mask_source is not None:
-        channels = 1 if weighting == "binary" else NUM_CLASSES
+    if masks is not None:
+        channels = 1 if masks.weighting == "binary" else NUM_CLASSES
         grid = grid_size(backbone, size)
         # The grid too: a source that reads the images (the teacher) gives one mask per trunk stride.
-        key = {"mask": mask_key, "weighting": weighting, "data": data_key, "grid": list(grid)}
+        key = {"mask": masks.source.cache_key(size), "weighting": masks.weighting, "data": data_key, "grid": list(grid)}
         kinds["masks"] = _Kind("masks", key, (channels, *grid), np.float16)
     missing = [k for k, kind in kinds.items() if not artifact_dir(cache_dir, kind.kind, kind.key).is_dir()]
     held = {kind.level for kind in kinds.values() if kind.level is not None}
     from_cache = (
         "masks" in missing
-        and mask_source is not None
-        and not mask_source.reads_pixels(size)
-        and set(mask_source.trunk_levels(size)) <= held
+        and masks is not None
+        and not masks.source.reads_pixels(size)
+        and set(masks.source.trunk_levels(size)) <= held
     )
-    args = (sides, backbone, weighting, size, cache_dir, batch_size, num_workers, places.name)
     frozen = [k for k in missing if k != "masks"] if from_cache else missing
     if frozen:
-        _build(frozen, kinds, *args, mask_source if "masks" in frozen else None)
-    stores = _stores(kinds, sides, size, cache_dir, storage, last, with_masks=not from_cache)
+        _build(frozen, kinds, sides, backbone, settings, places.name, masks if "masks" in frozen else None)
+    stores = _stores(kinds, sides, settings, last, with_masks=not from_cache)
     if from_cache:
-        assert mask_source is not None
-        masks = kinds["masks"]
+        assert masks is not None
+        kind = kinds["masks"]
 
         def compute(tmp: Path) -> None:
             for side, (paths, labels) in sides.items():
                 out = open_array(
-                    tmp / f"{side}.npy", masks.dtype, (len(paths), *masks.shape), f"the masks of {places.name}"
+                    tmp / f"{side}.npy", kind.dtype, (len(paths), *kind.shape), f"the masks of {places.name}"
                 )
                 _masks_from_cache(
-                    backbone,
-                    mask_source,
-                    weighting,
-                    stores[side],
-                    labels,
-                    out,
-                    batch_size,
-                    f"{places.name} {side} masks",
+                    backbone, masks, stores[side], labels, out, settings.batch_size, f"{places.name} {side} masks"
                 )
                 out.flush()
 
-        folder = build_once(cache_dir, masks.kind, masks.key, compute)
+        folder = build_once(cache_dir, kind.kind, kind.key, compute)
         for side, (paths, _) in sides.items():
-            arr = _open(folder / f"{side}.npy", (len(paths), *masks.shape), masks.dtype, folder)
+            arr = _open(folder / f"{side}.npy", (len(paths), *kind.shape), kind.dtype, folder)
             stores[side].mask = torch.from_numpy(arr)
     return PlaceFeatures(places, stores["db"], stores["q"])
 
 
 def _stores(
-    kinds: dict[str, _Kind],
-    sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]],
-    size: tuple[int, int],
-    cache_dir: str | Path,
-    storage: str,
-    last: int,
-    with_masks: bool,
+    kinds: dict[str, _Kind], sides: dict[str, Side], settings: StoreSettings, last: int, with_masks: bool
 ) -> dict[str, FeatureStore]:
     """The stores of both sides from the built caches (trunk in RAM or memory-mapped, skips memory-mapped)."""
-    stores = {}
+    stores, cache_dir = {}, settings.cache_dir
     for side, (paths, _) in sides.items():
         arrays = {
             name: _open(
@@ -436,7 +447,7 @@ def _stores(
         }
         trunk = None
         if "trunk" in arrays:
-            held = np.array(arrays["trunk"]) if storage == "ram" else arrays["trunk"]
+            held = np.array(arrays["trunk"]) if settings.storage == "ram" else arrays["trunk"]
             trunk = torch.from_numpy(held).view(torch.bfloat16)
         skips = {
             kinds[name].level: torch.from_numpy(arr).view(torch.bfloat16)
@@ -444,22 +455,18 @@ def _stores(
             if name.startswith("skips")
         }
         mask = torch.from_numpy(arrays["masks"]) if "masks" in arrays else None
-        stores[side] = FeatureStore(tuple(paths), size, trunk, mask, skips, last)
+        stores[side] = FeatureStore(tuple(paths), settings.image_size, trunk, mask, skips, last)
     return stores
 
 
 def _build(
     missing: list[str],
     kinds: dict[str, _Kind],
-    sides: dict[str, tuple[tuple[Path, ...], tuple[Path, ...] | None]],
+    sides: dict[str, Side],
     backbone: nn.Module,
-    weighting: str,
-    size: tuple[int, int],
-    cache_dir: str | Path,
-    batch_size: int,
-    num_workers: int,
+    settings: StoreSettings,
     name: str,
-    mask_source: MaskSource | None,
+    masks: MaskPass | None,
 ) -> None:
     """Build the missing caches in one pass per side; each lands under its final name only when whole."""
 
@@ -477,15 +484,11 @@ def _build(
             levels = {kinds[k].level: arr for k, arr in outs.items() if kinds[k].level is not None}
             _extract(
                 backbone,
-                mask_source if "masks" in outs else None,
-                weighting,
-                paths,
-                labels,
-                size,
+                (paths, labels),
+                settings,
                 levels,
+                masks if "masks" in outs else None,
                 outs.get("masks"),
-                batch_size,
-                num_workers,
                 f"{name} {side}",
             )
             for arr in outs.values():
@@ -493,7 +496,8 @@ def _build(
 
     # The first kind's build computes the others in the same pass into a scratch dir; theirs then
     # only move the files in (or compute alone if a parallel job built the first kind meanwhile).
-    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    cache_dir = settings.cache_dir
+    cache_dir.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(dir=cache_dir, prefix=temp_prefix("features"), suffix=".tmp"))
     try:
         first, *rest = missing
