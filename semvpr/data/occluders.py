@@ -40,6 +40,7 @@ from scipy import ndimage
 
 from semvpr.core.cache import build_once, files_identity
 from semvpr.core.errors import SemvprError
+from semvpr.core.logs import Progress
 from semvpr.core.spec import from_mapping
 from semvpr.data.camvid import read_camvid
 from semvpr.data.classes import DYNAMIC_NAMES, TRAIN_ID_NAMES
@@ -243,6 +244,10 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
         objects = cut_objects(spec.root, spec.min_area)
         scaled: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         record: dict[str, object] = {"objects": len(objects), "images": {}}
+        bar = Progress(
+            f"{places.name}: CamVid objects ({len(objects)} cut from its test split)",
+            len(set(names["db"] + names["q"])),
+        )
         for side, paths in sides.items():
             for name, path in zip(names[side], paths):
                 if name in record["images"]:  # an image on both sides: one draw
@@ -257,6 +262,8 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
                     shutil.copyfile(path, tmp / "images" / name)
                 Image.fromarray(labels).save((tmp / "labels" / name).with_suffix(".png"))
                 record["images"][name] = {"coverage": float((labels != BACKGROUND).mean()), "pasted": pasted}
+                bar.update()
+        bar.close()
         (tmp / "occluders.json").write_text(json.dumps(record, indent=1))
 
     folder = build_once(cache_dir, "occluded", key, build)

@@ -216,7 +216,8 @@ class StudentMask(MaskSource):
 
 
 class OracleMask(MaskSource):
-    """One-hot ground-truth classes from SynthCity's label PNGs (upper bound; never in training data)."""
+    """One-hot ground-truth classes from a set's label PNGs: SynthCity's, or those of the objects pasted by
+    ``data.occluders`` (upper bound; never in training data)."""
 
     needs = "ground_truth"
     describes_new_images = False
@@ -229,7 +230,9 @@ class OracleMask(MaskSource):
         out_hw: Sequence[int] | None = None,
     ) -> Tensor:
         if label_paths is None:
-            raise SemvprError("mask=oracle needs ground-truth label maps; only SynthCity provides them")
+            raise SemvprError(
+                "mask=oracle needs ground-truth label maps: SynthCity's, or a frame-aligned set's with data.occluders"
+            )
         labels = torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in label_paths]).astype(np.int64))
         one_hot = F.one_hot(labels.clamp(max=NUM_CLASSES), NUM_CLASSES + 1)[..., :NUM_CLASSES]  # ignore → zeros
         assert IGNORE >= NUM_CLASSES
