@@ -77,7 +77,10 @@ def test_run_sh_and_summarize_on_fixtures(tmp_path: Path) -> None:
             expected = (float(oracle["r1"]) - float(none["r1"])) / (100.0 - float(none["r1"]))
             assert float(oracle["recovered"]) == pytest.approx(expected, abs=0.002)
     assert (tmp_path / "summary" / "figure_coverage.png").stat().st_size > 0
-    assert "| untrained netvlad | occluded | 20 % | oracle" in (tmp_path / "summary" / "results.md").read_text()
+    assert (
+        "| NetVLAD (k-means, no VPR training) | occluded | 20 % | oracle"
+        in (tmp_path / "summary" / "results.md").read_text()
+    )
 
 
 def _coverage(ranks: Path) -> int:

@@ -1,9 +1,11 @@
 """The occluded-streets tables, data file and figure: every evaluation under OUT/eval (run.sh).
 
-    python experiments/occluded-streets/summarize.py OUT [--out-dir experiments/occluded-streets]
+    python experiments/occluded-streets/summarize.py OUT [--out-dir experiments/occluded-streets] [--logs LOG ...]
 
 Writes ``results.csv`` (one row per pair, model, condition, mask and coverage), ``results.md`` and
-``figure_coverage.png`` (R@1 against coverage, one panel per pair, one line per mask).
+``figure_coverage.png`` (R@1 against coverage, one panel per pair, one line per mask); with ``--logs``
+(run.sh's stderr), ``timings.csv``: the seconds of each compositing and each trunk pass its stage lines
+report.
 
 Conditions: ``clean`` (the frames as they are: coverage 0), ``occluded`` (CamVid test objects pasted over
 the coverage's share of every image) and ``holes`` (the same draws' oracle masks on the frames without the
@@ -44,6 +46,7 @@ MASK_WORDS = {
     "student": "CamVid student",
     "teacher": "CamVid teacher",
 }
+MODEL_WORDS = {"untrained netvlad": "NetVLAD (k-means, no VPR training)", "untrained gem": "GeM (p = 3, no training)"}
 PAIRS = {
     "day_left-night_right": "day_left → night_right (day/night)",
     "day_right-night_right": "day_right → night_right (day/night, same side)",
@@ -53,6 +56,11 @@ FIELDS = (
     "pair", "model", "condition", "mask", "coverage", "seeds", "queries", "r1", "r1_std", "r5", "r5_std",
     "gain", "gain_low", "gain_high", "recovered", "recovered_low", "recovered_high", "leak", "leak_low", "leak_high",
 )  # fmt: skip
+
+#: Stage lines of a finished compositing and of a finished trunk pass (semvpr.core.logs.Progress).
+COMPOSITE_LINE = re.compile(r"semvpr: (.+?): CamVid objects \(.*\): (\d+)/\d+ images in ([\d.]+) (s|min|h)$")
+TRUNK_LINE = re.compile(r"semvpr: (gardens_point .+?) (db|q): (\d+)/\d+ images in ([\d.]+) (s|min|h)$")
+SECONDS = {"s": 1.0, "min": 60.0, "h": 3600.0}
 
 #: {pair: {(model, condition, mask, coverage): {seed: ranks}}}
 Runs = dict[str, dict[tuple[str, str, str, int], dict[int, np.ndarray]]]
@@ -156,11 +164,10 @@ def table(pair: str, pair_rows: list[dict[str, object]]) -> list[str]:
         r1 = f"{row['r1']:.1f}" + (f" ± {row['r1_std']:.1f}" if std else "")
         r5 = f"{row['r5']:.1f}" + (f" ± {row['r5_std']:.1f}" if std else "")
         mask = MASK_WORDS.get(str(row["mask"]), row["mask"])
+        model = MODEL_WORDS.get(str(row["model"]), row["model"])
         gains = " | ".join(_interval(row, name) for name in ("gain", "recovered", "leak"))
-        lines.append(
-            f"| {row['model']} | {row['condition']} | {row['coverage']} % | {mask} | {row['seeds']} | {r1} | {r5} "
-            f"| {gains} |"
-        )
+        cells = [model, row["condition"], f"{row['coverage']} %", mask, row["seeds"], r1, r5]
+        lines.append(f"| {' | '.join(str(c) for c in cells)} | {gains} |")
     return lines
 
 
@@ -198,7 +205,7 @@ def figure(all_rows: list[dict[str, object]], out: Path) -> None:
         ax.set_ylabel("R@1 (%)")
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7)
-    fig.suptitle(f"Gardens Point Walking with CamVid objects pasted in: {model}", fontsize=10)
+    fig.suptitle(f"Gardens Point Walking with CamVid objects pasted in: {MODEL_WORDS.get(model, model)}", fontsize=10)
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
@@ -207,11 +214,28 @@ def figure(all_rows: list[dict[str, object]], out: Path) -> None:
         fh.write(buffer.getvalue())
 
 
+def timings(logs: list[Path]) -> str:
+    """``timings.csv``: kind (composite | trunk), set, images, seconds, from the logs' stage lines."""
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(["kind", "set", "images", "seconds"])
+    for log in logs:
+        for line in log.read_text(encoding="utf-8", errors="replace").splitlines():
+            if found := COMPOSITE_LINE.search(line):
+                name, images, value, unit = found.groups()
+                writer.writerow(["composite", name, images, float(value) * SECONDS[unit]])
+            elif found := TRUNK_LINE.search(line):
+                name, side, images, value, unit = found.groups()
+                writer.writerow(["trunk", f"{name} {side}", images, float(value) * SECONDS[unit]])
+    return text.getvalue()
+
+
 @exit_on_user_error
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="the OUT directory of run.sh")
     parser.add_argument("--out-dir", type=Path, default=Path(__file__).parent)
+    parser.add_argument("--logs", type=Path, nargs="*", default=[], help="run.sh's stderr, for timings.csv")
     args = parser.parse_args()
     runs = collect(args.out)
     if not runs:
@@ -238,6 +262,8 @@ def main() -> None:
         lines += [*table(pair, by_pair[pair]), ""]
     write_text(args.out_dir / "results.md", "\n".join(lines))
     figure(all_rows, args.out_dir / "figure_coverage.png")
+    if args.logs:
+        write_text(args.out_dir / "timings.csv", timings(args.logs))
     print(args.out_dir / "results.md")
 
 
