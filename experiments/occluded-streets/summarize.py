@@ -236,6 +236,7 @@ def main() -> None:
     parser.add_argument("out", type=Path, help="the OUT directory of run.sh")
     parser.add_argument("--out-dir", type=Path, default=Path(__file__).parent)
     parser.add_argument("--logs", type=Path, nargs="*", default=[], help="run.sh's stderr, for timings.csv")
+    parser.add_argument("--machine", default=None, help="where the evaluations ran, for results.md")
     args = parser.parse_args()
     runs = collect(args.out)
     if not runs:
@@ -256,6 +257,10 @@ def main() -> None:
         "excludes 0. Damage recovered: (masked − occluded) / (clean − occluded), where the damage's interval "
         "excludes 0. Leak: the oracle on the occluded images against the oracle on the frames without objects. "
         "Written by `summarize.py` from the evaluations of `run.sh` (numbers: `results.csv`).",
+        "",
+        "Command: `bash experiments/occluded-streets/run.sh OUT ../shared/realdata/gardens_point "
+        "../shared/realdata/camvid`, then `python experiments/occluded-streets/summarize.py OUT`."
+        + (f" Machine: {args.machine}." if args.machine else ""),
         "",
     ]
     for pair in pairs:
