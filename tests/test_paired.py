@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semvpr.reporting.paired import paired_gain
+from semvpr.reporting.paired import paired_gain, recovered_share
 
 
 def test_the_gain_is_the_difference_of_hit_rates_in_points() -> None:
@@ -50,3 +50,23 @@ def test_a_small_gain_on_few_queries_is_not_significant_and_a_large_one_is() -> 
 def test_the_pairing_must_be_on_the_same_queries() -> None:
     with pytest.raises(ValueError, match="same length"):
         paired_gain(np.ones(5), np.ones(6))
+
+
+def test_the_recovered_share_is_the_part_of_the_damage_undone() -> None:
+    """200 queries: 40 found clean are lost under damage; a fix that finds 10 of them again undoes a quarter,
+    one that finds all 40 again undoes all of it in every resample, and no damage has no share."""
+    clean = np.zeros(200, bool)
+    clean[:100] = True
+    damaged = clean.copy()
+    damaged[:40] = False
+    quarter = damaged.copy()
+    quarter[:10] = True
+    share = recovered_share(quarter, damaged, clean)
+    assert share is not None and share.share == pytest.approx(0.25) and share.queries == 200
+    assert 0.0 < share.low < 0.25 < share.high < 0.5
+    full = recovered_share(clean, damaged, clean)
+    assert full is not None and (full.share, full.low, full.high) == (1.0, 1.0, 1.0)
+    worse = damaged.copy()
+    worse[40:50] = False  # the fix loses 10 more
+    assert recovered_share(worse, damaged, clean).high < 0
+    assert recovered_share(quarter, clean, clean) is None

@@ -20,12 +20,15 @@ from __future__ import annotations
 
 import pickle
 import re
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.patterns import bounded_regex, match_name
+from semvpr.data.occluders import OccluderSpec, occlude
 from semvpr.data.places import IMAGE_SUFFIXES, MAX_POSITION, PlaceSet, listed_image
 from semvpr.data.published import check_counts
 
@@ -264,12 +267,17 @@ def read_frames(
     frame_window: int,
     name: str | None = None,
     frame_pattern: str | None = None,
+    occluders: Mapping[str, Any] | None = None,
+    cache_dir: str | Path | None = None,
 ) -> PlaceSet:
     """Two frame-aligned traversals of one route (Nordland, Gardens Point, ...): ``root/database`` and
     ``root/queries``, one folder each, images named by frame; frame f of every traversal shows the same
     place, so the positives of query frame f are the database frames within ``frame_window`` of f.
     Positions are (frame, 0): one unit is one frame. ``name`` (default: the root folder's name) heads
-    the set's name in tables, which also says the traversals and the window."""
+    the set's name in tables, which also says the traversals and the window. ``occluders``
+    (``data.occluders``) pastes CamVid's dynamic objects into every image, with their label maps
+    (``data/occluders.py``; the composites are cached in ``cache_dir``)."""
+    spec = OccluderSpec.from_mapping(occluders)
     root = Path(root).expanduser()
     if not isinstance(frame_window, int) or isinstance(frame_window, bool) or not 0 <= frame_window <= MAX_FRAME:
         raise SemvprError(
@@ -287,7 +295,7 @@ def read_frames(
     lo = np.searchsorted(db_frames, q_frames - frame_window, side="left")
     hi = np.searchsorted(db_frames, q_frames + frame_window, side="right")
     truth = tuple(np.arange(a, b, dtype=np.int64) for a, b in zip(lo, hi))
-    return PlaceSet(
+    places = PlaceSet(
         name=frames_name(name or root.resolve().name, database, queries, frame_window),
         root=root,
         db_paths=tuple(db_paths),
@@ -296,3 +304,6 @@ def read_frames(
         q_utm=np.stack([q_frames, np.zeros_like(q_frames)], 1),
         ground_truth=truth,
     )
+    if spec.source != "none" and cache_dir is None:
+        raise SemvprError("data.occluders needs a cache folder for its composites (paths.cache_dir)")
+    return occlude(places, spec, cache_dir) if spec.source != "none" else places

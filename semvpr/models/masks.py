@@ -216,7 +216,8 @@ class StudentMask(MaskSource):
 
 
 class OracleMask(MaskSource):
-    """One-hot ground-truth classes from SynthCity's label PNGs (upper bound; never in training data)."""
+    """One-hot ground-truth classes from a set's label PNGs: SynthCity's, or those of the objects pasted by
+    ``data.occluders`` (upper bound; never in training data)."""
 
     needs = "ground_truth"
     describes_new_images = False
@@ -228,12 +229,35 @@ class OracleMask(MaskSource):
         label_paths: Sequence[Path] | None,
         out_hw: Sequence[int] | None = None,
     ) -> Tensor:
-        if label_paths is None:
-            raise SemvprError("mask=oracle needs ground-truth label maps; only SynthCity provides them")
-        labels = torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in label_paths]).astype(np.int64))
+        labels = self._labels(label_paths)
         one_hot = F.one_hot(labels.clamp(max=NUM_CLASSES), NUM_CLASSES + 1)[..., :NUM_CLASSES]  # ignore → zeros
         assert IGNORE >= NUM_CLASSES
         return one_hot.permute(0, 3, 1, 2).float().to(self.static_weight.device)
+
+    def grid_mask(
+        self,
+        images: Tensor | None,
+        skips: Sequence[Tensor | None],
+        label_paths: Sequence[Path] | None,
+        grid_hw: tuple[int, int],
+        weighting: str = "binary",
+        out_hw: Sequence[int] | None = None,
+    ) -> Tensor:
+        """The binary mask straight from the labels through the static table (the one-hot classes' weighted sum,
+        without a (B,C,H,W) tensor: label maps of real frames are large); learned weighting as every source."""
+        if weighting != "binary":
+            return super().grid_mask(images, skips, label_paths, grid_hw, weighting, out_hw)
+        labels = self._labels(label_paths).clamp(max=NUM_CLASSES)
+        table = torch.cat([self.static_weight.float(), self.static_weight.new_zeros(1).float()])  # ignore → 0
+        return pool_to_grid(table[labels.to(table.device)][:, None], grid_hw)
+
+    def _labels(self, label_paths: Sequence[Path] | None) -> Tensor:
+        """(B,H,W) class ids of the label maps."""
+        if label_paths is None:
+            raise SemvprError(
+                "mask=oracle needs ground-truth label maps: SynthCity's, or a frame-aligned set's with data.occluders"
+            )
+        return torch.from_numpy(np.stack([np.asarray(Image.open(p)) for p in label_paths]).astype(np.int64))
 
     def reads_pixels(self, image_size: Sequence[int]) -> bool:
         return False

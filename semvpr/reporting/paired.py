@@ -36,18 +36,67 @@ class PairedGain:
         return f"{self.gain:+.1f} [{self.low:+.1f}, {self.high:+.1f}]".replace("-", "−")
 
 
+def _check(*runs: np.ndarray) -> list[np.ndarray]:
+    """Per-query hit rates as float arrays of one 1-D shape."""
+    arrays = [np.asarray(r, dtype=np.float64) for r in runs]
+    shapes = {a.shape for a in arrays}
+    if len(shapes) != 1 or arrays[0].ndim != 1 or not len(arrays[0]):
+        raise ValueError(f"paired hits must be 1-D arrays of the same length, got {[a.shape for a in arrays]}")
+    return arrays
+
+
+def _resampled_means(diffs: np.ndarray, resamples: int, seed: int) -> np.ndarray:
+    """(resamples, k) means of the k rows of ``diffs`` (k, n), every row resampled over the same queries."""
+    rng = np.random.default_rng(seed)
+    n = diffs.shape[1]
+    means = np.empty((resamples, len(diffs)))
+    for start in range(0, resamples, 1000):  # chunks keep the index matrix small for large query sets
+        idx = rng.integers(0, n, size=(min(1000, resamples - start), n))
+        means[start : start + len(idx)] = diffs[:, idx].mean(axis=2).T
+    return means
+
+
+def _interval(values: np.ndarray) -> tuple[float, float]:
+    tail = 100.0 * (1 - LEVEL) / 2
+    low, high = np.percentile(values, [tail, 100.0 - tail])
+    return float(low), float(high)
+
+
 def paired_gain(hits: np.ndarray, reference: np.ndarray, resamples: int = RESAMPLES, seed: int = 0) -> PairedGain:
     """Gain of ``hits`` over ``reference`` (per-query booleans or 0/1, the same queries in the same order),
     in percentage points, with a ``LEVEL`` percentile-bootstrap interval over the queries."""
-    a, b = np.asarray(hits, dtype=np.float64), np.asarray(reference, dtype=np.float64)
-    if a.shape != b.shape or a.ndim != 1 or not len(a):
-        raise ValueError(f"paired hits must be two 1-D arrays of the same length, got {a.shape} and {b.shape}")
+    a, b = _check(hits, reference)
     diff = 100.0 * (a - b)
-    rng = np.random.default_rng(seed)
-    means = np.empty(resamples)
-    for start in range(0, resamples, 1000):  # chunks keep the index matrix small for large query sets
-        idx = rng.integers(0, len(diff), size=(min(1000, resamples - start), len(diff)))
-        means[start : start + len(idx)] = diff[idx].mean(axis=1)
-    tail = 100.0 * (1 - LEVEL) / 2
-    low, high = np.percentile(means, [tail, 100.0 - tail])
-    return PairedGain(float(diff.mean()), float(low), float(high), len(diff))
+    low, high = _interval(_resampled_means(diff[None], resamples, seed)[:, 0])
+    return PairedGain(float(diff.mean()), low, high, len(diff))
+
+
+@dataclass(frozen=True)
+class RecoveredShare:
+    """The share of a damage a fix undoes, (fixed − damaged) / (clean − damaged), its bootstrap interval and
+    the query count."""
+
+    share: float
+    low: float
+    high: float
+    queries: int
+
+    def text(self) -> str:
+        """``62 % [40, 85]`` (a typographic minus)."""
+        return f"{100 * self.share:.0f} % [{100 * self.low:.0f}, {100 * self.high:.0f}]".replace("-", "−")
+
+
+def recovered_share(
+    fixed: np.ndarray, damaged: np.ndarray, clean: np.ndarray, resamples: int = RESAMPLES, seed: int = 0
+) -> RecoveredShare | None:
+    """How much of the damage (``clean`` − ``damaged`` hit rates) ``fixed`` undoes, as a fraction (1: all of it,
+    0: none, below 0: it does more damage), with a ``LEVEL`` percentile-bootstrap interval: numerator and
+    denominator are resampled over the same queries. None where the damage's own interval does not exclude 0
+    (a share of no established damage means nothing)."""
+    f, d, c = _check(fixed, damaged, clean)
+    means = _resampled_means(np.stack([f - d, c - d]), resamples, seed)
+    if _interval(means[:, 1])[0] <= 0:
+        return None
+    ratio = np.divide(means[:, 0], means[:, 1], out=np.full(len(means), np.inf), where=means[:, 1] != 0)
+    low, high = _interval(ratio)
+    return RecoveredShare(float((f - d).mean() / (c - d).mean()), low, high, len(f))

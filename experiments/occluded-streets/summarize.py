@@ -1,0 +1,276 @@
+"""The occluded-streets tables, data file and figure: every evaluation under OUT/eval (run.sh).
+
+    python experiments/occluded-streets/summarize.py OUT [--out-dir experiments/occluded-streets] [--logs LOG ...]
+
+Writes ``results.csv`` (one row per pair, model, condition, mask and coverage), ``results.md`` and
+``figure_coverage.png`` (R@1 against coverage, one panel per pair, one line per mask); with ``--logs``
+(run.sh's stderr), ``timings.csv``: the seconds of each compositing and each trunk pass its stage lines
+report.
+
+Conditions: ``clean`` (the frames as they are: coverage 0), ``occluded`` (CamVid test objects pasted over
+the coverage's share of every image) and ``holes`` (the same draws' oracle masks on the frames without the
+objects: what the holes alone cost). Recall is the mean ± sample std over the occluder seeds. Each query's
+R@1 hit rate is averaged over the seeds before pairing (``semvpr.reporting.paired``: 10,000
+percentile-bootstrap resamples over the queries, 95 %):
+
+- gain: a mask's R@1 over no mask on the same images (``holes``: over no mask on the clean frames);
+- recovered: the share of the objects' damage the mask undoes, (masked − occluded) / (clean − occluded),
+  where the damage's own interval excludes 0;
+- leak (the oracle only): occluded with the oracle against the holes with the oracle: what the pasted
+  objects still cost once every pasted pixel is masked (through the trunk's receptive field).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import re
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from semvpr.core.errors import exit_on_user_error
+from semvpr.core.io import atomic_file, read_json, write_text
+from semvpr.reporting.paired import PairedGain, RecoveredShare, paired_gain, recovered_share
+
+#: run.sh's sweep names: m<model index>-<condition>-<mask>.
+SWEEP = re.compile(r"m(\d+)-(clean|occluded|holes)-(\w+)")
+#: What the occluders add to a set's name (semvpr.data.occluders.occlude).
+OCCLUDED_NAME = re.compile(r"\+ CamVid (\d+)% seed (\d+)( \(holes only\))?$")
+MASK_ORDER = ("none", "oracle", "student", "teacher")
+MASK_WORDS = {
+    "none": "none",
+    "oracle": "oracle (the pasted pixels)",
+    "student": "CamVid student",
+    "teacher": "CamVid teacher",
+}
+MODEL_WORDS = {"untrained netvlad": "NetVLAD (k-means, no VPR training)", "untrained gem": "GeM (p = 3, no training)"}
+PAIRS = {
+    "day_left-night_right": "day_left → night_right (day/night)",
+    "day_right-night_right": "day_right → night_right (day/night, same side)",
+    "day_left-day_right": "day_left → day_right (lateral viewpoint)",
+}
+FIELDS = (
+    "pair", "model", "condition", "mask", "coverage", "seeds", "queries", "r1", "r1_std", "r5", "r5_std",
+    "gain", "gain_low", "gain_high", "recovered", "recovered_low", "recovered_high", "leak", "leak_low", "leak_high",
+)  # fmt: skip
+
+#: Stage lines of a finished compositing and of a finished trunk pass (semvpr.core.logs.Progress).
+COMPOSITE_LINE = re.compile(r"semvpr: (.+?): CamVid objects \(.*\): (\d+)/\d+ images in ([\d.]+) (s|min|h)$")
+TRUNK_LINE = re.compile(r"semvpr: (gardens_point .+?) (db|q): (\d+)/\d+ images in ([\d.]+) (s|min|h)$")
+SECONDS = {"s": 1.0, "min": 60.0, "h": 3600.0}
+
+#: {pair: {(model, condition, mask, coverage): {seed: ranks}}}
+Runs = dict[str, dict[tuple[str, str, str, int], dict[int, np.ndarray]]]
+
+
+def _model(result: dict) -> str:
+    """An untrained aggregator, or the checkpoint's run folder (…/<run>/checkpoints/x.ckpt)."""
+    if result["checkpoint"] == "none":
+        return f"untrained {result['aggregator']}"
+    path = Path(result["checkpoint"])
+    return path.parent.parent.name if path.parent.name == "checkpoints" else path.name
+
+
+def collect(out: Path) -> Runs:
+    """Every ok evaluation under OUT/eval, by pair and cell, with its per-query ranks."""
+    runs: Runs = defaultdict(lambda: defaultdict(dict))
+    for found in sorted((out / "eval").glob("*/*/*/eval.json")):
+        job, sweep, pair = found.parent, found.parent.parent.name, found.parent.parent.parent.name
+        named = SWEEP.fullmatch(sweep)
+        if named is None:
+            raise SystemExit(f"{found.parent.parent}: not a sweep of run.sh (m<i>-<condition>-<mask>)")
+        result = read_json(found, "eval result")
+        if result.get("status") != "ok":
+            raise SystemExit(f"{job}: {result.get('error')}")
+        condition, mask = named.group(2), named.group(3)
+        occluded = OCCLUDED_NAME.search(result["set"])
+        if (occluded is None) != (condition == "clean"):
+            raise SystemExit(f"{job}: set {result['set']!r} does not match its sweep {sweep}")
+        coverage, seed = (int(occluded.group(1)), int(occluded.group(2))) if occluded else (0, 0)
+        ranks = np.load(job / "ranks.npy", allow_pickle=False)
+        runs[pair][(_model(result), condition, mask, coverage)][seed] = ranks
+    return runs
+
+
+def _hits(seeds: dict[int, np.ndarray]) -> np.ndarray:
+    """Each query's R@1 hit rate over the seeds."""
+    return np.mean([r == 0 for r in seeds.values()], axis=0)
+
+
+def _recall(seeds: dict[int, np.ndarray], n: int) -> tuple[float, float]:
+    values = [100.0 * float(np.mean((r >= 0) & (r < n))) for r in seeds.values()]
+    return float(np.mean(values)), float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
+def rows(pair: str, cells: dict[tuple[str, str, str, int], dict[int, np.ndarray]]) -> list[dict[str, object]]:
+    """One row per cell of a pair, with its gains (see the module's docstring)."""
+    out = []
+    order = {m: i for i, m in enumerate(MASK_ORDER)}
+    conditions = {"clean": 0, "occluded": 1, "holes": 2}
+    for key in sorted(cells, key=lambda k: (k[0], conditions[k[1]], k[3], order.get(k[2], 9), k[2])):
+        model, condition, mask, coverage = key
+        seeds = cells[key]
+        r1, r1_std = _recall(seeds, 1)
+        r5, r5_std = _recall(seeds, 5)
+        row: dict[str, object] = {
+            "pair": pair, "model": model, "condition": condition, "mask": mask, "coverage": coverage,
+            "seeds": len(seeds), "queries": len(next(iter(seeds.values()))),
+            "r1": round(r1, 2), "r1_std": round(r1_std, 2), "r5": round(r5, 2), "r5_std": round(r5_std, 2),
+        }  # fmt: skip
+        clean = cells.get((model, "clean", "none", 0))
+        base = clean if condition == "holes" else cells.get((model, condition, "none", coverage))
+        if mask != "none" and base is not None and sorted(base) in (sorted(seeds), [0]):
+            gain = paired_gain(_hits(seeds), _hits(base))
+            row |= {"gain": round(gain.gain, 2), "gain_low": round(gain.low, 2), "gain_high": round(gain.high, 2)}
+            if condition == "occluded" and clean is not None:
+                share = recovered_share(_hits(seeds), _hits(base), _hits(clean))
+                if share is not None:
+                    row |= {
+                        "recovered": round(share.share, 3),
+                        "recovered_low": round(share.low, 3),
+                        "recovered_high": round(share.high, 3),
+                    }
+        holes = cells.get((model, "holes", mask, coverage))
+        if condition == "occluded" and holes is not None and sorted(holes) == sorted(seeds):
+            leak = paired_gain(_hits(seeds), _hits(holes))
+            row |= {"leak": round(leak.gain, 2), "leak_low": round(leak.low, 2), "leak_high": round(leak.high, 2)}
+        out.append(row)
+    return out
+
+
+def _interval(row: dict[str, object], name: str) -> str:
+    """A gain (points) or a recovered share of a row with its interval, * where the interval excludes 0."""
+    if name not in row:
+        return ""
+    value, low, high = (float(row[k]) for k in (name, f"{name}_low", f"{name}_high"))
+    kind = RecoveredShare if name == "recovered" else PairedGain
+    return kind(value, low, high, 0).text() + (" *" if low > 0 or high < 0 else "")
+
+
+def table(pair: str, pair_rows: list[dict[str, object]]) -> list[str]:
+    """The markdown table of one pair."""
+    lines = [
+        f"### {PAIRS.get(pair, pair)}",
+        "",
+        "| model | images | coverage | mask | seeds | R@1 | R@5 | R@1 gain over no mask [95 % CI] "
+        "| damage recovered [95 % CI] | leak: oracle vs holes [95 % CI] |",
+        "|---|---|---:|---|---:|---:|---:|---|---|---|",
+    ]
+    for row in pair_rows:
+        std = row["seeds"] != 1
+        r1 = f"{row['r1']:.1f}" + (f" ± {row['r1_std']:.1f}" if std else "")
+        r5 = f"{row['r5']:.1f}" + (f" ± {row['r5_std']:.1f}" if std else "")
+        mask = MASK_WORDS.get(str(row["mask"]), row["mask"])
+        model = MODEL_WORDS.get(str(row["model"]), row["model"])
+        gains = " | ".join(_interval(row, name) for name in ("gain", "recovered", "leak"))
+        cells = [model, row["condition"], f"{row['coverage']} %", mask, row["seeds"], r1, r5]
+        lines.append(f"| {' | '.join(str(c) for c in cells)} | {gains} |")
+    return lines
+
+
+def figure(all_rows: list[dict[str, object]], out: Path) -> None:
+    """R@1 against coverage, one panel per pair, one line per mask (model: the untrained NetVLAD where run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pairs = [p for p in PAIRS if any(r["pair"] == p for r in all_rows)]
+    models = sorted({str(r["model"]) for r in all_rows})
+    model = "untrained netvlad" if "untrained netvlad" in models else models[0]
+    fig, axes = plt.subplots(1, len(pairs), figsize=(4.2 * len(pairs), 3.4), squeeze=False)
+    for ax, pair in zip(axes[0], pairs):
+        mine = [r for r in all_rows if r["pair"] == pair and r["model"] == model]
+        clean = {r["mask"]: r for r in mine if r["condition"] == "clean"}
+        for mask in MASK_ORDER:
+            for condition, style in (("occluded", "-o"), ("holes", ":s")):
+                points = sorted(
+                    (r["coverage"], r["r1"], r["r1_std"])
+                    for r in mine
+                    if (r["condition"], r["mask"]) == (condition, mask)
+                )
+                if not points:
+                    continue
+                start = clean.get(mask) or clean.get("none")
+                if start is not None:
+                    points = [(0, start["r1"], 0.0), *points]
+                x, y, e = (np.array(v, dtype=float) for v in zip(*points))
+                label = MASK_WORDS[mask] + (" on the frames without objects (holes)" if condition == "holes" else "")
+                ax.errorbar(x, y, yerr=e, fmt=style, capsize=2, label=label)
+        ax.set_title(PAIRS[pair], fontsize=9)
+        ax.set_xlabel("pixels covered by pasted objects (%)")
+        ax.set_ylabel("R@1 (%)")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"Gardens Point Walking with CamVid objects pasted in: {MODEL_WORDS.get(model, model)}", fontsize=10)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    with atomic_file(out) as fh:
+        fh.write(buffer.getvalue())
+
+
+def timings(logs: list[Path]) -> str:
+    """``timings.csv``: kind (composite | trunk), set, images, seconds, from the logs' stage lines."""
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(["kind", "set", "images", "seconds"])
+    for log in logs:
+        for line in log.read_text(encoding="utf-8", errors="replace").splitlines():
+            if found := COMPOSITE_LINE.search(line):
+                name, images, value, unit = found.groups()
+                writer.writerow(["composite", name, images, float(value) * SECONDS[unit]])
+            elif found := TRUNK_LINE.search(line):
+                name, side, images, value, unit = found.groups()
+                writer.writerow(["trunk", f"{name} {side}", images, float(value) * SECONDS[unit]])
+    return text.getvalue()
+
+
+@exit_on_user_error
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path, help="the OUT directory of run.sh")
+    parser.add_argument("--out-dir", type=Path, default=Path(__file__).parent)
+    parser.add_argument("--logs", type=Path, nargs="*", default=[], help="run.sh's stderr, for timings.csv")
+    parser.add_argument("--machine", default=None, help="where the evaluations ran, for results.md")
+    args = parser.parse_args()
+    runs = collect(args.out)
+    if not runs:
+        raise SystemExit(f"no evaluations under {args.out / 'eval'}; run run.sh first")
+    pairs = sorted(runs, key=lambda p: list(PAIRS).index(p) if p in PAIRS else len(PAIRS))
+    by_pair = {pair: rows(pair, runs[pair]) for pair in pairs}
+    all_rows = [r for pair in pairs for r in by_pair[pair]]
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=FIELDS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(all_rows)
+    write_text(args.out_dir / "results.csv", text.getvalue())
+    lines = [
+        "# Occluded streets: Gardens Point Walking with CamVid objects pasted in",
+        "",
+        "Recall@N in % (mean ± sample std over the occluder seeds); gains paired by query over the seeds' mean "
+        "hit rate, 95 % percentile bootstrap over the queries (10,000 resamples); * marks an interval that "
+        "excludes 0. Damage recovered: (masked − occluded) / (clean − occluded), where the damage's interval "
+        "excludes 0. Leak: the oracle on the occluded images against the oracle on the frames without objects. "
+        "Written by `summarize.py` from the evaluations of `run.sh` (numbers: `results.csv`).",
+        "",
+        "Command: `bash experiments/occluded-streets/run.sh OUT ../shared/realdata/gardens_point "
+        "../shared/realdata/camvid`, then `python experiments/occluded-streets/summarize.py OUT`."
+        + (f" Machine: {args.machine}." if args.machine else ""),
+        "",
+    ]
+    for pair in pairs:
+        lines += [*table(pair, by_pair[pair]), ""]
+    write_text(args.out_dir / "results.md", "\n".join(lines))
+    figure(all_rows, args.out_dir / "figure_coverage.png")
+    if args.logs:
+        write_text(args.out_dir / "timings.csv", timings(args.logs))
+    print(args.out_dir / "results.md")
+
+
+if __name__ == "__main__":
+    main()
