@@ -288,7 +288,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     error = ""
     path = job_dir / "metrics.json"
     if not path.is_file():
-        error = "no metrics.json"
+        error = "did not finish: no metrics.json"
     else:
         try:
             loaded = read_json(path, "job metrics")
