@@ -27,6 +27,7 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
+from tests.camvid_fixture import write_camvid
 from tests.helpers import (
     make_folder,
     object_array,
@@ -288,6 +289,20 @@ EVAL = ["semvpr.eval", "experiment=tiny", *EVAL_SIZE]
 LOCALIZE = ["semvpr.localize", *EVAL_SIZE, "data.num_workers=0"]
 
 
+def _camvid(tmp: Path, damage: str) -> list[str]:
+    """A tiny CamVid root with one thing wrong in its train split."""
+    root = write_camvid(tmp / "camvid")
+    if damage == "list a FIFO":
+        (root / "train.txt").unlink()
+        os.mkfifo(root / "train.txt")
+    elif damage == "list not UTF-8":
+        (root / "train.txt").write_bytes((root / "train.txt").read_bytes() + b"train/\xff.png trainannot/\xff.png\n")
+    elif damage == "no known class":
+        for label in (root / "trainannot").glob("*.png"):
+            Image.fromarray(np.full((36, 48), 254, np.uint8)).save(label)
+    return [f"seg.root={root}"]
+
+
 @dataclass
 class Case:
     """A bad input: the CLI and its fixed args, the bad args (given the tmp inputs dir and a checkpoint),
@@ -374,6 +389,15 @@ CASES: dict[str, Case] = {
     ),
     "eval a mapping value holding _target_": Case(
         EVAL, lambda t, c: [f"ckpt={c}", "+data.extra={_target_:os.getcwd}"], "the key _target_ is refused"
+    ),
+    "segment CamVid split list a FIFO": Case(
+        ["semvpr.segment"], lambda t, c: _camvid(t, "list a FIFO"), "train.txt is not a regular file", timeout=90
+    ),
+    "segment CamVid split list not UTF-8": Case(
+        ["semvpr.segment"], lambda t, c: _camvid(t, "list not UTF-8"), "train.txt is not UTF-8 text (a byte 0xff"
+    ),
+    "segment CamVid labels of no known class": Case(
+        ["semvpr.segment"], lambda t, c: _camvid(t, "no known class"), "holds a pixel of a known class"
     ),
     "segment model._partial_": Case(
         ["semvpr.segment"], lambda t, c: [f"seg.root={t}", "teacher.model._partial_=true"], "the key _partial_"
@@ -578,6 +602,7 @@ FAST = {
     "frame_pattern nested repeat",
     "gsv loss without a gradient",
     "teacher.model.num_queries=1e9",
+    "segment CamVid split list not UTF-8",
 }
 
 
