@@ -131,6 +131,20 @@ def _absolute_in_npy(t: Path, c: Path) -> list[str]:
     return [f"ckpt={c}", *_gsv(t)]
 
 
+def _fifo_npy_list(t: Path, c: Path) -> list[str]:
+    _list_dataset(t, ["db0.jpg", "db1.jpg", "db2.jpg"], ["q0.jpg", "q1.jpg", "q2.jpg"])
+    (t / "gt" / "x_qImages.npy").unlink()
+    os.mkfifo(t / "gt" / "x_qImages.npy")
+    return [f"ckpt={c}", *_gsv(t)]
+
+
+def _fifo_patchnetvlad_list(t: Path, c: Path) -> list[str]:
+    args = _absolute_in_patchnetvlad(t, c)
+    (t / "db.txt").unlink()
+    os.mkfifo(t / "db.txt")
+    return args
+
+
 def _absolute_in_patchnetvlad(t: Path, c: Path) -> list[str]:
     write_image(t / "secret" / "outside.jpg", 7)
     _list_dataset(t, ["db0.jpg"], ["q0.jpg"])
@@ -429,6 +443,10 @@ CASES: dict[str, Case] = {
     "absolute path in a gsv-cities list": Case(EVAL, _absolute_in_npy, "leaves the folder"),
     "absolute path in a Patch-NetVLAD list": Case(EVAL, _absolute_in_patchnetvlad, "leaves the folder"),
     "NUL in a listed name": Case(EVAL, _nul_in_npy, "control character"),
+    "a gsv-cities list that is a FIFO": Case(EVAL, _fifo_npy_list, "x_qImages.npy is not a regular file", timeout=90),
+    "a Patch-NetVLAD list that is a FIFO": Case(
+        EVAL, _fifo_patchnetvlad_list, "db.txt is not a regular file", timeout=90
+    ),
     # ---- run dirs are used as written: '$' would be expanded by the TensorBoard logger
     "run dir with $VAR": Case(
         TRAIN, lambda t, c: [f"hydra.run.dir={t.parent / 'run'}/$XV"], "'$' and a leading '~'", env={"XV": "../esc"}
