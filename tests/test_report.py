@@ -419,8 +419,10 @@ def test_a_partial_report_has_the_finished_jobs_and_says_so(sweep: Path) -> None
     assert f"{finished} job(s) finished so far" in md and f"{finished} jobs, " in md
     assert not list(sweep.glob("*.png"))
     assert "mask2former,seed=3" not in md  # still running, not listed as failed
+    assert {row["partial"] for row in _csv_rows(sweep).values()} == {"true"}  # the csv says so too
     final = write_report(sweep).read_text()
     assert "Partial" not in final and f"{finished + 1} jobs, " in final and list(sweep.glob("*.png"))
+    assert {row["partial"] for row in _csv_rows(sweep).values()} == {"false"}
 
 
 def test_the_callback_rewrites_the_partial_table_after_each_job_of_a_multirun(
