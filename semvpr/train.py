@@ -41,7 +41,7 @@ from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.resume import keep_run_record, resumed_config
-from semvpr.core.stops import Interrupted, received_stop, stop_on_signals, sweep_stopped_line
+from semvpr.core.stops import Interrupted, killed_workers_stop, received_stop, stop_on_signals, sweep_stopped_line
 from semvpr.core.threads import Threads
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
@@ -315,7 +315,8 @@ def main() -> None:
     check_overrides_or_exit(sys.argv[1:], "train")
     sys.argv[1:] = keep_run_record(sys.argv[1:])
     try:
-        _hydra_main()
+        with killed_workers_stop(sys.argv[1:]):
+            _hydra_main()
     except Interrupted as stop:  # a signal or a killed worker: one line, not the traceback of wherever it landed
         print(interrupted_line(stop), file=sys.stderr)
         raise SystemExit(2) from None

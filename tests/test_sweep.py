@@ -72,13 +72,20 @@ def test_failed_job_does_not_stop_the_sweep(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("to_group", [False, True], ids=["SIGTERM to the sweep", "Ctrl-C (SIGINT to its group)"])
-def test_a_signal_to_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_report(
-    tmp_path: Path, to_group: bool
+@pytest.mark.parametrize(
+    ("how", "line"),
+    [
+        ("SIGTERM to the sweep", "stopped by SIGTERM"),
+        ("Ctrl-C (SIGINT to its group)", "stopped by SIGINT"),
+        ("SIGKILL to a worker", "a job's worker process was killed (SIGKILL(-9)), so the sweep stopped"),
+    ],
+)
+def test_a_stop_of_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_report(
+    tmp_path: Path, how: str, line: str
 ) -> None:
-    """Stopped while two jobs run: the sweep's own process ends its workers (none left running), exits 2 with
-    one line naming its report, and the report is final (not marked as still running), the jobs that did not
-    finish as failed rows."""
+    """Stopped while two jobs run (a signal to it, or one of its workers killed under it): the sweep's own
+    process ends its workers (none left running), exits 2 with one line naming its report, and the report
+    is final (not marked as still running), the jobs that did not finish as failed rows."""
     sweep = tmp_path / "sweep"
     args = [
         "experiment=tiny", "filter=none", "threads=1", "trainer.max_epochs=400", "seed=0,1,2",
@@ -102,17 +109,20 @@ def test_a_signal_to_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_fina
             for p in subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
         ]
         assert workers, "the sweep runs its jobs in worker processes"
-        if to_group:
+        if how.startswith("Ctrl-C"):
             os.killpg(proc.pid, signal.SIGINT)
-        else:
+        elif how.startswith("SIGTERM"):
             proc.send_signal(signal.SIGTERM)
+        else:
+            loky = [pid for pid in workers if "LokyProcess" in Path(f"/proc/{pid}/cmdline").read_text()]
+            os.kill(loky[0], signal.SIGKILL)
         _, stderr = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     errors = [ln for ln in stderr.splitlines() if ln.startswith("semvpr: error: ")]
     assert proc.returncode == 2 and len(errors) == 1 and stderr.strip().splitlines()[-1] == errors[0], stderr[-3000:]
-    assert errors[0].startswith(f"semvpr: error: stopped by {'SIGINT' if to_group else 'SIGTERM'}; its report")
+    assert errors[0].startswith(f"semvpr: error: {line}; its report")
     assert str(sweep / "results.md") in errors[0]
     time.sleep(1)
     alive = [pid for pid in workers if Path(f"/proc/{pid}").exists() and "Z" not in _state(pid)]
