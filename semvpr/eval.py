@@ -39,8 +39,9 @@ from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
 from semvpr.core.io import CONF_DIR, write_json, write_npy
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision
+from semvpr.core.stops import Interrupted, killed_workers_stop, sweep_stopped_line
 from semvpr.data.places import PlaceSet
-from semvpr.reporting.benchmarks_table import RANKS_FILE
+from semvpr.reporting.benchmarks_table import RANKS_FILE, write_table
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import RECALL_NS, evaluate, first_hit_ranks
 from semvpr.retrieval.retriever import Retriever
@@ -132,7 +133,13 @@ def _hydra_main(cfg: DictConfig) -> None:
 def main() -> None:
     """Console entry point."""
     check_overrides_or_exit(sys.argv[1:], "eval")
-    _hydra_main()
+    try:
+        with killed_workers_stop(sys.argv[1:]):
+            _hydra_main()
+    except Interrupted as stop:  # a signal or a killed worker: one line, not a traceback
+        line = sweep_stopped_line(stop, write_table) if stop.sweep_dir is not None else f"semvpr: error: {stop}"
+        print(line, file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

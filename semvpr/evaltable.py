@@ -19,12 +19,17 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from semvpr.core.errors import exit_on_user_error
+from semvpr.core.stops import stop_on_signals
 from semvpr.reporting.benchmarks_table import write_table
 from semvpr.reporting.sweep import sweep_dir_of
 
 
 class EvalTableCallback(Callback):
     """Hydra callback: write the table when an evaluation multirun ends (conf/eval.yaml)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """A signal to the sweep's own process stops it whole (``core.stops``): one line and the table."""
+        stop_on_signals(sweep_dir_of(config))
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Never raise: each job's eval.json is the result; the table is a summary of them."""

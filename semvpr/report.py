@@ -13,6 +13,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from semvpr.core.errors import exit_on_user_error
+from semvpr.core.stops import stop_on_signals
 from semvpr.reporting.sweep import sweep_dir_of
 from semvpr.reporting.sweep_report import print_summary, write_report
 
@@ -20,6 +21,10 @@ from semvpr.reporting.sweep_report import print_summary, write_report
 class ReportCallback(Callback):
     """Hydra callback (hydra.callbacks.report._target_): the table of the jobs finished so far after each
     job of a multirun (marked partial), the whole report when the multirun ends."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """A signal to the sweep's own process stops it whole (``core.stops``): one line and the report."""
+        stop_on_signals(sweep_dir_of(config))
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
         """Rewrite the partial table after a sweep's job (one writer at a time); never raise."""

@@ -31,8 +31,10 @@ from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.resume import keep_run_record, resumed_config
+from semvpr.core.stops import Interrupted, killed_workers_stop, received_stop, stop_on_signals, sweep_stopped_line
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
+from semvpr.reporting.sweep_report import write_report
 from semvpr.retrieval.distributed import sharded
 from semvpr.retrieval.launch import job_ranks, launched_rank
 from semvpr.retrieval.retriever import Retriever
@@ -220,24 +222,16 @@ def _seed_of(cfg: DictConfig) -> int | str | None:
         return None if cfg.get("seed") is None else str(cfg.get("seed"))
 
 
-class Interrupted(BaseException):
-    """SIGTERM / SIGINT: stop the job and the whole sweep; not a job failure. ``run_dir``: the job it stopped."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(f"stopped by {signal.Signals(signum).name}")
-        self.run_dir: Path | None = None
-
-
-def _interrupt(signum: int, _frame: object) -> None:
-    raise Interrupted(signum)
-
-
 def interrupted_line(stop: Interrupted) -> str:
-    """The one line a stopped job leaves: the signal, and how to resume it where it has a last.ckpt."""
+    """The one line a stopped job or sweep leaves: why, how to resume a job that has a last.ckpt, and for a
+    sweep its report, written now."""
+    resume = "python -m semvpr.train ckpt_path=last hydra.run.dir="
+    if stop.sweep_dir is not None:
+        return sweep_stopped_line(stop, write_report, f"resume a stopped job that has a last.ckpt: {resume}<its dir>")
     if stop.run_dir is None:
         return f"semvpr: error: {stop}"
     if (stop.run_dir / "checkpoints" / "last.ckpt").is_file():
-        return f"semvpr: error: {stop}; resume it: python -m semvpr.train ckpt_path=last hydra.run.dir={stop.run_dir}"
+        return f"semvpr: error: {stop}; resume it: {resume}{stop.run_dir}"
     return f"semvpr: error: {stop} before its first epoch ended ({stop.run_dir}: nothing to resume)"
 
 
@@ -252,14 +246,16 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     if launched_rank() != 0:  # another rank of a DDP job: rank 0 writes and records failures
         fit_and_test(cfg, run_dir)
         return {}
-    signals = (signal.SIGTERM, signal.SIGINT) if threading.current_thread() is threading.main_thread() else ()
-    previous = {sig: signal.signal(sig, _interrupt) for sig in signals}
+    previous = stop_on_signals() if threading.current_thread() is threading.main_thread() else {}
     try:
         metrics = fit_and_test(cfg, run_dir)
     except Interrupted as stop:
         stop.run_dir = stop.run_dir or run_dir
         raise
     except Exception as err:  # noqa: BLE001 - every failure is recorded for the report
+        if (stop := received_stop()) is not None:  # the signal surfaced as a library's error: still a stop
+            stop.run_dir = run_dir
+            raise stop from None
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         write_json(
             run_dir / "metrics.json",
@@ -301,8 +297,9 @@ def main() -> None:
     check_overrides_or_exit(sys.argv[1:], "train")
     sys.argv[1:] = keep_run_record(sys.argv[1:])
     try:
-        _hydra_main()
-    except Interrupted as stop:  # a signal: one line, not the traceback of wherever it landed
+        with killed_workers_stop(sys.argv[1:]):
+            _hydra_main()
+    except Interrupted as stop:  # a signal or a killed worker: one line, not the traceback of wherever it landed
         print(interrupted_line(stop), file=sys.stderr)
         raise SystemExit(2) from None
 

@@ -27,6 +27,7 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
+from tests.camvid_fixture import write_camvid
 from tests.helpers import (
     make_folder,
     object_array,
@@ -128,6 +129,20 @@ def _absolute_in_npy(t: Path, c: Path) -> list[str]:
     write_image(t / "secret" / "outside.jpg", 7)
     _list_dataset(t, ["db0.jpg", "db1.jpg", str(t / "secret" / "outside.jpg")], ["q0.jpg", "q1.jpg", "q2.jpg"])
     return [f"ckpt={c}", *_gsv(t)]
+
+
+def _fifo_npy_list(t: Path, c: Path) -> list[str]:
+    _list_dataset(t, ["db0.jpg", "db1.jpg", "db2.jpg"], ["q0.jpg", "q1.jpg", "q2.jpg"])
+    (t / "gt" / "x_qImages.npy").unlink()
+    os.mkfifo(t / "gt" / "x_qImages.npy")
+    return [f"ckpt={c}", *_gsv(t)]
+
+
+def _fifo_patchnetvlad_list(t: Path, c: Path) -> list[str]:
+    args = _absolute_in_patchnetvlad(t, c)
+    (t / "db.txt").unlink()
+    os.mkfifo(t / "db.txt")
+    return args
 
 
 def _absolute_in_patchnetvlad(t: Path, c: Path) -> list[str]:
@@ -288,6 +303,20 @@ EVAL = ["semvpr.eval", "experiment=tiny", *EVAL_SIZE]
 LOCALIZE = ["semvpr.localize", *EVAL_SIZE, "data.num_workers=0"]
 
 
+def _camvid(tmp: Path, damage: str) -> list[str]:
+    """A tiny CamVid root with one thing wrong in its train split."""
+    root = write_camvid(tmp / "camvid")
+    if damage == "list a FIFO":
+        (root / "train.txt").unlink()
+        os.mkfifo(root / "train.txt")
+    elif damage == "list not UTF-8":
+        (root / "train.txt").write_bytes((root / "train.txt").read_bytes() + b"train/\xff.png trainannot/\xff.png\n")
+    elif damage == "no known class":
+        for label in (root / "trainannot").glob("*.png"):
+            Image.fromarray(np.full((36, 48), 254, np.uint8)).save(label)
+    return [f"seg.root={root}"]
+
+
 @dataclass
 class Case:
     """A bad input: the CLI and its fixed args, the bad args (given the tmp inputs dir and a checkpoint),
@@ -375,6 +404,15 @@ CASES: dict[str, Case] = {
     "eval a mapping value holding _target_": Case(
         EVAL, lambda t, c: [f"ckpt={c}", "+data.extra={_target_:os.getcwd}"], "the key _target_ is refused"
     ),
+    "segment CamVid split list a FIFO": Case(
+        ["semvpr.segment"], lambda t, c: _camvid(t, "list a FIFO"), "train.txt is not a regular file", timeout=90
+    ),
+    "segment CamVid split list not UTF-8": Case(
+        ["semvpr.segment"], lambda t, c: _camvid(t, "list not UTF-8"), "train.txt is not UTF-8 text (a byte 0xff"
+    ),
+    "segment CamVid labels of no known class": Case(
+        ["semvpr.segment"], lambda t, c: _camvid(t, "no known class"), "holds a pixel of a known class"
+    ),
     "segment model._partial_": Case(
         ["semvpr.segment"], lambda t, c: [f"seg.root={t}", "teacher.model._partial_=true"], "the key _partial_"
     ),
@@ -405,6 +443,10 @@ CASES: dict[str, Case] = {
     "absolute path in a gsv-cities list": Case(EVAL, _absolute_in_npy, "leaves the folder"),
     "absolute path in a Patch-NetVLAD list": Case(EVAL, _absolute_in_patchnetvlad, "leaves the folder"),
     "NUL in a listed name": Case(EVAL, _nul_in_npy, "control character"),
+    "a gsv-cities list that is a FIFO": Case(EVAL, _fifo_npy_list, "x_qImages.npy is not a regular file", timeout=90),
+    "a Patch-NetVLAD list that is a FIFO": Case(
+        EVAL, _fifo_patchnetvlad_list, "db.txt is not a regular file", timeout=90
+    ),
     # ---- run dirs are used as written: '$' would be expanded by the TensorBoard logger
     "run dir with $VAR": Case(
         TRAIN, lambda t, c: [f"hydra.run.dir={t.parent / 'run'}/$XV"], "'$' and a leading '~'", env={"XV": "../esc"}
@@ -578,6 +620,7 @@ FAST = {
     "frame_pattern nested repeat",
     "gsv loss without a gradient",
     "teacher.model.num_queries=1e9",
+    "segment CamVid split list not UTF-8",
 }
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -98,3 +100,66 @@ def test_truncated_image_fails_with_its_name_when_loaded(tmp_path: Path) -> None
     seg = read_camvid(root, "train")
     with pytest.raises(SemvprError, match=r"0001TP_000004\.png is unreadable or corrupt"):
         SegmentationDataset(seg, (18, 24))[4]
+
+
+def _replace(path: Path, make: Callable[[Path], None]) -> None:
+    path.unlink()
+    make(path)
+
+
+DAMAGES: dict[str, tuple[Callable[[Path], None], str]] = {
+    "split list a FIFO": (
+        lambda r: _replace(r / "train.txt", os.mkfifo),
+        r"split list .*train\.txt is not a regular file",
+    ),
+    "split list a folder": (lambda r: _replace(r / "train.txt", Path.mkdir), r"train\.txt is not a regular file"),
+    "split list not UTF-8": (
+        lambda r: (r / "train.txt").write_bytes(b"train/\xe9.png trainannot/\xe9.png\n"),
+        r"split list .*train\.txt is not UTF-8 text \(a byte 0xe9 at offset 6\)",
+    ),
+    "label map a FIFO": (
+        lambda r: _replace(r / "trainannot" / "0001TP_000002.png", os.mkfifo),
+        r"train\.txt:3: label map .*0001TP_000002\.png is not a regular file",
+    ),
+    "image a link to a device": (
+        lambda r: _replace(r / "train" / "0001TP_000001.png", lambda p: p.symlink_to("/dev/zero")),
+        r"train\.txt:2: image .*0001TP_000001\.png is not a regular file",
+    ),
+    "label map in colour": (
+        lambda r: Image.fromarray(np.zeros((36, 48, 3), np.uint8)).save(r / "trainannot" / "0001TP_000005.png"),
+        r"0001TP_000005\.png has mode RGB; expected a single-channel PNG of ids",
+    ),
+    "no known class in the split": (
+        lambda r: [Image.fromarray(np.full((36, 48), 200, np.uint8)).save(p) for p in r.glob("trainannot/*.png")],
+        r"none of its 6 label maps holds a pixel of a known class",
+    ),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGES))
+def test_a_malformed_root_is_one_line_naming_what_is_wrong_before_anything_is_read(tmp_path: Path, damage: str) -> None:
+    """Every file the reader takes from the root is a regular file (a FIFO, a folder or a device is refused,
+    never taken as absent nor opened), lists are UTF-8, label maps one channel, and a split holds labels."""
+    make, message = DAMAGES[damage]
+    root = write_camvid(tmp_path / "camvid")
+    make(root)
+    with pytest.raises(SemvprError, match=message) as err:
+        read_camvid(root, "train")
+    assert "\n" not in str(err.value)
+
+
+def test_unknown_ids_in_some_pixels_and_images_linked_from_outside_are_read(tmp_path: Path) -> None:
+    """Ids CamVid does not have are ignored pixels (not a refusal) where the split holds known ones, and an
+    image linked from outside the root is data that is read, never a place anything is written."""
+    root = write_camvid(tmp_path / "camvid")
+    label = root / "trainannot" / "0001TP_000000.png"
+    ids = np.asarray(Image.open(label)).copy()
+    ids[:6] = 77
+    Image.fromarray(ids).save(label)
+    outside = tmp_path / "elsewhere.png"
+    (root / "train" / "0001TP_000001.png").rename(outside)
+    (root / "train" / "0001TP_000001.png").symlink_to(outside)
+    seg = read_camvid(root, "train")
+    _, target = SegmentationDataset(seg, (36, 48))[0]
+    assert (target[:6] == IGNORE).all() and (target[6:] != IGNORE).any()
+    assert SegmentationDataset(seg, (36, 48))[1][0].shape == (3, 36, 48)

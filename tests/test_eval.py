@@ -159,6 +159,27 @@ def test_a_pickled_descriptor_cache_is_refused_unread(checkpoint: Path, tmp_path
         evaluate_checkpoint(cfg)
 
 
+def test_a_descriptor_cache_edited_to_hold_nan_is_named_not_blamed_on_the_checkpoint(
+    checkpoint: Path, tmp_path: Path
+) -> None:
+    root = make_folder(tmp_path / "folder")
+    cfg = config(
+        "data=folder",
+        f"data.root={root}",
+        f"+ckpt={checkpoint}",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        *EVAL_SIZE,
+        config_name="eval",
+    )
+    evaluate_checkpoint(cfg)
+    for cache in (tmp_path / "cache").glob("descriptors-*"):
+        desc = np.load(cache / "descriptors.npy", mmap_mode="r+")
+        desc[-1, 0] = np.inf
+        desc.flush()
+    with pytest.raises(SemvprError, match=r"descriptor cache .*descriptors-.* holds values that are not finite"):
+        evaluate_checkpoint(cfg)
+
+
 @pytest.mark.parametrize("ram_gb", [8, 1e-9])
 def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, ram_gb: float

@@ -131,7 +131,7 @@ def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a
         ({**base, "checkpoint": "a.ckpt", "mask": "teacher"}, None),  # no ranks.npy: no paired gain
     ]
     for num, (result, ranks) in enumerate(jobs):
-        _job(tmp_path, num, result)
+        _job(tmp_path, num, {**result, **_recalls(ranks)} if ranks is not None else result)
         if ranks is not None:
             np.save(tmp_path / str(num) / "ranks.npy", ranks.astype(np.int32))
     rows = [r for r in table_rows(tmp_path) if r["data"] != "published"]
@@ -143,3 +143,62 @@ def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a
     assert value == round(expected, 1) and low < value < high and low > 0  # 30 % of misses flipped: significant
     assert [r.get("R@1 vs no mask", "") for r in (rows[0], rows[2], rows[3])] == ["", "", ""]
     assert "R@1 vs no mask" in write_table(tmp_path).read_text()
+
+
+def _recalls(ranks: np.ndarray) -> dict[str, float]:
+    """The recalls eval.json records for these first-hit ranks (-1: no positive, never a hit), 2 decimals."""
+    return {
+        f"test/R@{n}": round(100.0 * sum(0 <= r < n for r in ranks.tolist()) / len(ranks), 2) for n in (1, 5, 10, 20)
+    }
+
+
+def _masked_pair(tmp_path: Path, none_ranks: np.ndarray, mask_ranks: np.ndarray) -> dict:
+    base = {
+        "status": "ok", "data": "folder", "set": "s", "aggregator": "sral", "backbone": "b", "model": "m",
+        "database": 50, "queries": len(none_ranks), "descriptor_dim": 8, "wall_s": 1.0, "checkpoint": "a.ckpt",
+    }  # fmt: skip
+    for num, (mask, ranks) in enumerate((("none", none_ranks), ("student", mask_ranks))):
+        _job(tmp_path, num, {**base, "mask": mask, **_recalls(ranks)})
+        np.save(tmp_path / str(num) / "ranks.npy", ranks)
+    return base
+
+
+def test_a_ranks_file_that_does_not_give_its_jobs_recalls_is_named_not_paired(tmp_path: Path) -> None:
+    """ranks.npy feeds the paired interval: edited, truncated or swapped for another run's, it no longer gives
+    the recalls its eval.json recorded, and the cell says so instead of an interval from other numbers."""
+    rng = np.random.default_rng(0)
+    none_ranks, mask_ranks = rng.integers(0, 30, 120), rng.integers(0, 30, 120)
+    _masked_pair(tmp_path, none_ranks, mask_ranks)
+    assert re.fullmatch(r"[+−][\d.]+ \[.*\]", table_rows(tmp_path)[1]["R@1 vs no mask"])
+    edits = {
+        "edited": (lambda p: np.save(p, np.zeros(120, np.int64)), "ranks.npy gives R@1 100.00, eval.json"),
+        "truncated": (lambda p: p.write_bytes(p.read_bytes()[:150]), "unreadable ranks.npy (ValueError)"),
+        "below -1": (lambda p: np.save(p, np.full(120, -7)), "ranks below -1"),
+        "a folder": (lambda p: (p.unlink(), p.mkdir()), "unreadable ranks.npy (SemvprError)"),
+    }
+    for what, (edit, reason) in edits.items():
+        edit(tmp_path / "1" / "ranks.npy")
+        cell = table_rows(tmp_path)[1]["R@1 vs no mask"]
+        assert cell.startswith("none: ") and reason in cell, (what, cell)
+        path = tmp_path / "1" / "ranks.npy"
+        path.rmdir() if path.is_dir() else path.unlink()
+        np.save(path, mask_ranks)
+    edits["edited"][0](tmp_path / "0" / "ranks.npy")  # the unmasked job's ranks are checked the same way
+    assert table_rows(tmp_path)[1]["R@1 vs no mask"].startswith("none: the unmasked job: ranks.npy gives R@1")
+
+
+def test_an_eval_json_with_values_out_of_range_is_a_failed_row(tmp_path: Path) -> None:
+    base = _masked_pair(tmp_path, np.arange(10) % 3, np.arange(10) % 2)
+    values = {
+        "test/R@1": 150.0, "test/R@5": float("nan"), "queries": 0, "wall_s": float("inf"), "test/R@20": 0.5,
+    }  # fmt: skip
+    for key, value in values.items():
+        (tmp_path / "2").mkdir(exist_ok=True)
+        result = {**base, "mask": "teacher", **_recalls(np.arange(10) % 3), key: value}
+        (tmp_path / "2" / "eval.json").write_text(json.dumps(result))
+        row = table_rows(tmp_path)[-1]
+        assert (
+            row["source"].startswith("failed: eval.json")
+            and key.removeprefix("test/") in row["source"]
+            or (key == "test/R@20" and "fall as N grows" in row["source"])
+        ), (key, row)

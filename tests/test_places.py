@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -224,3 +225,23 @@ def test_non_finite_utms_are_refused_where_they_are_read(tmp_path: Path, bad: fl
     write_dbstruct(tmp_path / "p.mat", ["a.jpg"], np.array([[bad, 1.0]]), ["q.jpg"], np.zeros((1, 2)))
     with pytest.raises(SemvprError, match="db_utm has 1 non-finite"):
         read_dbstruct_mat(tmp_path / "p.mat", root)
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        (
+            lambda p: p.write_bytes(p.read_bytes() + b"9,caf\xe9,1,2\n"),
+            r"postprocessed\.csv: not UTF-8 text \(a byte 0xe9\)",
+        ),
+        (lambda p: p.write_text(p.read_text() + '9,"' + "x" * 140_000 + '",1,2\n'), r"not a readable csv row"),
+        (lambda p: (p.unlink(), os.mkfifo(p)), r"MSLS csv .*postprocessed\.csv is not a regular file"),
+    ],
+    ids=["not UTF-8", "a field over csv's limit", "a FIFO"],
+)
+def test_a_damaged_msls_csv_is_one_line_naming_it(tmp_path: Path, damage, message: str) -> None:
+    root = write_msls_cities(tmp_path / "msls")
+    damage(root / "train_val" / "cph" / "database" / "postprocessed.csv")
+    with pytest.raises(SemvprError, match=message) as err:
+        read_msls(root, "val")
+    assert "\n" not in str(err.value)

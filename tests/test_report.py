@@ -419,8 +419,10 @@ def test_a_partial_report_has_the_finished_jobs_and_says_so(sweep: Path) -> None
     assert f"{finished} job(s) finished so far" in md and f"{finished} jobs, " in md
     assert not list(sweep.glob("*.png"))
     assert "mask2former,seed=3" not in md  # still running, not listed as failed
+    assert {row["partial"] for row in _csv_rows(sweep).values()} == {"true"}  # the csv says so too
     final = write_report(sweep).read_text()
     assert "Partial" not in final and f"{finished + 1} jobs, " in final and list(sweep.glob("*.png"))
+    assert {row["partial"] for row in _csv_rows(sweep).values()} == {"false"}
 
 
 def test_the_callback_rewrites_the_partial_table_after_each_job_of_a_multirun(
@@ -438,3 +440,20 @@ def test_the_callback_rewrites_the_partial_table_after_each_job_of_a_multirun(
     (sweep / "results.md").unlink()
     ReportCallback().on_job_end(OmegaConf.create({}), None)
     assert not (sweep / "results.md").exists()
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("test/R@1", 150.0), ("test/R@5", -3), ("untrained/test/R@1", float("nan")), ("test/R@10", "90"),
+     ("wall_time_s", float("inf"))],
+)  # fmt: skip
+def test_a_jobs_numbers_out_of_range_make_it_a_failed_row_not_a_mean(tmp_path: Path, key: str, value: object) -> None:
+    """A metrics.json is data: a recall outside [0, 100] (or not a number) or a wall time that is not finite
+    makes its job a failed row saying which value, never a term of the row's mean."""
+    sweep = tmp_path / "sweep"
+    _job(sweep, "filter=none,seed=1", _metrics("none", 1, 40.0))
+    _job(sweep, "filter=none,seed=2", {**_metrics("none", 2, 44.0), key: value})
+    md = write_report(sweep).read_text()
+    row = _csv_rows(sweep)["netvlad · none"]
+    assert row["n"] == "1" and row["failed"] == "1" and float(row["R@1_mean"]) == pytest.approx(40.0)
+    assert f"metrics.json's {key}=" in md

@@ -160,3 +160,19 @@ def test_resume_reloads_the_runs_own_config_and_refuses_contradictions(tmp_path:
     assert again["status"] == "ok" and again["recalls"] == first["recalls"]
     assert {p.name: p.read_text() for p in (run / ".hydra").iterdir()} == record
     assert list(cwd.iterdir()) == []  # nothing composed from today's defaults (outputs/cache) appeared
+
+
+def test_a_sweep_jobs_run_started_with_threads_1_is_resumed_by_the_quoted_command(tmp_path: Path) -> None:
+    """A sweep job's directory holds '=' and ',' (its overrides), so its resume command quotes it as Hydra
+    needs: the record is still found (and Hydra told not to rewrite it), and a run started with a number of
+    threads (threads=1 on a shared machine) is its own config, not a value of the wrong type."""
+    job = tmp_path / "sweep" / "experiment=tiny,filter=unet,seed=3,threads=1"
+    own = tiny_config(tmp_path / "cache", "filter=unet", "seed=3", "threads=1")
+    record = write_run_record(job, own)
+    argv = ["ckpt_path=last", f"hydra.run.dir='{job}'"]
+    assert keep_run_record(argv) == [*argv, "hydra.output_subdir=null"]
+    resumed = resumed_config(config("ckpt_path=last"), record, ["ckpt_path=last"], compose)
+    assert (resumed.threads, resumed.seed, resumed.filter.name) == (1, 3, "unet")
+    for bad in (True, 1.5):  # still a whole number or a word
+        with pytest.raises(SemvprError, match="threads=.* has the wrong type"):
+            resumed_config(config("ckpt_path=last"), write_run_record(job, _tampered(own, "threads", bad)), [], compose)

@@ -468,3 +468,28 @@ def test_a_sweeps_jobs_share_the_trunk_pass_of_a_small_set(
         alone, made = job("alone", "unet")
         assert made == 6
         _assert_same_run(unet, alone)
+
+
+def test_a_signal_that_surfaces_as_a_librarys_error_is_a_stop_not_a_failure(tmp_path: Path, monkeypatch) -> None:
+    """A signal landing inside a library (torch writing a checkpoint) can come out as that library's own
+    error: the job is stopped, not recorded as failed with that error."""
+
+    def killed_mid_save(cfg, run_dir):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except BaseException as err:  # what torch's writer does to the stop
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos") from err
+        raise AssertionError("SIGINT was ignored")
+
+    monkeypatch.setattr(train, "fit_and_test", killed_mid_save)
+    with pytest.raises(train.Interrupted, match="SIGINT"):
+        run_job(OmegaConf.create({"seed": 0}), tmp_path, multirun=True)
+    assert not (tmp_path / "metrics.json").exists()
+    # The next job of the process starts afresh: a failure of its own is not taken for that stop.
+    from semvpr.core import stops
+
+    assert stops.received_stop() is not None
+    for sig, handler in stops.stop_on_signals().items():
+        signal.signal(sig, handler)
+    assert stops.received_stop() is None

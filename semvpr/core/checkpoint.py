@@ -336,6 +336,8 @@ def _same_kind(value: Any, schema: Any) -> bool:
         return False
     if schema is None or value is None:
         return True
+    if schema == "auto":  # a setting the project leaves to semvpr (threads, device) takes a number or a word
+        return isinstance(value, (int, str)) and not isinstance(value, bool)
     if isinstance(schema, bool) or isinstance(value, bool):
         return isinstance(schema, bool) and isinstance(value, bool)
     if isinstance(schema, float):

@@ -209,6 +209,17 @@ def read_json(path: Path, what: str) -> Any:
     return data
 
 
+def read_list_text(path: Path, what: str) -> str:
+    """A list file's text (one name per line): a regular file of at most ``MAX_RECORD_BYTES``, UTF-8; a
+    file that breaks a rule is one line naming it, never taken as absent or read with replaced bytes."""
+    data = _read_limited(path, what, decode=False)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        byte = data[err.start : err.start + 1].hex()
+        raise SemvprError(f"{what} {path} is not UTF-8 text (a byte 0x{byte} at offset {err.start})") from None
+
+
 def regular_file(path: Path, what: str) -> bool:
     """Whether the file a reader may use is at ``path``: False where nothing is there, True for a regular
     file (or a link to one). Anything else there (a FIFO, a device, a folder, a dangling or looping link)
@@ -224,8 +235,9 @@ def regular_file(path: Path, what: str) -> bool:
     return True
 
 
-def _read_limited(path: Path, what: str) -> str:
-    """The text of a regular file of at most ``MAX_RECORD_BYTES`` (a FIFO or device is never opened)."""
+def _read_limited(path: Path, what: str, decode: bool = True) -> Any:
+    """The text (``decode=False``: the bytes) of a regular file of at most ``MAX_RECORD_BYTES`` (a FIFO or
+    device is never opened)."""
     try:
         st = os.stat(path)
         if not stat.S_ISREG(st.st_mode):
@@ -238,7 +250,7 @@ def _read_limited(path: Path, what: str) -> str:
         raise SemvprError(f"{what} {path} cannot be read ({err.strerror or type(err).__name__})") from None
     if len(data) > MAX_RECORD_BYTES:
         raise SemvprError(f"{what} {path} is over {MAX_RECORD_BYTES} bytes")
-    return data.decode("utf-8", errors="replace")
+    return data.decode("utf-8", errors="replace") if decode else data
 
 
 def _depth(node: Any) -> int:

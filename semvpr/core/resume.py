@@ -31,12 +31,19 @@ _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
 
 
 def _value(argv: list[str], key: str) -> str | None:
-    """The value of ``key=...`` (with any leading ``+``) on a Hydra command line, last one wins."""
+    """The value of ``key=...`` (with any leading ``+``) on a Hydra command line as Hydra reads it (a quoted
+    path, as a sweep job's directory must be given, unquoted), last one wins."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
     found = None
     for arg in argv:
         name, sep, value = arg.lstrip("+").partition("=")
         if sep and name == key:
-            found = value
+            try:
+                parsed = OverridesParser.create().parse_override(arg).value()
+            except Exception:  # noqa: BLE001 - Hydra refuses it in its own line; keep the text as written
+                parsed = value
+            found = None if parsed is None else str(parsed)
     return found
 
 

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import read_list_text, regular_file
 from semvpr.core.patterns import bounded_regex, match_name
 from semvpr.data.occluders import OccluderSpec, occlude
 from semvpr.data.places import IMAGE_SUFFIXES, MAX_POSITION, PlaceSet, listed_image
@@ -52,7 +53,7 @@ class _ArrayUnpickler(pickle.Unpickler):
 
 def load_npy(path: Path) -> np.ndarray:
     """An .npy array; an object array is unpickled with numpy's array classes only."""
-    if not path.is_file():
+    if not regular_file(path, "array file"):
         raise SemvprError(f"{path} not found")
     try:
         with path.open("rb") as fh:
@@ -162,9 +163,9 @@ def read_msls_val_npy(gt_dir: str | Path, image_root: str | Path) -> PlaceSet:
 
 
 def _lines(path: Path) -> list[str]:
-    if not path.is_file():
+    if not regular_file(path, "image list"):
         raise SemvprError(f"image list {path} not found")
-    names = [line.strip() for line in path.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()]
+    names = [line.strip() for line in read_list_text(path, "image list").splitlines() if line.strip()]
     if not names:
         raise SemvprError(f"image list {path} is empty")
     return names
@@ -176,7 +177,7 @@ def read_patchnetvlad(
     """Patch-NetVLAD ground truth: positions (``utmDb``, ``utmQ``) and the positive radius
     (``posDistThr``) from the .npz, image paths from the two lists (one per line, same order)."""
     npz_path, image_root = Path(npz_path).expanduser(), Path(image_root).expanduser()
-    if not npz_path.is_file():
+    if not regular_file(npz_path, "ground truth file"):
         raise SemvprError(f"{npz_path} not found")
     try:
         with np.load(npz_path, allow_pickle=False) as npz:

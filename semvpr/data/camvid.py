@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import read_list_text, regular_file
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.data.places import listed_image
 from semvpr.data.segmentation import SegmentationSet, check_pair
@@ -49,13 +50,13 @@ def read_camvid(root: str | Path, split: str) -> SegmentationSet:
             f"{split}/, {split}annot/ and {split}.txt (SegNet layout)"
         )
     listing = root / f"{split}.txt"
-    if not listing.is_file():
+    if not regular_file(listing, "CamVid split list"):
         raise SemvprError(
             f"CamVid split list {listing} not found; seg.root must hold {split}.txt with lines "
             f"'{split}/<name>.png {split}annot/<name>.png' (SegNet layout)"
         )
     images, labels = [], []
-    for number, line in enumerate(listing.read_text().splitlines(), start=1):
+    for number, line in enumerate(read_list_text(listing, "CamVid split list").splitlines(), start=1):
         if not line.strip():
             continue
         entries = line.split()
@@ -63,11 +64,13 @@ def read_camvid(root: str | Path, split: str) -> SegmentationSet:
             raise SemvprError(f"{listing}:{number}: expected '<image> <label map>', got {line.strip()!r}")
         image, label = (_listed(root, e, listing) for e in entries)
         for path, what in ((image, "image"), (label, "label map")):
-            if not path.is_file():
+            if not regular_file(path, f"{listing}:{number}: {what}"):
                 raise SemvprError(f"{listing}:{number}: {what} {path} is missing")
         check_pair(image, label)  # headers only: a wrong or truncated file fails here, named, not in a worker
         images.append(image)
         labels.append(label)
     if not images:
         raise SemvprError(f"CamVid split list {listing} lists no images")
-    return SegmentationSet(images=tuple(images), labels=tuple(labels), label_lut=camvid_lut())
+    seg = SegmentationSet(images=tuple(images), labels=tuple(labels), label_lut=camvid_lut())
+    seg.check_labelled(f"CamVid split {listing}")
+    return seg

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from semvpr.core.cache import files_identity
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import regular_file
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 #: The official MSLS cities of each split (mapillary_sls, ``default_cities``).
@@ -372,7 +373,7 @@ def read_dbstruct_mat(
     from scipy.io import loadmat
 
     mat_path, image_root = Path(mat_path).expanduser(), Path(image_root).expanduser()
-    if not mat_path.is_file():
+    if not regular_file(mat_path, "dbStruct file"):
         raise SemvprError(
             f"dbStruct file {mat_path} not found; check data.root (it should hold "
             f"datasets/<name>.mat of the Pittsburgh / Tokyo 24/7 release, and the images)"
@@ -427,15 +428,21 @@ def read_dbstruct_mat(
 
 def _read_csv(path: Path, required: tuple[str, ...]) -> list[dict[str, str]]:
     """Rows of an MSLS csv (its unnamed first column is the frame index, as pandas writes it)."""
-    if not path.is_file():
+    if not regular_file(path, "MSLS csv"):
         raise SemvprError(f"{path} not found; MSLS needs <city>/{{query,database}}/{path.name}")
-    with path.open(newline="") as fh:
+    with path.open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        columns = set(reader.fieldnames or ())
-        missing = [c for c in required if c not in columns]
-        if missing:
-            raise SemvprError(f"{path}: missing column(s) {missing} (found {sorted(columns)})")
-        return list(reader)
+        try:
+            columns = set(reader.fieldnames or ())
+            missing = [c for c in required if c not in columns]
+            if missing:
+                raise SemvprError(f"{path}: missing column(s) {missing} (found {sorted(columns)})")
+            return list(reader)
+        except csv.Error as err:
+            raise SemvprError(f"{path}: line {reader.line_num + 1}: not a readable csv row ({err})") from None
+        except UnicodeDecodeError as err:
+            byte = err.object[err.start : err.start + 1].hex()
+            raise SemvprError(f"{path}: not UTF-8 text (a byte 0x{byte})") from None
 
 
 def _frame(row: dict[str, str], position: int) -> int:

@@ -11,10 +11,13 @@ import torch
 from PIL import Image
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import regular_file
 from semvpr.data.classes import IGNORE, LABEL_TO_TRAIN_LUT, TRAIN_ID_NAMES
 from semvpr.data.images import Size, hw_of, load_image, open_image
 
 IMAGE_SUFFIX = "_leftImg8bit.png"
+#: PIL modes of a label map: one channel of ids.
+LABEL_MODES = ("L", "P", "I", "I;16", "I;16B", "I;16L")
 LABEL_SUFFIX = "_gtFine_labelIds.png"
 
 
@@ -40,6 +43,17 @@ class SegmentationSet:
     def __len__(self) -> int:
         return len(self.images)
 
+    def check_labelled(self, what: str) -> None:
+        """Raise unless some label map holds a pixel of a known class: a split of only unknown or ignored
+        ids would train or score nothing. Reads label maps until the first such pixel (usually one)."""
+        for label in self.labels:
+            if (load_train_ids(label, from_label_ids=True, lut=self.label_lut) != IGNORE).any():
+                return
+        raise SemvprError(
+            f"{what}: none of its {len(self.labels)} label maps holds a pixel of a known class (every id is "
+            "unknown or ignored); check the label maps are the set's own ids"
+        )
+
 
 def read_cityscapes(root: str | Path, split: str) -> SegmentationSet:
     """Pair leftImg8bit/<split>/<city>/*_leftImg8bit.png with gtFine/.../*_gtFine_labelIds.png."""
@@ -57,10 +71,12 @@ def read_cityscapes(root: str | Path, split: str) -> SegmentationSet:
     for image in images:
         stem = image.name[: -len(IMAGE_SUFFIX)]
         label = root / "gtFine" / split / image.parent.name / f"{stem}{LABEL_SUFFIX}"
-        if not label.is_file():
+        if not regular_file(label, f"{image}: label map"):
             raise SemvprError(f"{image}: label map {label} is missing")
         labels.append(label)
-    return SegmentationSet(images=tuple(images), labels=tuple(labels))
+    seg = SegmentationSet(images=tuple(images), labels=tuple(labels))
+    seg.check_labelled(f"Cityscapes {split} split under {root}")
+    return seg
 
 
 def load_train_ids(
@@ -77,7 +93,7 @@ def load_train_ids(
     if image is not None:
         check_pair(image, path)
     img = open_image(path, "label map")
-    if img.mode not in ("L", "P", "I", "I;16", "I;16B", "I;16L"):
+    if img.mode not in LABEL_MODES:
         raise SemvprError(f"label map {path} has mode {img.mode}; expected a single-channel PNG of ids")
     hw = hw_of(size)
     if hw is not None and img.size != (hw[1], hw[0]):
@@ -94,16 +110,20 @@ def load_train_ids(
 
 
 def check_pair(image: str | Path, label: str | Path) -> None:
-    """Raise if a label map's size differs from its image's (reads headers only)."""
-    sizes = []
+    """Raise if a label map's size differs from its image's, or it is not one channel of ids (reads headers
+    only)."""
+    sizes, modes = [], []
     for path in (Path(image), Path(label)):
         try:
             with Image.open(path) as img:
                 sizes.append(img.size)
+                modes.append(img.mode)
         except FileNotFoundError:
             raise SemvprError(f"{path} not found") from None
         except (OSError, ValueError, SyntaxError) as err:
             raise SemvprError(f"{path} is unreadable or corrupt ({err})") from None
+    if modes[1] not in LABEL_MODES:
+        raise SemvprError(f"label map {label} has mode {modes[1]}; expected a single-channel PNG of ids")
     if sizes[0] != sizes[1]:
         (iw, ih), (lw, lh) = sizes
         raise SemvprError(f"label map {label} is {lh}x{lw} but its image {image} is {ih}x{iw} (HxW)")

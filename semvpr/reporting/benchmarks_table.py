@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import check_replaceable, read_json, read_yaml, write_text
+from semvpr.core.io import check_replaceable, read_json, read_yaml, regular_file, write_text
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.paired import paired_gain
@@ -82,13 +82,25 @@ _RESULT_KEYS: dict[str, tuple[type, ...]] = {
 
 
 def _malformed(result: dict[str, Any]) -> str | None:
-    """Why an ok eval.json cannot make a row (a missing key or a value of the wrong type), or None."""
+    """Why an ok eval.json cannot make a row (a missing key, a value of the wrong type or out of its range:
+    recalls in [0, 100] and not falling with N, counts >= 1, a finite wall time >= 0), or None."""
     for key, types in _RESULT_KEYS.items():
         value = result.get(key)
         if not isinstance(value, types) or isinstance(value, bool):
             return f"eval.json has no usable {key!r} ({type(value).__name__})"
     if result.get("benchmark") is not None and not isinstance(result["benchmark"], str):
         return "eval.json has no usable 'benchmark'"
+    recalls = [result[f"test/R@{n}"] for n in RECALL_NS]
+    for n, value in zip(RECALL_NS, recalls, strict=True):
+        if not 0 <= value <= 100:  # NaN fails too
+            return f"eval.json's test/R@{n}={value} is not a recall in [0, 100]"
+    if any(b < a for a, b in zip(recalls, recalls[1:])):
+        return f"eval.json's recalls {recalls} fall as N grows"
+    for key in ("queries", "database", "descriptor_dim"):
+        if result[key] < 1:
+            return f"eval.json's {key}={result[key]} is not a count >= 1"
+    if not 0 <= result["wall_s"] < float("inf"):
+        return f"eval.json's wall_s={result['wall_s']} is not a finite time >= 0"
     return None
 
 
@@ -161,30 +173,40 @@ def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
     return rows
 
 
-def _ranks(job: Path, queries: int) -> np.ndarray | None:
-    """A job's ``ranks.npy`` if it is a 1-D integer array of one rank per query, else None."""
+def _ranks(job: Path, result: dict[str, Any]) -> np.ndarray | str | None:
+    """A job's ``ranks.npy``: a 1-D integer array of one rank per query (-1: no positive) that gives the
+    recalls its ``eval.json`` recorded; None where the job has none (an older run), else why it is unusable."""
     path = job / RANKS_FILE
-    if not path.is_file():
-        return None
     try:
+        if not regular_file(path, "ranks file"):
+            return None
         ranks = np.load(path, allow_pickle=False)
-    except (OSError, ValueError):
-        return None
-    ok = ranks.ndim == 1 and len(ranks) == queries and np.issubdtype(ranks.dtype, np.integer)
-    return ranks if ok else None
+    except (SemvprError, OSError, ValueError, EOFError) as err:
+        return f"unreadable ranks.npy ({type(err).__name__})"
+    if ranks.ndim != 1 or len(ranks) != result["queries"] or not np.issubdtype(ranks.dtype, np.integer):
+        return f"ranks.npy is {ranks.dtype}{list(ranks.shape)}, not one rank per query"
+    if ranks.size and ranks.min() < -1:
+        return "ranks.npy holds ranks below -1"
+    for n in RECALL_NS:  # eval.json rounds recalls to 2 decimals
+        recall = 100.0 * np.count_nonzero((ranks >= 0) & (ranks < n)) / len(ranks)
+        if abs(recall - result[f"test/R@{n}"]) > 0.006:
+            return f"ranks.npy gives R@{n} {recall:.2f}, eval.json {result[f'test/R@{n}']}"
+    return ranks
 
 
 def _mask_gains(measured: list[tuple[dict[str, Any], dict[str, Any], Path]]) -> None:
     """Fill ``R@1 vs no mask`` of each masked row whose checkpoint the sweep also evaluated on the same set
-    without a mask (both with readable ranks)."""
-    unmasked = {(r["set"], r["checkpoint"], r["queries"]): job for _, r, job in measured if r["mask"] == "none"}
+    without a mask: the paired gain where both jobs' ranks agree with their recalls, else why not."""
+    unmasked = {(r["set"], r["checkpoint"], r["queries"]): (r, job) for _, r, job in measured if r["mask"] == "none"}
     for row, result, job in measured:
         reference = unmasked.get((result["set"], result["checkpoint"], result["queries"]))
         if result["mask"] == "none" or reference is None:
             continue
-        ranks, base = _ranks(job, result["queries"]), _ranks(reference, result["queries"])
-        if ranks is not None and base is not None:
+        ranks, base = _ranks(job, result), _ranks(reference[1], reference[0])
+        if isinstance(ranks, np.ndarray) and isinstance(base, np.ndarray):
             row["R@1 vs no mask"] = paired_gain(ranks == 0, base == 0).text()
+        elif isinstance(ranks, str) or isinstance(base, str):
+            row["R@1 vs no mask"] = f"none: {ranks if isinstance(ranks, str) else 'the unmasked job: ' + str(base)}"
 
 
 def write_table(sweep_dir: Path) -> Path:

@@ -280,6 +280,23 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
     return facts, tuple(roots)
 
 
+_RECALL_KEY = re.compile(r"^(untrained/)?test/R@\d+(_pos)?$")
+
+
+def out_of_range(metrics: dict[str, Any]) -> str | None:
+    """Why an ok job's recorded numbers cannot be its row (a recall not a number in [0, 100], a wall time
+    not finite and >= 0), or None: a job's file gets the checks the value would get where it is made."""
+    for key, value in metrics.items():
+        if _RECALL_KEY.match(key) and (
+            not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value <= 100
+        ):
+            return f"metrics.json's {key}={value!r} is not a recall in [0, 100]"
+    wall = metrics.get("wall_time_s")
+    if wall is not None and (not isinstance(wall, (int, float)) or isinstance(wall, bool) or not 0 <= wall < math.inf):
+        return f"metrics.json's wall_time_s={wall!r} is not a finite time >= 0"
+    return None
+
+
 def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     """Read one job directory; a missing or unreadable metrics.json makes a failed job."""
     rel = job_dir.relative_to(sweep_dir).as_posix()
@@ -288,7 +305,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     error = ""
     path = job_dir / "metrics.json"
     if not path.is_file():
-        error = "no metrics.json"
+        error = "did not finish: no metrics.json"
     else:
         try:
             loaded = read_json(path, "job metrics")
@@ -297,6 +314,8 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         except SemvprError as err:
             error = f"unreadable metrics.json ({err})"
     ok = not error and metrics.get("status") == "ok"
+    if ok and (error := out_of_range(metrics) or "") != "":
+        ok = False
     if not ok and not error:
         error = _error_line(metrics.get("error")) or f"status {metrics.get('status')!r}"
     facts, roots = _hydra_facts(job_dir)

@@ -62,13 +62,14 @@ def _epochs(epochs: list[Any], sep: str) -> str:
     return sep.join(str(e) if isinstance(e, int) else "?" for e in epochs)
 
 
-def _csv_text(rows: list[dict[str, Any]]) -> str:
-    """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing."""
+def _csv_text(rows: list[dict[str, Any]], partial: bool = False) -> str:
+    """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing; each row says
+    whether the sweep was still running (``partial``: its row may lack jobs not finished yet)."""
     buf = io.StringIO()
     cols = (
         ["aggregator", "mask", "backbone", "n", "seeds"]
         + [f"R@{n}_{s}" for n in RECALL_NS for s in ("mean", "std")]
-        + ["wall_time_s", "failed", "best_epochs"]
+        + ["wall_time_s", "failed", "best_epochs", "partial"]
     )
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
@@ -86,6 +87,7 @@ def _csv_text(rows: list[dict[str, Any]]) -> str:
                 num(r["wall_time_s"]),
                 r["failed"],
                 _epochs(r["best_epochs"], " "),
+                str(partial).lower(),
             ]
         )
     return buf.getvalue()
@@ -295,7 +297,7 @@ def write_report(sweep_dir: Path, partial: bool = False) -> Path:
                 figures[fname] = draw(sweep, scratch / fname)
             except Exception as err:  # one broken figure must not cost the table
                 figures[fname] = f"{type(err).__name__}: {err}"
-        write_text(scratch / "results.csv", _csv_text(rows))
+        write_text(scratch / "results.csv", _csv_text(rows, partial))
         text = _markdown(sweep, rows, figures)
         if partial:
             title, _, rest = text.partition("\n")

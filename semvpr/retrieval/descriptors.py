@@ -68,4 +68,8 @@ def place_descriptors(
             f"descriptor cache {folder} holds {desc.dtype}{list(desc.shape)}, expected "
             f"float32[{len(paths)}, {dim}]; delete it to rebuild"
         )
+    try:  # a cache is never written non-finite (build): such values were put there since
+        check_finite(desc, f"{places.name} {side}")
+    except SemvprError:
+        raise SemvprError(f"descriptor cache {folder} holds values that are not finite; delete it to rebuild") from None
     return desc

@@ -1,0 +1,99 @@
+"""How a run or a sweep stops early: a signal (scheduler pre-emption, ``kill``, Ctrl-C) or, in a sweep, a
+job's worker process killed under the launcher ends it as :class:`Interrupted`, which the commands turn
+into one line (and, for a sweep, its final report); it is never recorded as a job's failure.
+
+A sweep's parent process (the one running Hydra's launcher) takes the signals too
+(:func:`stop_on_signals`, from the report callbacks' ``on_multirun_start``): raised there, the launcher
+abandons its jobs and ends its worker processes, so none is left running or writing after the line.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+
+class Interrupted(BaseException):
+    """A stop, not a failure: ``run_dir`` is the job it stopped, ``sweep_dir`` the sweep (None where not
+    known)."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.run_dir: Path | None = None
+        self.sweep_dir: Path | None = None
+
+
+#: The signals that stop a run or a sweep.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+#: The stop signals this process received: raised inside a library (a checkpoint being written, say), the
+#: stop can surface as that library's own error, which must not be recorded as the job's failure.
+RECEIVED: list[int] = []
+#: The sweep this process launches (set when its parent installs the handlers), for a stop raised elsewhere.
+SWEEP: list[Path] = []
+
+
+def received_stop() -> Interrupted | None:
+    """The stop this process received, if any, as the :class:`Interrupted` it raised."""
+    return Interrupted(f"stopped by {signal.Signals(RECEIVED[-1]).name}") if RECEIVED else None
+
+
+def stop_on_signals(sweep_dir: Path | None = None) -> dict[int, Any]:
+    """Make SIGTERM and SIGINT raise :class:`Interrupted` (naming ``sweep_dir``) in this process's main
+    thread, forgetting the stops received before; returns the handlers they replace."""
+    RECEIVED.clear()
+    if sweep_dir is not None:
+        SWEEP[:] = [sweep_dir]
+
+    def interrupt(signum: int, _frame: object) -> None:
+        RECEIVED.append(signum)
+        stop = Interrupted(f"stopped by {signal.Signals(signum).name}")
+        stop.sweep_dir = sweep_dir
+        raise stop
+
+    return {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
+
+
+def sweep_stopped_line(stop: Interrupted, write_report: Callable[[Path], Path], resume: str = "") -> str:
+    """The one line of a stopped sweep (``stop.sweep_dir`` set): why, and where its report is, written now
+    from what the jobs left (those that finished, and the others as failed rows); ``resume``: how to go
+    on with a stopped job."""
+    assert stop.sweep_dir is not None
+    try:
+        where = f"its report, with the jobs that did not finish as failed rows: {write_report(stop.sweep_dir)}"
+    except Exception as err:  # noqa: BLE001 - the jobs' own files are the results; the line must still come
+        where = f"its report was not written ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+    return f"semvpr: error: {stop}; {where}{'; ' + resume if resume else ''}"
+
+
+@contextmanager
+def killed_workers_stop(argv: Sequence[str]) -> Iterator[None]:
+    """Around a command's Hydra main: in a sweep (``-m``), a job's worker process killed under joblib (the
+    out-of-memory killer, ``kill -9``) comes out of the launcher as ``TerminatedWorkerError``, which Hydra
+    would print as a traceback; here it is raised (``HYDRA_FULL_ERROR``) and becomes :class:`Interrupted`
+    naming the sweep, so the command gives its one line and the final report. Joblib cannot go on with the
+    other jobs once one of its workers is gone."""
+    if not {"-m", "--multirun"} & set(argv):
+        yield
+        return
+    previous = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        yield
+    except Exception as err:
+        if type(err).__name__ != "TerminatedWorkerError" or not SWEEP:
+            raise
+        codes = str(err).rpartition("exit codes of the workers are ")[2].split("\n")[0].strip(" {}")
+        stop = Interrupted(f"a job's worker process was killed ({codes or 'no exit code'}), so the sweep stopped")
+        stop.sweep_dir = SWEEP[0]
+        raise stop from None
+    finally:
+        if previous is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = previous
