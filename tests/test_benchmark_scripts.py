@@ -34,6 +34,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     "gpu.py": (lambda t: ["--device", "cpu", "--quick", "--work", str(t / "gpu")], "gpu_check devices=cpu"),
     "mask_cost.py": (lambda t: ["--batch", "1", "--repeats", "1"], "teacher_cut="),
     "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "floor_s="),
+    "kernel_time.py": (lambda t: ["--override", "experiment=tiny"], "equal_recalls=1"),
     "recipe_cost.py": (
         lambda t: (
             ["--cache-dir", str(t / "cache"), "--aggregators", "gem", "--override", "experiment=tiny"]
