@@ -25,9 +25,9 @@ def _keep_freed_memory() -> None:
     """Keep blocks up to :data:`MMAP_THRESHOLD` in the heap and up to :data:`TRIM_THRESHOLD` of free memory at
     its top. glibc's defaults hand every block above a dynamic threshold (at most 32 MiB) back to the kernel
     when freed and trim the heap's top beyond 128 KiB, so each batch of a pass over images (decoded images,
-    activations) is written into fresh pages that the kernel must fault in and zero: a cold default training
-    job made 11.9 million page faults, and its kernel time was 22 % of its CPU time (9 % with these values,
-    2.2 million faults, the same numbers; ``benchmarks/kernel_time.py``). Left alone where the environment
+    activations) is written into fresh pages that the kernel must fault in and zero: in a cold default
+    training job that was a fifth of its CPU time, halved with these values, with equal recalls
+    (``benchmarks/kernel_time.py``, ``benchmarks/results/kernel_time.json``). Left alone where the environment
     sets glibc's own (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, ``GLIBC_TUNABLES``) and
     where the C library is not glibc."""
     if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")):
