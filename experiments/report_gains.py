@@ -12,13 +12,11 @@ sample std over seeds, and in how many seeds it was better.
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import re
 from pathlib import Path
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import write_text
+from semvpr.core.io import write_csv
 
 #: One stated gain: ``<model> +6.5 ± 4.4 (better in 3 of 3 seeds)``, models separated by ', '.
 GAIN = re.compile(
@@ -67,11 +65,7 @@ def main() -> None:
         rows = gains(path.read_text(encoding="utf-8"))
         if not rows:
             raise SemvprError(f"{path}: no paired gain in it (is it a semvpr.report results.md?)")
-        out = io.StringIO()
-        writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(rows)
-        write_text(path.with_name("gains.csv"), out.getvalue())
+        write_csv(path.with_name("gains.csv"), COLUMNS, rows)
         print(f"{path.with_name('gains.csv')}: {len(rows)} gains")
 
 

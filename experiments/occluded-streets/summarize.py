@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.core.errors import exit_on_user_error
-from semvpr.core.io import atomic_file, read_json, write_text
+from semvpr.core.io import atomic_file, read_json, write_csv, write_text
 from semvpr.reporting.paired import PairedGain, RecoveredShare, paired_gain, recovered_share
 
 #: run.sh's sweep names: m<model index>-<condition>-<mask>.
@@ -244,11 +244,7 @@ def main() -> None:
     pairs = sorted(runs, key=lambda p: list(PAIRS).index(p) if p in PAIRS else len(PAIRS))
     by_pair = {pair: rows(pair, runs[pair]) for pair in pairs}
     all_rows = [r for pair in pairs for r in by_pair[pair]]
-    text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=FIELDS, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(all_rows)
-    write_text(args.out_dir / "results.csv", text.getvalue())
+    write_csv(args.out_dir / "results.csv", FIELDS, all_rows)
     lines = [
         "# Occluded streets: Gardens Point Walking with CamVid objects pasted in",
         "",

@@ -12,13 +12,11 @@ the estimate) and ``excludes_0``. The evaluations it summarises (``run.sh``'s OU
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import re
 from pathlib import Path
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import write_text
+from semvpr.core.io import write_csv
 
 RECALLS = ("R@1", "R@5", "R@10")
 COLUMNS = (
@@ -81,11 +79,7 @@ def main() -> None:
     table = rows(args.report.read_text(encoding="utf-8"))
     if not table:
         raise SemvprError(f"{args.report}: no table rows (is it summarize.py's results.md?)")
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(table)
-    write_text(args.report.with_name("results.csv"), out.getvalue())
+    write_csv(args.report.with_name("results.csv"), COLUMNS, table)
     print(f"{args.report.with_name('results.csv')}: {len(table)} rows")
 
 

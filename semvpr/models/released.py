@@ -201,25 +201,18 @@ LAYOUTS: dict[str, Layout] = {
             ("backbone.model.conv1.weight", "aggregator.channel_proj.weight"),
             _mixvpr_settings,
         ),
-        Layout(
-            "cosplace",
-            "cosplace (ResNet50, released)",
-            "resnet50",
-            "gem",
-            None,
-            _GEM,
-            ("backbone.0.weight", "aggregation.1.p", "aggregation.3.weight"),
-            _gem_settings,
-        ),
-        Layout(
-            "eigenplaces",
-            "eigenplaces (ResNet50, released)",
-            "resnet50",
-            "gem",
-            None,
-            _GEM,
-            ("backbone.0.weight", "aggregation.1.p", "aggregation.3.weight"),
-            _gem_settings,
+        *(  # one network (GeoLocalizationNet), released by two projects
+            Layout(
+                name,
+                f"{name} (ResNet50, released)",
+                "resnet50",
+                "gem",
+                None,
+                _GEM,
+                ("backbone.0.weight", "aggregation.1.p", "aggregation.3.weight"),
+                _gem_settings,
+            )
+            for name in ("cosplace", "eigenplaces")
         ),
         Layout(
             "boq",

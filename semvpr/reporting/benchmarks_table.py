@@ -9,8 +9,6 @@ support."""
 
 from __future__ import annotations
 
-import csv
-import io
 import os
 from pathlib import Path
 from typing import Any
@@ -18,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import check_replaceable, read_json, read_yaml, regular_file, write_text
+from semvpr.core.io import check_replaceable, read_json, read_yaml, regular_file, write_csv, write_text
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.paired import paired_gain
@@ -214,11 +212,7 @@ def write_table(sweep_dir: Path) -> Path:
     for name in ("results.csv", "results.md"):  # both targets checked before either is written
         check_replaceable(Path(sweep_dir) / name)
     rows = table_rows(sweep_dir)
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=COLUMNS, restval="", lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    write_text(Path(sweep_dir) / "results.csv", buf.getvalue())
+    write_csv(Path(sweep_dir) / "results.csv", COLUMNS, rows)
 
     def cell(value: Any) -> str:
         return f"{value:.2f}" if isinstance(value, float) else md_cell(value)
