@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -61,14 +62,22 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
         if plan.device.type == "cuda":
             torch.cuda.set_device(plan.device)
         job = prepare(cfg, plan, timings)  # SynthCity, the teacher, labels, student, trunk caches
-        with job_ranks(devices, nodes, overrides, run_dir), plan.threads.stage("retriever"):
-            return train_and_test(cfg, plan, run_dir, job, timings, start)
+        with job_ranks(devices, nodes, overrides, run_dir) as join, plan.threads.stage("retriever"):
+            return train_and_test(cfg, plan, run_dir, job, timings, start, join)
 
 
 def train_and_test(
-    cfg: DictConfig, plan: JobPlan, run_dir: Path, job: Prepared, timings: dict[str, float], start: float
+    cfg: DictConfig,
+    plan: JobPlan,
+    run_dir: Path,
+    job: Prepared,
+    timings: dict[str, float],
+    start: float,
+    join: Callable[[], None],
 ) -> dict[str, Any] | None:
-    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0."""
+    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0. ``join``
+    waits for the DDP ranks this process started (:func:`~semvpr.retrieval.launch.job_ranks`) once rank 0's
+    own work before ``fit`` is done."""
     # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them):
     # seed before the aggregator's random layers are drawn and again before its initialisation, so that a
     # job gives the same numbers whether its artifacts were built just now or read from the cache.
@@ -98,6 +107,7 @@ def train_and_test(
     tic = time.time()
     untrained = evaluation.evaluate(job.features["test"]) if leader else None
     timings["untrained_eval_s"] = time.time() - tic
+    join()
     tic = time.time()
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)

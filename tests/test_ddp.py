@@ -259,6 +259,64 @@ def test_sigterm_stops_rank_0_while_it_waits_for_the_other_ranks(tmp_path: Path)
     assert proc.wait(timeout=30) == 143 and time.monotonic() - tic < 30
 
 
+def _fake_rank_command(log: Path) -> str:
+    """A rank that checks in as semvpr's ranks do, then logs when it was told to go (or why not)."""
+    return (
+        "import os, sys, time\n"
+        "from semvpr.core.errors import SemvprError\n"
+        "from semvpr.retrieval.launch import _check_in\n"
+        f"log = open({str(log)!r}, 'a')\n"
+        "try:\n"
+        "    _check_in()\n"
+        "    log.write(f'go {time.monotonic()}\\n')\n"
+        "except SemvprError as error:\n"
+        "    log.write(f'refused {error}\\n')\n"
+        "    sys.exit(1)\n"
+    )
+
+
+def test_the_started_ranks_wait_for_rank_0s_work_before_fit_outside_the_rendezvous(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The ranks rank 0 starts check in at once and wait, in Python, until rank 0's own work before fit
+    (initialisation, untrained evaluation) is done and it joins them: they never sit in the process
+    group's rendezvous for it."""
+    import time
+
+    from semvpr.retrieval import launch
+
+    log = tmp_path / "ranks.log"
+    monkeypatch.setattr(launch, "_child_command", lambda o, r, rank: [sys.executable, "-c", _fake_rank_command(log)])
+    monkeypatch.setenv("PYTHONPATH", str(REPO))
+    for key in ("LOCAL_RANK", "SLURM_PROCID"):
+        monkeypatch.delenv(key, raising=False)
+    with launch.job_ranks(3, 1, [], tmp_path) as join:
+        time.sleep(3)  # rank 0's work before fit; the others have long checked in
+        assert not log.exists() or log.read_text() == ""
+        ready = time.monotonic()
+        join()
+        join()  # a second join is a no-op
+        deadline = time.monotonic() + 30
+        while len(log.read_text().splitlines()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.1)
+    went = [float(line.split()[1]) for line in log.read_text().splitlines()]
+    assert len(went) == 2 and min(went) >= ready
+
+
+def test_a_started_rank_ends_with_one_line_when_rank_0_ends_before_training(tmp_path: Path) -> None:
+    import socket
+
+    log = tmp_path / "rank.log"
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        env = {"PYTHONPATH": str(REPO), "LOCAL_RANK": "1", "SEMVPR_DDP_CHECK_IN": str(listener.getsockname()[1])}
+        child = subprocess.Popen([sys.executable, "-c", _fake_rank_command(log)], env=env)
+        conn, _ = listener.accept()
+        assert conn.recv(16) == b"1"
+        conn.close()  # rank 0 ends (a crash in its initialisation) without telling the rank to go
+        assert child.wait(timeout=30) == 1
+    assert log.read_text().strip() == "refused rank 0 of the DDP job ended before training began; its output says why"
+
+
 def test_child_run_dirs_are_quoted_for_hydra() -> None:
     from hydra.core.override_parser.overrides_parser import OverridesParser
 

@@ -291,9 +291,10 @@ def build_trainer(cfg: DictConfig, plan: JobPlan, run_dir: Path, callbacks: list
     )
 
 
-#: How long a DDP rank waits for the others (process group and collectives): rank 0 alone initialises the
-#: aggregator and evaluates the untrained model before ``fit``, which at paper scale takes far more than the
-#: default 30 minutes.
+#: How long a DDP rank waits for the others (process group and collectives): ranks a scheduler started (SLURM,
+#: torchrun) wait in the rendezvous while rank 0 alone initialises the aggregator and evaluates the untrained
+#: model before ``fit``, which at paper scale takes far more than the default 30 minutes (the ranks semvpr
+#: starts itself wait for that in Python: ``retrieval/launch.py``).
 DDP_TIMEOUT = timedelta(hours=6)
 
 

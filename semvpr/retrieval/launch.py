@@ -9,10 +9,14 @@
   with the job's own overrides (never the sweep's ``-m``) in the job's run directory. Lightning would
   relaunch ``sys.argv`` instead, which re-runs a whole sweep in every rank.
 
-The ranks this process starts check in with it (a local socket) once they are about to train; until all
-have, rank 0 waits in Python, watching them: a rank that exits first (a bad command line, a crash while
-reading its caches) ends the job at once with one line, and SIGTERM / Ctrl-C stop it, where waiting in
-the process group's rendezvous would hang for its 30-minute timeout and ignore signals.
+The ranks this process starts check in with it (a local socket) once they are about to train, and wait
+there for its word to go. Rank 0 does its own work before ``fit`` (the aggregator's initialisation, the
+untrained evaluation) while they read their caches, then waits for their check-in (the ``join`` that
+:func:`job_ranks` yields), in Python, watching them, and tells them to go: a rank that exits first (a bad
+command line, a crash while reading its caches) ends the job at once with one line; SIGTERM / Ctrl-C stop
+it; a rank 0 that ends first ends the waiting ranks with one line. Nobody waits in the process group's
+rendezvous, which would ignore signals until its timeout, except ranks a scheduler started (they wait
+there for rank 0's work before ``fit``: the strategy's timeout covers it).
 
 When the job ends the process group is destroyed and the variables are restored, so that the next
 job of a sweep starts afresh.
@@ -20,13 +24,14 @@ job of a sweep starts afresh.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import select
 import socket
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -38,6 +43,8 @@ _RANK_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WOR
 CHILD_TIMEOUT_S = 600  # how long rank 0 waits for the other ranks to exit after its own job ended
 #: The port of rank 0's check-in socket, for the ranks it starts.
 CHECK_IN = "SEMVPR_DDP_CHECK_IN"
+#: What rank 0 sends the ranks it started once it is ready to train.
+GO = b"go"
 
 
 def _submitit_ranks(devices: int) -> dict[str, str] | None:
@@ -113,43 +120,77 @@ def _child_command(overrides: list[str], run_dir: Path, rank: int) -> list[str]:
     ]
 
 
-def await_ranks(listener: socket.socket, children: list[subprocess.Popen], poll_s: float = 0.5) -> None:
+def await_ranks(listener: socket.socket, children: list[subprocess.Popen], poll_s: float = 0.5) -> list[socket.socket]:
     """Wait until every started rank (``children``: ranks 1..n) has checked in on ``listener``; a rank
-    that exits before is one line. The wait returns to Python every ``poll_s``, so signals are handled."""
+    that exits before is one line. The wait returns to Python every ``poll_s``, so signals are handled.
+    Returns the ranks' open connections: each waits on its own until :func:`release_ranks` tells it to go."""
     pending = set(range(1, len(children) + 1))
-    while pending:
-        for rank, child in enumerate(children, start=1):
-            code = child.poll()
-            if rank in pending and code is not None:
-                raise SemvprError(
-                    f"rank {rank} of the DDP job exited (code {code}) before joining it; its output above says why"
-                )
-        ready, _, _ = select.select([listener], [], [], poll_s)
-        if ready:
-            conn, _ = listener.accept()
-            with conn:
+    joined: list[socket.socket] = []
+    try:
+        while pending:
+            for rank, child in enumerate(children, start=1):
+                code = child.poll()
+                if rank in pending and code is not None:
+                    raise SemvprError(
+                        f"rank {rank} of the DDP job exited (code {code}) before joining it; its output above says why"
+                    )
+            ready, _, _ = select.select([listener], [], [], poll_s)
+            if ready:
+                conn, _ = listener.accept()
                 conn.settimeout(5)
                 try:
                     pending.discard(int(conn.recv(16).decode() or -1))
                 except (OSError, ValueError):
+                    conn.close()
                     continue
+                joined.append(conn)
+    except BaseException:
+        for conn in joined:
+            conn.close()
+        raise
+    return joined
+
+
+def release_ranks(joined: list[socket.socket]) -> None:
+    """Tell the ranks waiting on ``joined`` (:func:`await_ranks`) to start training."""
+    for conn in joined:
+        with conn, contextlib.suppress(OSError):  # a rank that is gone: its exit code ends the job
+            conn.sendall(GO)
 
 
 def _check_in() -> None:
-    """Tell the rank-0 process that started this rank that it is about to train."""
+    """Tell the rank-0 process that started this rank that it is about to train, and wait until rank 0
+    is too (its own work before ``fit`` done): in Python, not in the process group's rendezvous."""
     port = os.environ.pop(CHECK_IN, None)
     if port is None:
         return
     with socket.create_connection(("127.0.0.1", int(port)), timeout=30) as conn:
         conn.sendall(os.environ.get("LOCAL_RANK", "0").encode())
+        conn.settimeout(None)
+        if conn.recv(len(GO)) != GO:
+            raise SemvprError("rank 0 of the DDP job ended before training began; its output says why")
 
 
 @contextmanager
-def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path) -> Iterator[None]:
-    """Make the ranks of one job exist for its duration (module docstring); a no-op for one process."""
+def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path) -> Iterator[Callable[[], None]]:
+    """Make the ranks of one job exist for its duration (module docstring); a no-op for one process.
+
+    Yields ``join``: rank 0 calls it once its own work before ``fit`` is done, to wait until the ranks it
+    started have checked in (a no-op where it started none); the block's end joins them if it did not."""
     world_size = devices * num_nodes
     saved = {key: os.environ.get(key) for key in _RANK_VARIABLES}
     children: list[subprocess.Popen] = []
+    listener: socket.socket | None = None
+
+    def join() -> None:
+        nonlocal listener
+        if listener is not None:
+            try:
+                release_ranks(await_ranks(listener, children))
+            finally:
+                listener.close()
+                listener = None
+
     externally = "LOCAL_RANK" in os.environ or "SLURM_PROCID" in os.environ
     try:
         if world_size > 1 and not externally:
@@ -172,18 +213,15 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
                     }
                 )
                 listener = socket.create_server(("127.0.0.1", 0))
-                try:
-                    env = {**os.environ, CHECK_IN: str(listener.getsockname()[1])}
-                    children = [
-                        subprocess.Popen(_child_command(overrides, run_dir, rank), env={**env, "LOCAL_RANK": str(rank)})
-                        for rank in range(1, world_size)
-                    ]
-                    await_ranks(listener, children)
-                finally:
-                    listener.close()
+                env = {**os.environ, CHECK_IN: str(listener.getsockname()[1])}
+                children = [
+                    subprocess.Popen(_child_command(overrides, run_dir, rank), env={**env, "LOCAL_RANK": str(rank)})
+                    for rank in range(1, world_size)
+                ]
         elif world_size > 1:
             _check_in()
-        yield
+        yield join
+        join()
     except BaseException:
         for child in children:
             child.terminate()
@@ -191,6 +229,8 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
             child.wait()
         raise
     finally:
+        if listener is not None:
+            listener.close()
         if dist.is_available() and dist.is_initialized():
             dist.destroy_process_group()
         for key, value in saved.items():
