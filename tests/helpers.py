@@ -14,7 +14,14 @@ from PIL import Image
 
 from semvpr.data.places import DBSTRUCT_FIELDS
 
-CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+#: The checkout the tests run from.
+REPO = Path(__file__).resolve().parents[1]
+CONF_DIR = str(REPO / "conf")
+#: ../shared/realdata beside the checkout (or beside the folder of worktrees); optional tests skip without it.
+REALDATA = next(
+    (p / "shared" / "realdata" for p in REPO.parents[:2] if (p / "shared" / "realdata").is_dir()),
+    REPO.parent / "shared" / "realdata",
+)
 #: Small images for evaluation tests (overrides of a place set's config).
 EVAL_SIZE = ["data.image_size=[32,48]", "data.num_workers=0"]
 

@@ -1,0 +1,65 @@
+"""torch.hub.load(<repo>, "semvpr", ckpt=..., source="local"): a checkpoint usable by others' scripts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torchvision.transforms.functional import to_tensor
+
+from semvpr.core.errors import SemvprError
+from tests.helpers import REPO, config, tiny_config, write_checkpoint
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("hub")
+    write_checkpoint(tiny_config(tmp, "filter=attention"), tmp / "tested.ckpt")
+    return tmp / "tested.ckpt"
+
+
+def test_hub_model_takes_normalised_images_and_gives_unit_descriptors(checkpoint: Path) -> None:
+    from semvpr.config.restore import load_retriever
+
+    model = torch.hub.load(str(REPO), "semvpr", ckpt=str(checkpoint), source="local", image_size=[32, 48])
+    rng = np.random.default_rng(0)
+    images = [Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)) for _ in range(3)]
+    batch = torch.stack([model.transform(im) for im in images])
+    assert batch.shape == (3, 3, 32, 48)
+    # The transform is ImageNet normalisation: channel 0 of a pixel is (v/255 - 0.485) / 0.229.
+    resized = images[0].resize((48, 32), Image.BILINEAR)
+    assert abs(float(batch[0, 0, 5, 7]) - (np.asarray(resized)[5, 7, 0] / 255 - 0.485) / 0.229) < 0.1
+    desc = model(batch)
+    assert desc.shape == (3, model.feature_dim) and desc.dtype == torch.float32
+    np.testing.assert_allclose(desc.norm(dim=1).numpy(), 1.0, atol=1e-5)
+    # The same weights as semvpr.eval loads, fed the [0, 1] images it takes.
+    retriever, _ = load_retriever(config(f"+ckpt={checkpoint}", config_name="eval"))
+    with torch.no_grad():
+        expected = F.normalize(
+            retriever(torch.stack([to_tensor(im.resize((48, 32), Image.BILINEAR)) for im in images])).float(), dim=1
+        )
+    reference = F.normalize(
+        retriever(
+            batch * torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+            + torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+        ).float(),
+        dim=1,
+    )
+    torch.testing.assert_close(desc, reference, rtol=0, atol=1e-5)
+    torch.testing.assert_close(desc, expected, rtol=0, atol=1e-4)  # normalise then un-normalise: rounding only
+
+
+def test_hub_refuses_what_eval_refuses(checkpoint: Path, tmp_path: Path) -> None:
+    ckpt = torch.load(checkpoint, weights_only=True)
+    ckpt["hyper_parameters"]["choices"]["backbone"] = "../../evil"
+    torch.save(ckpt, tmp_path / "tampered.ckpt")
+    with pytest.raises(
+        SemvprError, match=r"choices.backbone='../../evil' is not one of the project's backbone configs"
+    ):
+        torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "tampered.ckpt"), source="local")
+    with pytest.raises(SemvprError, match=r"checkpoint .*missing.ckpt not found"):
+        torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "missing.ckpt"), source="local")

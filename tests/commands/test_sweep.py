@@ -1,0 +1,141 @@
+"""The four-way comparison as one Hydra multirun, with the report at the end."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import REPO
+
+
+def _sweep(tmp_path: Path, name: str, *overrides: str) -> tuple[subprocess.CompletedProcess[str], Path]:
+    sweep_dir = tmp_path / name
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            "-m",
+            "experiment=tiny",
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            f"hydra.sweep.dir={sweep_dir}",
+            *overrides,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    return proc, sweep_dir
+
+
+def _table_rows(results_md: Path) -> list[list[str]]:
+    lines = [line for line in results_md.read_text().splitlines() if line.startswith("| efficientnet_lite0 |")]
+    return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
+
+
+@pytest.mark.slow
+def test_four_filter_sweep_writes_report_and_reuses_artifacts(tmp_path: Path) -> None:
+    proc, sweep = _sweep(tmp_path, "sweep1", "filter=none,attention,unet,mask2former")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = _table_rows(sweep / "results.md")
+    # rows named by the preset asked for, with what it selected, in the report's order (baseline first)
+    assert [row[1] for row in rows] == [
+        "none (netvlad · none)",
+        "attention (sral · none)",
+        "unet (sral · student)",
+        "mask2former (sral · teacher)",
+    ]
+    assert all(row[-2] == "0" for row in rows)  # no failed job
+    for figure in ("recall_at_n.png", "figure3.png", "retrievals.png"):
+        assert (sweep / figure).stat().st_size > 10_000
+    cache = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert {name.split("-")[0] for name in cache} >= {"synthcity", "teacher", "labels", "student", "trunk", "masks"}
+    proc, sweep = _sweep(tmp_path, "sweep2", "filter=none,attention,unet,mask2former")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == cache  # nothing rebuilt
+
+
+def test_failed_job_does_not_stop_the_sweep(tmp_path: Path) -> None:
+    proc, sweep = _sweep(tmp_path, "sweep", "filter=none", "model.num_clusters=0,4")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    md = (sweep / "results.md").read_text()
+    rows = _table_rows(sweep / "results.md")
+    assert len(rows) == 1 and rows[0][-2] == "1"  # one ok run, one failed
+    assert "model.num_clusters=0 must be a whole number >= 1" in md
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("how", "line"),
+    [
+        ("SIGTERM to the sweep", "stopped by SIGTERM"),
+        ("Ctrl-C (SIGINT to its group)", "stopped by SIGINT"),
+        ("SIGKILL to a worker", "a job's worker process was killed (SIGKILL(-9)), so the sweep stopped"),
+    ],
+)
+def test_a_stop_of_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_report(
+    tmp_path: Path, how: str, line: str
+) -> None:
+    """Stopped while two jobs run (a signal to it, or one of its workers killed under it): the sweep's own
+    process ends its workers (none left running), exits 2 with one line naming its report, and the report
+    is final (not marked as still running), the jobs that did not finish as failed rows."""
+    sweep = tmp_path / "sweep"
+    args = [
+        "experiment=tiny", "filter=none", "threads=1", "trainer.max_epochs=400", "seed=0,1,2",
+        f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.sweep.dir={sweep}",
+    ]  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "semvpr.train", "-m", *args],
+        cwd=tmp_path,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"},
+    )
+    try:
+        deadline = time.monotonic() + 600
+        while not list(sweep.glob("*/checkpoints/last.ckpt")) and proc.poll() is None:
+            assert time.monotonic() < deadline, "no job saved a checkpoint"
+            time.sleep(0.5)
+        workers = [
+            int(p)
+            for p in subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        ]
+        assert workers, "the sweep runs its jobs in worker processes"
+        if how.startswith("Ctrl-C"):
+            os.killpg(proc.pid, signal.SIGINT)
+        elif how.startswith("SIGTERM"):
+            proc.send_signal(signal.SIGTERM)
+        else:
+            loky = [pid for pid in workers if "LokyProcess" in Path(f"/proc/{pid}/cmdline").read_text()]
+            os.kill(loky[0], signal.SIGKILL)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    errors = [ln for ln in stderr.splitlines() if ln.startswith("semvpr: error: ")]
+    assert proc.returncode == 2 and len(errors) == 1 and stderr.strip().splitlines()[-1] == errors[0], stderr[-3000:]
+    assert errors[0].startswith(f"semvpr: error: {line}; its report")
+    assert str(sweep / "results.md") in errors[0]
+    time.sleep(1)
+    alive = [pid for pid in workers if Path(f"/proc/{pid}").exists() and "Z" not in _state(pid)]
+    assert alive == [], f"workers left running: {alive}"
+    md = (sweep / "results.md").read_text()
+    assert "still running" not in md and "did not finish: no metrics.json" in md
+    stopped = next(p.parents[1] for p in sweep.glob("*/checkpoints/last.ckpt"))
+    assert not (stopped / "metrics.json").exists()
+
+
+def _state(pid: int) -> str:
+    """A process's state letter (Z: a zombie, already ended)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+    except OSError:
+        return "Z"

