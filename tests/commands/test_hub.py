@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -63,3 +64,27 @@ def test_hub_refuses_what_eval_refuses(checkpoint: Path, tmp_path: Path) -> None
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "tampered.ckpt"), source="local")
     with pytest.raises(SemvprError, match=r"checkpoint .*missing.ckpt not found"):
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "missing.ckpt"), source="local")
+
+
+@pytest.mark.parametrize("folder", ["a,b", "a=b", "it's"])
+def test_hub_paths_with_override_syntax_load(tmp_path: Path, checkpoint: Path, folder: str) -> None:
+    path = tmp_path / folder / "tested.ckpt"
+    path.parent.mkdir()
+    shutil.copy(checkpoint, path)
+    model = torch.hub.load(str(REPO), "semvpr", ckpt=str(path), source="local")
+    assert model.feature_dim > 0
+
+
+def test_hub_loads_the_file_named_not_an_interpolation_of_it(
+    tmp_path: Path, checkpoint: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from semvpr.core.errors import SemvprError
+
+    named = tmp_path / "${oc.env:HUBX}" / "tested.ckpt"
+    named.parent.mkdir()
+    named.touch()  # the file named is empty; an interpolation would have loaded another
+    (tmp_path / "other").mkdir()
+    shutil.copy(checkpoint, tmp_path / "other" / "tested.ckpt")
+    monkeypatch.setenv("HUBX", "other")
+    with pytest.raises(SemvprError, match=r"\$\{oc\.env:HUBX\}/tested\.ckpt is not a readable checkpoint"):
+        torch.hub.load(str(REPO), "semvpr", ckpt=str(named), source="local")

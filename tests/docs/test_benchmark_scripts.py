@@ -4,6 +4,7 @@ several train on the tiny preset."""
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import subprocess
@@ -12,7 +13,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from PIL import Image
 
+from tests.bad_input import stage_line
 from tests.helpers import REPO
 
 #: script -> (its small arguments given a scratch dir, a fragment of its last stdout line)
@@ -120,3 +123,49 @@ def test_record_writes_nothing_when_the_benchmark_fails(tmp_path: Path) -> None:
     assert proc.returncode != 0 and not out.exists(), (proc.stdout, proc.stderr)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "failed (exit 3); nothing recorded" in lines[0], proc.stderr
+
+
+SCRIPT_FILES = sorted([*(REPO / "benchmarks").glob("*.py"), *(REPO / "experiments").glob("*/*.py")])
+
+
+@pytest.mark.parametrize("script", SCRIPT_FILES, ids=lambda p: str(p.relative_to(REPO)))
+def test_every_script_main_turns_a_user_error_into_one_line(script: Path) -> None:
+    tree = ast.parse(script.read_text())
+    mains = [n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "main"]
+    assert len(mains) == 1, "a script's entry point is one main()"
+    assert [ast.unparse(d) for d in mains[0].decorator_list] == ["exit_on_user_error"]
+
+
+@pytest.mark.parametrize(
+    ("script", "args", "fragment"),
+    [
+        (
+            "experiments/camvid-semantic/paired_masks.py",
+            ["{tmp}/a", "{tmp}/b", "--root", "{tmp}/camvid"],
+            "CamVid root",
+        ),
+        (
+            "experiments/camvid-semantic/paired_masks.py",
+            ["{tmp}/a", "{tmp}/b", "--root", "{camvid}"],
+            "student directory",
+        ),
+        ("experiments/real-streets/figure.py", ["{tmp}/out", "{tmp}/gardens", "--out-png", "{tmp}/f.png"], "not found"),
+    ],
+)
+def test_a_script_given_a_missing_folder_says_so_in_one_line(
+    tmp_path: Path, script: str, args: list[str], fragment: str
+) -> None:
+    camvid = tmp_path / "cv"  # a CamVid folder of one val frame, so the students are what is missing
+    for part, mode in (("val", "RGB"), ("valannot", "L")):
+        (camvid / part).mkdir(parents=True)
+        Image.new(mode, (48, 36)).save(camvid / part / "f.png")
+    (camvid / "val.txt").write_text("/SegNet/CamVid/val/f.png /SegNet/CamVid/valannot/f.png\n")
+    proc = subprocess.run(
+        [sys.executable, str(REPO / script), *(a.format(tmp=tmp_path, camvid=camvid) for a in args)],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    lines = [ln for ln in proc.stderr.strip().splitlines() if not stage_line(ln)]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
+    assert lines[0].startswith("semvpr: error: ") and fragment in lines[0], lines[0]
+    assert not (tmp_path / "f.png").exists()

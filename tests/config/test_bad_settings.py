@@ -1,0 +1,183 @@
+"""Bad command-line values of train, eval, localize and segment (types, ranges, unknown keys, ``_target_``,
+patterns, the recipe's and the segmenters' settings): exit 2 and one line (tests/bad_input.py runs each row)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tests.bad_input import EVAL, LOCALIZE, TRAIN, Case, nordland, rows, run_case
+from tests.helpers import make_folder
+
+
+def _no_descriptors(cache: Path) -> None:
+    """The bad value was refused before the descriptor pass."""
+    assert not cache.is_dir() or not any(p.name.startswith("descriptors-") for p in cache.iterdir())
+
+
+CASES: dict[str, Case] = {
+    "num_clusters=abc": Case(TRAIN, lambda t, c: ["model.num_clusters=abc"], "model.num_clusters='abc'"),
+    "seed=abc": Case(TRAIN, lambda t, c: ["seed=abc"], "seed='abc'"),
+    "student.flip=maybe": Case(TRAIN, lambda t, c: ["student.flip=maybe"], "student.flip='maybe': expected true"),
+    "seed=-1": Case(TRAIN, lambda t, c: ["seed=-1"], "seed=-1"),
+    "lr=-1": Case(TRAIN, lambda t, c: ["recipe.optimizer.lr=-1"], "recipe.optimizer.lr=-1"),
+    "num_figure_queries=0": Case(TRAIN, lambda t, c: ["num_figure_queries=0"], "num_figure_queries=0"),
+    "precision=foo": Case(TRAIN, lambda t, c: ["trainer.precision=foo"], "trainer.precision='foo'"),
+    "negative radius": Case(TRAIN, lambda t, c: ["recipe.positive_radius=-5"], "recipe.positive_radius=-5"),
+    "model=netvlad": Case(TRAIN, lambda t, c: ["model=netvlad"], "model=netvlad is recipe=triplet"),
+    "model.margin": Case(TRAIN, lambda t, c: ["model.margin=0.2"], "recipe.margin=0.2"),
+    "eval model=netvlad": Case(EVAL, lambda t, c: [f"ckpt={c}", "model=netvlad"], "recipe=triplet"),
+    "eval ckpt in a sweep job's folder, unquoted": Case(
+        EVAL, lambda t, c: [f"ckpt={t}/filter=unet,seed=0/tested.ckpt"], "\"ckpt='"
+    ),
+    "localize top_k=0": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"], "top_k=0"),
+    "localize top_k=-1": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"], "top_k=-1"),
+    "localize top_k=abc": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"], "top_k='abc'"),
+    "gsv recipe.optimizer.lr": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "recipe.optimizer.lr=0.1"],
+        "override aggregator.gsv.optimizer.lr=0.1, or recipe.default.optimizer.lr=0.1",
+    ),
+    "gsv places_per_batch=1": Case(
+        TRAIN, lambda t, c: ["recipe=gsv", "recipe.places_per_batch=1"], "places_per_batch=1"
+    ),
+    "gsv under ddp": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"],
+        "use trainer=cpu or trainer=gpu",
+    ),
+    "traversals=-1": Case(TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
+    "train data.test._target_=builtins.print": Case(
+        TRAIN, lambda t, c: ["data.test._target_=builtins.print"], "the key _target_ is refused"
+    ),
+    "eval a mapping value holding _target_": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "+data.extra={_target_:os.getcwd}"], "the key _target_ is refused"
+    ),
+    "segment model._partial_": Case(
+        ["semvpr.segment"], lambda t, c: [f"seg.root={t}", "teacher.model._partial_=true"], "the key _partial_"
+    ),
+    "frame_pattern alternation in a repeat": Case(
+        EVAL,
+        lambda t, c: nordland(t, c, "data.frame_pattern='(x|xx)*(\\d+)\\.jpg'", frame="x" * 40),
+        "repeats a repeat or an alternation",
+        timeout=90,
+    ),
+    "frame_pattern nested repeat": Case(
+        EVAL,
+        lambda t, c: nordland(t, c, "data.frame_pattern='(?:y+)+z?(\\d+)\\.jpg'", frame="y" * 40),
+        "repeats a repeat or an alternation",
+        timeout=90,
+    ),
+    "frame_pattern backreference": Case(
+        EVAL, lambda t, c: nordland(t, c, "data.frame_pattern='(\\d)\\1(\\d*)\\.jpg'"), "backreference"
+    ),
+    "frame_pattern four unbounded repeats": Case(
+        EVAL,
+        lambda t, c: nordland(t, c, "data.frame_pattern='.*_.*_.*_(\\d+)\\.jpg'"),
+        "at most three unbounded repeats",
+    ),
+    "frame_window 1e20": Case(
+        EVAL, lambda t, c: nordland(t, c, "data.frame_window=100000000000000000000"), "data.frame_window="
+    ),
+    "frame_window int64 max": Case(
+        EVAL, lambda t, c: nordland(t, c, f"data.frame_window={2**63 - 1}"), f"data.frame_window={2**63 - 1}"
+    ),
+    "recipe.margin=nan": Case(TRAIN, lambda t, c: ["recipe.margin=nan"], "recipe.margin=nan"),
+    "recipe.loss.epsilon=nan": Case(
+        TRAIN, lambda t, c: ["recipe=gsv", "recipe.loss.epsilon=nan"], "recipe.loss.epsilon=nan is not a finite"
+    ),
+    "recipe.loss.beta=-inf": Case(
+        TRAIN, lambda t, c: ["recipe=gsv", "recipe.loss.beta=-inf"], "recipe.loss.beta=-inf is not a finite"
+    ),
+    "gsv loss without a gradient": Case(
+        TRAIN,
+        lambda t, c: ["recipe=gsv", "recipe.loss.epsilon=-5", "trainer.max_epochs=1", "threads=1"],
+        "the loss gave no parameter a gradient in any of",
+    ),
+    "teacher.model.num_queries=1e9": Case(
+        TRAIN, lambda t, c: ["teacher.model.num_queries=1e9"], "teacher.model.num_queries=1000000000.0"
+    ),
+    "teacher.model.hidden_dim past the bound": Case(
+        TRAIN, lambda t, c: ["teacher.model.hidden_dim=200000"], "teacher.model.hidden_dim=200000"
+    ),
+    "student.static_classes=[]": Case(
+        TRAIN, lambda t, c: ["student.static_classes=[]"], "student.static_classes=[]: expected a non-empty"
+    ),
+    "eval data.image_size past the bound": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "data.image_size=[48,20000]"], "data.image_size[1]=20000"
+    ),
+    "eval teacher.inference_size past the bound": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "teacher.inference_size=[9000,9000]"], "teacher.inference_size=[9000, 9000]"
+    ),
+    "recipe.margin=-1": Case(TRAIN, lambda t, c: ["recipe.margin=-1"], "recipe.margin=-1"),
+    "recipe.negative_candidates=0": Case(
+        TRAIN, lambda t, c: ["recipe.negative_candidates=0"], "recipe.negative_candidates=0"
+    ),
+    "recipe.batch_size=nan": Case(TRAIN, lambda t, c: ["recipe.batch_size=nan"], "recipe.batch_size=nan"),
+    "recipe.batch_size=abc": Case(TRAIN, lambda t, c: ["recipe.batch_size=abc"], "recipe.batch_size='abc'"),
+    "trainer.max_epochs=-5": Case(TRAIN, lambda t, c: ["trainer.max_epochs=-5"], "trainer.max_epochs"),
+    "trainer.max_epochs=abc": Case(TRAIN, lambda t, c: ["trainer.max_epochs=abc"], "trainer.max_epochs"),
+    "model.pca_dim=-1": Case(TRAIN, lambda t, c: ["model.pca_dim=-1"], "model.pca_dim"),
+    "trainer.devices=0": Case(TRAIN, lambda t, c: ["trainer.devices=0"], "trainer.devices"),
+    "trainer.devices=2 without ddp": Case(TRAIN, lambda t, c: ["trainer.devices=2"], "needs trainer=ddp"),
+    "unknown key +model.fooo": Case(TRAIN, lambda t, c: ["+model.fooo=1"], "model.fooo is not a setting"),
+    "unknown key +fooo": Case(TRAIN, lambda t, c: ["+fooo=1"], "fooo is not a setting"),
+    "unknown key model.fooo": Case(TRAIN, lambda t, c: ["model.fooo=1"], "model.fooo is not a setting"),
+    "train data.eval_radius=0": Case(TRAIN, lambda t, c: ["data.eval_radius=0"], "data.eval_radius=0"),
+    "eval data.image_size=[0,0]": Case(EVAL, lambda t, c: [f"ckpt={c}", "data.image_size=[0,0]"], "data.image_size"),
+    "eval data.image_size=[-1,80]": Case(
+        EVAL, lambda t, c: [f"ckpt={c}", "data.image_size=[-1,80]"], "data.image_size[0]"
+    ),
+    "eval data.image_size=null": Case(EVAL, lambda t, c: [f"ckpt={c}", "data.image_size=null"], "data.image_size"),
+    "eval data.num_workers=-1": Case(EVAL, lambda t, c: [f"ckpt={c}", "data.num_workers=-1"], "data.num_workers=-1"),
+    **{
+        f"eval data.eval_radius={v}": Case(
+            EVAL,
+            lambda t, c, v=v: [
+                f"ckpt={c}",
+                "data=folder",
+                f"data.root={make_folder(t / 'f', 2)}",
+                f"data.eval_radius={v}",
+            ],
+            f"data.eval_radius={v}",
+            cache_check=_no_descriptors,
+        )
+        for v in ("0", "-5", "nan")
+    },
+}
+
+
+#: The rows that run by default (each starts a Python with torch): one per class; the whole table with -m slow.
+FAST = {
+    "eval data.eval_radius=0",
+    "seed=abc",
+    "student.flip=maybe",
+    "eval ckpt in a sweep job's folder, unquoted",
+    "localize top_k=abc",
+    "gsv recipe.optimizer.lr",
+    "train data.test._target_=builtins.print",
+    "frame_pattern nested repeat",
+    "gsv loss without a gradient",
+    "teacher.model.num_queries=1e9",
+    "unknown key +model.fooo",
+}
+
+
+def test_an_unparsable_override_is_named_with_the_quoted_form_that_parses(tmp_path: Path) -> None:
+    from semvpr.config.checks import check_overrides
+    from semvpr.core.errors import SemvprError
+
+    bad = f"ckpt={tmp_path}/filter=unet,seed=0/checkpoints/tested.ckpt"
+    with pytest.raises(SemvprError) as err:
+        check_overrides(["experiment=tiny", bad], "eval")
+    message = str(err.value)
+    assert f"cannot parse the override {bad!r}" in message and "\n" not in message
+    suggested = message.rsplit(": ", 1)[1].strip('"')
+    assert suggested == f"ckpt='{bad.partition('=')[2]}'"
+    check_overrides(["experiment=tiny", suggested], "eval")  # parses and composes
+
+
+@pytest.mark.parametrize("case", rows(CASES, FAST))
+def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, case: str) -> None:
+    run_case(CASES[case], tmp_path, checkpoint)
