@@ -330,3 +330,18 @@ def test_a_count_is_the_number_of_rows_its_conditions_keep(tmp_path: Path, count
     doc.write_text(f"<!-- claim: p.csv -->\nOf the comparisons, {count} lost.\n<!-- /claim -->\n", encoding="utf-8")
     problems = claims.check_markdown(doc, tmp_path)
     assert problems == [] if holds else (len(problems) == 1 and "is not the" in problems[0]), problems
+
+
+@pytest.mark.parametrize(
+    ("text", "holds"), [("+4.4 (3 of 3)", True), ("+4.4 (2 of 3)", False), ("+1.9 (1 of 3)", True)]
+)
+def test_n_of_m_is_a_pair_of_adjacent_fields(tmp_path: Path, text: str, holds: bool) -> None:
+    """``N of M`` (seeds better) is two side-by-side fields of one row, exactly: 2 of 3 is not 1.9 and 2.6,
+    nor the teacher's 1 of 3."""
+    (tmp_path / "g.csv").write_text(
+        "model,gain_mean,gain_std,seeds_better,seeds\nstudent,+4.4,4.0,3,3\nteacher,+1.9,2.6,1,3\n", encoding="utf-8"
+    )
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"<!-- claim: g.csv -->\nThe mask gains {text}.\n<!-- /claim -->\n", encoding="utf-8")
+    problems = claims.check_markdown(doc, tmp_path)
+    assert problems == [] if holds else problems == ["doc.md:2: 2 3 are not side by side in one record of g.csv"]

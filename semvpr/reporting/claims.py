@@ -8,9 +8,9 @@ repository root; arguments split as a shell splits them):
   between (one with a decimal point, an explicit sign, a ``%`` or a unit of time) must equal a number of
   the sources at the precision it is written with (``62.1`` matches a value in [62.05, 62.15]); a signed
   number must have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``), and
-  a percentage may be a fraction (``87.7 %`` matches ``0.877``). ``mean ± std`` and ``x [low, high]``
-  must be adjacent fields of one record (a CSV row; a JSON / YAML object: any of its fields), and the
-  numbers of one table-cell clause must all come from one record.
+  a percentage may be a fraction (``87.7 %`` matches ``0.877``). ``mean ± std``, ``x [low, high]`` and
+  ``N of M`` (plain integers, exactly) must be adjacent fields of one record (a CSV row; a JSON / YAML
+  object: any of its fields), and the numbers of one table-cell clause must all come from one record.
 - ``<!-- table: SOURCE KEYS [METRICS] [OPTION=VALUE ...] -->`` ... ``<!-- /table -->``: the block is
   exactly the table :func:`~semvpr.reporting.data_rows.render_table` makes of the source
   (:class:`~semvpr.reporting.data_rows.TableSpec`).
@@ -300,20 +300,26 @@ def check_markdown(path: Path, root: Path) -> list[str]:
 
 
 def _holds(stated: Stated, record: Sequence[float]) -> bool:
-    """The number is one of the record's, at its precision (a percentage also as a fraction)."""
+    """The number is one of the record's, at its precision (a percentage also as a fraction); a plain
+    integer (a count) exactly."""
+    if not stated.result_like:
+        return stated.value in record
     return any(stated.matches(v) or stated.matches_fraction(v) for v in record)
 
 
 def _chains(text: str, first_line: int) -> list[list[Stated]]:
-    """Numbers written as one value: ``mean ± std`` and ``estimate [low, high]``; a data file keeps them
-    in adjacent fields (``R@1_mean, R@1_std``; ``gain, ci_low, ci_high``; ``{"mean", "stderr"}``)."""
+    """Numbers written as one value: ``mean ± std``, ``estimate [low, high]`` and a count ``N of M``; a data
+    file keeps them in adjacent fields (``R@1_mean, R@1_std``; ``gain, ci_low, ci_high``; ``{"mean", "stderr"}``;
+    ``seeds_better, seeds``)."""
     prose = _NOT_PROSE.sub(_blank, text)
     matches = list(_NUMBER.finditer(prose))
     chains, i = [], 0
     while i < len(matches):
         end = i
         gaps = [prose[matches[k].end() : matches[k + 1].start()] for k in range(i, len(matches) - 1)]
-        if gaps[:1] == [" ± "]:
+        if gaps[:1] == [" ± "] or (
+            gaps[:1] == [" of "] and not _result_like(matches[i]) and not _result_like(matches[i + 1])
+        ):
             end = i + 1
         elif len(gaps) >= 2 and gaps[0] == " [" and gaps[1] == ", " and prose[matches[i + 2].end()] == "]":
             end = i + 2
@@ -321,6 +327,11 @@ def _chains(text: str, first_line: int) -> list[list[Stated]]:
             chains.append([_stated(m, first_line + prose.count("\n", 0, m.start())) for m in matches[i : end + 1]])
         i = end + 1
     return chains
+
+
+def _result_like(m: re.Match[str]) -> bool:
+    """A number match written as a result (not a plain integer)."""
+    return _stated(m, 0).result_like
 
 
 def _in_sequence(chain: list[Stated], record: Record) -> bool:
