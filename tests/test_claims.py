@@ -301,12 +301,14 @@ def test_a_json_source_gives_rows_and_several_sources_join(tmp_path: Path) -> No
         ('<!-- table: p.csv model,mask "where=gain<x" R@1 -->', "compares with a number"),
         ("<!-- table: p.csv model pivot=pair R@1 -->", "two rows for 'gem'"),
         ("<!-- table: p.csv model -->", "needs METRICS or a col"),
+        ('<!-- table: p.csv model,pair "col=m={mask:.1f}" -->', "expected a number in the data file, got 'none'"),
+        ("<!-- count: p.csv mask=none seedz=3 -->4<!-- /count -->", "no column 'seedz'"),
     ],
 )
-def test_a_table_marker_that_cannot_be_rendered_is_one_error(tmp_path: Path, marker: str, error: str) -> None:
+def test_a_marker_that_cannot_be_rendered_or_counted_is_one_error(tmp_path: Path, marker: str, error: str) -> None:
     _pairs(tmp_path)
     doc = tmp_path / "doc.md"
-    doc.write_text(f"{marker}\n<!-- /table -->\n", encoding="utf-8")
+    doc.write_text(f"{marker}\n<!-- /table -->\n" if "table:" in marker else marker, encoding="utf-8")
     with pytest.raises(SemvprError, match=re.escape(error)):
         claims.check_markdown(doc, tmp_path)
 

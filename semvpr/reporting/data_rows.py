@@ -163,9 +163,6 @@ class Condition:
             return False
         return float(value) < float(self.values[0]) if self.op == "<" else float(value) > float(self.values[0])
 
-    def __str__(self) -> str:
-        return f"{self.field}{self.op}{'|'.join(self.values)}"
-
 
 def _is_number(text: str) -> bool:
     """The text is a finite number."""
@@ -189,7 +186,7 @@ def count_rows(args: Sequence[str], root: Path) -> int:
         raise SemvprError("expected '<!-- count: SOURCE CONDITION ... -->'")
     rows = source_rows(args[0], root)
     conditions = [Condition.parse(a) for a in args[1:]]
-    _check_fields(rows, [c.field for c in conditions if c.op not in ("!=", "!~")], args[0])
+    _check_fields(rows, [c.field for c in conditions], args[0])
     return sum(all(c.holds(row) for c in conditions) for row in rows)
 
 
@@ -203,6 +200,8 @@ def stated_count(text: str) -> int | None:
 
 def _number(value: str, spec: str) -> str:
     """A field in a format spec, the minus typographic; ``.1%``: a fraction as a percentage (``87.7 %``)."""
+    if not _is_number(value):
+        raise SemvprError(f"expected a number in the data file, got {value!r}")
     number = float(value)
     text = format(100.0 * number, spec[:-1] + "f") + " %" if spec.endswith("%") else format(number, spec)
     return text.replace("-", "−")
