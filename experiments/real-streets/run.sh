@@ -34,8 +34,8 @@ export HF_HUB_OFFLINE=1
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command: about 2 h of
 #    teacher training and 20 min of student on one thread, as they trained; another thread count trains other
 #    weights). CAMVID_TEACHER=DIR uses a teacher that command saved instead of training one (its student is
-#    still trained, or read from the cache). The student this experiment evaluated trained 20 epochs
-#    (camvid-semantic's S9); the 40-epoch student chosen since (S10) has not been evaluated on Gardens Point.
+#    still trained, or read from the cache). The student evaluated here trains 20 epochs (student.epochs=20);
+#    camvid-semantic's 40-epoch student (conf/segment.yaml) is not evaluated on Gardens Point.
 if [ ! -f "$OUT/camvid/results.json" ]; then
   given=()
   if [ -n "${CAMVID_TEACHER:-}" ]; then given=(teacher.checkpoint="$(realpath "$CAMVID_TEACHER")"); fi

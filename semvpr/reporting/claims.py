@@ -1,20 +1,22 @@
 """Numbers in the committed markdown held to the data files they come from (docs/trust.md, "Numbers
 in the docs").
 
-Two invisible markers, HTML comments, tie markdown to committed CSV, JSON or YAML files (paths from the
-repository root):
+Three invisible markers, HTML comments, tie markdown to committed CSV, JSON or YAML files (paths from the
+repository root; arguments split as a shell splits them):
 
 - ``<!-- claim: SOURCE [SOURCE ...] -->`` ... ``<!-- /claim -->``: every *result-like* number in
   between (one with a decimal point, an explicit sign, a ``%`` or a unit of time) must equal a number of
   the sources at the precision it is written with (``62.1`` matches a value in [62.05, 62.15]); a signed
   number must have the source's sign, an unsigned one may be a magnitude (``losses of 3.3 points``), and
-  a percentage may be a fraction (``87.7 %`` matches ``0.877``). ``mean ± std`` and ``x [low, high]``
-  must be adjacent fields of one record (a CSV row; a JSON / YAML object: any of its fields), and the
-  numbers of one table-cell clause must all come from one record. Plain integers (counts, seeds, sizes)
-  are not checked.
-- ``<!-- table: SOURCE.csv KEYS METRICS -->`` ... ``<!-- /table -->``: the block is exactly the table
-  :func:`render_table` writes from the CSV (``KEYS``: comma-separated label columns; ``METRICS``:
-  comma-separated metrics, each shown as ``<m>_mean ± <m>_std`` at one decimal).
+  a percentage may be a fraction (``87.7 %`` matches ``0.877``). ``mean ± std``, ``x [low, high]`` and
+  ``N of M`` (plain integers, exactly) must be adjacent fields of one record (a CSV row; a JSON / YAML
+  object: any of its fields), and the numbers of one table-cell clause must all come from one record.
+- ``<!-- table: SOURCE KEYS [METRICS] [OPTION=VALUE ...] -->`` ... ``<!-- /table -->``: the block is
+  exactly the table :func:`~semvpr.reporting.data_rows.render_table` makes of the source
+  (:class:`~semvpr.reporting.data_rows.TableSpec`).
+- ``<!-- count: SOURCE CONDITION ... -->N<!-- /count -->``: a count (digits or a word) that must be the
+  number of the source's rows meeting every condition (``mask=CamVid student|CamVid teacher``,
+  ``gain<0``); anywhere, inside a claim too. Other plain integers (seeds, sizes, settings) are not checked.
 
 Outside the markers a result-like number is *unsourced* (:func:`unsourced_numbers`) unless a
 ``NOT_RESULTS`` pattern (hyper-parameters, versions, definitions) covers it. Code spans, fenced code,
@@ -24,8 +26,6 @@ link targets and HTML comments are never read as claims.
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import math
 import re
 from collections.abc import Iterable, Sequence
@@ -33,11 +33,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import read_yaml, regular_file, write_text
+from semvpr.core.io import write_text
+from semvpr.reporting.data_rows import (
+    TableSpec,
+    count_rows,
+    marker_args,
+    pointed,
+    read_document,
+    read_rows,
+    render_table,
+    stated_count,
+)
 
 #: A marker's opening comment: kind, then its arguments.
 _OPEN = re.compile(r"<!--\s*(claim|table):\s*(.*?)\s*-->", re.S)
 _CLOSE = {"claim": "<!-- /claim -->", "table": "<!-- /table -->"}
+#: A count marker and the count it holds (in prose, within a claim or not).
+_COUNT = re.compile(r"<!--\s*count:\s*(.*?)\s*-->([^<]*)<!-- /count -->", re.S)
 #: A number as prose writes it: an optional sign (ASCII or typographic minus), digits with optional
 #: thousands commas, optional decimals, an optional percent sign. Not part of a word (R@1, stage4, 8x,
 #: 180x240, 1e-3), a version or a path.
@@ -155,9 +167,25 @@ def marked_spans(markdown: str) -> list[Marked]:
         if end < 0 or nested is not None:
             raise SemvprError(f"line {line}: '<!-- {kind}: ... -->' without its '{close}' before the next marker")
         inner = markdown[m.end() : end]
-        spans.append(Marked(kind, tuple(m[2].split()), inner, line, m.end(), end))
+        spans.append(Marked(kind, tuple(marker_args(m[2])), inner, line, m.end(), end))
         pos = end + len(close)
     return spans
+
+
+def count_spans(markdown: str) -> list[Marked]:
+    """The count markers of a markdown text (inside a claim or not), in order."""
+    code_free = _CODE.sub(_blank, markdown)
+    return [
+        Marked(
+            "count",
+            tuple(marker_args(m[1])),
+            markdown[m.start(2) : m.end(2)],
+            markdown.count("\n", 0, m.start()) + 1,
+            m.start(2),
+            m.end(2),
+        )
+        for m in _COUNT.finditer(code_free)
+    ]
 
 
 def _numbers_in(value: object) -> Iterable[float]:
@@ -176,19 +204,6 @@ def _numbers_in(value: object) -> Iterable[float]:
     elif isinstance(value, list):
         for item in value:
             yield from _numbers_in(item)
-
-
-def _require(path: Path) -> None:
-    """A marker's data file must be a committed regular file."""
-    if not regular_file(path, "data file"):
-        raise SemvprError(f"{path}: no such data file")
-
-
-def read_rows(path: Path) -> list[dict[str, str]]:
-    """A committed CSV's rows."""
-    _require(path)
-    with path.open(encoding="utf-8", newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 class Record(list[float]):
@@ -221,19 +236,6 @@ def _records_in(value: object) -> Iterable[Record]:
             yield from _records_in(item)
 
 
-def _pointed(document: object, pointer: str, path: Path) -> object:
-    """The part of a JSON / YAML document a pointer names (``/teacher/class_iou``; list items by index)."""
-    node = document
-    for key in pointer.strip("/").split("/") if pointer.strip("/") else []:
-        if isinstance(node, dict) and key in node:
-            node = node[key]
-        elif isinstance(node, list) and key.isdigit() and int(key) < len(node):
-            node = node[int(key)]
-        else:
-            raise SemvprError(f"{path}: no {pointer!r} in it (a claim's source pointer)")
-    return node
-
-
 def source_records(source: Path) -> list[Record]:
     """The numbers of a committed data file by record: a CSV's rows, a JSON or YAML file's dicts. A JSON or
     YAML source may name a part of the file: ``results.json#/teacher/class_iou``."""
@@ -242,12 +244,7 @@ def source_records(source: Path) -> list[Record]:
     if path.suffix == ".csv" and not pointer:
         return [_record((v for cell in row.values() for v in _numbers_in(cell)), True) for row in read_rows(path)]
     if path.suffix in (".json", ".yaml", ".yml"):
-        _require(path)
-        if path.suffix == ".json":
-            document = json.loads(path.read_text(encoding="utf-8"))
-        else:
-            document = read_yaml(path, "data file")
-        return list(_records_in(_pointed(document, pointer, path)))
+        return list(_records_in(pointed(read_document(path), pointer, path)))
     raise SemvprError(f"{source}: a claim's source must be a .csv, or a .json or .yaml file with an optional #/pointer")
 
 
@@ -273,45 +270,10 @@ def _clauses(row: str) -> list[str]:
     return [piece for piece in pieces if piece.strip()]
 
 
-def _cell(value: str) -> float:
-    """A CSV cell as a number."""
-    try:
-        return float(value)
-    except ValueError:
-        raise SemvprError(f"expected a number in the data file, got {value!r}") from None
-
-
-def render_table(path: Path, keys: Sequence[str], metrics: Sequence[str]) -> str:
-    """A markdown table of a CSV: the label columns ``keys`` (joined by ' · '), then each metric as
-    ``<m>_mean ± <m>_std`` (or ``<m>`` alone) at one decimal, one row per CSV row in file order."""
-    rows = read_rows(path)
-    header = f"| {' · '.join(keys)} | " + " | ".join(metrics) + " |"
-    lines = [header, "|---|" + "---:|" * len(metrics)]
-    for row in rows:
-        missing = [k for k in (*keys, *metrics) if k not in row and f"{k}_mean" not in row]
-        if missing:
-            raise SemvprError(f"{path}: no column {missing[0]!r} (columns: {', '.join(row)})")
-        cells = []
-        for m in metrics:
-            if f"{m}_mean" in row:
-                cells.append(f"{_cell(row[f'{m}_mean']):.1f} ± {_cell(row[f'{m}_std']):.1f}")
-            else:
-                cells.append(f"{_cell(row[m]):.1f}")
-        lines.append(f"| {' · '.join(row[k] for k in keys)} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
-def _table_args(span: Marked, where: str) -> tuple[str, list[str], list[str]]:
-    """A table marker's source, keys and metrics."""
-    if len(span.args) != 3:
-        raise SemvprError(f"{where}:{span.line}: expected '<!-- table: SOURCE.csv KEYS METRICS -->'")
-    source, keys, metrics = span.args
-    return source, keys.split(","), metrics.split(",")
-
-
 def check_markdown(path: Path, root: Path) -> list[str]:
     """What does not hold in one markdown file: a number in a claim that no source has, a generated
-    table that differs from its CSV, a marker naming a file that is not there."""
+    table that differs from its source, a count that its source's rows do not give, a marker naming a
+    file that is not there."""
     markdown = path.read_text(encoding="utf-8")
     where = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
     problems = [
@@ -321,33 +283,43 @@ def check_markdown(path: Path, root: Path) -> list[str]:
     ]
     for span in marked_spans(markdown):
         if span.kind == "table":
-            source, keys, metrics = _table_args(span, where)
-            expected = render_table(root / source, keys, metrics)
-            if span.text.strip() != expected:
-                problems.append(f"{where}:{span.line}: table differs from {source} (regenerate it)")
+            if span.text.strip() != render_table(TableSpec.of_marker(span.args, root), root):
+                problems.append(f"{where}:{span.line}: table differs from {span.args[0]} (regenerate it)")
             continue
         if not span.args:
             problems.append(f"{where}:{span.line}: a claim names no source")
             continue
         problems += _check_claim(span, [r for source in span.args for r in source_records(root / source)], where)
+    for span in count_spans(markdown):
+        stated, counted = stated_count(span.text), count_rows(span.args, root)
+        if stated != counted:
+            problems.append(
+                f"{where}:{span.line}: {span.text.strip()!r} is not the {counted} rows of {' '.join(span.args)}"
+            )
     return problems
 
 
 def _holds(stated: Stated, record: Sequence[float]) -> bool:
-    """The number is one of the record's, at its precision (a percentage also as a fraction)."""
+    """The number is one of the record's, at its precision (a percentage also as a fraction); a plain
+    integer (a count) exactly."""
+    if not stated.result_like:
+        return stated.value in record
     return any(stated.matches(v) or stated.matches_fraction(v) for v in record)
 
 
 def _chains(text: str, first_line: int) -> list[list[Stated]]:
-    """Numbers written as one value: ``mean ± std`` and ``estimate [low, high]``; a data file keeps them
-    in adjacent fields (``R@1_mean, R@1_std``; ``gain, ci_low, ci_high``; ``{"mean", "stderr"}``)."""
+    """Numbers written as one value: ``mean ± std``, ``estimate [low, high]`` and a count ``N of M``; a data
+    file keeps them in adjacent fields (``R@1_mean, R@1_std``; ``gain, ci_low, ci_high``; ``{"mean", "stderr"}``;
+    ``seeds_better, seeds``)."""
     prose = _NOT_PROSE.sub(_blank, text)
     matches = list(_NUMBER.finditer(prose))
     chains, i = [], 0
     while i < len(matches):
         end = i
         gaps = [prose[matches[k].end() : matches[k + 1].start()] for k in range(i, len(matches) - 1)]
-        if gaps[:1] == [" ± "]:
+        if gaps[:1] == [" ± "] or (
+            gaps[:1] == [" of "] and not _result_like(matches[i]) and not _result_like(matches[i + 1])
+        ):
             end = i + 1
         elif len(gaps) >= 2 and gaps[0] == " [" and gaps[1] == ", " and prose[matches[i + 2].end()] == "]":
             end = i + 2
@@ -355,6 +327,11 @@ def _chains(text: str, first_line: int) -> list[list[Stated]]:
             chains.append([_stated(m, first_line + prose.count("\n", 0, m.start())) for m in matches[i : end + 1]])
         i = end + 1
     return chains
+
+
+def _result_like(m: re.Match[str]) -> bool:
+    """A number match written as a result (not a plain integer)."""
+    return _stated(m, 0).result_like
 
 
 def _in_sequence(chain: list[Stated], record: Record) -> bool:
@@ -415,14 +392,14 @@ def _segments(length: int, marked: list[tuple[int, int]]) -> list[tuple[int, int
 
 
 def write_tables(path: Path, root: Path) -> bool:
-    """Regenerate every table marker of a markdown file from its CSV; True if the file changed."""
+    """Regenerate every table marker of a markdown file from its source; True if the file changed."""
     markdown = path.read_text(encoding="utf-8")
     out, pos = [], 0
     for span in marked_spans(markdown):
         if span.kind != "table":
             continue
-        source, keys, metrics = _table_args(span, str(path))
-        out += [markdown[pos : span.start], "\n", render_table(root / source, keys, metrics), "\n"]
+        table = render_table(TableSpec.of_marker(span.args, root), root)
+        out += [markdown[pos : span.start], "\n", table, "\n"]
         pos = span.end
     updated = "".join(out) + markdown[pos:]
     if updated != markdown:

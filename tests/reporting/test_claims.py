@@ -6,6 +6,7 @@ hyper-parameter, a version or a definition."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -216,3 +217,133 @@ def test_gains_are_read_from_every_form_the_report_writes() -> None:
         ("main", "over none (netvlad · none) (resnet50)", "unet (sral · student)", "-0.3", "2.7", "1"),
         ("Aggregator × mask (resnet50)", "boq (gsv) · none", "student", "+4.8", "0.7", "3"),
     ]
+
+
+def _pairs(tmp_path: Path) -> None:
+    (tmp_path / "p.csv").write_text(
+        "pair,model,mask,seeds,R@1_mean,R@1_std,gain,ci_low,ci_high,excludes_0\n"
+        "night,gem,none,1,37.5,,,,,\n"
+        "night,gem,camvid,1,34.5,,-3.0,-7.0,+1.0,no\n"
+        "night,netvlad,none,3,54.7,1.3,,,,\n"
+        "night,netvlad,camvid,3,53.8,1.8,-3.3,-6.3,-0.3,yes\n"
+        "day,gem,none,1,87.0,,,,,\n"
+        "day,gem,camvid,1,89.5,,+2.5,-0.5,+6.0,no\n"
+        "day,netvlad,none,3,92.2,0.8,,,,\n"
+        "day,netvlad,camvid,3,94.5,0.5,+2.3,+0.8,+4.2,yes\n",
+        encoding="utf-8",
+    )
+
+
+_PIVOT = (
+    '<!-- table: p.csv model,mask pivot=pair "where=model!=gem" '
+    '"col=R@1={R@1_mean:.1f}[[ ± {R@1_std:.1f}]][[ ({gain:+.1f} [{ci_low:+.1f}, {ci_high:+.1f}]{excludes_0? *})]]"'
+    " -->\n"
+)
+
+
+def test_a_pivoted_table_with_templates_is_generated_and_checked(tmp_path: Path) -> None:
+    """A field's values as columns, rows kept by a condition, the first alternative whose fields all have
+    a value, a flag, the typographic minus; a stale or wrong cell fails, and --write repairs it."""
+    _pairs(tmp_path)
+    table = (
+        "| model · mask | night | day |\n|---|---:|---:|\n| netvlad · none | 54.7 ± 1.3 | 92.2 ± 0.8 |\n"
+        "| netvlad · camvid | 53.8 ± 1.8 (−3.3 [−6.3, −0.3] *) | 94.5 ± 0.5 (+2.3 [+0.8, +4.2] *) |"
+    )
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"{_PIVOT}{table}\n<!-- /table -->\n", encoding="utf-8")
+    assert claims.check_markdown(doc, tmp_path) == []
+    for wrong in ("(−3.3 [−6.3, −0.3] *)", "(+2.3 [+0.8, +4.2] *)", "54.7 ± 1.3"):
+        doc.write_text(f"{_PIVOT}{table.replace(wrong, wrong.replace('3', '4'))}\n<!-- /table -->\n", encoding="utf-8")
+        assert claims.check_markdown(doc, tmp_path) == ["doc.md:1: table differs from p.csv (regenerate it)"]
+    assert claims.write_tables(doc, tmp_path) and table in doc.read_text(encoding="utf-8")
+    one_seed = _PIVOT.replace('"where=model!=gem" ', '"where=model=gem" "rows=gem · camvid" ')
+    doc.write_text(f"{one_seed}\n<!-- /table -->\n", encoding="utf-8")
+    claims.write_tables(doc, tmp_path)
+    assert "| gem · camvid | 34.5 (−3.0 [−7.0, +1.0]) | 89.5 (+2.5 [−0.5, +6.0]) |" in doc.read_text(encoding="utf-8")
+
+
+def test_a_json_source_gives_rows_and_several_sources_join(tmp_path: Path) -> None:
+    """An object of objects is one row per member (``key``), nested fields dotted; a missing value is –;
+    ``as=`` relabels; sources joined by + name themselves in ``source``."""
+    (tmp_path / "r.json").write_text(
+        '{"teacher": {"miou": 0.6349, "removed": 0.8774, "val": {"miou": 0.7324}}, "student": {"removed": 0.8364},'
+        ' "note": "x"}',
+        encoding="utf-8",
+    )
+    marker = (
+        '<!-- table: r.json key head=model "as=teacher=the teacher" "col=mIoU={miou:.3f}" "col=val={val.miou:.2f}"'
+        ' "col=removed={removed:.1%}" -->\n'
+    )
+    table = (
+        "| model | mIoU | val | removed |\n|---|---:|---:|---:|\n| the teacher | 0.635 | 0.73 | 87.7 % |\n"
+        "| student | – | – | 83.6 % |"
+    )
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"{marker}{table}\n<!-- /table -->\n", encoding="utf-8")
+    assert claims.check_markdown(doc, tmp_path) == []
+    doc.write_text(f"{marker}{table.replace('87.7 %', '87.8 %')}\n<!-- /table -->\n", encoding="utf-8")
+    assert claims.check_markdown(doc, tmp_path) == ["doc.md:1: table differs from r.json (regenerate it)"]
+    _pairs(tmp_path)
+    (tmp_path / "q.csv").write_text("pair,model,mask,R@1_mean,R@1_std\nnight,netvlad,none,60.0,1.0\n", encoding="utf-8")
+    joined = '<!-- table: p.csv+q.csv model pivot=source "as=p.csv=before" "as=q.csv=after" "where=pair=night" '
+    joined += '"where=mask=none" R@1 -->\n'
+    doc.write_text(f"{joined}<!-- /table -->\n", encoding="utf-8")
+    claims.write_tables(doc, tmp_path)
+    expected = "| model | before | after |\n|---|---:|---:|\n| gem | 37.5 | – |\n| netvlad | 54.7 ± 1.3 | 60.0 ± 1.0 |"
+    assert expected in doc.read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize(
+    ("marker", "error"),
+    [
+        ('<!-- table: p.csv model "col=R@1={R@1:.1f}" -->', "no column 'R@1'"),
+        ('<!-- table: p.csv model,mask pivot=pair "rows=boq · none" R@1 -->', "no row 'boq · none'"),
+        ('<!-- table: p.csv model,mask "where=gain<x" R@1 -->', "compares with a number"),
+        ("<!-- table: p.csv model pivot=pair R@1 -->", "two rows for 'gem'"),
+        ("<!-- table: p.csv model -->", "needs METRICS or a col"),
+        ('<!-- table: p.csv model,pair "col=m={mask:.1f}" -->', "expected a number in the data file, got 'none'"),
+        ("<!-- count: p.csv mask=none seedz=3 -->4<!-- /count -->", "no column 'seedz'"),
+    ],
+)
+def test_a_marker_that_cannot_be_rendered_or_counted_is_one_error(tmp_path: Path, marker: str, error: str) -> None:
+    _pairs(tmp_path)
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"{marker}\n<!-- /table -->\n" if "table:" in marker else marker, encoding="utf-8")
+    with pytest.raises(SemvprError, match=re.escape(error)):
+        claims.check_markdown(doc, tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("count", "holds"),
+    [
+        ('<!-- count: p.csv mask=camvid "gain<0" excludes_0=yes -->one<!-- /count -->', True),
+        ('<!-- count: p.csv mask=camvid "gain<0" excludes_0=yes -->1<!-- /count -->', True),
+        ('<!-- count: p.csv mask=camvid "gain<0" excludes_0=yes -->two<!-- /count -->', False),
+        ('<!-- count: p.csv "mask=camvid|none" "model~net" -->4<!-- /count -->', True),
+        ('<!-- count: p.csv "mask=camvid|none" "model!~net" -->4<!-- /count -->', True),
+        ('<!-- count: p.csv mask=camvid "gain>0" -->3<!-- /count -->', False),
+        ('<!-- count: p.csv "pair!=day" -->4<!-- /count -->', True),
+    ],
+)
+def test_a_count_is_the_number_of_rows_its_conditions_keep(tmp_path: Path, count: str, holds: bool) -> None:
+    """A plain integer in prose, inside a claim, held to a query over its source."""
+    _pairs(tmp_path)
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"<!-- claim: p.csv -->\nOf the comparisons, {count} lost.\n<!-- /claim -->\n", encoding="utf-8")
+    problems = claims.check_markdown(doc, tmp_path)
+    assert problems == [] if holds else (len(problems) == 1 and "is not the" in problems[0]), problems
+
+
+@pytest.mark.parametrize(
+    ("text", "holds"), [("+4.4 (3 of 3)", True), ("+4.4 (2 of 3)", False), ("+1.9 (1 of 3)", True)]
+)
+def test_n_of_m_is_a_pair_of_adjacent_fields(tmp_path: Path, text: str, holds: bool) -> None:
+    """``N of M`` (seeds better) is two side-by-side fields of one row, exactly: 2 of 3 is not 1.9 and 2.6,
+    nor the teacher's 1 of 3."""
+    (tmp_path / "g.csv").write_text(
+        "model,gain_mean,gain_std,seeds_better,seeds\nstudent,+4.4,4.0,3,3\nteacher,+1.9,2.6,1,3\n", encoding="utf-8"
+    )
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"<!-- claim: g.csv -->\nThe mask gains {text}.\n<!-- /claim -->\n", encoding="utf-8")
+    problems = claims.check_markdown(doc, tmp_path)
+    assert problems == [] if holds else problems == ["doc.md:2: 2 3 are not side by side in one record of g.csv"]
