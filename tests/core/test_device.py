@@ -125,8 +125,10 @@ def test_the_fp32_sections_turn_autocast_and_tf32_off_and_restore_them() -> None
     assert torch.get_float32_matmul_precision() == "highest"
 
 
-def test_a_gpu_job_gives_its_cpu_stages_the_share() -> None:
+def test_a_gpu_job_gives_its_cpu_stages_the_share(monkeypatch: pytest.MonkeyPatch) -> None:
     from semvpr.core.threads import Threads
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)  # a cap in the environment would bound both
 
     cpu, gpu = Threads.resolve("auto", cores=8), Threads.resolve("auto", cores=8, gpu=True)
     assert cpu.of("retriever") == 1 and gpu.of("retriever") == 8 and gpu.record()["gpu"] is True
