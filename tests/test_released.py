@@ -603,6 +603,19 @@ def test_a_dinov2_trunk_reads_a_release_or_dinov2s_own_file(tmp_path: Path) -> N
         build_backbone(cfg.backbone, 0)
 
 
+def test_a_student_is_refused_on_dinov2_token_maps_and_a_run_without_one_trains(tmp_path: Path) -> None:
+    """A student decodes image-aligned maps: on the DINOv2 trunk it is one line, and a run whose semantic side
+    could have a student (SynthCity's labels) plans its trunk pass without one."""
+    from semvpr.config.build import semantic_levels, student_spec
+    from semvpr.models.student import student_architecture
+
+    cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", "data.image_size=[70,98]")
+    trunk = build_backbone(cfg.backbone, 0)
+    with pytest.raises(SemvprError, match="token maps: use mask=teacher or mask=oracle"):
+        student_architecture(student_spec(cfg), trunk)
+    assert semantic_levels(cfg, trunk, None)[1] == set()
+
+
 def test_the_class_token_goes_with_salads_class_token_only(tmp_path: Path) -> None:
     from semvpr.config.checks import check_config
 

@@ -23,6 +23,8 @@ Weights: ``none`` (random, DINOv2's initialisation) or a file in DINOv2's naming
 ``cls_token``, ``pos_embed``, ``mask_token``, ``patch_embed.proj``, ``blocks.N.*``, ``norm``), or a SALAD or
 BoQ release file, whose trunk is read off its layout (``models.released``). Never downloaded.
 SALAD fine-tunes the last 4 blocks (``train_from=block8``), BoQ the last 2 (``train_from=block10``).
+A student decodes image-aligned feature maps, not these token maps: the masks of this trunk come from the
+teacher (or the oracle).
 """
 
 from __future__ import annotations
@@ -230,6 +232,8 @@ def dinov2_state(weights: str | Path) -> dict[str, Tensor] | None:
 
 class DINOv2Backbone(Backbone):
     """DINOv2 ViT-B/14: 768 channels at stride 14 (the module docstring says how its tokens travel)."""
+
+    image_maps = False
 
     def __init__(
         self,
