@@ -699,12 +699,17 @@ def test_mixvpr_at_the_authors_image_size(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------- evaluation with a mask
-def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path) -> None:
-    save_state(cosplace_model(), tmp_path / "c.pth")
+@pytest.mark.parametrize("fmt", ["cosplace", "boq_dinov2"])
+def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path, fmt: str) -> None:
+    model, size, label, dim = {
+        "cosplace": (cosplace_model, [32, 48], "cosplace (ResNet50, released)", 128),
+        "boq_dinov2": (boq_dinov2_model, [28, 42], "boq (DINOv2, released)", 512),
+    }[fmt]
+    save_state(model(), tmp_path / "c.pth")
     root = make_folder(tmp_path / "places")
     teacher = write_teacher_dir(tmp_path / "teacher")
-    common = [f"+ckpt={tmp_path / 'c.pth'}", "ckpt_format=cosplace", "data=folder", f"data.root={root}"]
-    common += ["data.image_size=[32,48]", "data.num_workers=0"]
+    common = [f"+ckpt={tmp_path / 'c.pth'}", f"ckpt_format={fmt}", "data=folder", f"data.root={root}"]
+    common += [f"data.image_size=[{size[0]},{size[1]}]", "data.num_workers=0"]
     results = {}
     for mask in ("none", "teacher"):
         extra = [f"mask={mask}"] + ([f"teacher.checkpoint={teacher}"] if mask == "teacher" else [])
@@ -712,8 +717,8 @@ def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path) -> No
         keys = {o.split("=", 1)[0].lstrip("+") for o in [*common, *extra]}
         results[mask] = evaluate_checkpoint(cfg, keys)
     for mask, result in results.items():
-        assert result["release"] == "cosplace (ResNet50, released)" and result["mask"] == mask
-        assert result["descriptor_dim"] == 128 and result["image_size"] == [32, 48]
+        assert result["release"] == label and result["mask"] == mask
+        assert result["descriptor_dim"] == dim and result["image_size"] == size
         json.dumps({k: v for k, v in result.items() if k != "ranks"})
     assert results["teacher"]["mask_checkpoint"] == str(teacher) and results["none"]["mask_checkpoint"] is None
 
