@@ -6,9 +6,11 @@
 #   [PITTS30K=DIR] [TOKYO247=DIR] [MSLS_VAL=GT_DIR:MSLS_ROOT] [NORDLAND=DIR] [GARDENS=DIR] [FOLDER=DIR] \
 #     bash experiments/published-masks/run.sh OUT TEACHER_DIR STUDENT_DIR RELEASE...
 # TEACHER_DIR / STUDENT_DIR: directories saved by semvpr.segment ("-": leave that mask out).
-# RELEASE: FILE[:FORMAT][=STUDENT_DIR]. FORMAT where its keys do not say (cosplace and eigenplaces files
-# share a layout); STUDENT_DIR: a student trained on this release's trunk (semvpr.segment with
-# backbones.<arch>.weights=FILE), in place of the common one, which decodes another trunk.
+# RELEASE: FILE[:FORMAT][=STUDENT_DIR]. FORMAT (netvlad, mixvpr, cosplace, eigenplaces, boq, boq_dinov2,
+# salad) where its keys do not say (cosplace and eigenplaces files share a layout); STUDENT_DIR: a student
+# trained on this release's trunk (semvpr.segment with backbones.<arch>.weights=FILE), in place of the common
+# one, which decodes another trunk, or "-" (no student row: the DINOv2 releases, salad and boq_dinov2, whose
+# token maps no student decodes).
 # EVAL_ARGS: more semvpr.eval overrides for every job (e.g. "threads=1").
 set -euo pipefail
 usage="usage: run.sh OUT TEACHER_DIR STUDENT_DIR RELEASE..."

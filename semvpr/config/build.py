@@ -334,7 +334,7 @@ def semantic_levels(
     teacher_levels = set(teacher.trunk_levels or ()) if teacher is not None and teacher.on_trunk(size) else set()
     spec = student_spec(cfg)
     student_levels: set[int] = set()
-    if spec.bf16 or not bf16_native(next(backbone.parameters()).device.type):
+    if backbone.image_maps and (spec.bf16 or not bf16_native(next(backbone.parameters()).device.type)):
         student_levels = set(student_architecture(spec, backbone).skip_indices)
     return teacher_levels, student_levels
 

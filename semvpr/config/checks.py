@@ -396,6 +396,12 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
             if key.startswith("_"):
                 continue
             _check_size(value, f"aggregator.module.{key}")
+        class_token = bool(cfg.backbone.get("class_token", False))
+        if class_token != (module is not None and module.get("global_token") == "class"):
+            raise SemvprError(
+                f"backbone.class_token={str(class_token).lower()} goes with aggregator=salad "
+                "aggregator.module.global_token=class, and only with it (the class token is SALAD's global token)"
+            )
     except SemvprError as err:
         raise SemvprError(f"{prefix}{err}") from None
 

@@ -10,7 +10,7 @@ A command-line choice that would change the model is refused, with one exception
 ``semvpr.segment``, read as data) or ``mask=none`` replaces the checkpoint's own; the backbone, the
 aggregator and its weights, and learned class weights stay the checkpoint's (ARCHITECTURE §3.2).
 
-An author's released file (pytorch-NetVlad, MixVPR, CosPlace, EigenPlaces, BoQ: ``models.released``; told
+An author's released file (pytorch-NetVlad, MixVPR, CosPlace, EigenPlaces, BoQ, SALAD: ``models.released``; told
 from a semvpr checkpoint by its keys, or named with ``ckpt_format=``) becomes a record of the same form: the
 layout's backbone and aggregator choices and the sizes its weights' shapes give, validated and built the
 same way, at the author's image size, with no mask or the invocation's.

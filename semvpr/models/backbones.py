@@ -97,6 +97,9 @@ def _load_state_dict(arch: str, weights: str | Path) -> dict[str, Tensor] | None
 class Backbone(nn.Module):
     """Trunk of named units with multi-scale outputs, a frozen prefix and a trainable part."""
 
+    #: Whether the frozen outputs are feature maps on the image's grid, which a student decodes (a ViT's token
+    #: maps are not: their first row is the class token's).
+    image_maps: bool = True
     out_channels: int
     skip_channels: tuple[int, ...]
     skip_strides: tuple[int, ...]

@@ -13,8 +13,18 @@ fixes what the author's own evaluation fixes (model, key names, image size):
   ``backbone.N``, ``aggregation.1.p``, ``aggregation.3``; the images' own size.
 - ``boq``: ResNet50 to ``layer3`` + BoQ with its 3×3 projection (Bag-of-Queries ``hubconf.py``);
   ``backbone.net.N``, ``aggregator.{proj_c,norm_input,boqs.I,fc}``; 384 × 384.
+- ``boq_dinov2``: DINOv2 ViT-B/14's patch tokens after its last block, without the final norm (Bag-of-Queries
+  ``src/backbones.py`` ``DinoV2``) + BoQ with its 3×3 projection; ``backbone.dino.*`` in DINOv2's naming,
+  ``aggregator.*`` as ``boq``; 322 × 322.
+- ``salad``: DINOv2 ViT-B/14's normalised patch tokens and class token (SALAD ``models/backbones/dinov2.py``,
+  ``return_token``, ``norm_layer``) + SALAD with the class token as its global token (``hubconf.py``);
+  ``backbone.model.*`` in DINOv2's naming, ``aggregator.{token_features,cluster_features,score,dust_bin}``;
+  322 × 322.
 
-Every author normalises with the ImageNet mean and std (what semvpr's torchvision backbones do) and
+A layout's name is its project's; a project's release of another backbone adds the backbone's name
+(``boq`` is Bag-of-Queries' ResNet50 file, ``boq_dinov2`` its DINOv2 one).
+
+Every author normalises with the ImageNet mean and std (what semvpr's torchvision and DINOv2 backbones do) and
 L2-normalises the descriptor (what every semvpr aggregator does); none of these releases ships a PCA.
 CosPlace and EigenPlaces share one layout (the same network), so a file of that layout must be named.
 pytorch-NetVlad's vladv1 assignment has no bias: semvpr's NetVLAD takes a zero one, and its α (used only to
@@ -35,9 +45,10 @@ from torch import Tensor
 from semvpr.core.checkpoint import read_weights
 from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16_SLICES
+from semvpr.models.dinov2 import DINOV2_KEYS
 
 #: ``ckpt_format=`` values: ``auto`` recognises a semvpr checkpoint or a release layout; ``semvpr`` only the former.
-FORMATS = ("auto", "semvpr", "netvlad", "mixvpr", "cosplace", "eigenplaces", "boq")
+FORMATS = ("auto", "semvpr", "netvlad", "mixvpr", "cosplace", "eigenplaces", "boq", "boq_dinov2", "salad")
 #: Up to how many blocks / mixers / convolutions a layout's numbered keys are mapped.
 _MAX_INDEX = 64
 #: semvpr's ResNet50 units as torchvision names them (``ResNet50Backbone``: the stem is one unit).
@@ -102,6 +113,11 @@ def _vgg16(author: str) -> tuple[tuple[str, str], ...]:
     )
 
 
+def _dinov2(author: str) -> tuple[tuple[str, str], ...]:
+    """An author's DINOv2 module (``author`` + DINOv2's names) → semvpr's DINOv2 units (``DINOV2_KEYS``)."""
+    return tuple((f"{author}{theirs}", f"backbone.{ours}") for theirs, ours in DINOV2_KEYS)
+
+
 def _numbered(author: str, ours: str, parts: dict[str, str]) -> tuple[tuple[str, str], ...]:
     """``author{i}.{part}`` → ``ours{i}.{parts[part]}`` for every block index."""
     return tuple((f"{author}{i}.{a}", f"{ours}{i}.{b}") for i in range(_MAX_INDEX) for a, b in parts.items())
@@ -152,20 +168,47 @@ def _gem_settings(state: dict[str, Tensor]) -> dict[str, Any]:
     return {"backbone": {"stage": stage}, "aggregator": {"module": module}, "model": {}}
 
 
-def _boq_settings(state: dict[str, Tensor]) -> dict[str, Any]:
-    queries = state["aggregator.boqs.0.queries"]
+def _boq_settings(backbone: dict[str, Any]) -> Callable[[dict[str, Tensor]], dict[str, Any]]:
+    """BoQ's sizes from its weights, on a trunk of the ``backbone`` settings."""
+
+    def settings(state: dict[str, Tensor]) -> dict[str, Any]:
+        queries = state["aggregator.boqs.0.queries"]
+        module = {
+            "proj_channels": int(queries.shape[2]),
+            "num_queries": int(queries.shape[1]),
+            "num_layers": _count(state, "aggregator.boqs."),
+            "row_dim": int(state["aggregator.fc.weight"].shape[0]),
+            "proj_kernel": int(state["aggregator.proj_c.weight"].shape[-1]),
+        }
+        return {"backbone": dict(backbone), "aggregator": {"module": module}, "model": {}}
+
+    return settings
+
+
+def _salad_settings(state: dict[str, Tensor]) -> dict[str, Any]:
+    """SALAD's sizes from its weights; its MLPs hold the authors' dropout (the module at index 1) and the
+    Sinkhorn runs the authors' 3 iterations; the global token is DINOv2's class token."""
     module = {
-        "proj_channels": int(queries.shape[2]),
-        "num_queries": int(queries.shape[1]),
-        "num_layers": _count(state, "aggregator.boqs."),
-        "row_dim": int(state["aggregator.fc.weight"].shape[0]),
-        "proj_kernel": int(state["aggregator.proj_c.weight"].shape[-1]),
+        "cluster_dim": int(state["aggregator.cluster_features.3.weight"].shape[0]),
+        "token_dim": int(state["aggregator.token_features.2.weight"].shape[0]),
+        "hidden_dim": int(state["aggregator.token_features.0.weight"].shape[0]),
+        "dropout": 0.3,
+        "iters": 3,
+        "global_token": "class",
     }
-    return {"backbone": {"stage": "layer3"}, "aggregator": {"module": module}, "model": {}}
+    clusters = int(state["aggregator.score.3.weight"].shape[0])
+    return {"backbone": {"class_token": True}, "aggregator": {"module": module}, "model": {"num_clusters": clusters}}
 
 
 #: MixVPR's ``FeatureMixerLayer.mix`` (LayerNorm, Linear, ReLU, Linear) → semvpr's ``FeatureMixer``.
 _MIXER = {"mix.0.": "norm.", "mix.1.": "fc1.", "mix.3.": "fc2."}
+#: BoQ's head, named alike in both of its releases.
+_BOQ = (
+    ("aggregator.proj_c.", "aggregator.proj_c."),
+    ("aggregator.norm_input.", "aggregator.norm_input."),
+    ("aggregator.boqs.", "aggregator.blocks."),
+    ("aggregator.fc.", "aggregator.fc."),
+)
 _GEM = (
     *_resnet("backbone.", children=True),
     ("aggregation.1.p", "aggregator.p"),
@@ -220,15 +263,29 @@ LAYOUTS: dict[str, Layout] = {
             "resnet50",
             "boq",
             (384, 384),
-            (
-                *_resnet("backbone.net.", children=True),
-                ("aggregator.proj_c.", "aggregator.proj_c."),
-                ("aggregator.norm_input.", "aggregator.norm_input."),
-                ("aggregator.boqs.", "aggregator.blocks."),
-                ("aggregator.fc.", "aggregator.fc."),
-            ),
+            (*_resnet("backbone.net.", children=True), *_BOQ),
             ("backbone.net.0.weight", "aggregator.boqs.0.queries"),
-            _boq_settings,
+            _boq_settings({"stage": "layer3"}),
+        ),
+        Layout(
+            "boq_dinov2",
+            "boq (DINOv2, released)",
+            "dinov2_vitb14",
+            "boq",
+            (322, 322),
+            (*_dinov2("backbone.dino."), *_BOQ),
+            ("backbone.dino.cls_token", "aggregator.boqs.0.queries"),
+            _boq_settings({"final_norm": False}),
+        ),
+        Layout(
+            "salad",
+            "salad (DINOv2, released)",
+            "dinov2_vitb14",
+            "salad",
+            (322, 322),
+            (*_dinov2("backbone.model."), ("aggregator.", "aggregator.")),
+            ("backbone.model.cls_token", "aggregator.dust_bin"),
+            _salad_settings,
         ),
     )
 }
@@ -278,19 +335,21 @@ def read_release(path: str | Path, fmt: str = "auto", contents: Any = None) -> R
     return Release(path, layout, state)
 
 
-#: semvpr's backbone keys → torchvision's names (what ``backbone.weights=FILE`` loads), per backbone choice.
-_TORCHVISION = {
+#: semvpr's backbone keys → the trunk's own naming, torchvision's or DINOv2's (what ``backbone.weights=FILE``
+#: loads), per backbone choice.
+_TRUNK_NAMING = {
     "resnet50": tuple((f"backbone.units.{unit}.", f"{name}.") for name, unit in _RESNET_UNITS.items()),
     "vgg16": tuple(
         (f"backbone.units.{unit}.{n - a}.", f"features.{n}.")
         for unit, (a, b) in enumerate(VGG16_SLICES)
         for n in range(a, b)
     ),
+    "dinov2_vitb14": tuple((f"backbone.{ours}", theirs) for theirs, ours in DINOV2_KEYS),
 }
 
 
 def release_trunk(state: dict[str, Any], path: Path, arch: str) -> dict[str, Tensor] | None:
-    """The trunk of a release file of an ``arch`` layout in torchvision's naming, or None when ``state`` is of
+    """The trunk of a release file of an ``arch`` layout in the trunk's own naming, or None when ``state`` is of
     no release layout: ``backbone.weights=FILE`` then builds the release's trunk, and a student trained on it
     (``semvpr.segment``) decodes the trunk the release evaluates with."""
     layout = next((lo for lo in LAYOUTS.values() if lo.backbone == arch and all(k in state for k in lo.marks)), None)
@@ -298,13 +357,13 @@ def release_trunk(state: dict[str, Any], path: Path, arch: str) -> dict[str, Ten
         return None
     trunk = {}
     for key, value in weights_of(state, path).items():
-        ours = _rename(key, layout.prefixes)
+        ours = rename(key, layout.prefixes)
         if ours is not None and ours.startswith("backbone."):
-            trunk[_rename(ours, _TORCHVISION[arch]) or ours] = value
+            trunk[rename(ours, _TRUNK_NAMING[arch]) or ours] = value
     return trunk
 
 
-def _rename(key: str, pairs: tuple[tuple[str, str], ...]) -> str | None:
+def rename(key: str, pairs: tuple[tuple[str, str], ...]) -> str | None:
     """``key`` with its longest matching prefix replaced, or None when none matches."""
     best = max((p for p in pairs if key.startswith(p[0])), key=lambda p: len(p[0]), default=None)
     return None if best is None else best[1] + key[len(best[0]) :]
@@ -319,7 +378,7 @@ def map_release(release: Release, expected: dict[str, Tensor]) -> dict[str, Tens
     inverse = tuple((b, a) for a, b in pairs)
     out = dict(layout.derived(release.state))
     for key, value in release.state.items():
-        target = _rename(key, pairs)
+        target = rename(key, pairs)
         if target is None or target not in expected:
             raise SemvprError(f"{where}: key {key!r} is not part of the {layout.name} model")
         if target == "aggregator.p":  # CosPlace's GeM keeps p as a 1-element vector
@@ -332,5 +391,5 @@ def map_release(release: Release, expected: dict[str, Tensor]) -> dict[str, Tens
         out[target] = value.to(expected[target].dtype)
     missing = sorted(set(expected) - set(out))
     if missing:
-        raise SemvprError(f"{where}: no weight {_rename(missing[0], inverse) or missing[0]!r}, which the model needs")
+        raise SemvprError(f"{where}: no weight {rename(missing[0], inverse) or missing[0]!r}, which the model needs")
     return out

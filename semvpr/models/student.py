@@ -132,7 +132,13 @@ class Student(nn.Module):
 
 
 def student_architecture(spec: StudentSpec, backbone: nn.Module) -> Student:
-    """An untrained student of this spec over this backbone's frozen features."""
+    """An untrained student of this spec over this backbone's frozen features (one line where they are not
+    image-aligned maps)."""
+    if not getattr(backbone, "image_maps", True):
+        raise SemvprError(
+            f"a student decodes a trunk's feature maps; {type(backbone).__name__}'s frozen outputs are token maps: "
+            "use mask=teacher or mask=oracle with this backbone"
+        )
     return Student(
         backbone.frozen_channels,
         backbone.frozen_strides,

@@ -146,9 +146,11 @@ def test_every_mask_source_gives_a_grid_mask(name: str, tmp_path) -> None:
 def test_every_backbone_gives_the_channels_and_strides_it_declares(name: str) -> None:
     cfg = config(f"backbone={name}", "backbone.weights=none")
     backbone = build_backbone(cfg.backbone, 0).eval()
+    # Sides that every stride divides (16 and DINOv2's 14); a ViT's token maps hold one more row than its
+    # grid (the class token's), so the strides are read off the width.
     with torch.no_grad():
-        outs = backbone(torch.rand(1, 3, 64, 96))
+        outs = backbone(torch.rand(1, 3, 112, 224))
+        scales = backbone.forward_frozen(torch.rand(1, 3, 112, 224))
     assert outs[-1].shape[1] == backbone.out_channels
-    scales = backbone.forward_frozen(torch.rand(1, 3, 64, 96))
     assert [s.shape[1] for s in scales] == list(backbone.frozen_channels)
-    assert [64 // s.shape[-2] for s in scales] == list(backbone.frozen_strides)
+    assert [224 // s.shape[-1] for s in scales] == list(backbone.frozen_strides)

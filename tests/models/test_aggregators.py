@@ -330,6 +330,25 @@ def test_salad_sinkhorn_without_a_mask_is_the_authors_start_bit_for_bit() -> Non
     assert torch.equal(log_sinkhorn(scores, log_a, log_b, 3), expected)
 
 
+def test_salad_class_token_is_the_global_token_and_no_mask_reaches_it() -> None:
+    """``global_token=class``: g is the token MLP of the channels after the patch channels (the trunk's class
+    token); a mask moves the clusters' part only."""
+    x, w = features()
+    token = torch.randn(2, D, generator=torch.Generator().manual_seed(3))
+    with_token = torch.cat([x, token[:, :, None, None].expand_as(x)], dim=1)
+    agg = SALAD(dim=D, num_clusters=8, hidden_dim=64, global_token="class").eval()
+    g = agg.token_dim
+    with torch.no_grad():
+        plain, masked = agg(with_token), agg(with_token, w)
+        expected_g = F.normalize(agg.token_features(token), dim=1)
+    norm = plain[:, :g].norm(dim=1, keepdim=True)  # the global part's share of the unit descriptor
+    torch.testing.assert_close(plain[:, :g] / norm, expected_g, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(masked[:, :g], plain[:, :g], rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(masked[:, g:], plain[:, g:], atol=1e-4)
+    with pytest.raises(SemvprError, match="needs the backbone's class token"):
+        agg(x)
+
+
 def test_salad_needs_more_locations_than_clusters() -> None:
     with pytest.raises(SemvprError, match="more feature locations than clusters"):
         SALAD(dim=D, num_clusters=N)(torch.randn(1, D, H, W))

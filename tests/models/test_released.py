@@ -1,7 +1,8 @@
 """The authors' released files load through ``ckpt=`` and give the authors' descriptors.
 
 Each author's model is written out here as the author's code defines it (torchvision's ResNet50 and VGG16
-layers, the author's head), with random weights and random BatchNorm statistics, saved in the author's
+layers, DINOv2's ViT-B/14 in plain torch, the author's wrapper and head), with random weights and random
+BatchNorm statistics, saved in the author's
 file layout (the key names and nesting the author's code produces), read through ``load_retriever`` (what
 ``ckpt=`` runs) and compared with the author's forward pass on ImageNet-normalised images.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -251,6 +253,381 @@ def boq_model() -> nn.Module:
     return randomise(VPRModel(BoQResNet(), AuthorsBoQ(1024, 128, 8, 2, 4)), 4)
 
 
+# ---------------------------------------------------------------------------------- DINOv2 ViT-B/14
+class DinoAttention(nn.Module):
+    """DINOv2 ``layers/attention.py`` ``Attention`` (the form without xFormers: explicit softmax)."""
+
+    def __init__(self, dim: int, num_heads: int) -> None:
+        super().__init__()
+        self.num_heads, self.scale = num_heads, (dim // num_heads) ** -0.5
+        self.qkv = nn.Linear(dim, dim * 3, bias=True)
+        self.proj = nn.Linear(dim, dim, bias=True)
+
+    def forward(self, x: Tensor) -> Tensor:
+        B, N, C = x.shape
+        qkv = self.qkv(x).reshape(B, N, 3, self.num_heads, C // self.num_heads).permute(2, 0, 3, 1, 4)
+        q, k, v = qkv[0] * self.scale, qkv[1], qkv[2]
+        attn = (q @ k.transpose(-2, -1)).softmax(dim=-1)
+        return self.proj((attn @ v).transpose(1, 2).reshape(B, N, C))
+
+
+class DinoLayerScale(nn.Module):
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.gamma = nn.Parameter(torch.ones(dim))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x * self.gamma
+
+
+class DinoMlp(nn.Module):
+    def __init__(self, dim: int, hidden: int) -> None:
+        super().__init__()
+        self.fc1, self.act, self.fc2 = nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.fc2(self.act(self.fc1(x)))
+
+
+class DinoBlock(nn.Module):
+    """DINOv2 ``layers/block.py`` ``Block`` in eval mode."""
+
+    def __init__(self, dim: int, num_heads: int) -> None:
+        super().__init__()
+        self.norm1, self.attn, self.ls1 = (
+            nn.LayerNorm(dim, eps=1e-6),
+            DinoAttention(dim, num_heads),
+            DinoLayerScale(dim),
+        )
+        self.norm2, self.mlp, self.ls2 = nn.LayerNorm(dim, eps=1e-6), DinoMlp(dim, 4 * dim), DinoLayerScale(dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = x + self.ls1(self.attn(self.norm1(x)))
+        return x + self.ls2(self.mlp(self.norm2(x)))
+
+
+class DinoPatchEmbed(nn.Module):
+    def __init__(self, patch: int, dim: int) -> None:
+        super().__init__()
+        self.proj = nn.Conv2d(3, dim, kernel_size=patch, stride=patch)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.proj(x).flatten(2).transpose(1, 2)
+
+
+class DinoVisionTransformer(nn.Module):
+    """DINOv2 ``models/vision_transformer.py`` as ``hub/backbones.py`` makes ``dinov2_vitb14``: img_size 518,
+    patch 14, width 768, depth 12, 12 heads, LayerScale, no register tokens, interpolate_offset 0.1,
+    no antialiasing."""
+
+    def __init__(self, dim: int = 768, depth: int = 12, heads: int = 12, patch: int = 14, img: int = 518) -> None:
+        super().__init__()
+        self.patch_size, self.interpolate_offset, self.interpolate_antialias = patch, 0.1, False
+        self.patch_embed = DinoPatchEmbed(patch, dim)
+        self.cls_token = nn.Parameter(torch.zeros(1, 1, dim))
+        self.pos_embed = nn.Parameter(torch.zeros(1, (img // patch) ** 2 + 1, dim))
+        self.blocks = nn.ModuleList([DinoBlock(dim, heads) for _ in range(depth)])
+        self.norm = nn.LayerNorm(dim, eps=1e-6)
+        self.mask_token = nn.Parameter(torch.zeros(1, dim))
+
+    def interpolate_pos_encoding(self, x: Tensor, w: int, h: int) -> Tensor:
+        previous_dtype = x.dtype
+        npatch = x.shape[1] - 1
+        N = self.pos_embed.shape[1] - 1
+        if npatch == N and w == h:
+            return self.pos_embed
+        pos_embed = self.pos_embed.float()
+        class_pos_embed = pos_embed[:, 0]
+        patch_pos_embed = pos_embed[:, 1:]
+        dim = x.shape[-1]
+        w0 = w // self.patch_size
+        h0 = h // self.patch_size
+        M = int(math.sqrt(N))
+        assert N == M * M
+        sx = float(w0 + self.interpolate_offset) / M
+        sy = float(h0 + self.interpolate_offset) / M
+        patch_pos_embed = nn.functional.interpolate(
+            patch_pos_embed.reshape(1, M, M, dim).permute(0, 3, 1, 2),
+            mode="bicubic",
+            antialias=self.interpolate_antialias,
+            scale_factor=(sx, sy),
+        )
+        assert (w0, h0) == patch_pos_embed.shape[-2:]
+        patch_pos_embed = patch_pos_embed.permute(0, 2, 3, 1).view(1, -1, dim)
+        return torch.cat((class_pos_embed.unsqueeze(0), patch_pos_embed), dim=1).to(previous_dtype)
+
+    def prepare_tokens_with_masks(self, x: Tensor) -> Tensor:
+        B, nc, w, h = x.shape
+        x = self.patch_embed(x)
+        x = torch.cat((self.cls_token.expand(x.shape[0], -1, -1), x), dim=1)
+        return x + self.interpolate_pos_encoding(x, w, h)
+
+
+def randomise_vit(model: nn.Module, seed: int) -> nn.Module:
+    """Random weights of a scale that keeps a 12-block ViT's activations moderate; LayerNorms, LayerScales,
+    class token and position embeddings random too (a wrong mapping or interpolation of any of them shows)."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            noise = torch.randn(p.shape, generator=gen)
+            if name.endswith("gamma"):
+                p.copy_(torch.rand(p.shape, generator=gen) + 0.5)
+            elif "norm" in name and p.dim() == 1:
+                p.copy_(1 + 0.2 * noise if name.endswith("weight") else 0.1 * noise)
+            elif name.endswith(("pos_embed", "cls_token", "mask_token", "queries", "dust_bin")):
+                p.copy_(noise)
+            else:
+                p.copy_(0.05 * noise)
+    return model.eval()
+
+
+class SaladDINOv2(nn.Module):
+    """SALAD ``models/backbones/dinov2.py`` ``DINOv2`` (``num_trainable_blocks=4``, ``norm_layer=True``,
+    ``return_token=True``), in eval."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.model = DinoVisionTransformer()
+        self.num_channels, self.num_trainable_blocks = 768, 4
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        B, C, H, W = x.shape
+        x = self.model.prepare_tokens_with_masks(x)
+        for blk in self.model.blocks[: -self.num_trainable_blocks]:
+            x = blk(x)
+        for blk in self.model.blocks[-self.num_trainable_blocks :]:
+            x = blk(x)
+        x = self.model.norm(x)
+        t, f = x[:, 0], x[:, 1:]
+        return f.reshape((B, H // 14, W // 14, self.num_channels)).permute(0, 3, 1, 2), t
+
+
+def log_otp_solver(log_a: Tensor, log_b: Tensor, M: Tensor, num_iters: int = 20, reg: float = 1.0) -> Tensor:
+    """SALAD ``models/aggregators/salad.py`` (from OpenGlue)."""
+    M = M / reg
+    u, v = torch.zeros_like(log_a), torch.zeros_like(log_b)
+    for _ in range(num_iters):
+        u = log_a - torch.logsumexp(M + v.unsqueeze(1), dim=2).squeeze()
+        v = log_b - torch.logsumexp(M + u.unsqueeze(2), dim=1).squeeze()
+    return M + u.unsqueeze(2) + v.unsqueeze(1)
+
+
+def get_matching_probs(S: Tensor, dustbin_score: Tensor, num_iters: int = 3, reg: float = 1.0) -> Tensor:
+    batch_size, m, n = S.size()
+    S_aug = torch.empty(batch_size, m + 1, n, dtype=S.dtype, device=S.device)
+    S_aug[:, :m, :n] = S
+    S_aug[:, m, :] = dustbin_score
+    norm = -torch.tensor(math.log(n + m), device=S.device)
+    log_a, log_b = norm.expand(m + 1).contiguous(), norm.expand(n).contiguous()
+    log_a[-1] = log_a[-1] + math.log(n - m)
+    log_a, log_b = log_a.expand(batch_size, -1), log_b.expand(batch_size, -1)
+    return log_otp_solver(log_a, log_b, S_aug, num_iters=num_iters, reg=reg) - norm
+
+
+class AuthorsSALAD(nn.Module):
+    """SALAD ``models/aggregators/salad.py`` ``SALAD`` (its MLPs 512 wide, dropout 0.3: off in eval)."""
+
+    def __init__(self, num_channels: int, num_clusters: int, cluster_dim: int, token_dim: int) -> None:
+        super().__init__()
+        self.num_clusters, self.cluster_dim = num_clusters, cluster_dim
+        drop = nn.Dropout(0.3)
+        self.token_features = nn.Sequential(nn.Linear(num_channels, 512), nn.ReLU(), nn.Linear(512, token_dim))
+        self.cluster_features = nn.Sequential(
+            nn.Conv2d(num_channels, 512, 1), drop, nn.ReLU(), nn.Conv2d(512, cluster_dim, 1)
+        )
+        self.score = nn.Sequential(nn.Conv2d(num_channels, 512, 1), drop, nn.ReLU(), nn.Conv2d(512, num_clusters, 1))
+        self.dust_bin = nn.Parameter(torch.tensor(1.0))
+
+    def forward(self, x: tuple[Tensor, Tensor]) -> Tensor:
+        x, t = x
+        f = self.cluster_features(x).flatten(2)
+        p = self.score(x).flatten(2)
+        t = self.token_features(t)
+        p = torch.exp(get_matching_probs(p, self.dust_bin, 3))[:, :-1, :]
+        p = p.unsqueeze(1).repeat(1, self.cluster_dim, 1, 1)
+        f = f.unsqueeze(2).repeat(1, 1, self.num_clusters, 1)
+        f = torch.cat([F.normalize(t, p=2, dim=-1), F.normalize((f * p).sum(dim=-1), p=2, dim=1).flatten(1)], dim=-1)
+        return F.normalize(f, p=2, dim=-1)
+
+
+def salad_model(clusters: int = 16, cluster_dim: int = 32, token_dim: int = 64) -> nn.Module:
+    """SALAD's ``VPRModel`` (the release: 64 clusters of 128 and a 256-D token; fewer clusters here, for the
+    small images' grids, which must hold more locations than clusters)."""
+    torch.manual_seed(5)
+    return randomise_vit(VPRModel(SaladDINOv2(), AuthorsSALAD(768, clusters, cluster_dim, token_dim)), 5)
+
+
+class BoQDinoV2(nn.Module):
+    """Bag-of-Queries ``src/backbones.py`` ``DinoV2`` (``unfreeze_n_blocks=2``): no final norm, class token dropped."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.dino = DinoVisionTransformer()
+        self.unfreeze_n_blocks = 2
+
+    def forward(self, x: Tensor) -> Tensor:
+        B, _, H, W = x.shape
+        x = self.dino.prepare_tokens_with_masks(x)
+        for blk in self.dino.blocks[: -self.unfreeze_n_blocks]:
+            x = blk(x)
+        for blk in self.dino.blocks[-self.unfreeze_n_blocks :]:
+            x = blk(x)
+        x = x[:, 1:]
+        _, _, C = x.shape
+        return x.permute(0, 2, 1).view(B, C, H // 14, W // 14)
+
+
+def boq_dinov2_model(proj: int = 128, num_queries: int = 8, row_dim: int = 4) -> nn.Module:
+    """Bag-of-Queries ``get_trained_boq(backbone_name="dinov2")`` (the release: 384 channels, 64 queries, rows 32)."""
+    torch.manual_seed(6)
+    return randomise_vit(VPRModel(BoQDinoV2(), AuthorsBoQ(768, proj, num_queries, 2, row_dim)), 6)
+
+
+VIT_SIZE = (70, 98)  # image size of the fast DINOv2 tests: a 5 x 7 grid, not square (DINOv2's w / h naming)
+
+
+def vit_images(n: int = 2, size: tuple[int, int] = VIT_SIZE) -> Tensor:
+    return torch.rand(n, 3, *size, generator=torch.Generator().manual_seed(8))
+
+
+def dinov2_release(tmp_path: Path, fmt: str, model: nn.Module, size: tuple[int, int] | None = VIT_SIZE) -> Retriever:
+    """The author's model saved as its release file (a plain state dict, as both projects' hub loads it) and
+    loaded through ``ckpt=``, checked to be read as that release at that size."""
+    save_state(model, tmp_path / f"{fmt}.pth")
+    sized = [] if size is None else [f"data.image_size=[{size[0]},{size[1]}]"]
+    retriever, merged = released(tmp_path, tmp_path / f"{fmt}.pth", *sized)
+    assert merged.release == f"{'salad' if fmt == 'salad' else 'boq'} (DINOv2, released)"
+    assert list(merged.data.image_size) == list(size or (322, 322)) and retriever.mask_source is None
+    return retriever
+
+
+@pytest.mark.parametrize("fmt", ["salad", "boq_dinov2"])
+def test_dinov2_release_loads_and_gives_the_authors_descriptors(tmp_path: Path, fmt: str) -> None:
+    model = salad_model() if fmt == "salad" else boq_dinov2_model()
+    retriever = dinov2_release(tmp_path, fmt, model)
+    assert retriever.descriptor_dim == (64 + 16 * 32 if fmt == "salad" else 128 * 4)
+    x = vit_images()
+    with torch.no_grad():
+        expected = model(normalised(x))
+    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+    with torch.no_grad():
+        cosine = (retriever(x).float() * expected).sum(1)
+    assert bool((cosine > 0.99).all()), cosine
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fmt", ["salad", "boq_dinov2"])
+def test_dinov2_release_at_the_authors_size_and_head(tmp_path: Path, fmt: str) -> None:
+    """The released heads' sizes (SALAD 64 × 128 + 256, BoQ 384 × 32 from 64 queries) at 322 × 322."""
+    model = salad_model(64, 128, 256) if fmt == "salad" else boq_dinov2_model(384, 64, 32)
+    retriever = dinov2_release(tmp_path, fmt, model, size=None)
+    assert retriever.descriptor_dim == (8448 if fmt == "salad" else 12288)
+    x = vit_images(1, (322, 322))
+    with torch.no_grad():
+        expected = model(normalised(x))
+    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_dinov2_position_embeddings_are_interpolated_as_dinov2_does() -> None:
+    """Every grid, the 37 x 37 one of a square image (kept) and of a non-square one (interpolated) included."""
+    from semvpr.models.dinov2 import DINOv2Backbone
+
+    author = randomise_vit(DinoVisionTransformer(depth=1), 9)
+    embed = DINOv2Backbone().units[0]
+    with torch.no_grad():
+        embed.pos_embed.copy_(author.pos_embed)
+        for height, width in ((518, 518), (518, 531), (322, 322), (70, 98), (560, 42)):
+            tokens = torch.zeros(1, 1 + (height // 14) * (width // 14), 768)
+            expected = author.interpolate_pos_encoding(tokens, height, width)
+            ours = embed.positions(height // 14, width // 14, height == width)
+            torch.testing.assert_close(ours, expected, rtol=0, atol=1e-6)
+    kept, moved = embed.positions(37, 37, True), embed.positions(37, 37, False)
+    assert torch.equal(kept, author.pos_embed) and not torch.allclose(moved, kept, atol=1e-3)
+
+
+def test_the_dinov2_comparison_catches_a_swapped_qkv_or_a_mean_token(tmp_path: Path) -> None:
+    """The checks above fail on a wrong mapping: q and k rows swapped in one block, or SALAD's class token
+    replaced by the mean patch token (semvpr's own SALAD's global token)."""
+    model = salad_model()
+    x = vit_images()
+    with torch.no_grad():
+        expected = model(normalised(x))
+    state = model.state_dict()
+    for part in ("weight", "bias"):
+        q, k, v = state[f"backbone.model.blocks.3.attn.qkv.{part}"].chunk(3)
+        state[f"backbone.model.blocks.3.attn.qkv.{part}"] = torch.cat([k, q, v])
+    torch.save(state, tmp_path / "swapped.pth")
+    swapped, _ = released(tmp_path, tmp_path / "swapped.pth", f"data.image_size=[{VIT_SIZE[0]},{VIT_SIZE[1]}]")
+    assert not torch.allclose(fp32_descriptors(swapped, x), expected, rtol=1e-5, atol=1e-5)
+    retriever = dinov2_release(tmp_path, "salad", model)
+    with torch.no_grad():
+        local = retriever.backbone.forward_trainable(retriever.backbone.forward_frozen(x)[-1])
+        patches = local[:, :768]
+        mean = patches.mean(dim=(2, 3), keepdim=True).expand_as(patches)
+        with_mean = retriever.aggregator(torch.cat([patches, mean], dim=1), None)
+        torch.testing.assert_close(retriever.aggregator(local, None), expected, rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(with_mean, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_a_dinov2_release_with_another_grid_or_an_unknown_key_is_refused(tmp_path: Path) -> None:
+    state = boq_dinov2_model().state_dict()
+    torch.save({**state, "backbone.dino.pos_embed": torch.zeros(1, 36 * 36 + 1, 768)}, tmp_path / "grid.pth")
+    line = refused(tmp_path, tmp_path / "grid.pth", r"'backbone.dino.pos_embed' has shape \(1, 1297, 768\)")
+    assert "needs (1, 1370, 768)" in line
+    torch.save({**state, "backbone.dino.register_tokens": torch.zeros(1, 4, 768)}, tmp_path / "reg.pth")
+    refused(tmp_path, tmp_path / "reg.pth", "'backbone.dino.register_tokens' is not part of the boq_dinov2 model")
+
+
+def test_a_dinov2_trunk_reads_a_release_or_dinov2s_own_file(tmp_path: Path) -> None:
+    """``backbone.weights=FILE``: DINOv2's own file (its naming, no prefix) or a SALAD release's trunk give the
+    author's feature map; an image side that is not a multiple of 14 is one line."""
+    model = salad_model()
+    save_state(model, tmp_path / "salad.pth")
+    torch.save(model.backbone.model.state_dict(), tmp_path / "dinov2_vitb14_pretrain.pth")
+    x = vit_images()
+    with torch.no_grad():
+        expected, _ = model.backbone(normalised(x))
+    for name in ("salad.pth", "dinov2_vitb14_pretrain.pth"):
+        cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", f"backbone.weights={tmp_path / name}")
+        trunk = build_backbone(cfg.backbone, 0).eval()
+        with torch.no_grad():
+            ours = trunk.forward_trainable(trunk.forward_frozen(x)[-1])
+        torch.testing.assert_close(ours, expected, rtol=1e-5, atol=1e-5)
+    with pytest.raises(SemvprError, match="multiples of 14, got 64 x 98") as err:
+        trunk(torch.rand(1, 3, 64, 98))
+    assert "\n" not in str(err.value)
+    bad = {**model.backbone.model.state_dict(), "blocks.12.norm1.weight": torch.ones(768)}
+    torch.save(bad, tmp_path / "deeper.pth")
+    cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", f"backbone.weights={tmp_path / 'deeper.pth'}")
+    with pytest.raises(SemvprError, match="'blocks.12.norm1.weight'"):
+        build_backbone(cfg.backbone, 0)
+
+
+def test_a_student_is_refused_on_dinov2_token_maps_and_a_run_without_one_trains(tmp_path: Path) -> None:
+    """A student decodes image-aligned maps: on the DINOv2 trunk it is one line, and a run whose semantic side
+    could have a student (SynthCity's labels) plans its trunk pass without one."""
+    from semvpr.config.build import semantic_levels, student_spec
+    from semvpr.models.student import student_architecture
+
+    cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", "data.image_size=[70,98]")
+    trunk = build_backbone(cfg.backbone, 0)
+    with pytest.raises(SemvprError, match="token maps: use mask=teacher or mask=oracle"):
+        student_architecture(student_spec(cfg), trunk)
+    assert semantic_levels(cfg, trunk, None)[1] == set()
+
+
+def test_the_class_token_goes_with_salads_class_token_only(tmp_path: Path) -> None:
+    from semvpr.config.checks import check_config
+
+    for overrides in (
+        ["aggregator=gem", "backbone.class_token=true"],
+        ["aggregator=salad", "aggregator.module.global_token=class"],
+    ):
+        cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", *overrides)
+        with pytest.raises(SemvprError, match="goes with aggregator=salad aggregator.module.global_token=class"):
+            check_config(cfg)
+
+
 # ---------------------------------------------------------------------------------- through ckpt=
 def save_state(model: nn.Module, path: Path) -> None:
     """A plain state dict ``.pth``, as CosPlace, EigenPlaces and BoQ release theirs."""
@@ -322,12 +699,17 @@ def test_mixvpr_at_the_authors_image_size(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------- evaluation with a mask
-def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path) -> None:
-    save_state(cosplace_model(), tmp_path / "c.pth")
+@pytest.mark.parametrize("fmt", ["cosplace", "boq_dinov2"])
+def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path, fmt: str) -> None:
+    model, size, label, dim = {
+        "cosplace": (cosplace_model, [32, 48], "cosplace (ResNet50, released)", 128),
+        "boq_dinov2": (boq_dinov2_model, [28, 42], "boq (DINOv2, released)", 512),
+    }[fmt]
+    save_state(model(), tmp_path / "c.pth")
     root = make_folder(tmp_path / "places")
     teacher = write_teacher_dir(tmp_path / "teacher")
-    common = [f"+ckpt={tmp_path / 'c.pth'}", "ckpt_format=cosplace", "data=folder", f"data.root={root}"]
-    common += ["data.image_size=[32,48]", "data.num_workers=0"]
+    common = [f"+ckpt={tmp_path / 'c.pth'}", f"ckpt_format={fmt}", "data=folder", f"data.root={root}"]
+    common += [f"data.image_size=[{size[0]},{size[1]}]", "data.num_workers=0"]
     results = {}
     for mask in ("none", "teacher"):
         extra = [f"mask={mask}"] + ([f"teacher.checkpoint={teacher}"] if mask == "teacher" else [])
@@ -335,8 +717,8 @@ def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path) -> No
         keys = {o.split("=", 1)[0].lstrip("+") for o in [*common, *extra]}
         results[mask] = evaluate_checkpoint(cfg, keys)
     for mask, result in results.items():
-        assert result["release"] == "cosplace (ResNet50, released)" and result["mask"] == mask
-        assert result["descriptor_dim"] == 128 and result["image_size"] == [32, 48]
+        assert result["release"] == label and result["mask"] == mask
+        assert result["descriptor_dim"] == dim and result["image_size"] == size
         json.dumps({k: v for k, v in result.items() if k != "ranks"})
     assert results["teacher"]["mask_checkpoint"] == str(teacher) and results["none"]["mask_checkpoint"] is None
 
@@ -404,8 +786,8 @@ def test_a_missing_key_is_named_in_the_authors_naming(tmp_path: Path) -> None:
 
 
 def test_an_unknown_layout_is_refused(tmp_path: Path) -> None:
-    salad_like = {"aggregator.dust_bin": torch.zeros(1), "backbone.model.cls_token": torch.zeros(1)}
-    save_state_dict(salad_like, tmp_path / "s.pth")
+    anyloc_like = {"backbone.model.cls_token": torch.zeros(1), "aggregator.vlad.centroids": torch.zeros(1)}
+    save_state_dict(anyloc_like, tmp_path / "s.pth")
     refused(tmp_path, tmp_path / "s.pth", "has no layout semvpr reads")
 
 
@@ -422,8 +804,8 @@ def test_a_named_layout_the_file_is_not_is_refused(tmp_path: Path) -> None:
 def test_an_unknown_ckpt_format_is_refused_before_anything_is_read(tmp_path: Path) -> None:
     from semvpr.config.checks import check_config
 
-    cfg = tiny_config(tmp_path / "cache", f"+ckpt={tmp_path / 'absent.pth'}", "ckpt_format=salad", config_name="eval")
-    with pytest.raises(SemvprError, match="ckpt_format='salad' is not one of auto, semvpr, netvlad"):
+    cfg = tiny_config(tmp_path / "cache", f"+ckpt={tmp_path / 'absent.pth'}", "ckpt_format=anyloc", config_name="eval")
+    with pytest.raises(SemvprError, match="ckpt_format='anyloc' is not one of auto, semvpr, netvlad"):
         check_config(cfg)
 
 

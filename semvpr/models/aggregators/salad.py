@@ -9,8 +9,11 @@ the cluster masses a = (1, …, 1, n − m) / (m + n) and the location masses b 
 
     V(:,k) = Σ_i P_ki f_i   (intra-normalised),   descriptor = L2[ L2(g) , V flattened ],
 
-with g = MLP_g(t) the global scene token. The authors' t is a ViT's class token; this CNN version
-takes the mask-weighted mean of the local features, t = Σ_i w_i x_i / Σ_i w_i.
+with g = MLP_g(t) the global scene token. ``global_token`` says what t is: ``mean``, the mask-weighted
+mean of the local features, t = Σ_i w_i x_i / Σ_i w_i (for a trunk without a class token), or ``class``, the
+authors' t: a ViT's class token, which the backbone gives after the ``dim`` patch channels of its local
+features, the same at every location (``DINOv2Backbone(class_token=True)``). The class token has attended
+to every patch in the trunk, so a mask does not reach it.
 
 Mask: the weight scales each location's mass, b_i = w_i / (m + n) (log b_i = log w_i − log(m + n));
 the dustbin's mass is unchanged. The iterations start from the column masses (v = log w, u = 0; the
@@ -30,6 +33,9 @@ from torch import Tensor, nn
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import fp32
 from semvpr.models.aggregators.base import Aggregator, check_weights, log_weights
+
+#: What the global scene token is made of: the masked mean feature, or the trunk's class token.
+GLOBAL_TOKENS = ("mean", "class")
 
 
 def log_sinkhorn(scores: Tensor, log_a: Tensor, log_b: Tensor, iters: int) -> Tensor:
@@ -66,9 +72,14 @@ class SALAD(Aggregator):
         dropout: float = 0.3,
         iters: int = 3,
         hidden_dim: int = 512,
+        global_token: str = "mean",
     ) -> None:
-        """``hidden_dim``: width of the three MLPs (the authors' 512, for DINOv2's 768 channels)."""
+        """``hidden_dim``: width of the three MLPs (the authors' 512, for DINOv2's 768 channels);
+        ``global_token``: ``mean`` or ``class`` (the module docstring)."""
         super().__init__()
+        if global_token not in GLOBAL_TOKENS:
+            raise SemvprError(f"aggregator.module.global_token={global_token!r} is not one of {list(GLOBAL_TOKENS)}")
+        self.dim, self.global_token = dim, global_token
         self.num_clusters, self.cluster_dim, self.token_dim, self.iters = num_clusters, cluster_dim, token_dim, iters
         self.token_features = _mlp(False, dim, hidden_dim, token_dim, 0.0)
         self.cluster_features = _mlp(True, dim, hidden_dim, cluster_dim, dropout)
@@ -102,9 +113,17 @@ class SALAD(Aggregator):
         weights = check_weights(x, weights)
         with fp32(x.device.type):
             x = x.float()
-            w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
-            w = w.expand(x.shape[0], 1, *x.shape[2:])
-            token = (x * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(1e-12)
+            if self.global_token == "class":
+                if x.shape[1] != 2 * self.dim:
+                    raise SemvprError(
+                        f"SALAD with global_token=class needs the backbone's class token after its {self.dim} "
+                        f"channels (backbone.class_token=true), got {x.shape[1]} channels"
+                    )
+                x, token = x[:, : self.dim], x[:, self.dim :, 0, 0]
+            else:
+                w = x.new_ones(1, 1, *x.shape[2:]) if weights is None else weights
+                w = w.expand(x.shape[0], 1, *x.shape[2:])
+                token = (x * w).sum(dim=(2, 3)) / w.sum(dim=(2, 3)).clamp_min(1e-12)
             f = self.cluster_features(x).flatten(2)  # (B, l, n)
             p = self.assignment(self.score(x).flatten(2), weights)  # (B, m, n)
             local = F.normalize(torch.einsum("bln,bmn->blm", f, p), dim=1).flatten(1)
