@@ -12,9 +12,9 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from semvpr.config.runs import sweep_dir_of
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.stops import stop_on_signals
-from semvpr.reporting.sweep import sweep_dir_of
 from semvpr.reporting.sweep_report import print_summary, write_report
 
 

@@ -26,7 +26,8 @@ from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
 from semvpr.config.plan import JobPlan, ranks_of
-from semvpr.core.checkpoint import RunCheckpointIO, record_of
+from semvpr.config.record import record_of
+from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision

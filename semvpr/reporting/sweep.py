@@ -6,14 +6,12 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR, read_json, read_yaml
@@ -378,11 +376,3 @@ def mean_std(values: list[float]) -> tuple[float, float]:
     if vals.size == 0:
         return math.nan, math.nan
     return float(vals.mean()), float(vals.std(ddof=1)) if vals.size > 1 else math.nan
-
-
-def sweep_dir_of(config: DictConfig) -> Path:
-    """A multirun's sweep dir (hydra.sweep.dir, relative to the launch dir)."""
-    sweep_dir = Path(str(config.hydra.sweep.dir))
-    if not sweep_dir.is_absolute():
-        sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
-    return sweep_dir
