@@ -40,7 +40,8 @@ from semvpr.data.places import common_root
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.backbones import Backbone
 from semvpr.models.student import Student, StudentSpec, save_student
-from semvpr.models.teacher import Teacher, write_teacher_record
+from semvpr.models.teacher import Teacher
+from semvpr.models.teacher_folder import write_teacher_record
 from semvpr.segmentation.confusion import binary_pred
 from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmentation.training import build_student, build_teacher

@@ -101,7 +101,7 @@ def test_the_teacher_on_the_trunk_equals_its_own_encoder_within_rounding(cache: 
         outs = trunk.forward_frozen(images.contiguous(memory_format=torch.channels_last))
         own_scores = teacher.semantic_scores(images)
         with autocast("cpu", enabled=teacher.bf16):
-            own_maps = teacher.model.model.pixel_level_module.encoder(teacher._pixels(images)).feature_maps
+            own_maps = teacher.model.model.pixel_level_module.encoder(teacher.pixels(images)).feature_maps
         # The decoder path is Mask2Former's own: the encoder's maps handed over give its scores bit for bit.
         assert torch.equal(teacher.trunk_scores([None, *own_maps[:3]], size), own_scores)
         for own, shared in zip(own_maps[:3], [outs[i] for i in teacher.trunk_levels]):

@@ -37,7 +37,8 @@ from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.models.student import Student, StudentSpec, load_student, student_architecture
-from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher, teacher_architecture
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher
+from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
 from semvpr.retrieval.distributed import Describe

@@ -13,7 +13,6 @@ from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -22,21 +21,16 @@ from torch.utils.data import DataLoader
 
 from semvpr.core.cache import build_once, config_hash, files_identity
 from semvpr.core.errors import SemvprError
-from semvpr.core.logs import Progress, progress, trainer_kwargs
-from semvpr.core.precision import autocast, compute_key, lightning_precision
+from semvpr.core.logs import Progress, progress
+from semvpr.core.precision import autocast, compute_key
 from semvpr.data.classes import IGNORE, NUM_CLASSES
 from semvpr.data.images import ImageDataset
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import Student, StudentSpec, student_architecture
-from semvpr.models.teacher import (
-    Teacher,
-    TeacherSpec,
-    check_mask2former_init,
-    embedded_teacher,
-    teacher_architecture,
-)
-from semvpr.segmentation.datamodule import SegmentationDataModule
+from semvpr.models.teacher import Teacher, TeacherSpec
+from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.segmentation.pseudolabels import TrunkOutputs, label_path, read_label
+from semvpr.segmentation.teacher_training import train_teacher
 
 STUDENT_VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
 
@@ -56,37 +50,6 @@ def training_threads() -> int:
     cached teacher or student must be the one this run's settings would train (frozen passes are keyed by
     the job's frozen-pass count: ``core.threads``)."""
     return torch.get_num_threads()
-
-
-def _train(
-    spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationSet, out: Path, device: torch.device
-) -> None:
-    """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
-    from lightning.pytorch.loggers import CSVLogger
-
-    check_mask2former_init()
-    train = spec.train
-    L.seed_everything(train.seed, workers=True, verbose=False)
-    accelerator = "gpu" if device.type == "cuda" else "cpu"
-    teacher = embedded_teacher(spec)
-    data = SegmentationDataModule(
-        seg_train, seg_val, image_size=tuple(spec.image_size), batch_size=train.batch_size,
-        num_workers=train.num_workers, augment=train.augment, label_ids=True, seed=train.seed,
-    )  # fmt: skip
-    trainer = L.Trainer(
-        accelerator=accelerator, devices=[device.index or 0] if device.type == "cuda" else 1,
-        precision=lightning_precision("bf16-mixed" if train.bf16 else "32-true", accelerator),
-        max_epochs=train.epochs, check_val_every_n_epoch=train.val_every or train.epochs, num_sanity_val_steps=0,
-        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
-        log_every_n_steps=10, default_root_dir=out, **trainer_kwargs("teacher", ()),
-    )  # fmt: skip
-    start = time.perf_counter()
-    trainer.fit(teacher, datamodule=data)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    metrics["train_seconds"] = time.perf_counter() - start
-    torch.save(teacher.model.state_dict(), out / "model.pt")
-    (out / "config.json").write_text(teacher.model.config.to_json_string())
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
 
 
 def build_teacher(
@@ -115,7 +78,7 @@ def build_teacher(
             "threads": training_threads(),
             **compute_key(device),
         }  # fmt: skip
-        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(spec, seg_train, seg_val, tmp, device))
+        art = build_once(cache_dir, "teacher", key, lambda tmp: train_teacher(spec, seg_train, seg_val, tmp, device))
         # The architecture comes from the config, only weights from the (possibly shared) cache.
         try:
             teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
