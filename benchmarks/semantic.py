@@ -37,7 +37,7 @@ from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
 from semvpr.segmentation.datamodule import SegmentationDataset
-from semvpr.segmentation.pseudolabels import pseudo_labels
+from semvpr.segmentation.pseudolabels import LabelledImages, pseudo_labels
 from semvpr.segmentation.training import build_student, build_teacher
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,7 +160,7 @@ def main() -> None:
         backbone = VGG16Backbone(weights="none", train_from="conv5").eval()
         start = time.perf_counter()
         student = build_student(
-            StudentSpec.from_mapping(cfg.student), backbone, images, labels, train.root, size, cache
+            StudentSpec.from_mapping(cfg.student), backbone, LabelledImages(images, labels, train.root), size, cache
         )
         student_s = time.perf_counter() - start
         n = min(args.eval_images, len(test.db_paths))

@@ -440,7 +440,7 @@ def build_semantic(
     Where the teacher is linked to the trunk and the student reads its skips, both read the train images'
     frozen outputs from the trunk pass's cache (``skip_levels``, by default :func:`skip_plan`'s), so the
     images go through the frozen weights once."""
-    from semvpr.segmentation.pseudolabels import pseudo_labels
+    from semvpr.segmentation.pseudolabels import LabelledImages, pseudo_labels
     from semvpr.segmentation.training import build_student
 
     timings = {} if timings is None else timings
@@ -472,25 +472,25 @@ def build_semantic(
     on_trunk = teacher.on_trunk(size) and set(teacher.trunk_levels or ()) <= held
     with threads.stage("frozen"):
         labels_dir = pseudo_labels(
-            teacher, teacher.teacher_key, images, size, cfg.paths.cache_dir, source.root,
-            batch_size=int(teacher_spec(cfg).predict_batch_size), num_workers=workers,
+            teacher,
+            teacher.teacher_key,
+            images,
+            size,
+            cfg.paths.cache_dir,
+            source.root,
+            batch_size=int(teacher_spec(cfg).predict_batch_size),
+            num_workers=workers,
             trunk=trunk if on_trunk else None,
-        )  # fmt: skip
+        )
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, source.root)
     if plan.mask_needs == "student":
         spec = student_spec(cfg)
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
         with threads.stage("student"):
+            labelled = LabelledImages(images, labels_dir, source.root)
             semantic.student = build_student(
-                spec,
-                backbone,
-                images,
-                labels_dir,
-                source.root,
-                size,
-                cfg.paths.cache_dir,
-                trunk=trunk if reads else None,
+                spec, backbone, labelled, size, cfg.paths.cache_dir, trunk=trunk if reads else None
             )
         timings["student_s"] = time.time() - tic
     return semantic

@@ -162,6 +162,11 @@ class Teacher(nn.Module):
         self.register_buffer("mean", torch.tensor(image_mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(image_std).view(1, 3, 1, 1), persistent=False)
 
+    @property
+    def device(self) -> torch.device:
+        """The device the teacher runs on (its buffers' and weights')."""
+        return self.mean.device
+
     def pixels(self, images: Tensor) -> Tensor:
         """Normalise [0,1] RGB the way the checkpoint was trained, at the inference size."""
         x = (images.to(self.mean.device, torch.float32) - self.mean) / self.std
@@ -171,7 +176,7 @@ class Teacher(nn.Module):
 
     def semantic_scores(self, images: Tensor) -> Tensor:
         """Mask2Former semantic scores (B,C,h,w) at mask resolution: softmax(class)[..., :-1] ⊗ sigmoid(mask)."""
-        with autocast(self.mean.device, enabled=self.bf16):
+        with autocast(self.device, enabled=self.bf16):
             out = self.model(pixel_values=self.pixels(images))
         return _semantic(out)
 
@@ -224,7 +229,7 @@ class Teacher(nn.Module):
         ``forward_frozen`` outputs (the levels in ``trunk_levels`` must be given)."""
         assert self.trunk_levels is not None, "link_trunk first"
         encoder = self.model.model.pixel_level_module.encoder
-        with autocast(self.mean.device, enabled=self.bf16):
+        with autocast(self.device, enabled=self.bf16):
             # float32 like the encoder's own FrozenBatchNorm outputs, which the decoder was trained on.
             maps = [outputs[i].to(self.mean.device, torch.float32) for i in self.trunk_levels]
             h = maps[-1]
@@ -380,10 +385,13 @@ def _pixel_backbone(c: Mapping[str, Any]) -> Any:
         return TimmBackboneConfig(backbone=timm_name, out_indices=[1, 2, 3, 4], freeze_batch_norm_2d=True)
     if c["backbone"] == "swin":
         return SwinConfig(
-            embed_dim=c["embed_dim"], depths=list(c["depths"]), num_heads=list(c["num_heads"]),
-            window_size=c["window_size"], drop_path_rate=0.0,
+            embed_dim=c["embed_dim"],
+            depths=list(c["depths"]),
+            num_heads=list(c["num_heads"]),
+            window_size=c["window_size"],
+            drop_path_rate=0.0,
             out_features=[f"stage{i + 1}" for i in range(len(c["depths"]))],
-        )  # fmt: skip
+        )
     raise SemvprError(f"teacher.model.backbone={c['backbone']!r} is not one of {list(BACKBONES)}")
 
 
@@ -394,12 +402,20 @@ def embedded_model(cfg_model: Mapping[str, Any]) -> Mask2FormerForUniversalSegme
     dim = c["hidden_dim"]
     quiet_third_party()  # transformers notes that a timm backbone is not Swin, whoever builds the teacher
     config = Mask2FormerConfig(
-        backbone_config=_pixel_backbone(c), feature_size=dim, mask_feature_size=dim, hidden_dim=dim,
-        encoder_feedforward_dim=2 * dim, dim_feedforward=2 * dim, num_attention_heads=c["num_attention_heads"],
-        encoder_layers=c["encoder_layers"], decoder_layers=c["decoder_layers"], num_queries=c["num_queries"],
+        backbone_config=_pixel_backbone(c),
+        feature_size=dim,
+        mask_feature_size=dim,
+        hidden_dim=dim,
+        encoder_feedforward_dim=2 * dim,
+        dim_feedforward=2 * dim,
+        num_attention_heads=c["num_attention_heads"],
+        encoder_layers=c["encoder_layers"],
+        decoder_layers=c["decoder_layers"],
+        num_queries=c["num_queries"],
         train_num_points=c["train_num_points"],
-        id2label=dict(enumerate(TRAIN_ID_NAMES)), label2id={n: i for i, n in enumerate(TRAIN_ID_NAMES)},
-    )  # fmt: skip
+        id2label=dict(enumerate(TRAIN_ID_NAMES)),
+        label2id={n: i for i, n in enumerate(TRAIN_ID_NAMES)},
+    )
     model = Mask2FormerForUniversalSegmentation(config)
     lite = c["backbone"] in EFFICIENTNET_LITE
     state = efficientnet_lite_state(c["backbone_weights"], c["backbone"]) if lite else None

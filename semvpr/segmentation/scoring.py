@@ -7,6 +7,7 @@ size (CamVid 360x480) before scoring, so a lower input resolution is paid for in
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -43,10 +44,22 @@ def _collate(batch: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, list[Tens
     return torch.stack(images), list(labels), list(index)
 
 
-def loader(seg: SegmentationSet, image_size: Sequence[int], batch_size: int, num_workers: int) -> DataLoader:
+@dataclass(frozen=True)
+class Reading:
+    """How a segmentation set is read for scoring: the size the models see, images per batch, loader workers."""
+
+    image_size: Sequence[int]
+    batch_size: int = 8
+    num_workers: int = 2
+
+
+def loader(seg: SegmentationSet, reading: Reading) -> DataLoader:
     """Batches of :class:`ScoringDataset` in the set's order."""
     return DataLoader(
-        ScoringDataset(seg, image_size), batch_size=batch_size, num_workers=num_workers, collate_fn=_collate
+        ScoringDataset(seg, reading.image_size),
+        batch_size=reading.batch_size,
+        num_workers=reading.num_workers,
+        collate_fn=_collate,
     )
 
 
@@ -88,17 +101,13 @@ def by_size(labels: list[Tensor]) -> dict[tuple[int, ...], list[int]]:
 def score_teacher(
     teacher: nn.Module,
     seg: SegmentationSet,
-    image_size: Sequence[int],
+    reading: Reading,
     classes: Sequence[int],
     static_names: Sequence[str],
-    batch_size: int = 8,
-    num_workers: int = 2,
 ) -> dict[str, Any]:
     """Class-map scores (mIoU over ``classes``, per-class IoU) and binary-mask scores of the teacher."""
     class_conf, mask_conf = Confusion(), Confusion(2)
-    for images, labels, _ in progress(
-        loader(seg, image_size, batch_size, num_workers), "teacher scores", len(seg), size=lambda b: len(b[0])
-    ):
+    for images, labels, _ in progress(loader(seg, reading), "teacher scores", len(seg), size=lambda b: len(b[0])):
         for size, pos in by_size(labels).items():
             ids, prob = teacher_outputs(teacher, images[pos], size, static_names)
             target = torch.stack([labels[i] for i in pos])
@@ -111,17 +120,13 @@ def score_student(
     student: nn.Module,
     backbone: nn.Module,
     seg: SegmentationSet,
-    image_size: Sequence[int],
+    reading: Reading,
     static_names: Sequence[str],
     bf16: bool,
-    batch_size: int = 8,
-    num_workers: int = 2,
 ) -> dict[str, Any]:
     """Binary-mask scores of a student (static vs not) against the labels."""
     conf = Confusion(2)
-    for images, labels, _ in progress(
-        loader(seg, image_size, batch_size, num_workers), "student scores", len(seg), size=lambda b: len(b[0])
-    ):
+    for images, labels, _ in progress(loader(seg, reading), "student scores", len(seg), size=lambda b: len(b[0])):
         for size, pos in by_size(labels).items():
             prob = student_prob(student, backbone, images[pos], size, bf16)
             conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))

@@ -148,16 +148,28 @@ def train_teacher(
     teacher = embedded_teacher(spec)
     fit = TeacherFit(teacher, train)
     data = SegmentationDataModule(
-        seg_train, seg_val, image_size=tuple(spec.image_size), batch_size=train.batch_size,
-        num_workers=train.num_workers, augment=train.augment, label_ids=True, seed=train.seed,
-    )  # fmt: skip
+        seg_train,
+        seg_val,
+        image_size=tuple(spec.image_size),
+        batch_size=train.batch_size,
+        num_workers=train.num_workers,
+        augment=train.augment,
+        label_ids=True,
+        seed=train.seed,
+    )
     trainer = L.Trainer(
-        accelerator=accelerator, devices=[device.index or 0] if device.type == "cuda" else 1,
+        accelerator=accelerator,
+        devices=[device.index or 0] if device.type == "cuda" else 1,
         precision=lightning_precision("bf16-mixed" if train.bf16 else "32-true", accelerator),
-        max_epochs=train.epochs, check_val_every_n_epoch=train.val_every or train.epochs, num_sanity_val_steps=0,
-        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
-        log_every_n_steps=10, default_root_dir=out, **trainer_kwargs("teacher", ()),
-    )  # fmt: skip
+        max_epochs=train.epochs,
+        check_val_every_n_epoch=train.val_every or train.epochs,
+        num_sanity_val_steps=0,
+        logger=CSVLogger(out, name="logs", version=""),
+        enable_checkpointing=False,
+        log_every_n_steps=10,
+        default_root_dir=out,
+        **trainer_kwargs("teacher", ()),
+    )
     start = time.perf_counter()
     trainer.fit(fit, datamodule=data)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
