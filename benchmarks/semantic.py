@@ -31,7 +31,7 @@ from torchmetrics.classification import MulticlassJaccardIndex
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.images import ImageDataset
+from semvpr.data.images import ImageDataset, Reading
 from semvpr.data.synthcity import read_segmentation, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import StudentSpec
@@ -146,12 +146,10 @@ def main() -> None:
         start = time.perf_counter()
         labels = pseudo_labels(
             teacher,
-            teacher.teacher_key,
             images,
-            size,
+            Reading(size, int(cfg.teacher.predict_batch_size)),
             cache,
             train.root,
-            batch_size=int(cfg.teacher.predict_batch_size),
         )
         label_img_s = len(images) / (time.perf_counter() - start)
         print(f"pseudo-labels: {len(images)} images, {label_img_s:.1f} img/s")

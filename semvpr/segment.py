@@ -36,7 +36,7 @@ from semvpr.core.io import CONF_DIR, atomic_dir, write_json
 from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
 from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.images import load_image
+from semvpr.data.images import Reading, load_image
 from semvpr.data.places import common_root
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.backbones import Backbone
@@ -45,7 +45,7 @@ from semvpr.models.teacher import Teacher
 from semvpr.models.teacher_folder import write_teacher_record
 from semvpr.segmentation.confusion import binary_pred
 from semvpr.segmentation.pseudolabels import LabelledImages
-from semvpr.segmentation.scoring import Reading, score_student, score_teacher, student_prob, teacher_outputs
+from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmentation.training import build_student, build_teacher
 
 SPLITS = ("train", "val", "test")
@@ -225,13 +225,10 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     with threads.stage("frozen"):
         labels = pseudo_labels(
             teacher,
-            teacher.teacher_key,
             list(sets["train"].images),
-            size,
+            Reading(size, teacher_settings.predict_batch_size, workers),
             cfg.paths.cache_dir,
             root,
-            batch_size=int(teacher_settings.predict_batch_size),
-            num_workers=workers,
         )
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 

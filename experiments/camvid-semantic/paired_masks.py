@@ -31,12 +31,13 @@ from semvpr.config.build import build_backbone, teacher_spec
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.data.camvid import read_camvid
+from semvpr.data.images import Reading
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import load_student
 from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.reporting.paired import RESAMPLES
 from semvpr.segmentation.confusion import Confusion, binary_pred, mask_scores
-from semvpr.segmentation.scoring import Reading, by_size, loader, student_prob, teacher_outputs
+from semvpr.segmentation.scoring import by_size, loader, student_prob, teacher_outputs
 
 KEY = "dynamic_iou"
 

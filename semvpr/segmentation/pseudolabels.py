@@ -24,6 +24,7 @@ from semvpr.core.io import atomic_file, inside
 from semvpr.core.logs import Progress
 from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
+from semvpr.data.images import ImageDataset, Reading
 
 
 @dataclass(frozen=True)
@@ -104,17 +105,15 @@ def _label_ok(path: Path, image_size: tuple[int, int]) -> bool:
 
 def pseudo_labels(
     teacher: Any,
-    teacher_key: str,
     paths: Sequence[str | Path],
-    image_size: Sequence[int],
+    reading: Reading,
     cache_dir: str | Path,
     root: str | Path,
-    *,
-    batch_size: int = 16,
-    num_workers: int = 2,
     trunk: TrunkOutputs | None = None,
 ) -> Path:
-    """Directory of one trainId PNG per image (at ``image_size``, see ``label_path``), built once and resumable.
+    """Directory of one trainId PNG per image (at ``reading.image_size``, see ``label_path``; the images read in
+    its batches by its workers), built once and resumable,
+    keyed by the teacher's ``teacher_key`` (what identifies its weights: ``segmentation.training.build_teacher``).
 
     ``trunk``: the images' cached outputs of the trunk the teacher is linked to (``Teacher.link_trunk``); the
     teacher then runs only its decoder. Its labels differ from those of the teacher's own encoder by float
@@ -125,10 +124,11 @@ def pseudo_labels(
         raise SemvprError("pseudo-labels: no images given to label")
     for p in paths:
         label_path("", p, root)  # every image must sit under the root: fail before any work
-    size = (int(image_size[0]), int(image_size[1]))
+    size = (int(reading.image_size[0]), int(reading.image_size[1]))
+    batch_size = reading.batch_size
     key = {
         "version": VERSION,
-        "teacher": teacher_key,
+        "teacher": teacher.teacher_key,
         "images": image_list_identity(paths, root),
         "image_size": list(size),
     }
@@ -139,8 +139,6 @@ def pseudo_labels(
         """Label the images whose PNG is not in ``out`` yet, from the images or, given ``trunk``, from the linked
         trunk's cached outputs (no image is read); a resumed run keeps the finished ones that pass
         :func:`_label_ok` (``out`` may be a ``.partial`` directory left by anyone)."""
-        from semvpr.data.images import ImageDataset
-
         for p in paths:  # a link left in a resumed build is never followed, never kept
             planted = out / _label_name(p, root)
             if planted.is_symlink():
@@ -160,7 +158,7 @@ def pseudo_labels(
                         _write_png(ids[i], label_path(out, path, root))
                     bar.update(len(chunk))
             else:
-                loader = DataLoader(ImageDataset(todo, size), batch_size=batch_size, num_workers=num_workers)
+                loader = DataLoader(ImageDataset(todo, size), batch_size=batch_size, num_workers=reading.num_workers)
                 for images, index in loader:
                     ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
                     for i, k in enumerate(index.tolist()):

@@ -7,7 +7,6 @@ size (CamVid 360x480) before scoring, so a lower input resolution is paid for in
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -17,7 +16,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from semvpr.core.logs import progress
 from semvpr.core.precision import autocast
-from semvpr.data.images import load_image
+from semvpr.data.images import Reading, load_image
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.masks import static_vector
 from semvpr.segmentation.confusion import Confusion, binary_pred, class_scores, mask_scores
@@ -42,15 +41,6 @@ def _collate(batch: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, list[Tens
     """Stack images; keep label maps as a list (native sizes may differ between images)."""
     images, labels, index = zip(*batch)
     return torch.stack(images), list(labels), list(index)
-
-
-@dataclass(frozen=True)
-class Reading:
-    """How a segmentation set is read for scoring: the size the models see, images per batch, loader workers."""
-
-    image_size: Sequence[int]
-    batch_size: int = 8
-    num_workers: int = 2
 
 
 def loader(seg: SegmentationSet, reading: Reading) -> DataLoader:

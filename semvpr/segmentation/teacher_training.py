@@ -147,16 +147,7 @@ def train_teacher(
     accelerator = "gpu" if device.type == "cuda" else "cpu"
     teacher = embedded_teacher(spec)
     fit = TeacherFit(teacher, train)
-    data = SegmentationDataModule(
-        seg_train,
-        seg_val,
-        image_size=tuple(spec.image_size),
-        batch_size=train.batch_size,
-        num_workers=train.num_workers,
-        augment=train.augment,
-        label_ids=True,
-        seed=train.seed,
-    )
+    data = SegmentationDataModule(seg_train, seg_val, tuple(spec.image_size), train)
     trainer = L.Trainer(
         accelerator=accelerator,
         devices=[device.index or 0] if device.type == "cuda" else 1,
