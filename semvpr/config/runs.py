@@ -1,7 +1,4 @@
-"""A run's and a sweep's directories as their Hydra config names them: resuming a run in its directory,
-and the sweep directory a report reads (:func:`sweep_dir_of`).
-
-Resuming a run continues it as it was composed, from the project's own config files.
+"""Resuming a run continues it as it was composed, from the project's own config files.
 
 ``python -m semvpr.train ckpt_path=last hydra.run.dir=<run>`` continues the run with what it was
 started with, not today's defaults: a resume without the original overrides is the same run. The run
@@ -17,7 +14,6 @@ anything is written. The run's ``.hydra`` record is left as it is (Hydra is told
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -139,11 +135,3 @@ def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
             out.update(_leaves(value, f"{prefix}{key}."))
         return out
     return {prefix[:-1]: node}
-
-
-def sweep_dir_of(config: DictConfig) -> Path:
-    """A multirun's sweep dir (hydra.sweep.dir, relative to the launch dir)."""
-    sweep_dir = Path(str(config.hydra.sweep.dir))
-    if not sweep_dir.is_absolute():
-        sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
-    return sweep_dir

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -376,3 +377,10 @@ def mean_std(values: list[float]) -> tuple[float, float]:
     if vals.size == 0:
         return math.nan, math.nan
     return float(vals.mean()), float(vals.std(ddof=1)) if vals.size > 1 else math.nan
+
+
+def sweep_dir_of(sweep_dir: str, launch_dir: str | None) -> Path:
+    """A multirun's sweep dir: ``hydra.sweep.dir`` (``sweep_dir``) relative to the directory the sweep was
+    launched from (``hydra.runtime.cwd``: ``launch_dir``; None: the working directory)."""
+    path = Path(sweep_dir)
+    return path if path.is_absolute() else Path(launch_dir or os.getcwd()) / path
