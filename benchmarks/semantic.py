@@ -31,13 +31,13 @@ from torchmetrics.classification import MulticlassJaccardIndex
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.images import ImageDataset
+from semvpr.data.images import ImageDataset, Reading
 from semvpr.data.synthcity import read_segmentation, read_split
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
 from semvpr.segmentation.datamodule import SegmentationDataset
-from semvpr.segmentation.pseudolabels import pseudo_labels
+from semvpr.segmentation.pseudolabels import LabelledImages, pseudo_labels
 from semvpr.segmentation.training import build_student, build_teacher
 
 REPO = Path(__file__).resolve().parents[1]
@@ -146,12 +146,10 @@ def main() -> None:
         start = time.perf_counter()
         labels = pseudo_labels(
             teacher,
-            teacher.teacher_key,
             images,
-            size,
+            Reading(size, int(cfg.teacher.predict_batch_size)),
             cache,
             train.root,
-            batch_size=int(cfg.teacher.predict_batch_size),
         )
         label_img_s = len(images) / (time.perf_counter() - start)
         print(f"pseudo-labels: {len(images)} images, {label_img_s:.1f} img/s")
@@ -160,7 +158,7 @@ def main() -> None:
         backbone = VGG16Backbone(weights="none", train_from="conv5").eval()
         start = time.perf_counter()
         student = build_student(
-            StudentSpec.from_mapping(cfg.student), backbone, images, labels, train.root, size, cache
+            StudentSpec.from_mapping(cfg.student), backbone, LabelledImages(images, labels, train.root), size, cache
         )
         student_s = time.perf_counter() - start
         n = min(args.eval_images, len(test.db_paths))

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.stops import stop_on_signals
@@ -24,18 +24,23 @@ from semvpr.reporting.benchmarks_table import write_table
 from semvpr.reporting.sweep import sweep_dir_of
 
 
+def _sweep_dir(config: DictConfig) -> Path:
+    """The multirun's sweep dir as Hydra's config names it."""
+    return sweep_dir_of(str(config.hydra.sweep.dir), OmegaConf.select(config, "hydra.runtime.cwd", default=None))
+
+
 class EvalTableCallback(Callback):
     """Hydra callback: write the table when an evaluation multirun ends (conf/eval.yaml)."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """A signal to the sweep's own process stops it whole (``core.stops``): one line and the table."""
-        stop_on_signals(sweep_dir_of(config))
+        stop_on_signals(_sweep_dir(config))
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Never raise: each job's eval.json is the result; the table is a summary of them."""
         where = "the sweep dir"
         try:
-            sweep_dir = sweep_dir_of(config)
+            sweep_dir = _sweep_dir(config)
             where = str(sweep_dir)
             md = write_table(sweep_dir)
             print(f"semvpr eval table: {md}")

@@ -10,12 +10,17 @@ from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.stops import stop_on_signals
 from semvpr.reporting.sweep import sweep_dir_of
 from semvpr.reporting.sweep_report import print_summary, write_report
+
+
+def _sweep_dir(config: DictConfig) -> Path:
+    """The multirun's sweep dir as Hydra's config names it."""
+    return sweep_dir_of(str(config.hydra.sweep.dir), OmegaConf.select(config, "hydra.runtime.cwd", default=None))
 
 
 class ReportCallback(Callback):
@@ -24,7 +29,7 @@ class ReportCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """A signal to the sweep's own process stops it whole (``core.stops``): one line and the report."""
-        stop_on_signals(sweep_dir_of(config))
+        stop_on_signals(_sweep_dir(config))
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
         """Rewrite the partial table after a sweep's job (one writer at a time); never raise."""
@@ -47,7 +52,7 @@ class ReportCallback(Callback):
         """Report on config.hydra.sweep.dir; never raise, the runs' own files are the results."""
         where = "the sweep dir"
         try:
-            sweep_dir = sweep_dir_of(config)
+            sweep_dir = _sweep_dir(config)
             where = str(sweep_dir)
             print_summary(write_report(sweep_dir))
         except Exception as err:

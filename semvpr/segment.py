@@ -16,6 +16,7 @@ import csv
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,13 +36,15 @@ from semvpr.core.io import CONF_DIR, atomic_dir, write_json
 from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
 from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
-from semvpr.data.images import load_image
+from semvpr.data.images import Reading, load_image
 from semvpr.data.places import common_root
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.backbones import Backbone
 from semvpr.models.student import Student, StudentSpec, save_student
-from semvpr.models.teacher import Teacher, write_teacher_record
+from semvpr.models.teacher import Teacher
+from semvpr.models.teacher_folder import write_teacher_record
 from semvpr.segmentation.confusion import binary_pred
+from semvpr.segmentation.pseudolabels import LabelledImages
 from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
 from semvpr.segmentation.training import build_student, build_teacher
 
@@ -65,9 +68,12 @@ def save_teacher(teacher: Any, out: Path, image_size: list[int], trained_on: Tra
     with atomic_dir(out) as tmp, no_hf_progress_bars():
         teacher.model.save_pretrained(tmp)
         Mask2FormerImageProcessor(
-            image_mean=teacher.mean.flatten().tolist(), image_std=teacher.std.flatten().tolist(),
-            size={"height": image_size[0], "width": image_size[1]}, ignore_index=IGNORE, do_reduce_labels=False,
-        ).save_pretrained(tmp)  # fmt: skip
+            image_mean=teacher.mean.flatten().tolist(),
+            image_std=teacher.std.flatten().tolist(),
+            size={"height": image_size[0], "width": image_size[1]},
+            ignore_index=IGNORE,
+            do_reduce_labels=False,
+        ).save_pretrained(tmp)
         write_teacher_record(tmp, image_size, trained_on)
 
 
@@ -120,49 +126,53 @@ def figure_rows(
     return rows
 
 
+@dataclass(frozen=True)
+class StudentRun:
+    """What every student of a segment run shares: the teacher's labels it learns, how the sets are read to score
+    it against the teacher's static classes, the splits scored (the last one's numbers at the top level of its
+    entry), the data it is trained on, where it is saved, the cache and the loggers."""
+
+    labelled: LabelledImages
+    reading: Reading
+    static_names: list[str]
+    scored: tuple[str, ...]
+    trained_on: TrainedOn
+    run_dir: Path
+    cache_dir: str
+    loggers: list[Any]
+
+
 def train_students(
     spec: StudentSpec,
     backbones: dict[str, tuple[Backbone, str]],
     sets: dict[str, SegmentationSet],
-    scored: tuple[str, ...],
-    run_dir: Path,
-    trained_on: TrainedOn,
-    labels: Path,
-    root: Path,
-    image_size: list[int],
-    static_names: list[str],
-    cache_dir: str,
-    batch_size: int,
-    num_workers: int,
-    loggers: list[Any],
-    results: dict[str, Any],
-) -> dict[str, tuple[Student, Backbone]]:
-    """A student per frozen backbone (with the name of its weights) on the teacher's labels, scored on the
-    ``scored`` splits against the teacher's static classes (into ``results``) and saved as
-    ``run_dir/student_<name>``; returns them by name with their backbones, for the figure."""
-    students = {}
+    run: StudentRun,
+) -> tuple[dict[str, Any], dict[str, tuple[Student, Backbone]]]:
+    """A student per frozen backbone (with the name of its weights), scored and saved as
+    ``run_dir/student_<name>``; returns each one's results entry and each one with its backbone (for the
+    figure), by name."""
+    entries, students = {}, {}
     for name, (backbone, weights) in backbones.items():
         tic = time.time()
-        student = build_student(spec, backbone, list(sets["train"].images), labels, root, image_size, cache_dir)
+        student = build_student(spec, backbone, run.labelled, run.reading.image_size, run.cache_dir)
         entry: dict[str, Any] = {"backbone": name, "weights": weights, "build_s": time.time() - tic}
         fitted = json.loads((student.artifact / "metrics.json").read_text())
         entry.update(train_s=fitted["train_seconds"], train_iou_vs_labels=fitted["train/iou_vs_labels"])
-        for split in scored:
-            scores = score_student(
-                student, backbone, sets[split], image_size, static_names, bool(spec.bf16), batch_size, num_workers
-            )
-            log_scores(loggers, f"student_{name}", split, scores)
+        for split in run.scored:
+            scores = score_student(student, backbone, sets[split], run.reading, run.static_names, spec.bf16)
+            log_scores(run.loggers, f"student_{name}", split, scores)
             entry[split] = scores
-        entry.update(entry[scored[-1]])
-        if scored[-1] == "test":
+        entry.update(entry[run.scored[-1]])
+        if run.scored[-1] == "test":
             del entry["test"]
+        size = list(run.reading.image_size)
         folder = save_student(
-            student, spec, name, backbone.frozen_identity(), image_size, trained_on, run_dir / f"student_{name}"
+            student, spec, name, backbone.frozen_identity(), size, run.trained_on, run.run_dir / f"student_{name}"
         )
         entry["checkpoint"] = str(folder)
-        results[f"student_{name}"] = entry
+        entries[f"student_{name}"] = entry
         students[f"student_{name}"] = (student, backbone)
-    return students
+    return entries, students
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -198,10 +208,11 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         checkpoint = run_dir / "teacher"
         save_teacher(teacher, checkpoint, size, trained_on)
     results: dict[str, Any] = {"teacher": {"train_s": train_s, "build_s": build_s, "checkpoint": str(checkpoint)}}
+    reading = Reading(size, batch, workers)
     scored = ("val", "test") if cfg.score_test else ("val",)
     for split in scored:
         with threads.stage("frozen"):
-            scores = score_teacher(teacher, sets[split], size, classes, static_names, batch, workers)
+            scores = score_teacher(teacher, sets[split], reading, classes, static_names)
         log_scores(loggers, "teacher", split, scores)
         results["teacher"][split] = scores
     # The last scored split's numbers at the top level (test, or val when settings are being chosen).
@@ -214,13 +225,10 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     with threads.stage("frozen"):
         labels = pseudo_labels(
             teacher,
-            teacher.teacher_key,
             list(sets["train"].images),
-            size,
+            Reading(size, teacher_settings.predict_batch_size, workers),
             cfg.paths.cache_dir,
             root,
-            batch_size=int(teacher_settings.predict_batch_size),
-            num_workers=workers,
         )
     results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
 
@@ -229,23 +237,18 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         for name, node in cfg.backbones.items()
     }
     with threads.stage("student"):
-        students = train_students(
-            student_settings,
-            backbones,
-            sets,
-            scored,
-            run_dir,
-            trained_on,
-            labels,
-            root,
-            size,
+        student_run = StudentRun(
+            LabelledImages(list(sets["train"].images), labels, root),
+            reading,
             static_names,
+            scored,
+            trained_on,
+            run_dir,
             cfg.paths.cache_dir,
-            batch,
-            workers,
             loggers,
-            results,
         )
+        entries, students = train_students(student_settings, backbones, sets, student_run)
+    results.update(entries)
 
     columns = {
         "gt": "ground truth\n(bright = static)",
@@ -263,13 +266,21 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     )
     for logger in loggers:
         logger.finalize("success")
-    results.update({
-        "dataset": {"name": cfg.seg.name, "root": str(cfg.seg.root), "image_size": size,
-                    "classes": [TRAIN_ID_NAMES[c] for c in classes], **{s: len(sets[s]) for s in SPLITS}},
-        "scored_on": "test (val under each model's 'val')" if cfg.score_test else "val only (test not scored)",
-        "threads": threads.record(),
-        "config": OmegaConf.to_container(cfg, resolve=True), "wall_time_s": time.time() - start,
-    })  # fmt: skip
+    results.update(
+        {
+            "dataset": {
+                "name": cfg.seg.name,
+                "root": str(cfg.seg.root),
+                "image_size": size,
+                "classes": [TRAIN_ID_NAMES[c] for c in classes],
+                **{s: len(sets[s]) for s in SPLITS},
+            },
+            "scored_on": "test (val under each model's 'val')" if cfg.score_test else "val only (test not scored)",
+            "threads": threads.record(),
+            "config": OmegaConf.to_container(cfg, resolve=True),
+            "wall_time_s": time.time() - start,
+        }
+    )
     write_json(run_dir / "results.json", results)
     return results
 

@@ -26,12 +26,12 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.plan import JobPlan, job_device, job_plan, ranks_of, sweep_gpu
+from semvpr.config.runs import keep_run_record, resumed_config
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision, running_precision
-from semvpr.core.resume import keep_run_record, resumed_config
 from semvpr.core.stops import Interrupted, killed_workers_stop, received_stop, stop_on_signals, sweep_stopped_line
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind

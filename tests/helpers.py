@@ -200,9 +200,10 @@ class CountingTeacher:
 
     device = torch.device("cpu")
 
-    def __init__(self, fail_after: int | None = None) -> None:
+    def __init__(self, fail_after: int | None = None, teacher_key: str = "teacher-abc") -> None:
         self.seen = 0
         self.fail_after = fail_after
+        self.teacher_key = teacher_key
 
     def predict_train_ids(self, images: torch.Tensor) -> torch.Tensor:
         if self.fail_after is not None and self.seen + len(images) > self.fail_after:

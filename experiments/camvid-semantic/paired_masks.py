@@ -31,9 +31,10 @@ from semvpr.config.build import build_backbone, teacher_spec
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.data.camvid import read_camvid
+from semvpr.data.images import Reading
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import load_student
-from semvpr.models.teacher import teacher_architecture
+from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.reporting.paired import RESAMPLES
 from semvpr.segmentation.confusion import Confusion, binary_pred, mask_scores
 from semvpr.segmentation.scoring import by_size, loader, student_prob, teacher_outputs
@@ -58,7 +59,7 @@ def frame_counts(
     """(frames, 19, 3) confusion counts of one source's binary mask, frame by frame, scored at each label's
     size (CamVid: 360x480)."""
     counts: dict[int, np.ndarray] = {}
-    for images, labels, index in loader(frames, size, batch_size=8, num_workers=0):
+    for images, labels, index in loader(frames, Reading(size, batch_size=8, num_workers=0)):
         for label_size, pos in by_size(labels).items():  # one group where the labels share a size (CamVid)
             prob = predict(images[pos], list(label_size))
             for row, i in enumerate(pos):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -26,17 +26,20 @@ from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
 from semvpr.config.plan import JobPlan, ranks_of
-from semvpr.core.checkpoint import RunCheckpointIO, record_of
+from semvpr.config.record import record_of
+from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
+from semvpr.data.images import Reading
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.models.student import Student, StudentSpec, load_student, student_architecture
-from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher, teacher_architecture
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher
+from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
 from semvpr.retrieval.distributed import Describe
@@ -60,12 +63,15 @@ from semvpr.retrieval.retriever import Optimization, Retriever
 
 @dataclass
 class Semantic:
-    """Semantic artifacts a run needs: teacher, its pseudo-labels of the train images, student."""
+    """Semantic artifacts a run needs: teacher, its pseudo-labels of the train images, student, and the seconds
+    each took, built or read from the cache (``teacher_s``, ``labels_s``, ``student_s``; ``features_s``: the
+    trunk pass that keeps what they read)."""
 
     teacher: Teacher | None = None
     labels_dir: Path | None = None
     labels_root: Path | None = None
     student: Student | None = None
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -427,24 +433,22 @@ def build_semantic(
     plan: JobPlan,
     train: PlaceSet,
     backbone: Backbone,
-    timings: dict[str, float] | None = None,
     storage: str = "disk",
     skip_levels: Sequence[int] | None = None,
     teacher: Teacher | None = None,
 ) -> Semantic:
     """Teacher (``teacher`` if given), pseudo-labels and student, as far as the aggregator's init and the mask
-    source need them; the seconds each took (built or read from the cache) into ``timings`` as teacher_s,
-    labels_s, student_s, and the trunk pass that keeps what they read into features_s.
+    source need them, with the seconds each took (``Semantic.timings``).
 
     Where the teacher is linked to the trunk and the student reads its skips, both read the train images'
     frozen outputs from the trunk pass's cache (``skip_levels``, by default :func:`skip_plan`'s), so the
     images go through the frozen weights once."""
-    from semvpr.segmentation.pseudolabels import pseudo_labels
+    from semvpr.segmentation.pseudolabels import LabelledImages, pseudo_labels
     from semvpr.segmentation.training import build_student
 
-    timings = {} if timings is None else timings
     if not plan.semantic:
         return Semantic()
+    timings: dict[str, float] = {}
     threads = plan.threads
     workers = threads.workers(int(cfg.data.num_workers))
     size = tuple(int(v) for v in cfg.data.image_size)
@@ -465,31 +469,28 @@ def build_semantic(
         with threads.stage("frozen"):
             frozen = place_features(source, backbone, settings, skip_levels=skip_levels)
         trunk, held = trunk_outputs(frozen), frozen.db.levels() & frozen.q.levels()
-    timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
+    timings["features_s"] = time.time() - tic
     tic = time.time()
     images = list(source.db_paths) + list(source.q_paths)
     on_trunk = teacher.on_trunk(size) and set(teacher.trunk_levels or ()) <= held
     with threads.stage("frozen"):
         labels_dir = pseudo_labels(
-            teacher, teacher.teacher_key, images, size, cfg.paths.cache_dir, source.root,
-            batch_size=int(teacher_spec(cfg).predict_batch_size), num_workers=workers,
+            teacher,
+            images,
+            Reading(size, teacher_spec(cfg).predict_batch_size, workers),
+            cfg.paths.cache_dir,
+            source.root,
             trunk=trunk if on_trunk else None,
-        )  # fmt: skip
+        )
     timings["labels_s"], tic = time.time() - tic, time.time()
-    semantic = Semantic(teacher, labels_dir, source.root)
+    semantic = Semantic(teacher, labels_dir, source.root, timings=timings)
     if plan.mask_needs == "student":
         spec = student_spec(cfg)
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
         with threads.stage("student"):
+            labelled = LabelledImages(images, labels_dir, source.root)
             semantic.student = build_student(
-                spec,
-                backbone,
-                images,
-                labels_dir,
-                source.root,
-                size,
-                cfg.paths.cache_dir,
-                trunk=trunk if reads else None,
+                spec, backbone, labelled, size, cfg.paths.cache_dir, trunk=trunk if reads else None
             )
         timings["student_s"] = time.time() - tic
     return semantic
@@ -548,7 +549,8 @@ def prepare(cfg: DictConfig, plan: JobPlan, timings: dict[str, float]) -> Prepar
         timings["teacher_s"] = time.time() - tic
     levels = skip_plan(cfg, plan, backbone, places, teacher, storage)
     if teacher is not None:
-        semantic = build_semantic(cfg, plan, places["train"], backbone, timings, storage, levels["train"], teacher)
+        semantic = build_semantic(cfg, plan, places["train"], backbone, storage, levels["train"], teacher)
+        timings.update(semantic.timings)
     mask_source = build_mask_source(cfg, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()

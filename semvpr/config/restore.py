@@ -3,7 +3,7 @@ or (``ckpt=none``) the
 model the config describes with no VPR training. What ``semvpr.eval``, ``semvpr.localize`` and the hub
 share.
 
-A checkpoint's model comes from its record (``semvpr.core.checkpoint``: validated against the project's
+A checkpoint's model comes from its record (``semvpr.config.record``: validated against the project's
 own configs, nothing stored in the file is run) and is assembled by the same builder as a training run.
 A command-line choice that would change the model is refused, with one exception: the mask source.
 ``mask=teacher teacher.checkpoint=DIR``, ``mask=student student.checkpoint=DIR`` (directories saved by
@@ -48,15 +48,8 @@ from semvpr.config.build import (
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
 from semvpr.config.plan import job_plan
-from semvpr.core.checkpoint import (
-    FORMAT,
-    check_recorded_paths,
-    is_semvpr_checkpoint,
-    model_config,
-    read_checkpoint,
-    read_weights,
-    segmenter_of,
-)
+from semvpr.config.record import check_recorded_paths, model_config
+from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 from semvpr.core.provenance import data_domain

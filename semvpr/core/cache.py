@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import reclaim_orphans, temp_prefix, write_text
@@ -33,9 +32,7 @@ LOCK_DIR = ".locks"
 
 
 def config_hash(key: Any, length: int = 12) -> str:
-    """Stable short hash of a JSON-able (or OmegaConf) object."""
-    if isinstance(key, (DictConfig, ListConfig)):
-        key = OmegaConf.to_container(key, resolve=True)
+    """Stable short hash of a JSON-able object."""
     text = json.dumps(key, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:length]
 
@@ -188,8 +185,6 @@ def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable:
         tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
     try:
         build(tmp)
-        if isinstance(key, (DictConfig, ListConfig)):
-            key = OmegaConf.to_container(key, resolve=True)
         write_text(tmp / "key.json", json.dumps(key, sort_keys=True, indent=1, default=str))
         os.rename(tmp, final)
     except BaseException:

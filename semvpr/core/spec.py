@@ -1,5 +1,5 @@
-"""Typed settings: a config node becomes a frozen dataclass at the config layer, so the code below it
-takes named, typed values instead of a whole ``DictConfig``."""
+"""Typed settings: the config layer turns a config node into a frozen dataclass here, so the code below it
+takes named, typed values instead of a whole config."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 
@@ -18,9 +17,14 @@ S = TypeVar("S")
 
 
 def plain(node: Any) -> Any:
-    """A config node (or a plain value) as plain Python containers, interpolations resolved."""
-    if isinstance(node, DictConfig) or OmegaConf.is_config(node):
-        return OmegaConf.to_container(node, resolve=True)
+    """``node`` with every mapping a ``dict`` and every sequence other than a list, tuple or text a ``list``
+    (a mapping's values read as it gives them: a config node's interpolations resolved)."""
+    if isinstance(node, Mapping):
+        return {key: plain(value) for key, value in node.items()}
+    if isinstance(node, list | tuple):
+        return type(node)(plain(value) for value in node)
+    if isinstance(node, Sequence) and not isinstance(node, str | bytes):
+        return [plain(value) for value in node]
     return node
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -32,24 +33,35 @@ M_PER_DEGREE = 6_371_000.0 * math.pi / 180.0
 CITY_SHIFT_M = 1e7
 
 
-def image_name(
-    city_id: str, place_id: int, year: int, month: int, northdeg: int, lat: float, lon: float, panoid: str
-) -> str:
+class Row(NamedTuple):
+    """One row of a city's dataframe, typed (``COLUMNS``, in order)."""
+
+    place_id: int
+    year: int
+    month: int
+    northdeg: int
+    city_id: str
+    lat: float
+    lon: float
+    panoid: str
+
+
+def image_name(row: Row) -> str:
     """The file name of one row, as gsv-cities' dataloader builds it."""
     fields = [
-        city_id,
-        str(place_id % 10**5).zfill(7),
-        str(year).zfill(4),
-        str(month).zfill(2),
-        str(northdeg).zfill(3),
-        str(lat),
-        str(lon),
-        panoid,
+        row.city_id,
+        str(row.place_id % 10**5).zfill(7),
+        str(row.year).zfill(4),
+        str(row.month).zfill(2),
+        str(row.northdeg).zfill(3),
+        str(row.lat),
+        str(row.lon),
+        row.panoid,
     ]
     return "_".join(fields) + ".jpg"
 
 
-def _row(row: dict[str, str], line: int, path: Path) -> tuple[int, int, int, int, str, float, float, str]:
+def _row(row: dict[str, str], line: int, path: Path) -> Row:
     """One csv row as typed values, or one line naming the file, the line and the field."""
     values: dict[str, object] = {}
     for key in COLUMNS:
@@ -68,10 +80,10 @@ def _row(row: dict[str, str], line: int, path: Path) -> tuple[int, int, int, int
         except ValueError:
             kind = "a whole number" if key in WHOLE else "a number" if key in ("lat", "lon") else "a name"
             raise SemvprError(f"{path}: line {line}: {key}={text!r} is not {kind}") from None
-    return tuple(values[k] for k in COLUMNS)  # type: ignore[return-value]
+    return Row(*(values[k] for k in COLUMNS))  # type: ignore[arg-type]
 
 
-def _city_rows(path: Path) -> list[tuple[int, int, int, int, str, float, float, str]]:
+def _city_rows(path: Path) -> list[Row]:
     """The typed rows of one city's dataframe: a regular UTF-8 csv file; anything else is one line naming it."""
     regular_file(path, "GSV-Cities dataframe")
     with path.open(newline="", encoding="utf-8") as fh:
@@ -121,16 +133,16 @@ def read_gsv_cities(root: str | Path, cities: list[str] | None = None) -> PlaceS
         rows = _city_rows(csv_path)
         listed: dict[str, set[str]] = {}
         missing: list[Path] = []
-        for place_id, year, month, northdeg, city_id, lat, lon, panoid in rows:
-            folder = root / "Images" / city_id
-            if city_id not in listed:
-                listed[city_id] = {p.name for p in folder.iterdir()} if folder.is_dir() else set()
-            name = image_name(city_id, place_id, year, month, northdeg, lat, lon, panoid)
+        for row in rows:
+            folder = root / "Images" / row.city_id
+            if row.city_id not in listed:
+                listed[row.city_id] = {p.name for p in folder.iterdir()} if folder.is_dir() else set()
+            name = image_name(row)
             path = listed_image(folder, name, csv_path)
-            if name not in listed[city_id]:
+            if name not in listed[row.city_id]:
                 missing.append(path)
             paths.append(path)
-            key = (city_index, place_id)
+            key = (city_index, row.place_id)
             if key not in place_of:
                 place_of[key] = len(place_of)
                 groups.append(city_index)
@@ -140,7 +152,7 @@ def read_gsv_cities(root: str | Path, cities: list[str] | None = None) -> PlaceS
                 f"{csv_path}: {len(missing)} of its {len(rows)} images are missing, the first {missing[0]}; "
                 "the names are built from each row as gsv-cities builds them"
             )
-        lat_lon = np.array([(r[5], r[6]) for r in rows], dtype=np.float64)
+        lat_lon = np.array([(r.lat, r.lon) for r in rows], dtype=np.float64)
         lat0, lon0 = lat_lon.mean(0)
         east = (lat_lon[:, 1] - lon0) * M_PER_DEGREE * math.cos(math.radians(lat0)) + city_index * CITY_SHIFT_M
         north = (lat_lon[:, 0] - lat0) * M_PER_DEGREE

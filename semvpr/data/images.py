@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import stat
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,15 @@ def load_image(path: str | Path, size: Size | None = None) -> torch.Tensor:
     if hw is not None and img.size != (hw[1], hw[0]):
         img = img.resize((hw[1], hw[0]), Image.BILINEAR)
     return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
+
+
+@dataclass(frozen=True)
+class Reading:
+    """How a pass reads a set's images: the size a model sees them at, images per batch, loader workers."""
+
+    image_size: Sequence[int]
+    batch_size: int = 8
+    num_workers: int = 2
 
 
 class ImageDataset(Dataset):

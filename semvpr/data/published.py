@@ -6,9 +6,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
-
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import read_yaml
 
 PUBLISHED = Path(__file__).with_name("published.yaml")
 
@@ -16,7 +15,7 @@ PUBLISHED = Path(__file__).with_name("published.yaml")
 @lru_cache(maxsize=1)
 def published() -> dict[str, Any]:
     """The whole file as plain Python (sets, results)."""
-    data = OmegaConf.to_container(OmegaConf.load(PUBLISHED))
+    data = read_yaml(PUBLISHED, "published numbers")
     assert isinstance(data, dict)
     return data
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -491,6 +492,16 @@ def _tex(pool: np.ndarray, rng: np.random.Generator, ph: int, pw: int, ppm: floa
 Paint = Callable[[], np.ndarray]  # colours of a road user's patch, drawn only once it is placed
 
 
+class _Part(NamedTuple):
+    """One patch of a road user: its colours, its pixel shape, its trainId and where its top-left corner goes."""
+
+    paint: Paint
+    shape: np.ndarray
+    cls: int
+    top: int
+    left: int
+
+
 def _vehicle(
     cls: int, ph: int, pw: int, rng: np.random.Generator, pool: np.ndarray, ppm: float
 ) -> tuple[Paint, np.ndarray]:
@@ -562,10 +573,9 @@ def _two_wheeler(ph: int, pw: int, rng: np.random.Generator, motor: bool) -> tup
     return paint, shape
 
 
-def _paste(
-    rgb, label, zbuf, paint: Paint, shape, cls: int, top: int, left: int, depth: float, commit: bool = True
-) -> int:
-    """Composite a patch at (top, left) where it is nearer than what is there; returns new dynamic pixels."""
+def _paste(rgb, label, zbuf, part: _Part, depth: float, commit: bool = True) -> int:
+    """Composite a patch at its (top, left) where it is nearer than what is there; returns new dynamic pixels."""
+    paint, shape, cls, top, left = part
     h, w = label.shape
     r0, c0 = max(top, 0), max(left, 0)
     r1, c1 = min(top + shape.shape[0], h), min(left + shape.shape[1], w)
@@ -587,6 +597,10 @@ _KINDS = ((CAR, 0.35, (4.0, 7.0), (4.0, 4.9), (1.4, 1.6)), (BUS, 0.25, (5.0, 8.0
           (RIDER, 0.08, (7.0, 9.0), (1.6, 2.0), (1.0, 1.15)))  # fmt: skip
 
 
+#: Most road users in one image, and how many draws may try to place them.
+MAX_OBJECTS, PLACEMENT_TRIES = 12, 30
+
+
 def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top: float, h: int, w: int):
     """One random road user as (depth, parts); a part is (paint, shape, trainId, top, left)."""
     probs = np.array([k[1] for k in _KINDS])
@@ -599,14 +613,16 @@ def _sample_object(rng: np.random.Generator, pool: np.ndarray, ppm: float, z_top
     ground = round((z_top - CAM_H * (1 - k)) * ppm)  # image row where the object meets the road
     left = round(w / 2 + rng.uniform(-0.5, 0.5) * (w + pw)) - pw // 2
     if cls in (CAR, BUS, TRUCK):
-        return d, [(*_vehicle(cls, ph, pw, rng, pool, ppm), cls, ground - ph, left)]
+        return d, [_Part(*_vehicle(cls, ph, pw, rng, pool, ppm), cls, ground - ph, left)]
     if cls == PERSON:
-        return d, [(*_person(ph, pw, rng, pool, ppm), cls, ground - ph, left)]
+        return d, [_Part(*_person(ph, pw, rng, pool, ppm), cls, ground - ph, left)]
     motor = rng.random() < 0.3
     rh, rw = round(1.5 / 1.05 * ph), max(2, round(pw * 0.35))
     return d, [
-        (*_two_wheeler(ph, pw, rng, motor), MOTORCYCLE if motor else BICYCLE, ground - ph, left),
-        (*_person(rh, rw, rng, pool, ppm, seated=True), RIDER, ground - round(0.45 * ph) - rh, left + round(0.3 * pw)),
+        _Part(*_two_wheeler(ph, pw, rng, motor), MOTORCYCLE if motor else BICYCLE, ground - ph, left),
+        _Part(
+            *_person(rh, rw, rng, pool, ppm, seated=True), RIDER, ground - round(0.45 * ph) - rh, left + round(0.3 * pw)
+        ),
     ]
 
 
@@ -618,21 +634,20 @@ def add_dynamic_objects(
     ppm: float,
     z_top: float,
     target: float,
-    max_objects: int = 12,
-    tries: int = 30,
 ) -> None:
-    """Add road users (in place) until the MEASURED dynamic pixel fraction reaches ``target``."""
+    """Add road users (in place) until the MEASURED dynamic pixel fraction reaches ``target`` (at most
+    ``MAX_OBJECTS`` of them, in ``PLACEMENT_TRIES`` draws)."""
     h, w = label.shape
     zbuf = np.full((h, w), 99.0, np.float32)  # static scene is at ~15 m: anything nearer occludes it
     dyn, limit = int((label >= DYNAMIC_MIN).sum()), (target + OVERSHOOT) * label.size
     placed = 0
-    for _ in range(tries):
-        if placed >= max_objects or dyn >= target * label.size:
+    for _ in range(PLACEMENT_TRIES):
+        if placed >= MAX_OBJECTS or dyn >= target * label.size:
             break
         d, parts = _sample_object(rng, pool, ppm, z_top, h, w)
-        new = sum(_paste(rgb, label, zbuf, *part, d, commit=False) for part in parts)
+        new = sum(_paste(rgb, label, zbuf, part, d, commit=False) for part in parts)
         if new == 0 or dyn + new > limit:  # would overshoot: try a smaller or better-placed one
             continue
         for part in parts:
-            _paste(rgb, label, zbuf, *part, d)
+            _paste(rgb, label, zbuf, part, d)
         dyn, placed = int((label >= DYNAMIC_MIN).sum()), placed + 1

@@ -1,1 +1,2 @@
-"""Networks only: backbones, aggregators, mask sources, the teacher and the student."""
+"""Networks only: backbones, aggregators, mask sources, the teacher and the student, and the folders a
+trained teacher or student is saved in."""

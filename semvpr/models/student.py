@@ -72,18 +72,26 @@ class StudentSpec:
 def _block(cin: int, cout: int) -> nn.Sequential:
     """conv3x3-BN-ReLU twice: the U-Net unit."""
     return nn.Sequential(
-        nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
-        nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
-    )  # fmt: skip
+        nn.Conv2d(cin, cout, 3, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(cout, cout, 3, padding=1, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.ReLU(inplace=True),
+    )
 
 
 class Student(nn.Module):
     """Decoder from the deepest chosen frozen feature up through shallower skips to class logits."""
 
     def __init__(
-        self, frozen_channels: Sequence[int], frozen_strides: Sequence[int],
-        strides: Sequence[int] = (4, 8, 16), width: int = 64, static_names: Sequence[str] = STATIC_NAMES,
-    ) -> None:  # fmt: skip
+        self,
+        frozen_channels: Sequence[int],
+        frozen_strides: Sequence[int],
+        strides: Sequence[int] = (4, 8, 16),
+        width: int = 64,
+        static_names: Sequence[str] = STATIC_NAMES,
+    ) -> None:
         super().__init__()
         self.register_buffer("static_weight", static_vector(static_names), persistent=False)
         # The deepest frozen output of each wanted stride (ResNet's stem and layer1 share none; VGG's do not).
@@ -176,13 +184,16 @@ def save_student(
             tmp / SPEC_FILE,
             {
                 "format": STUDENT_FORMAT,
-                "spec": {"strides": [int(s) for s in spec.strides], "width": int(spec.width),
-                         "static_classes": [str(c) for c in spec.static_classes]},
+                "spec": {
+                    "strides": [int(s) for s in spec.strides],
+                    "width": int(spec.width),
+                    "static_classes": [str(c) for c in spec.static_classes],
+                },
                 "backbone": {"name": backbone_name, "frozen": dict(backbone_identity)},
                 "image_size": [int(v) for v in image_size],
                 "trained_on": trained_on.as_dict(),
             },
-        )  # fmt: skip
+        )
     return out
 
 

@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR, read_json, read_yaml
@@ -380,9 +379,8 @@ def mean_std(values: list[float]) -> tuple[float, float]:
     return float(vals.mean()), float(vals.std(ddof=1)) if vals.size > 1 else math.nan
 
 
-def sweep_dir_of(config: DictConfig) -> Path:
-    """A multirun's sweep dir (hydra.sweep.dir, relative to the launch dir)."""
-    sweep_dir = Path(str(config.hydra.sweep.dir))
-    if not sweep_dir.is_absolute():
-        sweep_dir = Path(OmegaConf.select(config, "hydra.runtime.cwd", default=None) or os.getcwd()) / sweep_dir
-    return sweep_dir
+def sweep_dir_of(sweep_dir: str, launch_dir: str | None) -> Path:
+    """A multirun's sweep dir: ``hydra.sweep.dir`` (``sweep_dir``) relative to the directory the sweep was
+    launched from (``hydra.runtime.cwd``: ``launch_dir``; None: the working directory)."""
+    path = Path(sweep_dir)
+    return path if path.is_absolute() else Path(launch_dir or os.getcwd()) / path

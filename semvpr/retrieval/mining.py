@@ -38,60 +38,6 @@ from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, w
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
 
 
-def mine(
-    db_desc: np.ndarray,
-    q_desc: np.ndarray,
-    db_utm: np.ndarray,
-    q_utm: np.ndarray,
-    query_ids: np.ndarray,
-    rng: np.random.Generator,
-    neg_cache: np.ndarray | None = None,
-    positive_radius: float = 10.0,
-    negative_radius: float = 25.0,
-    num_negatives: int = 10,
-    negative_candidates: int = 1000,
-    margin: float = 0.1,
-    device: torch.device | str = "cpu",
-) -> list[tuple[int, int, np.ndarray]]:
-    """(query, positive, violating hard negatives) per minable query; ``q_desc`` rows follow ``query_ids``.
-
-    ``neg_cache`` (num_queries, num_negatives), -1 padded, is read and updated in place.
-    """
-    positive_radius = check_radius(positive_radius, "recipe.positive_radius")
-    negative_radius = check_radius(negative_radius, "recipe.negative_radius")
-    tree = cKDTree(db_utm)
-    near = tree.query_ball_point(q_utm[query_ids], r=positive_radius)
-    not_far = tree.query_ball_point(q_utm[query_ids], r=negative_radius)
-    # One BLAS call for all query-database distances; the loop below only indexes into it.
-    # On the job's device (a GPU's matmul in full fp32: the ranking must not move with TF32).
-    with fp32(torch.device(device).type):
-        q, db = (torch.from_numpy(d).float().to(device) for d in (q_desc, db_desc))
-        dist = torch.cdist(q, db).cpu().numpy()
-    tuples = []
-    for row, qi, pos, excluded in zip(dist, query_ids, near, not_far):
-        if not pos:
-            continue
-        best_pos = pos[int(np.argmin(row[pos]))]
-        potential = np.ones(len(row), dtype=bool)
-        potential[excluded] = False
-        candidates = np.flatnonzero(potential)
-        if len(candidates) == 0:
-            continue
-        sample = rng.choice(candidates, min(negative_candidates, len(candidates)), replace=False)
-        if neg_cache is not None:
-            sample = np.union1d(sample, neg_cache[qi][neg_cache[qi] >= 0])
-        nearest = sample[np.argsort(row[sample], kind="stable")[: 10 * num_negatives]]
-        # Same distance and margin as the loss (TripletMarginLoss on L2 distances, margin sqrt(m)).
-        violating = nearest[row[nearest] < row[best_pos] + margin**0.5][:num_negatives]
-        if len(violating) == 0:
-            continue
-        if neg_cache is not None:
-            neg_cache[qi] = -1
-            neg_cache[qi, : len(violating)] = violating
-        tuples.append((int(qi), int(best_pos), violating))
-    return tuples
-
-
 class TupleDataset(Dataset):
     """A mined tuple's images as one item: {"x" or "image": (2+n, ...), "mask": (2+n, 1, h, w) or empty}."""
 
@@ -162,25 +108,50 @@ class Mining:
         places: Any,
         query_ids: np.ndarray,
         rng: np.random.Generator,
-        neg_cache: np.ndarray | None,
+        neg_cache: np.ndarray | None = None,
         device: torch.device | str = "cpu",
     ) -> list[tuple[int, int, np.ndarray]]:
-        """:func:`mine` with these radii, counts and margin, its distances on ``device``."""
-        return mine(
-            db_desc,
-            q_desc,
-            places.db_utm,
-            places.q_utm,
-            query_ids,
-            rng,
-            neg_cache,
-            positive_radius=self.positive_radius,
-            negative_radius=self.negative_radius,
-            num_negatives=self.num_negatives,
-            negative_candidates=self.negative_candidates,
-            margin=self.margin,
-            device=device,
-        )
+        """(query, positive, violating hard negatives) per minable query of ``query_ids`` (module docstring),
+        with these radii, counts and margin; ``q_desc`` rows follow ``query_ids``, positions are ``places``'
+        ``db_utm`` / ``q_utm``; the distances on ``device``.
+
+        ``neg_cache`` (num_queries, num_negatives), -1 padded, is read and updated in place.
+        """
+        positive_radius = check_radius(self.positive_radius, "recipe.positive_radius")
+        negative_radius = check_radius(self.negative_radius, "recipe.negative_radius")
+        num_negatives, margin = self.num_negatives, self.margin
+        db_utm, q_utm = places.db_utm, places.q_utm
+        tree = cKDTree(db_utm)
+        near = tree.query_ball_point(q_utm[query_ids], r=positive_radius)
+        not_far = tree.query_ball_point(q_utm[query_ids], r=negative_radius)
+        # One BLAS call for all query-database distances; the loop below only indexes into it.
+        # On the job's device (a GPU's matmul in full fp32: the ranking must not move with TF32).
+        with fp32(torch.device(device).type):
+            q, db = (torch.from_numpy(d).float().to(device) for d in (q_desc, db_desc))
+            dist = torch.cdist(q, db).cpu().numpy()
+        tuples = []
+        for row, qi, pos, excluded in zip(dist, query_ids, near, not_far):
+            if not pos:
+                continue
+            best_pos = pos[int(np.argmin(row[pos]))]
+            potential = np.ones(len(row), dtype=bool)
+            potential[excluded] = False
+            candidates = np.flatnonzero(potential)
+            if len(candidates) == 0:
+                continue
+            sample = rng.choice(candidates, min(self.negative_candidates, len(candidates)), replace=False)
+            if neg_cache is not None:
+                sample = np.union1d(sample, neg_cache[qi][neg_cache[qi] >= 0])
+            nearest = sample[np.argsort(row[sample], kind="stable")[: 10 * num_negatives]]
+            # Same distance and margin as the loss (TripletMarginLoss on L2 distances, margin sqrt(m)).
+            violating = nearest[row[nearest] < row[best_pos] + margin**0.5][:num_negatives]
+            if len(violating) == 0:
+                continue
+            if neg_cache is not None:
+                neg_cache[qi] = -1
+                neg_cache[qi, : len(violating)] = violating
+            tuples.append((int(qi), int(best_pos), violating))
+        return tuples
 
 
 def trainable_queries(places: Any, positive_radius: float) -> np.ndarray:

@@ -13,6 +13,7 @@ from torch.utils.data import DataLoader, Dataset
 from semvpr.core.errors import SemvprError
 from semvpr.data.images import Size
 from semvpr.data.segmentation import SegmentationSet, load_pair
+from semvpr.models.teacher import TeacherTraining
 
 
 def segmentation_augmentation(image_size: Size, color: bool = True) -> K.AugmentationSequential:
@@ -90,34 +91,30 @@ def split_set(data: SegmentationSet, val_fraction: float, seed: int = 0) -> tupl
 
 
 class SegmentationDataModule(L.LightningDataModule):
-    """Train/val loaders of (image, trainIds) for teacher training; val split off train when not given."""
+    """Train/val loaders of (image, trainIds) for teacher training, at ``image_size`` in the batches, workers,
+    augmentation and seed of its ``settings``; val split off train (``val_fraction``) when not given."""
 
     def __init__(
         self,
         train: SegmentationSet,
-        val: SegmentationSet | None = None,
-        *,
-        image_size: Size = (128, 256),
-        batch_size: int = 8,
-        num_workers: int = 2,
-        augment: bool = True,
-        label_ids: bool = True,
+        val: SegmentationSet | None,
+        image_size: Size,
+        settings: TeacherTraining,
         val_fraction: float = 0.1,
-        seed: int = 0,
     ) -> None:
         super().__init__()
         if len(train) == 0:
             raise SemvprError("segmentation training set is empty: no image/label pairs found")
         if val is None:
-            train, val = split_set(train, val_fraction, seed)
+            train, val = split_set(train, val_fraction, settings.seed)
         elif len(val) == 0:
             raise SemvprError("segmentation validation set is empty: no image/label pairs found")
         self.train_set, self.val_set = train, val
         self.image_size = tuple(int(v) for v in image_size)
-        self.batch_size, self.num_workers = batch_size, num_workers
+        self.batch_size, self.num_workers = settings.batch_size, settings.num_workers
         # Built here, not in setup(): cheap (paths only), and loaders work without a Trainer.
-        self.train_ds = SegmentationDataset(train, self.image_size, augment, label_ids)
-        self.val_ds = SegmentationDataset(val, self.image_size, False, label_ids)
+        self.train_ds = SegmentationDataset(train, self.image_size, settings.augment)
+        self.val_ds = SegmentationDataset(val, self.image_size, False)
 
     def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
         return DataLoader(

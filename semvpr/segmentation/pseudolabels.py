@@ -8,6 +8,7 @@ database image, ``queries_real/000/000546_pitch1_yaw1.jpg`` a query).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,18 @@ from semvpr.core.io import atomic_file, inside
 from semvpr.core.logs import Progress
 from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
+from semvpr.data.images import ImageDataset, Reading
+
+
+@dataclass(frozen=True)
+class LabelledImages:
+    """Training images with their pseudo-labels: the folder :func:`pseudo_labels` built and the root the
+    images' label names are relative to (:func:`label_path`)."""
+
+    images: Sequence[Path]
+    labels: Path
+    root: Path
+
 
 VERSION = 2  # 2: labels keyed by the path relative to the dataset root (1: by stem)
 #: The values a label PNG may hold: Cityscapes trainIds and the ignore id.
@@ -90,62 +103,17 @@ def _label_ok(path: Path, image_size: tuple[int, int]) -> bool:
     return ok
 
 
-def _label_missing(
-    teacher: Any,
-    paths: Sequence[Path],
-    root: Path,
-    image_size: tuple[int, int],
-    out: Path,
-    batch_size: int,
-    num_workers: int,
-    trunk: TrunkOutputs | None = None,
-) -> None:
-    """Label the images whose PNG is not in ``out`` yet, from the images or, given ``trunk``, from the linked
-    trunk's cached outputs (no image is read); a resumed run keeps the finished ones that pass
-    :func:`_label_ok` (``out`` may be a ``.partial`` directory left by anyone)."""
-    from semvpr.data.images import ImageDataset
-
-    for p in paths:  # a link left in a resumed build is never followed, never kept
-        planted = out / _label_name(p, root)
-        if planted.is_symlink():
-            planted.unlink()
-    todo = [p for p in paths if not _label_ok(label_path(out, p, root), image_size)]
-    bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
-    if not todo:
-        return
-    device = getattr(teacher, "device", torch.device("cpu"))
-    with torch.no_grad(), autocast(device):
-        if trunk is not None:
-            for first in range(0, len(todo), batch_size):
-                chunk = todo[first : first + batch_size]
-                outputs = [o.to(device) if o is not None else None for o in trunk(chunk)]
-                ids = teacher.trunk_train_ids(outputs, image_size).cpu().numpy()
-                for i, path in enumerate(chunk):
-                    _write_png(ids[i], label_path(out, path, root))
-                bar.update(len(chunk))
-        else:
-            loader = DataLoader(ImageDataset(todo, image_size), batch_size=batch_size, num_workers=num_workers)
-            for images, index in loader:
-                ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
-                for i, k in enumerate(index.tolist()):
-                    _write_png(ids[i], label_path(out, todo[k], root))
-                bar.update(len(index))
-    bar.close()
-
-
 def pseudo_labels(
     teacher: Any,
-    teacher_key: str,
     paths: Sequence[str | Path],
-    image_size: Sequence[int],
+    reading: Reading,
     cache_dir: str | Path,
     root: str | Path,
-    *,
-    batch_size: int = 16,
-    num_workers: int = 2,
     trunk: TrunkOutputs | None = None,
 ) -> Path:
-    """Directory of one trainId PNG per image (at ``image_size``, see ``label_path``), built once and resumable.
+    """Directory of one trainId PNG per image (at ``reading.image_size``, see ``label_path``; the images read in
+    its batches by its workers), built once and resumable,
+    keyed by the teacher's ``teacher_key`` (what identifies its weights: ``segmentation.training.build_teacher``).
 
     ``trunk``: the images' cached outputs of the trunk the teacher is linked to (``Teacher.link_trunk``); the
     teacher then runs only its decoder. Its labels differ from those of the teacher's own encoder by float
@@ -156,17 +124,46 @@ def pseudo_labels(
         raise SemvprError("pseudo-labels: no images given to label")
     for p in paths:
         label_path("", p, root)  # every image must sit under the root: fail before any work
-    size = (int(image_size[0]), int(image_size[1]))
+    size = (int(reading.image_size[0]), int(reading.image_size[1]))
+    batch_size = reading.batch_size
     key = {
         "version": VERSION,
-        "teacher": teacher_key,
+        "teacher": teacher.teacher_key,
         "images": image_list_identity(paths, root),
         "image_size": list(size),
     }
     if trunk is not None:
         key["encoder"] = "trunk"
-    return build_once(
-        cache_dir, "labels", key,
-        lambda out: _label_missing(teacher, paths, root, size, out, batch_size, num_workers, trunk),
-        resumable=True,
-    )  # fmt: skip
+
+    def label_missing(out: Path) -> None:
+        """Label the images whose PNG is not in ``out`` yet, from the images or, given ``trunk``, from the linked
+        trunk's cached outputs (no image is read); a resumed run keeps the finished ones that pass
+        :func:`_label_ok` (``out`` may be a ``.partial`` directory left by anyone)."""
+        for p in paths:  # a link left in a resumed build is never followed, never kept
+            planted = out / _label_name(p, root)
+            if planted.is_symlink():
+                planted.unlink()
+        todo = [p for p in paths if not _label_ok(label_path(out, p, root), size)]
+        bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
+        if not todo:
+            return
+        device = getattr(teacher, "device", torch.device("cpu"))
+        with torch.no_grad(), autocast(device):
+            if trunk is not None:
+                for first in range(0, len(todo), batch_size):
+                    chunk = todo[first : first + batch_size]
+                    outputs = [o.to(device) if o is not None else None for o in trunk(chunk)]
+                    ids = teacher.trunk_train_ids(outputs, size).cpu().numpy()
+                    for i, path in enumerate(chunk):
+                        _write_png(ids[i], label_path(out, path, root))
+                    bar.update(len(chunk))
+            else:
+                loader = DataLoader(ImageDataset(todo, size), batch_size=batch_size, num_workers=reading.num_workers)
+                for images, index in loader:
+                    ids = teacher.predict_train_ids(images.to(device)).cpu().numpy()
+                    for i, k in enumerate(index.tolist()):
+                        _write_png(ids[i], label_path(out, todo[k], root))
+                    bar.update(len(index))
+        bar.close()
+
+    return build_once(cache_dir, "labels", key, label_missing, resumable=True)

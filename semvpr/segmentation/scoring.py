@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from semvpr.core.logs import progress
 from semvpr.core.precision import autocast
-from semvpr.data.images import load_image
+from semvpr.data.images import Reading, load_image
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.masks import static_vector
 from semvpr.segmentation.confusion import Confusion, binary_pred, class_scores, mask_scores
@@ -43,10 +43,13 @@ def _collate(batch: list[tuple[Tensor, Tensor, int]]) -> tuple[Tensor, list[Tens
     return torch.stack(images), list(labels), list(index)
 
 
-def loader(seg: SegmentationSet, image_size: Sequence[int], batch_size: int, num_workers: int) -> DataLoader:
+def loader(seg: SegmentationSet, reading: Reading) -> DataLoader:
     """Batches of :class:`ScoringDataset` in the set's order."""
     return DataLoader(
-        ScoringDataset(seg, image_size), batch_size=batch_size, num_workers=num_workers, collate_fn=_collate
+        ScoringDataset(seg, reading.image_size),
+        batch_size=reading.batch_size,
+        num_workers=reading.num_workers,
+        collate_fn=_collate,
     )
 
 
@@ -88,17 +91,13 @@ def by_size(labels: list[Tensor]) -> dict[tuple[int, ...], list[int]]:
 def score_teacher(
     teacher: nn.Module,
     seg: SegmentationSet,
-    image_size: Sequence[int],
+    reading: Reading,
     classes: Sequence[int],
     static_names: Sequence[str],
-    batch_size: int = 8,
-    num_workers: int = 2,
 ) -> dict[str, Any]:
     """Class-map scores (mIoU over ``classes``, per-class IoU) and binary-mask scores of the teacher."""
     class_conf, mask_conf = Confusion(), Confusion(2)
-    for images, labels, _ in progress(
-        loader(seg, image_size, batch_size, num_workers), "teacher scores", len(seg), size=lambda b: len(b[0])
-    ):
+    for images, labels, _ in progress(loader(seg, reading), "teacher scores", len(seg), size=lambda b: len(b[0])):
         for size, pos in by_size(labels).items():
             ids, prob = teacher_outputs(teacher, images[pos], size, static_names)
             target = torch.stack([labels[i] for i in pos])
@@ -111,17 +110,13 @@ def score_student(
     student: nn.Module,
     backbone: nn.Module,
     seg: SegmentationSet,
-    image_size: Sequence[int],
+    reading: Reading,
     static_names: Sequence[str],
     bf16: bool,
-    batch_size: int = 8,
-    num_workers: int = 2,
 ) -> dict[str, Any]:
     """Binary-mask scores of a student (static vs not) against the labels."""
     conf = Confusion(2)
-    for images, labels, _ in progress(
-        loader(seg, image_size, batch_size, num_workers), "student scores", len(seg), size=lambda b: len(b[0])
-    ):
+    for images, labels, _ in progress(loader(seg, reading), "student scores", len(seg), size=lambda b: len(b[0])):
         for size, pos in by_size(labels).items():
             prob = student_prob(student, backbone, images[pos], size, bf16)
             conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))

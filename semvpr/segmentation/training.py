@@ -13,7 +13,6 @@ from collections.abc import Sequence
 from functools import partial
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -22,21 +21,16 @@ from torch.utils.data import DataLoader
 
 from semvpr.core.cache import build_once, config_hash, files_identity
 from semvpr.core.errors import SemvprError
-from semvpr.core.logs import Progress, progress, trainer_kwargs
-from semvpr.core.precision import autocast, compute_key, lightning_precision
+from semvpr.core.logs import Progress, progress
+from semvpr.core.precision import autocast, compute_key
 from semvpr.data.classes import IGNORE, NUM_CLASSES
 from semvpr.data.images import ImageDataset
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.student import Student, StudentSpec, student_architecture
-from semvpr.models.teacher import (
-    Teacher,
-    TeacherSpec,
-    check_mask2former_init,
-    embedded_teacher,
-    teacher_architecture,
-)
-from semvpr.segmentation.datamodule import SegmentationDataModule
-from semvpr.segmentation.pseudolabels import TrunkOutputs, label_path, read_label
+from semvpr.models.teacher import Teacher, TeacherSpec
+from semvpr.models.teacher_folder import teacher_architecture
+from semvpr.segmentation.pseudolabels import LabelledImages, TrunkOutputs, label_path, read_label
+from semvpr.segmentation.teacher_training import train_teacher
 
 STUDENT_VERSION = 2  # 2: multi-class head (cross-entropy on the teacher's classes); 1: binary
 
@@ -58,37 +52,6 @@ def training_threads() -> int:
     return torch.get_num_threads()
 
 
-def _train(
-    spec: TeacherSpec, seg_train: SegmentationSet, seg_val: SegmentationSet, out: Path, device: torch.device
-) -> None:
-    """Train the embedded teacher with Lightning and save its weights, config and val metrics in ``out``."""
-    from lightning.pytorch.loggers import CSVLogger
-
-    check_mask2former_init()
-    train = spec.train
-    L.seed_everything(train.seed, workers=True, verbose=False)
-    accelerator = "gpu" if device.type == "cuda" else "cpu"
-    teacher = embedded_teacher(spec)
-    data = SegmentationDataModule(
-        seg_train, seg_val, image_size=tuple(spec.image_size), batch_size=train.batch_size,
-        num_workers=train.num_workers, augment=train.augment, label_ids=True, seed=train.seed,
-    )  # fmt: skip
-    trainer = L.Trainer(
-        accelerator=accelerator, devices=[device.index or 0] if device.type == "cuda" else 1,
-        precision=lightning_precision("bf16-mixed" if train.bf16 else "32-true", accelerator),
-        max_epochs=train.epochs, check_val_every_n_epoch=train.val_every or train.epochs, num_sanity_val_steps=0,
-        logger=CSVLogger(out, name="logs", version=""), enable_checkpointing=False,
-        log_every_n_steps=10, default_root_dir=out, **trainer_kwargs("teacher", ()),
-    )  # fmt: skip
-    start = time.perf_counter()
-    trainer.fit(teacher, datamodule=data)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    metrics["train_seconds"] = time.perf_counter() - start
-    torch.save(teacher.model.state_dict(), out / "model.pt")
-    (out / "config.json").write_text(teacher.model.config.to_json_string())
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-
-
 def build_teacher(
     spec: TeacherSpec,
     seg_train: SegmentationSet | None,
@@ -108,14 +71,16 @@ def build_teacher(
             )
         # Only what changes the weights: class lists, labelling batch size etc. must not retrain it.
         key = {
-            "version": 1, "image_size": list(spec.image_size), "model": dict(spec.model),
+            "version": 1,
+            "image_size": list(spec.image_size),
+            "model": dict(spec.model),
             "train": {k: v for k, v in dataclasses.asdict(spec.train).items() if k != "val_every"},
             "train_set": dataset_identity(seg_train),
             "val_set": dataset_identity(seg_val),
             "threads": training_threads(),
             **compute_key(device),
-        }  # fmt: skip
-        art = build_once(cache_dir, "teacher", key, lambda tmp: _train(spec, seg_train, seg_val, tmp, device))
+        }
+        art = build_once(cache_dir, "teacher", key, lambda tmp: train_teacher(spec, seg_train, seg_val, tmp, device))
         # The architecture comes from the config, only weights from the (possibly shared) cache.
         try:
             teacher.model.load_state_dict(torch.load(art / "model.pt", weights_only=True, map_location="cpu"))
@@ -129,17 +94,22 @@ def build_teacher(
 
 @torch.no_grad()
 def cache_skips(
-    backbone: nn.Module, indices: Sequence[int], paths: Sequence[Path], image_size: Sequence[int],
-    batch_size: int, num_workers: int, bf16: bool = True, mirror: bool = False,
-) -> list[Tensor]:  # fmt: skip
-    """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once);
-    ``bf16=False`` computes them in fp32 (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower);
-    ``mirror``: of each image's left-right mirror image."""
+    backbone: nn.Module,
+    indices: Sequence[int],
+    paths: Sequence[Path],
+    image_size: Sequence[int],
+    spec: StudentSpec,
+    mirror: bool = False,
+) -> list[Tensor]:
+    """The chosen frozen features of every image, stored in bf16 (the trunk is frozen: compute them once), in
+    batches of the student's ``batch_size`` read by its ``num_workers``; its ``bf16=False`` computes them in fp32
+    (CPUs without AMX / AVX512-BF16 emulate bf16, several times slower); ``mirror``: of each image's left-right
+    mirror image."""
     device = next(backbone.parameters()).device
-    loader = DataLoader(ImageDataset(paths, image_size), batch_size=batch_size, num_workers=num_workers)
+    loader = DataLoader(ImageDataset(paths, image_size), batch_size=spec.batch_size, num_workers=spec.num_workers)
     out: list[list[Tensor]] = [[] for _ in indices]
     # The frozen prefix stays in eval mode whatever the backbone's mode (Backbone.train keeps it so).
-    with autocast(device, enabled=bf16):
+    with autocast(device, enabled=spec.bf16):
         what = "student features (mirrored)" if mirror else "student features"
         for images, _ in progress(loader, what, len(paths), size=lambda b: len(b[0])):
             images = images.flip(-1) if mirror else images
@@ -215,34 +185,41 @@ def fit_student(
 
 
 def build_student(
-    spec: StudentSpec, backbone: nn.Module, image_paths: Sequence[str | Path],
-    label_dir: str | Path, root: str | Path, image_size: Sequence[int], cache_dir: str | Path,
+    spec: StudentSpec,
+    backbone: nn.Module,
+    labelled: LabelledImages,
+    image_size: Sequence[int],
+    cache_dir: str | Path,
     trunk: TrunkOutputs | None = None,
-) -> Student:  # fmt: skip
-    """Train the student once on pseudo-labels (cached, kind "student") and return it in eval mode.
+) -> Student:
+    """Train the student once on the pseudo-labels of ``labelled`` (cached, kind "student") and return it in
+    eval mode.
 
     ``trunk``: the images' cached ``forward_frozen`` outputs in the precision :func:`cache_skips` would compute
     them at; the student then reads its skips from there instead of passing the images through the trunk again
     (the same values: the frozen pass gives the same outputs whatever the batch)."""
-    paths, label_dir, root = [Path(p) for p in image_paths], Path(label_dir), Path(root)
+    paths, label_dir, root = [Path(p) for p in labelled.images], Path(labelled.labels), Path(labelled.root)
     if spec.max_images and len(paths) > spec.max_images:
         # The frozen trunk pass dominates the cost; a fixed random subset is plenty for a small decoder.
         keep = torch.randperm(len(paths), generator=torch.Generator().manual_seed(int(spec.seed)))[: spec.max_images]
         paths = [paths[i] for i in sorted(keep.tolist())]
     size = [int(image_size[0]), int(image_size[1])]
     settings = {k: v for k, v in dataclasses.asdict(spec).items() if k != "checkpoint"}  # read, never trained
-    key = {"version": STUDENT_VERSION, "student": settings, "backbone": backbone.frozen_key(),
-           "labels": label_dir.name, "image_size": size, "threads": training_threads()}  # fmt: skip
+    key = {
+        "version": STUDENT_VERSION,
+        "student": settings,
+        "backbone": backbone.frozen_key(),
+        "labels": label_dir.name,
+        "image_size": size,
+        "threads": training_threads(),
+    }
 
     def build(out: Path) -> None:
         torch.manual_seed(int(spec.seed))
         student = student_architecture(spec, backbone)
         start = time.perf_counter()
         targets = load_targets(paths, label_dir, root, size)
-        features = partial(
-            cache_skips, backbone, student.skip_indices, paths, size, int(spec.batch_size), int(spec.num_workers),
-            bf16=bool(spec.bf16),
-        )  # fmt: skip
+        features = partial(cache_skips, backbone, student.skip_indices, paths, size, spec)
         if trunk is not None:
             outputs = trunk(paths)
             skips = [outputs[i].contiguous() for i in student.skip_indices]

@@ -11,6 +11,7 @@ from PIL import Image
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import inside
+from semvpr.data.images import Reading
 from semvpr.data.places import PlaceSet, read_dbstruct_mat, read_msls
 from semvpr.segmentation.pseudolabels import pseudo_labels
 from tests.helpers import (
@@ -75,7 +76,9 @@ def test_pseudo_labels_never_land_outside_the_cache(tmp_path: Path) -> None:
     before = files_under(tmp_path)
     climbing = root / "a" / ".." / ".." / ".." / "victim.png"
     with pytest.raises(SemvprError, match="would leave"):
-        pseudo_labels(CountingTeacher(), "t", [climbing], LABEL_SIZE, tmp_path / "cache", root, num_workers=0)
+        pseudo_labels(
+            CountingTeacher(teacher_key="t"), [climbing], Reading(LABEL_SIZE, 16, 0), tmp_path / "cache", root
+        )
     assert {p for p in files_under(tmp_path) - before if not p.is_relative_to(tmp_path / "cache")} == set()
 
 
@@ -101,7 +104,7 @@ def test_a_planted_partial_link_in_a_shared_cache_is_refused(tmp_path: Path) -> 
     cache.mkdir()
     os.symlink(victim, final.parent / f".{final.name}.partial")
     with pytest.raises(SemvprError, match=r"\.partial is not a plain directory"):
-        pseudo_labels(CountingTeacher(), "teacher-abc", paths, LABEL_SIZE, cache, tmp_path / "img", num_workers=0)
+        pseudo_labels(CountingTeacher(), paths, Reading(LABEL_SIZE, 16, 0), cache, tmp_path / "img")
     assert list(victim.iterdir()) == [] and not final.exists()
 
 

@@ -111,7 +111,7 @@ def test_run_saves_each_student_where_eval_reads_it_and_says_where(
 
     from semvpr.config.build import build_backbone
     from semvpr.models.student import load_student
-    from semvpr.models.teacher import read_teacher_record
+    from semvpr.models.teacher_folder import read_teacher_record
 
     run_dir, cfg = segment_run
     results = json.loads((run_dir / "results.json").read_text())

@@ -210,7 +210,7 @@ def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Pa
 
 
 def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: Path) -> None:
-    from semvpr.core.checkpoint import model_config, record_of
+    from semvpr.config.record import model_config, record_of
 
     record = record_of(tiny_config(tmp_path))
     record["config"]["teacher"]["checkpoint"] = "facebook/mask2former-swin-large-cityscapes-semantic"

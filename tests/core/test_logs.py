@@ -145,7 +145,7 @@ def test_saving_and_loading_a_teacher_print_no_transformers_progress_bar(
 ) -> None:
     from transformers.utils import logging as hf_logging
 
-    from semvpr.models.teacher import load_pretrained
+    from semvpr.models.teacher_folder import load_pretrained
     from tests.helpers import write_teacher_dir
 
     capfd.readouterr()

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from omegaconf import DictConfig, OmegaConf
 
+from semvpr.config.runs import keep_run_record, resumed_config
 from semvpr.core.errors import SemvprError
-from semvpr.core.resume import keep_run_record, resumed_config
 from tests.helpers import REPO, config, tiny_config
 
 

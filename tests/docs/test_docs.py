@@ -91,6 +91,31 @@ def test_imports_point_down_the_layers() -> None:
     assert not offenders, f"imports that climb a layer (move the shared code down): {offenders}"
 
 
+def test_no_module_below_config_reads_a_config() -> None:
+    """ARCHITECTURE §1: below ``semvpr.config`` code takes typed values; composing, reading or selecting in a
+    config (omegaconf, Hydra) is the config layer's and the commands' work. ``semvpr.data.inspect`` is a command
+    that lives beside its data (ARCHITECTURE §1's command table)."""
+    import ast
+
+    ranks = _layers()
+    below = {name for name, rank in ranks.items() if rank < ranks["semvpr.config"]}
+    offenders = {}
+    for path in REPO.glob("semvpr/**/*.py"):
+        module = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+        if _layer_of(module, ranks) not in below or module == "semvpr.data.inspect":
+            continue
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                found |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                found.add(node.module.split(".")[0])
+        if found & {"omegaconf", "hydra"}:
+            offenders[module] = sorted(found & {"omegaconf", "hydra"})
+    assert below >= {"semvpr.core", "semvpr.data", "semvpr.models", "semvpr.reporting"}, below
+    assert not offenders, f"modules below semvpr.config that read a config (move that work up): {offenders}"
+
+
 def test_the_top_of_the_package_holds_the_commands() -> None:
     """The top of semvpr/ holds the commands (and the hub), everything else lives in a role's folder."""
     top = sorted(p.stem for p in (REPO / "semvpr").glob("*.py") if p.stem != "__init__")

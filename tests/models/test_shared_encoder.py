@@ -29,6 +29,7 @@ from semvpr.models.masks import StudentMask, TeacherMask, pool_to_grid
 from semvpr.models.student import StudentSpec, student_architecture
 from semvpr.models.teacher import Teacher, embedded_teacher
 from semvpr.retrieval.features import MaskPass, StoreSettings, grid_size, place_features
+from semvpr.segmentation.pseudolabels import LabelledImages
 from semvpr.segmentation.training import build_student
 from tests.helpers import tiny_config
 
@@ -101,7 +102,7 @@ def test_the_teacher_on_the_trunk_equals_its_own_encoder_within_rounding(cache: 
         outs = trunk.forward_frozen(images.contiguous(memory_format=torch.channels_last))
         own_scores = teacher.semantic_scores(images)
         with autocast("cpu", enabled=teacher.bf16):
-            own_maps = teacher.model.model.pixel_level_module.encoder(teacher._pixels(images)).feature_maps
+            own_maps = teacher.model.model.pixel_level_module.encoder(teacher.pixels(images)).feature_maps
         # The decoder path is Mask2Former's own: the encoder's maps handed over give its scores bit for bit.
         assert torch.equal(teacher.trunk_scores([None, *own_maps[:3]], size), own_scores)
         for own, shared in zip(own_maps[:3], [outs[i] for i in teacher.trunk_levels]):
@@ -174,8 +175,9 @@ def test_the_student_reads_its_skips_from_the_trunk_cache_bit_for_bit(cache: Pat
         Image.fromarray(rng.choice([0, 2, 8, 10, 13], (64, 80)).astype(np.uint8)).save(out)
     spec = StudentSpec(width=8, epochs=2, batch_size=8, num_workers=0, max_images=30, bf16=True)
     frozen = _stores(cfg, tmp_path / "c1", places, trunk, levels=(1, 2))
-    shared = build_student(spec, trunk, paths, labels, places.root, (64, 80), tmp_path / "c1", trunk_outputs(frozen))
-    own = build_student(spec, trunk, paths, labels, places.root, (64, 80), tmp_path / "c2")
+    labelled = LabelledImages(paths, labels, places.root)
+    shared = build_student(spec, trunk, labelled, (64, 80), tmp_path / "c1", trunk_outputs(frozen))
+    own = build_student(spec, trunk, labelled, (64, 80), tmp_path / "c2")
     for name, value in own.state_dict().items():
         assert torch.equal(shared.state_dict()[name], value), name
 

@@ -14,6 +14,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import Student, StudentSpec
 from semvpr.segmentation import training as student_mod
+from semvpr.segmentation.pseudolabels import LabelledImages
 from semvpr.segmentation.training import build_student
 from tests.helpers import REPO
 
@@ -96,7 +97,11 @@ def test_short_fit_beats_chance_and_is_cached(
     paths, maps = toy_set(tmp_path / "img", 24, seed=0)
     labels = write_labels(tmp_path / "labels-abc", paths, maps)
     student = build_student(
-        StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+        StudentSpec.from_mapping(tiny_cfg()),
+        backbone,
+        LabelledImages(paths, labels, tmp_path / "img"),
+        SIZE,
+        tmp_path / "cache",
     )
     assert not student.training
 
@@ -117,7 +122,11 @@ def test_short_fit_beats_chance_and_is_cached(
 
     monkeypatch.setattr(student_mod, "fit_student", lambda *a: pytest.fail("trained twice"))
     again = build_student(
-        StudentSpec.from_mapping(tiny_cfg()), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+        StudentSpec.from_mapping(tiny_cfg()),
+        backbone,
+        LabelledImages(paths, labels, tmp_path / "img"),
+        SIZE,
+        tmp_path / "cache",
     )
     for a, b in zip(student.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
@@ -198,7 +207,7 @@ def test_a_flipping_student_caches_its_mirror_images_features(backbone: VGG16Bac
 
     paths, maps = toy_set(tmp_path / "img", 6, seed=0)
     indices = [0, 1]
-    got = cache_skips(backbone, indices, paths, SIZE, batch_size=4, num_workers=0, bf16=False, mirror=True)
+    got = cache_skips(backbone, indices, paths, SIZE, StudentSpec(batch_size=4, num_workers=0, bf16=False), mirror=True)
     images = torch.stack([load_image(p, SIZE) for p in paths]).flip(-1)
     with torch.no_grad():
         expected = backbone.forward_frozen(images)
@@ -209,7 +218,7 @@ def test_a_flipping_student_caches_its_mirror_images_features(backbone: VGG16Bac
     cfg = tiny_cfg()
     cfg.update(epochs=1)
     build = lambda c: build_student(  # noqa: E731
-        StudentSpec.from_mapping(c), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+        StudentSpec.from_mapping(c), backbone, LabelledImages(paths, labels, tmp_path / "img"), SIZE, tmp_path / "cache"
     )
     build(cfg)
     cfg.update(flip=True)
@@ -232,7 +241,11 @@ def test_a_student_trained_at_another_thread_count_is_another_cache_entry(
         for threads in (1, 2, 1):
             torch.set_num_threads(threads)
             student = build_student(
-                StudentSpec.from_mapping(cfg), backbone, paths, labels, tmp_path / "img", SIZE, tmp_path / "cache"
+                StudentSpec.from_mapping(cfg),
+                backbone,
+                LabelledImages(paths, labels, tmp_path / "img"),
+                SIZE,
+                tmp_path / "cache",
             )
             keys.append(student.artifact.name)
     finally:

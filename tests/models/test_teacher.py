@@ -16,9 +16,11 @@ from semvpr.core.cache import LOCK_DIR
 from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, train_ids_to_label_ids
 from semvpr.data.segmentation import read_cityscapes
-from semvpr.models import teacher as teacher_mod
-from semvpr.models.teacher import Teacher, TeacherSpec, embedded_model, targets_from_train_ids
+from semvpr.models import teacher_folder
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_model
+from semvpr.segmentation import teacher_training
 from semvpr.segmentation import training as training_mod
+from semvpr.segmentation.teacher_training import TeacherFit, targets_from_train_ids
 from semvpr.segmentation.training import build_teacher
 from tests.helpers import REPO
 
@@ -89,7 +91,7 @@ def test_loss_decreases_on_a_fixed_batch() -> None:
     opt = torch.optim.AdamW(teacher.parameters(), lr=1e-2)
     losses = []
     for _ in range(10):
-        loss = teacher.model(pixel_values=teacher._pixels(images), mask_labels=masks, class_labels=classes).loss
+        loss = teacher.model(pixel_values=teacher.pixels(images), mask_labels=masks, class_labels=classes).loss
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -179,7 +181,7 @@ def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytes
         p.name.startswith(".") and p.name != LOCK_DIR for p in (tmp_path / "cache").iterdir()
     )  # no temp dirs left
 
-    monkeypatch.setattr(training_mod, "_train", lambda *a: pytest.fail("trained twice"))
+    monkeypatch.setattr(training_mod, "train_teacher", lambda *a: pytest.fail("trained twice"))
     second = build_teacher(tiny_spec(), train, val, tmp_path / "cache")
     assert second.teacher_key == first.teacher_key
     images = batch(2, seed=5)[0]
@@ -216,11 +218,11 @@ def test_training_the_teacher_refuses_a_transformers_without_the_original_init(
 ) -> None:
     write_cityscapes(tmp_path / "cs")
     train, val = read_cityscapes(tmp_path / "cs", "train"), read_cityscapes(tmp_path / "cs", "val")
-    monkeypatch.setattr(teacher_mod, "transformers_version", lambda: "5.17.0")
+    monkeypatch.setattr(teacher_training, "transformers_version", lambda: "5.17.0")
     with pytest.raises(SemvprError, match=r"^transformers 5\.17\.0 starts .* install transformers>=5\.23"):
         build_teacher(tiny_spec(), train, val, tmp_path / "cache")
     assert not list((tmp_path / "cache").glob("teacher-*"))  # nothing trained, nothing cached
-    monkeypatch.setattr(teacher_mod, "transformers_version", lambda: "5.23.0")
+    monkeypatch.setattr(teacher_training, "transformers_version", lambda: "5.23.0")
     assert build_teacher(tiny_spec(), train, val, tmp_path / "cache").teacher_key.startswith("teacher-")
 
 
@@ -240,7 +242,7 @@ def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_pa
     backbone = EfficientNetLite0Backbone(weights="imagenet").eval()
     with torch.no_grad():
         ours = backbone(images)[1:4]
-        theirs = teacher.model.model.pixel_level_module.encoder(teacher._pixels(images)).feature_maps[:3]
+        theirs = teacher.model.model.pixel_level_module.encoder(teacher.pixels(images)).feature_maps[:3]
     for a, b in zip(ours, theirs):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
     # Hugging Face format, loaded offline without remote code: the same predictions.
@@ -258,9 +260,9 @@ def test_the_embedded_teacher_sees_images_at_the_size_it_trains_at() -> None:
     teacher = embedded_teacher(tiny_spec()).eval()
     assert teacher.inference_size == (32, 48)
     large = torch.rand(1, 3, 64, 96)
-    assert teacher._pixels(large).shape[-2:] == (32, 48)
-    expected = teacher._pixels(torch.nn.functional.interpolate(large, size=(32, 48), mode="bilinear"))
-    torch.testing.assert_close(teacher._pixels(large), expected)  # resize and normalisation commute
+    assert teacher.pixels(large).shape[-2:] == (32, 48)
+    expected = teacher.pixels(torch.nn.functional.interpolate(large, size=(32, 48), mode="bilinear"))
+    torch.testing.assert_close(teacher.pixels(large), expected)  # resize and normalisation commute
     assert teacher.class_prob(large).shape == (1, 19, 64, 96)
     assert embedded_teacher(tiny_spec(inference_size=[16, 24])).inference_size == (16, 24)
 
@@ -268,9 +270,11 @@ def test_the_embedded_teacher_sees_images_at_the_size_it_trains_at() -> None:
 def test_backbone_learns_at_its_lr_factor() -> None:
     from semvpr.models.teacher import embedded_teacher
 
-    teacher = embedded_teacher(tiny_spec(train={"backbone_lr_factor": 0.1}))
-    teacher.trainer = type("T", (), {"estimated_stepping_batches": 100})()
-    opt = teacher.configure_optimizers()["optimizer"]
+    spec = tiny_spec(train={"backbone_lr_factor": 0.1})
+    teacher = embedded_teacher(spec)
+    fit = TeacherFit(teacher, spec.train)
+    fit.trainer = type("T", (), {"estimated_stepping_batches": 100})()
+    opt = fit.configure_optimizers()["optimizer"]
     encoder = {id(p) for p in teacher.model.model.pixel_level_module.encoder.parameters()}
     rest, backbone = opt.param_groups
     assert {id(p) for p in backbone["params"]} == encoder and not encoder & {id(p) for p in rest["params"]}
@@ -278,17 +282,19 @@ def test_backbone_learns_at_its_lr_factor() -> None:
 
 
 def test_backbone_lr_factor_zero_freezes_the_backbone() -> None:
-    from semvpr.models.teacher import embedded_teacher, targets_from_train_ids
+    from semvpr.models.teacher import embedded_teacher
 
     torch.manual_seed(0)
-    teacher = embedded_teacher(tiny_spec(train={"backbone_lr_factor": 0.0}))
-    teacher.trainer = type("T", (), {"estimated_stepping_batches": 100})()
-    (group,) = teacher.configure_optimizers()["optimizer"].param_groups
+    spec = tiny_spec(train={"backbone_lr_factor": 0.0})
+    teacher = embedded_teacher(spec)
+    fit = TeacherFit(teacher, spec.train)
+    fit.trainer = type("T", (), {"estimated_stepping_batches": 100})()
+    (group,) = fit.configure_optimizers()["optimizer"].param_groups
     encoder = teacher.model.model.pixel_level_module.encoder
     assert not {id(p) for p in encoder.parameters()} & {id(p) for p in group["params"]}
     images, ids = torch.rand(2, 3, 32, 48), torch.randint(0, 19, (2, 32, 48))
     masks, classes = targets_from_train_ids(ids, teacher.train_to_model)
-    teacher.model(pixel_values=teacher._pixels(images), mask_labels=masks, class_labels=classes).loss.backward()
+    teacher.model(pixel_values=teacher.pixels(images), mask_labels=masks, class_labels=classes).loss.backward()
     assert all(p.grad is None for p in encoder.parameters())
     assert any(p.grad is not None for p in teacher.model.parameters())
 
@@ -336,7 +342,7 @@ def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, 
     sentinel = tmp_path / "ran.txt"
     (folder / "evil.py").write_text(CUSTOM_CODE.format(sentinel=str(sentinel)))
     _edit_json(folder / file, **changes)
-    code = f"from semvpr.models.teacher import load_pretrained\nload_pretrained({str(folder)!r})\n"
+    code = f"from semvpr.models.teacher_folder import load_pretrained\nload_pretrained({str(folder)!r})\n"
     proc = subprocess.run(
         [sys.executable, "-c", code],
         input="y\ny\n",
@@ -367,11 +373,11 @@ def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
         ("big", "preprocessor_config.json is not a regular file"),
     ):
         with pytest.raises(SemvprError, match=message) as err:
-            teacher_mod.load_pretrained(str(tmp_path / name))
+            teacher_folder.load_pretrained(str(tmp_path / name))
         assert "\n" not in str(err.value)
     (tmp_path / "fifo").mkdir()
     os.mkfifo(tmp_path / "fifo" / "config.json")
-    code = f"from semvpr.models.teacher import load_pretrained\nload_pretrained({str(tmp_path / 'fifo')!r})\n"
+    code = f"from semvpr.models.teacher_folder import load_pretrained\nload_pretrained({str(tmp_path / 'fifo')!r})\n"
     proc = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
         cwd=REPO, env={**os.environ, "HF_HUB_OFFLINE": "1"},
@@ -392,7 +398,7 @@ def test_a_processor_normalisation_is_used_or_refused(tmp_path: Path, changes: d
     folder = _saved_teacher(tmp_path / "ckpt")
     _edit_json(folder / "preprocessor_config.json", **changes)
     with pytest.raises(SemvprError, match=message):
-        teacher_mod.load_pretrained(str(folder))
+        teacher_folder.load_pretrained(str(folder))
     _edit_json(
         folder / "preprocessor_config.json",
         rescale_factor=1 / 255,
@@ -400,7 +406,7 @@ def test_a_processor_normalisation_is_used_or_refused(tmp_path: Path, changes: d
         image_std=[0.25] * 3,
         do_normalize=False,
     )
-    teacher = teacher_mod.load_pretrained(str(folder))
+    teacher = teacher_folder.load_pretrained(str(folder))
     assert teacher.mean.flatten().tolist() == [0.0] * 3 and teacher.std.flatten().tolist() == [1.0] * 3
 
 
@@ -415,7 +421,7 @@ def test_pickled_teacher_weights_are_refused(tmp_path: Path) -> None:
 
     torch.save({"x": Evil()}, folder / "pytorch_model.bin")
     with pytest.raises(SemvprError, match="pytorch_model.bin are unreadable"):
-        teacher_mod.load_pretrained(str(folder))
+        teacher_folder.load_pretrained(str(folder))
     assert not sentinel.exists()
 
 

@@ -2,13 +2,29 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.features import FeatureStore
-from semvpr.retrieval.mining import QueryBatches, TupleDataset, collate_tuples, mine
+from semvpr.retrieval.mining import Mining, QueryBatches, TupleDataset, collate_tuples
+
+
+def mine(
+    db: np.ndarray,
+    q: np.ndarray,
+    db_utm: np.ndarray,
+    q_utm: np.ndarray,
+    query_ids: np.ndarray,
+    rng: np.random.Generator,
+    neg_cache: np.ndarray | None = None,
+    **rules: float,
+) -> list:
+    """``Mining(**rules).mine`` on descriptors and positions given apart."""
+    return Mining(**rules).mine(db, q, SimpleNamespace(db_utm=db_utm, q_utm=q_utm), query_ids, rng, neg_cache)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ from PIL import Image
 from semvpr.core.errors import SemvprError
 from semvpr.data.images import ImageDataset
 from semvpr.data.segmentation import SegmentationSet, read_cityscapes
+from semvpr.models.teacher import TeacherTraining
 from semvpr.segmentation.datamodule import (
     SegmentationDataModule,
     SegmentationDataset,
@@ -118,7 +119,8 @@ def test_geometric_augmentation_exact_alignment() -> None:
 
 def test_datamodule_batches_and_split(tmp_path: Path) -> None:
     seg = read_cityscapes(make_cityscapes(tmp_path, 5), "train")
-    dm = SegmentationDataModule(seg, image_size=(16, 32), batch_size=2, num_workers=0, val_fraction=0.2)
+    settings = TeacherTraining(batch_size=2, num_workers=0, augment=True)
+    dm = SegmentationDataModule(seg, None, (16, 32), settings, val_fraction=0.2)
     assert len(dm.train_ds) == 4 and len(dm.val_ds) == 1
     assert not set(dm.train_set.images) & set(dm.val_set.images)
     image, ids = next(iter(dm.train_dataloader()))
@@ -126,20 +128,20 @@ def test_datamodule_batches_and_split(tmp_path: Path) -> None:
     image, ids = next(iter(dm.val_dataloader()))
     assert image.shape == (1, 3, 16, 32)
     # The split is deterministic for a seed.
-    again = SegmentationDataModule(seg, image_size=(16, 32), num_workers=0, val_fraction=0.2)
+    again = SegmentationDataModule(seg, None, (16, 32), TeacherTraining(num_workers=0), val_fraction=0.2)
     assert again.val_set == dm.val_set
-    explicit = SegmentationDataModule(seg, seg, image_size=(16, 32), num_workers=0)
+    explicit = SegmentationDataModule(seg, seg, (16, 32), TeacherTraining(num_workers=0))
     assert len(explicit.train_ds) == len(explicit.val_ds) == 5
 
 
 def test_empty_inputs_raise(tmp_path: Path) -> None:
     empty = SegmentationSet((), ())
     with pytest.raises(SemvprError, match="empty"):
-        SegmentationDataModule(empty, num_workers=0)
+        SegmentationDataModule(empty, None, (8, 8), TeacherTraining(num_workers=0))
     with pytest.raises(SemvprError, match="empty"):
         SegmentationDataset(empty, (8, 8))
     one = read_cityscapes(make_cityscapes(tmp_path, 1), "train")
     with pytest.raises(SemvprError, match="cannot split 1"):
         split_set(one, 0.1)
     with pytest.raises(SemvprError, match="validation set is empty"):
-        SegmentationDataModule(one, empty, num_workers=0)
+        SegmentationDataModule(one, empty, (8, 8), TeacherTraining(num_workers=0))

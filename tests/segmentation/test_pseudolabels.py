@@ -10,6 +10,7 @@ from PIL import Image
 
 from semvpr.core.cache import artifact_dir
 from semvpr.core.errors import SemvprError
+from semvpr.data.images import Reading
 from semvpr.segmentation.pseudolabels import label_path, pseudo_labels
 from tests.helpers import LABEL_SIZE, REALDATA, CountingTeacher, labels_key, make_images
 
@@ -20,7 +21,7 @@ def test_labels_every_image_once(tmp_path: Path) -> None:
     paths = make_images(tmp_path / "img")
     teacher = CountingTeacher()
     root = tmp_path / "img"
-    out = pseudo_labels(teacher, "teacher-abc", paths, SIZE, tmp_path / "cache", root, batch_size=4, num_workers=0)
+    out = pseudo_labels(teacher, paths, Reading(SIZE, 4, 0), tmp_path / "cache", root)
     assert teacher.seen == len(paths)
     assert sorted(p.name for p in out.glob("*.png")) == sorted(f"{p.name}.png" for p in paths)
     assert not list(out.glob(".*"))  # no temp files left behind
@@ -29,24 +30,26 @@ def test_labels_every_image_once(tmp_path: Path) -> None:
     assert (first[:, :10] == 13).all() and (first[:, 12:] == 0).all()  # 20 of 40 columns bright → 10 of 20
 
     again = CountingTeacher()
-    assert pseudo_labels(again, "teacher-abc", paths, SIZE, tmp_path / "cache", root, num_workers=0) == out
+    assert pseudo_labels(again, paths, Reading(SIZE, 16, 0), tmp_path / "cache", root) == out
     assert again.seen == 0
-    other = pseudo_labels(CountingTeacher(), "teacher-xyz", paths, SIZE, tmp_path / "cache", root, num_workers=0)
+    other = pseudo_labels(
+        CountingTeacher(teacher_key="teacher-xyz"), paths, Reading(SIZE, 16, 0), tmp_path / "cache", root
+    )
     assert other != out  # a different teacher gets its own labels
 
 
 def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
     paths = make_images(tmp_path / "img")
-    key_args = ("teacher-abc", paths, SIZE, tmp_path / "cache", tmp_path / "img")
+    key_args = (paths, Reading(SIZE, 2, 0), tmp_path / "cache", tmp_path / "img")
     with pytest.raises(KeyboardInterrupt):
-        pseudo_labels(CountingTeacher(fail_after=4), *key_args, batch_size=2, num_workers=0)
+        pseudo_labels(CountingTeacher(fail_after=4), *key_args)
     final = artifact_dir(tmp_path / "cache", "labels", labels_key(paths, tmp_path / "img"))
     assert not final.exists()  # a partial run never counts as complete
     partial = [d for d in (tmp_path / "cache").iterdir() if d.name.endswith(".partial")]
     assert len(partial) == 1 and len(list(partial[0].glob("*.png"))) == 4
 
     resumed = CountingTeacher()
-    out = pseudo_labels(resumed, *key_args, batch_size=2, num_workers=0)
+    out = pseudo_labels(resumed, *key_args)
     assert out == final and resumed.seen == len(paths) - 4
     assert len(list(out.glob("*.png"))) == len(paths)
     assert not partial[0].exists()
@@ -75,15 +78,15 @@ def test_same_stem_in_database_and_queries_gets_two_labels(tmp_path: Path) -> No
     root = tmp_path / "pitts30k"
     paths = _write_named(root, [n for pair in PITTS_PAIRS for n in pair])
     assert len({p.stem for p in paths}) == len(paths) // 2  # the stems do collide
-    teacher = CountingTeacher()
-    out = pseudo_labels(teacher, "t", paths, SIZE, tmp_path / "cache", root, num_workers=0)
+    teacher = CountingTeacher(teacher_key="t")
+    out = pseudo_labels(teacher, paths, Reading(SIZE, 16, 0), tmp_path / "cache", root)
     assert teacher.seen == len(paths)
     for db, q in PITTS_PAIRS:
         db_label, q_label = label_path(out, root / db, root), label_path(out, root / q, root)
         assert db_label != q_label
         assert (np.asarray(Image.open(db_label)) == 0).all() and (np.asarray(Image.open(q_label)) == 13).all()
     with pytest.raises(SemvprError, match="not under the dataset root"):
-        pseudo_labels(CountingTeacher(), "t", paths, SIZE, tmp_path / "cache", root / "003", num_workers=0)
+        pseudo_labels(CountingTeacher(teacher_key="t"), paths, Reading(SIZE, 16, 0), tmp_path / "cache", root / "003")
 
 
 @pytest.mark.skipif(not (REALDATA / "pitts30k_test_qImages.npy").is_file(), reason="../shared/realdata absent")
@@ -98,7 +101,9 @@ def test_a_corrupt_cached_label_is_one_line_naming_it(tmp_path: Path) -> None:
     from semvpr.segmentation.pseudolabels import read_label
 
     paths = make_images(tmp_path / "img", n=2)
-    out = pseudo_labels(CountingTeacher(), "t", paths, SIZE, tmp_path / "cache", tmp_path / "img", num_workers=0)
+    out = pseudo_labels(
+        CountingTeacher(teacher_key="t"), paths, Reading(SIZE, 16, 0), tmp_path / "cache", tmp_path / "img"
+    )
     assert read_label(out, paths[0], tmp_path / "img").shape == SIZE
     label_path(out, paths[0], tmp_path / "img").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     with pytest.raises(SemvprError, match=r"pseudo-label .*@000@img@\.png\.png is unreadable.*delete"):
@@ -126,7 +131,7 @@ def test_a_planted_partial_directory_is_checked_before_its_labels_are_kept(tmp_p
         else:
             Image.fromarray(np.zeros((1, 1), np.uint8)).save(target)  # the wrong size
     teacher = CountingTeacher()
-    out = pseudo_labels(teacher, "teacher-abc", paths, SIZE, tmp_path / "cache", root, batch_size=4, num_workers=0)
+    out = pseudo_labels(teacher, paths, Reading(SIZE, 4, 0), tmp_path / "cache", root)
     assert out == final and teacher.seen == len(paths) - 1
     for path in paths:
         label = label_path(out, path, root)
