@@ -13,9 +13,11 @@ were trained on. Writes ``results.json``, ``figure_masks.png`` and CSV / TensorB
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,9 +42,9 @@ from semvpr.data.images import Reading, load_image
 from semvpr.data.places import common_root
 from semvpr.data.segmentation import SegmentationSet, load_train_ids
 from semvpr.models.backbones import Backbone
-from semvpr.models.student import Student, StudentSpec, save_student
+from semvpr.models.student import Student, StudentSpec, load_student, save_student
 from semvpr.models.teacher import Teacher
-from semvpr.models.teacher_folder import write_teacher_record
+from semvpr.models.teacher_folder import teacher_architecture, write_teacher_record
 from semvpr.segmentation.confusion import binary_pred
 from semvpr.segmentation.pseudolabels import LabelledImages
 from semvpr.segmentation.scoring import score_student, score_teacher, student_prob, teacher_outputs
@@ -75,6 +77,21 @@ def save_teacher(teacher: Any, out: Path, image_size: list[int], trained_on: Tra
             do_reduce_labels=False,
         ).save_pretrained(tmp)
         write_teacher_record(tmp, image_size, trained_on)
+
+
+def saved_mask_source(
+    folder: Path, cfg: DictConfig, backbone: Backbone
+) -> Callable[[torch.Tensor, list[int]], torch.Tensor]:
+    """``static probability (B,1,H,W) at size`` of images, from a directory this command saved: a teacher (a
+    folder with config.json) from the images, or a student on ``backbone``'s frozen outputs (bf16 autocast),
+    as the run scored them."""
+    static = list(cfg.teacher.static_classes)
+    if (folder / "config.json").is_file():  # a teacher directory (a student's is student.json + weights)
+        spec = dataclasses.replace(teacher_spec(cfg), checkpoint=str(folder.resolve()))
+        teacher = teacher_architecture(spec).eval()
+        return lambda images, size: teacher_outputs(teacher, images, size, static)[1]
+    student = load_student(folder, backbone)
+    return lambda images, size: student_prob(student, backbone, images, size, bf16=True)
 
 
 def replay_log(csv_path: Path, loggers: list[Any], prefix: str) -> None:

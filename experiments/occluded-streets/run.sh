@@ -32,10 +32,13 @@ masks=()
 if [ -n "${CAMVID_STUDENT:-}" ]; then masks+=("student mask=student student.checkpoint=$(realpath "$CAMVID_STUDENT")"); fi
 if [ -n "${CAMVID_TEACHER:-}" ]; then masks+=("teacher mask=teacher teacher.checkpoint=$(realpath "$CAMVID_TEACHER")"); fi
 
-evaluate() {  # evaluate PAIR NAME OVERRIDES...: one evaluation sweep of a pair, skipped when its table exists
+FAILED='"status": "failed"'  # what eval.json says of a job that failed (a sweep goes on past it)
+# evaluate PAIR NAME OVERRIDES...: one evaluation sweep of a pair, skipped when its table exists and no job failed
+evaluate() {
   local db=${1%%:*} q=${1##*:} name=$2; shift 2
   local dir="$OUT/eval/${db}-${q}/$name"
-  [ -f "$dir/results.md" ] || python -m semvpr.eval -m data=gardens_point data.root="$GARDENS" data.database="$db" \
+  if [ -f "$dir/results.md" ] && ! grep -qs "$FAILED" "$dir"/*/eval.json; then return; fi
+  python -m semvpr.eval -m data=gardens_point data.root="$GARDENS" data.database="$db" \
     data.queries="$q" paths.cache_dir="$CACHE" threads=1 "${EXTRA[@]}" "$@" hydra.sweep.dir="$dir"
 }
 occluders=(data.occluders.source=camvid data.occluders.root="$CAMVID" data.occluders.coverage="$COVERAGES"
@@ -65,4 +68,17 @@ for pair in $PAIRS; do
     evaluate "$pair" "m$m-holes-oracle" "${model[@]}" mask=oracle "${occluders[@]}" data.occluders.paste=false
   done
 done
+failed=$(grep -ls "$FAILED" "$OUT"/eval/*/*/*/eval.json || true)
+if [ -n "$failed" ]; then  # each job's error is in its eval.json; a rerun redoes their sweeps only
+  echo "run.sh: these evaluations failed (their eval.json says why; rerun run.sh once that is fixed):" >&2
+  echo "$failed" >&2
+  exit 1
+fi
 echo "done: python experiments/occluded-streets/summarize.py $OUT"
+sources=()
+if [ -n "${CAMVID_STUDENT:-}" ]; then sources+=(--source "student=$(realpath "$CAMVID_STUDENT")"); fi
+if [ -n "${CAMVID_TEACHER:-}" ]; then sources+=(--source "teacher=$(realpath "$CAMVID_TEACHER")"); fi
+if [ ${#sources[@]} -gt 0 ]; then
+  echo "masks against the pasted pixels: python experiments/occluded-streets/mask_iou.py $OUT ${sources[*]}" \
+    "--camvid $CAMVID --cache $CACHE"
+fi

@@ -208,8 +208,10 @@ def released_retriever(cfg: DictConfig, explicit: set[str], release: Release) ->
 
 def replace_mask(cfg: DictConfig, explicit: set[str], merged: DictConfig, where: str) -> DictConfig | None:
     """``merged`` with the invocation's mask source in place of the checkpoint's, or None when the
-    invocation keeps the checkpoint's. The learned class weights stay the checkpoint's (``mask.weights``);
-    a checkpoint trained without a mask takes a binary one. The directories come from the invocation only."""
+    invocation keeps the checkpoint's: a saved segmenter, the ground truth (``mask=oracle``, no weights; the
+    evaluated set's label maps, refused where there are none) or none. The learned class weights stay the
+    checkpoint's (``mask.weights``); a checkpoint trained without a mask takes a binary one. The directories
+    come from the invocation only."""
     given = {group: cfg[group].get("checkpoint") for group in SEGMENTER_GROUPS}
     if "mask" not in explicit:
         for group, value in given.items():
@@ -225,10 +227,10 @@ def replace_mask(cfg: DictConfig, explicit: set[str], merged: DictConfig, where:
         needs not in given or not given[needs] or given[needs] == merged[needs].get("checkpoint")
     ):
         return None  # the checkpoint's own
-    if cls is not None and needs not in SEGMENTER_GROUPS:
+    if cls is not None and needs not in (*SEGMENTER_GROUPS, "ground_truth"):
         raise SemvprError(
             f"mask={cfg.mask.name} cannot replace the mask source of {where}: only mask=teacher "
-            "teacher.checkpoint=DIR, mask=student student.checkpoint=DIR or mask=none can"
+            "teacher.checkpoint=DIR, mask=student student.checkpoint=DIR, mask=oracle or mask=none can"
         )
     if needs in SEGMENTER_GROUPS and not given[needs]:
         raise SemvprError(

@@ -46,6 +46,37 @@ def pool_to_grid(static_prob: Tensor, grid_hw: tuple[int, int], threshold: float
     return (pooled >= threshold).float()
 
 
+def _windows(size: int, cells: int) -> tuple[Tensor, Tensor]:
+    """Start and end of each of ``cells`` adaptive-pooling windows over ``size`` (``F.adaptive_avg_pool2d``'s:
+    floor(i·size/cells) to ceil((i+1)·size/cells); neighbouring windows overlap where ``cells`` does not divide
+    ``size``)."""
+    i = torch.arange(cells)
+    return (i * size) // cells, ((i + 1) * size + cells - 1) // cells
+
+
+def class_shares(labels: Tensor, grid_hw: tuple[int, int]) -> Tensor:
+    """The share of each class's pixels in each grid cell, (B,C,h,w) float32, from (B,H,W) class ids (any id
+    of ``NUM_CLASSES`` or above belongs to no class): the one-hot class maps area-pooled to the grid, without
+    them. Per column window, the class counts of every row (a bincount), summed over each row window by a
+    cumulative sum; a cell's share is its count over its window's pixels."""
+    batch, height, width = labels.shape
+    ids = labels.long().clamp(max=NUM_CLASSES)
+    rows, cols = ([w.to(ids.device) for w in _windows(n, cells)] for n, cells in zip((height, width), grid_hw))
+    where = (torch.arange(batch, device=ids.device)[:, None] * height + torch.arange(height, device=ids.device))[
+        ..., None
+    ] * (NUM_CLASSES + 1)  # (B,H,1): the first count of each image's row
+    shares = []
+    for start, end in zip(cols[0].tolist(), cols[1].tolist()):
+        counts = torch.bincount(
+            (where + ids[:, :, start:end]).reshape(-1), minlength=batch * height * (NUM_CLASSES + 1)
+        )
+        running = F.pad(counts.view(batch, height, NUM_CLASSES + 1).cumsum(1), (0, 0, 1, 0))  # (B,H+1,C+1)
+        cell = running[:, rows[1]] - running[:, rows[0]]  # (B,h,C+1): the counts of each row window
+        area = ((rows[1] - rows[0]) * (end - start))[None, :, None]
+        shares.append(cell[..., :NUM_CLASSES].float() / area.float())
+    return torch.stack(shares, -1).permute(0, 2, 1, 3).contiguous()
+
+
 #: What a mask source is built from: the teacher, the student (each built or loaded first, then given to
 #: its constructor as ``teacher=`` / ``student=``), or the place set's ground-truth label maps.
 Needs = Literal["teacher", "student", "ground_truth"]
@@ -243,13 +274,16 @@ class OracleMask(MaskSource):
         weighting: str = "binary",
         out_hw: Sequence[int] | None = None,
     ) -> Tensor:
-        """The binary mask straight from the labels through the static table (the one-hot classes' weighted sum,
-        without a (B,C,H,W) tensor: label maps of real frames are large); learned weighting as every source."""
-        if weighting != "binary":
-            return super().grid_mask(images, skips, label_paths, grid_hw, weighting, out_hw)
-        labels = self._labels(label_paths).clamp(max=NUM_CLASSES)
+        """Straight from the labels, without a (B,C,H,W) one-hot tensor (label maps of real frames are large):
+        binary, the static table gathered by label (the one-hot classes' weighted sum) and pooled; learned,
+        each grid cell's class shares counted from its labels (the one-hot classes area-pooled)."""
+        if weighting not in WEIGHTINGS:
+            raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+        labels = self._labels(label_paths).clamp(max=NUM_CLASSES).to(self.static_weight.device)
+        if weighting == "learned":
+            return class_shares(labels, grid_hw)
         table = torch.cat([self.static_weight.float(), self.static_weight.new_zeros(1).float()])  # ignore → 0
-        return pool_to_grid(table[labels.to(table.device)][:, None], grid_hw)
+        return pool_to_grid(table[labels][:, None], grid_hw)
 
     def _labels(self, label_paths: Sequence[Path] | None) -> Tensor:
         """(B,H,W) class ids of the label maps."""

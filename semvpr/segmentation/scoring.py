@@ -6,9 +6,10 @@ size (CamVid 360x480) before scoring, so a lower input resolution is paid for in
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -121,3 +122,19 @@ def score_student(
             prob = student_prob(student, backbone, images[pos], size, bf16)
             conf.update(binary_pred(prob[:, 0]), torch.stack([labels[i] for i in pos]))
     return mask_scores(conf.counts, static_names)
+
+
+def frame_counts(
+    predict: Callable[[Tensor, list[int]], Tensor], frames: SegmentationSet, size: Sequence[int]
+) -> np.ndarray:
+    """(frames, 19, 3) confusion counts of a binary mask, frame by frame: ``predict(images, label size)`` gives
+    the static probability (B,1,H,W) of images read at ``size``, scored at each label's own size."""
+    counts: dict[int, np.ndarray] = {}
+    for images, labels, index in loader(frames, Reading(size, batch_size=8, num_workers=0)):
+        for label_size, pos in by_size(labels).items():  # one group where the labels share a size (CamVid)
+            prob = predict(images[pos], list(label_size))
+            for row, i in enumerate(pos):
+                confusion = Confusion(2)
+                confusion.update(binary_pred(prob[row : row + 1, 0]), labels[i][None])
+                counts[index[i]] = confusion.counts
+    return np.stack([counts[i] for i in range(len(frames))])

@@ -185,10 +185,25 @@ def test_mask_none_drops_the_mask_and_the_class_weights(world: dict[str, Path], 
         assert torch.equal(retriever.aggregator.state_dict()[name], value), name
 
 
+def test_the_oracle_replaces_the_mask_and_keeps_learned_class_weights(world: dict[str, Path], tmp_path: Path) -> None:
+    """mask=oracle in place of a checkpoint's student (on a set with label maps: SynthCity's, data.occluders'):
+    no segmenter weights, the checkpoint's aggregator and class weights; on a set without label maps the first
+    pass says what it needs in one line."""
+    from semvpr.models.masks import OracleMask
+
+    retriever, merged = load(world, "learned", tmp_path / "cache", "mask=oracle")
+    assert isinstance(retriever.mask_source, OracleMask) and merged.mask.weights == "learned"
+    assert not any(merged[group].checkpoint for group in ("student", "teacher"))
+    torch.testing.assert_close(retriever.class_weights.theta.detach(), torch.linspace(-3.0, 3.0, 19))
+    for name, value in checkpoint_state(world["learned"], "aggregator.").items():
+        assert torch.equal(retriever.aggregator.state_dict()[name], value), name
+    proc = cli(tmp_path, f"ckpt={world['unet']}", *frames_args(world), "mask=oracle")
+    assert proc.returncode != 0 and "mask=oracle needs ground-truth label maps" in proc.stderr.strip().splitlines()[-1]
+
+
 @pytest.mark.parametrize(
     ("ckpt", "overrides", "fragment"),
     [
-        ("unet", ["mask=oracle"], "mask=oracle cannot replace the mask source"),
         ("unet", ["mask=teacher"], "add teacher.checkpoint=DIR"),
         ("plain", ["student.checkpoint=DIR"], "student.checkpoint=DIR is not read unless .* add mask=student"),
         ("plain", ["mask=student", "student.checkpoint=DIR", "mask.weights=learned"], "no learned class weights"),

@@ -16,7 +16,20 @@ import pytest
 from PIL import Image
 
 from tests.bad_input import stage_line
-from tests.helpers import REPO
+from tests.camvid_fixture import write_camvid
+from tests.helpers import REPO, write_frames
+
+
+def _occluder_fixture(tmp: Path) -> list[str]:
+    """occluders.py's arguments on a tiny frame-aligned set and a tiny CamVid written into ``tmp``."""
+    frames = write_frames(tmp / "frames", {"day": [0, 1, 2], "night": [3, 4, 5]})
+    camvid = write_camvid(tmp / "camvid", sizes={"train": 1, "val": 1, "test": 4})
+    return ["--data", "frames", "--root", str(frames), "--camvid", str(camvid), "--batch", "2"] + [
+        "data.database=day",
+        "data.queries=night",
+        "data.image_size=[64,96]",
+    ]
+
 
 #: script -> (its small arguments given a scratch dir, a fragment of its last stdout line)
 SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
@@ -36,6 +49,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     ),
     "gpu.py": (lambda t: ["--device", "cpu", "--quick", "--work", str(t / "gpu")], "gpu_check devices=cpu"),
     "mask_cost.py": (lambda t: ["--batch", "1", "--repeats", "1"], "teacher_cut="),
+    "occluders.py": (lambda t: _occluder_fixture(t), "ratio="),
     "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "floor_s="),
     "kernel_time.py": (lambda t: ["--override", "experiment=tiny"], "equal_recalls=1"),
     "recipe_cost.py": (

@@ -1,10 +1,12 @@
 """experiments/occluded-streets end to end on fixtures: run.sh's evaluations (a tiny CamVid, three tiny
-traversals, the tiny SynthCity for NetVLAD's k-means) and summarize.py's data file, checked against the
-ranks the evaluations wrote."""
+traversals, the tiny SynthCity for NetVLAD's k-means; a student and a teacher directory and a checkpoint)
+and summarize.py's data file, checked against the ranks the evaluations wrote; mask_iou.py's scores."""
 
 from __future__ import annotations
 
 import csv
+import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -12,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from PIL import Image
 
 from tests.camvid_fixture import write_camvid
 from tests.helpers import REPO, write_frames
@@ -85,3 +89,138 @@ def test_run_sh_and_summarize_on_fixtures(tmp_path: Path) -> None:
 def _coverage(ranks: Path) -> int:
     text = (ranks.parent / "eval.json").read_text()
     return 10 if "CamVid 10%" in text else 20 if "CamVid 20%" in text else 0
+
+
+@pytest.mark.slow
+def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> None:
+    """run.sh's CAMVID_STUDENT / CAMVID_TEACHER / CKPTS path: a student and a teacher directory as semvpr.segment
+    saves them and a tiny training run's checkpoint, every mask on every model; summarize.py's rows for
+    them; mask_iou.py's IoU against the pasted pixels, the student's re-derived here from its own forward pass."""
+    from semvpr.config.build import build_backbone
+    from semvpr.data.classes import TRAIN_ID_NAMES
+    from semvpr.models.student import load_student
+    from tests.helpers import frame_images, tiny_config, write_student_dir, write_teacher_dir
+
+    gardens = write_frames(
+        tmp_path / "gardens", {t: [0, 1, 2, 3, 4] for t in ("day_left", "day_right", "night_right")}, "Image{:03d}.jpg"
+    )
+    camvid = write_camvid(tmp_path / "camvid", sizes={"train": 1, "val": 1, "test": 6})
+    backbone = build_backbone(tiny_config(tmp_path / "fixture-cache").backbone, 0).eval()
+    student = write_student_dir(tmp_path / "seg" / "student", backbone, frame_images(gardens, "day_left"))
+    teacher = write_teacher_dir(tmp_path / "seg" / "teacher")
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    # A trained checkpoint: a tiny training run (seconds; its SynthCity is the one run.sh's k-means reads).
+    train = subprocess.run(
+        [sys.executable, "-m", "semvpr.train", "experiment=tiny", "filter=none", f"paths.cache_dir={cache}",
+         "threads=1", f"hydra.run.dir={tmp_path / 'runs' / 'tiny-none'}"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert train.returncode == 0, train.stderr[-3000:]
+    ckpt = tmp_path / "runs" / "tiny-none" / "checkpoints" / "best.ckpt"
+    env |= {
+        "CACHE": str(cache),
+        "PAIRS": "day_left:night_right",
+        "COVERAGES": "0.2",
+        "SEEDS": "0,1",
+        "CAMVID_STUDENT": str(student),
+        "CAMVID_TEACHER": str(teacher),
+        "CKPTS": f"'{ckpt}'",
+        "EXTRA": "data.num_workers=0 data.image_size=[64,96] hydra.launcher.n_jobs=1 experiment=tiny "
+        "init.overrides=['preset=tiny','image_size=[64,80]']",
+    }
+    run = subprocess.run(
+        ["bash", str(EXPERIMENT / "run.sh"), str(out), str(gardens), str(camvid)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1500,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    cells = [
+        f"{c}-{m}" for c, m in [("clean", "none"), ("occluded", "none"), ("occluded", "oracle"), ("holes", "oracle")]
+    ]
+    cells += [f"{c}-{m}" for c in ("clean", "occluded") for m in ("student", "teacher")]
+    sweeps = sorted(p.name for p in (out / "eval" / "day_left-night_right").iterdir())
+    assert sweeps == sorted(f"m{i}-{cell}" for i in (0, 1) for cell in cells)
+    for found in (out / "eval" / "day_left-night_right").glob("*/*/eval.json"):
+        result = json.loads(found.read_text())
+        assert result["status"] == "ok", (found, result.get("error"))
+        segmenter = {"student": str(student), "teacher": str(teacher)}.get(result["mask"])
+        assert result["mask_checkpoint"] == segmenter, found
+    summary = subprocess.run(
+        [sys.executable, str(EXPERIMENT / "summarize.py"), str(out), "--out-dir", str(tmp_path / "summary")],
+        env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert summary.returncode == 0, summary.stderr[-3000:]
+    rows = {
+        (r["model"], r["condition"], r["mask"], int(r["coverage"])): r
+        for r in csv.DictReader((tmp_path / "summary" / "results.csv").open())
+    }
+    models = {"untrained netvlad", "tiny-none"}
+    assert {k[0] for k in rows} == models
+    for model in models:
+        clean = float(rows[model, "clean", "none", 0]["r1"])
+        occluded = float(rows[model, "occluded", "none", 20]["r1"])
+        for mask in ("student", "teacher"):
+            for key in ((model, "clean", mask, 0), (model, "occluded", mask, 20)):
+                row = rows[key]
+                assert all(0 <= float(row[k]) <= 100 for k in ("r1", "r5")), row
+                base = clean if key[1] == "clean" else occluded
+                assert float(row["gain"]) == pytest.approx(float(row["r1"]) - base, abs=0.02)
+            row = rows[model, "occluded", mask, 20]
+            if row["recovered"]:  # given only where the damage's interval excludes 0
+                assert clean != occluded
+                expected = (float(row["r1"]) - occluded) / (clean - occluded)
+                assert float(row["recovered"]) == pytest.approx(expected, abs=0.002)
+            assert row["leak"] == ""  # the leak is the oracle's only
+    text = (tmp_path / "summary" / "results.md").read_text()
+    assert "| tiny-none | occluded | 20 % | CamVid teacher" in text
+    assert "| NetVLAD (k-means, no VPR training) | clean | 0 % | CamVid student" in text
+
+    iou = subprocess.run(
+        [sys.executable, str(EXPERIMENT / "mask_iou.py"), str(out), "--source", f"student={student}",
+         "--source", f"teacher={teacher}", "--camvid", str(camvid), "--cache", str(cache),
+         "--out-dir", str(tmp_path / "summary"), "--image-size", "64", "96", "seg.image_size=[32,48]"],
+        env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert iou.returncode == 0, iou.stderr[-3000:]
+    scores = {(r["source"], r["images"]): r for r in csv.DictReader((tmp_path / "summary" / "mask_iou.csv").open())}
+    assert set(scores) == {(s, i) for s in ("student", "teacher") for i in ("camvid test", "composites")}
+    for row in scores.values():
+        assert all(0 <= float(row[k]) <= 1 for k in ("object_iou", "objects_removed", "rest_removed")), row
+    composite = scores["student", "composites"]
+    assert (int(composite["coverage"]), int(composite["seeds"]), int(composite["frames"])) == (20, 2, 20)
+    # The student's composites re-scored here: its static probability from the trunk's frozen outputs at each
+    # image's size, removed below 0.5, against the label maps' pasted (non-building) pixels.
+    model = load_student(student, backbone)
+    hit = union = 0
+    for key_file in cache.glob("occluded-*/key.json"):
+        if not json.loads(key_file.read_text())["paste"]:
+            continue
+        for name in json.loads((key_file.parent / "occluders.json").read_text())["images"]:
+            image = np.asarray(Image.open(key_file.parent / "images" / name).convert("RGB"))
+            pasted = np.asarray(Image.open((key_file.parent / "labels" / name).with_suffix(".png"))) != (
+                TRAIN_ID_NAMES.index("building")
+            )
+            batch = torch.from_numpy(image.copy()).permute(2, 0, 1)[None].float() / 255
+            with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+                skips = backbone.forward_frozen(batch)
+            with torch.no_grad():
+                removed = model.static_prob(skips, out_hw=pasted.shape)[0, 0].numpy() < 0.5
+            hit += int((removed & pasted).sum())
+            union += int((removed | pasted).sum())
+    assert float(composite["object_iou"]) == pytest.approx(hit / union, abs=0.02)
+
+
+def test_mask_iou_scores_a_confusion_of_objects_and_the_rest() -> None:
+    """mask_iou.py's scores of a (trainId × [removed, kept, other]) confusion, by hand: the moving classes are
+    the objects, every other labelled pixel is one to keep (sky too)."""
+    spec = importlib.util.spec_from_file_location("mask_iou", EXPERIMENT / "mask_iou.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    counts = np.zeros((19, 3), dtype=np.int64)
+    car, person, building, sky = (module.TRAIN_ID_NAMES.index(n) for n in ("car", "person", "building", "sky"))
+    counts[car] = [30, 10, 0]  # 30 car pixels removed, 10 kept
+    counts[person] = [5, 5, 0]
+    counts[building] = [6, 84, 0]
+    counts[sky] = [10, 0, 0]
+    scores = module.object_scores(counts)
+    assert scores == {"object_iou": round(35 / (50 + 16), 4), "objects_removed": 0.7, "rest_removed": 0.16}
