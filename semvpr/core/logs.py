@@ -34,7 +34,7 @@ NOISE_LINES = (
     "`Trainer.fit` stopped:",  # semvpr's epoch lines say when training ends
     "Loading `train_dataloader` to estimate number of stepping batches",
     # transformers' Mask2Former lists only Swin as a backbone; timm's EfficientNet-Lite0 works through
-    # its TimmBackbone (tests/test_teacher.py checks its features and a save/load round trip).
+    # its TimmBackbone (tests/models/test_teacher.py checks its features and a save/load round trip).
     "Backbone timm_backbone is not a supported model",
     # Lightning's signal handler, before semvpr's own line for the stop (semvpr.train.interrupted_line).
     "Received SIGTERM:",

@@ -298,7 +298,7 @@ EFFICIENTNET_LITE0_DEPTHS = (1, 2, 2, 3, 3, 4, 1)
 # Checked three ways: TF's efficientnet_lite_builder.py preprocesses with MEAN_RGB = [127.0]*3 and
 # STDDEV_RGB = [128.0]*3 on 0-255 pixels ("edge models use inception-style mean and stddev for better
 # post-quantization"); timm's pretrained_cfg for tf_efficientnet_lite0 says mean = std = 0.5; and the
-# tests/test_backbones.py classifier check. The TF graph pads "SAME" and uses BatchNorm eps 1e-3, which
+# tests/models/test_backbones.py classifier check. The TF graph pads "SAME" and uses BatchNorm eps 1e-3, which
 # is timm's tf_efficientnet_lite0 (efficientnet_lite0 is timm's own re-training: symmetric padding, eps 1e-5).
 EFFICIENTNET_LITE_MEAN = (127.0 / 255, 127.0 / 255, 127.0 / 255)
 EFFICIENTNET_LITE_STD = (128.0 / 255, 128.0 / 255, 128.0 / 255)

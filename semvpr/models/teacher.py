@@ -191,7 +191,7 @@ class Teacher(nn.Module):
         BatchNorm eps and activations (a teacher whose encoder was fine-tuned, ``backbone_lr_factor`` > 0,
         fails here); and its first feature map is one of the trunk's frozen outputs. Its remaining feature
         maps are computed from the trunk's last shared output by the encoder's own later blocks. Outputs then
-        differ from the teacher's own encoder by float rounding only (tests/test_shared_encoder.py bounds it).
+        differ from the teacher's own encoder by float rounding only (tests/models/test_shared_encoder.py bounds it).
         """
         self.trunk_levels, self._tail = None, []
         config = getattr(self.model.config, "backbone_config", None)
