@@ -5,11 +5,14 @@ Each architecture is semvpr's re-derivation of a release (``semvpr/models/releas
 weights of the release's shapes (speed does not depend on the weights): pytorch-NetVlad's VGG16 + NetVLAD
 (64 × 512) and CosPlace / EigenPlaces' ResNet50 layer4 + GeM + FC (512) at 480x640 (Pitts30k's size: both
 evaluate images at their own size), MixVPR's ResNet50 layer3 + MixVPR (1024 × 4) at 320x320, BoQ's
-ResNet50 layer3 + BoQ (512 × 32) at 384x384. The student is a U-Net decoder of the CamVid student's
-width on that trunk's skips (a student trained on that trunk would cost the same); the teacher is the
-CamVid teacher (``benchmarks/mask_cost.py``'s) seeing the images at its training size. Timed, each the
-fastest of ``--repeats`` batches after one warm-up round, the three interleaved (so that other processes
-on the cores slow them alike), under the pipeline's precision (bf16 autocast where the CPU runs it natively):
+ResNet50 layer3 + BoQ (512 × 32) at 384x384, and the DINOv2 releases at 322x322: BoQ's ViT-B/14 (no
+final norm) + BoQ (384 × 32) and SALAD's ViT-B/14 with its class token + SALAD (64 × 128 + 256). The
+student is a U-Net decoder of the CamVid student's width on that trunk's skips (a student trained on that
+trunk would cost the same; none decodes DINOv2's token maps, so those rows have no student time); the
+teacher is the CamVid teacher (``benchmarks/mask_cost.py``'s) seeing the images at its training size.
+Timed, each the fastest of ``--repeats`` batches after one warm-up round, the three interleaved (so that
+other processes on the cores slow them alike), under the pipeline's precision (bf16 autocast where the CPU
+runs it natively):
 
 - ``none``: trunk then aggregator;
 - ``student``: trunk keeping the skips, the decoder's grid mask, the masked aggregator;
@@ -18,7 +21,8 @@ on the cores slow them alike), under the pipeline's precision (bf16 autocast whe
     python benchmarks/released.py [--batch 2] [--repeats 3] [--threads 1] [--only mixvpr boq] [--out FILE.json]
 
 One line per architecture; the last line ``name=value`` pairs: each architecture's ``student_over_none``
-and ``teacher_over_none`` (time ratios measured in this run). ``--out`` writes every time as JSON.
+(where a student applies) and ``teacher_over_none`` (time ratios measured in this run). ``--out`` writes
+every time as JSON.
 """
 
 from __future__ import annotations
@@ -41,7 +45,9 @@ from semvpr.models.aggregators.boq import BoQ
 from semvpr.models.aggregators.gem import GeM
 from semvpr.models.aggregators.mixvpr import MixVPR
 from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.aggregators.salad import SALAD
 from semvpr.models.backbones import Backbone, ResNet50Backbone, VGG16Backbone
+from semvpr.models.dinov2 import DINOv2Backbone
 from semvpr.models.masks import TeacherMask
 from semvpr.retrieval.features import grid_size
 
@@ -51,17 +57,24 @@ ARCHITECTURES: dict[str, Callable[[], tuple[Backbone, nn.Module, tuple[int, int]
     "mixvpr": lambda: (ResNet50Backbone("layer3", train_from=None), MixVPR(1024, (20, 20), 1024, 4), (320, 320)),
     "cosplace": lambda: (ResNet50Backbone("layer4", train_from=None), GeM(2048, fc_dim=512), (480, 640)),
     "boq": lambda: (ResNet50Backbone("layer3", train_from=None), BoQ(1024, 512, 64, 2, 32, 3), (384, 384)),
+    "boq_dinov2": lambda: (DINOv2Backbone(final_norm=False), BoQ(768, 384, 64, 2, 32, 3), (322, 322)),
+    "salad": lambda: (
+        DINOv2Backbone(class_token=True),
+        SALAD(768, 64, 128, 256, global_token="class"),
+        (322, 322),
+    ),
 }
 
 
 def time_architecture(
     name: str, teacher: TeacherMask, batch: int, repeats: int
 ) -> tuple[dict[str, float], tuple[int, int]]:
-    """Seconds per image of ``name`` without a mask, with a student's and with ``teacher``'s, and its size."""
+    """Seconds per image of ``name`` without a mask, with a student's (where one decodes the trunk) and with
+    ``teacher``'s, and its size."""
     torch.manual_seed(0)
     backbone, aggregator, size = ARCHITECTURES[name]()
     backbone, aggregator = backbone.eval(), aggregator.eval()
-    student, _ = camvid_student(backbone)
+    student = camvid_student(backbone)[0] if backbone.image_maps else None
     images = torch.rand(batch, 3, *size, generator=torch.Generator().manual_seed(0))
     images = images.contiguous(memory_format=torch.channels_last)
     grid = grid_size(backbone, size)
@@ -79,7 +92,7 @@ def time_architecture(
 
     runs = {
         "none": lambda: describe(backbone.forward_frozen(images, keep_scales=False), None),
-        "student": with_student,
+        **({"student": with_student} if student is not None else {}),
         "teacher": with_teacher,
     }
     times: dict[str, list[float]] = {k: [] for k in runs}
@@ -128,13 +141,12 @@ def main() -> None:
             "image_size": list(size),
             **{f"{k}_s_per_image": round(v, 4) for k, v in t.items()},
             **{f"{k}_images_per_s": round(1 / v, 3) for k, v in t.items()},
-            "student_over_none": round(t["student"] / t["none"], 3),
-            "teacher_over_none": round(t["teacher"] / t["none"], 3),
+            **{f"{k}_over_none": round(t[k] / t["none"], 3) for k in ("student", "teacher") if k in t},
         }
         print(
-            f"{name:>9} at {size[0]}x{size[1]}: "
+            f"{name:>10} at {size[0]}x{size[1]}: "
             + " ".join(f"{k} {1 / v:6.2f} images/s" for k, v in t.items())
-            + f"  student/none {t['student'] / t['none']:.2f}  teacher/none {t['teacher'] / t['none']:.2f}",
+            + "".join(f"  {k}/none {t[k] / t['none']:.2f}" for k in ("student", "teacher") if k in t),
             flush=True,
         )
     if args.out is not None:
@@ -144,7 +156,10 @@ def main() -> None:
         args.out.write_text(json.dumps({"settings": meta, "architectures": results}, indent=1) + "\n")
     print(
         " ".join(
-            f"{name}.{k}={r[k]}" for name, r in results.items() for k in ("student_over_none", "teacher_over_none")
+            f"{name}.{k}={r[k]}"
+            for name, r in results.items()
+            for k in ("student_over_none", "teacher_over_none")
+            if k in r
         )
     )
 

@@ -63,7 +63,10 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         lambda t: [str(t / "record.json"), "--", "python", "-c", "print('step 91.0 ms'); print('a=1 b=2.5 c=x')"],
         "a=1 b=2.5",
     ),
-    "released.py": (lambda t: ["--batch", "1", "--repeats", "1", "--only", "cosplace"], "cosplace.teacher_over_none="),
+    "released.py": (
+        lambda t: ["--batch", "1", "--repeats", "1", "--only", "cosplace", "salad"],
+        "salad.teacher_over_none=",
+    ),
     "reproducibility.py": (lambda t: ["--filters", "attention", "--epochs", "2", "experiment=tiny"], "identical=3/3"),
     "scale.py": (
         lambda t: (
