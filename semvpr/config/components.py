@@ -29,19 +29,25 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
 
 
+def _subclass_named(node: Any, base: type) -> tuple[type | None, Any]:
+    """The class a config node's ``_target_`` names if it is a subclass of ``base`` (else None), and the target."""
+    target = node.get("_target_") if isinstance(node, DictConfig) else None
+    try:
+        cls = get_class(str(target))
+    except Exception:  # noqa: BLE001 - an unimportable name is the same user error
+        cls = None
+    return (cls if isinstance(cls, type) and issubclass(cls, base) else None), target
+
+
 def component_class(cfg: DictConfig, group: str) -> type | None:
     """The class ``cfg.<group>.module`` names (None for ``module: null``), checked against its group's base
     class without building it (a builder reads what it needs first)."""
     node = cfg[group].get("module")
     if node is None:
         return None
-    target = node.get("_target_") if isinstance(node, DictConfig) else None
-    try:
-        cls = get_class(str(target))
-    except Exception:  # noqa: BLE001 - an unimportable name is the same user error
-        cls = None
     base = COMPONENTS[group]
-    if not (isinstance(cls, type) and issubclass(cls, base)):
+    cls, target = _subclass_named(node, base)
+    if cls is None:
         raise SemvprError(
             f"{group}={cfg[group].get('name')}: {group}.module._target_={target!r} is not a "
             f"{base.__module__}.{base.__name__}"
@@ -74,12 +80,8 @@ def loss_class(cfg: DictConfig) -> type[Loss]:
     node = cfg.recipe.get("loss")
     if node is None:
         return TripletLoss
-    target = node.get("_target_") if isinstance(node, DictConfig) else None
-    try:
-        cls = get_class(str(target))
-    except Exception:  # noqa: BLE001 - an unimportable name is the same user error
-        cls = None
-    if not (isinstance(cls, type) and issubclass(cls, Loss)):
+    cls, target = _subclass_named(node, Loss)
+    if cls is None:
         raise SemvprError(
             f"recipe={cfg.recipe.get('name')}: recipe.loss._target_={target!r} is not a {Loss.__module__}.Loss"
         )

@@ -84,6 +84,12 @@ def _load_state_dict(arch: str, weights: str | Path) -> dict[str, Tensor] | None
                 f"backbone weights file {path} does not exist; pass a torchvision {arch} state dict "
                 "path, backbone.weights=imagenet or backbone.weights=none"
             )
+    return trunk_state(path, arch)
+
+
+def trunk_state(path: Path, arch: str) -> dict[str, Tensor]:
+    """The state dict of a weights file for the ``arch`` trunk, read as data: the trunk's own naming, or a
+    release's trunk mapped onto it (``models.released.release_trunk``)."""
     state = read_weights(path, "backbone weights")
     if isinstance(state, dict) and "state_dict" in state:
         state = state["state_dict"]

@@ -36,9 +36,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from semvpr.core.checkpoint import read_weights
 from semvpr.core.errors import SemvprError
-from semvpr.models.backbones import Backbone
+from semvpr.models.backbones import Backbone, trunk_state
 
 PATCH = 14
 WIDTH = 768
@@ -220,14 +219,7 @@ def dinov2_state(weights: str | Path) -> dict[str, Tensor] | None:
             f"backbone weights file {path} does not exist; pass DINOv2's dinov2_vitb14_pretrain.pth (or a SALAD / "
             "BoQ release file), or backbone.weights=none (there are no ImageNet weights for this trunk)"
         )
-    state = read_weights(path, "backbone weights")
-    if isinstance(state, dict) and "state_dict" in state:
-        state = state["state_dict"]
-    if not isinstance(state, dict):
-        raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
-    from semvpr.models.released import release_trunk  # released.py reads this module's key table
-
-    return release_trunk(state, path, "dinov2_vitb14") or state
+    return trunk_state(path, "dinov2_vitb14")
 
 
 class DINOv2Backbone(Backbone):
