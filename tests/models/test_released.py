@@ -699,11 +699,12 @@ def test_mixvpr_at_the_authors_image_size(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------- evaluation with a mask
-@pytest.mark.parametrize("fmt", ["cosplace", "boq_dinov2"])
+@pytest.mark.parametrize("fmt", ["cosplace", "boq_dinov2", "salad"])
 def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path, fmt: str) -> None:
     model, size, label, dim = {
         "cosplace": (cosplace_model, [32, 48], "cosplace (ResNet50, released)", 128),
         "boq_dinov2": (boq_dinov2_model, [28, 42], "boq (DINOv2, released)", 512),
+        "salad": (salad_model, list(VIT_SIZE), "salad (DINOv2, released)", 64 + 16 * 32),
     }[fmt]
     save_state(model(), tmp_path / "c.pth")
     root = make_folder(tmp_path / "places")
