@@ -1,34 +1,41 @@
-"""The prepared GPU check: every stage of the tiny four-way sweep on the GPU, the precision variants, the
-fp32 sections' drift between the GPU and the CPU, a frozen VGG16 pass against a roofline measured in the
-same run, and the default four-way SynthCity sweep from an empty cache. About 8 minutes on one H100.
+"""The prepared GPU check: every stage of the tiny four-way sweep on the GPU, the precision variants, a
+tiny ``trainer=ddp`` job (NCCL over the visible GPUs), the fp32 sections' drift between the GPU and the
+CPU, a frozen VGG16 pass against a roofline measured in the same run, the default four-way SynthCity
+sweep from an empty cache, and ``semvpr.eval`` of its ``filter=unet`` checkpoint on the GPU.
 
-    python benchmarks/gpu.py [--work DIR] [--device cuda] [--quick]
+    python benchmarks/record.py benchmarks/results/gpu.json -- python benchmarks/gpu.py [--work DIR]
 
 ``--quick`` (and ``--device cpu``) is the smoke run the tests make without a GPU: the tiny sweep and the
-small checks only. Prints one line per check; last line: ``gpu_check devices=<device of every stage>
-tiny_sweep_s=<t> vgg16_img_s=<images/s> roofline_ratio=<r> fp32_drift=<max abs> default_sweep_s=<t>``.
+small checks only (DDP runs on gloo over two CPU processes there). Prints one line per check; last line:
+``gpu_check devices=<device of every job> tiny_sweep_s=<t> ddp_r1=<R@1> vgg16_img_s=<images/s>
+roofline_ratio=<r> fp32_drift=<max abs> default_sweep_s=<t>``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
 
 REPO = Path(__file__).resolve().parents[1]
+T = TypeVar("T")
 FILTERS = "filter=none,attention,unet,mask2former"
 
 
 def sweep(work: Path, name: str, trainer: str, *overrides: str) -> tuple[float, list[dict]]:
-    """A four-way sweep on ``trainer`` into ``work/name`` (cache ``work/cache-<name>``): wall time, job records."""
+    """A four-way sweep on ``trainer`` into ``work/name`` (cache ``work/cache-<name>``): wall time, job records
+    (each finished job's stages printed)."""
     tic = time.perf_counter()
     proc = subprocess.run(
         [
@@ -47,12 +54,15 @@ def sweep(work: Path, name: str, trainer: str, *overrides: str) -> tuple[float, 
         text=True,
     )
     wall = time.perf_counter() - tic
-    if proc.returncode != 0:
-        raise SemvprError(f"the {name} sweep failed: {proc.stderr.strip().splitlines()[-1:]}")
     jobs = [json.loads(p.read_text()) for p in sorted((work / name).rglob("metrics.json"))]
-    failed = [j.get("error") for j in jobs if j.get("status") != "ok"]
+    for job in jobs:
+        if job.get("status") == "ok":
+            print(stage_line(name, job), flush=True)
+    failed = [f"{j.get('filter')}: {j.get('error')}" for j in jobs if j.get("status") != "ok"]
     if failed:
         raise SemvprError(f"the {name} sweep has failed jobs: {failed}")
+    if proc.returncode != 0:
+        raise SemvprError(f"the {name} sweep failed: {proc.stderr.strip().splitlines()[-1:]}")
     return wall, jobs
 
 
@@ -82,6 +92,62 @@ def precision_variants(work: Path, trainer: str) -> dict[str, float]:
         metrics = json.loads((run / "metrics.json").read_text())
         out[f"{precision}({metrics['precision']})"] = metrics["test/R@1"]
     return out
+
+
+def ddp_job(work: Path, trainer: str) -> dict:
+    """The tiny ``filter=none`` job under ``trainer=ddp``: NCCL over every visible GPU, or gloo over two CPU
+    processes; its metrics."""
+    run = work / "ddp"
+    extra = [] if trainer == "gpu" else ["trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true"]
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            "experiment=tiny",
+            "trainer=ddp",
+            *extra,
+            f"paths.cache_dir={work / 'cache-tiny'}",
+            f"hydra.run.dir={run}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        raise SemvprError(f"trainer=ddp failed: {proc.stderr.strip().splitlines()[-1:]}")
+    return json.loads((run / "metrics.json").read_text())
+
+
+def eval_check(work: Path, name: str, device: str) -> tuple[float, float]:
+    """``semvpr.eval`` of the sweep's ``filter=unet`` checkpoint on ``device`` (its student's masks made
+    there): (its test R@1, the training job's)."""
+    job = next(p.parent for p in sorted((work / name).rglob("metrics.json")) if "filter=unet" in str(p))
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            f"ckpt='{job / 'checkpoints' / 'tested.ckpt'}'",
+            f"device={device}",
+            f"paths.cache_dir={work / f'cache-{name}'}",
+            f"hydra.run.dir={work / f'eval-{name}'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        raise SemvprError(f"semvpr.eval failed: {proc.stderr.strip().splitlines()[-1:]}")
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result["test/R@1"], json.loads((job / "metrics.json").read_text())["test/R@1"]
+
+
+def stage_line(name: str, job: dict) -> str:
+    """One job's device, precision, test R@1 and seconds per stage."""
+    stages = {k.removesuffix("_s"): round(v, 1) for k, v in job["timings"].items()}
+    head = f"{name} {job['filter']}: device={job['device']} precision={job['precision']} ranks={job['distributed']}"
+    return f"{head} R@1={job['test/R@1']:.1f} s={stages}"
 
 
 def fp32_drift(device: torch.device) -> float:
@@ -175,22 +241,43 @@ def main(argv: list[str] | None = None) -> None:
     work = args.work or Path(tempfile.mkdtemp(prefix="semvpr-gpu-"))
     if device.type == "cuda":
         print(f"device: {torch.cuda.get_device_name(0)}, {torch.cuda.device_count()} visible", flush=True)
-    tiny_s, jobs = sweep(work, "tiny", trainer, "experiment=tiny", "threads=auto")
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPU cores", flush=True)
+    failures: list[str] = []
+
+    def check(what: str, step: Callable[[], T], default: T) -> T:
+        """Run one check; a failure is printed and kept, and the checks after it still run."""
+        try:
+            return step()
+        except (SemvprError, OSError, RuntimeError, KeyError) as err:
+            failures.append(f"{what}: {err}")
+            print(f"FAILED {what}: {err}", flush=True)
+            return default
+
+    nan = float("nan")
+    tiny = ("experiment=tiny", "threads=auto")
+    tiny_s, jobs = check("tiny sweep", lambda: sweep(work, "tiny", trainer, *tiny), (nan, []))
     devices = sorted({j["device"] for j in jobs})
-    for j in jobs:
-        stages = {k: round(v, 1) for k, v in j["timings"].items()}
-        print(f"tiny {j['filter']}: device={j['device']} precision={j['precision']} R@1={j['test/R@1']} {stages}")
-    print(f"precision variants (R@1): {precision_variants(work, trainer)}", flush=True)
-    drift = fp32_drift(device)
+    print(f"tiny four-way sweep: {tiny_s:.0f} s", flush=True)
+    print(f"precision variants (R@1): {check('precisions', lambda: precision_variants(work, trainer), {})}", flush=True)
+    ddp = check("trainer=ddp", lambda: ddp_job(work, trainer), {"test/R@1": nan})
+    if "timings" in ddp:
+        print(stage_line("ddp", ddp), flush=True)
+    drift = check("fp32 drift", lambda: fp32_drift(device), nan)
     print(f"fp32 sections, {device.type} vs cpu: max abs difference {drift:.2e}", flush=True)
-    img_s, ratio = vgg16_pass(device, 2 if args.quick else 20)
+    img_s, ratio = check("VGG16 pass", lambda: vgg16_pass(device, 2 if args.quick else 20), (nan, nan))
     print(f"frozen VGG16 at 480x640: {img_s:.1f} images/s, {ratio:.2f} of the measured matmul roofline", flush=True)
-    default_s = float("nan")
+    default_s = nan
     if not args.quick:
-        default_s, _ = sweep(work, "default", trainer)
+        default_s, default_jobs = check("default sweep", lambda: sweep(work, "default", trainer), (nan, []))
+        devices = sorted({*devices, *(j["device"] for j in default_jobs)})
         print(f"default four-way SynthCity sweep from an empty cache: {default_s:.0f} s", flush=True)
+        evaluated, trained = check("eval", lambda: eval_check(work, "default", args.device), (nan, nan))
+        print(f"semvpr.eval of the default unet checkpoint on {args.device}: R@1 {evaluated} (its job: {trained})")
+    if failures:
+        raise SemvprError(f"{len(failures)} check(s) failed: " + "; ".join(failures))
     print(
-        f"gpu_check devices={','.join(devices)} tiny_sweep_s={tiny_s:.0f} vgg16_img_s={img_s:.1f} "
+        f"gpu_check devices={','.join(devices)} tiny_sweep_s={tiny_s:.0f} ddp_r1={ddp['test/R@1']:.1f} "
+        f"vgg16_img_s={img_s:.1f} "
         f"roofline_ratio={ratio:.2f} fp32_drift={drift:.1e} default_sweep_s={default_s:.0f}"
     )
 

@@ -128,8 +128,10 @@ def train_and_test(
     tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
     trainer.save_checkpoint(tested_ckpt, weights_only=True)  # no optimizer state: eval needs none
     timings["test_s"] = time.time() - tic
+    ran_on = trainer.strategy.root_device  # where fit and test ran (teardown has moved the model to the CPU)
     if not leader:
         return None
+    retriever.to(device)  # the figures' maps are made on the job's device too
     tested = evaluation.results["test"]
     write_job_figure_data(
         run_dir,
@@ -155,8 +157,12 @@ def train_and_test(
             **datamodule.epoch_facts(),
             "aggregator_init": init_info,
             "threads": threads.record(),
-            # Where every stage ran (the backbone's device: the builders put the rest there) and how.
-            "device": str(next(job.backbone.parameters()).device),
+            # Where fit and test ran (the builders put every earlier stage on the same device) and how.
+            "device": str(ran_on),
+            "distributed": {
+                "world_size": trainer.world_size,
+                "backend": torch.distributed.get_backend() if torch.distributed.is_initialized() else None,
+            },
             "precision": running_precision(),
             "timings": timings,
             "wall_time_s": time.time() - start,

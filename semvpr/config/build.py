@@ -203,7 +203,8 @@ def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | 
             given["student"] = load_student(spec.checkpoint, backbone)
         else:
             given["student"] = student_architecture(spec, backbone)
-    source = instantiate_node(cfg.mask.module, **given)
+    # On the backbone's device: the source's own buffers (its class weights) as well as its segmenter's.
+    source = instantiate_node(cfg.mask.module, **given).to(next(backbone.parameters()).device)
     if semantic is not None or teacher_spec(cfg).checkpoint:  # the teacher's weights are final
         link_segmenter(cfg, source, backbone)
     return source

@@ -151,6 +151,8 @@ def test_two_job_ddp_sweep_writes_one_sweep_dir_with_two_ok_jobs_and_one_report(
     single = json.loads((tmp_path / "single" / "metrics.json").read_text())
     ddp = json.loads(next(j for j in jobs if "seed=0" in j.name).joinpath("metrics.json").read_text())
     assert ddp["recalls"] == single["recalls"]
+    assert ddp["distributed"] == {"world_size": 2, "backend": "gloo"} and ddp["device"] == "cpu"
+    assert single["distributed"] == {"world_size": 1, "backend": None}
     weights = [torch.load(m["checkpoint"], weights_only=True)["state_dict"] for m in (ddp, single)]
     for key in weights[1]:
         torch.testing.assert_close(weights[0][key], weights[1][key], rtol=0, atol=1e-4)
