@@ -66,8 +66,9 @@ def main() -> None:
     places = build_places(cfg, ("test",))["test"]
     if args.limit is not None:
         n = args.limit  # only the images matter here: a set of the first ones, without its ground truth
-        places = PlaceSet(places.name, places.db_paths[:n], places.q_paths[:n], places.db_utm[:n], places.q_utm[:n],
-                          root=places.root)  # fmt: skip
+        places = PlaceSet(
+            places.name, places.db_paths[:n], places.q_paths[:n], places.db_utm[:n], places.q_utm[:n], root=places.root
+        )
     spec = OccluderSpec.from_mapping(
         {"source": "camvid", "root": str(args.camvid.resolve()), "coverage": args.coverage, "seed": args.seed}
     )

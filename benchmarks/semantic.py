@@ -46,11 +46,13 @@ REPO = Path(__file__).resolve().parents[1]
 def load_cfg(image_size: list[int], overrides: list[str]) -> OmegaConf:
     """The shipped teacher and student configs, with the data image size they interpolate, plus
     dotted overrides (e.g. ``teacher.train.epochs=12``)."""
-    cfg = OmegaConf.create({
-        "data": {"image_size": image_size},
-        "teacher": OmegaConf.load(REPO / "conf/teacher/mask2former.yaml"),
-        "student": OmegaConf.load(REPO / "conf/student/unet.yaml"),
-    })  # fmt: skip
+    cfg = OmegaConf.create(
+        {
+            "data": {"image_size": image_size},
+            "teacher": OmegaConf.load(REPO / "conf/teacher/mask2former.yaml"),
+            "student": OmegaConf.load(REPO / "conf/student/unet.yaml"),
+        }
+    )
     return OmegaConf.merge(cfg, OmegaConf.from_dotlist(overrides))
 
 

@@ -319,9 +319,20 @@ def write_student_dir(folder: Path, backbone, images: torch.Tensor, domain: str 
 
 
 #: A Mask2Former small enough to build in a second (random-init Swin pixel-level backbone).
-TINY_TEACHER_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1],
-                      "num_heads": [1, 1, 2, 2], "window_size": 4, "hidden_dim": 32, "num_attention_heads": 2,
-                      "encoder_layers": 1, "decoder_layers": 2, "num_queries": 8, "train_num_points": 256}  # fmt: skip
+TINY_TEACHER_MODEL = {
+    "backbone": "swin",
+    "backbone_weights": "none",
+    "embed_dim": 16,
+    "depths": [1, 1, 1, 1],
+    "num_heads": [1, 1, 2, 2],
+    "window_size": 4,
+    "hidden_dim": 32,
+    "num_attention_heads": 2,
+    "encoder_layers": 1,
+    "decoder_layers": 2,
+    "num_queries": 8,
+    "train_num_points": 256,
+}
 
 
 def write_teacher_dir(folder: Path, image_size: tuple[int, int] = (32, 48)) -> Path:

@@ -120,8 +120,16 @@ def main() -> None:
             counts = np.concatenate(per_seed)
             pooled.append(counts)
             scores = object_scores(counts.sum(0))
-            rows.append({"source": name, "images": "composites", "coverage": coverage, "seeds": len(per_seed),
-                         "frames": len(counts), **scores})  # fmt: skip
+            rows.append(
+                {
+                    "source": name,
+                    "images": "composites",
+                    "coverage": coverage,
+                    "seeds": len(per_seed),
+                    "frames": len(counts),
+                    **scores,
+                }
+            )
         composite_iou = object_scores(np.concatenate(pooled).sum(0))["object_iou"]
         last.append(f"{name}={camvid_scores['object_iou']}/{composite_iou}")
     write_csv(args.out_dir / "mask_iou.csv", FIELDS, rows)

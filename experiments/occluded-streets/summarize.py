@@ -53,9 +53,27 @@ PAIRS = {
     "day_left-day_right": "day_left → day_right (lateral viewpoint)",
 }
 FIELDS = (
-    "pair", "model", "condition", "mask", "coverage", "seeds", "queries", "r1", "r1_std", "r5", "r5_std",
-    "gain", "gain_low", "gain_high", "recovered", "recovered_low", "recovered_high", "leak", "leak_low", "leak_high",
-)  # fmt: skip
+    "pair",
+    "model",
+    "condition",
+    "mask",
+    "coverage",
+    "seeds",
+    "queries",
+    "r1",
+    "r1_std",
+    "r5",
+    "r5_std",
+    "gain",
+    "gain_low",
+    "gain_high",
+    "recovered",
+    "recovered_low",
+    "recovered_high",
+    "leak",
+    "leak_low",
+    "leak_high",
+)
 
 #: Stage lines of a finished compositing and of a finished trunk pass (semvpr.core.logs.Progress).
 COMPOSITE_LINE = re.compile(r"semvpr: (.+?): CamVid objects \(.*\): (\d+)/\d+ images in ([\d.]+) (s|min|h)$")
@@ -116,10 +134,18 @@ def rows(pair: str, cells: dict[tuple[str, str, str, int], dict[int, np.ndarray]
         r1, r1_std = _recall(seeds, 1)
         r5, r5_std = _recall(seeds, 5)
         row: dict[str, object] = {
-            "pair": pair, "model": model, "condition": condition, "mask": mask, "coverage": coverage,
-            "seeds": len(seeds), "queries": len(next(iter(seeds.values()))),
-            "r1": round(r1, 2), "r1_std": round(r1_std, 2), "r5": round(r5, 2), "r5_std": round(r5_std, 2),
-        }  # fmt: skip
+            "pair": pair,
+            "model": model,
+            "condition": condition,
+            "mask": mask,
+            "coverage": coverage,
+            "seeds": len(seeds),
+            "queries": len(next(iter(seeds.values()))),
+            "r1": round(r1, 2),
+            "r1_std": round(r1_std, 2),
+            "r5": round(r5, 2),
+            "r5_std": round(r5_std, 2),
+        }
         clean = cells.get((model, "clean", "none", 0))
         base = clean if condition == "holes" else cells.get((model, condition, "none", coverage))
         if mask != "none" and base is not None and sorted(base) in (sorted(seeds), [0]):

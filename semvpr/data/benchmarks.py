@@ -34,9 +34,14 @@ from semvpr.data.places import IMAGE_SUFFIXES, MAX_POSITION, PlaceSet, listed_im
 from semvpr.data.published import check_counts
 
 #: What a pickled numpy object array of index arrays may reference (numpy 1.x and 2.x names).
-_ARRAY_CLASSES = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-                  ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-                  ("numpy", "ndarray"), ("numpy", "dtype")}  # fmt: skip
+_ARRAY_CLASSES = {
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+}
 
 
 #: Largest frame number or window (a frame is a position: one unit is one frame, within MAX_POSITION;

@@ -13,16 +13,34 @@ from semvpr.data.segmentation import SegmentationSet, check_pair
 
 #: SegNet's 11 CamVid classes by label index; index 11 is Unlabelled (ignored).
 CAMVID_NAMES: tuple[str, ...] = (
-    "Sky", "Building", "Pole", "Road", "Pavement", "Tree", "SignSymbol", "Fence", "Car", "Pedestrian", "Bicyclist",
-)  # fmt: skip
+    "Sky",
+    "Building",
+    "Pole",
+    "Road",
+    "Pavement",
+    "Tree",
+    "SignSymbol",
+    "Fence",
+    "Car",
+    "Pedestrian",
+    "Bicyclist",
+)
 
 #: CamVid class → Cityscapes class. Bus and truck are folded into Car in this version; a Bicyclist
 #: label covers rider and bicycle, and rider is the closer Cityscapes class (both are moving classes).
 CAMVID_TO_CITYSCAPES: dict[str, str] = {
-    "Sky": "sky", "Building": "building", "Pole": "pole", "Road": "road", "Pavement": "sidewalk",
-    "Tree": "vegetation", "SignSymbol": "traffic sign", "Fence": "fence", "Car": "car",
-    "Pedestrian": "person", "Bicyclist": "rider",
-}  # fmt: skip
+    "Sky": "sky",
+    "Building": "building",
+    "Pole": "pole",
+    "Road": "road",
+    "Pavement": "sidewalk",
+    "Tree": "vegetation",
+    "SignSymbol": "traffic sign",
+    "Fence": "fence",
+    "Car": "car",
+    "Pedestrian": "person",
+    "Bicyclist": "rider",
+}
 
 
 def camvid_lut() -> tuple[int, ...]:

@@ -12,10 +12,26 @@ IGNORE = 255
 
 #: The 19 Cityscapes evaluation classes, indexed by trainId.
 TRAIN_ID_NAMES: tuple[str, ...] = (
-    "road", "sidewalk", "building", "wall", "fence", "pole", "traffic light", "traffic sign",
-    "vegetation", "terrain", "sky", "person", "rider", "car", "truck", "bus", "train",
-    "motorcycle", "bicycle",
-)  # fmt: skip
+    "road",
+    "sidewalk",
+    "building",
+    "wall",
+    "fence",
+    "pole",
+    "traffic light",
+    "traffic sign",
+    "vegetation",
+    "terrain",
+    "sky",
+    "person",
+    "rider",
+    "car",
+    "truck",
+    "bus",
+    "train",
+    "motorcycle",
+    "bicycle",
+)
 
 #: Classes whose features describe the place (ARCHITECTURE §3.2); everything else is dynamic/uninformative.
 NUM_CLASSES = len(TRAIN_ID_NAMES)
@@ -23,8 +39,10 @@ STATIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[:10]
 DYNAMIC_NAMES: tuple[str, ...] = TRAIN_ID_NAMES[10:]
 
 # Cityscapes labelId → trainId (labels.py of the cityscapesScripts); unlisted ids are ignored.
-_LABEL_TO_TRAIN = {7: 0, 8: 1, 11: 2, 12: 3, 13: 4, 17: 5, 19: 6, 20: 7, 21: 8, 22: 9, 23: 10,
-                   24: 11, 25: 12, 26: 13, 27: 14, 28: 15, 31: 16, 32: 17, 33: 18}  # fmt: skip
+_LABEL_TO_TRAIN = {
+    label: train
+    for train, label in enumerate((7, 8, 11, 12, 13, 17, 19, 20, 21, 22, 23, 24, 25, 26, 27, 28, 31, 32, 33))
+}
 TRAIN_TO_LABEL: tuple[int, ...] = tuple(sorted(_LABEL_TO_TRAIN, key=_LABEL_TO_TRAIN.get))
 
 LABEL_TO_TRAIN_LUT = np.full(256, IGNORE, dtype=np.uint8)

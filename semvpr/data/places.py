@@ -18,19 +18,50 @@ from semvpr.core.io import regular_file
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 #: The official MSLS cities of each split (mapillary_sls, ``default_cities``).
 MSLS_CITIES: dict[str, tuple[str, ...]] = {
-    "train": ("trondheim", "london", "boston", "melbourne", "amsterdam", "helsinki", "tokyo", "toronto",
-              "saopaulo", "moscow", "zurich", "paris", "bangkok", "budapest", "austin", "berlin", "ottawa",
-              "phoenix", "goa", "amman", "nairobi", "manila"),
+    "train": (
+        "trondheim",
+        "london",
+        "boston",
+        "melbourne",
+        "amsterdam",
+        "helsinki",
+        "tokyo",
+        "toronto",
+        "saopaulo",
+        "moscow",
+        "zurich",
+        "paris",
+        "bangkok",
+        "budapest",
+        "austin",
+        "berlin",
+        "ottawa",
+        "phoenix",
+        "goa",
+        "amman",
+        "nairobi",
+        "manila",
+    ),
     "val": ("cph", "sf"),
     "test": ("miami", "athens", "buenosaires", "stockholm", "bengaluru", "kampala"),
-}  # fmt: skip
+}
 #: Training cities held out to select the epoch (split "selection"; split "train" omits them), so
 #: model selection never sees the reported val cities. A fixed choice: two mid-latitude cities on
 #: two continents.
 MSLS_SELECTION_CITIES: tuple[str, ...] = ("zurich", "ottawa")
 #: dbStruct fields in the order MATLAB writes them (Pitts250k/30k, Tokyo 24/7).
-DBSTRUCT_FIELDS = ("whichSet", "dbImageFns", "utmDb", "qImageFns", "utmQ", "numImages",
-                   "numQueries", "posDistThr", "posDistSqThr", "nonTrivPosDistSqThr")  # fmt: skip
+DBSTRUCT_FIELDS = (
+    "whichSet",
+    "dbImageFns",
+    "utmDb",
+    "qImageFns",
+    "utmQ",
+    "numImages",
+    "numQueries",
+    "posDistThr",
+    "posDistSqThr",
+    "nonTrivPosDistSqThr",
+)
 
 
 #: Largest |coordinate| a place may have, in metres: far beyond any UTM value (MSLS shifts each city by

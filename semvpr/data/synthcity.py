@@ -83,15 +83,21 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    "tiny": Preset(RenderSpec(64, 80), {"train": SplitSpec(1, 24, 16), "val": SplitSpec(1, 12, 12),
-                                        "test": SplitSpec(1, 24, 24)},
-                   {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)}, (0.45, 0.7)),
+    "tiny": Preset(
+        RenderSpec(64, 80),
+        {"train": SplitSpec(1, 24, 16), "val": SplitSpec(1, 12, 12), "test": SplitSpec(1, 24, 24)},
+        {"train": SplitSpec(1, 40, 16), "val": SplitSpec(1, 40, 8)},
+        (0.45, 0.7),
+    ),
     # 180x240: at 120x160 a conv5_3 cell sees the whole frame, and the binary oracle's calibration gain
     # stayed below +10 with every scene knob tried (experiments/synthcity-calibration).
-    "default": Preset(RenderSpec(180, 240), {"train": SplitSpec(3, 200, 134), "val": SplitSpec(3, 150, 200),
-                                             "test": SplitSpec(3, 200, 350)},
-                      {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)}, (0.5, 0.65)),
-}  # fmt: skip
+    "default": Preset(
+        RenderSpec(180, 240),
+        {"train": SplitSpec(3, 200, 134), "val": SplitSpec(3, 150, 200), "test": SplitSpec(3, 200, 350)},
+        {"train": SplitSpec(2, 200, 200), "val": SplitSpec(1, 200, 100)},
+        (0.5, 0.65),
+    ),
+}
 
 
 #: RenderSpec knobs a dataset may override (difficulty); the image size is the preset's unless given.

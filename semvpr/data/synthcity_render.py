@@ -57,11 +57,34 @@ Z_TOP, Z_BOT = 36.0, -8.0  # vertical extent of the panorama, metres in the faca
 VIEW_BOTTOM = -7.0  # lowest visible ground line (camera 1.6 m high, facade 15 m, near road 2.8 m)
 SEASONS = 2  # panorama layers: 0 = database traversal (June foliage), 1 = query traversal (November)
 
-FACADES = np.array([[.80, .72, .60], [.62, .30, .22], [.55, .55, .56], [.88, .86, .80],
-                    [.45, .33, .25], [.60, .72, .80], [.65, .78, .60], [.90, .80, .45],
-                    [.75, .55, .50], [.35, .38, .42]], np.float32)  # fmt: skip
-VIVID = np.array([[.9, .1, .1], [.1, .3, .9], [.95, .8, .1], [.1, .7, .2], [.9, .4, .05],
-                  [.6, .1, .7], [.05, .7, .8], [.95, .95, .95]], np.float32)  # fmt: skip
+FACADES = np.array(
+    [
+        [0.80, 0.72, 0.60],
+        [0.62, 0.30, 0.22],
+        [0.55, 0.55, 0.56],
+        [0.88, 0.86, 0.80],
+        [0.45, 0.33, 0.25],
+        [0.60, 0.72, 0.80],
+        [0.65, 0.78, 0.60],
+        [0.90, 0.80, 0.45],
+        [0.75, 0.55, 0.50],
+        [0.35, 0.38, 0.42],
+    ],
+    np.float32,
+)
+VIVID = np.array(
+    [
+        [0.9, 0.1, 0.1],
+        [0.1, 0.3, 0.9],
+        [0.95, 0.8, 0.1],
+        [0.1, 0.7, 0.2],
+        [0.9, 0.4, 0.05],
+        [0.6, 0.1, 0.7],
+        [0.05, 0.7, 0.8],
+        [0.95, 0.95, 0.95],
+    ],
+    np.float32,
+)
 
 
 AUTUMN = np.array(
@@ -592,9 +615,13 @@ def _paste(rgb, label, zbuf, part: _Part, depth: float, commit: bool = True) -> 
 
 # kind, probability, depth range (m), length (m), height (m). Mostly big, near vehicles: whole feature
 # cells then show only a (shared, misleading) livery, which is what a static mask can remove.
-_KINDS = ((CAR, 0.35, (4.0, 7.0), (4.0, 4.9), (1.4, 1.6)), (BUS, 0.25, (5.0, 8.0), (10.0, 12.0), (3.0, 3.4)),
-          (TRUCK, 0.2, (5.0, 8.0), (7.0, 10.0), (2.8, 3.6)), (PERSON, 0.12, (9.0, 13.0), (0.5, 0.65), (1.6, 1.9)),
-          (RIDER, 0.08, (7.0, 9.0), (1.6, 2.0), (1.0, 1.15)))  # fmt: skip
+_KINDS = (
+    (CAR, 0.35, (4.0, 7.0), (4.0, 4.9), (1.4, 1.6)),
+    (BUS, 0.25, (5.0, 8.0), (10.0, 12.0), (3.0, 3.4)),
+    (TRUCK, 0.2, (5.0, 8.0), (7.0, 10.0), (2.8, 3.6)),
+    (PERSON, 0.12, (9.0, 13.0), (0.5, 0.65), (1.6, 1.9)),
+    (RIDER, 0.08, (7.0, 9.0), (1.6, 2.0), (1.0, 1.15)),
+)
 
 
 #: Most road users in one image, and how many draws may try to place them.

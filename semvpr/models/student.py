@@ -160,8 +160,17 @@ def student_architecture(spec: StudentSpec, backbone: nn.Module) -> Student:
 WEIGHTS_FILE, SPEC_FILE = "model.safetensors", "student.json"
 STUDENT_FORMAT = 1
 #: Files a student directory must not hold: code, and pickles (which can run code when loaded).
-_REFUSED_SUFFIXES = {".py": "code", ".pyc": "code", ".so": "code", ".pt": "a pickle", ".pth": "a pickle",
-                     ".bin": "a pickle", ".pkl": "a pickle", ".pickle": "a pickle", ".ckpt": "a pickle"}  # fmt: skip
+_REFUSED_SUFFIXES = {
+    ".py": "code",
+    ".pyc": "code",
+    ".so": "code",
+    ".pt": "a pickle",
+    ".pth": "a pickle",
+    ".bin": "a pickle",
+    ".pkl": "a pickle",
+    ".pickle": "a pickle",
+    ".ckpt": "a pickle",
+}
 _SPEC_KEYS = {"format", "spec", "backbone", "image_size", "trained_on"}
 
 

@@ -333,18 +333,41 @@ BACKBONES = (*EFFICIENTNET_LITE, "swin")
 #: ``config.json``, checked before anything is built (the published Cityscapes Mask2Formers: hidden 256,
 #: feed-forward 1,024 / 2,048, 200 queries, 10 decoder layers, 12,544 points).
 MODEL_LIMITS = {
-    "hidden_dim": 4096, "feature_size": 4096, "mask_feature_size": 4096, "encoder_feedforward_dim": 16384,
-    "dim_feedforward": 16384, "num_attention_heads": 256, "encoder_layers": 64, "decoder_layers": 64,
-    "num_queries": 1000, "train_num_points": 1 << 20, "common_stride": 64, "embed_dim": 4096, "window_size": 64,
-    "patch_size": 64, "num_layers": 16, "hidden_size": 16384, "encoder_stride": 64,
-}  # fmt: skip
+    "hidden_dim": 4096,
+    "feature_size": 4096,
+    "mask_feature_size": 4096,
+    "encoder_feedforward_dim": 16384,
+    "dim_feedforward": 16384,
+    "num_attention_heads": 256,
+    "encoder_layers": 64,
+    "decoder_layers": 64,
+    "num_queries": 1000,
+    "train_num_points": 1 << 20,
+    "common_stride": 64,
+    "embed_dim": 4096,
+    "window_size": 64,
+    "patch_size": 64,
+    "num_layers": 16,
+    "hidden_size": 16384,
+    "encoder_stride": 64,
+}
 #: List-valued sizes: at most 16 entries, each within this.
 LIST_LIMITS = {"depths": 64, "num_heads": 256, "feature_strides": 64, "out_indices": 16}
 #: The settings of ``teacher.model`` (the embedded teacher); a saved teacher's sizes are its config.json's.
 EMBEDDED_KEYS = (
-    "backbone", "backbone_weights", "embed_dim", "depths", "num_heads", "window_size", "hidden_dim",
-    "num_attention_heads", "encoder_layers", "decoder_layers", "num_queries", "train_num_points",
-)  # fmt: skip
+    "backbone",
+    "backbone_weights",
+    "embed_dim",
+    "depths",
+    "num_heads",
+    "window_size",
+    "hidden_dim",
+    "num_attention_heads",
+    "encoder_layers",
+    "decoder_layers",
+    "num_queries",
+    "train_num_points",
+)
 
 
 def check_size(key: str, value: Any, where: str) -> None:

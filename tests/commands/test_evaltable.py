@@ -160,9 +160,18 @@ def _recalls(ranks: np.ndarray) -> dict[str, float]:
 
 def _masked_pair(tmp_path: Path, none_ranks: np.ndarray, mask_ranks: np.ndarray) -> dict:
     base = {
-        "status": "ok", "data": "folder", "set": "s", "aggregator": "sral", "backbone": "b", "model": "m",
-        "database": 50, "queries": len(none_ranks), "descriptor_dim": 8, "wall_s": 1.0, "checkpoint": "a.ckpt",
-    }  # fmt: skip
+        "status": "ok",
+        "data": "folder",
+        "set": "s",
+        "aggregator": "sral",
+        "backbone": "b",
+        "model": "m",
+        "database": 50,
+        "queries": len(none_ranks),
+        "descriptor_dim": 8,
+        "wall_s": 1.0,
+        "checkpoint": "a.ckpt",
+    }
     for num, (mask, ranks) in enumerate((("none", none_ranks), ("student", mask_ranks))):
         _job(tmp_path, num, {**base, "mask": mask, **_recalls(ranks)})
         np.save(tmp_path / str(num) / "ranks.npy", ranks)
@@ -196,8 +205,12 @@ def test_a_ranks_file_that_does_not_give_its_jobs_recalls_is_named_not_paired(tm
 def test_an_eval_json_with_values_out_of_range_is_a_failed_row(tmp_path: Path) -> None:
     base = _masked_pair(tmp_path, np.arange(10) % 3, np.arange(10) % 2)
     values = {
-        "test/R@1": 150.0, "test/R@5": float("nan"), "queries": 0, "wall_s": float("inf"), "test/R@20": 0.5,
-    }  # fmt: skip
+        "test/R@1": 150.0,
+        "test/R@5": float("nan"),
+        "queries": 0,
+        "wall_s": float("inf"),
+        "test/R@20": 0.5,
+    }
     for key, value in values.items():
         (tmp_path / "2").mkdir(exist_ok=True)
         result = {**base, "mask": "teacher", **_recalls(np.arange(10) % 3), key: value}

@@ -331,9 +331,14 @@ def _missing(folder: Path) -> str:
 
 
 TAMPERED = {
-    "code": _code, "pickle": _pickle, "shape": _shape, "target": _target, "trunk": _trunk, "nan": _nan,
+    "code": _code,
+    "pickle": _pickle,
+    "shape": _shape,
+    "target": _target,
+    "trunk": _trunk,
+    "nan": _nan,
     "missing": _missing,
-}  # fmt: skip
+}
 
 
 @pytest.mark.parametrize("case", sorted(TAMPERED))
@@ -366,9 +371,14 @@ def test_localize_and_the_hub_take_the_replacement(world: dict[str, Path], tmp_p
     model = load_model(world["plain"], overrides=overrides)
     assert model.retriever.mask_source.student.trained_on.name == "camvid"
     cfg = config(
-        *frames_args(world), f"+ckpt={world['plain']}", f"paths.cache_dir={tmp_path}",
-        f"queries={world['frames'] / 'night'}", "top_k=1", *overrides, config_name="localize",
-    )  # fmt: skip
+        *frames_args(world),
+        f"+ckpt={world['plain']}",
+        f"paths.cache_dir={tmp_path}",
+        f"queries={world['frames'] / 'night'}",
+        "top_k=1",
+        *overrides,
+        config_name="localize",
+    )
     results = localize(cfg, {"mask", "student.checkpoint"})
     # Query frame i is database frame i's image: the nearest is itself, mask or not.
     assert [Path(r["matches"][0]["path"]).name for r in results] == [Path(r["query"]).name for r in results]

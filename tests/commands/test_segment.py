@@ -24,14 +24,30 @@ from tests.camvid_fixture import write_camvid
 from tests.helpers import CONF_DIR, REPO
 
 TINY = [
-    "seg.image_size=[32,48]", "seg.num_workers=0", "num_figure_images=2", "eval_batch_size=2",
-    "teacher.model.embed_dim=16", "teacher.model.depths=[1,1,1,1]", "teacher.model.num_heads=[1,1,2,2]",
-    "teacher.model.window_size=4", "teacher.model.hidden_dim=32", "teacher.model.num_attention_heads=2",
-    "teacher.model.encoder_layers=1", "teacher.model.decoder_layers=2", "teacher.model.num_queries=8",
-    "teacher.model.train_num_points=256", "teacher.train.epochs=1", "teacher.train.batch_size=2",
-    "teacher.train.num_workers=0", "teacher.train.warmup_steps=1", "teacher.predict_batch_size=4",
-    "student.epochs=2", "student.width=8", "student.batch_size=4", "student.num_workers=0",
-]  # fmt: skip
+    "seg.image_size=[32,48]",
+    "seg.num_workers=0",
+    "num_figure_images=2",
+    "eval_batch_size=2",
+    "teacher.model.embed_dim=16",
+    "teacher.model.depths=[1,1,1,1]",
+    "teacher.model.num_heads=[1,1,2,2]",
+    "teacher.model.window_size=4",
+    "teacher.model.hidden_dim=32",
+    "teacher.model.num_attention_heads=2",
+    "teacher.model.encoder_layers=1",
+    "teacher.model.decoder_layers=2",
+    "teacher.model.num_queries=8",
+    "teacher.model.train_num_points=256",
+    "teacher.train.epochs=1",
+    "teacher.train.batch_size=2",
+    "teacher.train.num_workers=0",
+    "teacher.train.warmup_steps=1",
+    "teacher.predict_batch_size=4",
+    "student.epochs=2",
+    "student.width=8",
+    "student.batch_size=4",
+    "student.num_workers=0",
+]
 
 
 def segment_config(*overrides: str) -> DictConfig:
@@ -247,12 +263,21 @@ def test_paired_masks_scores_each_saved_source_as_the_run_did(segment_run: tuple
     size = ",".join(str(v) for v in cfg.seg.image_size)
     proc = subprocess.run(
         [
-            sys.executable, str(REPO / "experiments/camvid-semantic/paired_masks.py"),
-            str(run_dir / "teacher"), str(run_dir / "student_efficientnet_lite0"), "--root", str(cfg.seg.root),
-            "--resamples", "200", f"seg.image_size=[{size}]",
+            sys.executable,
+            str(REPO / "experiments/camvid-semantic/paired_masks.py"),
+            str(run_dir / "teacher"),
+            str(run_dir / "student_efficientnet_lite0"),
+            "--root",
+            str(cfg.seg.root),
+            "--resamples",
+            "200",
+            f"seg.image_size=[{size}]",
         ],
-        capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(REPO)},
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     line = dict(field.split("=") for field in proc.stdout.strip().splitlines()[-1].split())
     assert line["split"] == "val" and int(line["frames"]) == results["dataset"]["val"]

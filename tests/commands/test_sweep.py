@@ -88,9 +88,14 @@ def test_a_stop_of_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_
     is final (not marked as still running), the jobs that did not finish as failed rows."""
     sweep = tmp_path / "sweep"
     args = [
-        "experiment=tiny", "filter=none", "threads=1", "trainer.max_epochs=400", "seed=0,1,2",
-        f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.sweep.dir={sweep}",
-    ]  # fmt: skip
+        "experiment=tiny",
+        "filter=none",
+        "threads=1",
+        "trainer.max_epochs=400",
+        "seed=0,1,2",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"hydra.sweep.dir={sweep}",
+    ]
     proc = subprocess.Popen(
         [sys.executable, "-m", "semvpr.train", "-m", *args],
         cwd=tmp_path,

@@ -231,9 +231,13 @@ def test_a_signal_during_training_is_one_line_that_says_how_to_resume(tmp_path: 
     run, tmpdir = tmp_path / "run", tmp_path / "tmpdir"
     tmpdir.mkdir()
     args = [
-        "experiment=tiny", "filter=none", "threads=1", "trainer.max_epochs=400",
-        f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={run}",
-    ]  # fmt: skip
+        "experiment=tiny",
+        "filter=none",
+        "threads=1",
+        "trainer.max_epochs=400",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"hydra.run.dir={run}",
+    ]
     env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "TMPDIR": str(tmpdir)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "semvpr.train", *args], cwd=tmp_path, stderr=subprocess.PIPE, text=True, env=env

@@ -71,8 +71,11 @@ def test_cli_untrained_gem_is_gem_p3_of_the_trunk_features(frames: Path, tmp_pat
 
     result = last_json(cli(tmp_path, "ckpt=none", "aggregator=gem", *frames_args(frames, 1), *SIZE))
     assert (result["checkpoint"], result["aggregator"], result["mask"], result["descriptor_dim"]) == (
-        "none", "gem", "none", 112,
-    )  # fmt: skip
+        "none",
+        "gem",
+        "none",
+        112,
+    )
     backbone = EfficientNetLite0Backbone(weights="imagenet").eval()
     expected = {}
     for side in ("day", "night"):
@@ -107,16 +110,18 @@ def test_cli_frames_positives_are_the_frame_window(frames: Path, tmp_path: Path)
 def test_the_gardens_point_preset_names_its_traversals(tmp_path: Path) -> None:
     from semvpr.config.build import build_places
 
-    root = write_frames(tmp_path / "gp", {t: list(range(5)) for t in ("day_left", "day_right", "night_right")},
-                        name="Image{:03d}.jpg")  # fmt: skip
+    root = write_frames(
+        tmp_path / "gp", {t: list(range(5)) for t in ("day_left", "day_right", "night_right")}, name="Image{:03d}.jpg"
+    )
     (root / "night_right" / "Thumbs.db").write_bytes(b"")  # not an image: not read
     cfg = config("data=gardens_point", f"data.root={root}", "+ckpt=none", config_name="eval")
     assert list(cfg.data.image_size) == [270, 480] and cfg.data.frame_window == 2
     test = build_places(cfg, ("test",))["test"]
     assert test.name == "gardens_point day_left→night_right ±2"
     assert [p.tolist() for p in test.positives()] == [[0, 1, 2], [0, 1, 2, 3], [0, 1, 2, 3, 4], [1, 2, 3, 4], [2, 3, 4]]
-    other = config("data=gardens_point", f"data.root={root}", "data.database=day_right", "+ckpt=none",
-                   config_name="eval")  # fmt: skip
+    other = config(
+        "data=gardens_point", f"data.root={root}", "data.database=day_right", "+ckpt=none", config_name="eval"
+    )
     assert build_places(other, ("test",))["test"].name == "gardens_point day_right→night_right ±2"
 
 
@@ -196,9 +201,16 @@ def test_the_kmeans_never_reads_the_evaluated_set(tmp_path: Path) -> None:
     from semvpr.config.restore import load_retriever
 
     cfg = config(
-        "+ckpt=none", "aggregator=netvlad", "data=folder", f"data.root={root}", "init.data=folder",
-        f"init.root={root}", f"paths.cache_dir={tmp_path / 'cache'}", *SIZE, config_name="eval",
-    )  # fmt: skip
+        "+ckpt=none",
+        "aggregator=netvlad",
+        "data=folder",
+        f"data.root={root}",
+        "init.data=folder",
+        f"init.root={root}",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        *SIZE,
+        config_name="eval",
+    )
     evaluated = tuple((root / "images" / "test" / "database").iterdir())
     with pytest.raises(SemvprError, match=r"init.data=folder: 3 of its training images are evaluated here"):
         load_retriever(cfg, {"aggregator"}, evaluated=lambda: evaluated)

@@ -106,7 +106,10 @@ def _backbone(edit: dict) -> Callable[[dict], None]:
 CASES: dict[str, tuple[str, str, Callable[[Path], None], str]] = {
     # ---- a teacher directory
     "semvpr.json image_size past the bound": (
-        "teacher", "semvpr.json", lambda p: _json(p, _set("image_size", [5000, 7])), "image_size=[5000, 7] is not"
+        "teacher",
+        "semvpr.json",
+        lambda p: _json(p, _set("image_size", [5000, 7])),
+        "image_size=[5000, 7] is not",
     ),
     "semvpr.json a FIFO": ("teacher", "semvpr.json", _fifo, "semvpr.json is not a regular file"),
     "image_std whose inverse overflows float32": (
@@ -122,19 +125,34 @@ CASES: dict[str, tuple[str, str, Callable[[Path], None], str]] = {
         "image_mean=[0.5, 4e+38, 0.5] is not three numbers finite in float32",
     ),
     "do_normalize a string": (
-        "teacher", "preprocessor_config.json", lambda p: _json(p, _set("do_normalize", "no")), "do_normalize='no'"
+        "teacher",
+        "preprocessor_config.json",
+        lambda p: _json(p, _set("do_normalize", "no")),
+        "do_normalize='no'",
     ),
     "config.json num_queries 1e9": (
-        "teacher", "config.json", lambda p: _json(p, _set("num_queries", 1e9)), "num_queries=1000000000.0 is not"
+        "teacher",
+        "config.json",
+        lambda p: _json(p, _set("num_queries", 1e9)),
+        "num_queries=1000000000.0 is not",
     ),
     "config.json dim_feedforward past the bound": (
-        "teacher", "config.json", lambda p: _json(p, _set("dim_feedforward", 100_000)), "dim_feedforward=100000"
+        "teacher",
+        "config.json",
+        lambda p: _json(p, _set("dim_feedforward", 100_000)),
+        "dim_feedforward=100000",
     ),
     "config.json a float32-infinite loss weight": (
-        "teacher", "config.json", lambda p: _json(p, _set("dice_weight", 1e300)), "dice_weight=1e+300 is not a finite"
+        "teacher",
+        "config.json",
+        lambda p: _json(p, _set("dice_weight", 1e300)),
+        "dice_weight=1e+300 is not a finite",
     ),
     "config.json float64 dtype": (
-        "teacher", "config.json", lambda p: _json(p, _set("dtype", "float64")), "dtype='float64'; the teacher runs"
+        "teacher",
+        "config.json",
+        lambda p: _json(p, _set("dtype", "float64")),
+        "dtype='float64'; the teacher runs",
     ),
     "backbone_config a timm hf-hub name": (
         "teacher",
@@ -149,13 +167,22 @@ CASES: dict[str, tuple[str, str, Callable[[Path], None], str]] = {
         "backbone_config.pretrained_cfg_overlay is not a key of a swin config",
     ),
     "backbone_config depths past the bound": (
-        "teacher", "config.json", lambda p: _json(p, _backbone({"depths": [1, 1, 100, 1]})), "depths=[1, 1, 100, 1]"
+        "teacher",
+        "config.json",
+        lambda p: _json(p, _backbone({"depths": [1, 1, 100, 1]})),
+        "depths=[1, 1, 100, 1]",
     ),
     "teacher weights an int64 tensor": (
-        "teacher", "model.safetensors", lambda p: _tensors(p, _as_int64), "is an integer tensor where the model has"
+        "teacher",
+        "model.safetensors",
+        lambda p: _tensors(p, _as_int64),
+        "is an integer tensor where the model has",
     ),
     "teacher weights a pickle": (
-        "teacher", "model.safetensors", _pickle_instead, "pytorch_model.bin are unreadable (UnpicklingError"
+        "teacher",
+        "model.safetensors",
+        _pickle_instead,
+        "pytorch_model.bin are unreadable (UnpicklingError",
     ),
     # ---- a student directory
     "student.json no static class": (
@@ -171,17 +198,26 @@ CASES: dict[str, tuple[str, str, Callable[[Path], None], str]] = {
         "names a class twice",
     ),
     "student.json image_size past the bound": (
-        "student", "student.json", lambda p: _json(p, _set("image_size", [4097, 10])), "image_size=[4097, 10]"
+        "student",
+        "student.json",
+        lambda p: _json(p, _set("image_size", [4097, 10])),
+        "image_size=[4097, 10]",
     ),
     "student.json a FIFO": ("student", "student.json", _fifo, "student.json is not a regular file"),
     "student weights a FIFO": ("student", "model.safetensors", _fifo, "model.safetensors is not a regular file"),
     "student weights an int64 tensor": (
-        "student", "model.safetensors", lambda p: _tensors(p, _as_int64), "torch.int64, the architecture"
+        "student",
+        "model.safetensors",
+        lambda p: _tensors(p, _as_int64),
+        "torch.int64, the architecture",
     ),
     "student weights a negative BatchNorm variance": (
-        "student", "model.safetensors", lambda p: _tensors(p, _negative_variance), "has a negative variance"
+        "student",
+        "model.safetensors",
+        lambda p: _tensors(p, _negative_variance),
+        "has a negative variance",
     ),
-}  # fmt: skip
+}
 
 FAST = {"semvpr.json image_size past the bound", "student weights an int64 tensor"}
 
@@ -201,13 +237,28 @@ def test_a_damaged_folder_value_is_one_line_and_exit_2(world: dict[str, Path], t
     before = _files(tmp_path)
     proc = subprocess.run(
         [
-            sys.executable, "-m", "semvpr.eval", "experiment=tiny", f"ckpt={world['ckpt']}", "data=frames",
-            f"data.root={world['frames']}", "data.database=day", "data.queries=night",
-            f"data.image_size=[{FRAME_SIZE[0]},{FRAME_SIZE[1]}]", "data.num_workers=0", f"mask={kind}",
-            f"{kind}.checkpoint={folder}", f"paths.cache_dir={cache}", f"hydra.run.dir={run}",
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            "experiment=tiny",
+            f"ckpt={world['ckpt']}",
+            "data=frames",
+            f"data.root={world['frames']}",
+            "data.database=day",
+            "data.queries=night",
+            f"data.image_size=[{FRAME_SIZE[0]},{FRAME_SIZE[1]}]",
+            "data.num_workers=0",
+            f"mask={kind}",
+            f"{kind}.checkpoint={folder}",
+            f"paths.cache_dir={cache}",
+            f"hydra.run.dir={run}",
         ],
-        cwd=cwd, capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)},
-    )  # fmt: skip
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
     assert lines[0].startswith("semvpr: error: ") and fragment in lines[0], lines[0]

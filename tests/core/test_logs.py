@@ -65,9 +65,13 @@ def test_long_epochs_get_step_lines_with_an_eta(monkeypatch: pytest.MonkeyPatch)
     out = io.StringIO()
     cb = logs.EpochLines("teacher", stream=out, every_s=60)
     trainer = SimpleNamespace(
-        current_epoch=0, max_epochs=3, num_training_batches=4, sanity_checking=False, is_global_zero=True,
+        current_epoch=0,
+        max_epochs=3,
+        num_training_batches=4,
+        sanity_checking=False,
+        is_global_zero=True,
         callback_metrics={},
-    )  # fmt: skip
+    )
     cb.on_fit_start(trainer, None)  # type: ignore[arg-type]
     cb.on_train_start(trainer, None)  # type: ignore[arg-type]
     for step in range(4):

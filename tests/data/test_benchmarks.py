@@ -375,9 +375,13 @@ def test_real_gardens_point_reads_as_two_frame_aligned_traversals(database: str,
     from tests.helpers import config
 
     cfg = config(
-        "data=gardens_point", f"data.root={REAL / 'gardens_point'}", f"data.database={database}",
-        f"data.queries={queries}", "+ckpt=none", config_name="eval",
-    )  # fmt: skip
+        "data=gardens_point",
+        f"data.root={REAL / 'gardens_point'}",
+        f"data.database={database}",
+        f"data.queries={queries}",
+        "+ckpt=none",
+        config_name="eval",
+    )
     test = build_places(cfg, ("test",))["test"]
     assert test.name == f"gardens_point {database}→{queries} ±2"
     assert (len(test.db_paths), len(test.q_paths)) == (200, 200)

@@ -179,9 +179,12 @@ def test_a_script_given_a_missing_folder_says_so_in_one_line(
     (camvid / "val.txt").write_text("/SegNet/CamVid/val/f.png /SegNet/CamVid/valannot/f.png\n")
     proc = subprocess.run(
         [sys.executable, str(REPO / script), *(a.format(tmp=tmp_path, camvid=camvid) for a in args)],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
         env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
-    )  # fmt: skip
+    )
     lines = [ln for ln in proc.stderr.strip().splitlines() if not stage_line(ln)]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
     assert lines[0].startswith("semvpr: error: ") and fragment in lines[0], lines[0]

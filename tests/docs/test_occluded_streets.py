@@ -42,15 +42,22 @@ def test_run_sh_and_summarize_on_fixtures(tmp_path: Path) -> None:
     }
     run = subprocess.run(
         ["bash", str(EXPERIMENT / "run.sh"), str(out), str(gardens), str(camvid)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1500,
-    )  # fmt: skip
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1500,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     sweeps = sorted(p.name for p in (out / "eval" / "day_left-night_right").iterdir())
     assert sweeps == ["m0-clean-none", "m0-holes-oracle", "m0-occluded-none", "m0-occluded-oracle"]
     summary = subprocess.run(
         [sys.executable, str(EXPERIMENT / "summarize.py"), str(out), "--out-dir", str(tmp_path / "summary")],
-        env=env, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert summary.returncode == 0, summary.stderr[-3000:]
     rows = {
         (r["condition"], r["mask"], int(r["coverage"])): r
@@ -112,10 +119,22 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     # A trained checkpoint: a tiny training run (seconds; its SynthCity is the one run.sh's k-means reads).
     train = subprocess.run(
-        [sys.executable, "-m", "semvpr.train", "experiment=tiny", "filter=none", f"paths.cache_dir={cache}",
-         "threads=1", f"hydra.run.dir={tmp_path / 'runs' / 'tiny-none'}"],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "semvpr.train",
+            "experiment=tiny",
+            "filter=none",
+            f"paths.cache_dir={cache}",
+            "threads=1",
+            f"hydra.run.dir={tmp_path / 'runs' / 'tiny-none'}",
+        ],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert train.returncode == 0, train.stderr[-3000:]
     ckpt = tmp_path / "runs" / "tiny-none" / "checkpoints" / "best.ckpt"
     env |= {
@@ -131,8 +150,12 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
     }
     run = subprocess.run(
         ["bash", str(EXPERIMENT / "run.sh"), str(out), str(gardens), str(camvid)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1500,
-    )  # fmt: skip
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=1500,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     cells = [
         f"{c}-{m}" for c, m in [("clean", "none"), ("occluded", "none"), ("occluded", "oracle"), ("holes", "oracle")]
@@ -147,8 +170,11 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
         assert result["mask_checkpoint"] == segmenter, found
     summary = subprocess.run(
         [sys.executable, str(EXPERIMENT / "summarize.py"), str(out), "--out-dir", str(tmp_path / "summary")],
-        env=env, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert summary.returncode == 0, summary.stderr[-3000:]
     rows = {
         (r["model"], r["condition"], r["mask"], int(r["coverage"])): r
@@ -176,11 +202,30 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
     assert "| NetVLAD (k-means, no VPR training) | clean | 0 % | CamVid student" in text
 
     iou = subprocess.run(
-        [sys.executable, str(EXPERIMENT / "mask_iou.py"), str(out), "--source", f"student={student}",
-         "--source", f"teacher={teacher}", "--camvid", str(camvid), "--cache", str(cache),
-         "--out-dir", str(tmp_path / "summary"), "--image-size", "64", "96", "seg.image_size=[32,48]"],
-        env=env, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        [
+            sys.executable,
+            str(EXPERIMENT / "mask_iou.py"),
+            str(out),
+            "--source",
+            f"student={student}",
+            "--source",
+            f"teacher={teacher}",
+            "--camvid",
+            str(camvid),
+            "--cache",
+            str(cache),
+            "--out-dir",
+            str(tmp_path / "summary"),
+            "--image-size",
+            "64",
+            "96",
+            "seg.image_size=[32,48]",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert iou.returncode == 0, iou.stderr[-3000:]
     scores = {(r["source"], r["images"]): r for r in csv.DictReader((tmp_path / "summary" / "mask_iou.csv").open())}
     assert set(scores) == {(s, i) for s in ("student", "teacher") for i in ("camvid test", "composites")}

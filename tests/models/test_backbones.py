@@ -258,9 +258,16 @@ def test_the_lite2_teacher_encoder_holds_the_wheel_weights() -> None:
     from semvpr.models.teacher import embedded_model, embedded_normalisation
 
     sd = torch.load(efficientnet_lite_file("efficientnet_lite2"), map_location="cpu", weights_only=True)
-    cfg = {"backbone": "efficientnet_lite2", "backbone_weights": "imagenet", "hidden_dim": 32,
-           "num_attention_heads": 2, "encoder_layers": 1, "decoder_layers": 1, "num_queries": 4,
-           "train_num_points": 64}  # fmt: skip
+    cfg = {
+        "backbone": "efficientnet_lite2",
+        "backbone_weights": "imagenet",
+        "hidden_dim": 32,
+        "num_attention_heads": 2,
+        "encoder_layers": 1,
+        "decoder_layers": 1,
+        "num_queries": 4,
+        "train_num_points": 64,
+    }
     encoder = embedded_model(cfg).model.pixel_level_module.encoder._backbone.eval()
     norm = embedded_normalisation(cfg)
     x = torch.rand(1, 3, 64, 80, generator=torch.Generator().manual_seed(0))

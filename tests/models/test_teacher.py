@@ -24,9 +24,20 @@ from semvpr.segmentation.teacher_training import TeacherFit, targets_from_train_
 from semvpr.segmentation.training import build_teacher
 from tests.helpers import REPO
 
-TINY_MODEL = {"backbone": "swin", "backbone_weights": "none", "embed_dim": 16, "depths": [1, 1, 1, 1],
-              "num_heads": [1, 1, 2, 2], "window_size": 4, "hidden_dim": 32, "num_attention_heads": 2,
-              "encoder_layers": 1, "decoder_layers": 2, "num_queries": 8, "train_num_points": 256}  # fmt: skip
+TINY_MODEL = {
+    "backbone": "swin",
+    "backbone_weights": "none",
+    "embed_dim": 16,
+    "depths": [1, 1, 1, 1],
+    "num_heads": [1, 1, 2, 2],
+    "window_size": 4,
+    "hidden_dim": 32,
+    "num_attention_heads": 2,
+    "encoder_layers": 1,
+    "decoder_layers": 2,
+    "num_queries": 8,
+    "train_num_points": 256,
+}
 
 
 def tiny_spec(**over: object) -> TeacherSpec:
@@ -379,9 +390,13 @@ def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
     os.mkfifo(tmp_path / "fifo" / "config.json")
     code = f"from semvpr.models.teacher_folder import load_pretrained\nload_pretrained({str(tmp_path / 'fifo')!r})\n"
     proc = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-        cwd=REPO, env={**os.environ, "HF_HUB_OFFLINE": "1"},
-    )  # fmt: skip
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )
     assert proc.returncode != 0, proc.stderr[-2000:]
     assert "fifo/config.json is not a regular file" in proc.stderr.strip().splitlines()[-1], proc.stderr[-500:]
 

@@ -444,9 +444,14 @@ def test_the_callback_rewrites_the_partial_table_after_each_job_of_a_multirun(
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [("test/R@1", 150.0), ("test/R@5", -3), ("untrained/test/R@1", float("nan")), ("test/R@10", "90"),
-     ("wall_time_s", float("inf"))],
-)  # fmt: skip
+    [
+        ("test/R@1", 150.0),
+        ("test/R@5", -3),
+        ("untrained/test/R@1", float("nan")),
+        ("test/R@10", "90"),
+        ("wall_time_s", float("inf")),
+    ],
+)
 def test_a_jobs_numbers_out_of_range_make_it_a_failed_row_not_a_mean(tmp_path: Path, key: str, value: object) -> None:
     """A metrics.json is data: a recall outside [0, 100] (or not a number) or a wall time that is not finite
     makes its job a failed row saying which value, never a term of the row's mean."""

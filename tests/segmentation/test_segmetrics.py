@@ -11,19 +11,14 @@ from semvpr.data.classes import TRAIN_ID_NAMES
 from semvpr.segmentation.confusion import Confusion, binary_pred, class_iou, class_scores, mask_scores
 
 ROAD, BUILDING, SKY, PERSON, CAR, X = 0, 2, 10, 11, 13, 255
-GT = torch.tensor([[ROAD, ROAD, ROAD, ROAD],
-                   [ROAD, ROAD, SKY, SKY],
-                   [CAR, CAR, BUILDING, BUILDING],
-                   [PERSON, X, BUILDING, BUILDING]])  # fmt: skip
-PRED = torch.tensor([[ROAD, ROAD, ROAD, ROAD],
-                     [ROAD, CAR, SKY, SKY],
-                     [CAR, ROAD, BUILDING, BUILDING],
-                     [CAR, CAR, BUILDING, SKY]])  # fmt: skip
+GT = torch.tensor(
+    [[ROAD, ROAD, ROAD, ROAD], [ROAD, ROAD, SKY, SKY], [CAR, CAR, BUILDING, BUILDING], [PERSON, X, BUILDING, BUILDING]]
+)
+PRED = torch.tensor(
+    [[ROAD, ROAD, ROAD, ROAD], [ROAD, CAR, SKY, SKY], [CAR, ROAD, BUILDING, BUILDING], [CAR, CAR, BUILDING, SKY]]
+)
 R, K = 0, 1  # removed, kept
-KEEP = torch.tensor([[K, K, K, R],
-                     [K, K, R, R],
-                     [R, K, K, K],
-                     [R, R, K, R]])  # fmt: skip
+KEEP = torch.tensor([[K, K, K, R], [K, K, R, R], [R, K, K, K], [R, R, K, R]])
 
 
 def test_class_iou_by_hand() -> None:
