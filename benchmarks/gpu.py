@@ -33,26 +33,23 @@ T = TypeVar("T")
 FILTERS = "filter=none,attention,unet,mask2former"
 
 
+def semvpr(what: str, command: str, *overrides: str, check: bool = True) -> subprocess.CompletedProcess:
+    """``python -m semvpr.<command> overrides...`` from the repository root; ``check``: a failure is one
+    line naming ``what``."""
+    proc = subprocess.run(
+        [sys.executable, "-m", f"semvpr.{command}", *overrides], cwd=REPO, capture_output=True, text=True
+    )
+    if check and proc.returncode != 0:
+        raise SemvprError(f"{what} failed: {proc.stderr.strip().splitlines()[-1:]}")
+    return proc
+
+
 def sweep(work: Path, name: str, trainer: str, *overrides: str) -> tuple[float, list[dict]]:
     """A four-way sweep on ``trainer`` into ``work/name`` (cache ``work/cache-<name>``): wall time, job records
     (each finished job's stages printed)."""
     tic = time.perf_counter()
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "semvpr.train",
-            "-m",
-            FILTERS,
-            f"trainer={trainer}",
-            *overrides,
-            f"paths.cache_dir={work / f'cache-{name}'}",
-            f"hydra.sweep.dir={work / name}",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-    )
+    where = (f"paths.cache_dir={work / f'cache-{name}'}", f"hydra.sweep.dir={work / name}")
+    proc = semvpr(f"the {name} sweep", "train", "-m", FILTERS, f"trainer={trainer}", *overrides, *where, check=False)
     wall = time.perf_counter() - tic
     jobs = [json.loads(p.read_text()) for p in sorted((work / name).rglob("metrics.json"))]
     for job in jobs:
@@ -66,30 +63,26 @@ def sweep(work: Path, name: str, trainer: str, *overrides: str) -> tuple[float, 
     return wall, jobs
 
 
+def tiny_job(work: Path, what: str, run: str, *overrides: str) -> dict:
+    """The tiny ``filter=none`` job with ``overrides`` into ``work/run`` (the tiny sweep's cache): its metrics."""
+    semvpr(
+        what,
+        "train",
+        "experiment=tiny",
+        *overrides,
+        f"paths.cache_dir={work / 'cache-tiny'}",
+        f"hydra.run.dir={work / run}",
+    )
+    return json.loads((work / run / "metrics.json").read_text())
+
+
 def precision_variants(work: Path, trainer: str) -> dict[str, float]:
     """Test R@1 of the tiny ``filter=none`` job in each precision the device takes."""
     out = {}
     variants = ("bf16-mixed", "16-mixed", "32-true") if trainer == "gpu" else ("bf16-mixed", "32-true")
     for precision in variants:
-        run = work / f"precision-{precision}"
-        proc = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "semvpr.train",
-                "experiment=tiny",
-                f"trainer={trainer}",
-                f"trainer.precision={precision}",
-                f"paths.cache_dir={work / 'cache-tiny'}",
-                f"hydra.run.dir={run}",
-            ],
-            cwd=REPO,
-            capture_output=True,
-            text=True,
-        )
-        if proc.returncode != 0:
-            raise SemvprError(f"trainer.precision={precision} failed: {proc.stderr.strip().splitlines()[-1:]}")
-        metrics = json.loads((run / "metrics.json").read_text())
+        what = f"trainer.precision={precision}"
+        metrics = tiny_job(work, what, f"precision-{precision}", f"trainer={trainer}", what)
         out[f"{precision}({metrics['precision']})"] = metrics["test/R@1"]
     return out
 
@@ -97,48 +90,16 @@ def precision_variants(work: Path, trainer: str) -> dict[str, float]:
 def ddp_job(work: Path, trainer: str) -> dict:
     """The tiny ``filter=none`` job under ``trainer=ddp``: NCCL over every visible GPU, or gloo over two CPU
     processes; its metrics."""
-    run = work / "ddp"
     extra = [] if trainer == "gpu" else ["trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32-true"]
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "semvpr.train",
-            "experiment=tiny",
-            "trainer=ddp",
-            *extra,
-            f"paths.cache_dir={work / 'cache-tiny'}",
-            f"hydra.run.dir={run}",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-    )
-    if proc.returncode != 0:
-        raise SemvprError(f"trainer=ddp failed: {proc.stderr.strip().splitlines()[-1:]}")
-    return json.loads((run / "metrics.json").read_text())
+    return tiny_job(work, "trainer=ddp", "ddp", "trainer=ddp", *extra)
 
 
 def eval_check(work: Path, name: str, device: str) -> tuple[float, float]:
     """``semvpr.eval`` of the sweep's ``filter=unet`` checkpoint on ``device`` (its student's masks made
     there): (its test R@1, the training job's)."""
     job = next(p.parent for p in sorted((work / name).rglob("metrics.json")) if "filter=unet" in str(p))
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "semvpr.eval",
-            f"ckpt='{job / 'checkpoints' / 'tested.ckpt'}'",
-            f"device={device}",
-            f"paths.cache_dir={work / f'cache-{name}'}",
-            f"hydra.run.dir={work / f'eval-{name}'}",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-    )
-    if proc.returncode != 0:
-        raise SemvprError(f"semvpr.eval failed: {proc.stderr.strip().splitlines()[-1:]}")
+    where = (f"paths.cache_dir={work / f'cache-{name}'}", f"hydra.run.dir={work / f'eval-{name}'}")
+    proc = semvpr("semvpr.eval", "eval", f"ckpt='{job / 'checkpoints' / 'tested.ckpt'}'", f"device={device}", *where)
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     return result["test/R@1"], json.loads((job / "metrics.json").read_text())["test/R@1"]
 

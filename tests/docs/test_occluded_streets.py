@@ -21,15 +21,49 @@ from tests.camvid_fixture import write_camvid
 from tests.helpers import REPO, write_frames
 
 EXPERIMENT = REPO / "experiments" / "occluded-streets"
+#: run.sh's settings for fixtures: tiny images, one job at a time, the tiny SynthCity for NetVLAD's k-means.
+TINY = (
+    "data.num_workers=0 data.image_size=[64,96] hydra.launcher.n_jobs=1 experiment=tiny "
+    "init.overrides=['preset=tiny','image_size=[64,80]']"
+)
+
+
+def _places(tmp_path: Path) -> tuple[Path, Path]:
+    """Three tiny traversals whose frame i is the same image (clean, every query finds its place) and a tiny
+    CamVid."""
+    gardens = write_frames(
+        tmp_path / "gardens", {t: [0, 1, 2, 3, 4] for t in ("day_left", "day_right", "night_right")}, "Image{:03d}.jpg"
+    )
+    return gardens, write_camvid(tmp_path / "camvid", sizes={"train": 1, "val": 1, "test": 6})
+
+
+def _run_and_summarize(tmp_path: Path, gardens: Path, camvid: Path, env: dict[str, str]) -> dict[tuple, dict]:
+    """run.sh into ``tmp_path/out`` and summarize.py into ``tmp_path/summary``; the summary's rows by
+    (model, condition, mask, coverage)."""
+    for command, limit in (
+        (["bash", str(EXPERIMENT / "run.sh"), str(tmp_path / "out"), str(gardens), str(camvid)], 1500),
+        (
+            [
+                sys.executable,
+                str(EXPERIMENT / "summarize.py"),
+                str(tmp_path / "out"),
+                "--out-dir",
+                str(tmp_path / "summary"),
+            ],
+            300,
+        ),
+    ):
+        proc = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=limit)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    return {
+        (r["model"], r["condition"], r["mask"], int(r["coverage"])): r
+        for r in csv.DictReader((tmp_path / "summary" / "results.csv").open())
+    }
 
 
 @pytest.mark.slow
 def test_run_sh_and_summarize_on_fixtures(tmp_path: Path) -> None:
-    # Frame i of every traversal is the same image: clean, every query finds its place.
-    gardens = write_frames(
-        tmp_path / "gardens", {t: [0, 1, 2, 3, 4] for t in ("day_left", "day_right", "night_right")}, "Image{:03d}.jpg"
-    )
-    camvid = write_camvid(tmp_path / "camvid", sizes={"train": 1, "val": 1, "test": 6})
+    gardens, camvid = _places(tmp_path)
     out = tmp_path / "out"
     env = {
         **os.environ,
@@ -37,32 +71,11 @@ def test_run_sh_and_summarize_on_fixtures(tmp_path: Path) -> None:
         "PAIRS": "day_left:night_right",
         "COVERAGES": "0.1,0.2",
         "SEEDS": "0,1",
-        "EXTRA": "data.num_workers=0 data.image_size=[64,96] hydra.launcher.n_jobs=1 experiment=tiny "
-        "init.overrides=['preset=tiny','image_size=[64,80]']",
+        "EXTRA": TINY,
     }
-    run = subprocess.run(
-        ["bash", str(EXPERIMENT / "run.sh"), str(out), str(gardens), str(camvid)],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=1500,
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
+    rows = {k[1:]: r for k, r in _run_and_summarize(tmp_path, gardens, camvid, env).items()}
     sweeps = sorted(p.name for p in (out / "eval" / "day_left-night_right").iterdir())
     assert sweeps == ["m0-clean-none", "m0-holes-oracle", "m0-occluded-none", "m0-occluded-oracle"]
-    summary = subprocess.run(
-        [sys.executable, str(EXPERIMENT / "summarize.py"), str(out), "--out-dir", str(tmp_path / "summary")],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert summary.returncode == 0, summary.stderr[-3000:]
-    rows = {
-        (r["condition"], r["mask"], int(r["coverage"])): r
-        for r in csv.DictReader((tmp_path / "summary" / "results.csv").open())
-    }
     assert set(rows) == {("clean", "none", 0)} | {
         (c, m, cov) for c, m in (("occluded", "none"), ("occluded", "oracle"), ("holes", "oracle")) for cov in (10, 20)
     }
@@ -108,10 +121,7 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
     from semvpr.models.student import load_student
     from tests.helpers import frame_images, tiny_config, write_student_dir, write_teacher_dir
 
-    gardens = write_frames(
-        tmp_path / "gardens", {t: [0, 1, 2, 3, 4] for t in ("day_left", "day_right", "night_right")}, "Image{:03d}.jpg"
-    )
-    camvid = write_camvid(tmp_path / "camvid", sizes={"train": 1, "val": 1, "test": 6})
+    gardens, camvid = _places(tmp_path)
     backbone = build_backbone(tiny_config(tmp_path / "fixture-cache").backbone, 0).eval()
     student = write_student_dir(tmp_path / "seg" / "student", backbone, frame_images(gardens, "day_left"))
     teacher = write_teacher_dir(tmp_path / "seg" / "teacher")
@@ -145,18 +155,9 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
         "CAMVID_STUDENT": str(student),
         "CAMVID_TEACHER": str(teacher),
         "CKPTS": f"'{ckpt}'",
-        "EXTRA": "data.num_workers=0 data.image_size=[64,96] hydra.launcher.n_jobs=1 experiment=tiny "
-        "init.overrides=['preset=tiny','image_size=[64,80]']",
+        "EXTRA": TINY,
     }
-    run = subprocess.run(
-        ["bash", str(EXPERIMENT / "run.sh"), str(out), str(gardens), str(camvid)],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=1500,
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
+    rows = _run_and_summarize(tmp_path, gardens, camvid, env)
     cells = [
         f"{c}-{m}" for c, m in [("clean", "none"), ("occluded", "none"), ("occluded", "oracle"), ("holes", "oracle")]
     ]
@@ -168,18 +169,6 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
         assert result["status"] == "ok", (found, result.get("error"))
         segmenter = {"student": str(student), "teacher": str(teacher)}.get(result["mask"])
         assert result["mask_checkpoint"] == segmenter, found
-    summary = subprocess.run(
-        [sys.executable, str(EXPERIMENT / "summarize.py"), str(out), "--out-dir", str(tmp_path / "summary")],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert summary.returncode == 0, summary.stderr[-3000:]
-    rows = {
-        (r["model"], r["condition"], r["mask"], int(r["coverage"])): r
-        for r in csv.DictReader((tmp_path / "summary" / "results.csv").open())
-    }
     models = {"untrained netvlad", "tiny-none"}
     assert {k[0] for k in rows} == models
     for model in models:

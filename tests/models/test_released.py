@@ -506,13 +506,7 @@ def test_dinov2_release_loads_and_gives_the_authors_descriptors(tmp_path: Path, 
     model = salad_model() if fmt == "salad" else boq_dinov2_model()
     retriever = dinov2_release(tmp_path, fmt, model)
     assert retriever.descriptor_dim == (64 + 16 * 32 if fmt == "salad" else 128 * 4)
-    x = vit_images()
-    with torch.no_grad():
-        expected = model(normalised(x))
-    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
-    with torch.no_grad():
-        cosine = (retriever(x).float() * expected).sum(1)
-    assert bool((cosine > 0.99).all()), cosine
+    assert_authors_descriptors(retriever, model, vit_images())
 
 
 @pytest.mark.slow
@@ -522,10 +516,7 @@ def test_dinov2_release_at_the_authors_size_and_head(tmp_path: Path, fmt: str) -
     model = salad_model(64, 128, 256) if fmt == "salad" else boq_dinov2_model(384, 64, 32)
     retriever = dinov2_release(tmp_path, fmt, model, size=None)
     assert retriever.descriptor_dim == (8448 if fmt == "salad" else 12288)
-    x = vit_images(1, (322, 322))
-    with torch.no_grad():
-        expected = model(normalised(x))
-    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+    assert_authors_descriptors(retriever, model, vit_images(1, (322, 322)), bf16_pass=False)
 
 
 def test_dinov2_position_embeddings_are_interpolated_as_dinov2_does() -> None:
@@ -648,6 +639,18 @@ def fp32_descriptors(retriever: Retriever, x: Tensor) -> Tensor:
         return retriever.aggregator(retriever.backbone.forward_trainable(trunk), None)
 
 
+def assert_authors_descriptors(retriever: Retriever, model: nn.Module, x: Tensor, bf16_pass: bool = True) -> None:
+    """The loaded model's fp32 descriptors equal the author's model's on the same images; ``bf16_pass``: the
+    evaluation pass itself (trunk output rounded to bf16, as cached) gives the same descriptors to that rounding."""
+    with torch.no_grad():
+        expected = model(normalised(x))
+    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+    if bf16_pass:
+        with torch.no_grad():
+            cosine = (retriever(x).float() * expected).sum(1)
+        assert bool((cosine > 0.99).all()), cosine
+
+
 CASES: dict[str, tuple[Callable[[], nn.Module], Callable[[nn.Module, Path], None], str, int]] = {
     "netvlad": (netvlad_model, save_netvlad, "checkpoint.pth.tar", 64 * 512),
     "mixvpr": (mixvpr_model, save_mixvpr, "mixvpr.ckpt", 256 * 4),
@@ -665,14 +668,7 @@ def test_release_loads_and_gives_the_authors_descriptors(tmp_path: Path, fmt: st
     retriever, merged = released(tmp_path, tmp_path / name, f"data.image_size=[{SMALL},{SMALL}]", *named)
     assert merged.release == f"{fmt} ({'VGG16' if fmt == 'netvlad' else 'ResNet50'}, released)"
     assert retriever.descriptor_dim == dim and retriever.mask_source is None
-    x = images()
-    with torch.no_grad():
-        expected = model(normalised(x))
-    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
-    # The evaluation pass itself (trunk output rounded to bf16 as cached): the same descriptors to that rounding.
-    with torch.no_grad():
-        cosine = (retriever(x).float() * expected).sum(1)
-    assert bool((cosine > 0.99).all()), cosine
+    assert_authors_descriptors(retriever, model, images())
 
 
 def test_each_layout_fixes_the_authors_image_size(tmp_path: Path) -> None:
@@ -692,10 +688,7 @@ def test_mixvpr_at_the_authors_image_size(tmp_path: Path) -> None:
     save_mixvpr(model, tmp_path / "m.ckpt")
     retriever, merged = released(tmp_path, tmp_path / "m.ckpt")
     assert list(merged.data.image_size) == [320, 320]
-    x = images(1, 320)
-    with torch.no_grad():
-        expected = model(normalised(x))
-    torch.testing.assert_close(fp32_descriptors(retriever, x), expected, rtol=1e-5, atol=1e-5)
+    assert_authors_descriptors(retriever, model, images(1, 320), bf16_pass=False)
 
 
 # ---------------------------------------------------------------------------------- evaluation with a mask

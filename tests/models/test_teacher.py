@@ -22,29 +22,14 @@ from semvpr.segmentation import teacher_training
 from semvpr.segmentation import training as training_mod
 from semvpr.segmentation.teacher_training import TeacherFit, targets_from_train_ids
 from semvpr.segmentation.training import build_teacher
-from tests.helpers import REPO
-
-TINY_MODEL = {
-    "backbone": "swin",
-    "backbone_weights": "none",
-    "embed_dim": 16,
-    "depths": [1, 1, 1, 1],
-    "num_heads": [1, 1, 2, 2],
-    "window_size": 4,
-    "hidden_dim": 32,
-    "num_attention_heads": 2,
-    "encoder_layers": 1,
-    "decoder_layers": 2,
-    "num_queries": 8,
-    "train_num_points": 256,
-}
+from tests.helpers import REPO, TINY_TEACHER_MODEL
 
 
 def tiny_spec(**over: object) -> TeacherSpec:
     """A teacher small enough to train in seconds."""
     cfg = OmegaConf.load(REPO / "conf/teacher/mask2former.yaml")
     cfg.image_size = [32, 48]
-    cfg.model = TINY_MODEL
+    cfg.model = TINY_TEACHER_MODEL
     cfg.train.update(epochs=1, batch_size=2, num_workers=0, warmup_steps=1, augment=False)
     cfg.merge_with(over)
     return TeacherSpec.from_mapping(cfg)
@@ -88,7 +73,7 @@ def write_cityscapes(root: Path, n_train: int = 6, n_val: int = 2) -> None:
 
 def test_targets_one_mask_per_present_class() -> None:
     ids = torch.tensor([[[0, 0, 13], [IGNORE, 10, 13]]])
-    masks, classes = targets_from_train_ids(ids, Teacher(embedded_model(TINY_MODEL)).train_to_model)
+    masks, classes = targets_from_train_ids(ids, Teacher(embedded_model(TINY_TEACHER_MODEL)).train_to_model)
     assert classes[0].tolist() == [0, 10, 13]
     assert masks[0].shape == (3, 2, 3)
     assert masks[0].sum().item() == 5  # the ignored pixel belongs to no mask
@@ -96,7 +81,7 @@ def test_targets_one_mask_per_present_class() -> None:
 
 def test_loss_decreases_on_a_fixed_batch() -> None:
     torch.manual_seed(0)
-    teacher = Teacher(embedded_model(TINY_MODEL))
+    teacher = Teacher(embedded_model(TINY_TEACHER_MODEL))
     images, ids = batch(2)
     masks, classes = targets_from_train_ids(ids, teacher.train_to_model)
     opt = torch.optim.AdamW(teacher.parameters(), lr=1e-2)
@@ -111,7 +96,7 @@ def test_loss_decreases_on_a_fixed_batch() -> None:
 
 
 def test_post_processing_shapes_and_ranges() -> None:
-    teacher = Teacher(embedded_model(TINY_MODEL)).eval()
+    teacher = Teacher(embedded_model(TINY_TEACHER_MODEL)).eval()
     images = torch.rand(3, 3, 37, 53)  # not a multiple of the patch or window size
     ids = teacher.predict_train_ids(images)
     prob = teacher.class_prob(images)
@@ -127,7 +112,7 @@ def test_static_map_is_the_static_classes_share_of_the_scores() -> None:
     from semvpr.models.masks import TeacherMask
 
     torch.manual_seed(0)
-    teacher = Teacher(embedded_model(TINY_MODEL)).eval()
+    teacher = Teacher(embedded_model(TINY_TEACHER_MODEL)).eval()
     images = torch.rand(2, 3, 32, 48)
     with torch.no_grad():
         scores = teacher.semantic_scores(images)
@@ -140,7 +125,7 @@ def test_static_map_is_the_static_classes_share_of_the_scores() -> None:
 
 
 def test_classes_map_to_train_ids_by_name() -> None:
-    model = embedded_model(TINY_MODEL)
+    model = embedded_model(TINY_TEACHER_MODEL)
     model.config.id2label = {0: "car", 1: "Road", 2: "traffic_light", 3: "banana"}
     teacher = Teacher(model)
     assert teacher.model_to_train.tolist() == [13, 0, 6, IGNORE]
@@ -166,7 +151,7 @@ def test_pretrained_directory_loads_with_its_processor(tmp_path: Path) -> None:
     from transformers import Mask2FormerImageProcessor
 
     torch.manual_seed(0)
-    model = embedded_model(TINY_MODEL)
+    model = embedded_model(TINY_TEACHER_MODEL)
     model.save_pretrained(tmp_path / "ckpt")
     Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(
         tmp_path / "ckpt"
@@ -206,7 +191,7 @@ def test_the_embedded_mask2former_starts_from_the_original_init() -> None:
     (kaiming-uniform, bound 1/sqrt(fan_in)) for the mask MLP; transformers < 5.23 started them at N(0, 0.02)
     and 0, from which the teacher trains far worse."""
     torch.manual_seed(0)
-    model = embedded_model({**TINY_MODEL, "hidden_dim": 64, "num_queries": 20})
+    model = embedded_model({**TINY_TEACHER_MODEL, "hidden_dim": 64, "num_queries": 20})
     transformer = model.model.transformer_module
     embeddings = {
         "query features": transformer.queries_features.weight,
@@ -237,7 +222,7 @@ def test_training_the_teacher_refuses_a_transformers_without_the_original_init(
     assert build_teacher(tiny_spec(), train, val, tmp_path / "cache").teacher_key.startswith("teacher-")
 
 
-LITE_MODEL = {**TINY_MODEL, "backbone": "efficientnet_lite0", "backbone_weights": "imagenet"}
+LITE_MODEL = {**TINY_TEACHER_MODEL, "backbone": "efficientnet_lite0", "backbone_weights": "imagenet"}
 
 
 def test_efficientnet_teacher_holds_the_imagenet_backbone_and_round_trips(tmp_path: Path) -> None:
@@ -315,7 +300,7 @@ def _saved_teacher(folder: Path) -> Path:
     from transformers import Mask2FormerImageProcessor
 
     torch.manual_seed(0)
-    embedded_model(TINY_MODEL).save_pretrained(folder)
+    embedded_model(TINY_TEACHER_MODEL).save_pretrained(folder)
     Mask2FormerImageProcessor(image_mean=[0.5, 0.5, 0.5], image_std=[0.25, 0.25, 0.25]).save_pretrained(folder)
     return folder
 
@@ -446,5 +431,5 @@ def test_a_local_teacher_whose_weights_changed_is_another_teacher(tmp_path: Path
     first = build_teacher(tiny_spec(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key
     assert build_teacher(tiny_spec(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key == first
     torch.manual_seed(1)
-    embedded_model(TINY_MODEL).save_pretrained(folder)  # same directory, other weights
+    embedded_model(TINY_TEACHER_MODEL).save_pretrained(folder)  # same directory, other weights
     assert build_teacher(tiny_spec(checkpoint=str(folder)), None, None, tmp_path / "cache").teacher_key != first
