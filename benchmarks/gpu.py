@@ -96,12 +96,18 @@ def ddp_job(work: Path, trainer: str) -> dict:
 
 def eval_check(work: Path, name: str, device: str) -> tuple[float, float]:
     """``semvpr.eval`` of the sweep's ``filter=unet`` checkpoint on ``device`` (its student's masks made
-    there): (its test R@1, the training job's)."""
-    job = next(p.parent for p in sorted((work / name).rglob("metrics.json")) if "filter=unet" in str(p))
+    there): (its test R@1, the training job's), which must agree."""
+    jobs = [p.parent for p in sorted((work / name).rglob("metrics.json")) if "filter=unet" in str(p)]
+    if not jobs:
+        raise SemvprError(f"the {name} sweep left no filter=unet job to evaluate")
+    job = jobs[0]
     where = (f"paths.cache_dir={work / f'cache-{name}'}", f"hydra.run.dir={work / f'eval-{name}'}")
     proc = semvpr("semvpr.eval", "eval", f"ckpt='{job / 'checkpoints' / 'tested.ckpt'}'", f"device={device}", *where)
-    result = json.loads(proc.stdout.strip().splitlines()[-1])
-    return result["test/R@1"], json.loads((job / "metrics.json").read_text())["test/R@1"]
+    evaluated = json.loads(proc.stdout.strip().splitlines()[-1])["test/R@1"]
+    trained = json.loads((job / "metrics.json").read_text())["test/R@1"]
+    if abs(evaluated - trained) > 0.01:  # eval prints two decimals
+        raise SemvprError(f"semvpr.eval gives R@1 {evaluated}, its training job {trained}: not the same model")
+    return evaluated, trained
 
 
 def stage_line(name: str, job: dict) -> str:
@@ -209,9 +215,9 @@ def main(argv: list[str] | None = None) -> None:
         """Run one check; a failure is printed and kept, and the checks after it still run."""
         try:
             return step()
-        except (SemvprError, OSError, RuntimeError, KeyError) as err:
-            failures.append(f"{what}: {err}")
-            print(f"FAILED {what}: {err}", flush=True)
+        except Exception as err:  # any: the checks after it still run, and the summary names it
+            failures.append(f"{what}: {type(err).__name__}: {err}")
+            print(f"FAILED {what}: {type(err).__name__}: {err}", flush=True)
             return default
 
     nan = float("nan")
@@ -223,6 +229,9 @@ def main(argv: list[str] | None = None) -> None:
     ddp = check("trainer=ddp", lambda: ddp_job(work, trainer), {"test/R@1": nan})
     if "timings" in ddp:
         print(stage_line("ddp", ddp), flush=True)
+        devices = sorted({*devices, ddp["device"]})
+        if ddp["distributed"]["world_size"] < 2:
+            print("ddp: one rank (one device visible): the ranks' hand-shake and gathers are not exercised", flush=True)
     drift = check("fp32 drift", lambda: fp32_drift(device), nan)
     print(f"fp32 sections, {device.type} vs cpu: max abs difference {drift:.2e}", flush=True)
     img_s, ratio = check("VGG16 pass", lambda: vgg16_pass(device, 2 if args.quick else 20), (nan, nan))

@@ -28,10 +28,10 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.build import build_backbone, student_spec, teacher_spec
+from semvpr.config.build import build_backbone
 from semvpr.config.checks import check_config, refuse_private_keys_or_exit
 from semvpr.config.components import instantiate_node
-from semvpr.config.plan import thread_plan
+from semvpr.config.plan import student_spec, teacher_spec, thread_plan
 from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, atomic_dir, write_json
@@ -83,15 +83,15 @@ def saved_mask_source(
     folder: Path, cfg: DictConfig, backbone: Backbone
 ) -> Callable[[torch.Tensor, list[int]], torch.Tensor]:
     """``static probability (B,1,H,W) at size`` of images, from a directory this command saved: a teacher (a
-    folder with config.json) from the images, or a student on ``backbone``'s frozen outputs (bf16 autocast),
-    as the run scored them."""
-    static = list(cfg.teacher.static_classes)
+    folder with config.json) from the images, or a student on ``backbone``'s frozen outputs (in bf16 autocast
+    where ``student.bf16`` says so), as the run scored them; on ``backbone``'s device."""
+    static, device = list(cfg.teacher.static_classes), next(backbone.parameters()).device
     if (folder / "config.json").is_file():  # a teacher directory (a student's is student.json + weights)
         spec = dataclasses.replace(teacher_spec(cfg), checkpoint=str(folder.resolve()))
-        teacher = teacher_architecture(spec).eval()
-        return lambda images, size: teacher_outputs(teacher, images, size, static)[1]
-    student = load_student(folder, backbone)
-    return lambda images, size: student_prob(student, backbone, images, size, bf16=True)
+        teacher = teacher_architecture(spec).to(device).eval()
+        return lambda images, size: teacher_outputs(teacher, images.to(device), size, static)[1]
+    student, bf16 = load_student(folder, backbone).to(device), student_spec(cfg).bf16
+    return lambda images, size: student_prob(student, backbone, images, size, bf16=bf16)
 
 
 def replay_log(csv_path: Path, loggers: list[Any], prefix: str) -> None:

@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
-from semvpr.config.plan import JobPlan, ranks_of
+from semvpr.config.plan import JobPlan, ranks_of, student_spec, teacher_spec
 from semvpr.config.record import record_of
 from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
@@ -37,8 +37,8 @@ from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import ClassWeights, MaskSource
-from semvpr.models.student import Student, StudentSpec, load_student, student_architecture
-from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher
+from semvpr.models.student import Student, load_student, student_architecture
+from semvpr.models.teacher import Teacher, embedded_teacher
 from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
@@ -139,16 +139,6 @@ def optimization_of(cfg: DictConfig) -> Optimization:
 def init_sample_of(cfg: DictConfig) -> InitSample:
     """The aggregator initialisation's sample size and seed."""
     return InitSample(int(cfg.model.init_features), int(cfg.model.init_per_image), int(cfg.seed))
-
-
-def student_spec(cfg: DictConfig) -> StudentSpec:
-    """The student's settings (``cfg.student``)."""
-    return StudentSpec.from_mapping(cfg.student)
-
-
-def teacher_spec(cfg: DictConfig) -> TeacherSpec:
-    """The teacher's settings (``cfg.teacher``)."""
-    return TeacherSpec.from_mapping(cfg.teacher)
 
 
 # ----------------------------------------------------------------------------------- components
@@ -311,7 +301,7 @@ def semantic_teacher(cfg: DictConfig, plan: JobPlan, backbone: Backbone) -> Teac
     pixel encoder is that prefix (``Teacher.link_trunk``)."""
     from semvpr.segmentation.training import build_teacher
 
-    settings = teacher_spec(cfg)
+    settings = plan.teacher
     seg = cfg.data.get("segmentation")
     needs_training = settings.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
@@ -478,7 +468,7 @@ def build_semantic(
         labels_dir = pseudo_labels(
             teacher,
             images,
-            Reading(size, teacher_spec(cfg).predict_batch_size, workers),
+            Reading(size, plan.teacher.predict_batch_size, workers),
             cfg.paths.cache_dir,
             source.root,
             trunk=trunk if on_trunk else None,
@@ -486,7 +476,7 @@ def build_semantic(
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, source.root, timings=timings)
     if plan.mask_needs == "student":
-        spec = student_spec(cfg)
+        spec = plan.student
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
         with threads.stage("student"):
             labelled = LabelledImages(images, labels_dir, source.root)

@@ -397,10 +397,16 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
                 continue
             _check_size(value, f"aggregator.module.{key}")
         class_token = bool(cfg.backbone.get("class_token", False))
-        if class_token != (module is not None and module.get("global_token") == "class"):
+        global_class = module is not None and module.get("global_token") == "class"
+        if global_class and not class_token:
             raise SemvprError(
-                f"backbone.class_token={str(class_token).lower()} goes with aggregator=salad "
-                "aggregator.module.global_token=class, and only with it (the class token is SALAD's global token)"
+                "aggregator.module.global_token=class needs backbone.class_token=true (a DINOv2 backbone's "
+                "class token, after its patch channels)"
+            )
+        if class_token and not global_class:
+            raise SemvprError(
+                f"backbone.class_token=true is read only by aggregator=salad aggregator.module.global_token=class, "
+                f"not by aggregator={cfg.aggregator.name}: set backbone.class_token=false"
             )
     except SemvprError as err:
         raise SemvprError(f"{prefix}{err}") from None

@@ -1,7 +1,7 @@
 """What a job decides once from its config, before it builds anything: the device every stage runs on, the
-threads of each stage, its DDP ranks, its mask source's class and whether it needs the semantic side
-(teacher, pseudo-labels, student). :func:`job_plan` makes it as the job starts; the builders read it
-instead of deciding again.
+threads of each stage, its DDP ranks, its mask source's class, whether it needs the semantic side
+(teacher, pseudo-labels, student) and the teacher's and student's typed settings. :func:`job_plan` makes it
+as the job starts; the builders read it instead of deciding again.
 
 A job runs on one device (``core/device.py``): the CPU, or a GPU: a DDP rank's own (its local rank), the one
 a sweep job leases (:func:`sweep_gpu`: a GPU per job where several are visible), else the first.
@@ -21,20 +21,25 @@ from semvpr.config.components import component_class
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
 from semvpr.core.threads import Threads, standard_start_method, usable_cores
 from semvpr.models.masks import MaskSource
+from semvpr.models.student import StudentSpec
+from semvpr.models.teacher import TeacherSpec
 from semvpr.retrieval.launch import local_rank
 
 
 @dataclass(frozen=True)
 class JobPlan:
     """One job's decisions: ``device`` (every stage's), ``threads`` (each stage's, adopted for its frozen
-    passes), ``ranks`` (DDP processes per node, nodes), ``mask`` (the mask source's class, None without one)
-    and ``semantic`` (whether the aggregator's labelled init or the mask needs the teacher)."""
+    passes), ``ranks`` (DDP processes per node, nodes), ``mask`` (the mask source's class, None without one),
+    ``semantic`` (whether the aggregator's labelled init or the mask needs the teacher), and the ``teacher``'s
+    and ``student``'s settings."""
 
     device: torch.device
     threads: Threads
     ranks: tuple[int, int]
     mask: type[MaskSource] | None
     semantic: bool
+    teacher: TeacherSpec
+    student: StudentSpec
 
     @property
     def mask_needs(self) -> str | None:
@@ -49,7 +54,17 @@ def job_plan(cfg: DictConfig, device: torch.device | None = None) -> JobPlan:
     needs = mask.needs if mask is not None else None
     semantic = component_class(cfg, "aggregator").init_sample == "labelled" or needs in ("teacher", "student")
     threads = thread_plan(cfg, gpu=device.type == "cuda")
-    return JobPlan(device, threads, ranks_of(cfg.trainer), mask, semantic)
+    return JobPlan(device, threads, ranks_of(cfg.trainer), mask, semantic, teacher_spec(cfg), student_spec(cfg))
+
+
+def student_spec(cfg: DictConfig) -> StudentSpec:
+    """The student's settings (``cfg.student``)."""
+    return StudentSpec.from_mapping(cfg.student)
+
+
+def teacher_spec(cfg: DictConfig) -> TeacherSpec:
+    """The teacher's settings (``cfg.teacher``)."""
+    return TeacherSpec.from_mapping(cfg.teacher)
 
 
 def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:

@@ -34,7 +34,7 @@ CONF = Path(CONF_DIR)
 GROUPS = ("backbone", "aggregator", "mask", "teacher", "student")
 #: Plain nodes of the train config that define the model (checked against the invocation's own).
 NODES = ("model",)
-#: Settings a checkpoint records now, with the value a run that did not record them ran with.
+#: Recorded settings that older checkpoints lack, with the value the runs that wrote them used.
 BEFORE_RECORDED = {"teacher": {"share_trunk": False}}
 _CHOICE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]*$")
 #: Recorded (group, key)s whose value names something to read: a Hugging Face id or null.

@@ -227,11 +227,6 @@ def replace_mask(cfg: DictConfig, explicit: set[str], merged: DictConfig, where:
         needs not in given or not given[needs] or given[needs] == merged[needs].get("checkpoint")
     ):
         return None  # the checkpoint's own
-    if cls is not None and needs not in (*SEGMENTER_GROUPS, "ground_truth"):
-        raise SemvprError(
-            f"mask={cfg.mask.name} cannot replace the mask source of {where}: only mask=teacher "
-            "teacher.checkpoint=DIR, mask=student student.checkpoint=DIR, mask=oracle or mask=none can"
-        )
     if needs in SEGMENTER_GROUPS and not given[needs]:
         raise SemvprError(
             f"mask={cfg.mask.name} replaces the mask source of {where} only with a saved {needs}: add "

@@ -282,16 +282,16 @@ def check_markdown(path: Path, root: Path) -> list[str]:
         if _LINE_OPENING_MARKER.match(line)
     ]
     for span in marked_spans(markdown):
-        if span.kind == "table":
-            if span.text.strip() != render_table(TableSpec.of_marker(span.args, root), root):
-                problems.append(f"{where}:{span.line}: table differs from {span.args[0]} (regenerate it)")
-            continue
-        if not span.args:
-            problems.append(f"{where}:{span.line}: a claim names no source")
-            continue
-        problems += _check_claim(span, [r for source in span.args for r in source_records(root / source)], where)
+        try:
+            problems += _check_span(span, root, where)
+        except SemvprError as err:  # a marker or source that cannot be read: this one marker's problem
+            problems.append(f"{where}:{span.line}: {err}")
     for span in count_spans(markdown):
-        stated, counted = stated_count(span.text), count_rows(span.args, root)
+        try:
+            stated, counted = stated_count(span.text), count_rows(span.args, root)
+        except SemvprError as err:
+            problems.append(f"{where}:{span.line}: {err}")
+            continue
         if stated != counted:
             problems.append(
                 f"{where}:{span.line}: {span.text.strip()!r} is not the {counted} rows of {' '.join(span.args)}"
@@ -343,6 +343,17 @@ def _in_sequence(chain: list[Stated], record: Record) -> bool:
         all(_holds(s, record[start + k : start + k + 1]) for k, s in enumerate(chain))
         for start in range(len(record) - len(chain) + 1)
     )
+
+
+def _check_span(span: Marked, root: Path, where: str) -> list[str]:
+    """What does not hold in one table or claim marker's span."""
+    if span.kind == "table":
+        if span.text.strip() != render_table(TableSpec.of_marker(span.args, root), root):
+            return [f"{where}:{span.line}: table differs from {span.args[0]} (regenerate it)"]
+        return []
+    if not span.args:
+        return [f"{where}:{span.line}: a claim names no source"]
+    return _check_claim(span, [r for source in span.args for r in source_records(root / source)], where)
 
 
 def _check_claim(span: Marked, records: list[Record], where: str) -> list[str]:
@@ -411,7 +422,7 @@ def parser() -> argparse.ArgumentParser:
     """The command line of ``python -m semvpr.reporting.claims``."""
     ap = argparse.ArgumentParser(description="Check the numbers of the docs against their data files.")
     ap.add_argument("files", type=Path, nargs="*", help="markdown files (default: the committed docs)")
-    ap.add_argument("--write", action="store_true", help="rewrite every generated table from its CSV first")
+    ap.add_argument("--write", action="store_true", help="rewrite every generated table from its source first")
     ap.add_argument("--root", type=Path, default=Path("."), help="where the markers' paths start (the repository)")
     return ap
 

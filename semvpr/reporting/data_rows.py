@@ -203,7 +203,10 @@ def _number(value: str, spec: str) -> str:
     if not _is_number(value):
         raise SemvprError(f"expected a number in the data file, got {value!r}")
     number = float(value)
-    text = format(100.0 * number, spec[:-1] + "f") + " %" if spec.endswith("%") else format(number, spec)
+    try:
+        text = format(100.0 * number, spec[:-1] + "f") + " %" if spec.endswith("%") else format(number, spec)
+    except ValueError:
+        raise SemvprError(f"{{:{spec}}} is not a number format (for example {{:.1f}}, {{:+.1f}}, {{:.1%}})") from None
     return text.replace("-", "−")
 
 

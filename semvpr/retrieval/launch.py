@@ -9,14 +9,14 @@
   with the job's own overrides (never the sweep's ``-m``) in the job's run directory. Lightning would
   relaunch ``sys.argv`` instead, which re-runs a whole sweep in every rank.
 
-The ranks this process starts check in with it (a local socket) once they are about to train, and wait
-there for its word to go. Rank 0 does its own work before ``fit`` (the aggregator's initialisation, the
-untrained evaluation) while they read their caches, then waits for their check-in (the ``join`` that
-:func:`job_ranks` yields), in Python, watching them, and tells them to go: a rank that exits first (a bad
-command line, a crash while reading its caches) ends the job at once with one line; SIGTERM / Ctrl-C stop
-it; a rank 0 that ends first ends the waiting ranks with one line. Nobody waits in the process group's
-rendezvous, which would ignore signals until its timeout, except ranks a scheduler started (they wait
-there for rank 0's work before ``fit``: the strategy's timeout covers it).
+The ranks this process starts check in with it (a local socket) just before ``fit`` (the ``join`` that
+:func:`job_ranks` yields), and wait there for its word to go. Rank 0 does its own work before ``fit`` (the
+aggregator's initialisation, the untrained evaluation) while they read their caches and build their model,
+then waits for their check-in at its own ``join``, in Python, watching them, and tells them to go: a rank
+that exits first (a bad command line, a crash while reading its caches) ends the job at once with one line;
+SIGTERM / Ctrl-C stop it; a rank 0 that ends first ends the waiting ranks with one line. Nobody waits in the
+process group's rendezvous, which would ignore signals until its timeout, except ranks a scheduler started
+(they wait there for rank 0's work before ``fit``: the strategy's timeout covers it).
 
 When the job ends the process group is destroyed and the variables are restored, so that the next
 job of a sweep starts afresh.
@@ -160,23 +160,31 @@ def release_ranks(joined: list[socket.socket]) -> None:
 
 def _check_in() -> None:
     """Tell the rank-0 process that started this rank that it is about to train, and wait until rank 0
-    is too (its own work before ``fit`` done): in Python, not in the process group's rendezvous."""
+    is too (its own work before ``fit`` done): in Python, not in the process group's rendezvous. A no-op
+    in a rank it did not start, and after the first call."""
     port = os.environ.pop(CHECK_IN, None)
     if port is None:
         return
-    with socket.create_connection(("127.0.0.1", int(port)), timeout=30) as conn:
-        conn.sendall(os.environ.get("LOCAL_RANK", "0").encode())
-        conn.settimeout(None)
-        if conn.recv(len(GO)) != GO:
-            raise SemvprError("rank 0 of the DDP job ended before training began; its output says why")
+    word = b""
+    try:
+        with socket.create_connection(("127.0.0.1", int(port)), timeout=30) as conn:
+            conn.sendall(os.environ.get("LOCAL_RANK", "0").encode())
+            conn.settimeout(None)
+            while len(word) < len(GO) and (part := conn.recv(len(GO) - len(word))):
+                word += part
+    except OSError:
+        pass  # rank 0 is gone (refused or reset): the line below
+    if word != GO:
+        raise SemvprError("rank 0 of the DDP job ended before training began; its output says why")
 
 
 @contextmanager
 def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path) -> Iterator[Callable[[], None]]:
     """Make the ranks of one job exist for its duration (module docstring); a no-op for one process.
 
-    Yields ``join``: rank 0 calls it once its own work before ``fit`` is done, to wait until the ranks it
-    started have checked in (a no-op where it started none); the block's end joins them if it did not."""
+    Yields ``join``, which every rank calls just before ``fit``: rank 0 waits there until the ranks it started
+    have checked in and tells them to go; a rank it started checks in there and waits for that word (a no-op
+    elsewhere, and after the first call); the block's end joins them if it did not."""
     world_size = devices * num_nodes
     saved = {key: os.environ.get(key) for key in _RANK_VARIABLES}
     children: list[subprocess.Popen] = []
@@ -184,12 +192,14 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
 
     def join() -> None:
         nonlocal listener
-        if listener is not None:
-            try:
-                release_ranks(await_ranks(listener, children))
-            finally:
-                listener.close()
-                listener = None
+        if listener is None:
+            _check_in()
+            return
+        try:
+            release_ranks(await_ranks(listener, children))
+        finally:
+            listener.close()
+            listener = None
 
     externally = "LOCAL_RANK" in os.environ or "SLURM_PROCID" in os.environ
     try:
@@ -218,8 +228,6 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
                     subprocess.Popen(_child_command(overrides, run_dir, rank), env={**env, "LOCAL_RANK": str(rank)})
                     for rank in range(1, world_size)
                 ]
-        elif world_size > 1:
-            _check_in()
         yield join
         join()
     except BaseException:

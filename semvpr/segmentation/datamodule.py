@@ -37,7 +37,6 @@ class SegmentationDataset(Dataset):
         data: SegmentationSet | tuple[Sequence[str | Path], Sequence[str | Path]],
         image_size: Size | None,
         augment: bool = False,
-        label_ids: bool = True,
     ) -> None:
         if not isinstance(data, SegmentationSet):
             data = SegmentationSet(images=tuple(data[0]), labels=tuple(data[1]))
@@ -45,7 +44,6 @@ class SegmentationDataset(Dataset):
             raise SemvprError("segmentation dataset is empty: no image/label pairs given")
         self.data = data
         self.image_size = image_size
-        self.label_ids = label_ids
         if augment and image_size is None:
             raise SemvprError("segmentation augmentation needs an image_size [H, W]")
         self.augment = augment
@@ -60,7 +58,7 @@ class SegmentationDataset(Dataset):
             self.data.images[index],
             self.data.labels[index],
             self.image_size,
-            from_label_ids=self.label_ids,
+            from_label_ids=True,
             lut=self.data.label_lut,
         )
         if self._aug is not None:

@@ -597,7 +597,8 @@ def test_a_dinov2_trunk_reads_a_release_or_dinov2s_own_file(tmp_path: Path) -> N
 def test_a_student_is_refused_on_dinov2_token_maps_and_a_run_without_one_trains(tmp_path: Path) -> None:
     """A student decodes image-aligned maps: on the DINOv2 trunk it is one line, and a run whose semantic side
     could have a student (SynthCity's labels) plans its trunk pass without one."""
-    from semvpr.config.build import semantic_levels, student_spec
+    from semvpr.config.build import semantic_levels
+    from semvpr.config.plan import student_spec
     from semvpr.models.student import student_architecture
 
     cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", "data.image_size=[70,98]")
@@ -610,12 +611,12 @@ def test_a_student_is_refused_on_dinov2_token_maps_and_a_run_without_one_trains(
 def test_the_class_token_goes_with_salads_class_token_only(tmp_path: Path) -> None:
     from semvpr.config.checks import check_config
 
-    for overrides in (
-        ["aggregator=gem", "backbone.class_token=true"],
-        ["aggregator=salad", "aggregator.module.global_token=class"],
+    for overrides, error in (
+        (["aggregator=gem", "backbone.class_token=true"], "backbone.class_token=true is read only by aggregator=salad"),
+        (["aggregator=salad", "aggregator.module.global_token=class"], "global_token=class needs backbone.class_token"),
     ):
         cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", *overrides)
-        with pytest.raises(SemvprError, match="goes with aggregator=salad aggregator.module.global_token=class"):
+        with pytest.raises(SemvprError, match=error):
             check_config(cfg)
 
 

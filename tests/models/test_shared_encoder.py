@@ -19,10 +19,9 @@ from semvpr.config.build import (
     build_places,
     prepare,
     semantic_teacher,
-    teacher_spec,
     trunk_outputs,
 )
-from semvpr.config.plan import job_plan
+from semvpr.config.plan import job_plan, teacher_spec
 from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
 from semvpr.models.masks import StudentMask, TeacherMask, pool_to_grid

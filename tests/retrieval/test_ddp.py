@@ -318,6 +318,18 @@ def test_a_started_rank_ends_with_one_line_when_rank_0_ends_before_training(tmp_
     assert log.read_text().strip() == "refused rank 0 of the DDP job ended before training began; its output says why"
 
 
+def test_a_started_rank_whose_rank_0_is_gone_ends_with_one_line(tmp_path: Path) -> None:
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]  # closed below: nothing listens there any more
+    log = tmp_path / "rank.log"
+    env = {"PYTHONPATH": str(REPO), "LOCAL_RANK": "1", "SEMVPR_DDP_CHECK_IN": str(port)}
+    child = subprocess.run([sys.executable, "-c", _fake_rank_command(log)], env=env, timeout=60)
+    assert child.returncode == 1
+    assert log.read_text().strip() == "refused rank 0 of the DDP job ended before training began; its output says why"
+
+
 def test_child_run_dirs_are_quoted_for_hydra() -> None:
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
