@@ -128,9 +128,9 @@ def train_and_test(
     tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
     trainer.save_checkpoint(tested_ckpt, weights_only=True)  # no optimizer state: eval needs none
     timings["test_s"] = time.time() - tic
-    ran_on = trainer.strategy.root_device  # where fit and test ran (teardown has moved the model to the CPU)
     if not leader:
         return None
+    ran_on = trainer.strategy.root_device  # where fit and test ran (teardown has moved the model to the CPU)
     retriever.to(device)  # the figures' maps are made on the job's device too
     tested = evaluation.results["test"]
     write_job_figure_data(
