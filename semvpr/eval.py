@@ -24,7 +24,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
@@ -32,13 +31,11 @@ from omegaconf import DictConfig
 
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
-from semvpr.config.plan import thread_plan
+from semvpr.config.command import hydra_command, model_pass
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
-from semvpr.core.errors import SemvprError, exit_on_user_error, one_line
-from semvpr.core.io import CONF_DIR, write_json, write_npy
-from semvpr.core.logs import quiet_third_party
-from semvpr.core.precision import job_precision
+from semvpr.core.errors import SemvprError, one_line
+from semvpr.core.io import write_json, write_npy
 from semvpr.core.stops import Interrupted, killed_workers_stop, sweep_stopped_line
 from semvpr.data.places import PlaceSet
 from semvpr.reporting.benchmarks_table import RANKS_FILE, write_table
@@ -102,16 +99,10 @@ def evaluate_checkpoint(
     return out
 
 
-@hydra.main(config_path=CONF_DIR, config_name="eval", version_base="1.3")
-@exit_on_user_error
-def _hydra_main(cfg: DictConfig) -> None:
-    quiet_third_party()
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
+@hydra_command("eval")
+def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
     try:
-        device = resolve(cfg.get("device"))
-        threads = thread_plan(cfg, gpu=device.type == "cuda")
-        # Images through the whole model: the trunk pass dominates.
-        with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
+        with model_pass(cfg) as (_, threads):
             result = {**evaluate_checkpoint(cfg, explicit_keys(), out_dir), "threads": threads.record()}
     except Exception as err:  # noqa: BLE001 - in a sweep every failure becomes its job's row
         if HydraConfig.get().mode != RunMode.MULTIRUN:

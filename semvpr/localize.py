@@ -16,20 +16,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
-from semvpr.config.plan import thread_plan
+from semvpr.config.command import hydra_command, model_pass
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
-from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import CONF_DIR, write_json
-from semvpr.core.logs import quiet_third_party
-from semvpr.core.precision import job_precision
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import write_json
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
 
@@ -84,17 +80,9 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     return out
 
 
-@hydra.main(config_path=CONF_DIR, config_name="localize", version_base="1.3")
-@exit_on_user_error
-def _hydra_main(cfg: DictConfig) -> None:
-    quiet_third_party()
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    device = resolve(cfg.get("device"))
-    # Images through the whole model: the trunk pass dominates.
-    with (
-        thread_plan(cfg, gpu=device.type == "cuda").stage("frozen"),
-        job_precision(str(cfg.trainer.precision), device.type),
-    ):
+@hydra_command("localize")
+def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
+    with model_pass(cfg):
         results = localize(cfg, explicit_keys(), run_dir)
     output = run_dir / "localize.json"
     write_json(output, results)

@@ -22,20 +22,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 import torch
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import build_backbone
 from semvpr.config.checks import check_config, refuse_private_keys_or_exit
+from semvpr.config.command import hydra_command
 from semvpr.config.components import instantiate_node
 from semvpr.config.plan import student_spec, teacher_spec, thread_plan
 from semvpr.core.device import resolve
-from semvpr.core.errors import exit_on_user_error
-from semvpr.core.io import CONF_DIR, atomic_dir, write_json
-from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
+from semvpr.core.io import atomic_dir, write_json
+from semvpr.core.logs import no_hf_progress_bars
 from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.images import Reading, load_image
@@ -313,11 +311,8 @@ def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
     return line
 
 
-@hydra.main(config_path=CONF_DIR, config_name="segment", version_base="1.3")
-@exit_on_user_error
-def _hydra_main(cfg: DictConfig) -> None:
-    quiet_third_party()
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
+@hydra_command("segment")
+def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     print(json.dumps(summary(run(cfg, run_dir), run_dir)))
 
 

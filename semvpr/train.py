@@ -25,12 +25,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
 from semvpr.config.checks import check_config, check_overrides_or_exit
+from semvpr.config.command import hydra_command
 from semvpr.config.plan import JobPlan, job_device, job_plan, ranks_of, sweep_gpu
 from semvpr.config.runs import keep_run_record, resumed_config
 from semvpr.core.checkpoint import RunCheckpoint
-from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.core.io import CONF_DIR, reclaim_orphans, write_json
-from semvpr.core.logs import quiet_third_party
+from semvpr.core.errors import SemvprError
+from semvpr.core.io import reclaim_orphans, write_json
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.stops import Interrupted, killed_workers_stop, received_stop, stop_on_signals, sweep_stopped_line
 from semvpr.reporting.job_files import write_job_figure_data
@@ -291,12 +291,9 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     return metrics
 
 
-@hydra.main(config_path=CONF_DIR, config_name="train", version_base="1.3")
-@exit_on_user_error
-def _hydra_main(cfg: DictConfig) -> None:
-    quiet_third_party()
+@hydra_command("train")
+def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     hydra_cfg = HydraConfig.get()
-    run_dir = Path(hydra_cfg.runtime.output_dir)
     record = run_dir / ".hydra" / "config.yaml"
     if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
         cfg = resumed_config(

@@ -8,7 +8,7 @@ from pathlib import Path
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import read_list_text, regular_file
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
-from semvpr.data.places import listed_image
+from semvpr.data.places import dataset_root, listed_image
 from semvpr.data.segmentation import SegmentationSet, check_pair
 
 #: SegNet's 11 CamVid classes by label index; index 11 is Unlabelled (ignored).
@@ -61,12 +61,7 @@ def _listed(root: Path, entry: str, listing: Path) -> Path:
 
 def read_camvid(root: str | Path, split: str) -> SegmentationSet:
     """The image / label pairs listed in ``<root>/<split>.txt``, checked to exist and to agree in size."""
-    root = Path(root).expanduser()
-    if not root.is_dir():
-        raise SemvprError(
-            f"CamVid root {root} is not a directory; set seg.root to the folder holding "
-            f"{split}/, {split}annot/ and {split}.txt (SegNet layout)"
-        )
+    root = dataset_root(root, "CamVid root", "seg.root", f"{split}/, {split}annot/ and {split}.txt (SegNet layout)")
     listing = root / f"{split}.txt"
     if not regular_file(listing, "CamVid split list"):
         raise SemvprError(

@@ -319,14 +319,18 @@ def _images_in(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
-    """Read `root/images/<split>/{database,queries}/*.jpg` (@UTM@ names); root may also be images/."""
+def dataset_root(root: str | Path, what: str, key: str, holds: str) -> Path:
+    """``root`` (``~`` expanded), refused in one line unless it is a directory: ``what`` it is, the setting that
+    names it (``key``) and what the folder holds."""
     root = Path(root).expanduser()
     if not root.is_dir():
-        raise SemvprError(
-            f"dataset root {root} does not exist; point data.root=... at the folder "
-            f"holding images/{split}/database and images/{split}/queries"
-        )
+        raise SemvprError(f"{what} {root} is not a directory; set {key} to the folder holding {holds}")
+    return root
+
+
+def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
+    """Read `root/images/<split>/{database,queries}/*.jpg` (@UTM@ names); root may also be images/."""
+    root = dataset_root(root, "dataset root", "data.root=...", f"images/{split}/database and images/{split}/queries")
     base = root / "images" if (root / "images").is_dir() else root
     split_dir = base / split
     if not split_dir.is_dir():

@@ -355,22 +355,14 @@ def ensure_synthcity(
     return build_once(cache_dir, "synthcity", key, lambda tmp: generate(tmp, preset, int(seed), render, image_size))
 
 
-def generate_traversals(
-    root: Path,
-    preset: str,
-    seed: int,
-    traversals: int,
-    render: Mapping[str, float] | None = None,
-    image_size: Sequence[int] | None = None,
-    workers: int | None = None,
-) -> None:
-    """Write ``traversals`` extra traversals of the dataset's training routes under ``root`` (module
-    docstring); the dataset's own files are never read or written."""
-    p = get_preset(preset, render, image_size)
+def generate_traversals(root: Path, p: Preset, seed: int, traversals: int, label: str = "SynthCity") -> None:
+    """Write ``traversals`` extra traversals of the training routes of preset ``p``'s dataset drawn with
+    ``seed`` under ``root`` (module docstring); the dataset's own files are never read or written. ``label``
+    names the dataset in the progress bar."""
     routes = [r for r in _routes(p) if r.kind == "vpr" and r.split == "train"]
     draw = functools.partial(_draw_traversals, root, seed, p.render, traversals)
     sizes = {r.rid: traversals * r.spec.db_per_route for r in routes}
-    _map_routes(draw, routes, sizes, f"SynthCity {preset} seed {seed}: {traversals} traversals", workers)
+    _map_routes(draw, routes, sizes, f"{label} seed {seed}: {traversals} traversals", None)
 
 
 def _traversals_key(
@@ -393,11 +385,12 @@ def ensure_traversals(
     """Root of the extra training traversals in the artifact cache (kind "synthcity_traversals"), drawn on
     first use."""
     key = _traversals_key(preset, seed, render, image_size, traversals)
+    label = f"SynthCity {preset}"
     return build_once(
         cache_dir,
         "synthcity_traversals",
         key,
-        lambda tmp: generate_traversals(tmp, preset, int(seed), traversals, render, image_size),
+        lambda tmp: generate_traversals(tmp, get_preset(preset, render, image_size), int(seed), traversals, label),
     )
 
 

@@ -1,0 +1,52 @@
+"""What the Hydra commands (train, eval, localize, segment) share: the frame of their task function, and for the
+commands that pass images through a whole trained model (eval, localize) its device, threads and precision."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from semvpr.config.plan import thread_plan
+from semvpr.core.device import resolve
+from semvpr.core.errors import exit_on_user_error
+from semvpr.core.io import CONF_DIR
+from semvpr.core.logs import quiet_third_party
+from semvpr.core.precision import job_precision
+from semvpr.core.threads import Threads
+
+Task = Callable[[DictConfig, Path], None]
+
+
+def hydra_command(config_name: str) -> Callable[[Task], Callable[[], None]]:
+    """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
+    quietened, called with the job's output directory, a user error one line on stderr and exit code 2
+    (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module."""
+
+    def command(task: Task) -> Callable[[], None]:
+        @functools.wraps(task)
+        def task_function(cfg: DictConfig) -> None:
+            quiet_third_party()
+            task(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+        main = hydra.main(config_path=CONF_DIR, config_name=config_name, version_base="1.3")
+        return main(exit_on_user_error(task_function))
+
+    return command
+
+
+@contextmanager
+def model_pass(cfg: DictConfig) -> Iterator[tuple[torch.device, Threads]]:
+    """The device (``device``), threads and precision (``trainer.precision``) of a command that passes images
+    through a whole model, adopted while it runs: the trunk pass dominates, so it runs as the ``frozen``
+    stage."""
+    device = resolve(cfg.get("device"))
+    threads = thread_plan(cfg, gpu=device.type == "cuda")
+    with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
+        yield device, threads
