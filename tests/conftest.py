@@ -26,4 +26,4 @@ def no_adopted_thread_plan() -> None:
     """Each test starts outside any job: no thread plan adopted by an earlier test's job."""
     from semvpr.core import threads
 
-    threads._JOB["frozen"] = None
+    threads._JOB["plan"] = None

@@ -32,6 +32,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
+from semvpr.core.threads import frozen_workers
 from semvpr.data.images import Reading
 from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.base import Aggregator
@@ -244,7 +245,7 @@ def build_retriever(
         whitening,
         optimization_of(cfg) if training else None,
         int(cfg.model.eval_batch_size),
-        int(cfg.data.num_workers),
+        frozen_workers(int(cfg.data.num_workers)),  # its image passes: eval's, localize's, the hub's
         record=record_of(cfg, mask_trained_on(cfg, mask_source)),
         class_weights=build_class_weights(cfg),
     )

@@ -13,8 +13,12 @@ starts (DDP ranks on the node) and with the jobs a launcher runs beside it (Hydr
   what stays on the CPU there is data loading and k-means, not small steps. An ``OMP_NUM_THREADS`` set in the
   environment caps ``auto``.
 
-Data-loader workers decode images single-threaded (torch's default in a worker); a loader starts at most
-``share`` of them.
+Data-loader workers decode images single-threaded (torch's default in a worker). A loader that feeds a GPU
+starts at most ``share`` of them; one that feeds a CPU stage at most the cores the stage's threads leave free
+(none under ``auto``, which gives a frozen pass the whole share): a worker beside busy compute threads only
+takes turns with them, and forking it write-protects the job's whole heap, so that every page the job writes
+next faults. In a cold default training job on 2 cores, no workers instead of 2 took a quarter of the page
+faults and a little less wall time, with equal recalls (``benchmarks/kernel_time.py``).
 
 A job that Hydra's joblib launcher runs lives in a loky worker, whose default start method (``loky``) a
 data loader cannot start its workers with; :func:`standard_start_method` gives such a job the platform's
@@ -45,8 +49,8 @@ import torch
 
 from semvpr.core.errors import SemvprError
 
-#: The thread count of the running job's frozen passes (its plan's ``frozen`` stage), once a plan is adopted.
-_JOB: dict[str, int | None] = {"frozen": None}
+#: The running job's plan, once adopted (:meth:`Threads.adopt`): its frozen passes' threads, its loaders' workers.
+_JOB: dict[str, Threads | None] = {"plan": None}
 
 #: ``threads=auto`` per stage: None = the whole share, else that many threads (within the share).
 AUTO: dict[str, int | None] = {
@@ -108,9 +112,11 @@ class Threads:
         wanted = self.share if self.gpu else AUTO[stage] or self.share
         return max(1, min(wanted, self.share, self.env_cap or self.share))
 
-    def workers(self, requested: int) -> int:
-        """Data-loader workers for a loader asked to use ``requested``: at most the share."""
-        return max(0, min(int(requested), self.share))
+    def workers(self, requested: int, stage: str = "frozen") -> int:
+        """Data-loader workers for a loader that feeds ``stage``, asked to use ``requested``: on a GPU at most the
+        share; on the CPU at most the cores that the stage's own threads leave free (module docstring)."""
+        free = self.share if self.gpu else self.share - self.of(stage)
+        return max(0, min(int(requested), free))
 
     @contextmanager
     def stage(self, name: str) -> Iterator[int]:
@@ -124,8 +130,9 @@ class Threads:
             torch.set_num_threads(before)
 
     def adopt(self) -> Threads:
-        """Make this the running job's plan: its frozen passes run at ``of("frozen")`` threads (returns self)."""
-        _JOB["frozen"] = self.of("frozen")
+        """Make this the running job's plan: its frozen passes run at ``of("frozen")`` threads, its image loaders
+        start :meth:`workers` (returns self)."""
+        _JOB["plan"] = self
         return self
 
     def record(self) -> dict[str, object]:
@@ -144,7 +151,15 @@ class Threads:
 
 def frozen_threads() -> int:
     """The thread count of the running job's frozen passes: its adopted plan's, else torch's current count."""
-    return _JOB["frozen"] or torch.get_num_threads()
+    plan = _JOB["plan"]
+    return plan.of("frozen") if plan is not None else torch.get_num_threads()
+
+
+def frozen_workers(requested: int) -> int:
+    """Workers of a loader that feeds the running job's frozen passes, asked to use ``requested``: its adopted
+    plan's :meth:`Threads.workers`, else ``requested``."""
+    plan = _JOB["plan"]
+    return plan.workers(requested) if plan is not None else max(0, int(requested))
 
 
 @contextmanager

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 from semvpr.core import threads as threads_mod
 from semvpr.core.errors import SemvprError
-from semvpr.core.threads import AUTO, Threads, parse_setting
+from semvpr.core.threads import AUTO, Threads, frozen_threads, frozen_workers, parse_setting
 from tests.helpers import REPO
 
 
@@ -57,10 +57,26 @@ def test_an_omp_num_threads_in_the_environment_caps_auto_only(monkeypatch: pytes
     assert Threads.resolve(4, cores=8).of("frozen") == 4  # an explicit setting is the user's word
 
 
-def test_loaders_start_at_most_the_share_of_workers() -> None:
-    plan = Threads.resolve("auto", cores=2, jobs=2)
-    assert plan.workers(2) == 1 and plan.workers(0) == 0
-    assert Threads.resolve("auto", cores=16).workers(2) == 2
+def test_loaders_start_workers_on_the_cores_their_stage_leaves_free(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    # A GPU job's loaders: up to the share.
+    assert Threads.resolve("auto", cores=2, jobs=2, gpu=True).workers(2) == 1
+    assert Threads.resolve("auto", cores=16, gpu=True).workers(2) == 2
+    # A CPU job's: none where the stage's threads take the share, the rest of the share where they leave some.
+    assert Threads.resolve("auto", cores=16).workers(2) == 0
+    assert Threads.resolve(1, cores=2).workers(2) == 1
+    assert Threads.resolve(2, cores=8).workers(4) == 4 and Threads.resolve(6, cores=8).workers(4) == 2
+    assert Threads.resolve("auto", cores=4).workers(3, stage="retriever") == 3  # its steps take 1 thread
+    assert Threads.resolve(1, cores=2).workers(0) == 0
+
+
+def test_the_adopted_plan_gives_the_frozen_passes_their_workers(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert frozen_workers(2) == 2  # no job: as asked
+    Threads.resolve("auto", cores=2).adopt()
+    assert frozen_workers(2) == 0
+    Threads.resolve(1, cores=4).adopt()
+    assert frozen_workers(2) == 2 and frozen_workers(5) == 3 and frozen_threads() == 1
 
 
 @pytest.mark.parametrize("bad", [0, -1, "two", 1.5, True])
