@@ -10,7 +10,8 @@ a threshold itself would also switch off glibc's dynamic mmap threshold). Prints
 system CPU seconds of the job and its workers and their minor page faults; the recalls must be equal (the
 allocator changes where memory comes from, never a number). Last line: ``default_sys_share=<sys/cpu>
 semvpr_sys_share=<sys/cpu> default_faults=<n> semvpr_faults=<n> faults_ratio=<semvpr/default>
-equal_recalls=<0|1>``.
+equal_recalls=<0|1> cpu_capability=<torch's kernels> bf16_native=<0|1>`` (the jobs run as this process does:
+``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2`` in the environment stands for a CPU without AVX512, fp32).
 """
 
 from __future__ import annotations
@@ -25,9 +26,11 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import torch  # noqa: E402
 from sweep_cost import REPO  # noqa: E402
 
 from semvpr.core.errors import exit_on_user_error  # noqa: E402
+from semvpr.core.precision import bf16_native  # noqa: E402
 
 #: A glibc tunable at its default: in the environment, semvpr leaves glibc's whole policy as it is.
 GLIBC_DEFAULT = {"GLIBC_TUNABLES": "glibc.malloc.tcache_count=7"}
@@ -80,7 +83,8 @@ def main() -> None:
         f"default_sys_share={shares['default']:.3f} semvpr_sys_share={shares['semvpr']:.3f} "
         f"default_faults={runs['default']['faults']} semvpr_faults={runs['semvpr']['faults']} "
         f"faults_ratio={runs['semvpr']['faults'] / runs['default']['faults']:.3f} "
-        f"equal_recalls={int(runs['semvpr']['recalls'] == runs['default']['recalls'])}"
+        f"equal_recalls={int(runs['semvpr']['recalls'] == runs['default']['recalls'])} "
+        f"cpu_capability={torch.backends.cpu.get_cpu_capability()} bf16_native={int(bf16_native('cpu'))}"
     )
 
 

@@ -17,8 +17,8 @@ Data-loader workers decode images single-threaded (torch's default in a worker).
 starts at most ``share`` of them; one that feeds a CPU stage at most the cores the stage's threads leave free
 (none under ``auto``, which gives a frozen pass the whole share): a worker beside busy compute threads only
 takes turns with them, and forking it write-protects the job's whole heap, so that every page the job writes
-next faults. In a cold default training job on 2 cores, no workers instead of 2 took a quarter of the page
-faults and a little less wall time, with equal recalls (``benchmarks/kernel_time.py``).
+next faults (in one pair of cold default jobs on 2 cores, starting none left about a quarter of the page
+faults, with the same recalls and no slower).
 
 A job that Hydra's joblib launcher runs lives in a loky worker, whose default start method (``loky``) a
 data loader cannot start its workers with; :func:`standard_start_method` gives such a job the platform's
