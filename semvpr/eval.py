@@ -102,7 +102,7 @@ def evaluate_checkpoint(
 @hydra_command("eval")
 def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
     try:
-        with model_pass(cfg) as (_, threads):
+        with model_pass(cfg) as threads:
             result = {**evaluate_checkpoint(cfg, explicit_keys(), out_dir), "threads": threads.record()}
     except Exception as err:  # noqa: BLE001 - in a sweep every failure becomes its job's row
         if HydraConfig.get().mode != RunMode.MULTIRUN:

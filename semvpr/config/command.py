@@ -9,7 +9,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
-import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
@@ -42,11 +41,11 @@ def hydra_command(config_name: str) -> Callable[[Task], Callable[[], None]]:
 
 
 @contextmanager
-def model_pass(cfg: DictConfig) -> Iterator[tuple[torch.device, Threads]]:
-    """The device (``device``), threads and precision (``trainer.precision``) of a command that passes images
-    through a whole model, adopted while it runs: the trunk pass dominates, so it runs as the ``frozen``
-    stage."""
+def model_pass(cfg: DictConfig) -> Iterator[Threads]:
+    """The threads and precision (``trainer.precision``) of a command that passes images through a whole model on
+    its ``device``, adopted while it runs (yields the threads): the trunk pass dominates, so it runs as the
+    ``frozen`` stage."""
     device = resolve(cfg.get("device"))
     threads = thread_plan(cfg, gpu=device.type == "cuda")
     with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
-        yield device, threads
+        yield threads
