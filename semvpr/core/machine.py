@@ -1,5 +1,6 @@
-"""The machine a number was measured on, as a record keeps it: the CPU's model, the features that decide
-semvpr's arithmetic (ARCHITECTURE §9) and the core count."""
+"""The machine a number was measured on, as a record keeps it: the CPU's model name, family and model number
+(two CPUs of one name and the same flags may still give other bits, ARCHITECTURE §9), the features that
+decide semvpr's arithmetic and the core count."""
 
 from __future__ import annotations
 
@@ -9,14 +10,14 @@ from pathlib import Path
 
 #: CPU flags that decide the arithmetic: bf16 runs natively with AVX512-BF16 or AMX, else fp32 (AVX2).
 ARITHMETIC_FLAGS = frozenset({"avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile"})
+CPUINFO = Path("/proc/cpuinfo")
 
 
 def _cpuinfo_field(name: str) -> str | None:
     """The first ``name : value`` of ``/proc/cpuinfo``, or None where there is none (not Linux)."""
-    cpuinfo = Path("/proc/cpuinfo")
-    if not cpuinfo.is_file():
+    if not CPUINFO.is_file():
         return None
-    for line in cpuinfo.read_text(encoding="utf-8", errors="replace").splitlines():
+    for line in CPUINFO.read_text(encoding="utf-8", errors="replace").splitlines():
         key, sep, value = line.partition(":")
         if sep and key.strip() == name:
             return value.strip()
@@ -24,10 +25,13 @@ def _cpuinfo_field(name: str) -> str | None:
 
 
 def describe() -> dict[str, object]:
-    """``{"cpu": model name, "flags": the arithmetic flags it has, "cores": os.cpu_count()}``."""
+    """``{"cpu": model name, "cpu_family": …, "cpu_model": … (None where unknown), "flags": the arithmetic flags
+    it has, "cores": os.cpu_count()}``."""
     flags = set((_cpuinfo_field("flags") or "").split())
     return {
         "cpu": _cpuinfo_field("model name") or platform.processor() or platform.machine(),
+        "cpu_family": _cpuinfo_field("cpu family"),
+        "cpu_model": _cpuinfo_field("model"),
         "flags": sorted(flags & ARITHMETIC_FLAGS),
         "cores": os.cpu_count(),
     }
