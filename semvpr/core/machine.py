@@ -13,25 +13,30 @@ ARITHMETIC_FLAGS = frozenset({"avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx
 CPUINFO = Path("/proc/cpuinfo")
 
 
-def _cpuinfo_field(name: str) -> str | None:
-    """The first ``name : value`` of ``/proc/cpuinfo``, or None where there is none (not Linux)."""
+def _cpuinfo() -> dict[str, str]:
+    """The first processor's ``name : value`` fields of ``/proc/cpuinfo`` ({} where there is none: not Linux)."""
     if not CPUINFO.is_file():
-        return None
+        return {}
+    fields: dict[str, str] = {}
     for line in CPUINFO.read_text(encoding="utf-8", errors="replace").splitlines():
         key, sep, value = line.partition(":")
-        if sep and key.strip() == name:
-            return value.strip()
-    return None
+        if not sep:
+            if fields:  # the blank line after the first processor's block
+                break
+            continue
+        fields.setdefault(key.strip(), value.strip())
+    return fields
 
 
 def describe() -> dict[str, object]:
     """``{"cpu": model name, "cpu_family": …, "cpu_model": … (None where unknown), "flags": the arithmetic flags
     it has, "cores": os.cpu_count()}``."""
-    flags = set((_cpuinfo_field("flags") or "").split())
+    info = _cpuinfo()
+    flags = set(info.get("flags", "").split())
     return {
-        "cpu": _cpuinfo_field("model name") or platform.processor() or platform.machine(),
-        "cpu_family": _cpuinfo_field("cpu family"),
-        "cpu_model": _cpuinfo_field("model"),
+        "cpu": info.get("model name") or platform.processor() or platform.machine(),
+        "cpu_family": info.get("cpu family"),
+        "cpu_model": info.get("model"),
         "flags": sorted(flags & ARITHMETIC_FLAGS),
         "cores": os.cpu_count(),
     }
