@@ -14,14 +14,13 @@ from collections.abc import Iterator
 from typing import Any
 
 import lightning as L
-import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, DataLoader, Sampler
 
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.distributed import Describe, batch_block, world
 from semvpr.retrieval.features import PlaceFeatures, StoreDataset
-from semvpr.retrieval.mining import Mining, TrainingEpoch, loader_settings, trainable_queries
+from semvpr.retrieval.mining import Mining, MiningPool, TrainingEpoch, loader_settings
 from semvpr.retrieval.places import (
     PlaceBatching,
     PlaceImages,
@@ -108,16 +107,14 @@ class RetrievalDataModule(EvalDataModule):
                     f"recipe=triplet mines training queries, and {train.places.name} has none (it is a set of "
                     "places): train it with recipe=gsv"
                 )
-            self.trainable_queries = trainable_queries(train.places, mining.positive_radius)
-            self.neg_cache = np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64)
+            self.pool = MiningPool.of(train, mining)
 
     def train_dataloader(self) -> TrainingEpoch:
         self._count_tuples()
         self._epoch = TrainingEpoch(
             self.features["train"],
             self.mining,
-            self.trainable_queries,
-            self.neg_cache,
+            self.pool,
             self.trainer.current_epoch,
             self.describe,
             self.num_workers,
@@ -149,11 +146,11 @@ class RetrievalDataModule(EvalDataModule):
 
     def state_dict(self) -> dict[str, Any]:
         """The negative cache: a resumed run mines with the hard negatives of the epochs before."""
-        return {"neg_cache": torch.from_numpy(self.neg_cache.copy())} if "train" in self.features else {}
+        return {"neg_cache": torch.from_numpy(self.pool.neg_cache.copy())} if "train" in self.features else {}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "neg_cache" in state and "train" in self.features:
-            self.neg_cache = state["neg_cache"].numpy().copy()
+            self.pool.neg_cache = state["neg_cache"].numpy().copy()
 
 
 class PlaceDataModule(EvalDataModule):

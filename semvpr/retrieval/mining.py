@@ -166,6 +166,22 @@ def trainable_queries(places: Any, positive_radius: float) -> np.ndarray:
     return queries
 
 
+@dataclass
+class MiningPool:
+    """What mining keeps from epoch to epoch: the training queries it can mine (those with a database image
+    within the positive radius) and each training query's negative cache (pytorch-NetVlad's ``negCache``:
+    the hard negatives of its last mining, offered again as candidates)."""
+
+    queries: np.ndarray
+    neg_cache: np.ndarray
+
+    @classmethod
+    def of(cls, train: PlaceFeatures, mining: Mining) -> MiningPool:
+        """A fresh pool over ``train``: every trainable query, an empty (-1) negative cache."""
+        queries = trainable_queries(train.places, mining.positive_radius)
+        return cls(queries, np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64))
+
+
 def loader_settings(num_workers: int, streams: bool, device: torch.device | str) -> dict[str, Any]:
     """``num_workers`` and ``pin_memory`` of a loader over a feature store: on the CPU, workers only where the store
     streams images (cached features are a memory copy away: a worker would only add start-up); on a GPU,
@@ -187,20 +203,18 @@ class TrainingEpoch:
         self,
         train: PlaceFeatures,
         mining: Mining,
-        queries: np.ndarray,
-        neg_cache: np.ndarray,
+        pool: MiningPool,
         epoch: int,
         describe: Describe,
         num_workers: int = 0,
         device: torch.device | str = "cpu",
     ) -> None:
         self.train, self.mining, self.describe, self.num_workers = train, mining, describe, num_workers
-        self.device = device
-        self.neg_cache = neg_cache
+        self.device, self.pool = device, pool
         # Tuples mined, and whether the epoch ran at all (a resumed, finished fit builds it and never iterates).
         self.num_tuples, self.iterated = 0, False
         self.rng = np.random.default_rng([mining.seed, epoch])
-        order = self.rng.permutation(queries)[: mining.queries_per_epoch]
+        order = self.rng.permutation(pool.queries)[: mining.queries_per_epoch]
         self.chunks = np.array_split(order, max(1, -(-len(order) // mining.cache_refresh)))
 
     def __len__(self) -> int:
@@ -216,11 +230,11 @@ class TrainingEpoch:
         self.iterated = True
         for chunk in self.chunks:
             db_desc, q_desc = self.describe(train.db, None), self.describe(train.q, chunk)
+            cache = self.pool.neg_cache
             if rank == 0:
-                tuples = self.mining.mine(db_desc, q_desc, train.places, chunk, self.rng, self.neg_cache, self.device)
-                shared = (tuples, self.neg_cache)
-            tuples, neg_cache = from_rank_zero(shared if rank == 0 else None)
-            self.neg_cache[:] = neg_cache
+                tuples = self.mining.mine(db_desc, q_desc, train.places, chunk, self.rng, cache, self.device)
+                shared = (tuples, cache)
+            tuples, cache[:] = from_rank_zero(shared if rank == 0 else None)
             self.num_tuples += len(tuples)
             batches = QueryBatches(chunk, tuples, self.mining.batch_size).batches
             pairs = [sum(len(tuples[i][2]) for i in batch) for batch in batches]

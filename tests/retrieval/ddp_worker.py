@@ -21,7 +21,7 @@ from semvpr.data.places import PlaceSet
 from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.retrieval.distributed import sharded
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
-from semvpr.retrieval.mining import Mining, TrainingEpoch, trainable_queries
+from semvpr.retrieval.mining import Mining, MiningPool, TrainingEpoch
 from semvpr.retrieval.retriever import Optimization, Retriever
 
 DIM, GRID = 8, (3, 4)
@@ -84,12 +84,10 @@ def run(rank: int, world: int, out: str, port: int) -> None:
     # Global batches of 3 tuples: uneven slices on 2 ranks, an empty one on 3 ranks; sub-epochs of 7
     # queries end with a 1-query batch, which leaves empty slices on 2 ranks too.
     mining = Mining(batch_size=3, cache_refresh=7, num_negatives=3, negative_candidates=12, margin=0.5)
-    neg_cache = np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64)
+    pool = MiningPool.of(train, mining)
     describe = sharded(retriever.describe_store, retriever.eval_batch_size)
     seen: dict[str, Any] = {"db_desc": describe(train.db, None), "grads": [], "batches": [], "pairs": []}
-    epoch = TrainingEpoch(
-        train, mining, trainable_queries(train.places, mining.positive_radius), neg_cache, 0, describe
-    )
+    epoch = TrainingEpoch(train, mining, pool, 0, describe)
     step = Step(retriever)
     model = nn.parallel.DistributedDataParallel(step) if world > 1 else step
     params = [p for p in retriever.parameters() if p.requires_grad]
@@ -111,7 +109,7 @@ def run(rank: int, world: int, out: str, port: int) -> None:
             slices = [local]
         seen["batches"].append(torch.cat([s[0] for s in slices]))
         seen["pairs"].append([s[1] for s in slices])
-    seen["neg_cache"], seen["num_tuples"] = neg_cache.copy(), epoch.num_tuples
+    seen["neg_cache"], seen["num_tuples"] = pool.neg_cache.copy(), epoch.num_tuples
     if rank == 0:
         torch.save(seen, out)
     if world > 1:

@@ -40,7 +40,6 @@ def test_per_rank_batches_recombine_to_the_single_process_batch(world: int, monk
 
     train = features()
     rules = mining.Mining(batch_size=3, cache_refresh=7, num_negatives=3, negative_candidates=12, margin=0.5)
-    queries = mining.trainable_queries(train.places, rules.positive_radius)
     desc = np.random.default_rng(0).normal(size=(len(train.db) + len(train.q), 16)).astype(np.float32)
 
     def describe(store, index):  # type: ignore[no-untyped-def]
@@ -57,8 +56,7 @@ def test_per_rank_batches_recombine_to_the_single_process_batch(world: int, monk
             "from_rank_zero",
             lambda obj: broadcasts.append(copy.deepcopy(obj)) or obj if rank == 0 else copy.deepcopy(next(replay)),
         )
-        cache = np.full((len(train.q), rules.num_negatives), -1, dtype=np.int64)
-        return list(mining.TrainingEpoch(train, rules, queries, cache, 0, describe))
+        return list(mining.TrainingEpoch(train, rules, mining.MiningPool.of(train, rules), 0, describe))
 
     single = epoch_batches(0, 1)
     ranks = [epoch_batches(r, world) for r in range(world)]

@@ -182,7 +182,7 @@ def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epo
     from semvpr.retrieval.mining import TrainingEpoch
 
     dm = _datamodule(num_queries=26, cache_refresh=10, batch_size=4)
-    assert dm.trainable_queries.tolist() == list(range(25))
+    assert dm.pool.queries.tolist() == list(range(25))
     calls: list[tuple[str, int]] = []
     rng = np.random.default_rng(0)
 
@@ -191,9 +191,7 @@ def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epo
         return rng.normal(size=(len(store) if index is None else len(index), 8)).astype(np.float32)
 
     def epoch_of(module, epoch: int) -> TrainingEpoch:
-        return TrainingEpoch(
-            module.features["train"], module.mining, module.trainable_queries, module.neg_cache, epoch, describe
-        )
+        return TrainingEpoch(module.features["train"], module.mining, module.pool, epoch, describe)
 
     epoch = epoch_of(dm, 0)
     assert [len(c) for c in epoch.chunks] == [9, 8, 8]  # ceil(25 / 10) sub-epochs
@@ -211,10 +209,10 @@ def test_an_epoch_is_one_pass_over_the_training_queries_in_cache_refresh_sub_epo
 
 def test_negative_cache_travels_with_the_datamodule_state() -> None:
     dm = _datamodule(num_queries=6, cache_refresh=10, batch_size=2)
-    dm.neg_cache[2, :3] = [7, 8, 9]
+    dm.pool.neg_cache[2, :3] = [7, 8, 9]
     fresh = _datamodule(num_queries=6, cache_refresh=10, batch_size=2)
     fresh.load_state_dict(dm.state_dict())
-    assert fresh.neg_cache[2, :4].tolist() == [7, 8, 9, -1] and (fresh.neg_cache[0] == -1).all()
+    assert fresh.pool.neg_cache[2, :4].tolist() == [7, 8, 9, -1] and (fresh.pool.neg_cache[0] == -1).all()
 
 
 @pytest.mark.parametrize(
