@@ -4,7 +4,7 @@
 
 Runs ``python -m semvpr.train filter=none trainer.max_epochs=3`` twice, each from an empty cache of its own
 (SynthCity, its trunk pass, a short training, the test), in turn: once as semvpr runs it (``semvpr/__init__.py``
-keeps freed blocks up to 256 MiB in the heap), once with glibc's own policy (a ``GLIBC_TUNABLES`` that
+keeps freed blocks up to 1 GiB in the heap), once with glibc's own policy (a ``GLIBC_TUNABLES`` that
 restates a default, ``glibc.malloc.tcache_count=7``, which makes semvpr leave the allocator alone; setting
 a threshold itself would also switch off glibc's dynamic mmap threshold). Prints, per run, the user and
 system CPU seconds of the job and its workers and their minor page faults; the recalls must be equal (the

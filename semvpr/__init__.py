@@ -15,21 +15,24 @@ import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-#: glibc ``mallopt`` parameters and the values semvpr gives them.
+#: glibc ``mallopt`` parameters and the values semvpr gives them: a frozen pass over a batch of images may use
+#: up to ``semvpr.models.backbones.FORWARD_BYTES`` (2 GiB) of activations, and the heap holds all of it.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-MMAP_THRESHOLD = 256 * 2**20
-TRIM_THRESHOLD = 512 * 2**20
+MMAP_THRESHOLD = 2**30
+TRIM_THRESHOLD = 2 * 2**30
 
 
 def _keep_freed_memory() -> None:
     """Keep blocks up to :data:`MMAP_THRESHOLD` in the heap and up to :data:`TRIM_THRESHOLD` of free memory at
     its top. glibc's defaults hand every block above a dynamic threshold (at most 32 MiB) back to the kernel
     when freed and trim the heap's top beyond 128 KiB, so each batch of a pass over images (decoded images,
-    activations) is written into fresh pages that the kernel must fault in and zero: in a cold default
-    training job that was a fifth of its CPU time, halved with these values, with equal recalls
-    (``benchmarks/kernel_time.py``, ``benchmarks/results/kernel_time.json``). Left alone where the environment
-    sets glibc's own (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, ``GLIBC_TUNABLES``) and
-    where the C library is not glibc."""
+    activations) is written into fresh pages that the kernel must fault in and zero. Both values cover a
+    frozen pass's activation budget: with less (256 MiB and 512 MiB), an fp32 pass's largest activations
+    (a padded 96-channel map of 64 images at 180x240: 258 MiB) were mapped afresh for every batch and its
+    freed top trimmed, and a cold default job under the AVX2 cap made 4 to 11 million page faults instead
+    of 0.6 (``benchmarks/kernel_time.py``, ``benchmarks/results/kernel_time*.json``), with equal recalls.
+    Left alone where the environment sets glibc's own (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``,
+    ``GLIBC_TUNABLES``) and where the C library is not glibc."""
     if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")):
         return
     try:

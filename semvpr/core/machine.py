@@ -11,6 +11,9 @@ from pathlib import Path
 #: CPU flags that decide the arithmetic: bf16 runs natively with AVX512-BF16 or AMX, else fp32 (AVX2).
 ARITHMETIC_FLAGS = frozenset({"avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile"})
 CPUINFO = Path("/proc/cpuinfo")
+#: Settings that cap the instruction set torch and oneDNN use below what the CPU has (a CPU without AVX512
+#: reproduced on one with it: ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2`` runs fp32).
+ISA_CAPS = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA")
 
 
 def _cpuinfo() -> dict[str, str]:
@@ -30,7 +33,7 @@ def _cpuinfo() -> dict[str, str]:
 
 def describe() -> dict[str, object]:
     """``{"cpu": model name, "cpu_family": …, "cpu_model": … (None where unknown), "flags": the arithmetic flags
-    it has, "cores": os.cpu_count()}``."""
+    it has, "cores": os.cpu_count(), "isa_caps": the instruction-set caps the environment sets ({}: none)}``."""
     info = _cpuinfo()
     flags = set(info.get("flags", "").split())
     return {
@@ -39,4 +42,5 @@ def describe() -> dict[str, object]:
         "cpu_model": info.get("model"),
         "flags": sorted(flags & ARITHMETIC_FLAGS),
         "cores": os.cpu_count(),
+        "isa_caps": {name: os.environ[name] for name in ISA_CAPS if name in os.environ},
     }

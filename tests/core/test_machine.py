@@ -32,3 +32,13 @@ def test_a_machine_without_cpuinfo_has_no_family(tmp_path: Path, monkeypatch: py
     monkeypatch.setattr(machine, "CPUINFO", tmp_path / "absent")
     record = machine.describe()
     assert record["cpu_family"] is None and record["cpu_model"] is None and record["flags"] == []
+
+
+def test_the_record_names_the_instruction_set_caps_it_ran_under(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A number measured under ``ATEN_CPU_CAPABILITY=avx2`` on an AVX512 CPU is an AVX2 number: the record says so."""
+    for name in machine.ISA_CAPS:
+        monkeypatch.delenv(name, raising=False)
+    assert machine.describe()["isa_caps"] == {}
+    monkeypatch.setenv("ATEN_CPU_CAPABILITY", "avx2")
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    assert machine.describe()["isa_caps"] == {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
