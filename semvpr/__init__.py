@@ -29,8 +29,8 @@ def _keep_freed_memory() -> None:
     activations) is written into fresh pages that the kernel must fault in and zero. Both values cover a
     frozen pass's activation budget: with less (256 MiB and 512 MiB), an fp32 pass's largest activations
     (a padded 96-channel map of 64 images at 180x240: 258 MiB) were mapped afresh for every batch and its
-    freed top trimmed, and a cold default job under the AVX2 cap made 4 to 11 million page faults instead
-    of 0.6 (``benchmarks/kernel_time.py``, ``benchmarks/results/kernel_time*.json``), with equal recalls.
+    freed top trimmed, and a cold default job under the AVX2 cap made 4 to 8 million page faults instead
+    of 0.7 (``benchmarks/kernel_time.py``, ``benchmarks/results/kernel_time*.json``), with equal recalls.
     Left alone where the environment sets glibc's own (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``,
     ``GLIBC_TUNABLES``) and where the C library is not glibc."""
     if any(k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")):
