@@ -185,15 +185,15 @@ def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | 
         return None
     given: dict[str, Any] = {}
     if cls.needs == "teacher":
-        given["teacher"] = semantic.teacher if semantic is not None else teacher_architecture(teacher_spec(cfg))
+        given["segmenter"] = semantic.teacher if semantic is not None else teacher_architecture(teacher_spec(cfg))
     elif cls.needs == "student":
         spec = student_spec(cfg)
         if semantic is not None:
-            given["student"] = semantic.student
+            given["segmenter"] = semantic.student
         elif spec.checkpoint:
-            given["student"] = load_student(spec.checkpoint, backbone)
+            given["segmenter"] = load_student(spec.checkpoint, backbone)
         else:
-            given["student"] = student_architecture(spec, backbone)
+            given["segmenter"] = student_architecture(spec, backbone)
     # On the backbone's device: the source's own buffers (its class weights) as well as its segmenter's.
     source = instantiate_node(cfg.mask.module, **given).to(next(backbone.parameters()).device)
     if semantic is not None or teacher_spec(cfg).checkpoint:  # the teacher's weights are final

@@ -28,6 +28,11 @@ from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 
 WEIGHTINGS = ("binary", "learned")
+#: The backbone's ``forward_frozen`` outputs of a batch; a source reads its :meth:`MaskSource.trunk_levels`
+#: (the others may be None).
+Skips = Sequence[Tensor | None]
+#: The ground-truth label maps of a batch's images, where the set has them.
+LabelPaths = Sequence[Path] | None
 
 
 def static_vector(static_names: Sequence[str]) -> Tensor:
@@ -78,7 +83,7 @@ def class_shares(labels: Tensor, grid_hw: tuple[int, int]) -> Tensor:
 
 
 #: What a mask source is built from: the teacher, the student (each built or loaded first, then given to
-#: its constructor as ``teacher=`` / ``student=``), or the place set's ground-truth label maps.
+#: its constructor as ``segmenter=``), or the place set's ground-truth label maps.
 Needs = Literal["teacher", "student", "ground_truth"]
 
 
@@ -99,11 +104,7 @@ class MaskSource(nn.Module):
         self.register_buffer("static_weight", static_vector(static_names), persistent=False)
 
     def forward(
-        self,
-        images: Tensor | None,
-        skips: Sequence[Tensor | None],
-        label_paths: Sequence[Path] | None,
-        out_hw: Sequence[int] | None = None,
+        self, images: Tensor | None, skips: Skips, label_paths: LabelPaths, out_hw: Sequence[int] | None = None
     ) -> Tensor:
         """Class probabilities (B,C,H,W) at ``out_hw`` (default: the images' size). ``skips`` are the backbone's
         ``forward_frozen`` outputs (only the :meth:`trunk_levels` are read; the others may be None);
@@ -157,93 +158,102 @@ class MaskSource(nn.Module):
     def grid_mask(
         self,
         images: Tensor | None,
-        skips: Sequence[Tensor | None],
-        label_paths: Sequence[Path] | None,
+        skips: Skips,
+        label_paths: LabelPaths,
         grid_hw: tuple[int, int],
         weighting: str = "binary",
         out_hw: Sequence[int] | None = None,
     ) -> Tensor:
-        """The mask the aggregator reads: (B,1,h,w) binary, or (B,C,h,w) pooled class probabilities."""
+        """The mask the aggregator reads: (B,1,h,w) binary, or (B,C,h,w) pooled class probabilities. A source
+        whose classes are label maps (:meth:`label_maps`) is pooled straight from them, without a (B,C,H,W)
+        one-hot tensor (label maps of real frames are large): binary, the static table gathered by label and
+        pooled; learned, each grid cell's class shares counted from its labels. Both equal pooling the one-hot
+        classes."""
+        if weighting not in WEIGHTINGS:
+            raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+        labels = self.label_maps(label_paths)
+        if labels is not None:
+            labels = labels.clamp(max=NUM_CLASSES).to(self.static_weight.device)
+            if weighting == "learned":
+                return class_shares(labels, grid_hw)
+            table = torch.cat([self.static_weight.float(), self.static_weight.new_zeros(1).float()])  # ignore → 0
+            return pool_to_grid(table[labels][:, None], grid_hw)
         class_prob = self(images, skips, label_paths, out_hw)
-        if weighting == "binary":
-            return pool_to_grid(self.static_prob(class_prob), grid_hw)
         if weighting == "learned":
             return F.adaptive_avg_pool2d(class_prob.float(), grid_hw)
-        raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
+        return pool_to_grid(self.static_prob(class_prob), grid_hw)
+
+    def label_maps(self, label_paths: LabelPaths) -> Tensor | None:
+        """(B,H,W) class ids where the source's classes are the batch's label maps; None (the default) where a
+        network gives probabilities."""
+        return None
 
 
-class TeacherMask(MaskSource):
+class SegmenterMask(MaskSource):
+    """Class probabilities from a frozen segmentation network, held under the attribute its ``needs`` names
+    (``teacher`` or ``student``: the prefix of its keys in a checkpoint's state dict)."""
+
+    def __init__(self, segmenter: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
+        super().__init__(static_names)
+        setattr(self, self.needs, segmenter.eval().requires_grad_(False))
+
+    @property
+    def segmenter(self) -> nn.Module:
+        return getattr(self, self.needs)
+
+    @torch.no_grad()
+    def forward(
+        self, images: Tensor | None, skips: Skips, label_paths: LabelPaths, out_hw: Sequence[int] | None = None
+    ) -> Tensor:
+        size = (int(out_hw[0]), int(out_hw[1])) if out_hw is not None else tuple(images.shape[-2:])
+        return self.class_prob(images, skips, size)
+
+    def class_prob(self, images: Tensor | None, skips: Skips, size: tuple[int, int]) -> Tensor:
+        """The network's class probabilities (B,C,H,W) at ``size``."""
+        raise NotImplementedError
+
+
+class TeacherMask(SegmenterMask):
     """Class probabilities from the Mask2Former teacher, run on the images themselves, or on the trunk's
     frozen outputs where its pixel encoder is that trunk (``Teacher.link_trunk``)."""
 
     needs = "teacher"
 
-    def __init__(self, teacher: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
-        super().__init__(static_names)
-        self.teacher = teacher.eval().requires_grad_(False)
-
-    @torch.no_grad()
-    def forward(
-        self,
-        images: Tensor | None,
-        skips: Sequence[Tensor | None],
-        label_paths: Sequence[Path] | None,
-        out_hw: Sequence[int] | None = None,
-    ) -> Tensor:
-        size = tuple(out_hw) if out_hw is not None else tuple(images.shape[-2:])
-        if self.teacher.on_trunk(size) and skips:
-            return self.teacher.trunk_class_prob(skips, size)
+    def class_prob(self, images: Tensor | None, skips: Skips, size: tuple[int, int]) -> Tensor:
+        if self.segmenter.on_trunk(size) and skips:
+            return self.segmenter.trunk_class_prob(skips, size)
         assert images is not None, "the teacher reads the images at this size"
-        return self.teacher.class_prob(images)
+        return self.segmenter.class_prob(images)
 
     def trunk_levels(self, image_size: Sequence[int]) -> tuple[int, ...]:
-        return tuple(self.teacher.trunk_levels) if self.teacher.on_trunk(image_size) else ()
+        return tuple(self.segmenter.trunk_levels) if self.segmenter.on_trunk(image_size) else ()
 
     def reads_pixels(self, image_size: Sequence[int]) -> bool:
-        return not self.teacher.on_trunk(image_size)
+        return not self.segmenter.on_trunk(image_size)
 
     def arithmetic(self, image_size: Sequence[int]) -> dict[str, str]:
-        return {"encoder": "trunk"} if self.teacher.on_trunk(image_size) else {}
-
-    @property
-    def segmenter(self) -> nn.Module:
-        return self.teacher
+        return {"encoder": "trunk"} if self.segmenter.on_trunk(image_size) else {}
 
     def input_size(self, image_size: Sequence[int]) -> tuple[int, int] | None:
-        size = getattr(self.teacher, "inference_size", None)
+        size = getattr(self.segmenter, "inference_size", None)
         if size is None or [int(v) for v in size] == [int(v) for v in image_size]:
             return None
         return int(size[0]), int(size[1])
 
 
-class StudentMask(MaskSource):
+class StudentMask(SegmenterMask):
     """Class probabilities from the U-Net student over the backbone's own multi-scale features."""
 
     needs = "student"
 
-    def __init__(self, student: nn.Module, static_names: Sequence[str] = STATIC_NAMES) -> None:
-        super().__init__(static_names)
-        self.student = student.eval().requires_grad_(False)
-
-    @torch.no_grad()
-    def forward(
-        self,
-        images: Tensor | None,
-        skips: Sequence[Tensor | None],
-        label_paths: Sequence[Path] | None,
-        out_hw: Sequence[int] | None = None,
-    ) -> Tensor:
-        return self.student.class_prob(skips, out_hw=out_hw if out_hw is not None else images.shape[-2:])
+    def class_prob(self, images: Tensor | None, skips: Skips, size: tuple[int, int]) -> Tensor:
+        return self.segmenter.class_prob(skips, out_hw=size)
 
     def trunk_levels(self, image_size: Sequence[int]) -> tuple[int, ...]:
-        return tuple(self.student.skip_indices)
+        return tuple(self.segmenter.skip_indices)
 
     def reads_pixels(self, image_size: Sequence[int]) -> bool:
         return False
-
-    @property
-    def segmenter(self) -> nn.Module:
-        return self.student
 
 
 class OracleMask(MaskSource):
@@ -254,39 +264,14 @@ class OracleMask(MaskSource):
     describes_new_images = False
 
     def forward(
-        self,
-        images: Tensor | None,
-        skips: Sequence[Tensor | None],
-        label_paths: Sequence[Path] | None,
-        out_hw: Sequence[int] | None = None,
+        self, images: Tensor | None, skips: Skips, label_paths: LabelPaths, out_hw: Sequence[int] | None = None
     ) -> Tensor:
-        labels = self._labels(label_paths)
+        labels = self.label_maps(label_paths)
         one_hot = F.one_hot(labels.clamp(max=NUM_CLASSES), NUM_CLASSES + 1)[..., :NUM_CLASSES]  # ignore → zeros
         assert IGNORE >= NUM_CLASSES
         return one_hot.permute(0, 3, 1, 2).float().to(self.static_weight.device)
 
-    def grid_mask(
-        self,
-        images: Tensor | None,
-        skips: Sequence[Tensor | None],
-        label_paths: Sequence[Path] | None,
-        grid_hw: tuple[int, int],
-        weighting: str = "binary",
-        out_hw: Sequence[int] | None = None,
-    ) -> Tensor:
-        """Straight from the labels, without a (B,C,H,W) one-hot tensor (label maps of real frames are large):
-        binary, the static table gathered by label (the one-hot classes' weighted sum) and pooled; learned,
-        each grid cell's class shares counted from its labels (the one-hot classes area-pooled)."""
-        if weighting not in WEIGHTINGS:
-            raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
-        labels = self._labels(label_paths).clamp(max=NUM_CLASSES).to(self.static_weight.device)
-        if weighting == "learned":
-            return class_shares(labels, grid_hw)
-        table = torch.cat([self.static_weight.float(), self.static_weight.new_zeros(1).float()])  # ignore → 0
-        return pool_to_grid(table[labels][:, None], grid_hw)
-
-    def _labels(self, label_paths: Sequence[Path] | None) -> Tensor:
-        """(B,H,W) class ids of the label maps."""
+    def label_maps(self, label_paths: LabelPaths) -> Tensor:
         if label_paths is None:
             raise SemvprError(
                 "mask=oracle needs ground-truth label maps: SynthCity's, or a frame-aligned set's with data.occluders"
