@@ -9,9 +9,11 @@ report.
 
 Conditions: ``clean`` (the frames as they are: coverage 0), ``occluded`` (CamVid test objects pasted over
 the coverage's share of every image) and ``holes`` (the same draws' oracle masks on the frames without the
-objects: what the holes alone cost). Recall is the mean ± sample std over the occluder seeds. Each query's
-R@1 hit rate is averaged over the seeds before pairing (``semvpr.reporting.paired``: 10,000
-percentile-bootstrap resamples over the queries, 95 %):
+objects: what the holes alone cost). A model is an untrained aggregator or the checkpoints of one setting of a
+training sweep (its run folders' names without ``seed=N``); a cell's runs are its models' training seeds × the
+occluder seeds. Recall is the mean ± sample std over the runs. Each query's R@1 hit rate is averaged over the
+runs before pairing (``semvpr.reporting.paired``: 10,000 percentile-bootstrap resamples over the queries,
+95 %):
 
 - gain: a mask's R@1 over no mask on the same images (``holes``: over no mask on the clean frames);
 - recovered: the share of the objects' damage the mask undoes, (masked − occluded) / (clean − occluded),
@@ -46,7 +48,17 @@ MASK_WORDS = {
     "student": "CamVid student",
     "teacher": "CamVid teacher",
 }
-MODEL_WORDS = {"untrained netvlad": "NetVLAD (k-means, no VPR training)", "untrained gem": "GeM (p = 3, no training)"}
+MODEL_WORDS = {
+    "untrained netvlad": "NetVLAD (k-means, no VPR training)",
+    "untrained gem": "GeM (p = 3, no training)",
+    # real-streets' training sweeps (the four-way comparison; recipe=gsv without a mask), by run folder.
+    "filter=none": "NetVLAD, SynthCity (filter=none)",
+    "filter=attention": "SRAL, SynthCity (filter=attention)",
+    "filter=unet": "SRAL, SynthCity, trained with its student's mask (filter=unet)",
+    "filter=mask2former": "SRAL, SynthCity, trained with its teacher's mask (filter=mask2former)",
+    "aggregator=mixvpr,mask=none,recipe=gsv": "MixVPR, SynthCity (recipe=gsv)",
+    "aggregator=salad,mask=none,recipe=gsv": "SALAD, SynthCity (recipe=gsv)",
+}
 PAIRS = {
     "day_left-night_right": "day_left → night_right (day/night)",
     "day_right-night_right": "day_right → night_right (day/night, same side)",
@@ -58,7 +70,8 @@ FIELDS = (
     "condition",
     "mask",
     "coverage",
-    "seeds",
+    "models",
+    "runs",
     "queries",
     "r1",
     "r1_std",
@@ -80,16 +93,28 @@ COMPOSITE_LINE = re.compile(r"semvpr: (.+?): CamVid objects \(.*\): (\d+)/\d+ im
 TRUNK_LINE = re.compile(r"semvpr: (gardens_point .+?) (db|q): (\d+)/\d+ images in ([\d.]+) (s|min|h)$")
 SECONDS = {"s": 1.0, "min": 60.0, "h": 3600.0}
 
-#: {pair: {(model, condition, mask, coverage): {seed: ranks}}}
-Runs = dict[str, dict[tuple[str, str, str, int], dict[int, np.ndarray]]]
+#: A Hydra sweep's training seed in a run folder's name (``filter=unet,seed=2``), and the overrides there that
+#: do not make another model.
+TRAIN_SEED = re.compile(r"seed=(\d+)")
+NOT_MODEL = re.compile(r"(seed|threads)=.*")
+#: {(training seed, occluder seed): each query's first-hit rank}: the runs of one cell.
+Seeds = dict[tuple[int, int], np.ndarray]
+#: {pair: {(model, condition, mask, coverage): runs}}
+Runs = dict[str, dict[tuple[str, str, str, int], Seeds]]
 
 
-def _model(result: dict) -> str:
-    """An untrained aggregator, or the checkpoint's run folder (…/<run>/checkpoints/x.ckpt)."""
+def _model(result: dict) -> tuple[str, int]:
+    """(model, training seed): an untrained aggregator (seed 0), or the checkpoint's run folder
+    (…/<run>/checkpoints/x.ckpt) without its ``seed=N`` and ``threads=N`` (a sweep's runs of one setting are one
+    model)."""
     if result["checkpoint"] == "none":
-        return f"untrained {result['aggregator']}"
+        return f"untrained {result['aggregator']}", 0
     path = Path(result["checkpoint"])
-    return path.parent.parent.name if path.parent.name == "checkpoints" else path.name
+    run = path.parent.parent.name if path.parent.name == "checkpoints" else path.name
+    parts = run.split(",")
+    seeds = [int(found.group(1)) for part in parts if (found := TRAIN_SEED.fullmatch(part))]
+    rest = ",".join(part for part in parts if not NOT_MODEL.fullmatch(part))
+    return rest or run, seeds[0] if seeds else 0
 
 
 def collect(out: Path) -> Runs:
@@ -109,26 +134,38 @@ def collect(out: Path) -> Runs:
             raise SystemExit(f"{job}: set {result['set']!r} does not match its sweep {sweep}")
         coverage, seed = (int(occluded.group(1)), int(occluded.group(2))) if occluded else (0, 0)
         ranks = np.load(job / "ranks.npy", allow_pickle=False)
-        runs[pair][(_model(result), condition, mask, coverage)][seed] = ranks
+        model, train_seed = _model(result)
+        runs[pair][(model, condition, mask, coverage)][(train_seed, seed)] = ranks
     return runs
 
 
-def _hits(seeds: dict[int, np.ndarray]) -> np.ndarray:
-    """Each query's R@1 hit rate over the seeds."""
+def _hits(seeds: Seeds) -> np.ndarray:
+    """Each query's R@1 hit rate over the runs."""
     return np.mean([r == 0 for r in seeds.values()], axis=0)
 
 
-def _recall(seeds: dict[int, np.ndarray], n: int) -> tuple[float, float]:
+def _recall(seeds: Seeds, n: int) -> tuple[float, float]:
     values = [100.0 * float(np.mean((r >= 0) & (r < n))) for r in seeds.values()]
     return float(np.mean(values)), float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
 
 
-def rows(pair: str, cells: dict[tuple[str, str, str, int], dict[int, np.ndarray]]) -> list[dict[str, object]]:
+def _model_order(model: str) -> tuple[int, str]:
+    """Models in MODEL_WORDS' order, any other after them by name."""
+    return (list(MODEL_WORDS).index(model) if model in MODEL_WORDS else len(MODEL_WORDS), model)
+
+
+def _pairs_with(base: Seeds, seeds: Seeds) -> bool:
+    """Whether ``base`` holds the same runs as ``seeds`` (the same models on the same draws), or the clean
+    frames' one run of each of the same models."""
+    return sorted(base) in (sorted(seeds), sorted({(train, 0) for train, _ in seeds}))
+
+
+def rows(pair: str, cells: dict[tuple[str, str, str, int], Seeds]) -> list[dict[str, object]]:
     """One row per cell of a pair, with its gains (see the module's docstring)."""
     out = []
     order = {m: i for i, m in enumerate(MASK_ORDER)}
     conditions = {"clean": 0, "occluded": 1, "holes": 2}
-    for key in sorted(cells, key=lambda k: (k[0], conditions[k[1]], k[3], order.get(k[2], 9), k[2])):
+    for key in sorted(cells, key=lambda k: (*_model_order(k[0]), conditions[k[1]], k[3], order.get(k[2], 9), k[2])):
         model, condition, mask, coverage = key
         seeds = cells[key]
         r1, r1_std = _recall(seeds, 1)
@@ -139,7 +176,8 @@ def rows(pair: str, cells: dict[tuple[str, str, str, int], dict[int, np.ndarray]
             "condition": condition,
             "mask": mask,
             "coverage": coverage,
-            "seeds": len(seeds),
+            "models": len({train for train, _ in seeds}),
+            "runs": len(seeds),
             "queries": len(next(iter(seeds.values()))),
             "r1": round(r1, 2),
             "r1_std": round(r1_std, 2),
@@ -148,7 +186,7 @@ def rows(pair: str, cells: dict[tuple[str, str, str, int], dict[int, np.ndarray]
         }
         clean = cells.get((model, "clean", "none", 0))
         base = clean if condition == "holes" else cells.get((model, condition, "none", coverage))
-        if mask != "none" and base is not None and sorted(base) in (sorted(seeds), [0]):
+        if mask != "none" and base is not None and _pairs_with(base, seeds):
             gain = paired_gain(_hits(seeds), _hits(base))
             row |= {"gain": round(gain.gain, 2), "gain_low": round(gain.low, 2), "gain_high": round(gain.high, 2)}
             if condition == "occluded" and clean is not None:
@@ -181,19 +219,47 @@ def table(pair: str, pair_rows: list[dict[str, object]]) -> list[str]:
     lines = [
         f"### {PAIRS.get(pair, pair)}",
         "",
-        "| model | images | coverage | mask | seeds | R@1 | R@5 | R@1 gain over no mask [95 % CI] "
+        "| model | images | coverage | mask | runs | R@1 | R@5 | R@1 gain over no mask [95 % CI] "
         "| damage recovered [95 % CI] | leak: oracle vs holes [95 % CI] |",
         "|---|---|---:|---|---:|---:|---:|---|---|---|",
     ]
     for row in pair_rows:
-        std = row["seeds"] != 1
+        std = row["runs"] != 1
         r1 = f"{row['r1']:.1f}" + (f" ± {row['r1_std']:.1f}" if std else "")
         r5 = f"{row['r5']:.1f}" + (f" ± {row['r5_std']:.1f}" if std else "")
         mask = MASK_WORDS.get(str(row["mask"]), row["mask"])
         model = MODEL_WORDS.get(str(row["model"]), row["model"])
         gains = " | ".join(_interval(row, name) for name in ("gain", "recovered", "leak"))
-        cells = [model, row["condition"], f"{row['coverage']} %", mask, row["seeds"], r1, r5]
+        cells = [model, row["condition"], f"{row['coverage']} %", mask, row["runs"], r1, r5]
         lines.append(f"| {' | '.join(str(c) for c in cells)} | {gains} |")
+    return lines
+
+
+def summary(all_rows: list[dict[str, object]]) -> list[str]:
+    """One line per pair, model and coverage: R@1 clean, occluded without a mask, and with each mask (the share
+    of the damage it recovers beside it, where given)."""
+    masks = [m for m in MASK_ORDER[1:] if any(r["mask"] == m for r in all_rows)]
+    lines = [
+        "| pair | model | coverage | clean | no mask | " + " | ".join(MASK_WORDS[m] for m in masks) + " |",
+        "|---|---|---:|---:|---:|" + "---:|" * len(masks),
+    ]
+    cells = {(r["pair"], r["model"], r["condition"], r["mask"], r["coverage"]): r for r in all_rows}
+    keys = sorted(
+        {(r["pair"], r["model"], r["coverage"]) for r in all_rows if r["condition"] == "occluded"},
+        key=lambda k: (list(PAIRS).index(k[0]) if k[0] in PAIRS else len(PAIRS), *_model_order(k[1]), k[2]),
+    )
+    for pair, model, coverage in keys:
+        clean = cells.get((pair, model, "clean", "none", 0))
+        values = [f"{clean['r1']:.1f}" if clean else "–"]
+        for mask in ("none", *masks):
+            row = cells.get((pair, model, "occluded", mask, coverage))
+            text = "–" if row is None else f"{row['r1']:.1f}"
+            if row is not None and "recovered" in row:
+                text += f" ({int(round(100 * float(row['recovered'])))} %)".replace("-", "−")
+            values.append(text)
+        words = MODEL_WORDS.get(str(model), model)
+        named = PAIRS.get(str(pair), str(pair)).split(" (")[0]
+        lines.append(f"| {named} | {words} | {coverage} % | " + " | ".join(values) + " |")
     return lines
 
 
@@ -274,15 +340,26 @@ def main() -> None:
     lines = [
         "# Occluded streets: Gardens Point Walking with CamVid objects pasted in",
         "",
-        "Recall@N in % (mean ± sample std over the occluder seeds); gains paired by query over the seeds' mean "
-        "hit rate, 95 % percentile bootstrap over the queries (10,000 resamples); * marks an interval that "
-        "excludes 0. Damage recovered: (masked − occluded) / (clean − occluded), where the damage's interval "
-        "excludes 0. Leak: the oracle on the occluded images against the oracle on the frames without objects. "
+        "Recall@N in % (mean ± sample std over the runs: a model's training seeds × the occluder seeds); gains "
+        "paired by query over the runs' mean hit rate, 95 % percentile bootstrap over the queries (10,000 "
+        "resamples); * marks an interval that excludes 0. Damage recovered: (masked − occluded) / (clean − "
+        "occluded), where the damage's interval excludes 0. Leak: the oracle on the occluded images against the "
+        "oracle on the frames without objects. "
         "Written by `summarize.py` from the evaluations of `run.sh` (numbers: `results.csv`).",
         "",
         "Command: `bash experiments/occluded-streets/run.sh OUT ../shared/realdata/gardens_point "
         "../shared/realdata/camvid`, then `python experiments/occluded-streets/summarize.py OUT`."
         + (f" Machine: {args.machine}." if args.machine else ""),
+        "",
+        "## R@1 at a glance",
+        "",
+        "R@1 in %: on the frames as they are (clean), with the objects pasted in and no mask, and with each mask "
+        "(in brackets the share of the objects' damage it recovers, where the damage's interval excludes 0). "
+        "Every interval: the tables per pair below.",
+        "",
+        *summary(all_rows),
+        "",
+        "## Per pair",
         "",
     ]
     for pair in pairs:

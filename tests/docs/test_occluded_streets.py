@@ -88,7 +88,7 @@ def test_run_sh_and_summarize_on_fixtures(tmp_path: Path) -> None:
         row = rows[condition, mask, coverage]
         ranks = [np.load(p) for p in job.parent.parent.glob("*/ranks.npy") if _coverage(p) == coverage]
         assert float(row["r1"]) == pytest.approx(100 * np.mean([np.mean(r == 0) for r in ranks]), abs=0.01)
-        assert int(row["seeds"]) == (1 if condition == "clean" else 2)
+        assert (int(row["models"]), int(row["runs"])) == (1, 1 if condition == "clean" else 2)
     for coverage in (10, 20):
         none, oracle = rows["occluded", "none", coverage], rows["occluded", "oracle", coverage]
         # Paired by query over the seeds' mean hit rate: the gain is the difference of the mean R@1s.
@@ -244,12 +244,66 @@ def test_run_sh_with_segmenters_and_checkpoints_on_fixtures(tmp_path: Path) -> N
     assert float(composite["object_iou"]) == pytest.approx(hit / union, abs=0.02)
 
 
+def _load(script: str):
+    spec = importlib.util.spec_from_file_location(script, EXPERIMENT / f"{script}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_summarize_pools_a_sweeps_training_seeds(tmp_path: Path) -> None:
+    """A training sweep's checkpoints of one setting (run folders ``filter=unet,seed=N``) are one model whose
+    runs are its training seeds × the occluder seeds: recall over all of them, gains paired over their mean hit
+    rate, the clean frames' one run per training seed as the base of the recovered share."""
+    summarize = _load("summarize")
+    rng = np.random.default_rng(0)
+    ranks: dict[tuple[str, str, int, int], np.ndarray] = {}
+    pair = tmp_path / "eval" / "day_left-night_right"
+    job = 0
+    for sweep, hit_rate in (("m1-clean-none", 0.9), ("m1-occluded-none", 0.4), ("m1-occluded-oracle", 0.7)):
+        condition, mask = sweep.split("-")[1:]
+        for train in (0, 1):
+            for occluder in (0,) if condition == "clean" else (0, 1, 2):
+                found = np.where(rng.random(60) < hit_rate, 0, rng.integers(1, 30, 60))
+                ranks[condition, mask, train, occluder] = found
+                folder = pair / sweep / str(job)
+                folder.mkdir(parents=True)
+                job += 1
+                name = "gardens_point day_left→night_right ±2"
+                if condition != "clean":
+                    name += f" + CamVid 20% seed {occluder}"
+                checkpoint = tmp_path / "runs" / f"filter=unet,seed={train},threads=1" / "checkpoints" / "best.ckpt"
+                result = {"status": "ok", "checkpoint": str(checkpoint), "aggregator": "sral", "set": name}
+                (folder / "eval.json").write_text(json.dumps(result))
+                np.save(folder / "ranks.npy", found)
+    runs = summarize.collect(tmp_path)
+    rows = {
+        (r["condition"], r["mask"]): r for r in summarize.rows("day_left-night_right", runs["day_left-night_right"])
+    }
+    assert set(rows) == {("clean", "none"), ("occluded", "none"), ("occluded", "oracle")}
+    assert {r["model"] for r in rows.values()} == {"filter=unet"}
+
+    def mean_r1(condition: str, mask: str) -> float:
+        return float(np.mean([100 * np.mean(r == 0) for k, r in ranks.items() if k[:2] == (condition, mask)]))
+
+    for (condition, mask), row in rows.items():
+        assert (row["models"], row["runs"]) == (2, 2 if condition == "clean" else 6)
+        assert row["r1"] == pytest.approx(mean_r1(condition, mask), abs=0.01)
+    oracle = rows["occluded", "oracle"]
+    assert oracle["gain"] == pytest.approx(mean_r1("occluded", "oracle") - mean_r1("occluded", "none"), abs=0.02)
+    clean, occluded = mean_r1("clean", "none"), mean_r1("occluded", "none")
+    assert oracle["recovered"] == pytest.approx(
+        (mean_r1("occluded", "oracle") - occluded) / (clean - occluded), abs=0.002
+    )
+    assert "| day_left → night_right | SRAL, SynthCity, trained with its student's mask (filter=unet) | 20 % |" in (
+        "\n".join(summarize.summary(list(rows.values())))
+    )
+
+
 def test_mask_iou_scores_a_confusion_of_objects_and_the_rest() -> None:
     """mask_iou.py's scores of a (trainId × [removed, kept, other]) confusion, by hand: the moving classes are
     the objects, every other labelled pixel is one to keep (sky too)."""
-    spec = importlib.util.spec_from_file_location("mask_iou", EXPERIMENT / "mask_iou.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _load("mask_iou")
     counts = np.zeros((19, 3), dtype=np.int64)
     car, person, building, sky = (module.TRAIN_ID_NAMES.index(n) for n in ("car", "person", "building", "sky"))
     counts[car] = [30, 10, 0]  # 30 car pixels removed, 10 kept
