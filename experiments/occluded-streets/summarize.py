@@ -10,10 +10,10 @@ report.
 Conditions: ``clean`` (the frames as they are: coverage 0), ``occluded`` (CamVid test objects pasted over
 the coverage's share of every image) and ``holes`` (the same draws' oracle masks on the frames without the
 objects: what the holes alone cost). A model is an untrained aggregator or the checkpoints of one setting of a
-training sweep (its run folders' names without ``seed=N``); a cell's runs are its models' training seeds × the
-occluder seeds. Recall is the mean ± sample std over the runs. Each query's R@1 hit rate is averaged over the
-runs before pairing (``semvpr.reporting.paired``: 10,000 percentile-bootstrap resamples over the queries,
-95 %):
+training sweep (its run folders' names without ``seed=N`` and ``threads=N``); a cell's runs are its models'
+training seeds × the occluder seeds. Recall is the mean ± sample std over the runs. Each query's R@1 hit rate
+is averaged over the runs before pairing (``semvpr.reporting.paired``: 10,000 percentile-bootstrap resamples
+over the queries, 95 %):
 
 - gain: a mask's R@1 over no mask on the same images (``holes``: over no mask on the clean frames);
 - recovered: the share of the objects' damage the mask undoes, (masked − occluded) / (clean − occluded),
