@@ -154,6 +154,11 @@ def _model_order(model: str) -> tuple[int, str]:
     return (list(MODEL_WORDS).index(model) if model in MODEL_WORDS else len(MODEL_WORDS), model)
 
 
+def _pair_order(pair: str) -> int:
+    """Pairs in PAIRS' order, any other after them."""
+    return list(PAIRS).index(pair) if pair in PAIRS else len(PAIRS)
+
+
 def _pairs_with(base: Seeds, seeds: Seeds) -> bool:
     """Whether ``base`` holds the same runs as ``seeds`` (the same models on the same draws), or the clean
     frames' one run of each of the same models."""
@@ -246,7 +251,7 @@ def summary(all_rows: list[dict[str, object]]) -> list[str]:
     cells = {(r["pair"], r["model"], r["condition"], r["mask"], r["coverage"]): r for r in all_rows}
     keys = sorted(
         {(r["pair"], r["model"], r["coverage"]) for r in all_rows if r["condition"] == "occluded"},
-        key=lambda k: (list(PAIRS).index(k[0]) if k[0] in PAIRS else len(PAIRS), *_model_order(k[1]), k[2]),
+        key=lambda k: (_pair_order(str(k[0])), *_model_order(str(k[1])), k[2]),
     )
     for pair, model, coverage in keys:
         clean = cells.get((pair, model, "clean", "none", 0))
@@ -333,7 +338,7 @@ def main() -> None:
     runs = collect(args.out)
     if not runs:
         raise SystemExit(f"no evaluations under {args.out / 'eval'}; run run.sh first")
-    pairs = sorted(runs, key=lambda p: list(PAIRS).index(p) if p in PAIRS else len(PAIRS))
+    pairs = sorted(runs, key=_pair_order)
     by_pair = {pair: rows(pair, runs[pair]) for pair in pairs}
     all_rows = [r for pair in pairs for r in by_pair[pair]]
     write_csv(args.out_dir / "results.csv", FIELDS, all_rows)
