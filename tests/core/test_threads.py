@@ -165,10 +165,12 @@ def test_importing_semvpr_keeps_freed_memory_for_the_next_allocation() -> None:
         run = subprocess.run([sys.executable, "-c", code, first], cwd=REPO, env=environment, capture_output=True)
         return int(run.stdout.decode().strip())
 
-    fresh = faults("numpy", env)  # glibc's own policy: fresh pages (4 KiB, or 2 MiB where huge pages serve)
-    assert fresh >= 320 * 2**20 // 2**21
-    assert 10 * faults("semvpr", env) < fresh  # kept in the heap: its pages are the freed block's
-    assert 2 * faults("semvpr", env | {"MALLOC_TRIM_THRESHOLD_": "131072"}) > fresh
+    # Every fresh page faults at least once: 4 KiB pages, or 2 MiB where huge pages serve (how many do
+    # varies with the machine's load, so the fresh counts are bounded below, not compared with each other).
+    pages = 320 * 2**20 // 2**21
+    kept = faults("semvpr", env)  # kept in the heap: its pages are the freed block's
+    assert faults("numpy", env) >= pages > 10 * kept
+    assert faults("semvpr", env | {"MALLOC_TRIM_THRESHOLD_": "131072"}) >= pages
 
 
 def _load_in_worker() -> list[int]:
