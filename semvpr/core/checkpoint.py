@@ -70,6 +70,29 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
         ) from None
 
 
+#: Names a wrapper gives the module it wraps, adding no weight: ``nn.DataParallel`` and
+#: ``DistributedDataParallel``'s ``module``, ``torch.compile``'s ``_orig_mod``.
+WRAPPERS = ("module", "_orig_mod")
+
+
+def unwrapped(state: dict[str, Any], where: str) -> dict[str, Any]:
+    """``state`` with the wrappers' names (:data:`WRAPPERS`) taken out of its keys at the top (a whole model
+    saved through a wrapper: ``module.backbone.0.weight``) and one level down (wrapped parts, as pytorch-NetVlad's
+    multi-GPU ``encoder.module.0.weight``, ``pool.module.centroids``); other keys as they are. Two keys that
+    would then name one weight are refused in one line."""
+    out: dict[str, Any] = {}
+    for key, value in state.items():
+        parts = key.split(".") if isinstance(key, str) else [key]
+        for depth in (0, 1):
+            while len(parts) > depth + 1 and parts[depth] in WRAPPERS:
+                del parts[depth]
+        name = ".".join(parts) if isinstance(key, str) else key
+        if name in out:
+            raise SemvprError(f"{where}: two keys name the weight {name!r} (one of them {key!r} through a wrapper)")
+        out[name] = value
+    return out
+
+
 def is_semvpr_checkpoint(contents: Any) -> bool:
     """Whether a file's contents carry a semvpr model record (of any format)."""
     record = contents.get("hyper_parameters") if isinstance(contents, dict) else None

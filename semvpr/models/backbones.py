@@ -22,7 +22,7 @@ import torchvision
 from torch import Tensor, nn
 
 from semvpr.core.cache import state_hash
-from semvpr.core.checkpoint import read_weights
+from semvpr.core.checkpoint import read_weights, unwrapped
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import compute_key
 
@@ -95,6 +95,7 @@ def trunk_state(path: Path, arch: str) -> dict[str, Tensor]:
         state = state["state_dict"]
     if not isinstance(state, dict):
         raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
+    state = unwrapped(state, f"backbone weights {path}")  # saved through DataParallel, DDP or torch.compile
     from semvpr.models.released import release_trunk  # released.py reads this module's unit tables
 
     return release_trunk(state, path, arch) or state

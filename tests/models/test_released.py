@@ -672,6 +672,51 @@ def test_release_loads_and_gives_the_authors_descriptors(tmp_path: Path, fmt: st
     assert_authors_descriptors(retriever, model, images())
 
 
+def save_netvlad_multi_gpu(model: nn.Module, path: Path) -> None:
+    """pytorch-NetVlad ``main.py`` with ``--nGPU`` > 1: encoder and pool each wrapped in ``nn.DataParallel``
+    before training, so the saved keys read ``encoder.module.N``, ``pool.module.*``."""
+    wrapped = nn.Module()
+    wrapped.encoder, wrapped.pool = nn.DataParallel(model.encoder), nn.DataParallel(model.pool)
+    save_netvlad(wrapped, path)
+
+
+WRAPPED: dict[str, tuple[str, Callable[[nn.Module, Path], None]]] = {
+    "netvlad": ("checkpoint.pth.tar", save_netvlad_multi_gpu),
+    "mixvpr": ("mixvpr.ckpt", lambda model, path: save_mixvpr(nn.DataParallel(model), path)),
+    "eigenplaces": ("eigenplaces.pth", lambda model, path: save_state(torch.compile(model), path)),
+    "boq": ("boq.pth", lambda model, path: save_state(nn.DataParallel(model), path)),
+}
+
+
+@pytest.mark.parametrize("fmt", sorted(WRAPPED))
+def test_a_release_saved_through_a_wrapper_gives_the_authors_descriptors(tmp_path: Path, fmt: str) -> None:
+    """DataParallel's (and DDP's) ``module.`` and ``torch.compile``'s ``_orig_mod.`` name no weight of the model."""
+    build, _, _, dim = CASES[fmt]
+    name, save = WRAPPED[fmt]
+    model = build()
+    save(model, tmp_path / name)
+    keys = torch.load(tmp_path / name, weights_only=False)
+    keys = list(keys.get("state_dict", keys))
+    assert any(".module." in k or k.startswith(("module.", "_orig_mod.")) for k in keys), keys[:3]
+    named = ["ckpt_format=eigenplaces"] if fmt == "eigenplaces" else []
+    retriever, _ = released(tmp_path, tmp_path / name, f"data.image_size=[{SMALL},{SMALL}]", *named)
+    assert retriever.descriptor_dim == dim
+    assert_authors_descriptors(retriever, model, images(), bf16_pass=False)
+
+
+def test_a_trunk_file_saved_through_a_wrapper_reads_as_the_plain_one(tmp_path: Path) -> None:
+    from semvpr.models.backbones import trunk_state
+
+    model = netvlad_model()
+    save_netvlad(model, tmp_path / "plain.pth.tar")
+    save_netvlad_multi_gpu(model, tmp_path / "wrapped.pth.tar")
+    plain, wrapped = (trunk_state(tmp_path / f"{n}.pth.tar", "vgg16") for n in ("plain", "wrapped"))
+    assert list(wrapped) == list(plain) and all(torch.equal(wrapped[k], plain[k]) for k in plain)
+    torch.save({"features.0.weight": torch.zeros(1), "module.features.0.weight": torch.ones(1)}, tmp_path / "two.pth")
+    with pytest.raises(SemvprError, match=r"two keys name the weight 'features.0.weight'"):
+        trunk_state(tmp_path / "two.pth", "vgg16")
+
+
 def test_each_layout_fixes_the_authors_image_size(tmp_path: Path) -> None:
     save_mixvpr(mixvpr_model(320), tmp_path / "m.ckpt")
     save_state(cosplace_model(), tmp_path / "c.pth")
