@@ -75,6 +75,19 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
 WRAPPERS = ("module", "_orig_mod")
 
 
+#: Where a training checkpoint keeps the model's weights: Lightning and pytorch-NetVlad under ``state_dict``,
+#: CosPlace's, EigenPlaces' and gmberton's benchmark's ``last_checkpoint.pth`` under ``model_state_dict``.
+STATE_KEYS = ("state_dict", "model_state_dict")
+
+
+def weights_in(contents: Any, where: str) -> Any:
+    """The model weights in a weight file's contents: a training checkpoint's (:data:`STATE_KEYS`) or the
+    contents themselves (a plain state dict), wrapper names taken out (:func:`unwrapped`) where it is a dict."""
+    if isinstance(contents, dict):
+        contents = next((contents[k] for k in STATE_KEYS if isinstance(contents.get(k), dict)), contents)
+    return unwrapped(contents, where) if isinstance(contents, dict) else contents
+
+
 def unwrapped(state: dict[str, Any], where: str) -> dict[str, Any]:
     """``state`` with the wrappers' names (:data:`WRAPPERS`) taken out of its keys at the top (a whole model
     saved through a wrapper: ``module.backbone.0.weight``) and one level down (wrapped parts, as pytorch-NetVlad's

@@ -22,7 +22,7 @@ import torchvision
 from torch import Tensor, nn
 
 from semvpr.core.cache import state_hash
-from semvpr.core.checkpoint import read_weights, unwrapped
+from semvpr.core.checkpoint import read_weights, weights_in
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import compute_key
 
@@ -90,12 +90,9 @@ def _load_state_dict(arch: str, weights: str | Path) -> dict[str, Tensor] | None
 def trunk_state(path: Path, arch: str) -> dict[str, Tensor]:
     """The state dict of a weights file for the ``arch`` trunk, read as data: the trunk's own naming, or a
     release's trunk mapped onto it (``models.released.release_trunk``)."""
-    state = read_weights(path, "backbone weights")
-    if isinstance(state, dict) and "state_dict" in state:
-        state = state["state_dict"]
+    state = weights_in(read_weights(path, "backbone weights"), f"backbone weights {path}")
     if not isinstance(state, dict):
         raise SemvprError(f"backbone weights {path} is not a state dict (got {type(state).__name__})")
-    state = unwrapped(state, f"backbone weights {path}")  # saved through DataParallel, DDP or torch.compile
     from semvpr.models.released import release_trunk  # released.py reads this module's unit tables
 
     return release_trunk(state, path, arch) or state

@@ -42,7 +42,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from semvpr.core.checkpoint import read_weights, unwrapped
+from semvpr.core.checkpoint import read_weights, weights_in
 from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16_SLICES
 from semvpr.models.dinov2 import DINOV2_KEYS
@@ -310,12 +310,11 @@ def recognise(state: dict[str, Tensor], path: Path) -> Layout:
 
 
 def weights_of(contents: Any, path: Path) -> dict[str, Tensor]:
-    """The state dict in a release file's contents (the contents themselves, or their ``state_dict``), its keys
-    without the names of a DataParallel / DDP / ``torch.compile`` wrapper (``core.checkpoint.unwrapped``)."""
-    state = contents.get("state_dict", contents) if isinstance(contents, dict) else None
+    """The state dict in a release file's contents (``core.checkpoint.weights_in``: a training checkpoint's, or
+    the contents themselves; keys without a DataParallel / DDP / ``torch.compile`` wrapper's names)."""
+    state = weights_in(contents, f"release file {path}")
     if not isinstance(state, dict) or not state:
         raise SemvprError(f"release file {path} holds no state dict (got {type(contents).__name__})")
-    state = unwrapped(state, f"release file {path}")
     for key, value in state.items():
         if not isinstance(key, str) or not isinstance(value, Tensor):
             raise SemvprError(f"release file {path}: entry {key!r} is not a named tensor ({type(value).__name__})")

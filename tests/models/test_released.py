@@ -680,24 +680,42 @@ def save_netvlad_multi_gpu(model: nn.Module, path: Path) -> None:
     save_netvlad(wrapped, path)
 
 
-WRAPPED: dict[str, tuple[str, Callable[[nn.Module, Path], None]]] = {
-    "netvlad": ("checkpoint.pth.tar", save_netvlad_multi_gpu),
-    "mixvpr": ("mixvpr.ckpt", lambda model, path: save_mixvpr(nn.DataParallel(model), path)),
-    "eigenplaces": ("eigenplaces.pth", lambda model, path: save_state(torch.compile(model), path)),
-    "boq": ("boq.pth", lambda model, path: save_state(nn.DataParallel(model), path)),
-}
+def save_cosplace_training(model: nn.Module, path: Path) -> None:
+    """CosPlace's ``last_checkpoint.pth`` (``util.save_checkpoint``), as EigenPlaces and gmberton's benchmark write
+    theirs: the weights under ``model_state_dict`` beside optimiser and classifier states."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
+    classifier = nn.Linear(128, 4)
+    torch.save(
+        {
+            "epoch_num": 3,
+            "model_state_dict": model.state_dict(),
+            "optimizer_state_dict": optimizer.state_dict(),
+            "classifiers_state_dict": [classifier.state_dict()],
+            "best_val_recall1": 81.5,
+        },
+        path,
+    )
 
 
-@pytest.mark.parametrize("fmt", sorted(WRAPPED))
-def test_a_release_saved_through_a_wrapper_gives_the_authors_descriptors(tmp_path: Path, fmt: str) -> None:
-    """DataParallel's (and DDP's) ``module.`` and ``torch.compile``'s ``_orig_mod.`` name no weight of the model."""
+#: (layout, file name, how the file is written): through a wrapper, or as a training checkpoint.
+SAVED_OTHERWISE: list[tuple[str, str, Callable[[nn.Module, Path], None]]] = [
+    ("netvlad", "checkpoint.pth.tar", save_netvlad_multi_gpu),
+    ("mixvpr", "mixvpr.ckpt", lambda model, path: save_mixvpr(nn.DataParallel(model), path)),
+    ("eigenplaces", "eigenplaces.pth", lambda model, path: save_state(torch.compile(model), path)),
+    ("boq", "boq.pth", lambda model, path: save_state(nn.DataParallel(model), path)),
+    ("eigenplaces", "last_checkpoint.pth", save_cosplace_training),
+]
+
+
+@pytest.mark.parametrize(("fmt", "name", "save"), SAVED_OTHERWISE, ids=[n for _, n, _ in SAVED_OTHERWISE])
+def test_a_release_saved_through_a_wrapper_or_in_a_training_checkpoint_gives_the_authors_descriptors(
+    tmp_path: Path, fmt: str, name: str, save: Callable[[nn.Module, Path], None]
+) -> None:
+    """DataParallel's (and DDP's) ``module.`` and ``torch.compile``'s ``_orig_mod.`` name no weight of the model;
+    a training checkpoint holds the weights beside other states."""
     build, _, _, dim = CASES[fmt]
-    name, save = WRAPPED[fmt]
     model = build()
     save(model, tmp_path / name)
-    keys = torch.load(tmp_path / name, weights_only=False)
-    keys = list(keys.get("state_dict", keys))
-    assert any(".module." in k or k.startswith(("module.", "_orig_mod.")) for k in keys), keys[:3]
     named = ["ckpt_format=eigenplaces"] if fmt == "eigenplaces" else []
     retriever, _ = released(tmp_path, tmp_path / name, f"data.image_size=[{SMALL},{SMALL}]", *named)
     assert retriever.descriptor_dim == dim
