@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from semvpr.config.components import component_class, instantiate_node, loss_class
-from semvpr.config.plan import JobPlan, ranks_of, student_spec, teacher_spec
+from semvpr.config.plan import JobPlan, MaskPlan, ranks_of
 from semvpr.config.record import record_of
 from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
@@ -175,19 +175,18 @@ def build_aggregator(cfg: DictConfig, backbone: Backbone) -> Aggregator:
     return instantiate_node(node, dim=backbone.out_channels)
 
 
-def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | None = None) -> MaskSource | None:
-    """The run's mask source, given what its class ``needs``: trained (from ``semantic``), read from a
-    directory (``teacher.checkpoint`` / ``student.checkpoint``), or untrained for weights to be loaded into
-    (``semantic=None``: a checkpoint carries them). A student directory is checked against ``backbone``'s
-    frozen trunk, so the backbone must hold its final weights."""
-    cls = component_class(cfg, "mask")
-    if cls is None:
+def build_mask_source(masks: MaskPlan, backbone: Backbone, semantic: Semantic | None = None) -> MaskSource | None:
+    """The mask source of ``masks`` (``config.plan.mask_plan``), given what its class ``needs``: trained (from
+    ``semantic``), read from a directory (``teacher.checkpoint`` / ``student.checkpoint``), or untrained for
+    weights to be loaded into (``semantic=None``: a checkpoint carries them). A student directory is checked
+    against ``backbone``'s frozen trunk, so the backbone must hold its final weights."""
+    if masks.source is None:
         return None
     given: dict[str, Any] = {}
-    if cls.needs == "teacher":
-        given["segmenter"] = semantic.teacher if semantic is not None else teacher_architecture(teacher_spec(cfg))
-    elif cls.needs == "student":
-        spec = student_spec(cfg)
+    if masks.needs == "teacher":
+        given["segmenter"] = semantic.teacher if semantic is not None else teacher_architecture(masks.teacher)
+    elif masks.needs == "student":
+        spec = masks.student
         if semantic is not None:
             given["segmenter"] = semantic.student
         elif spec.checkpoint:
@@ -195,16 +194,16 @@ def build_mask_source(cfg: DictConfig, backbone: Backbone, semantic: Semantic | 
         else:
             given["segmenter"] = student_architecture(spec, backbone)
     # On the backbone's device: the source's own buffers (its class weights) as well as its segmenter's.
-    source = instantiate_node(cfg.mask.module, **given).to(next(backbone.parameters()).device)
-    if semantic is not None or teacher_spec(cfg).checkpoint:  # the teacher's weights are final
-        link_segmenter(cfg, source, backbone)
+    source = instantiate_node(masks.module, **given).to(next(backbone.parameters()).device)
+    if semantic is not None or masks.teacher.checkpoint:  # the teacher's weights are final
+        link_segmenter(masks, source, backbone)
     return source
 
 
-def link_segmenter(cfg: DictConfig, mask_source: MaskSource | None, backbone: Backbone) -> None:
+def link_segmenter(masks: MaskPlan, mask_source: MaskSource | None, backbone: Backbone) -> None:
     """Let a teacher mask source read ``backbone``'s frozen outputs where its pixel encoder is that trunk
     (``Teacher.link_trunk``) and ``teacher.share_trunk`` allows it; called once the weights of both are final."""
-    if mask_source is not None and mask_source.needs == "teacher" and teacher_spec(cfg).share_trunk:
+    if mask_source is not None and mask_source.needs == "teacher" and masks.teacher.share_trunk:
         mask_source.segmenter.link_trunk(backbone)
 
 
@@ -302,7 +301,7 @@ def semantic_teacher(cfg: DictConfig, plan: JobPlan, backbone: Backbone) -> Teac
     pixel encoder is that prefix (``Teacher.link_trunk``)."""
     from semvpr.segmentation.training import build_teacher
 
-    settings = plan.teacher
+    settings = plan.masks.teacher
     seg = cfg.data.get("segmentation")
     needs_training = settings.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
@@ -315,7 +314,7 @@ def semantic_teacher(cfg: DictConfig, plan: JobPlan, backbone: Backbone) -> Teac
 
 
 def semantic_levels(
-    cfg: DictConfig, backbone: Backbone, teacher: Teacher | None, stand_in: bool = True
+    cfg: DictConfig, masks: MaskPlan, backbone: Backbone, teacher: Teacher | None, stand_in: bool = True
 ) -> tuple[set[int], set[int]]:
     """(the teacher's, the student's) frozen outputs the config's semantic side reads from the trunk pass: the
     teacher's encoder levels where it is linked to the trunk (``teacher``, or where none is given and
@@ -323,14 +322,14 @@ def semantic_levels(
     its own pass would run in the trunk pass's precision (bf16 where that is native)."""
     size = tuple(int(v) for v in cfg.data.image_size)
     if teacher is None and stand_in:
-        wanted = teacher_spec(cfg)
+        wanted = masks.teacher
         if wanted.checkpoint is None and cfg.data.get("segmentation") is None:
             return set(), set()  # no teacher to be had: no semantic side on this data
         if wanted.checkpoint is None and wanted.share_trunk and float(wanted.train.backbone_lr_factor) == 0:
             teacher = embedded_teacher(wanted)
             teacher.link_trunk(backbone)
     teacher_levels = set(teacher.trunk_levels or ()) if teacher is not None and teacher.on_trunk(size) else set()
-    spec = student_spec(cfg)
+    spec = masks.student
     student_levels: set[int] = set()
     if backbone.image_maps and (spec.bf16 or not bf16_native(next(backbone.parameters()).device.type)):
         student_levels = set(student_architecture(spec, backbone).skip_indices)
@@ -360,9 +359,9 @@ def skip_plan(
     if storage == "stream":
         return none
     size = tuple(int(v) for v in cfg.data.image_size)
-    needs = plan.mask_needs
+    needs = plan.masks.needs
     # Only a plan that may keep them for other jobs needs the levels of a teacher this job does not build.
-    teacher_levels, student_levels = semantic_levels(cfg, backbone, teacher, stand_in=storage == "ram")
+    teacher_levels, student_levels = semantic_levels(cfg, plan.masks, backbone, teacher, stand_in=storage == "ram")
     last = len(backbone.frozen_strides) - 1
 
     def total(levels: dict[str, tuple[int, ...]]) -> int:
@@ -469,15 +468,15 @@ def build_semantic(
         labels_dir = pseudo_labels(
             teacher,
             images,
-            Reading(size, plan.teacher.predict_batch_size, workers),
+            Reading(size, plan.masks.teacher.predict_batch_size, workers),
             cfg.paths.cache_dir,
             source.root,
             trunk=trunk if on_trunk else None,
         )
     timings["labels_s"], tic = time.time() - tic, time.time()
     semantic = Semantic(teacher, labels_dir, source.root, timings=timings)
-    if plan.mask_needs == "student":
-        spec = plan.student
+    if plan.masks.needs == "student":
+        spec = plan.masks.student
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
         with threads.stage("student"):
             labelled = LabelledImages(images, labels_dir, source.root)
@@ -543,7 +542,7 @@ def prepare(cfg: DictConfig, plan: JobPlan, timings: dict[str, float]) -> Prepar
     if teacher is not None:
         semantic = build_semantic(cfg, plan, places["train"], backbone, storage, levels["train"], teacher)
         timings.update(semantic.timings)
-    mask_source = build_mask_source(cfg, backbone, semantic)
+    mask_source = build_mask_source(plan.masks, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()
     settings = store_settings(cfg, storage, threads.workers(int(cfg.data.num_workers)))

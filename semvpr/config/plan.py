@@ -1,7 +1,7 @@
 """What a job decides once from its config, before it builds anything: the device every stage runs on, the
-threads of each stage, its DDP ranks, its mask source's class, whether it needs the semantic side
-(teacher, pseudo-labels, student) and the teacher's and student's typed settings. :func:`job_plan` makes it
-as the job starts; the builders read it instead of deciding again.
+threads of each stage, its DDP ranks, its mask source (:class:`MaskPlan`: the class, its node, the teacher's and
+student's typed settings) and whether it needs the semantic side (teacher, pseudo-labels, student).
+:func:`job_plan` makes it as the job starts; the builders read it instead of deciding again.
 
 A job runs on one device (``core/device.py``): the CPU, or a GPU: a DDP rank's own (its local rank), the one
 a sweep job leases (:func:`sweep_gpu`: a GPU per job where several are visible), else the first.
@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from omegaconf import DictConfig
@@ -27,34 +28,47 @@ from semvpr.retrieval.launch import local_rank
 
 
 @dataclass(frozen=True)
-class JobPlan:
-    """One job's decisions: ``device`` (every stage's), ``threads`` (each stage's, adopted for its frozen
-    passes), ``ranks`` (DDP processes per node, nodes), ``mask`` (the mask source's class, None without one),
-    ``semantic`` (whether the aggregator's labelled init or the mask needs the teacher), and the ``teacher``'s
-    and ``student``'s settings."""
+class MaskPlan:
+    """A config's mask source, looked up once (:func:`mask_plan`): its class (``source``, None without one), the
+    node that builds it (``mask.module``), and the ``teacher``'s and ``student``'s settings, what a segmenter
+    source is made from."""
 
-    device: torch.device
-    threads: Threads
-    ranks: tuple[int, int]
-    mask: type[MaskSource] | None
-    semantic: bool
+    source: type[MaskSource] | None
+    module: Any
     teacher: TeacherSpec
     student: StudentSpec
 
     @property
-    def mask_needs(self) -> str | None:
+    def needs(self) -> str | None:
         """What the mask source is made from: ``teacher``, ``student``, ``labels`` (the oracle) or None."""
-        return self.mask.needs if self.mask is not None else None
+        return self.source.needs if self.source is not None else None
+
+
+def mask_plan(cfg: DictConfig) -> MaskPlan:
+    """The mask source ``cfg`` asks for (its ``mask``, ``teacher`` and ``student`` groups)."""
+    return MaskPlan(component_class(cfg, "mask"), cfg.mask.get("module"), teacher_spec(cfg), student_spec(cfg))
+
+
+@dataclass(frozen=True)
+class JobPlan:
+    """One job's decisions: ``device`` (every stage's), ``threads`` (each stage's, adopted for its frozen
+    passes), ``ranks`` (DDP processes per node, nodes), ``masks`` (its mask source) and ``semantic`` (whether
+    the aggregator's labelled init or the mask needs the teacher)."""
+
+    device: torch.device
+    threads: Threads
+    ranks: tuple[int, int]
+    masks: MaskPlan
+    semantic: bool
 
 
 def job_plan(cfg: DictConfig, device: torch.device | None = None) -> JobPlan:
     """The plan of a training job of ``cfg`` on ``device`` (default: :func:`job_device`'s)."""
     device = device if device is not None else job_device(cfg)
-    mask = component_class(cfg, "mask")
-    needs = mask.needs if mask is not None else None
-    semantic = component_class(cfg, "aggregator").init_sample == "labelled" or needs in ("teacher", "student")
+    masks = mask_plan(cfg)
+    semantic = component_class(cfg, "aggregator").init_sample == "labelled" or masks.needs in ("teacher", "student")
     threads = thread_plan(cfg, gpu=device.type == "cuda")
-    return JobPlan(device, threads, ranks_of(cfg.trainer), mask, semantic, teacher_spec(cfg), student_spec(cfg))
+    return JobPlan(device, threads, ranks_of(cfg.trainer), masks, semantic)
 
 
 def student_spec(cfg: DictConfig) -> StudentSpec:

@@ -47,7 +47,7 @@ from semvpr.config.build import (
 )
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
-from semvpr.config.plan import job_plan
+from semvpr.config.plan import job_plan, mask_plan
 from semvpr.config.record import check_recorded_paths, model_config
 from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
 from semvpr.core.errors import SemvprError
@@ -133,9 +133,10 @@ def _trained_retriever(
         # The checkpoint's own segmenter weights are not loaded; without a mask, neither are class weights.
         dropped = ("mask_source.",) if merged.mask.module is not None else ("mask_source.", "class_weights.")
         state = {k: v for k, v in state.items() if not k.startswith(dropped)}
+    masks = mask_plan(merged)
     backbone = build_backbone(merged.backbone, int(merged.seed), pretrained=False)
     retriever = build_retriever(
-        merged, backbone, build_mask_source(merged, backbone) if replaced is None else None, training=False
+        merged, backbone, build_mask_source(masks, backbone) if replaced is None else None, training=False
     )
     try:
         retriever.load_state_dict(state, strict=True)
@@ -143,9 +144,9 @@ def _trained_retriever(
         raise SemvprError(f"{where} does not fit {trained}: {str(err).splitlines()[0]}") from None
     if replaced is not None:
         # Built after the checkpoint's weights are in: a student directory is checked against the trunk.
-        retriever.mask_source = build_mask_source(merged, backbone)
+        retriever.mask_source = build_mask_source(masks, backbone)
     else:
-        link_segmenter(merged, retriever.mask_source, backbone)  # now that the teacher's weights are the checkpoint's
+        link_segmenter(masks, retriever.mask_source, backbone)  # now that the teacher's weights are the checkpoint's
         if warn:
             warn_foreign_mask(record, merged, where)
     return retriever, merged
@@ -202,7 +203,7 @@ def released_retriever(cfg: DictConfig, explicit: set[str], release: Release) ->
     expected = {k: v for k, v in retriever.state_dict().items() if k.startswith(("backbone.", "aggregator."))}
     retriever.load_state_dict(map_release(release, expected), strict=False)
     # Built once the trunk holds the release's weights: a student directory is checked against that trunk.
-    retriever.mask_source = build_mask_source(merged, backbone)
+    retriever.mask_source = build_mask_source(mask_plan(merged), backbone)
     return retriever, merged
 
 
@@ -299,14 +300,14 @@ def untrained_retriever(
             f"ckpt=none: mask.weights={merged.mask.weights} has class weights that only VPR training learns; "
             "use mask.weights=binary"
         )
-    cls = component_class(merged, "mask")
-    if cls is not None and cls.needs in SEGMENTER_GROUPS and not merged[cls.needs].get("checkpoint"):
+    masks = mask_plan(merged)
+    if masks.needs in SEGMENTER_GROUPS and not merged[masks.needs].get("checkpoint"):
         raise SemvprError(
-            f"ckpt=none: mask={merged.mask.name} needs a saved {cls.needs}: add {cls.needs}.checkpoint=DIR "
-            f"({_saved_as(cls.needs)})"
+            f"ckpt=none: mask={merged.mask.name} needs a saved {masks.needs}: add {masks.needs}.checkpoint=DIR "
+            f"({_saved_as(masks.needs)})"
         )
     backbone = build_backbone(merged.backbone, int(merged.seed)).eval()
-    retriever = build_retriever(merged, backbone, build_mask_source(merged, backbone), training=False)
+    retriever = build_retriever(merged, backbone, build_mask_source(masks, backbone), training=False)
     if retriever.aggregator.init_sample != "none":
         used = initialise_untrained(merged, retriever, evaluated)
         print(f"semvpr: ckpt=none: {merged.aggregator.name} initialised on {used}", file=sys.stderr)

@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 
 from semvpr.config.build import build_backbone, build_mask_source
 from semvpr.config.components import COMPONENTS, component_class, options
+from semvpr.config.plan import mask_plan
 from semvpr.data.classes import NUM_CLASSES
 from semvpr.models.aggregators.base import Aggregator
 from tests.helpers import config
@@ -116,7 +117,7 @@ def test_every_mask_source_gives_a_grid_mask(name: str, tmp_path) -> None:
     and maps images to a binary (B,1,h,w) mask and to (B,C,h,w) class probabilities on the grid."""
     cfg = config(f"mask={name}", "experiment=tiny", "backbone.weights=none")
     backbone = build_backbone(cfg.backbone, 0).eval()
-    source = build_mask_source(cfg, backbone)
+    source = build_mask_source(mask_plan(cfg), backbone)
     if cfg.mask.module is None:
         assert source is None
         return

@@ -21,7 +21,7 @@ from semvpr.config.build import (
     semantic_teacher,
     trunk_outputs,
 )
-from semvpr.config.plan import job_plan, teacher_spec
+from semvpr.config.plan import job_plan, mask_plan, teacher_spec
 from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
 from semvpr.models.masks import StudentMask, TeacherMask, pool_to_grid
@@ -233,10 +233,10 @@ def test_a_linked_run_keys_its_labels_and_masks_apart(cache: Path, tmp_path: Pat
     assert job.mask_source.identity((64, 80))["encoder"] == "trunk"
     assert len(list(own.glob("skips-*"))) == 6  # strides 4 and 8 of each split, kept by its one trunk pass
     # A mask source rebuilt from the config (as eval rebuilds a checkpoint's) links once its weights are in.
-    rebuilt = build_mask_source(cfg, job.backbone)
+    rebuilt = build_mask_source(mask_plan(cfg), job.backbone)
     assert rebuilt.segmenter.trunk_levels is None
     rebuilt.load_state_dict(copy.deepcopy(job.mask_source.state_dict()))
     from semvpr.config.build import link_segmenter
 
-    link_segmenter(cfg, rebuilt, job.backbone)
+    link_segmenter(mask_plan(cfg), rebuilt, job.backbone)
     assert rebuilt.segmenter.trunk_levels == (1, 2, 3)
