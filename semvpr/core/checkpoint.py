@@ -94,16 +94,22 @@ def unwrapped(state: dict[str, Any], where: str) -> dict[str, Any]:
     multi-GPU ``encoder.module.0.weight``, ``pool.module.centroids``); other keys as they are. Two keys that
     would then name one weight are refused in one line."""
     out: dict[str, Any] = {}
+    given: dict[Any, Any] = {}  # each name's key in the file
     for key, value in state.items():
-        parts = key.split(".") if isinstance(key, str) else [key]
-        for depth in (0, 1):
-            while len(parts) > depth + 1 and parts[depth] in WRAPPERS:
-                del parts[depth]
-        name = ".".join(parts) if isinstance(key, str) else key
-        if name in out:
-            raise SemvprError(f"{where}: two keys name the weight {name!r} (one of them {key!r} through a wrapper)")
-        out[name] = value
+        name = _unwrapped_key(key) if isinstance(key, str) else key
+        if name in given:
+            raise SemvprError(f"{where}: two keys name the weight {name!r}: {given[name]!r} and {key!r}")
+        given[name], out[name] = key, value
     return out
+
+
+def _unwrapped_key(key: str) -> str:
+    """``key`` without a wrapper's names at the top and one level down."""
+    parts = key.split(".")
+    for depth in (0, 1):
+        while len(parts) > depth + 1 and parts[depth] in WRAPPERS:
+            del parts[depth]
+    return ".".join(parts)
 
 
 def is_semvpr_checkpoint(contents: Any) -> bool:
