@@ -52,8 +52,12 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
     runs). A file that pickles any other object is refused in one line naming that object."""
     path = Path(path)
     if not path.is_file():
+        tested = path / "checkpoints" / "tested.ckpt"
+        if what == "checkpoint" and tested.is_file():  # a run directory: the tested model inside it
+            raise SemvprError(f"{what} {path} is a run directory; its tested model is ckpt={tested}")
         hint = " (a run writes <run dir>/checkpoints/tested.ckpt)" if what == "checkpoint" else ""
-        raise SemvprError(f"{what} {path} not found{hint}")
+        problem = "is a directory, not a file" if path.is_dir() else "not found"
+        raise SemvprError(f"{what} {path} {problem}{hint}")
     try:
         with torch.serialization.safe_globals(list(_SAFE_NUMPY)):
             return torch.load(path, map_location="cpu", weights_only=True)

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from semvpr.config.restore import load_retriever
+from semvpr.core.checkpoint import read_weights
 from semvpr.core.errors import SemvprError
 from tests.helpers import REPO, tiny_config, write_checkpoint
 
@@ -229,6 +230,23 @@ def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine
     torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "nan.ckpt")
     with pytest.raises(SemvprError, match=f"weight '{name}' is not a tensor of finite numbers"):
         load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'nan.ckpt'}", config_name="eval"))
+
+
+def test_a_run_directory_or_a_missing_file_as_ckpt_is_one_line_naming_the_file(tmp_path: Path) -> None:
+    """A run directory given as ``ckpt`` names its tested model; another directory or a missing file says which."""
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    with pytest.raises(SemvprError, match=r"run is a directory, not a file \(a run writes"):
+        read_weights(run)
+    (run / "checkpoints" / "tested.ckpt").write_bytes(b"")
+    with pytest.raises(
+        SemvprError, match=rf"run is a run directory; its tested model is ckpt={run}/checkpoints/tested"
+    ):
+        read_weights(run)
+    with pytest.raises(SemvprError, match=r"absent.ckpt not found"):
+        read_weights(tmp_path / "absent.ckpt")
+    with pytest.raises(SemvprError, match=r"^backbone weights .*run is a directory, not a file$"):
+        read_weights(run, what="backbone weights")
 
 
 def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
