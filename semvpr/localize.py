@@ -36,7 +36,8 @@ def query_images(folder: str | Path) -> list[Path]:
     """Image files of a folder, sorted; one clear error if there are none."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise SemvprError(f"query folder {folder} does not exist (queries=DIR)")
+        problem = "is a file: queries= names the folder of images" if folder.exists() else "does not exist"
+        raise SemvprError(f"query folder {folder} {problem} (queries=DIR)")
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not paths:
         raise SemvprError(f"no .jpg/.png images in {folder}")

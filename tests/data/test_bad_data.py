@@ -275,3 +275,20 @@ FAST = {
 @pytest.mark.parametrize("case", rows(CASES, FAST))
 def test_bad_data_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, case: str) -> None:
     run_case(CASES[case], tmp_path, checkpoint)
+
+
+def test_localize_names_what_is_wrong_with_the_query_folder(tmp_path: Path) -> None:
+    """A file or a missing path as ``queries=`` says which; a folder without images says so."""
+    from semvpr.core.errors import SemvprError
+    from semvpr.localize import query_images
+
+    image = tmp_path / "q.jpg"
+    write_image(image, seed=0)
+    with pytest.raises(SemvprError, match=r"q.jpg is a file: queries= names the folder of images"):
+        query_images(image)
+    with pytest.raises(SemvprError, match=r"absent does not exist \(queries=DIR\)"):
+        query_images(tmp_path / "absent")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SemvprError, match=r"no .jpg/.png images in"):
+        query_images(tmp_path / "empty")
+    assert query_images(tmp_path) == [image]
