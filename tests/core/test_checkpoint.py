@@ -233,15 +233,18 @@ def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine
 
 
 def test_a_run_directory_or_a_missing_file_as_ckpt_is_one_line_naming_the_file(tmp_path: Path) -> None:
-    """A run directory given as ``ckpt`` names its tested model; another directory or a missing file says which."""
+    """A run directory given as ``ckpt`` names the checkpoints in it; another directory or a missing file says which."""
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     with pytest.raises(SemvprError, match=r"run is a directory, not a file \(a run writes"):
         read_weights(run)
     (run / "checkpoints" / "tested.ckpt").write_bytes(b"")
     with pytest.raises(
-        SemvprError, match=rf"run is a run directory; its tested model is ckpt={run}/checkpoints/tested"
+        SemvprError, match=rf"run is a run directory; name a file in it: {run}/checkpoints/tested.ckpt$"
     ):
+        read_weights(run)
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    with pytest.raises(SemvprError, match=r"name a file in it: .*/tested.ckpt or .*/checkpoints/last.ckpt$"):
         read_weights(run)
     with pytest.raises(SemvprError, match=r"absent.ckpt not found"):
         read_weights(tmp_path / "absent.ckpt")
