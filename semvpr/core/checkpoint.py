@@ -52,15 +52,15 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
     runs). A file that pickles any other object is refused in one line naming that object."""
     path = Path(path)
     if not path.is_file():
-        held = [path / "checkpoints" / f"{name}.ckpt" for name in ("tested", "last")]
-        held = [f for f in held if f.is_file()]
-        if what == "checkpoint" and held:  # a run directory: name the file inside it
-            raise SemvprError(f"{what} {path} is a run directory; name a file in it: {' or '.join(map(str, held))}")
-        hint = (
-            " (a run writes <run dir>/checkpoints/tested.ckpt, and last.ckpt to resume)" if what == "checkpoint" else ""
-        )
         problem = "is a directory, not a file" if path.is_dir() else "not found"
-        raise SemvprError(f"{what} {path} {problem}{hint}")
+        if what != "checkpoint":
+            raise SemvprError(f"{what} {path} {problem}")
+        held = [f for f in (path / "checkpoints" / f"{n}.ckpt" for n in ("tested", "last")) if f.is_file()]
+        if held:  # a run directory: name the file inside it
+            raise SemvprError(f"{what} {path} is a run directory; name a file in it: {' or '.join(map(str, held))}")
+        raise SemvprError(
+            f"{what} {path} {problem} (a run writes <run dir>/checkpoints/tested.ckpt, and last.ckpt to resume)"
+        )
     try:
         with torch.serialization.safe_globals(list(_SAFE_NUMPY)):
             return torch.load(path, map_location="cpu", weights_only=True)

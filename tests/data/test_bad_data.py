@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from semvpr.core.errors import SemvprError
+from semvpr.localize import query_images
 from tests.bad_input import EVAL, LOCALIZE, TRAIN, Case, a_file, dangling, folder, nordland, rows, run_case
 from tests.camvid_fixture import write_camvid
 from tests.helpers import make_folder, object_array, write_gsv_cities, write_image, write_lists, write_pitts_mat
@@ -279,9 +281,6 @@ def test_bad_data_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, case:
 
 def test_localize_names_what_is_wrong_with_the_query_folder(tmp_path: Path) -> None:
     """A file or a missing path as ``queries=`` says which; a folder without images says so."""
-    from semvpr.core.errors import SemvprError
-    from semvpr.localize import query_images
-
     image = tmp_path / "q.jpg"
     write_image(image, seed=0)
     with pytest.raises(SemvprError, match=r"q.jpg is a file: queries= names the folder of images"):
