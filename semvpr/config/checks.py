@@ -23,6 +23,7 @@ from semvpr.models.released import FORMATS as CKPT_FORMATS
 from semvpr.retrieval.features import STORAGES
 
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
+SIZE_MAX = 2**31 - 1  # a model size or count: beyond it a tensor's element count overflows torch's kernels
 
 
 def whole_number(value: object, key: str, low: int, high: int | None = None, also: str = "") -> int:
@@ -387,9 +388,9 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
     prefix = f"{where}: " if where else ""
     try:
         for key in ("num_clusters", "num_shadows", "eval_batch_size", "init_features", "init_per_image"):
-            whole_number(cfg.model[key], f"model.{key}", 1)
+            whole_number(cfg.model[key], f"model.{key}", 1, SIZE_MAX)
         if cfg.model.get("pca_dim") is not None:
-            whole_number(cfg.model.pca_dim, "model.pca_dim", 1, also="or null: no whitening")
+            whole_number(cfg.model.pca_dim, "model.pca_dim", 1, SIZE_MAX, also="or null: no whitening")
         number(cfg.model.class_weights.init_logit, "model.class_weights.init_logit", 0)
         module = cfg.aggregator.get("module")
         for key, value in (OmegaConf.to_container(module, resolve=True) if module is not None else {}).items():
@@ -413,16 +414,17 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
 
 
 def _check_size(value: Any, key: str) -> None:
-    """An aggregator size: whole numbers >= 1 (a list of them, or null), finite numbers > 0 (dropout in [0, 1))."""
+    """An aggregator size: whole numbers in [1, SIZE_MAX] (a list of them, or null), finite numbers > 0
+    (dropout in [0, 1))."""
     if value is None or isinstance(value, str):
         return
     if isinstance(value, list):
         for i, item in enumerate(value):
-            whole_number(item, f"{key}[{i}]", 1)
+            whole_number(item, f"{key}[{i}]", 1, SIZE_MAX)
     elif isinstance(value, bool):
         return
     elif isinstance(value, int):
-        whole_number(value, key, 1)
+        whole_number(value, key, 1, SIZE_MAX)
     elif key.endswith(".dropout"):
         number(value, key, 0, high=0.999)
     else:

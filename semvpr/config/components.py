@@ -13,7 +13,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig
 from omegaconf.errors import MissingMandatoryValue
 
-from semvpr.core.errors import SemvprError, unwrap_user_error
+from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
@@ -66,6 +66,13 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
             raise user from None
         if isinstance(err, MissingMandatoryValue):
             raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. {err.full_key}=DIR") from None
+        asked = allocation_failure(err)
+        if asked is not None:
+            path = node._get_full_key("") if isinstance(node, DictConfig) else ""
+            sizes = [f"{path}.{k}={v}" if path else f"{k}={v}" for k, v in node.items() if type(v) is int]
+            raise SemvprError(
+                f"{node.get('_target_')}: building it {asked}; lower its sizes ({', '.join(sizes)})"
+            ) from None
         cause: BaseException | None = err
         while cause is not None and not (isinstance(cause, OSError) and cause.filename is not None):
             cause = cause.__cause__ or cause.__context__

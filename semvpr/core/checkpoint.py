@@ -125,6 +125,21 @@ def is_semvpr_checkpoint(contents: Any) -> bool:
     return isinstance(record, dict) and ("format" in record or "config" in record)
 
 
+def weight_fault(value: Any) -> str | None:
+    """Why ``value`` is no model weight (None when it is one): not a tensor, complex, a view claiming more
+    numbers than the file stores (strides of 0: checking or copying it would fill the memory), or not finite."""
+    if not isinstance(value, torch.Tensor):
+        return f"is not a tensor ({type(value).__name__})"
+    if value.is_complex():
+        return f"is complex ({value.dtype})"
+    stored = value.untyped_storage().nbytes() // value.element_size()
+    if value.numel() > stored:
+        return f"has shape {tuple(value.shape)} ({value.numel():,} values) from {stored:,} stored"
+    if value.is_floating_point() and not torch.isfinite(value).all():
+        return "is not finite"
+    return None
+
+
 def read_checkpoint(path: str | Path, contents: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The state dict and the model record of a semvpr checkpoint (weights-only load; ``contents``: the
     file's, where already read)."""
@@ -132,16 +147,10 @@ def read_checkpoint(path: str | Path, contents: Any = None) -> tuple[dict[str, A
     ckpt = read_weights(path) if contents is None else contents
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
-    broken = next(
-        (
-            k
-            for k, v in ckpt["state_dict"].items()
-            if not isinstance(v, torch.Tensor) or (v.is_floating_point() and not torch.isfinite(v).all())
-        ),
-        None,
-    )
-    if broken is not None:
-        raise SemvprError(f"{path}: weight {broken!r} is not a tensor of finite numbers; the checkpoint is damaged")
+    for key, value in ckpt["state_dict"].items():
+        fault = "is not named by a string" if not isinstance(key, str) else weight_fault(value)
+        if fault is not None:
+            raise SemvprError(f"{path}: weight {key!r} {fault}; the checkpoint is damaged")
     record = ckpt.get("hyper_parameters")
     if not isinstance(record, dict) or record.get("format") not in READABLE_FORMATS:
         if isinstance(record, dict) and "config" in record and "format" not in record:

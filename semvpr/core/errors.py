@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import re
 import sys
 from collections.abc import Callable
 from typing import TypeVar
@@ -34,6 +35,16 @@ def exit_on_user_error(fn: F) -> F:
                 raise
             print(f"semvpr: error: {err.filename}: {err.strerror or type(err).__name__}", file=sys.stderr)
             raise SystemExit(2) from None
+        except RuntimeError as err:
+            # Settings that need more memory than the machine has (a model's sizes, a batch): what was
+            # asked for, in one line, not the allocator's traceback.
+            asked = allocation_failure(err)
+            if asked is None:
+                raise
+            print(
+                f"semvpr: error: out of memory: a step {asked}; lower the batch or the model's sizes", file=sys.stderr
+            )
+            raise SystemExit(2) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -53,4 +64,22 @@ def unwrap_user_error(err: BaseException) -> SemvprError | None:
             return cur
         seen.add(id(cur))
         cur = cur.__cause__ or cur.__context__
+    return None
+
+
+def allocation_failure(err: BaseException) -> str | None:
+    """What a failed allocation behind ``err`` asked for (torch's CPU allocator refusing, or a device out
+    of memory) as a phrase ("asked for 417 GiB of memory, ..."); None when ``err`` is something else."""
+    seen: set[int] = set()
+    cause: BaseException | None = err
+    while cause is not None and id(cause) not in seen:
+        text = str(cause)
+        names = {cls.__name__ for cls in type(cause).__mro__}
+        if "OutOfMemoryError" in names or "can't allocate memory" in text:
+            exact = re.search(r"allocate (\d+) bytes", text)
+            shown = re.search(r"allocate ([\d.]+ [KMGTP]?i?B)", text)
+            amount = f"{int(exact[1]) / 2**30:,.1f} GiB" if exact else shown[1] if shown else "more"
+            return f"asked for {amount} of memory, more than this machine could allocate"
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
     return None

@@ -42,7 +42,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from semvpr.core.checkpoint import read_weights, weights_in
+from semvpr.core.checkpoint import read_weights, weight_fault, weights_in
 from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16_SLICES
 from semvpr.models.dinov2 import DINOV2_KEYS
@@ -318,8 +318,9 @@ def weights_of(contents: Any, path: Path) -> dict[str, Tensor]:
     for key, value in state.items():
         if not isinstance(key, str) or not isinstance(value, Tensor):
             raise SemvprError(f"release file {path}: entry {key!r} is not a named tensor ({type(value).__name__})")
-        if value.is_floating_point() and not torch.isfinite(value).all():
-            raise SemvprError(f"release file {path}: weight {key!r} is not finite; the file is damaged")
+        fault = weight_fault(value) or (f"has shape {tuple(value.shape)}: no weights" if value.numel() == 0 else None)
+        if fault is not None:
+            raise SemvprError(f"release file {path}: weight {key!r} {fault}; the file is damaged")
     return state
 
 

@@ -15,6 +15,11 @@ class PCAWhitening(nn.Module):
 
     def __init__(self, in_dim: int, out_dim: int, eps: float = 1e-9) -> None:
         super().__init__()
+        if not 1 <= out_dim <= in_dim:
+            raise SemvprError(
+                f"model.pca_dim={out_dim}: PCA reduces the aggregator's {in_dim}-D descriptor to at most {in_dim} "
+                "dims; lower it, or model.pca_dim=null for no whitening"
+            )
         self.in_dim, self.out_dim, self.eps = in_dim, out_dim, eps
         self.register_buffer("mean", torch.zeros(in_dim))
         self.register_buffer("projection", torch.eye(out_dim, in_dim))

@@ -47,6 +47,29 @@ CASES: dict[str, Case] = {
         lambda t, c: ["recipe=gsv", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"],
         "use trainer=cpu or trainer=gpu",
     ),
+    # Model sizes past what any machine holds: one line, not the allocator's traceback (a TB-sized model).
+    "num_clusters=1e12": Case(
+        EVAL,
+        lambda t, c: ["ckpt=none", "aggregator=netvlad", "model.num_clusters=1000000000000"],
+        "model.num_clusters=1000000000000 must be a whole number from 1 to 2147483647",
+    ),
+    "num_clusters=2^31-1": Case(
+        EVAL,
+        lambda t, c: ["ckpt=none", "aggregator=netvlad", "model.num_clusters=2147483647"],
+        "more than this machine could allocate; lower its sizes (aggregator.module.num_clusters=2147483647)",
+    ),
+    "mixvpr descriptor of 1e10": Case(
+        TRAIN,
+        lambda t, c: [
+            "aggregator=mixvpr",
+            "aggregator.module.out_channels=100000",
+            "aggregator.module.out_rows=100000",
+        ],
+        "out of memory: a step asked for",
+    ),
+    "pca_dim wider than the descriptor": Case(
+        TRAIN, lambda t, c: ["model.pca_dim=100000000"], "model.pca_dim=100000000: PCA reduces the aggregator's"
+    ),
     "traversals=-1": Case(TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
     "train data.test._target_=builtins.print": Case(
         TRAIN, lambda t, c: ["data.test._target_=builtins.print"], "the key _target_ is refused"
@@ -161,6 +184,7 @@ FAST = {
     "gsv loss without a gradient",
     "teacher.model.num_queries=1e9",
     "unknown key +model.fooo",
+    "num_clusters=2^31-1",
 }
 
 

@@ -221,15 +221,34 @@ def test_a_stored_hugging_face_id_or_the_invocations_own_path_passes(tmp_path: P
     assert model_config(record, given).teacher.checkpoint == str(tmp_path)
 
 
-def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path, genuine_record: tuple[dict, dict]) -> None:
-    """It evaluated to R@N = 0 with exit 0."""
+@pytest.mark.parametrize(
+    ("damage", "fault"),
+    [
+        ("nan", "is not finite"),  # it evaluated to R@N = 0 with exit 0
+        ("complex", r"is complex \(torch.complex64\)"),  # cast to real with a warning, exit 0
+        ("strides", r"has shape \(1000000, 100000\) \(100,000,000,000 values\) from 1 stored"),  # 400 GB to check
+        ("key", "is not named by a string"),  # an AttributeError traceback
+    ],
+)
+def test_a_checkpoint_with_damaged_weights_is_refused(
+    tmp_path: Path, genuine_record: tuple[dict, dict], damage: str, fault: str
+) -> None:
     state, record = genuine_record
     state = dict(state)
-    name = next(k for k, v in state.items() if v.is_floating_point())
-    state[name] = state[name].clone().fill_(float("nan"))
-    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "nan.ckpt")
-    with pytest.raises(SemvprError, match=f"weight '{name}' is not a tensor of finite numbers"):
-        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'nan.ckpt'}", config_name="eval"))
+    name: object = next(k for k, v in state.items() if v.is_floating_point())
+    value = state[name]
+    if damage == "nan":
+        state[name] = value.clone().fill_(float("nan"))
+    elif damage == "complex":
+        state[name] = value.to(torch.complex64)
+    elif damage == "strides":
+        state[name] = torch.zeros(1).expand(10**6, 10**5)
+    else:
+        name = 7
+        state[name] = value
+    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "bad.ckpt")
+    with pytest.raises(SemvprError, match=f"weight {name!r} {fault}; the checkpoint is damaged"):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'bad.ckpt'}", config_name="eval"))
 
 
 def test_a_run_directory_or_a_missing_file_as_ckpt_is_one_line_naming_the_file(tmp_path: Path) -> None:

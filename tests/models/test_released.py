@@ -830,6 +830,42 @@ def test_a_weight_of_another_shape_is_named(tmp_path: Path) -> None:
     refused(tmp_path, tmp_path / "m.ckpt", r"'aggregator.mix.1.mix.3.bias' has shape \(5,\)")
 
 
+@pytest.mark.parametrize(
+    ("fmt", "key", "shape", "match"),
+    [
+        (
+            "mixvpr",
+            "aggregator.row_proj.weight",
+            (4, 0),
+            r"'aggregator.row_proj.weight' has shape \(4, 0\): no weights",
+        ),
+        ("netvlad", "pool.centroids", (10**11, 0), r"'pool.centroids' has shape \(100000000000, 0\): no weights"),
+        (
+            "netvlad",
+            "pool.centroids",
+            (10**11, 512),
+            r"'pool.centroids' has shape \(100000000000, 512\) \(51,200,000,000,000 values\) from 1 stored",
+        ),
+    ],
+)
+def test_sizes_read_from_absurd_shapes_are_one_line(
+    tmp_path: Path, fmt: str, key: str, shape: tuple, match: str
+) -> None:
+    """A file whose shapes would fix absurd sizes (a weight of no numbers, a hundred billion clusters held as one
+    number repeated by strides of 0) is refused before anything is built or checked number by number."""
+    state = (mixvpr_model() if fmt == "mixvpr" else netvlad_model()).state_dict()
+    state[key] = torch.zeros(1).expand(shape)
+    torch.save({"state_dict": state}, tmp_path / "m.ckpt")
+    refused(tmp_path, tmp_path / "m.ckpt", match)
+
+
+def test_a_complex_weight_is_refused(tmp_path: Path) -> None:
+    state = boq_model().state_dict()
+    state["aggregator.fc.weight"] = state["aggregator.fc.weight"].to(torch.complex64)
+    save_state_dict(state, tmp_path / "b.pth")
+    refused(tmp_path, tmp_path / "b.pth", r"weight 'aggregator.fc.weight' is complex \(torch.complex64\)")
+
+
 def test_an_extra_key_is_named(tmp_path: Path) -> None:
     state = {**boq_model().state_dict(), "aggregator.extra_head.weight": torch.zeros(3)}
     save_state_dict(state, tmp_path / "b.pth")
