@@ -32,8 +32,10 @@ from semvpr.retrieval.recall import check_finite, knn
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
 
-def query_images(folder: str | Path) -> list[Path]:
+def query_images(folder: str | Path | None) -> list[Path]:
     """Image files of a folder, sorted; one clear error if there are none."""
+    if folder is None:
+        raise SemvprError("queries=null: name the folder of query images (queries=DIR)")
     folder = Path(folder)
     if not folder.is_dir():
         problem = "is a file: queries= names the folder of images" if folder.exists() else "does not exist"

@@ -302,9 +302,7 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
     if run_dir is not None:
         check_dir_path(str(run_dir), "the run dir (hydra.run.dir)")
     for key in PATH_KEYS:
-        value = OmegaConf.select(cfg, key, default=None, throw_on_missing=False)
-        if isinstance(value, str):
-            check_path_text(value, key)
+        _check_path_setting(OmegaConf.select(cfg, key, default=None, throw_on_missing=False), key)
     fmt = cfg.get("ckpt_format")
     if fmt is not None and fmt not in CKPT_FORMATS:
         raise SemvprError(f"ckpt_format={fmt!r} is not one of {', '.join(CKPT_FORMATS)}")
@@ -366,6 +364,21 @@ PATH_KEYS = (
     "init.root",
     "seg.root",
 )
+
+
+def _check_path_setting(value: object, key: str) -> None:
+    """A setting of :data:`PATH_KEYS`: unset (null), or a name the file system can hold; a number or a list
+    (``data.root=2024``, ``data.root=[a,b]``: Hydra's types) or an empty name is one line."""
+    if value is None:
+        return
+    if OmegaConf.is_config(value) or isinstance(value, (list, dict)):
+        raise SemvprError(f"{key}={_shown(value)!r} is not a path: name one file or folder")
+    if not isinstance(value, str):
+        written = str(value).lower() if isinstance(value, bool) else str(value)
+        raise SemvprError(f"{key}={written} is not a path; a folder or file of that name is quoted: {key}='{written}'")
+    if not value:
+        raise SemvprError(f"{key}='' names no file or folder")
+    check_path_text(value, key)
 
 
 def number(value: object, key: str, low: float, *, above: bool = False, high: float | None = None) -> float:

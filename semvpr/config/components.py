@@ -6,11 +6,12 @@ the batches it trains on (``batches``) the same way."""
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
-from hydra.utils import get_class, instantiate
-from omegaconf import DictConfig
+from hydra.utils import get_class, get_object, instantiate
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
@@ -57,7 +58,8 @@ def component_class(cfg: DictConfig, group: str) -> type | None:
 
 def instantiate_node(node: Any, **kwargs: Any) -> Any:
     """hydra.utils.instantiate, with a SemvprError from inside the target re-raised unwrapped and a missing
-    mandatory value (``???``) as one line naming its key."""
+    mandatory value (``???``) or a required argument set to null as one line naming its key."""
+    _refuse_null_arguments(node, kwargs)
     try:
         return instantiate(node, **kwargs)
     except Exception as err:
@@ -79,6 +81,34 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
         if cause is not None:
             raise cause from None  # a file system refusal about a named file: the CLIs print it in one line
         raise
+
+
+def _refuse_null_arguments(node: Any, given: dict[str, Any]) -> None:
+    """An argument of the node's target without a default and typed without None, set to null: one line
+    naming the setting it comes from (``data.root=null`` for a reader's ``root: ${data.root}``), not the
+    target's TypeError on None."""
+    if not isinstance(node, DictConfig) or node.get("_target_") is None:
+        return
+    try:
+        params = inspect.signature(get_object(str(node._target_))).parameters
+    except Exception:  # noqa: BLE001 - an unimportable target is reported by instantiate itself
+        return
+    raw = OmegaConf.to_container(node, resolve=False)
+    for name, param in params.items():
+        if name in given or name not in node or param.default is not inspect.Parameter.empty:
+            continue
+        kind = str(param.annotation)  # a string under postponed annotations
+        if param.annotation is inspect.Parameter.empty or any(word in kind for word in ("None", "Optional", "Any")):
+            continue  # null may be what it means
+        try:
+            if node[name] is not None:
+                continue
+        except Exception:  # noqa: BLE001 - a missing or unresolvable value is reported by instantiate itself
+            continue
+        text = raw[name]  # type: ignore[index]
+        interpolated = isinstance(text, str) and text.startswith("${") and text.endswith("}")
+        source = text[2:-1] if interpolated else f"{node._get_full_key('')}.{name}".lstrip(".")
+        raise SemvprError(f"{source}=null, but {node._target_} needs its {name}: set {source}")
 
 
 def loss_class(cfg: DictConfig) -> type[Loss]:

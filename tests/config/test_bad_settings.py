@@ -70,6 +70,24 @@ CASES: dict[str, Case] = {
     "pca_dim wider than the descriptor": Case(
         TRAIN, lambda t, c: ["model.pca_dim=100000000"], "model.pca_dim=100000000: PCA reduces the aggregator's"
     ),
+    # A path setting of another type than a name, empty, or null where the reader needs it.
+    **{
+        f"data.root={v}": Case(EVAL, lambda t, c, v=v: [f"ckpt={c}", "data=folder", f"data.root={v}"], line)
+        for v, line in (
+            ("null", "data.root=null, but semvpr.data.places.read_utm_folder needs its root: set data.root"),
+            ("2024", "data.root=2024 is not a path; a folder or file of that name is quoted: data.root='2024'"),
+            ("[a,b]", "data.root=['a', 'b'] is not a path: name one file or folder"),
+            ("''", "data.root='' names no file or folder"),
+        )
+    },
+    "data.test.split=null": Case(
+        EVAL,
+        lambda t, c: [f"ckpt={c}", "data=folder", f"data.root={t}", "data.test.split=null"],
+        "data.test.split=null, but semvpr.data.places.read_utm_folder needs its split",
+    ),
+    "localize queries=null": Case(
+        LOCALIZE, lambda t, c: [f"ckpt={c}", "queries=null"], "queries=null: name the folder"
+    ),
     "traversals=-1": Case(TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
     "train data.test._target_=builtins.print": Case(
         TRAIN, lambda t, c: ["data.test._target_=builtins.print"], "the key _target_ is refused"
@@ -185,6 +203,7 @@ FAST = {
     "teacher.model.num_queries=1e9",
     "unknown key +model.fooo",
     "num_clusters=2^31-1",
+    "data.root=null",
 }
 
 
