@@ -138,10 +138,10 @@ def _trained_retriever(
     retriever = build_retriever(
         merged, backbone, build_mask_source(masks, backbone) if replaced is None else None, training=False
     )
-    try:
-        retriever.load_state_dict(state, strict=True)
-    except RuntimeError as err:
-        raise SemvprError(f"{where} does not fit {trained}: {str(err).splitlines()[0]}") from None
+    misfit = weights_misfit(state, retriever.state_dict())
+    if misfit is not None:
+        raise SemvprError(f"{where} does not fit {trained}: {misfit}")
+    retriever.load_state_dict(state, strict=True)
     if replaced is not None:
         # Built after the checkpoint's weights are in: a student directory is checked against the trunk.
         retriever.mask_source = build_mask_source(masks, backbone)
@@ -150,6 +150,22 @@ def _trained_retriever(
         if warn:
             warn_foreign_mask(record, merged, where)
     return retriever, merged
+
+
+def weights_misfit(state: dict[str, Any], expected: dict[str, Any]) -> str | None:
+    """How a checkpoint's weights fail the model its record builds (``expected``: that model's state dict), as
+    a phrase naming the first key and how many more there are; None when every weight has its place and shape."""
+    missing = sorted(set(expected) - set(state))
+    extra = sorted(set(state) - set(expected))
+    reshaped = [k for k in state if k in expected and tuple(state[k].shape) != tuple(expected[k].shape)]
+    faults = [
+        *(f"no weight {k!r}, which the model needs" for k in missing),
+        *(f"key {k!r} is not part of the model" for k in extra),
+        *(f"{k!r} has shape {tuple(state[k].shape)}, the model needs {tuple(expected[k].shape)}" for k in reshaped),
+    ]
+    if not faults:
+        return None
+    return faults[0] + (f" (and {len(faults) - 1} more)" if len(faults) > 1 else "")
 
 
 def _refuse_model_overrides(cfg: DictConfig, explicit: set[str], merged: DictConfig, where: str) -> str:

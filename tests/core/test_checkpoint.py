@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 import subprocess
 import sys
 from collections.abc import Callable
@@ -249,6 +250,37 @@ def test_a_checkpoint_with_damaged_weights_is_refused(
     torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "bad.ckpt")
     with pytest.raises(SemvprError, match=f"weight {name!r} {fault}; the checkpoint is damaged"):
         load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'bad.ckpt'}", config_name="eval"))
+
+
+@pytest.mark.parametrize(
+    ("edit", "named"),
+    [
+        ("drop", r"no weight '{key}', which the model needs$"),
+        ("add", r"key 'aggregator\.extra' is not part of the model$"),
+        ("reshape", r"'{key}' has shape \(3,\), the model needs \("),
+        ("drop all of it", r"no weight '{key}', which the model needs \(and [0-9]+ more\)$"),
+    ],
+)
+def test_weights_that_do_not_fit_the_recorded_model_name_the_key(
+    tmp_path: Path, genuine_record: tuple[dict, dict], edit: str, named: str
+) -> None:
+    """torch's own message opens with a line that names no key ("Error(s) in loading state_dict")."""
+    state, record = genuine_record
+    state = dict(state)
+    key = sorted(k for k in state if k.startswith("aggregator."))[0]
+    if edit == "drop":
+        del state[key]
+    elif edit == "add":
+        state["aggregator.extra"] = torch.zeros(2)
+    elif edit == "reshape":
+        state[key] = torch.zeros(3)
+    else:
+        state = {k: v for k, v in state.items() if not k.startswith("aggregator.")}
+    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "misfit.ckpt")
+    with pytest.raises(
+        SemvprError, match=r"misfit\.ckpt does not fit backbone=.*: " + named.format(key=re.escape(key))
+    ):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'misfit.ckpt'}", config_name="eval"))
 
 
 def test_a_run_directory_or_a_missing_file_as_ckpt_is_one_line_naming_the_file(tmp_path: Path) -> None:
