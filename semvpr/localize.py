@@ -3,8 +3,9 @@
 Each image in DIR is described with the checkpoint's full pipeline (backbone, mask, aggregator)
 and matched against the database of ``data``'s test split (its descriptors cached as in
 ``semvpr.eval``). The model is the one ``semvpr.eval`` evaluates: a checkpoint (its mask source
-replaceable with ``mask=``), or ``ckpt=none``. Prints, per query, the top-k database images with their
-UTM and descriptor distance; writes ``localize.json`` in the run directory.
+replaceable with ``mask=``), or ``ckpt=none``. Prints, per query, the best database image with its
+position (UTM metres, or the frame of a frame-aligned set) and descriptor distance; writes the top-k of each
+to ``localize.json`` in the run directory.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ def query_images(folder: str | Path | None) -> list[Path]:
 
 
 def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None) -> list[dict[str, Any]]:
-    """Top-k database matches (path, UTM, distance) for every query image."""
+    """Top-k database matches (path, position as the set gives one, distance) for every query image."""
     check_config(cfg, run_dir)
     paths = query_images(cfg.queries)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
@@ -75,7 +76,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
             {
                 "query": str(path),
                 "matches": [
-                    {"path": str(places.db_paths[j]), "utm": places.db_utm[j].tolist(), "distance": float(d)}
+                    {"path": str(places.db_paths[j]), **places.position("db", j), "distance": float(d)}
                     for j, d in zip(row, dist)
                 ],
             }
@@ -91,11 +92,17 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     write_json(output, results)
     for result in results:
         best = result["matches"][0]
-        print(
-            f"{Path(result['query']).name}: {Path(best['path']).name} "
-            f"(E {best['utm'][0]:.1f}, N {best['utm'][1]:.1f}, d={best['distance']:.3f})"
-        )
-    print(json.dumps({"queries": len(results), "top_k": int(cfg.top_k), "output": str(output)}))
+        print(f"{Path(result['query']).name}: {Path(best['path']).name} ({_where(best)}d={best['distance']:.3f})")
+    # top_k as returned: at most the database's size.
+    returned = len(results[0]["matches"]) if results else int(cfg.top_k)
+    print(json.dumps({"queries": len(results), "top_k": returned, "output": str(output)}))
+
+
+def _where(match: dict[str, Any]) -> str:
+    """A match's position for the summary line, as its place set gives one (UTM metres or a frame)."""
+    if "utm" in match:
+        return f"E {match['utm'][0]:.1f}, N {match['utm'][1]:.1f}, "
+    return f"frame {match['frame']}, " if "frame" in match else ""
 
 
 def main() -> None:

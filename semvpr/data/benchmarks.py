@@ -309,6 +309,7 @@ def read_frames(
         db_utm=np.stack([db_frames, np.zeros_like(db_frames)], 1),
         q_utm=np.stack([q_frames, np.zeros_like(q_frames)], 1),
         ground_truth=truth,
+        positions="frame",
     )
     if spec.source != "none" and cache_dir is None:
         raise SemvprError("data.occluders needs a cache folder for its composites (paths.cache_dir)")

@@ -7,6 +7,7 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -151,6 +152,9 @@ class PlaceSet:
     #: root, and the student trained on them); None: this one. SynthCity's training split with extra
     #: traversals names the split as drawn, so the student is the same whichever recipe trains.
     semantic_source: PlaceSet | None = None
+    #: What a position is: "utm" ((east, north) in metres) or "frame" ((frame, 0): a frame-aligned set,
+    #: ``data.benchmarks.read_frames``). A set scored by shipped ground truth may have none (NaN throughout).
+    positions: Literal["utm", "frame"] = "utm"
 
     def __post_init__(self) -> None:
         # Normalise here so every reader (and hand-built sets) gets the same types and checks.
@@ -253,6 +257,14 @@ class PlaceSet:
         if len(self.db_utm) == 0:
             return [np.zeros(0, dtype=np.int64) for _ in range(len(self.q_utm))]
         return positives_within(self.db_utm, self.q_utm, radius)
+
+    def position(self, side: Literal["db", "q"], i: int) -> dict[str, Any]:
+        """Image ``i`` of the database or the queries where a record names it: ``{"utm": [east, north]}``,
+        ``{"frame": f}``, or ``{}`` where the set has no positions."""
+        utm = (self.db_utm if side == "db" else self.q_utm)[i]
+        if not np.isfinite(utm).all():
+            return {}
+        return {"frame": int(utm[0])} if self.positions == "frame" else {"utm": utm.tolist()}
 
     def with_eval_radius(self, radius: float | None) -> PlaceSet:
         """The set scored by positives within ``radius`` metres (None: as it is). A set whose release

@@ -267,12 +267,17 @@ def figure3(sweep: Sweep, out: Path, max_queries: int = 4) -> str | None:
     return None
 
 
-def _utm_distance(a: Any, b: Any) -> float:
-    """Metres between two [east, north] pairs (nan if either is missing)."""
+def _apart(query: dict[str, Any], hit: dict[str, Any]) -> str:
+    """How far a retrieval is from its query, for a title: " · 12 m" (UTM), " · 3 frames" (a frame-aligned
+    set), or "" where either has no position."""
     try:
-        return float(np.hypot(float(a[0]) - float(b[0]), float(a[1]) - float(b[1])))
-    except (TypeError, ValueError, IndexError):
-        return math.nan
+        if "frame" in query and "frame" in hit:
+            return f" · {abs(int(hit['frame']) - int(query['frame']))} frames"
+        a, b = query["utm"], hit["utm"]
+        metres = float(np.hypot(float(a[0]) - float(b[0]), float(a[1]) - float(b[1])))
+    except (KeyError, TypeError, ValueError, IndexError):
+        return ""
+    return f" · {metres:.0f} m" if math.isfinite(metres) else ""
 
 
 def _retrievals(job: Job) -> dict[str, dict]:
@@ -332,8 +337,7 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
                 colour = OK_COLOUR if hit.get("correct") else WRONG_COLOUR
                 for spine in ax.spines.values():
                     spine.set(edgecolor=colour, linewidth=4)
-                dist = _utm_distance(entry.get("utm"), hit.get("utm"))
-                ax.set_title(f"#{c + 1}" + (f" · {dist:.0f} m" if math.isfinite(dist) else ""), fontsize=8)
+                ax.set_title(f"#{c + 1}" + _apart(entry, hit), fontsize=8)
                 if c == 0:
                     ax.set_ylabel(sweep.label(f), fontsize=9)
     fig.suptitle(

@@ -34,12 +34,12 @@ def write_job_figure_data(
         topk = [
             {
                 "path": str(places.db_paths[j]),
-                "utm": places.db_utm[j].tolist(),
+                **places.position("db", j),
                 "correct": bool(j in set(positives[i].tolist())),
             }
             for j in predictions[i, :5]
         ]
-        queries.append({"query": str(places.q_paths[i]), "utm": places.q_utm[i].tolist(), "topk": topk})
+        queries.append({"query": str(places.q_paths[i]), **places.position("q", i), "topk": topk})
     write_json(run_dir / "retrievals.json", {"queries": queries})
     arrays: dict[str, np.ndarray] = {"query_index": idx, "image_paths": np.array([str(places.q_paths[i]) for i in idx])}
     trunk = features.q.trunk_of(idx, retriever.backbone).float().to(retriever.device)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +16,7 @@ from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
 from tests.helpers import (
     EVAL_SIZE,
+    REPO,
     config,
     make_folder,
     mapped_file,
@@ -96,6 +101,42 @@ def test_checkpoint_localises_against_another_dataset(checkpoint: Path, tmp_path
     results = localize(cfg)
     assert [Path(r["matches"][0]["path"]).name for r in results] == ["000001_pitch1_yaw1.jpg", "000004_pitch1_yaw1.jpg"]
     assert results[0]["matches"][0]["utm"] == list(place_utm(1)) and len(results[0]["matches"]) == 3
+
+
+def test_localize_on_a_frame_aligned_set_gives_frames_not_utm(checkpoint: Path, tmp_path: Path) -> None:
+    """A frame-aligned set's positions are (frame, 0): localize names the frame (it printed them as UTM east and
+    north, and wrote them under "utm"); top_k past the database is reported as what was returned."""
+    for i in range(3):
+        write_image(tmp_path / "nord" / "ref" / f"{i + 10:05d}.jpg", i)
+        write_image(tmp_path / "nord" / "query" / f"{i + 10:05d}.jpg", i)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.localize",
+            f"ckpt={checkpoint}",
+            "data=nordland",
+            f"data.root={tmp_path / 'nord'}",
+            f"queries={tmp_path / 'nord' / 'query'}",
+            "top_k=5",
+            "threads=1",
+            *EVAL_SIZE,
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            f"hydra.run.dir={tmp_path / 'out'}",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "out" / "localize.json").read_text())
+    matches = [m for r in results for m in r["matches"]]
+    assert len(results) == 3 and all(len(r["matches"]) == 3 for r in results)
+    assert all("utm" not in m and m["frame"] == int(Path(m["path"]).stem) for m in matches)
+    lines = proc.stdout.strip().splitlines()
+    assert all(re.search(r": [0-9]{5}\.jpg \(frame 1[0-2], d=[0-9.]+\)$", line) for line in lines[:3]), lines
+    assert json.loads(lines[-1])["top_k"] == 3
 
 
 @pytest.mark.parametrize("filter_name", ["attention", "unet"])

@@ -245,3 +245,14 @@ def test_a_damaged_msls_csv_is_one_line_naming_it(tmp_path: Path, damage, messag
     with pytest.raises(SemvprError, match=message) as err:
         read_msls(root, "val")
     assert "\n" not in str(err.value)
+
+
+def test_a_record_names_a_position_as_the_set_has_it() -> None:
+    """UTM metres, a frame of a frame-aligned set, or nothing for a set without positions (it wrote a bare NaN,
+    which is not JSON)."""
+    utm = np.array([[585000.5, 4477000.25]])
+    assert PlaceSet("u", ("d",), ("q",), utm, utm).position("db", 0) == {"utm": [585000.5, 4477000.25]}
+    frames = PlaceSet("f", ("d",), ("q",), [[12, 0]], [[7, 0]], ground_truth=(np.array([0]),), positions="frame")
+    assert frames.position("db", 0) == {"frame": 12} and frames.position("q", 0) == {"frame": 7}
+    nan = np.full((1, 2), np.nan)
+    assert PlaceSet("n", ("d",), ("q",), nan, nan, ground_truth=(np.array([0]),)).position("q", 0) == {}
