@@ -20,6 +20,7 @@ so a run killed mid-save leaves nothing outside its run directory.
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -61,8 +62,17 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
         raise SemvprError(
             f"{what} {path} {problem} (a run writes <run dir>/checkpoints/tested.ckpt, and last.ckpt to resume)"
         )
+    with path.open("rb") as file:
+        head = file.read(4)
+    if head != b"PK\x03\x04" and head[:1] != b"\x80":
+        raise SemvprError(
+            f"{path} is not a readable {what}: not a torch file (neither the zip archive torch.save writes "
+            "nor a pickle of protocol 2 or later)"
+        )
     try:
-        with torch.serialization.safe_globals(list(_SAFE_NUMPY)):
+        with torch.serialization.safe_globals(list(_SAFE_NUMPY)), warnings.catch_warnings():
+            # Another pickle protocol than torch's own: read or refused below, not a warning above the line.
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
             return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unreadable file gets the same one line
         pickled = _UNSUPPORTED.search(str(err))
@@ -71,7 +81,12 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
                 f"{what} {path} is refused: it pickles an object ({pickled.group(1)}), and only weights are "
                 "read from a file (nothing in it is run)"
             ) from None
-        detail = (str(err).splitlines() or [""])[0]
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        # The weights-only reader's own reason follows its advice to read the file unsafely, which semvpr never does.
+        reason = next(
+            (lines[i + 1] for i, line in enumerate(lines[:-1]) if line.endswith("WeightsUnpickler error:")), None
+        )
+        detail = f"the weights-only reader cannot read it: {reason}" if reason else (lines or [""])[0]
         raise SemvprError(
             f"{path} is not a readable {what} ({type(err).__name__}{': ' + detail if detail else ''})"
         ) from None

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import copy
+import pickle
 import re
 import subprocess
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -334,3 +336,32 @@ def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
     assert torch.load(target, weights_only=True)["epoch"] == 1
     assert moves and all(Path(m).parent == target.parent for m in moves), moves
     assert list(tmpdir.iterdir()) == [] and sorted(p.name for p in target.parent.iterdir()) == ["last.ckpt"]
+
+
+@pytest.mark.parametrize(
+    ("content", "line"),
+    [
+        (b"hello", "not a torch file (neither the zip archive torch.save writes nor a pickle of protocol 2 or later)"),
+        (b"", "not a torch file"),
+        (pickle.dumps({"a": 1}, protocol=0), "not a torch file"),
+        (pickle.dumps({"a": 1}, protocol=5), "(UnpicklingError: the weights-only reader cannot read it: Unsupported"),
+        ("truncated", "is not a readable checkpoint (RuntimeError: "),
+    ],
+)
+def test_a_file_torch_cannot_read_is_one_line_without_torchs_advice(
+    tmp_path: Path, content: bytes | str, line: str
+) -> None:
+    """Not torch's advice to load with weights_only=False (semvpr never does), nor its pickle-protocol warning."""
+    path = tmp_path / "f.pth"
+    if content == "truncated":
+        torch.save({"w": torch.zeros(100)}, path)
+        path.write_bytes(path.read_bytes()[:200])
+    else:
+        path.write_bytes(content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SemvprError) as err:
+            read_weights(path)
+    message = str(err.value)
+    assert message.startswith(f"{path} is not a readable checkpoint") and line in message, message
+    assert "\n" not in message and "weights_only" not in message
