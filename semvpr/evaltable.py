@@ -56,7 +56,7 @@ class EvalTableCallback(Callback):
 def parser() -> argparse.ArgumentParser:
     """The command line of ``python -m semvpr.evaltable``."""
     parser = argparse.ArgumentParser(prog="python -m semvpr.evaltable", description=__doc__.splitlines()[0])
-    parser.add_argument("sweep_dir", type=Path, help="multirun dir of `python -m semvpr.eval -m ...`")
+    parser.add_argument("sweep_dir", help="multirun dir of `python -m semvpr.eval -m ...`")
     return parser
 
 

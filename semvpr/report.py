@@ -68,7 +68,7 @@ def parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m semvpr.report", description="Write results.csv/.md and figures for a finished sweep."
     )
-    parser.add_argument("sweep_dir", type=Path, help="multirun dir, e.g. outputs/multiruns/<date>/<time>")
+    parser.add_argument("sweep_dir", help="multirun dir, e.g. outputs/multiruns/<date>/<time>")
     return parser
 
 

@@ -139,6 +139,17 @@ def check_path_text(path: str | Path, what: str) -> None:
         )
 
 
+def existing_dir(path: str | Path, what: str, hint: str) -> Path:
+    """``path`` (``~`` expanded) as a folder to read, or one line saying ``what`` it should be, why it is not
+    (an empty name, none there, a file) and ``hint``: how to name the right one."""
+    if not str(path):
+        raise SemvprError(f"{what}: an empty name names no folder; {hint}")
+    folder = Path(path).expanduser()
+    if not folder.is_dir():
+        raise SemvprError(f"{what} {folder} {'is a file' if folder.exists() else 'does not exist'}; {hint}")
+    return folder
+
+
 def check_dir_path(path: str | Path, what: str, *, writable: bool = True) -> None:
     """Refuse a directory to write into that would not be the one named or could not be written.
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import check_replaceable, read_json, read_yaml, regular_file, write_csv, write_text
+from semvpr.core.io import check_replaceable, existing_dir, read_json, read_yaml, regular_file, write_csv, write_text
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.paired import paired_gain
@@ -117,13 +117,9 @@ def _model_name(result: dict[str, Any]) -> str:
     return release if isinstance(release, str) and release else result["model"]
 
 
-def table_rows(sweep_dir: Path) -> list[dict[str, Any]]:
+def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
     """A row per job (failed or malformed ones say why), each followed by its published rows."""
-    sweep_dir = Path(sweep_dir)
-    if not sweep_dir.is_dir():
-        raise SemvprError(
-            f"sweep dir {sweep_dir} does not exist; pass the multirun dir of `python -m semvpr.eval -m ...`"
-        )
+    sweep_dir = existing_dir(sweep_dir, "sweep dir", "pass the multirun dir of `python -m semvpr.eval -m ...`")
     jobs = _job_dirs(sweep_dir)
     if not jobs:
         raise SemvprError(f"no evaluation jobs in {sweep_dir} (no subdir holds eval.json or .hydra/)")
@@ -207,11 +203,11 @@ def _mask_gains(measured: list[tuple[dict[str, Any], dict[str, Any], Path]]) -> 
             row["R@1 vs no mask"] = f"none: {ranks if isinstance(ranks, str) else 'the unmasked job: ' + str(base)}"
 
 
-def write_table(sweep_dir: Path) -> Path:
+def write_table(sweep_dir: str | Path) -> Path:
     """Write results.csv and results.md in the sweep dir; returns results.md."""
+    rows = table_rows(sweep_dir)
     for name in ("results.csv", "results.md"):  # both targets checked before either is written
         check_replaceable(Path(sweep_dir) / name)
-    rows = table_rows(sweep_dir)
     write_csv(Path(sweep_dir) / "results.csv", COLUMNS, rows)
 
     def cell(value: Any) -> str:

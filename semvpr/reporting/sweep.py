@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import CONF_DIR, read_json, read_yaml
+from semvpr.core.io import CONF_DIR, existing_dir, read_json, read_yaml
 
 LEARNED = "+learned"  # a mask run with mask.weights=learned is reported as "<mask>+learned"
 NO_MASK = "none"  # the mask choice every other mask is paired against
@@ -352,14 +352,10 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     )
 
 
-def load_sweep(sweep_dir: Path, finished_only: bool = False) -> Sweep:
+def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
     """Discover job dirs (any dir holding metrics.json or a .hydra dir; ``finished_only``: metrics.json) and
     read them."""
-    sweep_dir = Path(sweep_dir)
-    if not sweep_dir.is_dir():
-        raise SemvprError(
-            f"sweep dir {sweep_dir} does not exist; pass the multirun dir, e.g. outputs/multiruns/<date>/<time>"
-        )
+    sweep_dir = existing_dir(sweep_dir, "sweep dir", "pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
     dirs = {p.parent for p in sweep_dir.rglob("metrics.json")}
     if not finished_only:
         dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}

@@ -264,7 +264,7 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
     return "\n".join(out).rstrip() + "\n"
 
 
-def write_report(sweep_dir: Path, partial: bool = False) -> Path:
+def write_report(sweep_dir: str | Path, partial: bool = False) -> Path:
     """Write results.csv, results.md and the figures into sweep_dir; return the results.md path.
     ``partial``: the sweep is still running: the table of the jobs finished so far, marked as such, and no
     figures (they are drawn when the sweep ends).
@@ -274,7 +274,7 @@ def write_report(sweep_dir: Path, partial: bool = False) -> Path:
     """
     from semvpr.reporting import figures as plots  # matplotlib is only needed here, not to import the callback
 
-    sweep = load_sweep(Path(sweep_dir), finished_only=partial)
+    sweep = load_sweep(sweep_dir, finished_only=partial)
     rows = _rows(sweep)
     figures: dict[str, str | None] = {}
     drawings = [

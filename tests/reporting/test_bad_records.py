@@ -99,6 +99,20 @@ def test_a_sweep_whose_results_md_is_a_folder_is_one_line_and_moves_nothing(tmp_
         assert files(sweep) == before  # nothing moved in beside the old report (no new csv, no figure)
 
 
+@pytest.mark.parametrize("given", ["", "a_file", "absent"])
+def test_a_sweep_dir_that_is_empty_a_file_or_absent_is_one_line_and_writes_nothing(tmp_path: Path, given: str) -> None:
+    """An empty name read the working directory as the sweep and wrote results.md there."""
+    _sweep_with(tmp_path, "report")  # the working directory holds a sweep's jobs: an empty name must not find them
+    (tmp_path / "a_file").write_text("x")
+    problem = {"": "sweep dir: an empty name names no folder", "a_file": "a_file is a file", "absent": "does not exist"}
+    for module in ("semvpr.report", "semvpr.evaltable"):
+        before = files(tmp_path)
+        proc = cli(module, given, cwd=tmp_path, timeout=60)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and problem[given] in lines[0], proc.stderr
+        assert "pass the multirun dir" in lines[0] and files(tmp_path) == before
+
+
 def test_deeply_nested_json_in_a_sweep_is_a_failed_row(tmp_path: Path) -> None:
     for module, kind, name in (
         ("semvpr.report", "report", "a/metrics.json"),
