@@ -27,7 +27,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import build_backbone
-from semvpr.config.checks import check_config, refuse_private_keys_or_exit
+from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command
 from semvpr.config.components import instantiate_node
 from semvpr.config.plan import student_spec, teacher_spec, thread_plan
@@ -318,7 +318,7 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
 
 def main() -> None:
     """Console entry point; user errors become one line on stderr and exit code 2."""
-    refuse_private_keys_or_exit(sys.argv[1:])
+    check_overrides_or_exit(sys.argv[1:], "segment")
     _hydra_main()
 
 

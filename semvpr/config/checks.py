@@ -276,14 +276,6 @@ def _first_line(err: BaseException) -> str:
 
 
 @exit_on_user_error
-def refuse_private_keys_or_exit(argv: list[str]) -> None:
-    """The ``_`` key refusal of :func:`check_overrides` alone, as a command's first step (semvpr.segment,
-    whose overrides Hydra checks itself): one line and exit code 2."""
-    for arg in argv:
-        _refuse_private_keys(arg)
-
-
-@exit_on_user_error
 def check_overrides_or_exit(argv: list[str], config_name: str = "train") -> None:
     """:func:`check_overrides` as a command's first step: one line and exit code 2."""
     check_overrides(argv, config_name)
@@ -570,3 +562,9 @@ def _check_segmentation(cfg: DictConfig) -> None:
         raise SemvprError(
             "backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)"
         )
+    # Read after the segmenters have trained: checked before, not an error an hour in.
+    whole_number(cfg.seg.get("num_workers"), "seg.num_workers", 0)
+    whole_number(cfg.eval_batch_size, "eval_batch_size", 1, SIZE_MAX)
+    whole_number(cfg.num_figure_images, "num_figure_images", 1)
+    if not isinstance(cfg.score_test, bool):
+        raise SemvprError(f"score_test={cfg.score_test!r} must be true or false")

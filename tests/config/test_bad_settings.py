@@ -98,6 +98,17 @@ CASES: dict[str, Case] = {
     "segment model._partial_": Case(
         ["semvpr.segment"], lambda t, c: [f"seg.root={t}", "teacher.model._partial_=true"], "the key _partial_"
     ),
+    # Settings segment reads only after its segmenters have trained: refused before.
+    **{
+        f"segment {arg}": Case(["semvpr.segment"], lambda t, c, arg=arg: [f"seg.root={t}", arg], line)
+        for arg, line in (
+            ("num_figure_images=0", "num_figure_images=0 must be a whole number >= 1"),
+            ("eval_batch_size=0", "eval_batch_size=0 must be a whole number from 1"),
+            ("score_test=maybe", "score_test='maybe' must be true or false"),
+            ("seg.num_workers=-1", "seg.num_workers=-1 must be a whole number >= 0"),
+            ("student.train.epochs=3", "student.train.epochs is not a setting of the project's config"),
+        )
+    },
     "frame_pattern alternation in a repeat": Case(
         EVAL,
         lambda t, c: nordland(t, c, "data.frame_pattern='(x|xx)*(\\d+)\\.jpg'", frame="x" * 40),
@@ -204,6 +215,7 @@ FAST = {
     "unknown key +model.fooo",
     "num_clusters=2^31-1",
     "data.root=null",
+    "segment score_test=maybe",
 }
 
 
