@@ -18,7 +18,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision import transforms
 
+from semvpr.config.checks import check_config, check_overrides
 from semvpr.config.restore import is_untrained, load_retriever
+from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
@@ -60,10 +62,16 @@ def load_model(
 
     # The path is passed as a value, never through Hydra's override syntax: there ',' '=' and quotes
     # are syntax and '${...}' an interpolation, so the file loaded would not be the one named.
+    if isinstance(overrides, str):
+        raise SemvprError(f"overrides={overrides!r} is one string; pass a list of them: overrides=[{overrides!r}]")
     given = [str(o) for o in overrides]
+    if isinstance(ckpt, str) and not ckpt:
+        raise SemvprError("ckpt='' names no file; name a checkpoint or release file, or ckpt='none'")
     untrained = is_untrained(ckpt)
+    check_overrides(given, "eval")  # as the CLI checks them: an unknown key or a _target_ is one line
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(config_name="eval", overrides=[*(["ckpt=none"] if untrained else []), *given])
+    check_config(cfg)
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
     target = None if untrained else Path(ckpt).expanduser()
     retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)

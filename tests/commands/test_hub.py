@@ -66,6 +66,24 @@ def test_hub_refuses_what_eval_refuses(checkpoint: Path, tmp_path: Path) -> None
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "missing.ckpt"), source="local")
 
 
+@pytest.mark.parametrize(
+    ("ckpt", "overrides", "line"),
+    [
+        ("", [], r"^ckpt='' names no file"),  # it said "checkpoint . is a directory"
+        ("none", "aggregator=gem", r"^overrides='aggregator=gem' is one string; pass a list"),  # parsed per letter
+        ("none", ["+model.fooo=1"], r"^model\.fooo is not a setting of the project's config"),  # read by nothing
+        ("none", ["data.test._target_=os.getcwd"], r"the key _target_ is refused"),
+        # The setting given, not the teacher's key that interpolates it.
+        ("none", ["data.image_size=[0,3]"], r"^data\.image_size\[0\]=0 must be a whole number"),
+    ],
+)
+def test_hub_checks_its_arguments_as_the_cli_does(ckpt: str, overrides: object, line: str) -> None:
+    from semvpr.hub import load_model
+
+    with pytest.raises(SemvprError, match=line):
+        load_model(ckpt, overrides=overrides)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("folder", ["a,b", "a=b", "it's"])
 def test_hub_paths_with_override_syntax_load(tmp_path: Path, checkpoint: Path, folder: str) -> None:
     path = tmp_path / folder / "tested.ckpt"
