@@ -11,6 +11,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.components import COMPONENTS, component_class, loss_class, options
+from semvpr.core.device import GPU_WORDS
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
 from semvpr.core.patterns import bounded_regex
@@ -498,8 +499,15 @@ def _shown(value: Any) -> Any:
 
 
 def _check_trainer(trainer: DictConfig) -> None:
-    """Epochs, devices and nodes: whole numbers Lightning accepts, and more than one device only with a
-    DDP strategy (Lightning would otherwise relaunch the whole command line in a second process)."""
+    """The accelerator (each stage's device follows it: ``config.plan.job_device``), epochs, devices and nodes:
+    whole numbers Lightning accepts, and more than one device only with a DDP strategy (Lightning would
+    otherwise relaunch the whole command line in a second process)."""
+    accelerator = trainer.get("accelerator")
+    if accelerator not in ("cpu", *GPU_WORDS):
+        raise SemvprError(
+            f"trainer.accelerator={accelerator!r} must be cpu or gpu (trainer=cpu, trainer=gpu): every stage runs "
+            "on the device it names"
+        )
     epochs = trainer.get("max_epochs")
     if epochs != -1:
         whole_number(epochs, "trainer.max_epochs", 1, also="or -1: no limit")

@@ -88,6 +88,13 @@ CASES: dict[str, Case] = {
     "localize queries=null": Case(
         LOCALIZE, lambda t, c: [f"ckpt={c}", "queries=null"], "queries=null: name the folder"
     ),
+    # Lightning would put fit on a GPU its "auto" finds while every other stage ran on the CPU.
+    **{
+        f"trainer.accelerator={v}": Case(
+            TRAIN, lambda t, c, v=v: [f"trainer.accelerator={v}"], f"trainer.accelerator='{v}' must be cpu or gpu"
+        )
+        for v in ("tpu", "auto", "CPU")
+    },
     "traversals=-1": Case(TRAIN, lambda t, c: ["data.traversals=-1"], "data.traversals=-1"),
     "train data.test._target_=builtins.print": Case(
         TRAIN, lambda t, c: ["data.test._target_=builtins.print"], "the key _target_ is refused"
