@@ -71,7 +71,9 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
     - ``hydra.run.dir`` / ``hydra.sweep.dir`` must be a directory semvpr can write as written
       (``core.io.check_dir_path``), checked before Hydra makes it and opens its log there;
     - a key starting with ``_`` (``data.test._target_=builtins.exec``, or inside a mapping value) is
-      refused: ``_target_``s come only from the project's config files, a class is chosen by its group.
+      refused: ``_target_``s come only from the project's config files, a class is chosen by its group;
+    - ``-m`` between overrides (Hydra's argument parser takes it only before or after them all) names the
+      order that runs.
     """
     recipe = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "recipe" / "triplet.yaml")))
     model = _leaves(OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "train.yaml").model))
@@ -100,6 +102,13 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
     for arg in argv:
         _refuse_private_keys(arg)
     args = [a for a in argv if a not in _HYDRA_FLAGS]
+    at = next((i for i, a in enumerate(argv) if a in _HYDRA_FLAGS), None)
+    if at is not None and 0 < at < len(argv) - 1:  # first or last is what Hydra's argument parser takes
+        flag = argv[at]
+        raise SemvprError(
+            f"{flag} goes before the overrides (Hydra reads those after it as unrecognized arguments): "
+            f"python -m semvpr.{config_name} {flag} {' '.join(args)}"
+        )
     if any(a.startswith("-") for a in args):
         return  # --cfg, --config-name, ...: Hydra's own modes
     _check_composition(args, config_name, multirun=len(args) < len(argv))

@@ -226,6 +226,24 @@ FAST = {
 }
 
 
+@pytest.mark.parametrize("where", ["first", "between", "last"])
+def test_multirun_flag_between_overrides_names_the_order_that_runs(where: str) -> None:
+    """Hydra's parser takes -m before or after the overrides; between them it said only "unrecognized arguments"."""
+    from semvpr.config.checks import check_overrides
+    from semvpr.core.errors import SemvprError
+
+    argv = {"first": ["-m", "experiment=tiny", "seed=0,1"], "last": ["experiment=tiny", "seed=0,1", "-m"]}.get(
+        where, ["experiment=tiny", "-m", "seed=0,1"]
+    )
+    if where != "between":
+        check_overrides(argv, "train")
+        return
+    with pytest.raises(
+        SemvprError, match=r"^-m goes before the overrides .*: python -m semvpr.train -m experiment=tiny seed=0,1$"
+    ):
+        check_overrides(argv, "train")
+
+
 def test_an_unparsable_override_is_named_with_the_quoted_form_that_parses(tmp_path: Path) -> None:
     from semvpr.config.checks import check_overrides
     from semvpr.core.errors import SemvprError
