@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +12,9 @@ import pytest
 from semvpr.core.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
 from semvpr.localize import localize
+from tests.bad_input import cli
 from tests.helpers import (
     EVAL_SIZE,
-    REPO,
     config,
     make_folder,
     mapped_file,
@@ -109,25 +107,18 @@ def test_localize_on_a_frame_aligned_set_gives_frames_not_utm(checkpoint: Path, 
     for i in range(3):
         write_image(tmp_path / "nord" / "ref" / f"{i + 10:05d}.jpg", i)
         write_image(tmp_path / "nord" / "query" / f"{i + 10:05d}.jpg", i)
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "semvpr.localize",
-            f"ckpt={checkpoint}",
-            "data=nordland",
-            f"data.root={tmp_path / 'nord'}",
-            f"queries={tmp_path / 'nord' / 'query'}",
-            "top_k=5",
-            "threads=1",
-            *EVAL_SIZE,
-            f"paths.cache_dir={tmp_path / 'cache'}",
-            f"hydra.run.dir={tmp_path / 'out'}",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
+    proc = cli(
+        "semvpr.localize",
+        f"ckpt={checkpoint}",
+        "data=nordland",
+        f"data.root={tmp_path / 'nord'}",
+        f"queries={tmp_path / 'nord' / 'query'}",
+        "top_k=5",
+        "threads=1",
+        *EVAL_SIZE,
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"hydra.run.dir={tmp_path / 'out'}",
+        cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "out" / "localize.json").read_text())
