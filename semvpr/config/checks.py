@@ -490,7 +490,8 @@ def _check_retrieval(cfg: DictConfig) -> None:
     weighting = cfg.mask.weights
     if weighting not in WEIGHTINGS:
         raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
-    if "ckpt" not in cfg and cfg.student.get("checkpoint"):
+    evaluation = "ckpt" in cfg or OmegaConf.is_missing(cfg, "ckpt")  # the hub names its file as a value, not here
+    if not evaluation and cfg.student.get("checkpoint"):
         raise SemvprError(
             f"student.checkpoint={cfg.student.checkpoint}: a saved student is read by semvpr.eval, localize and "
             "the hub (mask=student student.checkpoint=DIR); a training run trains its own: drop it"
