@@ -93,9 +93,8 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     for result in results:
         best = result["matches"][0]
         print(f"{Path(result['query']).name}: {Path(best['path']).name} ({_where(best)}d={best['distance']:.3f})")
-    # top_k as returned: at most the database's size.
-    returned = len(results[0]["matches"]) if results else int(cfg.top_k)
-    print(json.dumps({"queries": len(results), "top_k": returned, "output": str(output)}))
+    # top_k as returned (at most the database's size); query_images refuses a folder without images.
+    print(json.dumps({"queries": len(results), "top_k": len(results[0]["matches"]), "output": str(output)}))
 
 
 def _where(match: dict[str, Any]) -> str:

@@ -140,9 +140,12 @@ def is_semvpr_checkpoint(contents: Any) -> bool:
     return isinstance(record, dict) and ("format" in record or "config" in record)
 
 
-def weight_fault(value: Any) -> str | None:
-    """Why ``value`` is no model weight (None when it is one): not a tensor, complex, a view claiming more
-    numbers than the file stores (strides of 0: checking or copying it would fill the memory), or not finite."""
+def weight_fault(key: Any, value: Any) -> str | None:
+    """Why a state dict's entry is no model weight (None when it is one): a key that is no string, a value that
+    is not a tensor, complex, a view claiming more numbers than the file stores (strides of 0: checking or
+    copying it would fill the memory), or not finite."""
+    if not isinstance(key, str):
+        return "is not named by a string"
     if not isinstance(value, torch.Tensor):
         return f"is not a tensor ({type(value).__name__})"
     if value.is_complex():
@@ -163,7 +166,7 @@ def read_checkpoint(path: str | Path, contents: Any = None) -> tuple[dict[str, A
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise SemvprError(f"{path} is not a semvpr checkpoint (no state_dict)")
     for key, value in ckpt["state_dict"].items():
-        fault = "is not named by a string" if not isinstance(key, str) else weight_fault(value)
+        fault = weight_fault(key, value)
         if fault is not None:
             raise SemvprError(f"{path}: weight {key!r} {fault}; the checkpoint is damaged")
     record = ckpt.get("hyper_parameters")

@@ -316,9 +316,9 @@ def weights_of(contents: Any, path: Path) -> dict[str, Tensor]:
     if not isinstance(state, dict) or not state:
         raise SemvprError(f"release file {path} holds no state dict (got {type(contents).__name__})")
     for key, value in state.items():
-        if not isinstance(key, str) or not isinstance(value, Tensor):
-            raise SemvprError(f"release file {path}: entry {key!r} is not a named tensor ({type(value).__name__})")
-        fault = weight_fault(value) or (f"has shape {tuple(value.shape)}: no weights" if value.numel() == 0 else None)
+        fault = weight_fault(key, value) or (
+            f"has shape {tuple(value.shape)}: no weights" if value.numel() == 0 else None
+        )
         if fault is not None:
             raise SemvprError(f"release file {path}: weight {key!r} {fault}; the file is damaged")
     return state
