@@ -17,7 +17,6 @@ import json
 import os
 import shutil
 import stat
-import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,7 +25,7 @@ from typing import Any
 import torch
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import reclaim_orphans, temp_prefix, write_text
+from semvpr.core.io import open_lock, reclaim_orphans, temp_dir, write_text
 
 LOCK_DIR = ".locks"
 
@@ -132,6 +131,9 @@ def build_once(
         return final
     try:
         (final.parent / LOCK_DIR).mkdir(parents=True, exist_ok=True)
+        for folder in (final.parent, final.parent / LOCK_DIR):  # another user's cache, shared read-only
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
         reclaim_orphans(final.parent)
     except OSError as err:
         raise SemvprError(
@@ -148,13 +150,8 @@ def build_once(
 @contextmanager
 def _exclusive(lock_path: Path) -> Iterator[None]:
     """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free); a link there is refused."""
-    try:
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
-    except OSError as err:
-        raise SemvprError(
-            f"lock file {lock_path} cannot be opened ({err.strerror}); a link there is never followed: remove it"
-        ) from None
-    with os.fdopen(fd, "r+") as handle:
+    fd = open_lock(lock_path)
+    with os.fdopen(fd, "rb") as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX)
         except OSError as err:
@@ -182,7 +179,7 @@ def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable:
             raise SemvprError(f"{tmp} is not a plain directory (a link?); refusing to build there: remove it")
         tmp.mkdir(exist_ok=True)
     else:
-        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
+        tmp = temp_dir(final.parent, final.name)
     try:
         build(tmp)
         write_text(tmp / "key.json", json.dumps(key, sort_keys=True, indent=1, default=str))

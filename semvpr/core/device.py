@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.io import open_lock
 
 #: Accelerator names that mean a CUDA GPU (Lightning's and torch's words).
 GPU_WORDS = ("gpu", "cuda")
@@ -81,7 +82,7 @@ class GpuLease:
         host = socket.gethostname().replace(os.sep, "_")
         for wait in (False, True):
             for gpu in self.gpus:
-                fd = os.open(self.folder / f"{host}-gpu{gpu}.lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+                fd = open_lock(self.folder / f"{host}-gpu{gpu}.lock")
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
                 except BlockingIOError:

@@ -51,6 +51,7 @@ def atomic_file(final: Path) -> Iterator[IO[bytes]]:
     final.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent)
     try:
+        os.fchmod(fd, created_mode(directory=False))
         with os.fdopen(fd, "wb") as fh:
             yield fh
         os.replace(name, final)
@@ -64,7 +65,7 @@ def atomic_dir(final: Path) -> Iterator[Path]:
     """A fresh empty directory to build ``final`` in; it replaces ``final`` on success."""
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent))
+    tmp = temp_dir(final.parent, final.name)
     try:
         yield tmp
         if final.is_symlink() or final.is_file():
@@ -75,6 +76,51 @@ def atomic_dir(final: Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def created_mode(directory: bool) -> int:
+    """The mode ``open`` or ``mkdir`` gives a new file or directory: what the umask leaves of 0o666 / 0o777.
+
+    ``mkstemp`` and ``mkdtemp`` make theirs owner-only (0o600 / 0o700); a checkpoint, run folder or cache
+    renamed from them would keep that, unreadable to the group that shares the cache or the results."""
+    return (0o777 if directory else 0o666) & ~_umask()
+
+
+def _umask() -> int:
+    """This process's umask, read from /proc where Linux has it (setting it to read it races with threads)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def temp_dir(parent: Path, name: str) -> Path:
+    """A fresh directory beside ``parent / name`` (exclusive, random name recording this process) with the
+    mode ``mkdir`` would give it, to build ``name`` in and rename onto it."""
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(name), suffix=".tmp", dir=parent))
+    os.chmod(tmp, created_mode(directory=True))
+    return tmp
+
+
+def open_lock(path: Path) -> int:
+    """A descriptor to ``flock`` the lock file ``path`` through, created where absent (mode as the umask
+    gives). A link there is refused; another user's lock file in a shared folder opens read-only (flock
+    needs no write access to it)."""
+    try:
+        try:
+            return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+        except PermissionError:
+            if not path.is_file():
+                raise
+            return os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError as err:
+        hint = "a link there is never followed: remove it" if err.errno == errno.ELOOP else "check the folder"
+        raise SemvprError(f"lock file {path} cannot be opened ({err.strerror}); {hint}") from None
 
 
 def write_text(path: Path, text: str) -> None:

@@ -9,11 +9,10 @@ import io
 import math
 import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
-from semvpr.core.io import check_replaceable, write_text
+from semvpr.core.io import check_replaceable, temp_dir, write_text
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.sweep import LEARNED, NO_MASK, Sweep, cell_name, load_sweep, mean_std, numeric_weights
 from semvpr.retrieval.recall import RECALL_NS
@@ -290,7 +289,7 @@ def write_report(sweep_dir: str | Path, partial: bool = False) -> Path:
     names = [fname for fname, _ in drawings] + ["results.csv", "results.md"]
     for name in names:  # every target is checked before anything is made or moved
         check_replaceable(sweep.dir / name)
-    scratch = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=sweep.dir))
+    scratch = temp_dir(sweep.dir, "report")
     try:
         for fname, draw in drawings:
             try:

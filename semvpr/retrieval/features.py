@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 import shutil
-import tempfile
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -43,7 +42,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from semvpr.core.cache import artifact_dir, build_once
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import open_array, temp_prefix
+from semvpr.core.io import open_array, temp_dir
 from semvpr.core.logs import Progress, progress
 from semvpr.core.precision import autocast
 from semvpr.core.threads import frozen_pass
@@ -498,7 +497,7 @@ def _build(
     # only move the files in (or compute alone if a parallel job built the first kind meanwhile).
     cache_dir = settings.cache_dir
     cache_dir.mkdir(parents=True, exist_ok=True)
-    scratch = Path(tempfile.mkdtemp(dir=cache_dir, prefix=temp_prefix("features"), suffix=".tmp"))
+    scratch = temp_dir(cache_dir, "features")
     try:
         first, *rest = missing
         for k in rest:

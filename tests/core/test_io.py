@@ -1,13 +1,20 @@
-"""Atomic writes: a reader never sees half a file, and a planted temp name or link is never followed."""
+"""Atomic writes: a reader never sees half a file, a planted temp name or link is never followed, and what is
+written has the modes the umask gives (a cache or run folder shared with a group)."""
 
 from __future__ import annotations
 
 import os
+import shutil
+import stat
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
-from semvpr.core.io import atomic_dir, atomic_file, write_json
+from semvpr.core.cache import LOCK_DIR, artifact_dir, build_once
+from semvpr.core.io import atomic_dir, atomic_file, open_lock, write_json
 
 
 def test_a_failed_write_leaves_neither_target_nor_temp(tmp_path: Path) -> None:
@@ -51,3 +58,88 @@ def test_atomic_dir_replaces_the_target_only_when_complete(tmp_path: Path) -> No
     with atomic_dir(out) as tmp:
         (tmp / "new").write_text("new")
     assert [p.name for p in out.iterdir()] == ["new"]
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o002, 0o077])
+def test_written_files_and_folders_get_the_modes_the_umask_gives(tmp_path: Path, umask: int) -> None:
+    """A checkpoint, a job's JSON or a cache artifact is readable by whoever the umask lets read a file
+    made with open() (a group sharing the cache), not only by its writer, as temp files are."""
+    old = os.umask(umask)
+    try:
+        write_json(tmp_path / "metrics.json", {"status": "ok"})
+        with atomic_dir(tmp_path / "teacher") as tmp:
+            (tmp / "weights.pt").write_bytes(b"w")
+        art = build_once(tmp_path / "cache", "labels", {"k": 1}, lambda tmp: (tmp / "a.png").write_bytes(b"p"))
+        lock = open_lock(tmp_path / "x.lock")
+        os.close(lock)
+    finally:
+        os.umask(old)
+    files, folders = 0o666 & ~umask, 0o777 & ~umask
+    for path, mode in (
+        (tmp_path / "metrics.json", files),
+        (tmp_path / "teacher", folders),
+        (tmp_path / "teacher" / "weights.pt", files),
+        (art, folders),
+        (art / "a.png", files),
+        (art / "key.json", files),
+        (tmp_path / "x.lock", files),
+    ):
+        assert stat.S_IMODE(path.stat().st_mode) == mode, path
+
+
+_AS_ANOTHER_USER = """
+import os, sys
+from pathlib import Path
+from semvpr.core.cache import build_once
+from semvpr.core.errors import SemvprError
+cache = Path(sys.argv[1])
+assert build_once(cache, "labels", {"k": 1}, lambda tmp: 1 / 0).name.startswith("labels-")  # built: read only
+try:
+    build_once(cache, "labels", {"k": 2}, lambda tmp: None)
+except SemvprError as err:
+    print(err)
+shared = Path(sys.argv[2])
+build_once(shared, "labels", {"k": 3}, lambda tmp: (tmp / "a.png").write_bytes(b"p"))
+print("built beside the other user's lock")
+"""
+
+
+def test_another_users_cache_is_read_where_built_and_refused_in_one_line_where_not() -> None:
+    """A cache someone else built is read without writing to it; one that lacks an artifact says it
+    cannot be written; in a folder both may write, the other user's lock file (not writable by us)
+    still serialises the build."""
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("needs root and setpriv to act as another user")
+    with tempfile.TemporaryDirectory() as scratch:  # pytest's own folders are the owner's only
+        Path(scratch).chmod(0o755)
+        _as_another_user(Path(scratch))
+
+
+def _as_another_user(tmp_path: Path) -> None:
+    cache, shared = tmp_path / "cache", tmp_path / "shared"
+    old = os.umask(0o022)
+    try:
+        build_once(cache, "labels", {"k": 1}, lambda tmp: (tmp / "a.png").write_bytes(b"p"))
+        shared.mkdir()
+        shared.chmod(0o1777)
+        (shared / LOCK_DIR).mkdir()
+        (shared / LOCK_DIR).chmod(0o1777)
+        owner_only_lock = artifact_dir(shared, "labels", {"k": 3})
+        os.close(open_lock(shared / LOCK_DIR / f"{owner_only_lock.name}.lock"))  # 0o644, root's
+    finally:
+        os.umask(old)
+    nobody = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]
+    run = subprocess.run(
+        [*nobody, sys.executable, "-c", _AS_ANOTHER_USER, str(cache), str(shared)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "HOME": str(tmp_path)},
+    )
+    assert run.returncode == 0, run.stderr
+    refused, built = run.stdout.splitlines()
+    assert refused == (
+        f"cache dir {cache} cannot be written (Permission denied) and holds no labels artifact for this run; "
+        "point paths.cache_dir at a writable folder"
+    )
+    assert built == "built beside the other user's lock" and (owner_only_lock / "a.png").read_bytes() == b"p"
