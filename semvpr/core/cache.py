@@ -25,7 +25,7 @@ from typing import Any
 import torch
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import open_lock, reclaim_orphans, temp_dir, write_text
+from semvpr.core.io import disk_full, open_lock, reclaim_orphans, temp_dir, write_text
 
 LOCK_DIR = ".locks"
 
@@ -184,7 +184,10 @@ def _build_into(final: Path, key: Any, build: Callable[[Path], None], resumable:
         build(tmp)
         write_text(tmp / "key.json", json.dumps(key, sort_keys=True, indent=1, default=str))
         os.rename(tmp, final)
-    except BaseException:
+    except BaseException as err:
+        full = disk_full(final.parent, err, f"building the cache {final.name}")
         if not resumable:
             shutil.rmtree(tmp, ignore_errors=True)
+        if full is not None:
+            raise full from None
         raise

@@ -55,8 +55,11 @@ def atomic_file(final: Path) -> Iterator[IO[bytes]]:
         with os.fdopen(fd, "wb") as fh:
             yield fh
         os.replace(name, final)
-    except BaseException:
+    except BaseException as err:
+        full = disk_full(final.parent, err, f"writing {final}")
         Path(name).unlink(missing_ok=True)
+        if full is not None:
+            raise full from None
         raise
 
 
@@ -73,9 +76,36 @@ def atomic_dir(final: Path) -> Iterator[Path]:
         elif final.exists():
             shutil.rmtree(final)
         os.rename(tmp, final)
-    except BaseException:
+    except BaseException as err:
+        full = disk_full(final.parent, err, f"writing {final}")
         shutil.rmtree(tmp, ignore_errors=True)
+        if full is not None:
+            raise full from None
         raise
+
+
+#: Free space below which a failed write is blamed on a full disk.
+FULL_DISK_BYTES = 2**20
+
+
+def disk_full(folder: Path, err: BaseException, what: str) -> SemvprError | None:
+    """One line for ``what`` failing as ``err`` because the disk of ``folder`` is full, else None (call it
+    before the partial output is deleted). torch's and other C++ writers lose the system's "no space left"
+    in their own error ("iostream error"), so the free space decides, not the error's kind."""
+    if isinstance(err, SemvprError) or not isinstance(err, Exception):
+        return None
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return None
+    if free >= FULL_DISK_BYTES and not (isinstance(err, OSError) and err.errno == errno.ENOSPC):
+        return None
+    detail = str(err).splitlines()[0][:120] if str(err).strip() else ""
+    return SemvprError(
+        f"{what} failed with {free / 2**20:.1f} MiB left on the disk of {folder} ({type(err).__name__}"
+        f"{': ' if detail else ''}{detail}): the disk is full; free space there or write elsewhere "
+        "(paths.cache_dir, hydra.run.dir)"
+    )
 
 
 def created_mode(directory: bool) -> int:
@@ -372,9 +402,14 @@ def ensure_free(folder: Path, nbytes: int, what: str) -> None:
     free = shutil.disk_usage(folder).free
     if nbytes > free:
         raise SemvprError(
-            f"{what} needs {nbytes / 2**30:.2f} GiB in {folder}, but only {free / 2**30:.2f} GiB "
-            f"are free; free some space or point paths.cache_dir elsewhere"
+            f"{what} needs {_bytes(nbytes)} in {folder}, but only {_bytes(free)} are free; free some space or "
+            "point paths.cache_dir elsewhere"
         )
+
+
+def _bytes(n: int) -> str:
+    """A size in MiB below 1 GiB, else in GiB."""
+    return f"{n / 2**20:.1f} MiB" if n < 2**30 else f"{n / 2**30:.2f} GiB"
 
 
 def open_array(path: Path, dtype: Any, shape: tuple[int, ...], what: str) -> Any:
@@ -391,7 +426,7 @@ def open_array(path: Path, dtype: Any, shape: tuple[int, ...], what: str) -> Any
             os.posix_fallocate(fd, 0, os.fstat(fd).st_size)
         except OSError as err:
             raise SemvprError(
-                f"{what}: cannot reserve {size / 2**30:.2f} GiB in {Path(path).parent} "
+                f"{what}: cannot reserve {_bytes(size)} in {Path(path).parent} "
                 f"({err.strerror}); free some space or point paths.cache_dir elsewhere"
             ) from None
         finally:

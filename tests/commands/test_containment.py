@@ -162,7 +162,7 @@ def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(
 
     usage = shutil._ntuple_diskusage(10 * 2**30, 10 * 2**30 - 2**20, 2**20)  # 1 MiB free
     monkeypatch.setattr(io.shutil, "disk_usage", lambda _: usage)
-    with pytest.raises(SemvprError, match=r"the trunk cache needs 0\.01 GiB in .*, but only 0\.00 GiB are free"):
+    with pytest.raises(SemvprError, match=r"the trunk cache needs 12\.5 MiB in .*, but only 1\.0 MiB are free"):
         io.open_array(tmp_path / "db.npy", np.uint16, (100, 64, 1024), "the trunk cache")
     assert not (tmp_path / "db.npy").exists()
     small = io.open_array(tmp_path / "q.npy", np.uint16, (4, 8), "the trunk cache")

@@ -3,17 +3,21 @@ written has the modes the umask gives (a cache or run folder shared with a group
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
 import stat
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import torch
 
 from semvpr.core.cache import LOCK_DIR, artifact_dir, build_once
+from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_dir, atomic_file, open_lock, write_json
 
 
@@ -143,3 +147,47 @@ def _as_another_user(tmp_path: Path) -> None:
         "point paths.cache_dir at a writable folder"
     )
     assert built == "built beside the other user's lock" and (owner_only_lock / "a.png").read_bytes() == b"p"
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 256 KiB file system (tmpfs), for writes that run out of room."""
+    folder = tmp_path / "disk"
+    folder.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("needs root to mount a small file system")
+    if subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(folder)], capture_output=True
+    ).returncode:
+        pytest.skip("this machine does not let tests mount a tmpfs")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(small_disk: Path) -> None:
+    """torch's writer loses the system's 'no space left' in a RuntimeError of its own; the line says the
+    disk is full, and neither the file nor the artifact nor a temporary is left."""
+    weights = {"w": torch.ones(2**18)}  # 1 MiB
+    with (
+        pytest.raises(
+            SemvprError, match=r"^writing .*best\.ckpt failed with 0\.0 MiB left on the disk of .*: the disk is full"
+        ),
+        atomic_file(small_disk / "best.ckpt") as fh,
+    ):
+        torch.save(weights, fh)
+    with pytest.raises(SemvprError, match=r"^building the cache teacher-\w+ failed with .*: the disk is full"):
+        build_once(small_disk, "teacher", {"k": 1}, lambda tmp: torch.save(weights, tmp / "model.pt"))
+    assert sorted(p.name for p in small_disk.iterdir()) == [LOCK_DIR]
+    gc.collect()  # torch's writer holds the deleted file open until it is collected
+    assert shutil.disk_usage(small_disk).free > 2**17
+
+
+def test_a_failed_write_with_room_on_the_disk_keeps_its_own_error(tmp_path: Path) -> None:
+    with pytest.raises(RuntimeError, match="^iostream error$"), atomic_file(tmp_path / "a.ckpt") as fh:
+        fh.write(b"half")
+        raise RuntimeError("iostream error")
+    with pytest.raises(RuntimeError, match="^iostream error$"):
+        build_once(tmp_path, "teacher", {"k": 1}, lambda tmp: (_ for _ in ()).throw(RuntimeError("iostream error")))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [LOCK_DIR]
