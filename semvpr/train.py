@@ -32,7 +32,14 @@ from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import reclaim_orphans, write_json
 from semvpr.core.precision import job_precision, running_precision
-from semvpr.core.stops import Interrupted, killed_workers_stop, received_stop, stop_on_signals, sweep_stopped_line
+from semvpr.core.stops import (
+    Interrupted,
+    killed_workers_stop,
+    lightning_stop,
+    received_stop,
+    stop_on_signals,
+    sweep_stopped_line,
+)
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep import weights_kind
 from semvpr.reporting.sweep_report import write_report
@@ -110,7 +117,8 @@ def train_and_test(
     join()
     tic = time.time()
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
-    trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
+    with lightning_stop():
+        trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
     reason = datamodule.nothing_trained() or retriever.nothing_learned()
     if reason is not None:
@@ -123,7 +131,8 @@ def train_and_test(
         retriever.load_state_dict(best["state_dict"])
     if retriever.whitening is not None:
         retriever.fit_whitening(job.features["train"].db, describe)
-    trainer.test(retriever, datamodule, verbose=False)
+    with lightning_stop():
+        trainer.test(retriever, datamodule, verbose=False)
     # The tested model (best weights, fitted whitening): what semvpr.eval should be given.
     tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
     trainer.save_checkpoint(tested_ckpt, weights_only=True)  # no optimizer state: eval needs none

@@ -59,6 +59,20 @@ def stop_on_signals(sweep_dir: Path | None = None) -> dict[int, Any]:
     return {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
 
 
+@contextmanager
+def lightning_stop() -> Iterator[None]:
+    """Around a Lightning ``fit`` or ``test``: Lightning's own SIGTERM handler ends its loops with
+    ``SIGTERMException``, a ``SystemExit`` of code None, so the process would exit 0 as if the job had finished
+    (what a scheduler records); here it is the :class:`Interrupted` it is."""
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    try:
+        yield
+    except SIGTERMException:
+        RECEIVED.append(signal.SIGTERM)
+        raise Interrupted("stopped by SIGTERM") from None
+
+
 def sweep_stopped_line(stop: Interrupted, write_report: Callable[[Path], Path], resume: str = "") -> str:
     """The one line of a stopped sweep (``stop.sweep_dir`` set): why, and where its report is, written now
     from what the jobs left (those that finished, and the others as failed rows); ``resume``: how to go

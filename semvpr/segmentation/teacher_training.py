@@ -18,6 +18,7 @@ from torchmetrics.classification import MulticlassJaccardIndex
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import trainer_kwargs
 from semvpr.core.precision import lightning_precision
+from semvpr.core.stops import lightning_stop
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.data.segmentation import SegmentationSet
 from semvpr.models.teacher import Teacher, TeacherSpec, TeacherTraining, embedded_teacher
@@ -162,7 +163,8 @@ def train_teacher(
         **trainer_kwargs("teacher", ()),
     )
     start = time.perf_counter()
-    trainer.fit(fit, datamodule=data)
+    with lightning_stop():
+        trainer.fit(fit, datamodule=data)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     metrics["train_seconds"] = time.perf_counter() - start
     torch.save(teacher.model.state_dict(), out / "model.pt")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -284,3 +285,27 @@ def test_paired_masks_scores_each_saved_source_as_the_run_did(segment_run: tuple
     assert float(line["a"]) == pytest.approx(results["teacher"]["val"]["dynamic_iou"], abs=1e-4)
     assert float(line["b"]) == pytest.approx(results["student_efficientnet_lite0"]["val"]["dynamic_iou"], abs=1e-4)
     assert float(line["low"]) <= float(line["diff"]) <= float(line["high"])
+
+
+def test_a_sigterm_while_the_teacher_trains_is_one_line_exit_2(tmp_path: Path) -> None:
+    """Lightning ends the teacher's fit on SIGTERM by a SystemExit of code None: segment exited 0 having done
+    nothing (a scheduler records a finished job). It is a stop: one line, exit 2, no teacher in the cache."""
+    root = write_camvid(tmp_path / "camvid")
+    overrides = [*TINY, "teacher.train.epochs=100000", "threads=1"]
+    cmd = [sys.executable, "-m", "semvpr.segment", f"seg.root={root}", *overrides]
+    cmd += [f"paths.cache_dir={tmp_path / 'cache'}", f"hydra.run.dir={tmp_path / 'run'}"]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1"}
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        lines = []
+        for line in proc.stderr:  # type: ignore[union-attr]
+            lines.append(line)
+            if line.startswith("semvpr: teacher: epoch 2/"):
+                proc.send_signal(signal.SIGTERM)
+                break
+        rest = proc.communicate(timeout=120)[1]
+    finally:
+        proc.kill()
+    assert proc.returncode == 2, "".join(lines) + rest
+    assert rest.strip().splitlines()[-1] == "semvpr: error: stopped by SIGTERM"
+    assert not list((tmp_path / "cache").glob("teacher-*")) and not (tmp_path / "run" / "results.json").exists()

@@ -1,0 +1,60 @@
+"""Stops: a signal Lightning catches during fit is the stop it is, not a finished process."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+
+from semvpr.core import stops
+
+
+class _Line(L.LightningModule):
+    def __init__(self) -> None:
+        super().__init__()
+        self.w = torch.nn.Linear(2, 1)
+
+    def training_step(self, batch: tuple[torch.Tensor], _: int) -> torch.Tensor:
+        return self.w(batch[0]).pow(2).mean()
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+class _SigtermAtStep(L.Callback):
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_end(self, trainer: L.Trainer, *_: object) -> None:
+        if trainer.global_step == self.step:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+def test_a_sigterm_lightning_catches_in_fit_is_a_stop_not_exit_0(tmp_path: Path) -> None:
+    """Lightning's own SIGTERM handler ends fit with SIGTERMException, a SystemExit of code None: the process
+    would exit 0 as if the job had finished (the teacher's training under semvpr.segment did)."""
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(64, 2)), batch_size=4)
+    trainer = L.Trainer(
+        max_epochs=50,
+        accelerator="cpu",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+        callbacks=[_SigtermAtStep(3)],
+    )
+    before = signal.getsignal(signal.SIGTERM)
+    stops.RECEIVED.clear()
+    try:
+        with pytest.raises(stops.Interrupted, match="^stopped by SIGTERM$"), stops.lightning_stop():
+            trainer.fit(_Line(), data)
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert trainer.global_step < 10 and trainer.interrupted
+    assert str(stops.received_stop()) == "stopped by SIGTERM"
+    stops.RECEIVED.clear()
