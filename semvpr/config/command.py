@@ -15,24 +15,31 @@ from omegaconf import DictConfig
 from semvpr.config.plan import thread_plan
 from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
-from semvpr.core.io import CONF_DIR
+from semvpr.core.io import CONF_DIR, sole_writer
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import job_precision
 from semvpr.core.threads import Threads
+from semvpr.retrieval.launch import launched_rank
 
 Task = Callable[[DictConfig, Path], None]
 
 
 def hydra_command(config_name: str) -> Callable[[Task], Callable[[], None]]:
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
-    quietened, called with the job's output directory, a user error one line on stderr and exit code 2
+    quietened, called with the job's output directory (held by this process: :func:`~semvpr.core.io.sole_writer`),
+    a user error one line on stderr and exit code 2
     (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module."""
 
     def command(task: Task) -> Callable[[], None]:
         @functools.wraps(task)
         def task_function(cfg: DictConfig) -> None:
             quiet_third_party()
-            task(cfg, Path(HydraConfig.get().runtime.output_dir))
+            run_dir = Path(HydraConfig.get().runtime.output_dir)
+            if launched_rank() != 0:  # another rank of a DDP job works beside rank 0 in its directory
+                task(cfg, run_dir)
+                return
+            with sole_writer(run_dir, "hydra.run.dir"):
+                task(cfg, run_dir)
 
         main = hydra.main(config_path=CONF_DIR, config_name=config_name, version_base="1.3")
         return main(exit_on_user_error(task_function))

@@ -153,6 +153,29 @@ def open_lock(path: Path) -> int:
         raise SemvprError(f"lock file {path} cannot be opened ({err.strerror}); {hint}") from None
 
 
+@contextmanager
+def sole_writer(folder: Path, what: str) -> Iterator[None]:
+    """Hold ``folder`` (an advisory lock on the directory itself, released with the process) while a job writes
+    into it: a second live process given the same folder is one line, not two jobs overwriting each other's
+    checkpoints and metrics. A file system without ``flock`` on directories goes unchecked."""
+    import fcntl
+
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise SemvprError(
+                f"another process is running a job in {folder}: two jobs in one directory overwrite each other's "
+                f"files; give this one its own {what}, or wait for the other to end"
+            ) from None
+        except OSError:
+            pass
+        yield
+    finally:
+        os.close(fd)
+
+
 def write_text(path: Path, text: str) -> None:
     """Write UTF-8 text atomically."""
     with atomic_file(path) as fh:

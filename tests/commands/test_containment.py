@@ -167,3 +167,29 @@ def test_a_cache_that_does_not_fit_the_disk_is_one_line_before_writing(
     assert not (tmp_path / "db.npy").exists()
     small = io.open_array(tmp_path / "q.npy", np.uint16, (4, 8), "the trunk cache")
     assert small.shape == (4, 8) and os.stat(tmp_path / "q.npy").st_blocks * 512 >= small.nbytes  # reserved
+
+
+def test_a_second_process_in_a_run_directory_is_refused(tmp_path: Path) -> None:
+    """Two live jobs given one hydra.run.dir (a job requeued beside the one still running, two runs started in
+    one second under the old second-resolution default) overwrote each other's checkpoints and metrics.json;
+    the second is now one line and writes nothing of its own there."""
+    from semvpr.core.io import sole_writer
+    from tests.bad_input import cli
+
+    run = tmp_path / "run"
+    run.mkdir()
+    with sole_writer(run, "hydra.run.dir"):  # the job already running there
+        with (
+            pytest.raises(SemvprError, match=r"^another process is running a job in .*run: two jobs in one"),
+            sole_writer(run, "hydra.run.dir"),
+        ):
+            pass
+        proc = cli("semvpr.eval", "experiment=tiny", "ckpt=none", f"hydra.run.dir={run}", cwd=tmp_path, timeout=120)
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.strip().splitlines()[-1] == (
+            f"semvpr: error: another process is running a job in {run}: two jobs in one directory overwrite each "
+            "other's files; give this one its own hydra.run.dir, or wait for the other to end"
+        )
+        assert not (run / "eval.json").exists() and not list(tmp_path.glob("outputs"))
+    with sole_writer(run, "hydra.run.dir"):  # released with its holder
+        pass
