@@ -4,13 +4,14 @@ commands that pass images through a whole trained model (eval, localize) its dev
 from __future__ import annotations
 
 import functools
+import hashlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.plan import thread_plan
 from semvpr.core.device import resolve
@@ -22,6 +23,24 @@ from semvpr.core.threads import Threads
 from semvpr.retrieval.launch import launched_rank
 
 Task = Callable[[DictConfig, Path], None]
+
+#: Longest job directory name (bytes): file systems hold 255.
+MAX_DIRNAME_BYTES = 200
+
+
+def one_dir_name(name: str) -> str:
+    """A sweep job's directory name made from Hydra's ``override_dirname`` as one path component
+    (``conf/train.yaml`` ``hydra.sweep.subdir``): a ``/`` in a value (``data.root=/data/pitts30k``) is written
+    ``%2F`` (``%`` itself ``%25``) instead of nesting folders, and a name too long for a file system keeps its
+    start and a hash of the whole."""
+    name = name.replace("%", "%25").replace("/", "%2F")
+    if len(name.encode()) <= MAX_DIRNAME_BYTES:
+        return name
+    digest = hashlib.sha256(name.encode()).hexdigest()[:16]
+    return f"{name.encode()[: MAX_DIRNAME_BYTES - 17].decode(errors='ignore')}-{digest}"
+
+
+OmegaConf.register_new_resolver("one_dir_name", one_dir_name, replace=True)
 
 
 def hydra_command(config_name: str) -> Callable[[Task], Callable[[], None]]:

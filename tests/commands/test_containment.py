@@ -193,3 +193,30 @@ def test_a_second_process_in_a_run_directory_is_refused(tmp_path: Path) -> None:
         assert not (run / "eval.json").exists() and not list(tmp_path.glob("outputs"))
     with sole_writer(run, "hydra.run.dir"):  # released with its holder
         pass
+
+
+def test_a_sweep_job_is_one_folder_whatever_its_overrides_hold() -> None:
+    """Hydra's override_dirname nested a job's folder at each '/' of a value (the SLURM command's
+    data.root=/data/pitts30k gave .../data.root=/data/pitts30k,...); conf/train.yaml names it as one folder."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.hydra_config import HydraConfig
+
+    from semvpr.config.command import MAX_DIRNAME_BYTES, one_dir_name
+    from semvpr.core.io import CONF_DIR
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(
+            config_name="train",
+            overrides=["data=folder", "data.root=/data/pitts30k", "seed=1", "paths.cache_dir=/c"],
+            return_hydra_config=True,
+        )
+    previous = HydraConfig.instance().cfg
+    HydraConfig.instance().set_config(cfg)  # what ${hydra:...} reads
+    try:
+        assert cfg.hydra.sweep.subdir == "data.root=%2Fdata%2Fpitts30k,data=folder,seed=1"
+    finally:
+        HydraConfig.instance().cfg = previous
+    assert one_dir_name("data.root=a%2Fb") != one_dir_name("data.root=a/b")  # '%' escaped too: no two jobs meet
+    long_a, long_b = (f"data.root=/{'x' * 300}/{end},seed=1" for end in "ab")
+    names = {one_dir_name(long_a), one_dir_name(long_b), one_dir_name("data.root=/é" + "é" * 200)}
+    assert len(names) == 3 and all(len(n.encode()) <= MAX_DIRNAME_BYTES and "/" not in n for n in names)
