@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import fcntl
 import io
 import json
 import os
@@ -30,7 +31,7 @@ import socket
 import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import IO, Any
 
@@ -51,7 +52,8 @@ def atomic_file(final: Path) -> Iterator[IO[bytes]]:
     final.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=temp_prefix(final.name), suffix=".tmp", dir=final.parent)
     try:
-        os.fchmod(fd, created_mode(directory=False))
+        with suppress(OSError):  # a file system without modes (some network or FUSE mounts) keeps its own
+            os.fchmod(fd, created_mode(directory=False))
         with os.fdopen(fd, "wb") as fh:
             yield fh
         os.replace(name, final)
@@ -133,7 +135,8 @@ def temp_dir(parent: Path, name: str) -> Path:
     """A fresh directory beside ``parent / name`` (exclusive, random name recording this process) with the
     mode ``mkdir`` would give it, to build ``name`` in and rename onto it."""
     tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(name), suffix=".tmp", dir=parent))
-    os.chmod(tmp, created_mode(directory=True))
+    with suppress(OSError):  # a file system without modes keeps its own
+        os.chmod(tmp, created_mode(directory=True))
     return tmp
 
 
@@ -158,8 +161,6 @@ def sole_writer(folder: Path, what: str) -> Iterator[None]:
     """Hold ``folder`` (an advisory lock on the directory itself, released with the process) while a job writes
     into it: a second live process given the same folder is one line, not two jobs overwriting each other's
     checkpoints and metrics. A file system without ``flock`` on directories goes unchecked."""
-    import fcntl
-
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
         try:
