@@ -36,7 +36,7 @@ from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, one_line
 from semvpr.core.io import write_json, write_npy
-from semvpr.core.stops import Interrupted, killed_workers_stop, sweep_stopped_line
+from semvpr.core.stops import Interrupted, run_stoppable, sweep_stopped_line
 from semvpr.data.places import PlaceSet
 from semvpr.reporting.benchmarks_table import RANKS_FILE, write_table
 from semvpr.retrieval.descriptors import place_descriptors
@@ -124,13 +124,12 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
 def main() -> None:
     """Console entry point."""
     check_overrides_or_exit(sys.argv[1:], "eval")
-    try:
-        with killed_workers_stop(sys.argv[1:]):
-            _hydra_main()
-    except Interrupted as stop:  # a signal or a killed worker: one line, not a traceback
-        line = sweep_stopped_line(stop, write_table) if stop.sweep_dir is not None else f"semvpr: error: {stop}"
-        print(line, file=sys.stderr)
-        raise SystemExit(2) from None
+    run_stoppable(_hydra_main, sys.argv[1:], _stopped_line)
+
+
+def _stopped_line(stop: Interrupted) -> str:
+    """A stopped evaluation's line; a stopped sweep's names its table, written now."""
+    return sweep_stopped_line(stop, write_table) if stop.sweep_dir is not None else f"semvpr: error: {stop}"
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import write_json
+from semvpr.core.stops import run_stoppable
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
 
@@ -107,7 +108,7 @@ def _where(match: dict[str, Any]) -> str:
 def main() -> None:
     """Console entry point."""
     check_overrides_or_exit(sys.argv[1:], "localize")
-    _hydra_main()
+    run_stoppable(_hydra_main, sys.argv[1:])
 
 
 if __name__ == "__main__":

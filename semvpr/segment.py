@@ -35,7 +35,7 @@ from semvpr.core.device import resolve
 from semvpr.core.io import atomic_dir, write_json
 from semvpr.core.logs import no_hf_progress_bars
 from semvpr.core.provenance import TrainedOn, data_domain
-from semvpr.core.stops import Interrupted
+from semvpr.core.stops import run_stoppable
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
 from semvpr.data.images import Reading, load_image
 from semvpr.data.places import common_root
@@ -318,14 +318,9 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
 
 
 def main() -> None:
-    """Console entry point; user errors, and a stop Lightning caught while the teacher trained, become one line
-    on stderr and exit code 2."""
+    """Console entry point; user errors and a stop (SIGTERM, Ctrl-C) become one line on stderr and exit code 2."""
     check_overrides_or_exit(sys.argv[1:], "segment")
-    try:
-        _hydra_main()
-    except Interrupted as stop:
-        print(f"semvpr: error: {stop}", file=sys.stderr)
-        raise SystemExit(2) from None
+    run_stoppable(_hydra_main, sys.argv[1:])
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -57,6 +58,22 @@ def stop_on_signals(sweep_dir: Path | None = None) -> dict[int, Any]:
         raise stop
 
     return {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
+
+
+def run_stoppable(
+    main: Callable[[], None], argv: Sequence[str], line: Callable[[Interrupted], str] | None = None
+) -> None:
+    """Run an evaluation or segmentation command's Hydra main with SIGTERM and SIGINT raising :class:`Interrupted`
+    wherever they land, and a stop (a killed sweep worker too: :func:`killed_workers_stop`) printed as ``line(stop)``
+    (default: why it stopped) on stderr, exit code 2. ``semvpr.train`` installs its handlers per job instead
+    (``train.run_job``), as its job records and resume line need."""
+    stop_on_signals()
+    try:
+        with killed_workers_stop(argv):
+            main()
+    except Interrupted as stop:  # one line, not the traceback of wherever the signal landed
+        print(line(stop) if line is not None else f"semvpr: error: {stop}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 @contextmanager

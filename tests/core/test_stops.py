@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 import lightning as L
@@ -57,4 +58,26 @@ def test_a_sigterm_lightning_catches_in_fit_is_a_stop_not_exit_0(tmp_path: Path)
         signal.signal(signal.SIGTERM, before)
     assert trainer.global_step < 10 and trainer.interrupted
     assert str(stops.received_stop()) == "stopped by SIGTERM"
+    stops.RECEIVED.clear()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_command_stopped_anywhere_is_one_line_and_exit_2(sig: signal.Signals, capsys: pytest.CaptureFixture) -> None:
+    """eval, localize and segment: a signal landing anywhere (here in a sleep) is one line, exit 2, not
+    Python's KeyboardInterrupt traceback or a silent 143; the handlers are the command's for its whole run."""
+
+    def command() -> None:
+        os.kill(os.getpid(), sig)
+        time.sleep(5)
+        raise AssertionError("the signal was ignored")
+
+    before = {s: signal.getsignal(s) for s in stops.STOP_SIGNALS}
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            stops.run_stoppable(command, ["experiment=tiny"])
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err == f"semvpr: error: stopped by {sig.name}\n"
     stops.RECEIVED.clear()
