@@ -99,7 +99,7 @@ def evaluate_checkpoint(
     return out
 
 
-@hydra_command("eval")
+@hydra_command("eval", "eval.json")
 def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
     try:
         with model_pass(cfg) as threads:

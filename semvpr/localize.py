@@ -85,7 +85,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     return out
 
 
-@hydra_command("localize")
+@hydra_command("localize", "localize.json")
 def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     with model_pass(cfg):
         results = localize(cfg, explicit_keys(), run_dir)

@@ -312,7 +312,7 @@ def summary(results: dict[str, Any], run_dir: Path) -> dict[str, Any]:
     return line
 
 
-@hydra_command("segment")
+@hydra_command("segment", "results.json")
 def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     print(json.dumps(summary(run(cfg, run_dir), run_dir)))
 

@@ -95,7 +95,12 @@ def train_and_test(
     # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
     # (ModelCheckpoint's save_last only refreshes it when the best changes).
     checkpoint = RunCheckpoint(
-        dirpath=run_dir / "checkpoints", filename="best", monitor="val/R@5", mode="max", auto_insert_metric_name=False
+        dirpath=run_dir / "checkpoints",
+        filename="best",
+        monitor="val/R@5",
+        mode="max",
+        auto_insert_metric_name=False,
+        enable_version_counter=False,  # best.ckpt is this run's, never an earlier run's beside a best-v1.ckpt
     )
     latest = RunCheckpoint(
         dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
@@ -300,7 +305,7 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     return metrics
 
 
-@hydra_command("train")
+@hydra_command("train", "metrics.json")
 def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     hydra_cfg = HydraConfig.get()
     record = run_dir / ".hydra" / "config.yaml"

@@ -43,11 +43,14 @@ def one_dir_name(name: str) -> str:
 OmegaConf.register_new_resolver("one_dir_name", one_dir_name, replace=True)
 
 
-def hydra_command(config_name: str) -> Callable[[Task], Callable[[], None]]:
+def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[], None]]:
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
     quietened, called with the job's output directory (held by this process: :func:`~semvpr.core.io.sole_writer`),
     a user error one line on stderr and exit code 2
-    (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module."""
+    (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module.
+
+    ``record`` is the file that says a job there ended (``metrics.json``, ``eval.json``): an earlier job's is
+    removed as this one starts, so it never stands beside this job's files as if they were complete."""
 
     def command(task: Task) -> Callable[[], None]:
         @functools.wraps(task)
@@ -58,6 +61,7 @@ def hydra_command(config_name: str) -> Callable[[Task], Callable[[], None]]:
                 task(cfg, run_dir)
                 return
             with sole_writer(run_dir, "hydra.run.dir"):
+                (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)
 
         main = hydra.main(config_path=CONF_DIR, config_name=config_name, version_base="1.3")

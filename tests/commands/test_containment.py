@@ -220,3 +220,25 @@ def test_a_sweep_job_is_one_folder_whatever_its_overrides_hold() -> None:
     long_a, long_b = (f"data.root=/{'x' * 300}/{end},seed=1" for end in "ab")
     names = {one_dir_name(long_a), one_dir_name(long_b), one_dir_name("data.root=/é" + "é" * 200)}
     assert len(names) == 3 and all(len(n.encode()) <= MAX_DIRNAME_BYTES and "/" not in n for n in names)
+
+
+def test_an_earlier_jobs_record_never_stands_beside_a_new_jobs_files(tmp_path: Path) -> None:
+    """A job started in a directory that holds an earlier job's record (eval.json, metrics.json) removes it
+    first: killed or failed, the new job leaves no record saying its directory is complete."""
+    from tests.bad_input import cli
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "eval.json").write_text('{"status": "ok", "test/R@1": 99.0}')
+    proc = cli(
+        "semvpr.eval",
+        "experiment=tiny",
+        "ckpt=none",
+        "data=folder",
+        f"data.root={tmp_path / 'nowhere'}",
+        f"hydra.run.dir={run}",
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert proc.returncode == 2 and "nowhere" in proc.stderr.strip().splitlines()[-1], proc.stderr
+    assert not (run / "eval.json").exists()

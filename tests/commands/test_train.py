@@ -495,3 +495,15 @@ def test_a_signal_that_surfaces_as_a_librarys_error_is_a_stop_not_a_failure(tmp_
     for sig, handler in stops.stop_on_signals().items():
         signal.signal(sig, handler)
     assert stops.received_stop() is None
+
+
+def test_a_job_run_again_in_its_directory_leaves_only_its_own_checkpoints(cache_dir: Path, tmp_path: Path) -> None:
+    """Lightning versioned the best checkpoint of a second job in one directory (best-v1.ckpt), leaving the first
+    job's best.ckpt, the file the docs and experiments evaluate, beside it."""
+    run_job(tiny_config(cache_dir, "filter=none", "seed=1"), tmp_path)
+    first = torch.load(tmp_path / "checkpoints" / "best.ckpt", weights_only=True)["state_dict"]
+    metrics = run_job(tiny_config(cache_dir, "filter=none", "seed=2"), tmp_path)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["best.ckpt", "last.ckpt", "tested.ckpt"]
+    second = torch.load(tmp_path / "checkpoints" / "best.ckpt", weights_only=True)["state_dict"]
+    assert any(not torch.equal(first[k], second[k]) for k in first)
+    assert json.loads((tmp_path / "metrics.json").read_text())["seed"] == metrics["seed"] == 2
