@@ -34,9 +34,9 @@ from semvpr.core.io import reclaim_orphans, write_json
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.stops import (
     Interrupted,
-    killed_workers_stop,
     lightning_stop,
     received_stop,
+    run_stoppable,
     stop_on_signals,
     sweep_stopped_line,
 )
@@ -323,12 +323,7 @@ def main() -> None:
     """Console entry point; user errors and a stopping signal become one line on stderr and exit code 2."""
     check_overrides_or_exit(sys.argv[1:], "train")
     sys.argv[1:] = keep_run_record(sys.argv[1:])
-    try:
-        with killed_workers_stop(sys.argv[1:]):
-            _hydra_main()
-    except Interrupted as stop:  # a signal or a killed worker: one line, not the traceback of wherever it landed
-        print(interrupted_line(stop), file=sys.stderr)
-        raise SystemExit(2) from None
+    run_stoppable(_hydra_main, sys.argv[1:], interrupted_line, handlers=False)  # run_job installs them per job
 
 
 if __name__ == "__main__":

@@ -61,13 +61,17 @@ def stop_on_signals(sweep_dir: Path | None = None) -> dict[int, Any]:
 
 
 def run_stoppable(
-    main: Callable[[], None], argv: Sequence[str], line: Callable[[Interrupted], str] | None = None
+    main: Callable[[], None],
+    argv: Sequence[str],
+    line: Callable[[Interrupted], str] | None = None,
+    handlers: bool = True,
 ) -> None:
-    """Run an evaluation or segmentation command's Hydra main with SIGTERM and SIGINT raising :class:`Interrupted`
-    wherever they land, and a stop (a killed sweep worker too: :func:`killed_workers_stop`) printed as ``line(stop)``
-    (default: why it stopped) on stderr, exit code 2. ``semvpr.train`` installs its handlers per job instead
-    (``train.run_job``), as its job records and resume line need."""
-    stop_on_signals()
+    """Run a command's Hydra main with SIGTERM and SIGINT raising :class:`Interrupted` wherever they land, and a
+    stop (a killed sweep worker too: :func:`killed_workers_stop`) printed as ``line(stop)`` (default: why it
+    stopped) on stderr, exit code 2. ``handlers=False``: the command installs them itself (``semvpr.train``, per
+    job in ``train.run_job``, as its job records and resume line need)."""
+    if handlers:
+        stop_on_signals()
     try:
         with killed_workers_stop(argv):
             main()
@@ -87,7 +91,7 @@ def lightning_stop() -> Iterator[None]:
         yield
     except SIGTERMException:
         RECEIVED.append(signal.SIGTERM)
-        raise Interrupted("stopped by SIGTERM") from None
+        raise received_stop() from None
 
 
 def sweep_stopped_line(stop: Interrupted, write_report: Callable[[Path], Path], resume: str = "") -> str:
