@@ -24,6 +24,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import numpy as np
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
@@ -269,21 +270,50 @@ class RunCheckpoint(ModelCheckpoint):
 
     On resume Lightning restores ``best_model_path`` etc. from the file and later deletes or loads
     those files; a path elsewhere (a tampered ``last.ckpt``, another run's checkpoint) is dropped
-    here, with the score that went with it.
+    here, with the score that went with it. A run directory that was moved (copied off a cluster's
+    scratch disk, renamed) resumes from its own ``last.ckpt`` as it would have in place: the files the
+    state names in the directory it was written in are read in this one (Lightning itself keeps only
+    the old ``best_model_path`` then, so the resumed run forgot its best score and tested the last
+    epoch's weights as the best).
     """
 
+    _trainer: L.Trainer | None = None
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        super().setup(trainer, pl_module, stage)
+        self._trainer = trainer  # its ckpt_path names the file being resumed when the state is loaded
+
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        super().load_state_dict(confine_callback_state(state_dict, Path(self.dirpath or ".")))
+        resumed = self._trainer.ckpt_path if self._trainer is not None else None
+        own = Path(self.dirpath or ".")
+        moved = resumed is not None and Path(resumed).resolve().parent == own.resolve()
+        super().load_state_dict(confine_callback_state(state_dict, own, own_file=moved))
 
 
-def confine_callback_state(state: dict[str, Any], dirpath: Path) -> dict[str, Any]:
-    """ModelCheckpoint state with every file outside ``dirpath`` forgotten."""
+def confine_callback_state(state: dict[str, Any], dirpath: Path, own_file: bool = False) -> dict[str, Any]:
+    """ModelCheckpoint state with every file outside ``dirpath`` forgotten. ``own_file``: the state was
+    read from a file in ``dirpath``, so the files it names in the directory it was written in (the same
+    run's, before the directory moved) are taken from ``dirpath`` where they are there."""
     root = dirpath.resolve()
+    state = dict(state)
+    written_in = state.get("dirpath")
+    if own_file and isinstance(written_in, str) and Path(written_in) != dirpath:
+
+        def moved(value: Any) -> Any:
+            if isinstance(value, str) and value and Path(value).parent == Path(written_in):
+                here = dirpath / Path(value).name
+                return str(here) if here.is_file() else value
+            return value
+
+        for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+            state[key] = moved(state.get(key))
+        if isinstance(state.get("best_k_models"), dict):
+            state["best_k_models"] = {moved(k): v for k, v in state["best_k_models"].items()}
+        state["dirpath"] = str(dirpath)
 
     def inside(value: Any) -> bool:
         return isinstance(value, str) and bool(value) and Path(value).resolve().is_relative_to(root)
 
-    state = dict(state)
     for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
         if key in state and not inside(state[key]):
             state[key] = ""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,6 +20,7 @@ from omegaconf import OmegaConf
 
 from semvpr import train
 from semvpr.config.build import build_aggregator, build_backbone
+from semvpr.core.checkpoint import confine_callback_state
 from semvpr.core.errors import SemvprError
 from semvpr.train import run_job
 from tests.helpers import CONF_DIR, REPO, config, tiny_config
@@ -182,6 +184,46 @@ def test_resume_never_touches_a_file_named_by_a_tampered_checkpoint(cache_dir: P
     resumed = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), run_dir)
     assert victim.read_text() == "keep"
     assert resumed["status"] == "ok" and (run_dir / "checkpoints" / "best.ckpt").is_file()
+
+
+def test_a_moved_run_directory_resumes_as_it_would_in_place(cache_dir: Path, tmp_path: Path) -> None:
+    # A run stopped after epoch 1 of 2, its directory then moved (copied off a scratch disk).
+    written_in, moved = tmp_path / "scratch" / "run", tmp_path / "home" / "run"
+    run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=1"), written_in)
+    shutil.move(written_in, moved)
+    epoch_one = torch.load(moved / "checkpoints" / "best.ckpt", weights_only=True)
+    metrics = run_job(tiny_config(cache_dir, "filter=none", "trainer.max_epochs=2", "ckpt_path=last"), moved)
+    second = torch.load(moved / "checkpoints" / "last.ckpt", weights_only=True)
+    best_state = next(s for name, s in second["callbacks"].items() if "'monitor': 'val/R@5'" in name)
+    assert Path(best_state["best_model_path"]) == moved / "checkpoints" / "best.ckpt"
+    # The tested weights are those of the epoch the metrics name as the best (on val R@5).
+    tested = torch.load(metrics["checkpoint"], weights_only=True)["state_dict"]
+    expected = {1: epoch_one, 2: second}[metrics["best/epoch"]]["state_dict"]
+    assert tested.keys() == expected.keys() and all(torch.equal(tested[k], expected[k]) for k in expected)
+    assert metrics["best/val/R@5"] == pytest.approx(float(best_state["best_model_score"]))
+
+
+def test_a_moved_runs_checkpoint_state_reads_its_files_where_they_are_now(tmp_path: Path) -> None:
+    here = tmp_path / "home" / "checkpoints"
+    here.mkdir(parents=True)
+    (here / "best.ckpt").touch()
+    (here / "last.ckpt").touch()
+    old = "/scratch/job/checkpoints"
+    state = {
+        "dirpath": old,
+        "best_model_path": f"{old}/best.ckpt",
+        "best_model_score": torch.tensor(90.0),
+        "kth_best_model_path": f"{old}/best.ckpt",
+        "last_model_path": f"{old}/gone.ckpt",
+        "best_k_models": {f"{old}/best.ckpt": torch.tensor(90.0), "/elsewhere/best.ckpt": torch.tensor(99.0)},
+    }
+    own = confine_callback_state(state, here, own_file=True)
+    assert own["dirpath"] == str(here) and own["best_model_path"] == str(here / "best.ckpt")
+    assert float(own["best_model_score"]) == 90.0 and own["last_model_path"] == ""  # not there: forgotten
+    assert list(own["best_k_models"]) == [str(here / "best.ckpt")]
+    # Read from another run's file, the state names nothing here.
+    foreign = confine_callback_state(state, here)
+    assert foreign["best_model_path"] == "" and foreign["best_model_score"] is None and foreign["best_k_models"] == {}
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(
