@@ -62,30 +62,31 @@ def keep_run_record(argv: list[str]) -> list[str]:
     return [*argv, "hydra.output_subdir=null"] if record_of_resumed_run(argv) is not None else argv
 
 
-def recorded_choices(record: Path) -> list[str]:
-    """The config choices a run recorded (``hydra.yaml``'s ``runtime.choices``) as overrides, each
-    naming one of the project's own config files."""
+def _choices(record: Path) -> dict[str, str | None]:
+    """The config choices a run recorded (``hydra.yaml``'s ``runtime.choices``), each naming one of the
+    project's own config files or none (``experiment: null``); Hydra's own groups left out."""
     hydra_record = record.parent / "hydra.yaml"
     data = read_yaml(hydra_record, "run record") if hydra_record.is_file() else None
     choices = data.get("hydra", {}).get("runtime", {}).get("choices") if isinstance(data, dict) else None
     if not isinstance(choices, dict):
         raise SemvprError(f"{hydra_record} does not record the run's config choices; resume needs it")
     conf = Path(CONF_DIR)
-    out = []
+    out: dict[str, str | None] = {}
     for group, choice in choices.items():
-        if not isinstance(group, str) or group == "hydra" or group.startswith("hydra/") or choice is None:
+        if isinstance(group, str) and (group == "hydra" or group.startswith("hydra/")):
             continue
         if (
-            not _CHOICE.match(group)
-            or not isinstance(choice, str)
-            or not _CHOICE.match(choice)
-            or not (conf / group / f"{choice}.yaml").is_file()
+            not isinstance(group, str)
+            or not _CHOICE.match(group)
+            or not (choice is None or isinstance(choice, str) and _CHOICE.match(choice))
+            or choice is not None
+            and not (conf / group / f"{choice}.yaml").is_file()
         ):
             raise SemvprError(
                 f"{hydra_record}: choice {group}={choice!r} is not one of the project's config files; "
                 "a resume composes the run from them"
             )
-        out.append(f"{group}={choice}")
+        out[group] = choice
     return out
 
 
@@ -102,7 +103,16 @@ def resumed_config(
     own_values = read_yaml(record, "run config")
     if not isinstance(own_values, dict):
         raise SemvprError(f"{record} is not a run config (a mapping)")
-    schema = compose(recorded_choices(record))
+    choices = _choices(record)
+    for override in overrides:  # another config file for a group (filter=, aggregator=): named as given
+        group, _, value = override.lstrip("+~").partition("=")
+        own_choice = (choices[group] or "null") if group in choices else value
+        if value != own_choice:
+            raise SemvprError(
+                f"{where}: {override.lstrip('+')} contradicts the run's own {group}={own_choice}; "
+                "a resume continues the run as it was started: drop the override"
+            )
+    schema = compose([f"{group}={choice}" for group, choice in choices.items() if choice is not None])
     project = OmegaConf.to_container(schema, resolve=False)
     check_values(own_values, project, f"{where}: ", source=f"a run's record ({record})", project_values=project)
     own = schema.copy()
