@@ -47,19 +47,23 @@ def _job_dirs(sweep_dir: Path) -> list[Path]:
     return sorted(dirs, key=lambda d: (len(d.name), d.name))
 
 
-def _overrides(job_dir: Path) -> str:
-    """A failed job's label: its data= and data.root= overrides (the job dir's name without them), read
-    as plain YAML (``core.io.read_yaml``: nothing resolved, no aliases)."""
+_QUOTES = "'\""
+
+
+def _overrides(job_dir: Path, sweep_dir: Path) -> str:
+    """A failed job's label: its data= and data.root= overrides, else every override it was given (a sweep
+    over checkpoints and masks; a path relative to the sweep dir, as :func:`_source` shows it), else the
+    job dir's name; read as plain YAML (``core.io.read_yaml``: nothing resolved, no aliases)."""
     path = job_dir / ".hydra" / "overrides.yaml"
     try:
         items = read_yaml(path, "run record") if path.is_file() else []
     except SemvprError:  # a damaged .hydra dir only costs the label
         return job_dir.name
-    picked = (
-        [o for o in items if isinstance(o, str) and o.startswith(("data=", "data.root="))]
-        if isinstance(items, list)
-        else []
-    )
+    given = [o for o in items if isinstance(o, str)] if isinstance(items, list) else []
+    picked = [o for o in given if o.startswith(("data=", "data.root="))] or [
+        f"{key}={_source(value.strip(_QUOTES), sweep_dir)}" if sep else key
+        for key, sep, value in (o.partition("=") for o in given)
+    ]
     return " ".join(picked) or job_dir.name
 
 
@@ -135,7 +139,7 @@ def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
         elif result.get("status") == "ok" and (why := _malformed(result)) is not None:
             result = {"status": "failed", "error": why}
         if result.get("status") != "ok":
-            rows.append({"data": _overrides(job), "source": f"failed: {result.get('error')}"})
+            rows.append({"data": _overrides(job, sweep_dir), "source": f"failed: {result.get('error')}"})
             continue
         rows.append(
             {

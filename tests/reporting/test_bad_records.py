@@ -143,6 +143,17 @@ def test_evaltable_reads_overrides_as_text_and_escapes_every_cell(tmp_path: Path
     assert ", /abs/machine/path" not in text and "/abs/machine/path/tested.ckpt" in text  # relative to the sweep
 
 
+def test_evaltable_names_a_failed_job_of_a_checkpoint_sweep_by_its_overrides(tmp_path: Path) -> None:
+    sweep = _sweep_with(tmp_path, "evaltable")
+    ckpt = tmp_path / "runs" / "a=1,b=2" / "tested.ckpt"
+    (sweep / "1" / ".hydra" / "overrides.yaml").write_text(f"- ckpt='{ckpt}'\n- mask=student\n")
+    (sweep / "1" / "eval.json").write_text(json.dumps({"status": "failed", "error": "no student"}))
+    proc = cli("semvpr.evaltable", str(sweep), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    failed = [ln for ln in (sweep / "results.md").read_text().splitlines() if "failed: no student" in ln]
+    assert len(failed) == 1 and failed[0].startswith("| ckpt=../runs/a=1,b=2/tested.ckpt mask=student |")
+
+
 def test_report_escapes_the_gain_line_and_leaves_the_sweep_path_out(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
     for name, agg in (("a", "net`vlad</p>\n# HEAD <script>x</script>"), ("b", "gem")):
