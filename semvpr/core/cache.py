@@ -5,7 +5,7 @@ and renamed when complete, so a directory with the final name is always a finish
 Builders of the same artifact are serialised by an advisory lock (``flock`` on
 ``<cache_dir>/.locks/<kind>-<hash>.lock``; lock files are kept, as deleting them would race), so
 the jobs of a parallel sweep (e.g. hydra-submitit-launcher on a shared file system) build it once:
-the first takes the lock, the others wait and then reuse its result.
+the first takes the lock, the others wait (a line says so, and how long) and then reuse its result.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import json
 import os
 import shutil
 import stat
+import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -140,7 +142,7 @@ def build_once(
             f"cache dir {final.parent} cannot be written ({err.strerror or type(err).__name__}) and holds no "
             f"{kind} artifact for this run; point paths.cache_dir at a writable folder"
         ) from None
-    with _exclusive(final.parent / LOCK_DIR / f"{final.name}.lock"):
+    with _exclusive(final.parent / LOCK_DIR / f"{final.name}.lock", f"{kind} artifact {final}"):
         if final.is_dir():  # another job built it while we waited for the lock
             return final
         _build_into(final, key, build, resumable)
@@ -148,12 +150,19 @@ def build_once(
 
 
 @contextmanager
-def _exclusive(lock_path: Path) -> Iterator[None]:
-    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free); a link there is refused."""
+def _exclusive(lock_path: Path, what: str) -> Iterator[None]:
+    """Hold an exclusive advisory lock on ``lock_path`` (blocks until it is free, saying so once: a teacher
+    another job trains can take hours); a link there is refused."""
     fd = open_lock(lock_path)
     with os.fdopen(fd, "rb") as handle:
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX)
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                print(f"semvpr: cache: waiting for another job building the {what}", file=sys.stderr, flush=True)
+                tic = time.monotonic()
+                fcntl.flock(handle, fcntl.LOCK_EX)
+                print(f"semvpr: cache: waited {time.monotonic() - tic:.0f} s", file=sys.stderr, flush=True)
         except OSError as err:
             if err.errno not in (errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOLCK):
                 raise

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import fcntl
 import multiprocessing as mp
+import threading
 import time
 from pathlib import Path
 
@@ -81,6 +83,28 @@ def _job_slow(cache: str, log: str, out: mp.Queue[str], seconds: float) -> None:
         time.sleep(seconds)
 
     out.put(str(build_once(cache, "thing", {"a": 1}, build)))
+
+
+def test_a_job_waiting_for_a_build_says_so_once(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    cache = tmp_path / "cache"
+    final = artifact_dir(cache, "thing", {"a": 1})
+    lock = cache / LOCK_DIR / f"{final.name}.lock"
+    lock.parent.mkdir(parents=True)
+    with open(lock, "wb") as held:  # another job's build holds the lock
+        fcntl.flock(held, fcntl.LOCK_EX)
+        waiter = threading.Thread(target=build_once, args=(cache, "thing", {"a": 1}, lambda tmp: None))
+        waiter.start()
+        time.sleep(0.5)
+        assert waiter.is_alive()
+        final.mkdir()  # ... which ends
+        fcntl.flock(held, fcntl.LOCK_UN)
+    waiter.join(timeout=30)
+    err = capfd.readouterr().err.splitlines()
+    assert err == [f"semvpr: cache: waiting for another job building the thing artifact {final}", err[1]]
+    assert err[1].startswith("semvpr: cache: waited ")
+    # The lock free, nothing is said.
+    build_once(cache, "other", {"a": 1}, lambda tmp: None)
+    assert capfd.readouterr().err == ""
 
 
 def test_failed_build_leaves_nothing_and_the_next_call_builds(tmp_path: Path) -> None:
