@@ -10,6 +10,7 @@ normalised tensor) and ``model.feature_dim``.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -44,6 +45,16 @@ class HubModel(nn.Module):
     @torch.no_grad()
     def forward(self, images: Tensor) -> Tensor:
         """Descriptors of a normalised batch (the retriever itself takes [0, 1] images)."""
+        if not isinstance(images, Tensor) or images.ndim != 4 or images.shape[1] != 3:
+            shape = tuple(images.shape) if isinstance(images, Tensor) else type(images).__name__
+            raise SemvprError(f"images must be a batch (B, 3, H, W), got {shape}; model.transform makes one image")
+        if not images.is_floating_point():  # 0..255 bytes read as normalised values give wrong descriptors
+            raise SemvprError(
+                f"images must be floats normalised with the ImageNet mean/std (model.transform), got {images.dtype}"
+            )
+        if not len(images):
+            return images.new_zeros((0, self.feature_dim), dtype=torch.float32)
+        images = images.to(self.mean.dtype)
         if self.retriever.device != images.device:  # moved as a submodule (.cuda()): Lightning's own device follows
             self.retriever.to(images.device)
         return F.normalize(self.retriever(images * self.std + self.mean).float(), dim=1)
@@ -52,7 +63,7 @@ class HubModel(nn.Module):
 def load_model(
     ckpt: str | Path,
     image_size: Sequence[int] | None = None,
-    overrides: Sequence[str] = (),
+    overrides: Sequence[str] | None = (),
     device: torch.device | str = "cpu",
 ) -> HubModel:
     """The checkpoint as a :class:`HubModel` in eval mode on ``device`` (move it with ``.to`` or ``.cuda``).
@@ -64,7 +75,11 @@ def load_model(
     # are syntax and '${...}' an interpolation, so the file loaded would not be the one named.
     if isinstance(overrides, str):
         raise SemvprError(f"overrides={overrides!r} is one string; pass a list of them: overrides=[{overrides!r}]")
-    given = [str(o) for o in overrides]
+    given = [str(o) for o in overrides or ()]
+    if not isinstance(ckpt, (str, os.PathLike)):
+        raise SemvprError(f"ckpt={ckpt!r} names no file; name a checkpoint or release file, or ckpt='none'")
+    if image_size is not None and not _image_size(image_size):
+        raise SemvprError(f"image_size={image_size!r} is not a size: give [height, width] (or one side) in pixels")
     if isinstance(ckpt, str) and not ckpt:
         raise SemvprError("ckpt='' names no file; name a checkpoint or release file, or ckpt='none'")
     untrained = is_untrained(ckpt)
@@ -76,3 +91,9 @@ def load_model(
     target = None if untrained else Path(ckpt).expanduser()
     retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
     return HubModel(retriever, image_size).to(device).eval()
+
+
+def _image_size(value: object) -> bool:
+    """Whether ``value`` is a size torchvision's Resize takes as meant: one or two positive whole numbers."""
+    sides = [value] if isinstance(value, int) else list(value) if isinstance(value, (list, tuple)) else []
+    return len(sides) in (1, 2) and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in sides)

@@ -84,6 +84,33 @@ def test_hub_checks_its_arguments_as_the_cli_does(ckpt: str, overrides: object, 
         load_model(ckpt, overrides=overrides)  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize(
+    ("image_size", "line"),
+    [([0, 0], r"image_size=\[0, 0\] is not a size"), ("224", "image_size='224' is not a size"), ([1, 2, 3], "is not")],
+)
+def test_hub_refuses_an_image_size_resize_would_misread(checkpoint: Path, image_size: object, line: str) -> None:
+    from semvpr.hub import load_model
+
+    with pytest.raises(SemvprError, match=line):
+        load_model(checkpoint, image_size=image_size)  # type: ignore[arg-type]
+
+
+def test_hub_model_refuses_images_it_would_misread_and_takes_any_float_batch(checkpoint: Path) -> None:
+    from semvpr.hub import load_model
+
+    model = load_model(checkpoint, overrides=None)
+    images = torch.rand(2, 3, 32, 48)
+    for bad, line in (
+        (images[:, :1], r"a batch \(B, 3, H, W\), got \(2, 1, 32, 48\)"),  # broadcast to 3 channels before
+        (images[0], r"got \(3, 32, 48\)"),
+        ((images * 255).to(torch.uint8), "floats normalised .* got torch.uint8"),  # read as normalised values before
+    ):
+        with pytest.raises(SemvprError, match=line):
+            model(bad)
+    torch.testing.assert_close(model(images.double()), model(images))  # was a dtype RuntimeError
+    assert model(images[:0]).shape == (0, model.feature_dim)  # was a reshape RuntimeError
+
+
 @pytest.mark.parametrize("folder", ["a,b", "a=b", "it's"])
 def test_hub_paths_with_override_syntax_load(tmp_path: Path, checkpoint: Path, folder: str) -> None:
     path = tmp_path / folder / "tested.ckpt"
