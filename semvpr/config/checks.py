@@ -32,7 +32,8 @@ def whole_number(value: object, key: str, low: int, high: int | None = None, als
     ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
     if not ok:
         bounds = f"from {low} to {high}" if high is not None else f">= {low}"
-        raise SemvprError(f"{key}={value!r} must be a whole number {bounds}{f' ({also})' if also else ''}")
+        shown = "null" if value is None else repr(value)  # as written on the command line
+        raise SemvprError(f"{key}={shown} must be a whole number {bounds}{f' ({also})' if also else ''}")
     return int(value)  # type: ignore[arg-type]
 
 
@@ -447,10 +448,9 @@ def _check_size(value: Any, key: str) -> None:
 
 
 def _check_retrieval(cfg: DictConfig) -> None:
-    if cfg.get("num_figure_queries") is not None:
-        whole_number(cfg.num_figure_queries, "num_figure_queries", 1)
-    if cfg.get("top_k") is not None:
-        whole_number(cfg.top_k, "top_k", 1)
+    for key in ("num_figure_queries", "top_k"):  # null too: each is read as a number
+        if key in cfg:
+            whole_number(cfg[key], key, 1)
     lr = cfg.recipe.optimizer.get("lr")
     try:
         lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0

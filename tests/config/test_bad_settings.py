@@ -23,6 +23,8 @@ CASES: dict[str, Case] = {
     "seed=-1": Case(TRAIN, lambda t, c: ["seed=-1"], "seed=-1"),
     "lr=-1": Case(TRAIN, lambda t, c: ["recipe.optimizer.lr=-1"], "recipe.optimizer.lr=-1"),
     "num_figure_queries=0": Case(TRAIN, lambda t, c: ["num_figure_queries=0"], "num_figure_queries=0"),
+    # null was let through and failed as a TypeError once training had ended
+    "num_figure_queries=null": Case(TRAIN, lambda t, c: ["num_figure_queries=null"], "num_figure_queries=null must"),
     "precision=foo": Case(TRAIN, lambda t, c: ["trainer.precision=foo"], "trainer.precision='foo'"),
     "negative radius": Case(TRAIN, lambda t, c: ["recipe.positive_radius=-5"], "recipe.positive_radius=-5"),
     "model=netvlad": Case(TRAIN, lambda t, c: ["model=netvlad"], "model=netvlad is recipe=triplet"),
@@ -34,6 +36,7 @@ CASES: dict[str, Case] = {
     "localize top_k=0": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"], "top_k=0"),
     "localize top_k=-1": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"], "top_k=-1"),
     "localize top_k=abc": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"], "top_k='abc'"),
+    "localize top_k=null": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=null"], "top_k=null must"),
     "gsv recipe.optimizer.lr": Case(
         TRAIN,
         lambda t, c: ["recipe=gsv", "recipe.optimizer.lr=0.1"],
@@ -214,6 +217,7 @@ FAST = {
     "student.flip=maybe",
     "eval ckpt in a sweep job's folder, unquoted",
     "localize top_k=abc",
+    "num_figure_queries=null",
     "gsv recipe.optimizer.lr",
     "train data.test._target_=builtins.print",
     "frame_pattern nested repeat",
