@@ -60,9 +60,15 @@ OPEN_NODES = ("trainer",)
 _HYDRA_FLAGS = ("-m", "--multirun")
 
 
+#: Config groups whose files name themselves in ``<group>.name`` (the file's stem).
+NAMED_GROUPS = ("data", "backbone", "aggregator", "mask", "filter", "recipe", "teacher", "student", "seg")
+
+
 def check_overrides(argv: list[str], config_name: str = "train") -> None:
     """Check a command line's overrides before Hydra runs, so that a bad one is one line:
 
+    - one that renames a group's file (``aggregator.name=gem``: the run would be labelled, and its checkpoint
+      recorded, as another than it is) names the group choice to make instead;
     - one that names the training protocol as a ``model`` group or ``model.`` setting (it is the
       ``recipe`` group), or a key of recipe=gsv's interpolated optimiser or scheduler, says where it is;
     - one Hydra cannot parse or apply (a typo'd key, a value with unquoted ``,`` or ``"``) is Hydra's
@@ -92,6 +98,12 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
                 f"{arg}: recipe=gsv takes the aggregator's published {group} (an interpolation); override "
                 f"aggregator.gsv.{rest}={value}, or recipe.default.{rest}={value} for an aggregator without "
                 "a gsv node (GeM, NetVLAD)"
+            )
+        group = key.removesuffix(".name")
+        if sep and key.endswith(".name") and group in NAMED_GROUPS:
+            raise SemvprError(
+                f"{arg}: {key} is the name of the {group} file chosen (it labels the run and what a checkpoint "
+                f"records), not a setting; choose another with {group}=NAME ({', '.join(options(group))})"
             )
         rest = key.removeprefix("model.")
         if (
@@ -306,6 +318,11 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         check_dir_path(str(run_dir), "the run dir (hydra.run.dir)")
     for key in PATH_KEYS:
         _check_path_setting(OmegaConf.select(cfg, key, default=None, throw_on_missing=False), key)
+    if "backbone" in cfg:
+        weights = cfg.backbone.get("weights", "none")
+        if weights is None:
+            raise SemvprError("backbone.weights=null: give imagenet, none (a random-init trunk) or a weight file")
+        _check_path_setting(weights, "backbone.weights")
     fmt = cfg.get("ckpt_format")
     if fmt is not None and fmt not in CKPT_FORMATS:
         raise SemvprError(f"ckpt_format={fmt!r} is not one of {', '.join(CKPT_FORMATS)}")
@@ -460,6 +477,7 @@ def _check_retrieval(cfg: DictConfig) -> None:
         raise SemvprError(f"recipe.optimizer.lr={lr!r} must be a number > 0")
     lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator))  # supported here, or one line
     _check_trainer(cfg.trainer)
+    _check_optimization(cfg)
     if cfg.get("ckpt_path") not in (None, "last"):
         from semvpr.core.checkpoint import read_checkpoint
 
@@ -525,12 +543,43 @@ def _check_trainer(trainer: DictConfig) -> None:
     if devices != -1:
         whole_number(devices, "trainer.devices", 1, also="or -1: every GPU")
     whole_number(trainer.get("num_nodes", 1), "trainer.num_nodes", 1)
+    reload = trainer.get("reload_dataloaders_every_n_epochs", 1)
+    if reload != 1 or isinstance(reload, bool):
+        raise SemvprError(
+            f"trainer.reload_dataloaders_every_n_epochs={'null' if reload is None else reload}: every epoch draws "
+            "its own batches (mining, place sampling), so it must be 1"
+        )
     ddp = str(trainer.get("strategy", "auto")).startswith("ddp")
     if not ddp and (devices != 1 or trainer.get("num_nodes", 1) != 1):
         raise SemvprError(
             f"trainer.devices={devices} needs trainer=ddp (one process per device, started by semvpr); "
             f"without it use trainer.devices=1"
         )
+
+
+def _check_optimization(cfg: DictConfig) -> None:
+    """The recipe's optimizer and scheduler accept their settings: built on one parameter and stepped
+    through the run's epochs (capped), so a value they refuse (``weight_decay=null``, ``step_size=0``) is
+    one line before any work, not a TypeError at the first step or the fifth epoch."""
+    import torch
+    from hydra.utils import instantiate
+
+    recipe = cfg.recipe
+    where = "recipe.optimizer"
+    try:
+        optimizer = instantiate(recipe.optimizer)([torch.nn.Parameter(torch.zeros(1))])
+        if recipe.get("scheduler") is not None:
+            where = "recipe.scheduler"
+            scheduler = instantiate(recipe.scheduler)(optimizer)
+            epochs = int(cfg.trainer.max_epochs)
+            for _ in range(min(epochs if epochs > 0 else 1000, 1000)):
+                optimizer.step()
+                scheduler.step()
+    except Exception as err:  # noqa: BLE001 - whatever the class raises is the reason
+        target = OmegaConf.select(cfg, f"{where}._target_", default="?")
+        raise SemvprError(f"{where} ({target}) refuses its settings: {type(err).__name__}: {err}") from None
+    if not all(math.isfinite(group["lr"]) and group["lr"] >= 0 for group in optimizer.param_groups):
+        raise SemvprError(f"{where}: the learning rate it schedules becomes {optimizer.param_groups[0]['lr']}")
 
 
 def _check_tuple_recipe(cfg: DictConfig) -> None:

@@ -265,3 +265,39 @@ def test_an_unparsable_override_is_named_with_the_quoted_form_that_parses(tmp_pa
 @pytest.mark.parametrize("case", rows(CASES, FAST))
 def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, case: str) -> None:
     run_case(CASES[case], tmp_path, checkpoint)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "line"),
+    [
+        # Relabelled runs: metrics.json and the checkpoint's record named a file that is not the one run
+        # (aggregator.name=null recorded choices.aggregator='None'; mask.name=null was a TypeError).
+        (["aggregator.name=gem"], r"^aggregator\.name=gem: .* choose another with aggregator=NAME \(boq, gem,"),
+        (["mask.name=null"], r"^mask\.name=null: .* choose another with mask=NAME"),
+        # What the optimizer or scheduler refuses, before any work (were TypeErrors at the first step or epoch).
+        (["recipe.optimizer.weight_decay=null"], r"^recipe\.optimizer \(torch\.optim\.Adam\) refuses its settings"),
+        (["recipe.scheduler.step_size=0"], r"^recipe\.scheduler \(torch\.optim\.lr_scheduler\.StepLR\) refuses"),
+        (["recipe.scheduler.gamma=null", "trainer.max_epochs=6"], r"^recipe\.scheduler .* refuses its settings"),
+        # Without a reload every epoch trained on epoch 0's batches and mining, silently.
+        (["trainer.reload_dataloaders_every_n_epochs=0"], "reload_dataloaders_every_n_epochs=0: .* must be 1"),
+        (["backbone.weights=null"], r"^backbone\.weights=null: give imagenet, none"),  # was torch's TypeError
+    ],
+)
+def test_a_value_the_run_would_misread_or_a_class_refuses_is_one_line_first(overrides: list[str], line: str) -> None:
+    from semvpr.config.checks import check_config, check_overrides
+    from semvpr.core.errors import SemvprError
+    from tests.helpers import config
+
+    with pytest.raises(SemvprError, match=line):
+        check_overrides(overrides, "train")
+        check_config(config(*overrides))
+
+
+def test_every_recipe_and_aggregator_schedule_passes_the_optimization_check() -> None:
+    from semvpr.config.checks import check_config
+    from semvpr.config.components import options
+    from tests.helpers import config
+
+    for aggregator in options("aggregator"):
+        for recipe in options("recipe"):
+            check_config(config(f"aggregator={aggregator}", f"recipe={recipe}"))
