@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
 from semvpr.config.checks import check_config, check_overrides_or_exit
-from semvpr.config.command import hydra_command
+from semvpr.config.command import hydra_command, name_swept_keys
 from semvpr.config.plan import JobPlan, job_device, job_plan, ranks_of, sweep_gpu
 from semvpr.config.runs import keep_run_record, resumed_config
 from semvpr.core.checkpoint import RunCheckpoint
@@ -322,7 +322,7 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
 def main() -> None:
     """Console entry point; user errors and a stopping signal become one line on stderr and exit code 2."""
     check_overrides_or_exit(sys.argv[1:], "train")
-    sys.argv[1:] = keep_run_record(sys.argv[1:])
+    sys.argv[1:] = name_swept_keys(keep_run_record(sys.argv[1:]), "train")
     run_stoppable(_hydra_main, sys.argv[1:], interrupted_line, handlers=False)  # run_job installs them per job
 
 

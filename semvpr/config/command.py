@@ -42,6 +42,33 @@ def one_dir_name(name: str) -> str:
 
 OmegaConf.register_new_resolver("one_dir_name", one_dir_name, replace=True)
 
+#: The keys a job's directory name leaves out (``conf/train.yaml``: set once for a whole sweep).
+EXCLUDED_FROM_NAME = "hydra.job.config.override_dirname.exclude_keys"
+
+
+def name_swept_keys(argv: list[str], config_name: str) -> list[str]:
+    """Hydra's command line with every swept key in its jobs' directory names: ``conf/<config_name>.yaml``
+    leaves keys out of them that a sweep usually sets once (``paths.cache_dir``, ``trainer.max_epochs``), and a
+    sweep over one of those (``trainer.max_epochs=2,4``) put all its jobs in one directory. A command line
+    that sets the excluded keys itself is left as it is."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    positions = [i for i, arg in enumerate(argv) if not arg.startswith("-")]
+    if not positions or any(argv[i].lstrip("+~").startswith(f"{EXCLUDED_FROM_NAME}=") for i in positions):
+        return argv
+    config = OmegaConf.load(Path(CONF_DIR) / f"{config_name}.yaml")
+    excluded = list(OmegaConf.select(config, EXCLUDED_FROM_NAME, default=None) or [])
+    try:
+        overrides = OverridesParser.create().parse_overrides([argv[i] for i in positions])
+    except Exception:  # noqa: BLE001 - Hydra refuses it in its own line (config.checks.check_overrides)
+        return argv
+    swept = {o.key_or_group for o in overrides if o.is_sweep_override()}
+    kept = [key for key in excluded if key not in swept]
+    if kept == excluded:
+        return argv
+    at = positions[-1] + 1  # among the overrides: Hydra's parser takes -m only before or after them all
+    return [*argv[:at], f"{EXCLUDED_FROM_NAME}=[{','.join(kept)}]", *argv[at:]]
+
 
 def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[], None]]:
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging

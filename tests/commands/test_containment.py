@@ -222,6 +222,29 @@ def test_a_sweep_job_is_one_folder_whatever_its_overrides_hold() -> None:
     assert len(names) == 3 and all(len(n.encode()) <= MAX_DIRNAME_BYTES and "/" not in n for n in names)
 
 
+def test_a_sweep_over_a_key_left_out_of_job_names_gives_each_job_its_folder(tmp_path: Path) -> None:
+    """conf/train.yaml leaves paths.cache_dir, trainer.max_epochs and data.preset out of job folder names (set once
+    for a sweep); a sweep over one of them put every job in one folder (the second refused as a second process
+    there, or with hydra/launcher=basic overwriting the first). Each job fails its check at once here."""
+    from semvpr.config.command import name_swept_keys
+    from tests.bad_input import cli
+
+    sweep = tmp_path / "sweep"
+    argv = ["-m", "experiment=tiny", "trainer.max_epochs=1,2", "model.num_clusters=0", "hydra/launcher=basic"]
+    proc = cli("semvpr.train", *argv, f"paths.cache_dir={tmp_path / 'c'}", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    jobs = sorted(p.parent.name for p in sweep.glob("*/metrics.json"))
+    assert jobs == [f"experiment=tiny,model.num_clusters=0,trainer.max_epochs={n}" for n in (1, 2)], jobs
+    # A key set once stays out of the names; a command line naming the excluded keys itself is kept as given.
+    assert name_swept_keys(["-m", "trainer.max_epochs=4", "seed=0,1"], "train") == [
+        "-m",
+        "trainer.max_epochs=4",
+        "seed=0,1",
+    ]
+    own = ["seed=0,1", "hydra.job.config.override_dirname.exclude_keys=[]", "-m"]
+    assert name_swept_keys(own, "train") == own
+
+
 def test_an_earlier_jobs_record_never_stands_beside_a_new_jobs_files(tmp_path: Path) -> None:
     """A job started in a directory that holds an earlier job's record (eval.json, metrics.json) removes it
     first: killed or failed, the new job leaves no record saying its directory is complete."""
