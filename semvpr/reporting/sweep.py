@@ -8,7 +8,7 @@ import functools
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,9 @@ class Job:
     roots: tuple[Path, ...] = ()
     #: The filter preset the run was asked for on its command line (``filter=unet``), if any.
     preset: str | None = None
+    #: Its other command-line settings (``model.num_clusters=16``), as written: a sweep's jobs that differ in
+    #: one are reported apart (:func:`load_sweep`).
+    settings: dict[str, str] = field(default_factory=dict)
 
     @property
     def cell(self) -> str:
@@ -237,14 +240,20 @@ def _select(node: Any, dotted: str) -> Any:
     return node
 
 
-def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
+#: Command-line settings that never make a run another (where it caches, how Hydra launches it).
+NOT_SETTINGS = ("paths.cache_dir", "hydra")
+
+
+def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...], dict[str, str]]:
     """aggregator / recipe / mask / backbone / seed / mask weighting of a job from its .hydra files (for jobs that
     died before metrics.json), read as plain YAML (nothing resolved), and the dataset roots it recorded.
-    The composed choices are used, so a filter preset counts as the aggregator and mask it chose."""
+    The composed choices are used, so a filter preset counts as the aggregator and mask it chose. Last, the
+    job's other overrides (key -> value as written)."""
     # lowest priority: the dir name itself, Hydra's override_dirname "aggregator=gem,mask=student,seed=1"
     facts = {k: v for k, _, v in (item.partition("=") for item in job_dir.name.split(",")) if k in FACT_KEYS and v}
     hydra_dir = job_dir / ".hydra"
     roots: list[Path] = []
+    settings: dict[str, str] = {}
     try:
         config, hydra_cfg = _yaml(hydra_dir / "config.yaml"), _yaml(hydra_dir / "hydra.yaml")
         # mask.weights is usually "${filter.weights}" (text here): the preset's value stands for it.
@@ -269,6 +278,8 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
             key = "mask.weights" if key == "filter.weights" else key
             if key in FACT_KEYS:
                 facts[key] = value
+            elif key != "backbone.weights" and not key.startswith(NOT_SETTINGS):
+                settings[key] = value
         launch = Path(str(_select(hydra_cfg, "hydra.runtime.cwd") or Path.cwd()))
         for key in ("data.root", "paths.cache_dir"):
             value = _select(config, key)
@@ -276,7 +287,7 @@ def _hydra_facts(job_dir: Path) -> tuple[dict[str, str], tuple[Path, ...]]:
                 roots.append(launch / Path(value).expanduser())
     except Exception:  # noqa: BLE001 - a damaged .hydra dir only costs us labels and images, never the report
         pass
-    return facts, tuple(roots)
+    return facts, tuple(roots), settings
 
 
 _RECALL_KEY = re.compile(r"^(untrained/)?test/R@\d+(_pos)?$")
@@ -317,7 +328,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         ok = False
     if not ok and not error:
         error = _error_line(metrics.get("error")) or f"status {metrics.get('status')!r}"
-    facts, roots = _hydra_facts(job_dir)
+    facts, roots, settings = _hydra_facts(job_dir)
     seed = metrics.get("seed", facts.get("seed"))
     try:
         seed = int(seed) if seed is not None else None
@@ -349,6 +360,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
         metrics,
         roots,
         preset,
+        settings,
     )
 
 
@@ -364,7 +376,14 @@ def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
             f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "
             "pass the multirun dir written by `python -m semvpr.train -m ...`"
         )
-    return Sweep(sweep_dir, [read_job(d, sweep_dir) for d in sorted(dirs)])
+    jobs = [read_job(d, sweep_dir) for d in sorted(dirs)]
+    # Jobs that differ in a setting besides the seed and the labelled choices are other runs, not more seeds of
+    # one: their backbone label names it, so they form rows (and gains) of their own.
+    varied = sorted({k for j in jobs for k in j.settings if len({i.settings.get(k) for i in jobs}) > 1})
+    for job in jobs if varied else ():
+        shown = ", ".join(f"{k}={job.settings.get(k, 'default')}" for k in varied)
+        job.backbone = f"{job.backbone} ({shown})"
+    return Sweep(sweep_dir, jobs)
 
 
 def mean_std(values: list[float]) -> tuple[float, float]:

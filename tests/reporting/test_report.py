@@ -255,6 +255,26 @@ def test_a_sweep_over_recipes_gives_each_recipe_its_own_rows(tmp_path: Path) -> 
     assert [j.ok for j in load_sweep(tmp_path).jobs if j.aggregator == "mixvpr (gsv)"].count(False) == 1
 
 
+def test_a_sweep_over_any_other_setting_gives_each_value_its_own_rows(tmp_path: Path) -> None:
+    """-m model.num_clusters=16,64 seed=0,1 averaged the two sizes as if they were four seeds of one run, and
+    paired the masks' gains across them."""
+    for seed in (0, 1):
+        for clusters, r1 in ((16, 50.0), (64, 70.0)):
+            for f, gain in (("none", 0.0), ("unet", 5.0)):
+                job = _job(
+                    tmp_path,
+                    f"filter={f},model.num_clusters={clusters},seed={seed}",
+                    _metrics(f, seed, r1 + gain + seed),
+                )
+                overrides = [f"filter={f}", f"model.num_clusters={clusters}", f"seed={seed}", "threads=1"]
+                overrides += [f"paths.cache_dir=/c{seed}", "hydra.job.chdir=false"]  # neither makes a run another
+                (job / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    text = write_report(tmp_path).read_text()
+    assert "| vgg16 (model.num_clusters=16) | none (netvlad · none) | 50.5 ± 0.7 |" in text
+    assert "| vgg16 (model.num_clusters=64) | unet (sral · student) | 75.5 ± 0.7 |" in text
+    assert len({job.backbone for job in load_sweep(tmp_path).jobs}) == 2
+
+
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
     for target in (tmp_path, tmp_path / "missing"):
         proc = subprocess.run(
