@@ -505,6 +505,10 @@ def _check_retrieval(cfg: DictConfig) -> None:
         raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
     for key in ("ram_gb", "disk_gb"):
         number(cfg.features[key], f"features.{key}", 0)
+    for key in ("aggregator.baseline", "mask.upper_bound"):  # the report's flags: any text would read as true
+        flag = OmegaConf.select(cfg, key, default=False)
+        if not isinstance(flag, bool):
+            raise SemvprError(f"{key}={flag!r} must be true or false")
     weighting = cfg.mask.weights
     if weighting not in WEIGHTINGS:
         raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
@@ -543,6 +547,9 @@ def _check_trainer(trainer: DictConfig) -> None:
     if devices != -1:
         whole_number(devices, "trainer.devices", 1, also="or -1: every GPU")
     whole_number(trainer.get("num_nodes", 1), "trainer.num_nodes", 1)
+    for key, low in (("log_every_n_steps", 1), ("num_sanity_val_steps", -1)):  # null: Lightning's default
+        if trainer.get(key) is not None:
+            whole_number(trainer[key], f"trainer.{key}", low, also="or null: Lightning's default")
     reload = trainer.get("reload_dataloaders_every_n_epochs", 1)
     if reload != 1 or isinstance(reload, bool):
         raise SemvprError(

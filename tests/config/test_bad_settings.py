@@ -281,6 +281,11 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         # Without a reload every epoch trained on epoch 0's batches and mining, silently.
         (["trainer.reload_dataloaders_every_n_epochs=0"], "reload_dataloaders_every_n_epochs=0: .* must be 1"),
         (["backbone.weights=null"], r"^backbone\.weights=null: give imagenet, none"),  # was torch's TypeError
+        # Lightning's TypeError once the Trainer was built, after the caches, teacher and student.
+        (["trainer.log_every_n_steps=abc"], r"^trainer\.log_every_n_steps='abc' must be a whole number >= 1"),
+        (["trainer.num_sanity_val_steps=1.5"], r"^trainer\.num_sanity_val_steps=1\.5 must be a whole number"),
+        # The report's flags: any text read as true (a run reported as the upper bound).
+        (["mask.upper_bound=abc"], r"^mask\.upper_bound='abc' must be true or false"),
     ],
 )
 def test_a_value_the_run_would_misread_or_a_class_refuses_is_one_line_first(overrides: list[str], line: str) -> None:
