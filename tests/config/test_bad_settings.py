@@ -306,3 +306,14 @@ def test_every_recipe_and_aggregator_schedule_passes_the_optimization_check() ->
     for aggregator in options("aggregator"):
         for recipe in options("recipe"):
             check_config(config(f"aggregator={aggregator}", f"recipe={recipe}"))
+
+
+def test_init_overrides_given_as_one_string_is_one_line() -> None:
+    """The string was read letter by letter ("Error parsing override 'data.a'")."""
+    from semvpr.config.checks import check_config
+    from semvpr.core.errors import SemvprError
+    from tests.helpers import config
+
+    with pytest.raises(SemvprError, match=r"^init\.overrides='abc' must be a list of the init set's settings"):
+        check_config(config("ckpt=none", "init.overrides=abc", config_name="eval"))
+    check_config(config("ckpt=none", "init.overrides=['preset=tiny']", config_name="eval"))
