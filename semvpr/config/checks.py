@@ -321,7 +321,8 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
     init = OmegaConf.select(cfg, "init.overrides", default=None)
     if init is not None and not (OmegaConf.is_list(init) and all(isinstance(o, str) for o in init)):
         raise SemvprError(
-            f"init.overrides={_shown(init)!r} must be a list of the init set's settings: \"init.overrides=['preset=tiny']\""
+            f"init.overrides={_shown(init)!r} must be a list of the init set's settings: "
+            "\"init.overrides=['preset=tiny']\""
         )
     if "backbone" in cfg:
         weights = cfg.backbone.get("weights", "none")
