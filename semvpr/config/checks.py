@@ -99,11 +99,13 @@ def check_overrides(argv: list[str], config_name: str = "train") -> None:
                 f"aggregator.gsv.{rest}={value}, or recipe.default.{rest}={value} for an aggregator without "
                 "a gsv node (GeM, NetVLAD)"
             )
-        group = key.removesuffix(".name")
+        node = key.removesuffix(".name")
+        group = "backbone" if re.fullmatch(r"backbones\.[^.]+", node) else node  # segment's students' trunks
         if sep and key.endswith(".name") and group in NAMED_GROUPS:
+            choice = f"{group}@{node}" if group != node else group
             raise SemvprError(
                 f"{arg}: {key} is the name of the {group} file chosen (it labels the run and what a checkpoint "
-                f"records), not a setting; choose another with {group}=NAME ({', '.join(options(group))})"
+                f"records), not a setting; choose another with {choice}=NAME ({', '.join(options(group))})"
             )
         rest = key.removeprefix("model.")
         if (

@@ -274,6 +274,7 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         # (aggregator.name=null recorded choices.aggregator='None'; mask.name=null was a TypeError).
         (["aggregator.name=gem"], r"^aggregator\.name=gem: .* choose another with aggregator=NAME \(boq, gem,"),
         (["mask.name=null"], r"^mask\.name=null: .* choose another with mask=NAME"),
+        (["backbones.vgg16.name=x"], r"choose another with backbone@backbones\.vgg16=NAME \(dinov2_vitb14,"),
         # What the optimizer or scheduler refuses, before any work (were TypeErrors at the first step or epoch).
         (["recipe.optimizer.weight_decay=null"], r"^recipe\.optimizer \(torch\.optim\.Adam\) refuses its settings"),
         (["recipe.scheduler.step_size=0"], r"^recipe\.scheduler \(torch\.optim\.lr_scheduler\.StepLR\) refuses"),
