@@ -36,7 +36,7 @@ def _sweep(tmp_path: Path, name: str, *overrides: str) -> tuple[subprocess.Compl
 
 
 def _table_rows(results_md: Path) -> list[list[str]]:
-    lines = [line for line in results_md.read_text().splitlines() if line.startswith("| efficientnet_lite0 |")]
+    lines = [line for line in results_md.read_text().splitlines() if line.startswith("| efficientnet_lite0 ")]
     return [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
 
 
@@ -66,8 +66,13 @@ def test_failed_job_does_not_stop_the_sweep(tmp_path: Path) -> None:
     proc, sweep = _sweep(tmp_path, "sweep", "filter=none", "model.num_clusters=0,4")
     assert proc.returncode == 0, proc.stderr[-2000:]
     md = (sweep / "results.md").read_text()
-    rows = _table_rows(sweep / "results.md")
-    assert len(rows) == 1 and rows[0][-2] == "1"  # one ok run, one failed
+    rows = {row[0]: row for row in _table_rows(sweep / "results.md")}
+    # A row per value of the swept setting: the failed job's (its recalls 'failed'), the finished one's.
+    failed, ok = (
+        rows.pop("efficientnet_lite0 (model.num_clusters=0)"),
+        rows.pop("efficientnet_lite0 (model.num_clusters=4)"),
+    )
+    assert not rows and (failed[2], failed[-2]) == ("failed", "1") and ok[-2] == "0" and ok[2] != "failed"
     assert "model.num_clusters=0 must be a whole number from 1 to 2147483647" in md
 
 
