@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import textwrap
 import zipfile
 from functools import lru_cache
 from pathlib import Path
@@ -12,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_file, read_json
@@ -36,7 +38,10 @@ def _new_figure(width: float, height: float) -> Figure:
 
 
 def _save(fig: Figure, out: Path) -> None:
-    """Save a PNG via a temp name and rename."""
+    """Save a PNG via a temp name and rename; every text as written (a run's labels are data: a ``$`` in one is
+    never TeX)."""
+    for text in fig.findobj(Text):
+        text.set_parse_math(False)
     with atomic_file(out) as fh:
         fig.savefig(fh, format="png", dpi=100)
 
@@ -115,7 +120,12 @@ def recall_curves(sweep: Sweep, out: Path) -> str | None:
             if len(ys) > 1:
                 std = ys.std(axis=0, ddof=1)
                 ax.fill_between(ns, mean - std, mean + std, color=line.get_color(), alpha=0.15)
-        ax.set(title=f"backbone: {bb}", xlabel="N (top-N retrieved)", ylabel="Recall@N (%)", ylim=(0, 100))
+        ax.set(
+            title=textwrap.fill(f"backbone: {bb}", 28),
+            xlabel="N (top-N retrieved)",
+            ylabel="Recall@N (%)",
+            ylim=(0, 100),
+        )
         top = max(max(ns) for _, ns, _ in lines)
         ax.set_xlim(1, top)
         ax.set_xticks([n for n in (1, 5, 10, 15, 20, 25, 50, 100) if n <= top])  # the reported N, not 2.5 steps
@@ -161,7 +171,7 @@ def matrix_bars(sweep: Sweep, out: Path) -> str | None:
                 label=sweep.mask_label(m),
             )
         ax.set_xticks(range(len(aggs)), aggs)
-        ax.set(title=f"backbone: {bb}", ylabel="test R@1 (%)", ylim=(0, 100))
+        ax.set(title=textwrap.fill(f"backbone: {bb}", 28), ylabel="test R@1 (%)", ylim=(0, 100))
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=8, title="mask", title_fontsize=8)
     fig.suptitle("R@1 per aggregator and mask (mean over seeds, bar = ±1 std)")

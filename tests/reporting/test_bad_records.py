@@ -212,3 +212,18 @@ def test_one_failing_job_of_an_eval_multirun_is_a_failed_row(tmp_path: Path, che
         if ln.startswith("| data=folder") or "measured" in ln
     ]
     assert len(rows) == 2 and "failed: " in rows[0] and "not found" in rows[0] and "measured" in rows[1]
+
+
+def test_a_dollar_in_a_runs_labels_is_drawn_as_written_not_as_tex(tmp_path: Path) -> None:
+    """matplotlib read '$...$' in a label as TeX: an aggregator named 'net$\\frac{$vlad' (or a setting's value)
+    cost the sweep its R@1 figure ('skipped: ValueError: ... Expected \\frac{num}{den}')."""
+    sweep = tmp_path / "sweep"
+    for name, agg in (("a", "net$\\frac{$vlad"), ("b", "gem")):
+        (sweep / name).mkdir(parents=True)
+        (sweep / name / "metrics.json").write_text(
+            json.dumps(_metrics(aggregator=agg, baseline_aggregator=name == "a"))
+        )
+    proc = cli("semvpr.report", str(sweep), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    text = (sweep / "results.md").read_text()
+    assert "skipped: ValueError" not in text and (sweep / "r1_by_aggregator.png").is_file()
