@@ -81,3 +81,27 @@ def test_a_command_stopped_anywhere_is_one_line_and_exit_2(sig: signal.Signals, 
     assert stopped.value.code == 2
     assert capsys.readouterr().err == f"semvpr: error: stopped by {sig.name}\n"
     stops.RECEIVED.clear()
+
+
+def test_a_sweeps_worker_is_ended_even_when_a_second_signal_kills_a_helper(monkeypatch: pytest.MonkeyPatch) -> None:
+    """joblib's loky ends a stopped sweep's workers. Without psutil it asks `pgrep` for their children; a second
+    signal to the process group (a scheduler's, a second Ctrl-C) killed pgrep, loky's fallback called a kill() its
+    Popen lacks, its manager thread died, the worker ran on and the sweep never exited."""
+    import subprocess
+
+    from joblib.externals.loky import ProcessPoolExecutor
+    from joblib.externals.loky.backend import utils
+
+    executor = ProcessPoolExecutor(max_workers=1)
+    try:
+        executor.submit(os.getpid).result(timeout=60)
+        (worker,) = executor._processes.values()
+
+        def killed_pgrep(*args: object, **kwargs: object) -> bytes:
+            raise subprocess.CalledProcessError(-signal.SIGTERM, ["pgrep", "-P", str(worker.pid)])
+
+        monkeypatch.setattr(utils.subprocess, "check_output", killed_pgrep)
+        utils.kill_process_tree(worker)
+        assert not worker.is_alive()
+    finally:
+        executor.shutdown(wait=False, kill_workers=True)
