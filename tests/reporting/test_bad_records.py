@@ -154,16 +154,19 @@ def test_evaltable_names_a_failed_job_of_a_checkpoint_sweep_by_its_overrides(tmp
     assert len(failed) == 1 and failed[0].startswith("| ckpt=../runs/a=1,b=2/tested.ckpt mask=student |")
 
 
-def test_report_escapes_the_gain_line_and_leaves_the_sweep_path_out(tmp_path: Path) -> None:
+def _report_with_baseline_named(tmp_path: Path, name: str) -> Path:
+    """The report of a two-job sweep whose baseline aggregator records ``name``; returns the sweep dir."""
     sweep = tmp_path / "sweep"
-    for name, agg in (("a", "net`vlad</p>\n# HEAD <script>x</script>"), ("b", "gem")):
-        (sweep / name).mkdir(parents=True)
-        (sweep / name / "metrics.json").write_text(
-            json.dumps(_metrics(aggregator=agg, baseline_aggregator=name == "a"))
-        )
+    for job, agg in (("a", name), ("b", "gem")):
+        (sweep / job).mkdir(parents=True)
+        (sweep / job / "metrics.json").write_text(json.dumps(_metrics(aggregator=agg, baseline_aggregator=job == "a")))
     proc = cli("semvpr.report", str(sweep), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    text = (sweep / "results.md").read_text()
+    return sweep
+
+
+def test_report_escapes_the_gain_line_and_leaves_the_sweep_path_out(tmp_path: Path) -> None:
+    text = (_report_with_baseline_named(tmp_path, "net`vlad</p>\n# HEAD <script>x</script>") / "results.md").read_text()
     assert "<script" not in text and "</p>" not in text and not any(ln.startswith("# HEAD") for ln in text.splitlines())
     assert str(tmp_path) not in text  # no absolute path of the machine that made it
 
@@ -217,13 +220,6 @@ def test_one_failing_job_of_an_eval_multirun_is_a_failed_row(tmp_path: Path, che
 def test_a_dollar_in_a_runs_labels_is_drawn_as_written_not_as_tex(tmp_path: Path) -> None:
     """matplotlib read '$...$' in a label as TeX: an aggregator named 'net$\\frac{$vlad' (or a setting's value)
     cost the sweep its R@1 figure ('skipped: ValueError: ... Expected \\frac{num}{den}')."""
-    sweep = tmp_path / "sweep"
-    for name, agg in (("a", "net$\\frac{$vlad"), ("b", "gem")):
-        (sweep / name).mkdir(parents=True)
-        (sweep / name / "metrics.json").write_text(
-            json.dumps(_metrics(aggregator=agg, baseline_aggregator=name == "a"))
-        )
-    proc = cli("semvpr.report", str(sweep), cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    sweep = _report_with_baseline_named(tmp_path, "net$\\frac{$vlad")
     text = (sweep / "results.md").read_text()
     assert "skipped: ValueError" not in text and (sweep / "r1_by_aggregator.png").is_file()
