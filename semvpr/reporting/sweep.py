@@ -379,7 +379,11 @@ def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
     jobs = [read_job(d, sweep_dir) for d in sorted(dirs)]
     # Jobs that differ in a setting besides the seed and the labelled choices are other runs, not more seeds of
     # one: their backbone label names it, so they form rows (and gains) of their own.
-    varied = sorted({k for j in jobs for k in j.settings if len({i.settings.get(k) for i in jobs}) > 1})
+    values: dict[str, set[str | None]] = {k: set() for j in jobs for k in j.settings}
+    for job in jobs:
+        for key, seen in values.items():
+            seen.add(job.settings.get(key))
+    varied = sorted(k for k, seen in values.items() if len(seen) > 1)
     for job in jobs if varied else ():
         shown = ", ".join(f"{k}={job.settings.get(k, 'default')}" for k in varied)
         job.backbone = f"{job.backbone} ({shown})"
