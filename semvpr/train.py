@@ -31,6 +31,7 @@ from semvpr.config.runs import keep_run_record, resumed_config
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import reclaim_orphans, write_json
+from semvpr.core.logs import say
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.stops import (
     Interrupted,
@@ -59,10 +60,9 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
     overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
     if 0 < int(cfg.recipe.get("batch_size", devices * nodes)) < devices * nodes:
-        print(
-            f"semvpr: recipe.batch_size={cfg.recipe.batch_size} is the global batch: "
-            f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step",
-            file=sys.stderr,
+        say(
+            f"recipe.batch_size={cfg.recipe.batch_size} is the global batch: "
+            f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step"
         )
     with sweep_gpu(cfg, run_dir) as leased, job_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)):
         plan = job_plan(cfg, job_device(cfg, leased))  # every stage below runs on plan.device

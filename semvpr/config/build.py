@@ -9,7 +9,6 @@ Teacher, pseudo-labels, student and feature caches come from the artifact cache 
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -29,7 +28,7 @@ from semvpr.config.plan import JobPlan, MaskPlan, ranks_of
 from semvpr.config.record import record_of
 from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
-from semvpr.core.logs import trainer_kwargs
+from semvpr.core.logs import say, trainer_kwargs
 from semvpr.core.precision import bf16_native, lightning_precision
 from semvpr.core.provenance import TrainedOn, data_domain
 from semvpr.core.threads import frozen_workers
@@ -385,10 +384,9 @@ def skip_plan(
             kept_levels[split] = tuple(sorted(levels - {last}))
     kept = total(kept_levels)
     if kept and choose_storage("auto", kept, cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream":
-        print(
-            f"semvpr: the frozen outputs the semantic side reads ({kept / 2**30:.2f} GiB) exceed the disk "
-            "budget: each stage passes the images through the trunk itself",
-            file=sys.stderr,
+        say(
+            f"the frozen outputs the semantic side reads ({kept / 2**30:.2f} GiB) exceed the disk "
+            "budget: each stage passes the images through the trunk itself"
         )
         return none
     return kept_levels
@@ -516,10 +514,7 @@ def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, Place
         float(cfg.features.disk_gb),
         cached,
     )
-    print(
-        f"semvpr: frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}",
-        file=sys.stderr,
-    )
+    say(f"frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}")
     return storage
 
 

@@ -11,13 +11,14 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.plan import thread_plan
 from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, sole_writer
-from semvpr.core.logs import quiet_third_party
+from semvpr.core.logs import job_label, job_named, quiet_third_party
 from semvpr.core.precision import job_precision
 from semvpr.core.threads import Threads
 from semvpr.retrieval.launch import launched_rank
@@ -74,7 +75,9 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
     quietened, called with the job's output directory (held by this process: :func:`~semvpr.core.io.sole_writer`),
     a user error one line on stderr and exit code 2
-    (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module.
+    (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module. In a sweep,
+    the job's stage lines name it (``semvpr: [#2 filter=unet] retriever: epoch 3/16 ...``:
+    :func:`~semvpr.core.logs.job_named`).
 
     ``record`` is the file that says a job there ended (``metrics.json``, ``eval.json``): an earlier job's is
     removed as this one starts, so it never stands beside this job's files as if they were complete."""
@@ -83,11 +86,13 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
         @functools.wraps(task)
         def task_function(cfg: DictConfig) -> None:
             quiet_third_party()
-            run_dir = Path(HydraConfig.get().runtime.output_dir)
+            hydra_cfg = HydraConfig.get()
+            run_dir = Path(hydra_cfg.runtime.output_dir)
             if launched_rank() != 0:  # another rank of a DDP job works beside rank 0 in its directory
                 task(cfg, run_dir)
                 return
-            with sole_writer(run_dir, "hydra.run.dir"):
+            sweep_job = job_label(hydra_cfg.job.num, run_dir.name) if hydra_cfg.mode == RunMode.MULTIRUN else None
+            with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job):
                 (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)
 

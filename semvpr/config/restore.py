@@ -23,7 +23,6 @@ directory. Aggregators without an untrained form are refused.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -52,6 +51,7 @@ from semvpr.config.record import check_recorded_paths, model_config
 from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
+from semvpr.core.logs import say
 from semvpr.core.provenance import data_domain
 from semvpr.models.released import Release, map_release, read_release
 from semvpr.retrieval.features import place_features
@@ -288,12 +288,11 @@ def warn_foreign_mask(record: dict[str, Any], merged: DictConfig, where: str) ->
     domain = data_domain(merged.data.get("domain"))
     if trained_on.domain == domain:
         return
-    print(
-        f"semvpr: warning: {where} has mask={merged.mask.name} from a segmenter trained on "
+    say(
+        f"warning: {where} has mask={merged.mask.name} from a segmenter trained on "
         f"{trained_on.describe()}, here applied to {domain} images (data={merged.data.name}); a segmenter "
         f"trained on {domain} images replaces it: mask={cls.needs} {cls.needs}.checkpoint=DIR "
-        f"({_saved_as(cls.needs)})",
-        file=sys.stderr,
+        f"({_saved_as(cls.needs)})"
     )
 
 
@@ -326,7 +325,7 @@ def untrained_retriever(
     retriever = build_retriever(merged, backbone, build_mask_source(masks, backbone), training=False)
     if retriever.aggregator.init_sample != "none":
         used = initialise_untrained(merged, retriever, evaluated)
-        print(f"semvpr: ckpt=none: {merged.aggregator.name} initialised on {used}", file=sys.stderr)
+        say(f"ckpt=none: {merged.aggregator.name} initialised on {used}")
     return retriever, merged
 
 

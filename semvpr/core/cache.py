@@ -17,7 +17,6 @@ import json
 import os
 import shutil
 import stat
-import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -28,6 +27,7 @@ import torch
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import disk_full, open_lock, reclaim_orphans, temp_dir, write_text
+from semvpr.core.logs import say
 
 LOCK_DIR = ".locks"
 
@@ -159,10 +159,10 @@ def _exclusive(lock_path: Path, what: str) -> Iterator[None]:
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                print(f"semvpr: cache: waiting for another job building the {what}", file=sys.stderr, flush=True)
+                say(f"cache: waiting for another job building the {what}")
                 tic = time.monotonic()
                 fcntl.flock(handle, fcntl.LOCK_EX)
-                print(f"semvpr: cache: waited {time.monotonic() - tic:.0f} s", file=sys.stderr, flush=True)
+                say(f"cache: waited {time.monotonic() - tic:.0f} s")
         except OSError as err:
             if err.errno not in (errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOLCK):
                 raise

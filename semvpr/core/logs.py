@@ -2,11 +2,12 @@
 
 Long stages (dataset generation, teacher and student training, pseudo-labels, trunk and mask
 caching, retriever epochs) report through :class:`Progress` or :class:`EpochLines`: plain lines on
-stderr with counts, elapsed time and an ETA, whether or not stderr is a terminal (a sweep's log
-file gets the same lines as a console). :func:`quiet_third_party` hides what Lightning and its
-dependencies repeat in every job and that says nothing about the run: adverts, device banners,
-warnings about settings semvpr makes on purpose (a frozen trunk in eval mode, short epochs).
-"""
+stderr with counts, elapsed time and an ETA, whether or not stderr is a terminal (a sweep's log file
+gets the same lines as a console). Every such line goes through :func:`say`, which names the sweep
+job printing it (:func:`job_named`: two jobs side by side interleave their lines).
+:func:`quiet_third_party` hides what Lightning and its dependencies repeat in every job and that
+says nothing about the run: adverts, device banners, warnings about settings semvpr makes on purpose
+(a frozen trunk in eval mode, short epochs)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,43 @@ from typing import Any, TextIO, TypeVar
 import lightning as L
 
 T = TypeVar("T")
+
+#: The sweep job this process runs now (``#2 filter=unet``), named in its stage lines; None outside a sweep.
+_job: str | None = None
+#: Longest job name a line carries: a longer one keeps its start and end.
+MAX_JOB_NAME = 48
+
+
+def job_label(num: int, name: str) -> str:
+    """How a stage line names a sweep's job: Hydra's job number (as its launch list prints it) and the
+    job directory's name, a long one cut in the middle (``#3 ckpt=outputs%2Fmul...,mask=student``)."""
+    if len(name) > MAX_JOB_NAME:
+        head = (MAX_JOB_NAME - 3) // 2
+        name = f"{name[:head]}...{name[head + 3 - MAX_JOB_NAME :]}"
+    return f"#{num} {name}"
+
+
+@contextmanager
+def job_named(label: str | None) -> Iterator[None]:
+    """Name ``label`` in every line :func:`say` prints inside the block (a sweep job's :func:`job_label`;
+    None: no name); the previous name is restored after it."""
+    global _job
+    previous, _job = _job, label
+    try:
+        yield
+    finally:
+        _job = previous
+
+
+def line(text: str) -> str:
+    """``semvpr: <text>``, inside a sweep job ``semvpr: [#2 filter=unet] <text>``."""
+    return f"semvpr: [{_job}] {text}" if _job else f"semvpr: {text}"
+
+
+def say(text: str, stream: TextIO | None = None) -> None:
+    """Print a stage or warning line (:func:`line`) on ``stream`` (stderr by default), flushed."""
+    print(line(text), file=stream or sys.stderr, flush=True)
+
 
 # Informational lines Lightning logs once per Trainer (so once per job of a sweep).
 NOISE_LINES = (
@@ -127,7 +165,7 @@ class Progress:
         self._print(f"{self.count}/{self.total} {self.unit}" + (" (cached)" if done and done >= total else ""))
 
     def _print(self, text: str) -> None:
-        print(f"semvpr: {self.stage}: {text}", file=self.stream or sys.stderr, flush=True)
+        say(f"{self.stage}: {text}", self.stream)
 
     def update(self, n: int = 1) -> None:
         """Count ``n`` more units; print a line when ``every_s`` has passed since the last."""
@@ -183,7 +221,7 @@ class EpochLines(L.Callback):
         self.first_epoch = 0
 
     def _print(self, text: str) -> None:
-        print(f"semvpr: {self.stage}: {text}", file=self.stream or sys.stderr, flush=True)
+        say(f"{self.stage}: {text}", self.stream)
 
     def _timing(self, now: float, done: float, total: float | None) -> str:
         """``elapsed[, ETA]`` after ``done`` of ``total`` units of work since the fit started."""

@@ -5,7 +5,6 @@ aggregator asks for labels (SRAL's semantic-constrained init)."""
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from semvpr.core.logs import say
 from semvpr.core.precision import autocast
 from semvpr.data.classes import static_lut
 from semvpr.models.aggregators.base import Aggregator
@@ -90,10 +90,9 @@ def static_locations(fraction: Tensor, at_least: int) -> Tensor:
     at_least = min(at_least, len(fraction))
     if int(is_static.sum()) >= at_least:
         return is_static
-    print(
-        f"semvpr: the teacher's labels call only {int(is_static.sum())} of {len(fraction)} k-means sample "
-        f"locations static; the semantic init uses the {at_least} most static ones",
-        file=sys.stderr,
+    say(
+        f"the teacher's labels call only {int(is_static.sum())} of {len(fraction)} k-means sample "
+        f"locations static; the semantic init uses the {at_least} most static ones"
     )
     is_static = torch.zeros_like(is_static)
     is_static[torch.argsort(fraction, descending=True, stable=True)[:at_least]] = True

@@ -19,7 +19,6 @@ before it.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +27,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.logs import say
 from semvpr.data.places import PlaceSet
 from semvpr.retrieval.features import PlaceFeatures
 
@@ -126,8 +126,7 @@ def collate_places(items: list[dict[str, Tensor]]) -> dict[str, Tensor]:
 def report_left_out(places: TrainingPlaces, name: str, images_per_place: int) -> None:
     """One stderr line when places were left out for having fewer than K images."""
     if places.left_out:
-        print(
-            f"semvpr: {places.left_out} of the {places.left_out + len(places.rows)} places of {name} have fewer "
-            f"than {images_per_place} images (recipe.images_per_place) and are left out",
-            file=sys.stderr,
+        say(
+            f"{places.left_out} of the {places.left_out + len(places.rows)} places of {name} have fewer "
+            f"than {images_per_place} images (recipe.images_per_place) and are left out"
         )

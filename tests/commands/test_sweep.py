@@ -74,6 +74,10 @@ def test_failed_job_does_not_stop_the_sweep(tmp_path: Path) -> None:
     )
     assert not rows and (failed[2], failed[-2]) == ("failed", "1") and ok[-2] == "0" and ok[2] != "failed"
     assert "model.num_clusters=0 must be a whole number from 1 to 2147483647" in md
+    # Every stage line names the job that printed it: jobs side by side interleave their lines.
+    staged = [ln for ln in proc.stderr.splitlines() if ln.startswith("semvpr: ") and "job failed" not in ln]
+    assert any(" retriever: epoch " in ln for ln in staged), proc.stderr[-2000:]
+    assert all(ln.startswith("semvpr: [#1 experiment=tiny,filter=none,model.num_clusters=4] ") for ln in staged), staged
 
 
 @pytest.mark.slow

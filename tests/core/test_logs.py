@@ -38,6 +38,25 @@ def test_progress_says_when_everything_was_cached() -> None:
     assert out.getvalue().splitlines() == ["semvpr: trunk features: 5/5 images (cached)"]
 
 
+def test_lines_inside_a_sweep_job_name_it_and_a_long_name_keeps_both_ends() -> None:
+    out = io.StringIO()
+    long_name = "ckpt=outputs%2Fmultiruns%2F2026-01-01%2F10-00-00%2Ffilter=unet%2Fckpt.ckpt,mask=student"
+    with logs.job_named(logs.job_label(2, "filter=unet")):
+        logs.Progress("pseudo-labels", 3, stream=out).close()
+        with logs.job_named(logs.job_label(11, long_name)):
+            logs.say("cache: waited 3 s", out)
+        logs.say("warning: one", out)
+    logs.say("outside", out)
+    assert out.getvalue().splitlines() == [
+        "semvpr: [#2 filter=unet] pseudo-labels: 0/3 images",
+        "semvpr: [#2 filter=unet] pseudo-labels: 0/3 images in 0 s",
+        "semvpr: [#11 ckpt=outputs%2Fmultiru...Fckpt.ckpt,mask=student] cache: waited 3 s",
+        "semvpr: [#2 filter=unet] warning: one",
+        "semvpr: outside",
+    ]
+    assert len(logs.job_label(11, long_name)) == len("#11 ") + logs.MAX_JOB_NAME
+
+
 def test_epoch_lines_show_metrics_and_eta(monkeypatch: pytest.MonkeyPatch) -> None:
     clock = iter([0.0, 30.0])
     monkeypatch.setattr(logs.time, "monotonic", lambda: next(clock))
