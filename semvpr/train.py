@@ -69,7 +69,8 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
         if plan.device.type == "cuda":
             torch.cuda.set_device(plan.device)
         job = prepare(cfg, plan, timings)  # SynthCity, the teacher, labels, student, trunk caches
-        with job_ranks(devices, nodes, overrides, run_dir) as join, plan.threads.stage("retriever"):
+        ranks = job_ranks(devices, nodes, overrides, run_dir, plan.threads.jobs)
+        with ranks as join, plan.threads.stage("retriever"):
             return train_and_test(cfg, plan, run_dir, job, timings, start, join)
 
 

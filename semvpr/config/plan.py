@@ -9,6 +9,7 @@ a sweep job leases (:func:`sweep_gpu`: a GPU per job where several are visible),
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ from omegaconf import DictConfig
 
 from semvpr.config.components import component_class
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
-from semvpr.core.threads import Threads, standard_start_method, usable_cores
+from semvpr.core.threads import JOBS_BESIDE, Threads, standard_start_method, usable_cores
 from semvpr.models.masks import MaskSource
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
@@ -121,11 +122,15 @@ def sweep_gpu(cfg: DictConfig, run_dir: Path) -> Iterator[int | None]:
 
 
 def launcher_jobs() -> int:
-    """How many jobs the sweep's launcher runs side by side: ``hydra.launcher.n_jobs`` under the joblib launcher
-    (-1: one per core), else 1."""
+    """How many jobs run side by side with this one: in a sweep, ``hydra.launcher.n_jobs`` under the joblib
+    launcher (-1: one per core), else 1; 1 for a job run alone (its config names the sweep launcher all the
+    same); for a DDP rank started by its job's rank 0, that job's count (:data:`JOBS_BESIDE`)."""
     from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
 
-    if not HydraConfig.initialized():
+    if JOBS_BESIDE in os.environ:
+        return max(1, int(os.environ[JOBS_BESIDE]))
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
         return 1
     launcher = HydraConfig.get().get("launcher") or {}
     if "joblib" not in str(launcher.get("_target_", "")).lower():

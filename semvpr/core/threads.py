@@ -1,8 +1,9 @@
 """How many threads each stage of a job runs: one ``threads`` setting (``auto`` or a whole number).
 
 A job may use the cores of its CPU affinity (``os.sched_getaffinity``), shared with the other processes it
-starts (DDP ranks on the node) and with the jobs a launcher runs beside it (Hydra's joblib launcher,
-``hydra.launcher.n_jobs``): each process gets ``cores // (ranks x jobs)`` (at least 1), its *share*.
+starts (DDP ranks on the node) and with the jobs a launcher runs beside it (in a sweep, Hydra's joblib
+launcher's ``hydra.launcher.n_jobs``; a job run alone has none beside it): each process gets
+``cores // (ranks x jobs)`` (at least 1), its *share*.
 
 - ``threads=N``: the job's N threads split the same way (``N // (ranks x jobs)``), never over the share.
 - ``threads=auto`` (the default): each stage takes what it was measured to gain from, within the share:
@@ -52,6 +53,10 @@ from semvpr.core.errors import SemvprError
 #: The running job's plan, once adopted (:meth:`Threads.adopt`): its frozen passes' threads, its loaders' workers.
 _JOB: dict[str, Threads | None] = {"plan": None}
 
+#: The environment variable that gives a DDP rank started by its job's rank 0 that job's count of jobs side by
+#: side (a rank runs alone as Hydra sees it, but shares the cores as its job does).
+JOBS_BESIDE = "SEMVPR_JOBS_SIDE_BY_SIDE"
+
 #: ``threads=auto`` per stage: None = the whole share, else that many threads (within the share).
 AUTO: dict[str, int | None] = {
     "frozen": None,  # the trunk pass, skips, masks, pseudo-labels, eval descriptors of images
@@ -88,6 +93,7 @@ class Threads:
     processes: int
     env_cap: int | None = None
     gpu: bool = False
+    jobs: int = 1
 
     @classmethod
     def resolve(
@@ -101,7 +107,7 @@ class Threads:
         chosen = parse_setting(setting)
         env = os.environ.get("OMP_NUM_THREADS", "")
         env_cap = int(env) if env.isdigit() and int(env) >= 1 and chosen is None else None
-        return cls(chosen, share, cores, processes, env_cap, gpu)
+        return cls(chosen, share, cores, processes, env_cap, gpu, max(1, jobs))
 
     def of(self, stage: str) -> int:
         """Threads of ``stage`` (a key of :data:`AUTO`)."""

@@ -38,6 +38,7 @@ from pathlib import Path
 import torch.distributed as dist
 
 from semvpr.core.errors import SemvprError
+from semvpr.core.threads import JOBS_BESIDE
 
 _RANK_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
 CHILD_TIMEOUT_S = 600  # how long rank 0 waits for the other ranks to exit after its own job ended
@@ -179,8 +180,11 @@ def _check_in() -> None:
 
 
 @contextmanager
-def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path) -> Iterator[Callable[[], None]]:
-    """Make the ranks of one job exist for its duration (module docstring); a no-op for one process.
+def job_ranks(
+    devices: int, num_nodes: int, overrides: list[str], run_dir: Path, jobs_beside: int = 1
+) -> Iterator[Callable[[], None]]:
+    """Make the ranks of one job exist for its duration (module docstring); a no-op for one process. The ranks
+    it starts share the cores as this job does, with ``jobs_beside`` jobs side by side (:data:`JOBS_BESIDE`).
 
     Yields ``join``, which every rank calls just before ``fit``: rank 0 waits there until the ranks it started
     have checked in and tells them to go; a rank it started checks in there and waits for that word (a no-op
@@ -223,7 +227,7 @@ def job_ranks(devices: int, num_nodes: int, overrides: list[str], run_dir: Path)
                     }
                 )
                 listener = socket.create_server(("127.0.0.1", 0))
-                env = {**os.environ, CHECK_IN: str(listener.getsockname()[1])}
+                env = {**os.environ, CHECK_IN: str(listener.getsockname()[1]), JOBS_BESIDE: str(jobs_beside)}
                 children = [
                     subprocess.Popen(_child_command(overrides, run_dir, rank), env={**env, "LOCAL_RANK": str(rank)})
                     for rank in range(1, world_size)

@@ -326,6 +326,10 @@ def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)
+    # Run alone, the command has no job beside it: the cores are its own, as they are the in-process job's
+    # (its config names the sweep launcher all the same).
+    assert result["threads"]["processes"] == metrics["threads"]["processes"] == 1
+    assert result["threads"]["share"] == metrics["threads"]["share"]
 
 
 def test_eval_rejects_checkpoint_of_another_backbone(cache_dir: Path, trained_run: Path) -> None:

@@ -109,10 +109,17 @@ def test_the_config_splits_among_ddp_ranks_and_check_config_refuses_a_bad_value(
         check_config(tiny_config(tmp_path, "threads=0"))
 
 
-def test_joblib_jobs_side_by_side_split_the_cores(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(("mode", "beside", "jobs"), [("MULTIRUN", None, 2), ("RUN", None, 1), ("RUN", "3", 3)])
+def test_joblib_jobs_side_by_side_split_the_cores_and_a_job_alone_has_them_all(
+    monkeypatch: pytest.MonkeyPatch, mode: str, beside: str | None, jobs: int
+) -> None:
+    """A sweep's jobs split the cores by the launcher's count; a job run alone (its config names the same
+    launcher) has none beside it; a DDP rank started by its job's rank 0 counts what that job counted."""
+    from hydra.types import RunMode
     from omegaconf import OmegaConf
 
     from semvpr.config import plan as build
+    from semvpr.core.threads import JOBS_BESIDE
 
     class Fake:
         @staticmethod
@@ -122,10 +129,13 @@ def test_joblib_jobs_side_by_side_split_the_cores(monkeypatch: pytest.MonkeyPatc
         @staticmethod
         def get():
             target = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
-            return OmegaConf.create({"launcher": {"_target_": target, "n_jobs": 2}})
+            return OmegaConf.create({"mode": RunMode[mode], "launcher": {"_target_": target, "n_jobs": 2}})
 
     monkeypatch.setattr("hydra.core.hydra_config.HydraConfig", Fake)
-    assert build.launcher_jobs() == 2
+    monkeypatch.delenv(JOBS_BESIDE, raising=False)
+    if beside is not None:
+        monkeypatch.setenv(JOBS_BESIDE, beside)
+    assert build.launcher_jobs() == jobs
 
 
 def test_importing_semvpr_first_makes_waiting_openmp_threads_sleep(tmp_path: Path) -> None:

@@ -138,14 +138,16 @@ DDP = ("trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2")
 
 @pytest.mark.slow
 def test_two_job_ddp_sweep_writes_one_sweep_dir_with_two_ok_jobs_and_one_report(tmp_path: Path) -> None:
-    _train(tmp_path, "seed=0,1", *DDP, f"hydra.sweep.dir={tmp_path / 'sweep'}", multirun=True)
+    # threads=1 in both runs: their frozen passes run at one thread count on any machine (fp32 convolutions
+    # give other bits at another count), so the two trunk caches hold the same features.
+    _train(tmp_path, "seed=0,1", *DDP, "threads=1", f"hydra.sweep.dir={tmp_path / 'sweep'}", multirun=True)
     assert not (tmp_path / "outputs").exists()  # no second sweep (or run) directory from another rank
     assert len(list((tmp_path / "sweep").glob("results.md"))) == 1
     jobs = sorted(p.parent for p in (tmp_path / "sweep").rglob("metrics.json"))
     assert len(jobs) == 2 and all(json.loads((j / "metrics.json").read_text())["status"] == "ok" for j in jobs)
     assert all(Path(json.loads((j / "metrics.json").read_text())["checkpoint"]).is_file() for j in jobs)
     # Against one process: the same recalls and weights within 1e-4 (measured: 3.3e-6 at most on tiny).
-    _train(tmp_path, "seed=0", f"hydra.run.dir={tmp_path / 'single'}")
+    _train(tmp_path, "seed=0", "threads=1", f"hydra.run.dir={tmp_path / 'single'}")
     single = json.loads((tmp_path / "single" / "metrics.json").read_text())
     ddp = json.loads(next(j for j in jobs if "seed=0" in j.name).joinpath("metrics.json").read_text())
     assert ddp["recalls"] == single["recalls"]
@@ -300,6 +302,26 @@ def test_the_started_ranks_wait_for_rank_0s_work_before_fit_outside_the_rendezvo
             time.sleep(0.1)
     went = [float(line.split()[1]) for line in log.read_text().splitlines()]
     assert len(went) == 2 and min(went) >= ready
+
+
+def test_the_started_ranks_share_the_cores_as_their_job_does(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rank that rank 0 starts runs alone as Hydra sees it; it counts the jobs its job runs beside."""
+    from semvpr.retrieval import launch
+
+    log = tmp_path / "ranks.log"
+    code = (
+        "from semvpr.config.plan import launcher_jobs\n"
+        "from semvpr.retrieval.launch import _check_in\n"
+        "_check_in()\n"
+        f"open({str(log)!r}, 'a').write(f'{{launcher_jobs()}}\\n')\n"
+    )
+    monkeypatch.setattr(launch, "_child_command", lambda o, r, rank: [sys.executable, "-c", code])
+    monkeypatch.setenv("PYTHONPATH", str(REPO))
+    for key in ("LOCAL_RANK", "SLURM_PROCID"):
+        monkeypatch.delenv(key, raising=False)
+    with launch.job_ranks(3, 1, [], tmp_path, jobs_beside=2) as join:
+        join()
+    assert log.read_text().split() == ["2", "2"]
 
 
 def test_a_started_rank_ends_with_one_line_when_rank_0_ends_before_training(tmp_path: Path) -> None:
