@@ -91,7 +91,8 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
             if launched_rank() != 0:  # another rank of a DDP job works beside rank 0 in its directory
                 task(cfg, run_dir)
                 return
-            sweep_job = job_label(hydra_cfg.job.num, run_dir.name) if hydra_cfg.mode == RunMode.MULTIRUN else None
+            multirun = hydra_cfg.mode == RunMode.MULTIRUN
+            sweep_job = job_label(hydra_cfg.job.num, hydra_cfg.job.override_dirname) if multirun else None
             with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job):
                 (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)

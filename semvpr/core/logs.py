@@ -31,8 +31,9 @@ MAX_JOB_NAME = 48
 
 
 def job_label(num: int, name: str) -> str:
-    """How a stage line names a sweep's job: Hydra's job number (as its launch list prints it) and the
-    job directory's name, a long one cut in the middle (``#3 ckpt=outputs%2Fmul...,mask=student``)."""
+    """How a stage line names a sweep's job: Hydra's job number (as its launch list prints it) and its
+    overrides (``hydra.job.override_dirname``: a training job's directory name), a long one cut in the
+    middle (``#3 ckpt=outputs/multiru...ckpt,mask=student``)."""
     if len(name) > MAX_JOB_NAME:
         head = (MAX_JOB_NAME - 3) // 2
         name = f"{name[:head]}...{name[head + 3 - MAX_JOB_NAME :]}"

@@ -71,6 +71,11 @@ def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> No
     md = (sweep / "results.md").read_text()
     assert md.count("| folder | city/test |") == 1 and "semvpr eval table:" in proc.stdout
     assert "semvpr: job failed" in proc.stderr and "Traceback" not in proc.stderr
+    # The jobs run side by side: each stage line names its job by number and overrides.
+    staged = [ln for ln in proc.stderr.splitlines() if ln.startswith("semvpr: ") and "job failed" not in ln]
+    named = [re.match(r"semvpr: \[#([0-3]) (\S+)\] ", ln) for ln in staged]
+    assert staged and all(named), staged
+    assert {m.group(1) for m in named if m} <= {"0", "1", "2", "3"} and all("data" in m.group(2) for m in named if m)
 
 
 def _job(sweep: Path, num: int, result: dict) -> None:
