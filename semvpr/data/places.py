@@ -284,7 +284,8 @@ class PlaceSet:
         return self.semantic_source if self.semantic_source is not None else self
 
     def summary(self) -> str:
-        """Short human-readable description: counts and UTM extent."""
+        """Short human-readable description: counts and the extent of the positions (UTM metres, or the
+        frames of a frame-aligned set)."""
         lines = [f"{self.name}: {len(self.db_paths)} database, {len(self.q_paths)} queries"]
         if self.place_ids is not None:
             lines[0] += f", {self.place_ids.num_places} places"
@@ -292,7 +293,9 @@ class PlaceSet:
             if len(utm) and np.isfinite(utm).all():
                 lo, hi = utm.min(0), utm.max(0)
                 lines.append(
-                    f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
+                    f"  {label} frames {lo[0]:.0f}..{hi[0]:.0f}"
+                    if self.positions == "frame"
+                    else f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
                     f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)"
                 )
         return "\n".join(lines)

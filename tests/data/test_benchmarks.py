@@ -232,6 +232,8 @@ def test_frame_aligned_positives_are_a_frame_window(tmp_path: Path) -> None:
         touch(tmp_path, f"query/{i:05d}.png")
     places = read_frames(tmp_path, "ref", "query", frame_window=1, name="nordland")
     assert places.name == "nordland ref→query ±1"
+    # Positions are frames, not metres: the summary says so.
+    assert places.summary().splitlines()[1:] == ["  database frames 0..9", "  queries frames 0..9"]
     assert [p.tolist() for p in places.positives()] == [[0, 1], [4, 5, 6], [8, 9]]
     assert [p.tolist() for p in read_frames(tmp_path, "ref", "query", 10).positives()] == [list(range(10))] * 3
     assert [p.tolist() for p in read_frames(tmp_path, "ref", "query", 0).positives()] == [[0], [5], [9]]
