@@ -128,8 +128,9 @@ def launcher_jobs() -> int:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    if JOBS_BESIDE in os.environ:
-        return max(1, int(os.environ[JOBS_BESIDE]))
+    beside = os.environ.get(JOBS_BESIDE, "")
+    if beside.isdigit():
+        return max(1, int(beside))
     if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
         return 1
     launcher = HydraConfig.get().get("launcher") or {}

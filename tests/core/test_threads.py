@@ -109,7 +109,9 @@ def test_the_config_splits_among_ddp_ranks_and_check_config_refuses_a_bad_value(
         check_config(tiny_config(tmp_path, "threads=0"))
 
 
-@pytest.mark.parametrize(("mode", "beside", "jobs"), [("MULTIRUN", None, 2), ("RUN", None, 1), ("RUN", "3", 3)])
+@pytest.mark.parametrize(
+    ("mode", "beside", "jobs"), [("MULTIRUN", None, 2), ("RUN", None, 1), ("RUN", "3", 3), ("RUN", "x", 1)]
+)
 def test_joblib_jobs_side_by_side_split_the_cores_and_a_job_alone_has_them_all(
     monkeypatch: pytest.MonkeyPatch, mode: str, beside: str | None, jobs: int
 ) -> None:
