@@ -25,7 +25,7 @@ import lightning as L
 T = TypeVar("T")
 
 #: The sweep job this process runs now (``#2 filter=unet``), named in its stage lines; None outside a sweep.
-_job: str | None = None
+_JOB: dict[str, str | None] = {"label": None}
 #: Longest job name a line carries: a longer one keeps its start and end.
 MAX_JOB_NAME = 48
 
@@ -44,17 +44,17 @@ def job_label(num: int, name: str) -> str:
 def job_named(label: str | None) -> Iterator[None]:
     """Name ``label`` in every line :func:`say` prints inside the block (a sweep job's :func:`job_label`;
     None: no name); the previous name is restored after it."""
-    global _job
-    previous, _job = _job, label
+    previous, _JOB["label"] = _JOB["label"], label
     try:
         yield
     finally:
-        _job = previous
+        _JOB["label"] = previous
 
 
 def line(text: str) -> str:
     """``semvpr: <text>``, inside a sweep job ``semvpr: [#2 filter=unet] <text>``."""
-    return f"semvpr: [{_job}] {text}" if _job else f"semvpr: {text}"
+    label = _JOB["label"]
+    return f"semvpr: [{label}] {text}" if label else f"semvpr: {text}"
 
 
 def say(text: str, stream: TextIO | None = None) -> None:
