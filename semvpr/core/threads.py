@@ -85,7 +85,8 @@ def parse_setting(value: object) -> int | None:
 
 @dataclass(frozen=True)
 class Threads:
-    """The threads of one process of a job: its ``setting`` (None = auto), its ``share`` of the cores."""
+    """The threads of one process of a job: its ``setting`` (None = auto), its ``share`` of the cores, shared
+    by ``processes`` (its DDP ranks on the node times the ``jobs`` side by side)."""
 
     setting: int | None
     share: int
