@@ -36,7 +36,7 @@ from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, one_line
 from semvpr.core.io import write_json, write_npy
-from semvpr.core.stops import Interrupted, run_stoppable, sweep_stopped_line
+from semvpr.core.stops import Interrupted, received_stop, run_stoppable, sweep_stopped_line
 from semvpr.data.places import PlaceSet
 from semvpr.reporting.benchmarks_table import RANKS_FILE, write_table
 from semvpr.retrieval.descriptors import place_descriptors
@@ -105,8 +105,8 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
         with model_pass(cfg) as threads:
             result = {**evaluate_checkpoint(cfg, explicit_keys(), out_dir), "threads": threads.record()}
     except Exception as err:  # noqa: BLE001 - in a sweep every failure becomes its job's row
-        if HydraConfig.get().mode != RunMode.MULTIRUN:
-            raise
+        if HydraConfig.get().mode != RunMode.MULTIRUN or received_stop() is not None:
+            raise  # a stop that surfaced as a library's error is the stop (hydra_command), not a failure
         # In a sweep one dataset's failure must not stop the others; the table shows its line.
         line = one_line(err) if isinstance(err, SemvprError) else f"{type(err).__name__}: {one_line(err)}"
         write_json(out_dir / "eval.json", {"status": "failed", "error": line})

@@ -20,6 +20,7 @@ from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, sole_writer
 from semvpr.core.logs import job_label, job_named, quiet_third_party
 from semvpr.core.precision import job_precision
+from semvpr.core.stops import stop_over_errors
 from semvpr.core.threads import Threads
 from semvpr.retrieval.launch import launched_rank
 
@@ -75,7 +76,8 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
     quietened, called with the job's output directory (held by this process: :func:`~semvpr.core.io.sole_writer`),
     a user error one line on stderr and exit code 2
-    (:func:`~semvpr.core.errors.exit_on_user_error`). Hydra names the job after ``task``'s module. In a sweep,
+    (:func:`~semvpr.core.errors.exit_on_user_error`), an error raised after a stop signal that stop
+    (:func:`~semvpr.core.stops.stop_over_errors`). Hydra names the job after ``task``'s module. In a sweep,
     the job's stage lines name it (``semvpr: [#2 filter=unet] retriever: epoch 3/16 ...``:
     :func:`~semvpr.core.logs.job_named`).
 
@@ -89,11 +91,12 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
             hydra_cfg = HydraConfig.get()
             run_dir = Path(hydra_cfg.runtime.output_dir)
             if launched_rank() != 0:  # another rank of a DDP job works beside rank 0 in its directory
-                task(cfg, run_dir)
+                with stop_over_errors():
+                    task(cfg, run_dir)
                 return
             multirun = hydra_cfg.mode == RunMode.MULTIRUN
             sweep_job = job_label(hydra_cfg.job.num, hydra_cfg.job.override_dirname) if multirun else None
-            with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job):
+            with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job), stop_over_errors():
                 (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)
 

@@ -40,8 +40,28 @@ SWEEP: list[Path] = []
 
 
 def received_stop() -> Interrupted | None:
-    """The stop this process received, if any, as the :class:`Interrupted` it raised."""
-    return Interrupted(f"stopped by {signal.Signals(RECEIVED[-1]).name}") if RECEIVED else None
+    """The stop this process received, if any, as the :class:`Interrupted` it raised (naming the sweep this
+    process launches, if any)."""
+    if not RECEIVED:
+        return None
+    stop = Interrupted(f"stopped by {signal.Signals(RECEIVED[-1]).name}")
+    stop.sweep_dir = SWEEP[0] if SWEEP else None
+    return stop
+
+
+@contextmanager
+def stop_over_errors() -> Iterator[None]:
+    """Around a command's job: an error raised after a stop signal arrived is that stop. A signal to the
+    command's process group also ends its data-loader workers, and torch's SIGCHLD handler then reports the
+    dead worker (``RuntimeError: DataLoader worker ... is killed by signal: Terminated``) while the stop's
+    :class:`Interrupted` unwinds, replacing it; a library that catches the stop (torch writing a file) raises
+    its own error the same way."""
+    try:
+        yield
+    except Exception:
+        if (stop := received_stop()) is None:
+            raise
+        raise stop from None
 
 
 def stop_on_signals(sweep_dir: Path | None = None) -> dict[int, Any]:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -12,6 +15,7 @@ import pytest
 import torch
 
 from semvpr.core import stops
+from tests.helpers import REPO
 
 
 class _Line(L.LightningModule):
@@ -105,3 +109,65 @@ def test_a_sweeps_worker_is_ended_even_when_a_second_signal_kills_a_helper(monke
         assert not worker.is_alive()
     finally:
         executor.shutdown(wait=False, kill_workers=True)
+
+
+#: A job whose stop signal comes out as a library's error, as torch's SIGCHLD handler turns it when the same
+#: signal to the process group ended a data-loader worker.
+_STOPPED_AS_AN_ERROR = """
+import os, signal, time
+
+def stopped_as_an_error(*_args, **_kwargs):
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)
+    except BaseException as err:
+        raise RuntimeError("DataLoader worker (pid 1) is killed by signal: Terminated.") from err
+    raise AssertionError("SIGTERM was ignored")
+"""
+
+
+def _run_script(body: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1"}
+    code = _STOPPED_AS_AN_ERROR + textwrap.dedent(body)
+    return subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
+    )
+
+
+def test_a_stop_that_surfaces_as_a_librarys_error_is_the_commands_one_line(tmp_path: Path) -> None:
+    """segment, localize and eval: a signal whose Interrupted a library's error replaced (a DataLoader worker
+    killed by the same SIGTERM) is still the stop: one line, exit 2, no traceback."""
+    proc = _run_script(
+        f"""
+        import sys
+        from semvpr.config.command import hydra_command
+        from semvpr.core.stops import run_stoppable
+
+        task = hydra_command("localize", "localize.json")(stopped_as_an_error)
+        sys.argv[1:] = ["hydra.run.dir={tmp_path / "run"}"]
+        run_stoppable(task, sys.argv[1:])
+        """,
+        tmp_path,
+    )
+    assert proc.returncode == 2 and proc.stderr == "semvpr: error: stopped by SIGTERM\n", proc.stderr[-3000:]
+
+
+def test_an_eval_sweep_stopped_through_a_librarys_error_is_stopped_not_a_failed_job(tmp_path: Path) -> None:
+    """In an eval sweep the same stop ends the sweep with its table, instead of being the job's failed row."""
+    sweep = tmp_path / "sweep"
+    proc = _run_script(
+        f"""
+        import sys
+        from semvpr import eval as command
+
+        command.evaluate_checkpoint = stopped_as_an_error
+        sys.argv[1:] = ["-m", "hydra/launcher=basic", "ckpt=none", "data=synthcity,synthcity",
+                        "hydra.sweep.dir={sweep}"]
+        command.main()
+        """,
+        tmp_path,
+    )
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and lines[-1].startswith("semvpr: error: stopped by SIGTERM; "), proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and "job failed" not in proc.stderr
+    assert not list(sweep.glob("*/eval.json"))  # no job recorded as failed with the library's error
