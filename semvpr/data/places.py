@@ -292,12 +292,13 @@ class PlaceSet:
         for label, utm in (("database", self.db_utm), ("queries", self.q_utm)):
             if len(utm) and np.isfinite(utm).all():
                 lo, hi = utm.min(0), utm.max(0)
-                lines.append(
-                    f"  {label} frames {lo[0]:.0f}..{hi[0]:.0f}"
-                    if self.positions == "frame"
-                    else f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
-                    f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)"
-                )
+                if self.positions == "frame":
+                    lines.append(f"  {label} frames {lo[0]:.0f}..{hi[0]:.0f}")
+                else:
+                    lines.append(
+                        f"  {label} UTM east {lo[0]:.1f}..{hi[0]:.1f}, north {lo[1]:.1f}..{hi[1]:.1f}"
+                        f" ({hi[0] - lo[0]:.0f} x {hi[1] - lo[1]:.0f} m)"
+                    )
         return "\n".join(lines)
 
 
