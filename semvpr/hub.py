@@ -23,6 +23,7 @@ from semvpr.config.checks import check_config, check_overrides
 from semvpr.config.restore import is_untrained, load_retriever
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
+from semvpr.data.images import EightBitRGB
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
 
@@ -37,9 +38,10 @@ class HubModel(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.feature_dim = retriever.descriptor_dim
         resize = [transforms.Resize(tuple(image_size), antialias=True)] if image_size else []
-        #: PIL image → the normalised tensor this module takes (resized to ``image_size`` if given).
+        #: PIL image → the normalised tensor this module takes: RGB as semvpr's image reader makes it (grey,
+        #: palette, alpha and CMYK converted; 16-bit refused), resized to ``image_size`` if given.
         self.transform = transforms.Compose(
-            [*resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
+            [EightBitRGB(), *resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
         )
 
     @torch.no_grad()

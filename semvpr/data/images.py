@@ -47,14 +47,28 @@ def open_image(path: Path, what: str) -> Image.Image:
     return img
 
 
-def check_eight_bit(img: Image.Image, path: Path) -> Image.Image:
-    """``img`` if it is an 8-bit image; a 16-bit or float one is refused in one line."""
+def eight_bit_rgb(img: Image.Image, name: str | Path) -> Image.Image:
+    """``img`` as 8-bit RGB (grey, palette, alpha and CMYK images converted as PIL converts them); a 16-bit or
+    float image is refused in one line naming it (``name``: its file)."""
     if img.mode not in EIGHT_BIT_MODES:
         raise SemvprError(
-            f"image {path} has PIL mode {img.mode} (16-bit or float pixels); semvpr reads 8-bit images: "
+            f"image {name} has PIL mode {img.mode} (16-bit or float pixels); semvpr reads 8-bit images: "
             f"convert it to 8 bits per channel"
         )
-    return img
+    return img.convert("RGB")
+
+
+class EightBitRGB:
+    """A transform step: a PIL image as :func:`eight_bit_rgb` makes it (named by its file where it has one);
+    anything else passed on unchanged, for the next steps to take or refuse."""
+
+    def __call__(self, img: object) -> object:
+        if not isinstance(img, Image.Image):
+            return img
+        return eight_bit_rgb(img, getattr(img, "filename", "") or "(a PIL image)")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
 
 
 def hw_of(size: Size | None) -> tuple[int, int] | None:
@@ -66,7 +80,7 @@ def hw_of(size: Size | None) -> tuple[int, int] | None:
 
 def load_image(path: str | Path, size: Size | None = None) -> torch.Tensor:
     """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes bilinearly (antialiased)."""
-    img = check_eight_bit(open_image(Path(path), "image"), Path(path)).convert("RGB")
+    img = eight_bit_rgb(open_image(Path(path), "image"), path)
     hw = hw_of(size)
     if hw is not None and img.size != (hw[1], hw[0]):
         img = img.resize((hw[1], hw[0]), Image.BILINEAR)

@@ -44,7 +44,7 @@ from semvpr.core.logs import Progress
 from semvpr.core.spec import from_mapping
 from semvpr.data.camvid import read_camvid
 from semvpr.data.classes import DYNAMIC_NAMES, TRAIN_ID_NAMES
-from semvpr.data.images import check_eight_bit, open_image
+from semvpr.data.images import eight_bit_rgb, open_image
 from semvpr.data.places import PlaceSet
 
 #: Where the objects come from (``data.occluders.source``): ``none`` leaves the set as it is.
@@ -136,7 +136,7 @@ def cut_objects(root: str | Path, min_area: float) -> list[CutObject]:
             if rows.stop <= h // 2:
                 continue
             if rgb is None:
-                rgb = np.asarray(check_eight_bit(open_image(image_path, "CamVid image"), image_path).convert("RGB"))
+                rgb = np.asarray(eight_bit_rgb(open_image(image_path, "CamVid image"), image_path))
                 if rgb.shape[:2] != (h, w):
                     raise SemvprError(f"{image_path}: {rgb.shape[1]}x{rgb.shape[0]}, its label map {w}x{h}")
             crop_classes = np.where(inside, classes[box], 255).astype(np.uint8)
@@ -252,7 +252,7 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
             for name, path in zip(names[side], paths):
                 if name in record["images"]:  # an image on both sides: one draw
                     continue
-                image = np.asarray(check_eight_bit(open_image(path, "image"), path).convert("RGB"))
+                image = np.asarray(eight_bit_rgb(open_image(path, "image"), path))
                 pixels, labels, pasted = composite(image, objects, spec.coverage, draw_seed(spec.seed, name), scaled)
                 (tmp / "images" / name).parent.mkdir(parents=True, exist_ok=True)
                 (tmp / "labels" / name).parent.mkdir(parents=True, exist_ok=True)

@@ -111,6 +111,30 @@ def test_hub_model_refuses_images_it_would_misread_and_takes_any_float_batch(che
     assert model(images[:0]).shape == (0, model.feature_dim)  # was a reshape RuntimeError
 
 
+def test_hub_transform_reads_any_8_bit_pil_image_as_semvpr_reads_image_files(checkpoint: Path, tmp_path: Path) -> None:
+    """Grey, palette, RGBA and CMYK images (what Image.open gives for many real files) become the RGB tensor
+    semvpr.eval's image reader makes of the same file; a 16-bit image is refused in the reader's line."""
+    from semvpr.data.images import load_image
+    from semvpr.hub import load_model
+
+    model = load_model(checkpoint, image_size=[32, 48])
+    rng = np.random.default_rng(0)
+    rgb = Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8))
+    mean, std = torch.tensor([0.485, 0.456, 0.406]).view(3, 1, 1), torch.tensor([0.229, 0.224, 0.225]).view(3, 1, 1)
+    for mode, suffix in (("L", "png"), ("P", "png"), ("RGBA", "png"), ("CMYK", "jpg"), ("RGB", "png")):
+        path = tmp_path / f"{mode}.{suffix}"
+        rgb.convert(mode).save(path)
+        with Image.open(path) as image:
+            assert image.mode == mode
+            tensor = model.transform(image)  # a channel-count RuntimeError (or 1-channel tensor) before
+        assert tensor.shape == (3, 32, 48), mode
+        torch.testing.assert_close(tensor * std + mean, load_image(path, [32, 48]), rtol=0, atol=1e-5)
+    deep = tmp_path / "deep.png"
+    Image.fromarray(rng.integers(0, 65535, (60, 80), dtype=np.uint16)).save(deep)  # read as values up to 65535 before
+    with Image.open(deep) as image, pytest.raises(SemvprError, match="16-bit or float pixels"):
+        model.transform(image)
+
+
 @pytest.mark.parametrize("folder", ["a,b", "a=b", "it's"])
 def test_hub_paths_with_override_syntax_load(tmp_path: Path, checkpoint: Path, folder: str) -> None:
     path = tmp_path / folder / "tested.ckpt"
