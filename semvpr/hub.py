@@ -54,6 +54,12 @@ class HubModel(nn.Module):
             raise SemvprError(
                 f"images must be floats normalised with the ImageNet mean/std (model.transform), got {images.dtype}"
             )
+        cast = {p.dtype for p in self.retriever.parameters() if p.is_floating_point()} - {torch.float32}
+        if cast:  # .half() / .bfloat16() / .double(): weights the float activations of its layers cannot meet
+            raise SemvprError(
+                f"the model's weights are {min(map(str, cast))}; it keeps them float32 and runs mixed precision "
+                f"itself where the device runs it natively: model.float() (or load it again: 16 bits rounded them)"
+            )
         if not len(images):
             return images.new_zeros((0, self.feature_dim), dtype=torch.float32)
         images = images.to(self.mean.dtype)

@@ -135,6 +135,22 @@ def test_hub_transform_reads_any_8_bit_pil_image_as_semvpr_reads_image_files(che
         model.transform(image)
 
 
+@pytest.mark.parametrize("cast", ["half", "bfloat16", "double"])
+def test_hub_model_with_cast_weights_is_refused_in_one_line_and_float_restores_it(checkpoint: Path, cast: str) -> None:
+    """The model runs its own mixed precision (the job's, where the device runs it natively); weights cast with
+    .half() / .bfloat16() / .double() met float activations in the first layer (a dtype RuntimeError)."""
+    from semvpr.hub import load_model
+
+    model = load_model(checkpoint)
+    images = torch.rand(2, 3, 32, 48)
+    expected = model(images)
+    getattr(model, cast)()
+    with pytest.raises(SemvprError, match=r"weights are torch\.\w+; .* model\.float\(\)"):
+        model(images)
+    restored = model.float()(images)  # a float64 round trip is exact; 16 bits rounded the weights
+    torch.testing.assert_close(restored, expected, rtol=0, atol=0 if cast == "double" else 0.05)
+
+
 @pytest.mark.parametrize("folder", ["a,b", "a=b", "it's"])
 def test_hub_paths_with_override_syntax_load(tmp_path: Path, checkpoint: Path, folder: str) -> None:
     path = tmp_path / folder / "tested.ckpt"
