@@ -28,21 +28,21 @@ from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import write_json
 from semvpr.core.stops import run_stoppable
+from semvpr.data.places import image_files
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
 
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
-
 
 def query_images(folder: str | Path | None) -> list[Path]:
-    """Image files of a folder, sorted; one clear error if there are none."""
+    """Image files of a folder and its subfolders (:func:`semvpr.data.places.image_files`), sorted; one clear
+    error if there are none."""
     if folder is None:
         raise SemvprError("queries=null: name the folder of query images (queries=DIR)")
     folder = Path(folder)
     if not folder.is_dir():
         problem = "is a file: queries= names the folder of images" if folder.exists() else "does not exist"
         raise SemvprError(f"query folder {folder} {problem} (queries=DIR)")
-    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    paths = image_files(folder, nested=True)
     if not paths:
         raise SemvprError(f"no .jpg/.png images in {folder}")
     for path in paths:

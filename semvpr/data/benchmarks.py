@@ -30,7 +30,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.io import read_list_text, regular_file
 from semvpr.core.patterns import bounded_regex, match_name
 from semvpr.data.occluders import OccluderSpec, occlude
-from semvpr.data.places import IMAGE_SUFFIXES, MAX_POSITION, PlaceSet, listed_image
+from semvpr.data.places import MAX_POSITION, PlaceSet, image_files, listed_image
 from semvpr.data.published import check_counts
 
 #: What a pickled numpy object array of index arrays may reference (numpy 1.x and 2.x names).
@@ -233,7 +233,7 @@ def _frames(folder: Path, pattern: str | None) -> tuple[list[Path], np.ndarray]:
             f"traversal folder {folder} not found; data.root should hold one folder per traversal "
             "(data.database, data.queries)"
         )
-    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    images = image_files(folder)
     if not images:
         raise SemvprError(f"{folder}: no images (.jpg/.png)")
     regex = bounded_regex(pattern, "data.frame_pattern") if pattern is not None else None

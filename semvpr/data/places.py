@@ -331,8 +331,23 @@ def listed_image(folder: Path, name: str, source: Path) -> Path:
     return folder / rel
 
 
-def _images_in(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+def image_files(folder: Path, nested: bool = False) -> list[Path]:
+    """The .jpg/.jpeg/.png files of ``folder`` and, ``nested``, of its subfolders at any depth (the references
+    read a split as ``glob(folder/**/*.jpg)``), sorted. Hidden names are skipped as glob skips them (the
+    ``._*.jpg`` a copy from macOS leaves beside each image, a ``.thumbnails/`` folder); a folder reached again
+    through a link is read once."""
+    found: list[Path] = []
+    seen: set[str] = set()
+    for top, dirs, files in os.walk(folder, followlinks=True):
+        real = os.path.realpath(top)
+        if real in seen or not nested:
+            dirs.clear()
+        if real in seen:
+            continue
+        seen.add(real)
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+        found += [Path(top, f) for f in files if not f.startswith(".") and Path(f).suffix.lower() in IMAGE_SUFFIXES]
+    return sorted(found)
 
 
 def dataset_root(root: str | Path, what: str, key: str, holds: str) -> Path:
@@ -358,7 +373,7 @@ def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
     paths = {}
     for sub in ("database", "queries"):
         folder = split_dir / sub
-        images = _images_in(folder) if folder.is_dir() else []
+        images = image_files(folder, nested=True) if folder.is_dir() else []
         if not images:
             raise SemvprError(
                 f"{folder}: no {sub} images (.jpg/.png) found; the @UTM@ layout needs "

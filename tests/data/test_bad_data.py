@@ -291,3 +291,7 @@ def test_localize_names_what_is_wrong_with_the_query_folder(tmp_path: Path) -> N
     with pytest.raises(SemvprError, match=r"no .jpg/.png images in"):
         query_images(tmp_path / "empty")
     assert query_images(tmp_path) == [image]
+    # Subfolders are read (VPR-methods-evaluation's queries_folder: glob(**/*)); hidden names are not.
+    write_image(tmp_path / "walk" / "b.png", seed=1)
+    (tmp_path / "._q.jpg").write_bytes(b"\x00\x05\x16\x07")
+    assert query_images(tmp_path) == [image, tmp_path / "walk" / "b.png"]

@@ -244,6 +244,8 @@ def test_frame_aligned_positives_are_a_frame_window(tmp_path: Path) -> None:
         read_frames(tmp_path, "ref", "ref", 1)
     with pytest.raises(SemvprError, match=r"data.queries='../x': expected the name of a traversal folder"):
         read_frames(tmp_path, "ref", "../x", 1)
+    touch(tmp_path, "query/._00005.png")  # a copy from macOS: hidden, skipped (was 'both frame 5')
+    assert [p.tolist() for p in read_frames(tmp_path, "ref", "query", 0).positives()] == [[0], [5], [9]]
     touch(tmp_path, "query/cover.png")
     with pytest.raises(SemvprError, match=r"cover.png: no frame number in the file name"):
         read_frames(tmp_path, "ref", "query", frame_window=1)

@@ -68,6 +68,23 @@ def test_read_utm_folder(tmp_path: Path, use_images_dir: bool) -> None:
     assert all(p.is_file() for p in places.db_paths + places.q_paths)
 
 
+def test_read_utm_folder_reads_subfolders_as_the_references_glob_and_skips_hidden_files(tmp_path: Path) -> None:
+    """A split's images at any depth under database/ and queries/ (gmberton's readers: glob(folder/**/*.jpg));
+    hidden names skipped as glob skips them: the ``._*.jpg`` a copy from macOS leaves beside each image, a
+    ``.thumbnails/`` folder; a subfolder linked back to its parent is read once."""
+    root = make_utm_folder(tmp_path / "city")
+    database = root / "images" / "test" / "database"
+    write_jpg(database / "2013" / "06" / utm_name(130.0, 0.0))  # was left out of the set
+    (database / ("._" + utm_name(100.0, 0.0))).write_bytes(b"\x00\x05\x16\x07")  # was 'not an @UTM@ image name'
+    write_jpg(database / ".thumbnails" / utm_name(999.0, 999.0))
+    (database / "2013" / "loop").symlink_to(database, target_is_directory=True)
+    places = read_utm_folder(root, "test")
+    # Sorted by path, as glob's list is sorted: '2013/...' before '@...'.
+    np.testing.assert_allclose(places.db_utm, [[130, 0], [100, 0], [110, 0], [150, 0]])
+    assert places.db_paths[0] == database / "2013" / "06" / utm_name(130.0, 0.0)
+    assert len(places.q_paths) == 2
+
+
 def test_read_utm_folder_bad_inputs(tmp_path: Path) -> None:
     with pytest.raises(SemvprError, match=r"nowhere.*data\.root="):
         read_utm_folder(tmp_path / "nowhere", "test")
