@@ -428,8 +428,15 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
     so eval checks it again on the config merged from the checkpoint (``where`` says so)."""
     prefix = f"{where}: " if where else ""
     try:
-        for key in ("num_clusters", "num_shadows", "eval_batch_size", "init_features", "init_per_image"):
+        for key in ("num_shadows", "eval_batch_size", "init_features", "init_per_image"):
             whole_number(cfg.model[key], f"model.{key}", 1, SIZE_MAX)
+        whole_number(  # as pytorch-NetVlad's init, which asks for 2 neighbours
+            cfg.model.num_clusters,
+            "model.num_clusters",
+            2,
+            SIZE_MAX,
+            "NetVLAD's α is set from each feature's two nearest centroids",
+        )
         if cfg.model.get("pca_dim") is not None:
             whole_number(cfg.model.pca_dim, "model.pca_dim", 1, SIZE_MAX, also="or null: no whitening")
         number(cfg.model.class_weights.init_logit, "model.class_weights.init_logit", 0)

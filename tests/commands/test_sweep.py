@@ -76,7 +76,7 @@ def test_failed_job_does_not_stop_the_sweep(tmp_path: Path) -> None:
     assert not rows and (failed[2], failed[-2]) == ("failed", "1") and ok[-2] == "0" and ok[2] != "failed"
     finished = json.loads((sweep / "experiment=tiny,filter=none,model.num_clusters=4" / "metrics.json").read_text())
     assert finished["threads"]["processes"] == 2  # the launcher's two jobs side by side share the cores
-    assert "model.num_clusters=0 must be a whole number from 1 to 2147483647" in md
+    assert "model.num_clusters=0 must be a whole number from 2 to 2147483647" in md
     # Every stage line names the job that printed it: jobs side by side interleave their lines.
     staged = [ln for ln in proc.stderr.splitlines() if ln.startswith("semvpr: ") and "job failed" not in ln]
     assert any(" retriever: epoch " in ln for ln in staged), proc.stderr[-2000:]

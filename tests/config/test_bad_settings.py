@@ -287,6 +287,9 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         (["trainer.num_sanity_val_steps=1.5"], r"^trainer\.num_sanity_val_steps=1\.5 must be a whole number"),
         # The report's flags: any text read as true (a run reported as the upper bound).
         (["mask.upper_bound=abc"], r"^mask\.upper_bound='abc' must be true or false"),
+        # NetVLAD's alpha is set from each feature's two nearest centroids: an IndexError after the trunk pass.
+        (["model.num_clusters=1"], r"^model\.num_clusters=1 must be a whole number from 2 .* two nearest"),
+        (["model.num_clusters=1", "aggregator=sral"], r"^model\.num_clusters=1 must be a whole number from 2"),
     ],
 )
 def test_a_value_the_run_would_misread_or_a_class_refuses_is_one_line_first(overrides: list[str], line: str) -> None:
