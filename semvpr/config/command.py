@@ -13,6 +13,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
 from semvpr.config.plan import thread_plan
 from semvpr.core.device import resolve
@@ -20,6 +21,7 @@ from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, sole_writer
 from semvpr.core.logs import job_label, job_named, quiet_third_party
 from semvpr.core.precision import job_precision
+from semvpr.core.spec import unset
 from semvpr.core.stops import stop_over_errors
 from semvpr.core.threads import Threads
 from semvpr.retrieval.launch import launched_rank
@@ -76,10 +78,10 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
     quietened, called with the job's output directory (held by this process: :func:`~semvpr.core.io.sole_writer`),
     a user error one line on stderr and exit code 2
-    (:func:`~semvpr.core.errors.exit_on_user_error`), an error raised after a stop signal that stop
-    (:func:`~semvpr.core.stops.stop_over_errors`). Hydra names the job after ``task``'s module. In a sweep,
-    the job's stage lines name it (``semvpr: [#2 filter=unet] retriever: epoch 3/16 ...``:
-    :func:`~semvpr.core.logs.job_named`).
+    (:func:`~semvpr.core.errors.exit_on_user_error`; a value left unset among them: :func:`named_unset`), an
+    error raised after a stop signal that stop (:func:`~semvpr.core.stops.stop_over_errors`). Hydra names the job
+    after ``task``'s module. In a sweep, the job's stage lines name it
+    (``semvpr: [#2 filter=unet] retriever: epoch 3/16 ...``: :func:`~semvpr.core.logs.job_named`).
 
     ``record`` is the file that says a job there ended (``metrics.json``, ``eval.json``): an earlier job's is
     removed as this one starts, so it never stands beside this job's files as if they were complete."""
@@ -91,12 +93,12 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
             hydra_cfg = HydraConfig.get()
             run_dir = Path(hydra_cfg.runtime.output_dir)
             if launched_rank() != 0:  # another rank of a DDP job works beside rank 0 in its directory
-                with stop_over_errors():
+                with stop_over_errors(), named_unset(cfg):
                     task(cfg, run_dir)
                 return
             multirun = hydra_cfg.mode == RunMode.MULTIRUN
             sweep_job = job_label(hydra_cfg.job.num, hydra_cfg.job.override_dirname) if multirun else None
-            with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job), stop_over_errors():
+            with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job), stop_over_errors(), named_unset(cfg):
                 (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)
 
@@ -104,6 +106,16 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
         return main(exit_on_user_error(task_function))
 
     return command
+
+
+@contextmanager
+def named_unset(cfg: DictConfig) -> Iterator[None]:
+    """A value ``cfg`` leaves unset (``???``: ``ckpt``, ``queries``, a dataset's ``data.root``) read while the job
+    runs is one line naming the key to set (:func:`~semvpr.core.spec.unset`), not OmegaConf's traceback."""
+    try:
+        yield
+    except (MissingMandatoryValue, InterpolationToMissingValueError) as err:
+        raise unset(OmegaConf.to_container(cfg, resolve=False), str(err.full_key)) from None
 
 
 @contextmanager

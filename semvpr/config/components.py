@@ -16,6 +16,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
 from semvpr.core.io import CONF_DIR
+from semvpr.core.spec import unset
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
@@ -67,7 +68,8 @@ def instantiate_node(node: Any, **kwargs: Any) -> Any:
         if user is not None:
             raise user from None
         if isinstance(err, MissingMandatoryValue):
-            raise SemvprError(f"{err.full_key} is not set; pass it as an override, e.g. {err.full_key}=DIR") from None
+            raw = OmegaConf.to_container(node._get_root(), resolve=False) if isinstance(node, DictConfig) else {}
+            raise unset(raw, err.full_key) from None
         asked = allocation_failure(err)
         if asked is not None:
             path = node._get_full_key("") if isinstance(node, DictConfig) else ""

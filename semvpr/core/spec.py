@@ -4,6 +4,7 @@ takes named, typed values instead of a whole config."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -26,6 +27,22 @@ def plain(node: Any) -> Any:
     if isinstance(node, Sequence) and not isinstance(node, str | bytes):
         return [plain(value) for value in node]
     return node
+
+
+def unset(raw: Mapping[str, Any], key: str) -> SemvprError:
+    """The one line for a value the config leaves unset (``???``) that ``key`` reads, naming the key a user
+    sets: ``key`` itself, or the end of the interpolations it follows (a reader's ``root: ${data.root}`` is set
+    as ``data.root``, which every split reads). ``raw``: the whole config as plain mappings, interpolations
+    unresolved (``OmegaConf.to_container(cfg, resolve=False)``)."""
+    for _ in range(32):  # a chain; OmegaConf refuses a loop before anything reads it
+        value: Any = raw
+        for part in key.split("."):
+            value = value.get(part) if isinstance(value, Mapping) else None
+        follows = re.fullmatch(r"\$\{(\w[\w.]*)\}", value) if isinstance(value, str) else None
+        if follows is None:
+            break
+        key = follows.group(1)
+    return SemvprError(f"{key} is not set; pass it on the command line ({key}=...)")
 
 
 def from_mapping(cls: type[S], node: Mapping[str, Any], where: str) -> S:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.core.errors import SemvprError, exit_on_user_error, unwrap_user_error
+from semvpr.core.spec import unset
 from semvpr.data.places import PlaceSet
 
 DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -20,10 +21,11 @@ def compose_place_set(config_dir: Path, config_name: str, overrides: list[str], 
     from hydra.errors import HydraException
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
+    from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue, OmegaConfBaseException
 
     if not (config_dir / f"{config_name}.yaml").is_file():
         raise SemvprError(f"config {config_dir / (config_name + '.yaml')} not found; pass --config-dir")
+    cfg = None
     try:
         with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=overrides)
@@ -37,11 +39,12 @@ def compose_place_set(config_dir: Path, config_name: str, overrides: list[str], 
         user = unwrap_user_error(err)
         if user is not None:
             raise user from None
+        if isinstance(err, (MissingMandatoryValue, InterpolationToMissingValueError)) and cfg is not None:
+            raise unset(OmegaConf.to_container(cfg, resolve=False), str(err.full_key)) from None
         if isinstance(err, (HydraException, OmegaConfBaseException)):
             # Hydra messages are multi-line; the first line says what is wrong.
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-            hint = "; pass it as an override, e.g. data.root=DIR" if "Missing mandatory" in first else ""
-            raise SemvprError(f"config error ({config_name}, overrides {overrides}): {first}{hint}") from None
+            raise SemvprError(f"config error ({config_name}, overrides {overrides}): {first}") from None
         raise
     if not isinstance(places, PlaceSet):
         raise SemvprError(f"'{node}' instantiated to {type(places).__name__}, expected a PlaceSet")

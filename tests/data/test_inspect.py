@@ -80,7 +80,7 @@ def test_missing_override_and_bad_group_are_user_errors(conf_dir: Path, capsys: 
     with pytest.raises(SystemExit) as exc:
         main(["--config-dir", str(conf_dir)])
     assert exc.value.code == 2
-    assert "Missing mandatory value" in capsys.readouterr().err
+    assert "data.root is not set; pass it on the command line (data.root=...)" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--config-dir", str(conf_dir), "data=nosuch"])
     assert "data/nosuch" in capsys.readouterr().err
