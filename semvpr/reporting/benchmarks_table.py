@@ -20,6 +20,7 @@ from semvpr.core.io import check_replaceable, existing_dir, read_json, read_yaml
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.paired import paired_gain
+from semvpr.reporting.sweep import job_dirs
 from semvpr.retrieval.recall import RECALL_NS
 
 COLUMNS = (
@@ -39,10 +40,8 @@ RANKS_FILE = "ranks.npy"
 
 
 def _job_dirs(sweep_dir: Path) -> list[Path]:
-    """Job dirs of the sweep (Hydra's numbered subdirs, or any holding eval.json), in job order."""
-    dirs = {p.parent for p in sweep_dir.rglob("eval.json")} | {
-        p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()
-    }
+    """Eval job dirs of the sweep (Hydra's numbered subdirs, or any holding eval.json), in job order."""
+    dirs = job_dirs(sweep_dir, "eval")
     dirs.discard(sweep_dir)
     return sorted(dirs, key=lambda d: (len(d.name), d.name))
 

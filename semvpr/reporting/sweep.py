@@ -364,13 +364,50 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     )
 
 
-def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
-    """Discover job dirs (any dir holding metrics.json or a .hydra dir; ``finished_only``: metrics.json) and
-    read them."""
-    sweep_dir = existing_dir(sweep_dir, "sweep dir", "pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
-    dirs = {p.parent for p in sweep_dir.rglob("metrics.json")}
+#: semvpr's Hydra commands, as their jobs' records name them.
+COMMANDS = ("train", "eval", "localize", "segment")
+#: Each command whose sweeps have a table: the file its job writes as it ends, and the command that reads them.
+TABLES = {"train": ("metrics.json", "python -m semvpr.report"), "eval": ("eval.json", "python -m semvpr.evaltable")}
+
+
+def job_command(job_dir: Path) -> str | None:
+    """The command whose job ``job_dir`` is: the one its Hydra record names (``hydra.job.name``: train, eval,
+    localize, segment), else the one whose end record it holds (``TABLES``); None where neither says."""
+    try:
+        name = read_yaml(job_dir / ".hydra" / "hydra.yaml", "run record")["hydra"]["job"]["name"]
+    except (SemvprError, OSError, KeyError, TypeError):
+        name = None
+    if isinstance(name, str):
+        return name
+    return next((command for command, (record, _) in TABLES.items() if (job_dir / record).is_file()), None)
+
+
+def job_dirs(sweep_dir: Path, command: str, finished_only: bool = False) -> set[Path]:
+    """``command``'s jobs under ``sweep_dir``: the dirs holding its end record (``TABLES``) and, unless
+    ``finished_only``, those with a Hydra record (a failed or killed job), but never another of semvpr's commands'
+    jobs (an eval job beside training runs is no failed training run). A folder holding only such jobs is one
+    line naming the command whose table reads them."""
+    record = TABLES[command][0]
+    dirs = {p.parent for p in sweep_dir.rglob(record)}
     if not finished_only:
         dirs |= {p.parent for p in sweep_dir.rglob(".hydra") if p.is_dir()}
+    named = {d: job_command(d) for d in dirs}
+    others = {d for d, name in named.items() if name in COMMANDS and name != command}
+    foreign = sorted({named[d] for d in others})
+    if others and others == dirs:
+        tables = [f"`{TABLES[name][1]} {sweep_dir}`" for name in foreign if name in TABLES]
+        raise SemvprError(
+            f"{sweep_dir} holds {' and '.join(f'semvpr.{name}' for name in foreign)} jobs, not semvpr.{command}'s"
+            + (f"; their table: {', '.join(tables)}" if tables else "")
+        )
+    return dirs - others
+
+
+def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
+    """Discover the training job dirs (:func:`job_dirs`: metrics.json or a .hydra dir; ``finished_only``:
+    metrics.json) and read them."""
+    sweep_dir = existing_dir(sweep_dir, "sweep dir", "pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
+    dirs = job_dirs(sweep_dir, "train", finished_only)
     if not dirs:
         raise SemvprError(
             f"no job dirs in {sweep_dir} (none holds metrics.json or .hydra/); "

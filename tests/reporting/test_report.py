@@ -129,7 +129,7 @@ def sweep(tmp_path: Path) -> Path:
     crashed = _job(sweep, "filter=mask2former,seed=3", None)
     (crashed / ".hydra" / "overrides.yaml").write_text("- filter=mask2former\n- seed=3\n")
     (crashed / ".hydra" / "hydra.yaml").write_text(
-        "hydra:\n  runtime:\n    choices:\n      backbone: vgg16\n"
+        "hydra:\n  job:\n    name: train\n  runtime:\n    choices:\n      backbone: vgg16\n"
         "      aggregator: sral\n      mask: teacher\n      filter: mask2former\n"
     )
     return sweep
@@ -482,3 +482,27 @@ def test_a_jobs_numbers_out_of_range_make_it_a_failed_row_not_a_mean(tmp_path: P
     row = _csv_rows(sweep)["netvlad · none"]
     assert row["n"] == "1" and row["failed"] == "1" and float(row["R@1_mean"]) == pytest.approx(40.0)
     assert f"metrics.json's {key}=" in md
+
+
+def test_each_table_reads_its_own_commands_jobs_and_names_the_other_table(sweep: Path) -> None:
+    """An eval job beside the training runs (its Hydra record names it) was a failed training row, and each
+    table read a folder of the other command's jobs as failed jobs of its own."""
+    from semvpr.core.errors import SemvprError
+    from semvpr.reporting.benchmarks_table import table_rows
+
+    trained = sorted(job.name for job in load_sweep(sweep).jobs)
+    evaluated = sweep / "eval-of-best"
+    (evaluated / ".hydra").mkdir(parents=True)
+    (evaluated / ".hydra" / "hydra.yaml").write_text("hydra:\n  job:\n    name: eval\n")
+    (evaluated / "eval.json").write_text(json.dumps({"status": "ok"}))
+    assert sorted(job.name for job in load_sweep(sweep).jobs) == trained
+    assert len(table_rows(sweep)) == 1  # the eval job's row alone, not one failed row per training run
+    evals = sweep.parent / "evals"
+    evals.mkdir()
+    evaluated.rename(evals / "0")
+    with pytest.raises(SemvprError, match=rf"^{sweep} holds semvpr.train jobs, not semvpr.eval's; .*semvpr.report"):
+        table_rows(sweep)
+    with pytest.raises(
+        SemvprError, match=r"holds semvpr.eval jobs, not semvpr.train's; their table: `python -m semvpr.evaltable"
+    ):
+        load_sweep(evals)
