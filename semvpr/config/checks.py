@@ -494,9 +494,15 @@ def _check_retrieval(cfg: DictConfig) -> None:
     _check_trainer(cfg.trainer)
     _check_optimization(cfg)
     if cfg.get("ckpt_path") not in (None, "last"):
-        from semvpr.core.checkpoint import read_checkpoint
+        from semvpr.core.checkpoint import read_checkpoint, read_weights
 
-        read_checkpoint(cfg.ckpt_path)
+        contents = read_weights(cfg.ckpt_path)
+        read_checkpoint(cfg.ckpt_path, contents)
+        if "optimizer_states" not in contents:  # Lightning's KeyError once the caches were built
+            raise SemvprError(
+                f"ckpt_path={cfg.ckpt_path} holds the model's weights only (a run's tested.ckpt, for evaluation); a "
+                "run resumes from its last.ckpt: ckpt_path=last hydra.run.dir=<its run dir>"
+            )
     for group in COMPONENTS:
         component_class(cfg, group)
     check_model(cfg)

@@ -176,3 +176,14 @@ def test_a_sweep_jobs_run_started_with_threads_1_is_resumed_by_the_quoted_comman
     for bad in (True, 1.5):  # still a whole number or a word
         with pytest.raises(SemvprError, match="threads=.* has the wrong type"):
             resumed_config(config("ckpt_path=last"), write_run_record(job, _tampered(own, "threads", bad)), [], compose)
+
+
+def test_resuming_from_a_checkpoint_of_weights_only_is_one_line_naming_last_ckpt(tmp_path: Path) -> None:
+    """tested.ckpt holds the weights only (for eval); Lightning's KeyError came after the trunk pass."""
+    from semvpr.config.checks import check_config
+    from tests.helpers import write_checkpoint
+
+    tested = tmp_path / "tested.ckpt"
+    write_checkpoint(tiny_config(tmp_path), tested)
+    with pytest.raises(SemvprError, match=r"holds the model's weights only .* ckpt_path=last hydra\.run\.dir="):
+        check_config(tiny_config(tmp_path, f"ckpt_path={tested}"))
