@@ -16,7 +16,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
 from semvpr.core.io import CONF_DIR
-from semvpr.core.spec import unset
+from semvpr.core.spec import set_where, unset
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
@@ -95,7 +95,6 @@ def _refuse_null_arguments(node: Any, given: dict[str, Any]) -> None:
         params = inspect.signature(get_object(str(node._target_))).parameters
     except Exception:  # noqa: BLE001 - an unimportable target is reported by instantiate itself
         return
-    raw = OmegaConf.to_container(node, resolve=False)
     for name, param in params.items():
         if name in given or name not in node or param.default is not inspect.Parameter.empty:
             continue
@@ -107,9 +106,8 @@ def _refuse_null_arguments(node: Any, given: dict[str, Any]) -> None:
                 continue
         except Exception:  # noqa: BLE001 - a missing or unresolvable value is reported by instantiate itself
             continue
-        text = raw[name]  # type: ignore[index]
-        interpolated = isinstance(text, str) and text.startswith("${") and text.endswith("}")
-        source = text[2:-1] if interpolated else f"{node._get_full_key('')}.{name}".lstrip(".")
+        key = f"{node._get_full_key('')}.{name}".lstrip(".")
+        source = set_where(OmegaConf.to_container(node._get_root(), resolve=False), key)
         raise SemvprError(f"{source}=null, but {node._target_} needs its {name}: set {source}")
 
 

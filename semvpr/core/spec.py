@@ -29,11 +29,10 @@ def plain(node: Any) -> Any:
     return node
 
 
-def unset(raw: Mapping[str, Any], key: str) -> SemvprError:
-    """The one line for a value the config leaves unset (``???``) that ``key`` reads, naming the key a user
-    sets: ``key`` itself, or the end of the interpolations it follows (a reader's ``root: ${data.root}`` is set
-    as ``data.root``, which every split reads). ``raw``: the whole config as plain mappings, interpolations
-    unresolved (``OmegaConf.to_container(cfg, resolve=False)``)."""
+def set_where(raw: Mapping[str, Any], key: str) -> str:
+    """The key a user sets for the value ``key`` reads: ``key`` itself, or the end of the plain interpolations it
+    follows (a reader's ``root: ${data.root}`` is set as ``data.root``, which every split reads). ``raw``: the
+    whole config as plain mappings, interpolations unresolved (``OmegaConf.to_container(cfg, resolve=False)``)."""
     for _ in range(32):  # a chain; OmegaConf refuses a loop before anything reads it
         value: Any = raw
         for part in key.split("."):
@@ -42,6 +41,13 @@ def unset(raw: Mapping[str, Any], key: str) -> SemvprError:
         if follows is None:
             break
         key = follows.group(1)
+    return key
+
+
+def unset(raw: Mapping[str, Any], key: str) -> SemvprError:
+    """The one line for a value the config leaves unset (``???``) that ``key`` reads, naming the key to set
+    (:func:`set_where`)."""
+    key = set_where(raw, key)
     return SemvprError(f"{key} is not set; pass it on the command line ({key}=...)")
 
 
