@@ -306,8 +306,10 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
     return metrics
 
 
-@hydra_command("train", "metrics.json")
-def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
+def _resumed(cfg: DictConfig, run_dir: Path) -> DictConfig:
+    """A resume's config (``ckpt_path`` into a run whose record is kept): the run's own, checked, so that a
+    contradicting override or a checkpoint it cannot resume from is refused before anything of the run is
+    touched; any other job's as given (Hydra has replaced its record already)."""
     hydra_cfg = HydraConfig.get()
     record = run_dir / ".hydra" / "config.yaml"
     if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
@@ -317,7 +319,13 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
             list(hydra_cfg.overrides.task),
             lambda overrides: hydra.compose(config_name="train", overrides=overrides),
         )
-    run_job(cfg, run_dir, multirun=hydra_cfg.mode == RunMode.MULTIRUN)
+        check_config(cfg, run_dir)
+    return cfg
+
+
+@hydra_command("train", "metrics.json", prepare=_resumed)
+def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
+    run_job(cfg, run_dir, multirun=HydraConfig.get().mode == RunMode.MULTIRUN)
 
 
 def main() -> None:

@@ -74,7 +74,9 @@ def name_swept_keys(argv: list[str], config_name: str) -> list[str]:
     return [*argv[:at], f"{EXCLUDED_FROM_NAME}=[{','.join(kept)}]", *argv[at:]]
 
 
-def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[], None]]:
+def hydra_command(
+    config_name: str, record: str, prepare: Callable[[DictConfig, Path], DictConfig] | None = None
+) -> Callable[[Task], Callable[[], None]]:
     """Make ``task(cfg, run_dir)`` a Hydra command over ``conf/<config_name>.yaml``: third-party logging
     quietened, called with the job's output directory (held by this process: :func:`~semvpr.core.io.sole_writer`),
     a user error one line on stderr and exit code 2
@@ -84,7 +86,9 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
     (``semvpr: [#2 filter=unet] retriever: epoch 3/16 ...``: :func:`~semvpr.core.logs.job_named`).
 
     ``record`` is the file that says a job there ended (``metrics.json``, ``eval.json``): an earlier job's is
-    removed as this one starts, so it never stands beside this job's files as if they were complete."""
+    removed as this one starts, so it never stands beside this job's files as if they were complete; before
+    that, ``prepare(cfg, run_dir)`` makes the config the task runs (a resume's, from the run's own record), so a
+    command refused there leaves the run as it was."""
 
     def command(task: Task) -> Callable[[], None]:
         @functools.wraps(task)
@@ -94,11 +98,12 @@ def hydra_command(config_name: str, record: str) -> Callable[[Task], Callable[[]
             run_dir = Path(hydra_cfg.runtime.output_dir)
             if launched_rank() != 0:  # another rank of a DDP job works beside rank 0 in its directory
                 with stop_over_errors(), named_unset(cfg):
-                    task(cfg, run_dir)
+                    task(prepare(cfg, run_dir) if prepare else cfg, run_dir)
                 return
             multirun = hydra_cfg.mode == RunMode.MULTIRUN
             sweep_job = job_label(hydra_cfg.job.num, hydra_cfg.job.override_dirname) if multirun else None
             with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job), stop_over_errors(), named_unset(cfg):
+                cfg = prepare(cfg, run_dir) if prepare else cfg
                 (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)
 

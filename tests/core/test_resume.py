@@ -147,11 +147,16 @@ def test_resume_reloads_the_runs_own_config_and_refuses_contradictions(tmp_path:
     assert start.returncode == 0, start.stderr[-2000:]
     record = {p.name: p.read_text() for p in (run / ".hydra").iterdir()}
     first = json.loads((run / "metrics.json").read_text())
+    (run / "checkpoints" / "tested.ckpt").rename(tmp_path / "tested.ckpt")
 
     # The README's resume command with an override that contradicts the run: one line, nothing written.
     refused = train_cli(cwd, "ckpt_path=last", "trainer.max_epochs=3", f"hydra.run.dir={run}")
     assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr[-2000:]
     assert "trainer.max_epochs=3 contradicts the run's own trainer.max_epochs=1" in refused.stderr
+    assert json.loads((run / "metrics.json").read_text()) == first  # the refused command removed it
+    weights_only = train_cli(cwd, f"ckpt_path={tmp_path / 'tested.ckpt'}", f"hydra.run.dir={run}")
+    assert "holds the model's weights only" in weights_only.stderr, weights_only.stderr[-2000:]
+    assert json.loads((run / "metrics.json").read_text()) == first
 
     # Without the original overrides it is still the same run (before: the default config, 1 epoch, status ok).
     resumed = train_cli(cwd, "ckpt_path=last", f"hydra.run.dir={run}")
