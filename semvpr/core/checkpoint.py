@@ -47,6 +47,9 @@ _SAFE_NUMPY = (
     *(type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.bool_)),
 )
 _UNSUPPORTED = re.compile(r"Unsupported global: GLOBAL (\S+)")
+#: The file that marks a folder as a saved segmenter (a student's spec; a teacher's record, or a Hugging Face
+#: model's config), and which it is.
+SEGMENTER_FILES = {"student.json": "student", "semvpr.json": "teacher", "config.json": "teacher"}
 
 
 def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
@@ -60,6 +63,12 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
         held = [f for f in (path / "checkpoints" / f"{n}.ckpt" for n in ("tested", "last")) if f.is_file()]
         if held:  # a run directory: name the file inside it
             raise SemvprError(f"{what} {path} is a run directory; name a file in it: {' or '.join(map(str, held))}")
+        kind = next((kind for name, kind in SEGMENTER_FILES.items() if (path / name).is_file()), None)
+        if kind is not None:
+            raise SemvprError(
+                f"{what} {path} is a saved {kind} (semvpr.segment), not a checkpoint: it masks one, "
+                f"ckpt=<checkpoint or none> mask={kind} {kind}.checkpoint={path}"
+            )
         raise SemvprError(
             f"{what} {path} {problem} (a run writes <run dir>/checkpoints/tested.ckpt, and last.ckpt to resume)"
         )

@@ -303,6 +303,14 @@ def test_a_run_directory_or_a_missing_file_as_ckpt_is_one_line_naming_the_file(t
         read_weights(tmp_path / "absent.ckpt")
     with pytest.raises(SemvprError, match=r"^backbone weights .*run is a directory, not a file$"):
         read_weights(run, what="backbone weights")
+    # A segmenter semvpr.segment saved is no checkpoint: it masks one (was 'a directory, not a file').
+    for kind, marker in (("student", "student.json"), ("teacher", "semvpr.json"), ("teacher", "config.json")):
+        folder = tmp_path / f"{kind}-{marker}"
+        folder.mkdir()
+        (folder / marker).write_text("{}")
+        line = rf"{folder} is a saved {kind} \(semvpr.segment\), not a checkpoint: .* {kind}.checkpoint={folder}$"
+        with pytest.raises(SemvprError, match=line):
+            read_weights(folder)
 
 
 def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
