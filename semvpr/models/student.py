@@ -218,9 +218,12 @@ def load_student(folder: str | Path, backbone: Any) -> Student:
     where = f"student directory {folder}"
     if not folder.is_dir():
         raise SemvprError(
-            f"{where} not found; student.checkpoint=DIR names a student saved by semvpr.segment "
-            "(<segment run>/student_<backbone>)"
+            f"{where} {'is a file' if folder.exists() else 'not found'}; student.checkpoint=DIR names a student "
+            "saved by semvpr.segment (<segment run>/student_<backbone>)"
         )
+    inside = sorted(p for p in folder.glob("student_*") if (p / SPEC_FILE).is_file())
+    if inside and not (folder / SPEC_FILE).exists():
+        raise SemvprError(f"{where} is a semvpr.segment run; name a student in it: {' or '.join(map(str, inside))}")
     for path in sorted(folder.rglob("*")):
         kind = _REFUSED_SUFFIXES.get(path.suffix.lower())
         if kind is not None:

@@ -306,6 +306,10 @@ def _mask2former_config(folder: Path) -> Mask2FormerConfig:
     """The checkpoint's Mask2FormerConfig, refused if it asks for any other (or custom) class."""
     path = folder / "config.json"
     if not regular_file(path, "teacher file"):
+        if (folder / "teacher" / "config.json").is_file():
+            raise SemvprError(
+                f"teacher checkpoint {folder} is a semvpr.segment run; name its teacher: {folder / 'teacher'}"
+            )
         raise SemvprError(
             f"teacher checkpoint {folder} has no config.json; a teacher directory is the folder semvpr.segment "
             "saved (<segment run>/teacher) or a Hugging Face Mask2Former snapshot"

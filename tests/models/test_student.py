@@ -252,3 +252,20 @@ def test_a_student_trained_at_another_thread_count_is_another_cache_entry(
         torch.set_num_threads(before)
     assert keys[0] != keys[1] and keys[2] == keys[0]
     assert len(list((tmp_path / "cache").glob("student-*"))) == 2
+
+
+def test_a_student_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
+    """A segment run names the students in it, a file says it is one (was: 'not found' for both)."""
+    from semvpr.core.errors import SemvprError
+    from semvpr.models.student import load_student
+
+    run = tmp_path / "segment_run"
+    for name in ("student_vgg16", "student_efficientnet_lite0"):
+        (run / name).mkdir(parents=True)
+        (run / name / "student.json").write_text("{}")
+    line = rf"segment_run is a semvpr.segment run; name a student in it: {run}/student_efficientnet_lite0 or {run}/"
+    with pytest.raises(SemvprError, match=line):
+        load_student(run, None)
+    (tmp_path / "tested.ckpt").write_bytes(b"")
+    with pytest.raises(SemvprError, match=r"tested.ckpt is a file; student.checkpoint=DIR names a student saved"):
+        load_student(tmp_path / "tested.ckpt", None)

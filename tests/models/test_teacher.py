@@ -363,9 +363,13 @@ def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
     big = _saved_teacher(tmp_path / "big")
     (big / "preprocessor_config.json").unlink()
     (big / "preprocessor_config.json").symlink_to("/dev/zero")
+    (tmp_path / "segment_run" / "teacher").mkdir(parents=True)
+    (tmp_path / "segment_run" / "teacher" / "config.json").write_text("{}")
     for name, message in (
         ("a_file", "a_file is not a directory"),
         ("empty", "empty has no config.json"),
+        # The run semvpr.segment wrote, not its teacher folder: was 'has no config.json'.
+        ("segment_run", rf"segment_run is a semvpr.segment run; name its teacher: {tmp_path}/segment_run/teacher$"),
         ("big", "preprocessor_config.json is not a regular file"),
     ):
         with pytest.raises(SemvprError, match=message) as err:
