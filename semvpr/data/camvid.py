@@ -59,13 +59,14 @@ def _listed(root: Path, entry: str, listing: Path) -> Path:
     return listed_image(root, f"{path.parent.name}/{path.name}".lstrip("/"), listing)
 
 
-def read_camvid(root: str | Path, split: str) -> SegmentationSet:
-    """The image / label pairs listed in ``<root>/<split>.txt``, checked to exist and to agree in size."""
-    root = dataset_root(root, "CamVid root", "seg.root", f"{split}/, {split}annot/ and {split}.txt (SegNet layout)")
+def read_camvid(root: str | Path, split: str, key: str = "seg.root") -> SegmentationSet:
+    """The image / label pairs listed in ``<root>/<split>.txt``, checked to exist and to agree in size; a bad
+    root is one line naming the setting it came from (``key``)."""
+    root = dataset_root(root, "CamVid root", key, f"{split}/, {split}annot/ and {split}.txt (SegNet layout)")
     listing = root / f"{split}.txt"
     if not regular_file(listing, "CamVid split list"):
         raise SemvprError(
-            f"CamVid split list {listing} not found; seg.root must hold {split}.txt with lines "
+            f"CamVid split list {listing} not found; {key} must hold {split}.txt with lines "
             f"'{split}/<name>.png {split}annot/<name>.png' (SegNet layout)"
         )
     images, labels = [], []

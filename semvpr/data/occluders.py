@@ -115,7 +115,7 @@ class CutObject:
 
 def cut_objects(root: str | Path, min_area: float) -> list[CutObject]:
     """The objects of CamVid's test split (see the module's docstring for what counts as one)."""
-    seg = read_camvid(root, "test")
+    seg = read_camvid(root, "test", "data.occluders.root")
     lut = np.asarray(seg.label_lut, dtype=np.uint8)
     moving = np.zeros(256, dtype=bool)
     moving[list(OBJECT_CLASSES)] = True
@@ -224,7 +224,7 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
         return places
     if places.root is None:
         raise SemvprError(f"place set {places.name!r} has no root folder to key its images by")
-    camvid = read_camvid(spec.root, "test")
+    camvid = read_camvid(spec.root, "test", "data.occluders.root")
     sides = {"db": places.db_paths, "q": places.q_paths}
     names = {side: [places.relative(p) for p in paths] for side, paths in sides.items()}
     key = {
