@@ -21,6 +21,7 @@ from torchvision import transforms
 
 from semvpr.config.checks import check_config, check_overrides
 from semvpr.config.restore import is_untrained, load_retriever
+from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 from semvpr.data.images import EightBitRGB
@@ -74,7 +75,8 @@ def load_model(
     overrides: Sequence[str] | None = (),
     device: torch.device | str = "cpu",
 ) -> HubModel:
-    """The checkpoint as a :class:`HubModel` in eval mode on ``device`` (move it with ``.to`` or ``.cuda``).
+    """The checkpoint as a :class:`HubModel` in eval mode on ``device`` (eval's ``device=``: cpu, cuda, cuda:N or
+    auto; move it with ``.to`` or ``.cuda``).
     ``overrides`` are ``semvpr.eval``'s: ``["mask=student", "student.checkpoint=DIR"]`` replaces the checkpoint's mask
     source; ``ckpt="none"`` with e.g. ``["aggregator=gem"]`` is the model with no VPR training."""
     from hydra import compose, initialize_config_dir
@@ -98,7 +100,7 @@ def load_model(
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
     target = None if untrained else Path(ckpt).expanduser()
     retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
-    return HubModel(retriever, image_size).to(device).eval()
+    return HubModel(retriever, image_size).to(resolve(str(device))).eval()
 
 
 def _image_size(value: object) -> bool:

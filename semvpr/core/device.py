@@ -40,6 +40,8 @@ def resolve(word: str | None, index: int | None = None) -> torch.device:
         if not torch.cuda.is_available():
             raise SemvprError(f"{word} asks for a CUDA GPU and none is visible here; use cpu (trainer=cpu, device=cpu)")
         if text.startswith("cuda:"):
+            if not text.partition(":")[2].isdecimal():
+                raise SemvprError(f"device={word!r} must be auto, cpu, cuda or cuda:N")
             index = int(text.partition(":")[2])
         index = torch.cuda.current_device() if index is None else index
         if not 0 <= index < torch.cuda.device_count():

@@ -151,6 +151,20 @@ def test_hub_model_with_cast_weights_is_refused_in_one_line_and_float_restores_i
     torch.testing.assert_close(restored, expected, rtol=0, atol=0 if cast == "double" else 0.05)
 
 
+def test_hub_device_is_named_as_the_commands_name_it(checkpoint: Path) -> None:
+    """device= takes what eval's device= takes, refused in the same line (torch's own errors before)."""
+    from semvpr.hub import load_model
+
+    for device, line in (("mps", r"device='mps' must be auto, cpu, cuda or cuda:N"), ("cuda:x", r"cuda:x")):
+        with pytest.raises(SemvprError, match=line):
+            load_model(checkpoint, device=device)
+    if not torch.cuda.is_available():
+        with pytest.raises(SemvprError, match=r"^cuda asks for a CUDA GPU and none is visible here"):
+            load_model(checkpoint, device="cuda")  # was "Found no NVIDIA driver on your system ..."
+    model = load_model(checkpoint, device="auto")
+    assert model.mean.device == (torch.device("cuda", 0) if torch.cuda.is_available() else torch.device("cpu"))
+
+
 @pytest.mark.parametrize("folder", ["a,b", "a=b", "it's"])
 def test_hub_paths_with_override_syntax_load(tmp_path: Path, checkpoint: Path, folder: str) -> None:
     path = tmp_path / folder / "tested.ckpt"
