@@ -244,10 +244,15 @@ def _check_launcher(overrides: list[str], config_name: str) -> None:
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         try:
-            compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-            return
-        except Exception as err:  # noqa: BLE001 - told apart below: an unknown launcher or an unknown setting
+            launcher = compose(config_name=config_name, overrides=overrides, return_hydra_config=True).hydra.launcher
+        except Exception as err:  # noqa: BLE001 - told apart below: an unknown launcher, setting or value
             failure = err
+        else:
+            if launcher.get("n_jobs") == 0:  # joblib's ValueError once the sweep has started
+                raise SemvprError(
+                    "hydra.launcher.n_jobs=0 must be a whole number other than 0 (jobs at once; -1: one per core)"
+                )
+            return
         chosen = [o for o in overrides if o.startswith("hydra/launcher=")]
         try:
             base = compose(config_name=config_name, overrides=chosen, return_hydra_config=True)
@@ -259,6 +264,13 @@ def _check_launcher(overrides: list[str], config_name: str) -> None:
             raise SemvprError(f"{chosen[-1]}: no such launcher here{known}{hint}") from None
     unknown = re.search(r"Could not override '([^']+)'", str(failure))
     name = base.hydra.runtime.choices.get("hydra/launcher")
+    cause: BaseException | None = failure
+    while unknown is None and cause is not None:  # a setting it has, given a value of another type
+        if type(cause).__name__ == "ValidationError":
+            key = re.search(r"full_key: (\S+)", str(cause))
+            given = next((o for o in overrides if key and o.lstrip("+~").startswith(f"{key.group(1)}=")), None)
+            raise SemvprError(f"{given or name}: {str(cause).strip().splitlines()[0]}") from None
+        cause = cause.__cause__ or cause.__context__
     settings = ", ".join(k for k in base.hydra.launcher if k != "_target_") or "none"
     what = unknown.group(1) if unknown else _first_line(failure)
     raise SemvprError(

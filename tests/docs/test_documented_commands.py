@@ -112,6 +112,25 @@ def test_a_setting_the_launcher_lacks_is_one_line_naming_it() -> None:
     assert proc.stderr.startswith("semvpr: error: hydra/launcher=slurm: no such launcher here (installed: basic")
 
 
+@pytest.mark.parametrize(
+    ("value", "line"),
+    [
+        # joblib's ValueError traceback once the sweep had started
+        ("0", r"^hydra\.launcher\.n_jobs=0 must be a whole number other than 0 \(jobs at once; -1: one per core\)$"),
+        # 'is not a setting of the side_by_side launcher', though it is one
+        ("abc", r"^hydra\.launcher\.n_jobs=abc: Value 'abc' of type 'str' could not be converted to Integer$"),
+        ("1.5", r"^hydra\.launcher\.n_jobs=1\.5: Value '1\.5' of type 'float' could not be converted to Integer$"),
+    ],
+)
+def test_a_launcher_setting_of_the_wrong_value_is_one_line_naming_it(value: str, line: str) -> None:
+    from semvpr.config.checks import check_overrides
+    from semvpr.core.errors import SemvprError
+
+    with pytest.raises(SemvprError, match=line):
+        check_overrides(["-m", f"hydra.launcher.n_jobs={value}", "seed=0,1"], "train")
+    check_overrides(["-m", "hydra.launcher.n_jobs=-1", "seed=0,1"], "train")  # joblib: one job per core
+
+
 def _run(module: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True, timeout=1200)
 
