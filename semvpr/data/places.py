@@ -340,12 +340,11 @@ def image_files(folder: Path, nested: bool = False) -> list[Path]:
     seen: set[str] = set()
     for top, dirs, files in os.walk(folder, followlinks=True):
         real = os.path.realpath(top)
-        if real in seen or not nested:
-            dirs.clear()
         if real in seen:
+            dirs.clear()
             continue
         seen.add(real)
-        dirs[:] = [d for d in dirs if not d.startswith(".")]
+        dirs[:] = [d for d in dirs if nested and not d.startswith(".")]
         found += [Path(top, f) for f in files if not f.startswith(".") and Path(f).suffix.lower() in IMAGE_SUFFIXES]
     return sorted(found)
 

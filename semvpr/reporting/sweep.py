@@ -374,8 +374,8 @@ def job_command(job_dir: Path) -> str | None:
     """The command whose job ``job_dir`` is: the one its Hydra record names (``hydra.job.name``: train, eval,
     localize, segment), else the one whose end record it holds (``TABLES``); None where neither says."""
     try:
-        name = read_yaml(job_dir / ".hydra" / "hydra.yaml", "run record")["hydra"]["job"]["name"]
-    except (SemvprError, OSError, KeyError, TypeError):
+        name = _select(_yaml(job_dir / ".hydra" / "hydra.yaml"), "hydra.job.name")
+    except SemvprError:  # a damaged record: read_job says so in the job's row
         name = None
     if isinstance(name, str):
         return name
