@@ -49,7 +49,7 @@ from pathlib import Path
 import torch
 
 from semvpr.config.build import build_backbone, build_mask_source, build_retriever
-from semvpr.config.plan import mask_plan
+from semvpr.config.plan import mask_plan, settings_of
 from semvpr.core.errors import exit_on_user_error
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -116,7 +116,7 @@ def write_checkpoint(path: Path) -> None:
     """An untrained checkpoint of the default model (``filter=none``) in the format a run writes."""
     cfg = compose("backbone.weights=none")
     backbone = build_backbone(cfg.backbone, cfg.seed)
-    retriever = build_retriever(cfg, backbone, build_mask_source(mask_plan(cfg), backbone), training=False)
+    retriever = build_retriever(settings_of(cfg), backbone, build_mask_source(mask_plan(cfg), backbone))
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams)}, path)
 
 

@@ -26,6 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.build import build_backbone, build_places
+from semvpr.config.plan import data_settings
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast
@@ -63,7 +64,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     with initialize_config_dir(str(CONF_DIR), version_base=None):
         cfg = compose("eval", overrides=[f"data={args.data}", f"data.root={args.root.resolve()}", *args.overrides])
-    places = build_places(cfg, ("test",))["test"]
+    places = build_places(data_settings(cfg), ("test",))["test"]
     if args.limit is not None:
         n = args.limit  # only the images matter here: a set of the first ones, without its ground truth
         places = PlaceSet(

@@ -91,6 +91,7 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
     from hydra import compose, initialize_config_dir
 
     from semvpr.config.build import build_backbone, build_places
+    from semvpr.config.plan import data_settings
     from semvpr.core.precision import autocast
     from semvpr.data.images import ImageDataset
 
@@ -98,7 +99,7 @@ def trunk_pass(work: Path, overrides: list[str], fp32: bool) -> tuple[float, int
         # Only the plain overrides (a sweep's comma lists pick their first value).
         plain = [o.split(",")[0] for o in overrides if "=" in o and not o.startswith(("hydra", "+hydra"))]
         cfg = compose(config_name="train", overrides=[f"paths.cache_dir={work / 'cache'}", *plain])
-    places = build_places(cfg)
+    places = build_places(data_settings(cfg))
     paths = [p for s in places.values() for p in (*s.db_paths, *s.q_paths)]
     backbone = build_backbone(cfg.backbone, cfg.seed).eval()
     loader = DataLoader(

@@ -26,7 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.build import build_datamodule, build_retriever, init_aggregator, prepare
-from semvpr.config.plan import job_plan
+from semvpr.config.plan import job_plan, settings_of
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.logs import quiet_third_party
@@ -47,9 +47,10 @@ def job_config(cache_dir: Path, recipe: str, aggregator: str, overrides: list[st
 def epoch_seconds(cfg, job) -> tuple[float, float, dict]:
     """(seconds of one training epoch, seconds of one validation pass, what the epoch held)."""
     L.seed_everything(int(cfg.seed), verbose=False)
-    retriever = build_retriever(cfg, job.backbone, job.mask_source)
-    init_aggregator(cfg, retriever, job)
-    datamodule = build_datamodule(cfg, job.features, retriever.describe_store)
+    settings = settings_of(cfg, training=True)
+    retriever = build_retriever(settings, job.backbone, job.mask_source)
+    init_aggregator(settings, retriever, job)
+    datamodule = build_datamodule(settings, job.features, retriever.describe_store)
     trainer = L.Trainer(
         accelerator=str(cfg.trainer.accelerator),
         devices=1,
@@ -86,7 +87,7 @@ def main() -> None:
     seconds: dict[str, float] = {}
     for recipe in args.recipes:
         first = job_config(args.cache_dir, recipe, args.aggregators[0], args.override)
-        job = prepare(first, job_plan(first), {})
+        job = prepare(job_plan(first), {})
         for aggregator in args.aggregators:
             cfg = job_config(args.cache_dir, recipe, aggregator, args.override)
             train_s, val_s, facts = epoch_seconds(cfg, job)

@@ -28,7 +28,7 @@ import torch
 from PIL import Image
 
 from semvpr.config.build import build_backbone, build_mask_source, build_retriever
-from semvpr.config.plan import mask_plan
+from semvpr.config.plan import mask_plan, settings_of
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.precision import autocast
 
@@ -48,7 +48,7 @@ def write_checkpoint(path: Path, clusters: int) -> None:
     """An untrained VGG16 + NetVLAD checkpoint in the format a run writes."""
     cfg = compose("backbone=vgg16", "backbone.weights=none", f"model.num_clusters={clusters}")
     backbone = build_backbone(cfg.backbone, cfg.seed)
-    retriever = build_retriever(cfg, backbone, build_mask_source(mask_plan(cfg), backbone), training=False)
+    retriever = build_retriever(settings_of(cfg), backbone, build_mask_source(mask_plan(cfg), backbone))
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams)}, path)
 
 

@@ -32,6 +32,7 @@ from omegaconf import DictConfig
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command, model_pass
+from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, one_line
@@ -47,8 +48,9 @@ from semvpr.retrieval.retriever import Retriever
 def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[np.ndarray, np.ndarray]:
     """Database and query descriptors of ``places`` (``retrieval.descriptors``: from the cached trunk outputs
     and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream)."""
-    storage = feature_storage(cfg, retriever.backbone, {"test": places})
-    size, cache = cfg.data.image_size, cfg.paths.cache_dir
+    settings = settings_of(cfg)
+    storage = feature_storage(settings, retriever.backbone, {"test": places})
+    size, cache = settings.data.image_size, settings.storage.cache_dir
     return tuple(place_descriptors(retriever, places, side, size, cache, storage) for side in ("db", "q"))  # type: ignore[return-value]
 
 
@@ -61,7 +63,7 @@ def evaluate_checkpoint(
     start = time.perf_counter()
     check_config(cfg, run_dir)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
-    test_set = functools.cache(lambda: build_places(cfg, ("test",))["test"])
+    test_set = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
     retriever.to(resolve(cfg.get("device")))
     test = test_set()

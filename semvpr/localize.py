@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command, model_pass
+from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
@@ -60,14 +61,15 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     check_config(cfg, run_dir)
     paths = query_images(cfg.queries)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
-    database = functools.cache(lambda: build_places(cfg, ("test",))["test"])
+    database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
     retriever.to(resolve(cfg.get("device")))
-    places = database()
-    storage = feature_storage(merged, retriever.backbone, {"test": places})
-    db_desc = place_descriptors(retriever, places, "db", merged.data.image_size, merged.paths.cache_dir, storage)
+    places, settings = database(), settings_of(merged)
+    size = settings.data.image_size
+    storage = feature_storage(settings, retriever.backbone, {"test": places})
+    db_desc = place_descriptors(retriever, places, "db", size, settings.storage.cache_dir, storage)
     q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
-    retriever.describe_images(paths, None, merged.data.image_size, q_desc, desc="queries")
+    retriever.describe_images(paths, None, size, q_desc, desc="queries")
     check_finite(q_desc, f"the query images in {cfg.queries}")
     top = knn(db_desc, q_desc, int(cfg.top_k))
     out = []

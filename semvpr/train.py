@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command, name_swept_keys
-from semvpr.config.plan import JobPlan, job_device, job_plan, ranks_of, sweep_gpu
+from semvpr.config.plan import JobPlan, job_device, job_threads, settings_of, sweep_gpu
 from semvpr.config.runs import keep_run_record, resumed_config
 from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError
@@ -46,7 +46,6 @@ from semvpr.reporting.sweep import weights_kind
 from semvpr.reporting.sweep_report import write_report
 from semvpr.retrieval.distributed import sharded
 from semvpr.retrieval.launch import job_ranks, launched_rank
-from semvpr.retrieval.retriever import Retriever
 from semvpr.retrieval.validation import RecallEvaluation
 
 
@@ -55,27 +54,32 @@ def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
     ranks other than 0)."""
     start, timings = time.time(), {}
     check_config(cfg, run_dir)
-    devices, nodes = ranks_of(cfg.trainer)
+    settings = settings_of(cfg, training=True)  # the config, typed once: what every builder below reads
+    training, (devices, nodes) = settings.training, settings.ranks
+    assert training is not None
     if devices * nodes > 1 and not HydraConfig.initialized():
         raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
     overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
-    if 0 < int(cfg.recipe.get("batch_size", devices * nodes)) < devices * nodes:
+    batch = training.mining.batch_size if training.mining is not None else devices * nodes
+    if 0 < batch < devices * nodes:
         say(
-            f"recipe.batch_size={cfg.recipe.batch_size} is the global batch: "
-            f"{devices * nodes - int(cfg.recipe.batch_size)} of the {devices * nodes} ranks idle in every step"
+            f"recipe.batch_size={batch} is the global batch: "
+            f"{devices * nodes - batch} of the {devices * nodes} ranks idle in every step"
         )
-    with sweep_gpu(cfg, run_dir) as leased, job_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)):
-        plan = job_plan(cfg, job_device(cfg, leased))  # every stage below runs on plan.device
+    precision = str(training.trainer.precision)
+    with sweep_gpu(settings, run_dir) as leased, job_precision(precision, settings.accelerator):
+        device = job_device(settings, leased)
+        plan = JobPlan(device, job_threads(settings, device), settings)  # every stage below runs on plan.device
         if plan.device.type == "cuda":
             torch.cuda.set_device(plan.device)
-        job = prepare(cfg, plan, timings)  # SynthCity, the teacher, labels, student, trunk caches
+        job = prepare(plan, timings)  # SynthCity, the teacher, labels, student, trunk caches
         ranks = job_ranks(devices, nodes, overrides, run_dir, plan.threads.jobs)
         with ranks as join, plan.threads.stage("retriever"):
-            return train_and_test(cfg, plan, run_dir, job, timings, start, join)
+            measured = train_and_test(plan, run_dir, job, timings, start, join)
+    return None if measured is None else job_metrics(cfg, measured)
 
 
 def train_and_test(
-    cfg: DictConfig,
     plan: JobPlan,
     run_dir: Path,
     job: Prepared,
@@ -83,15 +87,18 @@ def train_and_test(
     start: float,
     join: Callable[[], None],
 ) -> dict[str, Any] | None:
-    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; metrics on rank 0. ``join``
-    waits for the DDP ranks this process started (:func:`~semvpr.retrieval.launch.job_ranks`) once rank 0's
-    own work before ``fit`` is done."""
+    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; on rank 0 the measures
+    :func:`job_metrics` records (None on the others). ``join`` waits for the DDP ranks this process started
+    (:func:`~semvpr.retrieval.launch.job_ranks`) once rank 0's own work before ``fit`` is done."""
     # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them):
     # seed before the aggregator's random layers are drawn and again before its initialisation, so that a
     # job gives the same numbers whether its artifacts were built just now or read from the cache.
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    retriever = build_retriever(cfg, job.backbone, job.mask_source)
-    describe = sharded(retriever.describe_store, int(cfg.model.eval_batch_size))
+    settings = plan.settings
+    training = settings.training
+    assert training is not None, "a training job's plan has its recipe (job_plan)"
+    L.seed_everything(settings.seed, workers=True, verbose=False)
+    retriever = build_retriever(settings, job.backbone, job.mask_source)
+    describe = sharded(retriever.describe_store, settings.model.eval_batch_size)
     evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
     # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
     # (ModelCheckpoint's save_last only refreshes it when the best changes).
@@ -109,13 +116,13 @@ def train_and_test(
     threads, device = plan.threads, plan.device
     reclaim_orphans(run_dir / "checkpoints")  # what a killed save left (checkpoints are staged there)
     callbacks = [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))]
-    trainer = build_trainer(cfg, plan, run_dir, callbacks)
-    datamodule = build_datamodule(cfg, job.features, describe)
+    trainer = build_trainer(plan, run_dir, callbacks)
+    datamodule = build_datamodule(settings, job.features, describe)
     leader = trainer.global_rank == 0
     # The other ranks skip the initialisation: DDP gives them rank 0's weights.
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    L.seed_everything(settings.seed, workers=True, verbose=False)
     tic = time.time()
-    init_info = init_aggregator(cfg, retriever, job) if leader else None
+    init_info = init_aggregator(settings, retriever, job) if leader else None
     timings["init_s"] = time.time() - tic
     tic = time.time()
     untrained = evaluation.evaluate(job.features["test"]) if leader else None
@@ -124,7 +131,7 @@ def train_and_test(
     tic = time.time()
     # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
     with lightning_stop():
-        trainer.fit(retriever, datamodule, ckpt_path=cfg.ckpt_path, weights_only=True)
+        trainer.fit(retriever, datamodule, ckpt_path=training.ckpt_path, weights_only=True)
     timings["fit_s"] = time.time() - tic
     reason = datamodule.nothing_trained() or retriever.nothing_learned()
     if reason is not None:
@@ -154,35 +161,37 @@ def train_and_test(
         job.features["test"],
         retriever,
         tested["predictions"],
-        int(cfg.num_figure_queries),
-        cfg.mask.name,
+        training.figure_queries,
+        settings.model.mask_name,
     )
-    return job_metrics(
-        cfg,
-        retriever,
-        job,
-        tested,
-        untrained,
-        {
-            "checkpoint": str(tested_ckpt),
-            "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
-            "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
-            # The epoch the tested weights come from (chosen on val): None for a checkpoint from before it was kept.
-            "best/epoch": evaluation.best_val.get("epoch") if evaluation.best_val else None,
-            **datamodule.epoch_facts(),
-            "aggregator_init": init_info,
-            "threads": threads.record(),
-            # Where fit and test ran (the builders put every earlier stage on the same device) and how.
-            "device": str(ran_on),
-            "distributed": {
-                "world_size": trainer.world_size,
-                "backend": torch.distributed.get_backend() if torch.distributed.is_initialized() else None,
-            },
-            "precision": running_precision(),
-            "timings": timings,
-            "wall_time_s": time.time() - start,
+    class_weights = retriever.class_weights
+    return {
+        "descriptor_dim": retriever.descriptor_dim,
+        "class_weights": class_weights.named_weights() if class_weights is not None else None,
+        **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
+        **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
+        **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
+        "recalls": {str(n): v for n, v in tested["curve"].items()},
+        "test_queries_without_positives": tested["num_without_positives"],
+        "feature_storage": job.storage,
+        "checkpoint": str(tested_ckpt),
+        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
+        "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
+        # The epoch the tested weights come from (chosen on val): None for a checkpoint from before it was kept.
+        "best/epoch": evaluation.best_val.get("epoch") if evaluation.best_val else None,
+        **datamodule.epoch_facts(),
+        "aggregator_init": init_info,
+        "threads": threads.record(),
+        # Where fit and test ran (the builders put every earlier stage on the same device) and how.
+        "device": str(ran_on),
+        "distributed": {
+            "world_size": trainer.world_size,
+            "backend": torch.distributed.get_backend() if torch.distributed.is_initialized() else None,
         },
-    )
+        "precision": running_precision(),
+        "timings": timings,
+        "wall_time_s": time.time() - start,
+    }
 
 
 class KeepThreads(L.Callback):
@@ -196,34 +205,19 @@ class KeepThreads(L.Callback):
         torch.set_num_threads(self.threads)
 
 
-def job_metrics(
-    cfg: DictConfig,
-    retriever: Retriever,
-    job: Prepared,
-    tested: dict[str, Any],
-    untrained: dict[str, Any],
-    run: dict[str, Any],
-) -> dict[str, Any]:
-    """The job's metrics.json: what ran, the test recalls (trained and untrained), and ``run``'s facts."""
-    class_weights = retriever.class_weights
+def job_metrics(cfg: DictConfig, measured: dict[str, Any]) -> dict[str, Any]:
+    """The job's metrics.json: what ran (``cfg``'s labels, its data and recipe) and what ``measured`` holds
+    (:func:`train_and_test`'s: the test recalls, trained and untrained, and the run's facts)."""
     return {
         "status": "ok",
         "error": None,
         **run_labels(cfg),
-        "descriptor_dim": retriever.descriptor_dim,
-        "class_weights": class_weights.named_weights() if class_weights is not None else None,
         "data": cfg.data.name,
         # The recipe's settings as this run resolved them (each aggregator's schedule under recipe=gsv).
         "recipe_settings": {
             k: v for k, v in OmegaConf.to_container(cfg.recipe, resolve=True).items() if k != "default"
         },
-        **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
-        **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
-        **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
-        "recalls": {str(n): v for n, v in tested["curve"].items()},
-        "test_queries_without_positives": tested["num_without_positives"],
-        "feature_storage": job.storage,
-        **run,
+        **measured,
     }
 
 

@@ -43,10 +43,10 @@ def config(*overrides: str, config_name: str = "train") -> DictConfig:
 def write_checkpoint(cfg: DictConfig, path: Path) -> dict[str, torch.Tensor]:
     """Write an untrained model's checkpoint as a run does (Lightning's state_dict + hyper_parameters)."""
     from semvpr.config.build import build_backbone, build_mask_source, build_retriever
-    from semvpr.config.plan import mask_plan
+    from semvpr.config.plan import mask_plan, settings_of
 
     backbone = build_backbone(cfg.backbone, cfg.seed)
-    retriever = build_retriever(cfg, backbone, build_mask_source(mask_plan(cfg), backbone), training=False)
+    retriever = build_retriever(settings_of(cfg), backbone, build_mask_source(mask_plan(cfg), backbone))
     torch.save({"state_dict": retriever.state_dict(), "hyper_parameters": dict(retriever.hparams), "epoch": 0}, path)
     return retriever.state_dict()
 

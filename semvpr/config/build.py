@@ -1,14 +1,15 @@
 """A run's parts from its config: place sets, backbone, aggregator, mask source, the semantic artifacts
 they need (teacher, pseudo-labels, student), feature stores, the retriever and its trainer.
 
-The one place where a ``DictConfig`` becomes objects: train, eval, localize, segment, the hub and the
-tests build through it, so all of them construct exactly the same model. Below it every function takes
-typed values (``Mining``, ``Optimization``, ``InitSample``, ``StudentSpec``, ``TeacherSpec``, ...).
-Teacher, pseudo-labels, student and feature caches come from the artifact cache (built on first use).
+The builders take a job's typed settings (``config.plan``: :class:`~semvpr.config.plan.Settings`, made once
+from the config) and turn them into objects: train, eval, localize, segment, the hub and the tests build
+through them, so all of them construct exactly the same model. Teacher, pseudo-labels, student and feature
+caches come from the artifact cache (built on first use).
 """
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -23,9 +24,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import Tensor
 
-from semvpr.config.components import component_class, instantiate_node, loss_class
-from semvpr.config.plan import JobPlan, MaskPlan, ranks_of
-from semvpr.config.record import record_of
+from semvpr.config.components import instantiate_node
+from semvpr.config.plan import DataSettings, JobPlan, MaskPlan, ModelSettings, Settings, Training
 from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import say, trainer_kwargs
@@ -54,11 +54,8 @@ from semvpr.retrieval.features import (
     trunk_cached,
     trunk_shape,
 )
-from semvpr.retrieval.initialisation import InitSample, StaticLabels, initialise_aggregator
-from semvpr.retrieval.losses import Loss, TripletLoss
-from semvpr.retrieval.mining import Mining
-from semvpr.retrieval.places import PlaceBatching
-from semvpr.retrieval.retriever import Optimization, Retriever
+from semvpr.retrieval.initialisation import StaticLabels, initialise_aggregator
+from semvpr.retrieval.retriever import Retriever
 
 
 @dataclass
@@ -86,69 +83,14 @@ class Prepared:
     storage: str
 
 
-# ----------------------------------------------------------------------------------- typed settings
-def mining_of(cfg: DictConfig) -> Mining:
-    """The mining and batching parameters of ``cfg.recipe`` (``batch_size`` is the global batch)."""
-    recipe = cfg.recipe
-    return Mining(
-        batch_size=int(recipe.batch_size),
-        cache_refresh=int(recipe.cache_refresh),
-        queries_per_epoch=recipe.queries_per_epoch,
-        seed=int(cfg.seed),
-        positive_radius=float(recipe.positive_radius),
-        negative_radius=float(recipe.negative_radius),
-        num_negatives=int(recipe.num_negatives),
-        negative_candidates=int(recipe.negative_candidates),
-        margin=float(recipe.margin),
-    )
-
-
-def place_batching_of(cfg: DictConfig) -> PlaceBatching:
-    """The place batches of ``cfg.recipe`` (recipe=gsv): P places × K images, the places' separation."""
-    recipe = cfg.recipe
-    return PlaceBatching(
-        places_per_batch=int(recipe.places_per_batch),
-        images_per_place=int(recipe.images_per_place),
-        separation=float(recipe.place_separation),
-        seed=int(cfg.seed),
-    )
-
-
-def loss_of(cfg: DictConfig) -> Loss:
-    """The recipe's loss (a recipe without ``loss``: the triplet loss with ``recipe.margin``)."""
-    loss_class(cfg)
-    node = cfg.recipe.get("loss")
-    return TripletLoss(float(cfg.recipe.margin)) if node is None else instantiate_node(node)
-
-
-def optimization_of(cfg: DictConfig) -> Optimization:
-    """Optimizer and scheduler factories, loss, warm-up and class-weight learning rate of ``cfg.recipe``."""
-    recipe = cfg.recipe
-    scheduler = recipe.get("scheduler")
-    return Optimization(
-        instantiate(recipe.optimizer),
-        instantiate(scheduler) if scheduler is not None else None,
-        float(recipe.get("margin", 0.1)),
-        float(recipe.class_weights.lr),
-        loss=loss_of(cfg),
-        warmup_steps=int(recipe.get("warmup_steps", 0)),
-        scheduler_interval=str(recipe.get("scheduler_interval", "epoch")),
-    )
-
-
-def init_sample_of(cfg: DictConfig) -> InitSample:
-    """The aggregator initialisation's sample size and seed."""
-    return InitSample(int(cfg.model.init_features), int(cfg.model.init_per_image), int(cfg.seed))
-
-
 # ----------------------------------------------------------------------------------- components
-def build_places(cfg: DictConfig, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
+def build_places(data: DataSettings, splits: tuple[str, ...] = ("train", "val", "test")) -> dict[str, PlaceSet]:
     """Instantiate the place sets of the requested splits (the data config's readers)."""
     places = {}
     for split in splits:
-        if cfg.data.get(split) is None:
-            raise SemvprError(f"data={cfg.data.name} has no {split} split; use it for evaluation only")
-        places[split] = instantiate_node(cfg.data[split]).with_eval_radius(cfg.data.get("eval_radius"))
+        if data.splits.get(split) is None:
+            raise SemvprError(f"data={data.name} has no {split} split; use it for evaluation only")
+        places[split] = instantiate_node(data.splits[split]).with_eval_radius(data.eval_radius)
     return places
 
 
@@ -163,15 +105,20 @@ def build_backbone(
     return instantiate_node(node.module, **extra).to(device, memory_format=torch.channels_last)
 
 
-def build_aggregator(cfg: DictConfig, backbone: Backbone) -> Aggregator:
-    """The run's aggregator for the backbone's channels. An aggregator on a fixed grid (a ``grid`` key)
-    left null gets the backbone's grid at data.image_size, written into ``cfg`` so that the checkpoint
-    records the grid it was built for."""
-    component_class(cfg, "aggregator")
-    node = cfg.aggregator.module
+def _aggregator_grid(settings: Settings, backbone: Backbone) -> list[int] | None:
+    """The grid an aggregator on a fixed grid (a ``grid`` key) left null is built for: the backbone's at
+    data.image_size (None where the aggregator has no grid to fill in)."""
+    node = settings.model.aggregator
     if "grid" in node and node.grid is None:
-        node.grid = list(grid_size(backbone, tuple(cfg.data.image_size)))
-    return instantiate_node(node, dim=backbone.out_channels)
+        return list(grid_size(backbone, settings.data.image_size))
+    return None
+
+
+def build_aggregator(settings: Settings, backbone: Backbone) -> Aggregator:
+    """The run's aggregator for the backbone's channels, on its :func:`_aggregator_grid` where it takes one."""
+    grid = _aggregator_grid(settings, backbone)
+    extra = {} if grid is None else {"grid": grid}
+    return instantiate_node(settings.model.aggregator, dim=backbone.out_channels, **extra)
 
 
 def build_mask_source(masks: MaskPlan, backbone: Backbone, semantic: Semantic | None = None) -> MaskSource | None:
@@ -206,7 +153,7 @@ def link_segmenter(masks: MaskPlan, mask_source: MaskSource | None, backbone: Ba
         mask_source.segmenter.link_trunk(backbone)
 
 
-def mask_trained_on(cfg: DictConfig, mask_source: MaskSource | None) -> TrainedOn | None:
+def mask_trained_on(settings: Settings, mask_source: MaskSource | None) -> TrainedOn | None:
     """The data the mask source's segmenter was trained on, as a checkpoint records it: what a segmenter
     directory says, else (a segmenter trained in the run) the run's data; None without a segmenter."""
     segmenter = mask_source.segmenter if mask_source is not None else None
@@ -215,37 +162,46 @@ def mask_trained_on(cfg: DictConfig, mask_source: MaskSource | None) -> TrainedO
     known = getattr(segmenter, "trained_on", None)
     if known is not None:
         return known
-    directory = cfg[mask_source.needs].get("checkpoint")
+    masks = settings.masks
+    directory = (masks.teacher if mask_source.needs == "teacher" else masks.student).checkpoint
     if directory:  # a Hub id, or a directory without a record: its name, data unknown
         local = Path(str(directory)).expanduser()
         return TrainedOn(local.name if local.exists() else str(directory), "unknown")
-    return TrainedOn(str(cfg.data.name), data_domain(cfg.data.get("domain")))
+    return TrainedOn(settings.data.name, data_domain(settings.data.domain))
 
 
-def build_class_weights(cfg: DictConfig) -> ClassWeights | None:
+def build_class_weights(model: ModelSettings) -> ClassWeights | None:
     """Learned per-class weights (mask.weights=learned), else None."""
-    if cfg.mask.weights != "learned":
+    if model.weighting != "learned":
         return None
-    return ClassWeights(list(cfg.teacher.static_classes), float(cfg.model.class_weights.init_logit))
+    return ClassWeights(list(model.static_classes), model.init_logit)
 
 
-def build_retriever(
-    cfg: DictConfig, backbone: Backbone, mask_source: MaskSource | None, *, training: bool = True
-) -> Retriever:
-    """The retriever of ``cfg`` on this backbone and mask source, its aggregator uninitialised
-    (:func:`init_aggregator`) or to be loaded from a checkpoint; ``training`` adds the optimizer."""
-    aggregator = build_aggregator(cfg, backbone)
-    whitening = PCAWhitening(aggregator.output_dim, cfg.model.pca_dim) if cfg.model.pca_dim else None
+def build_retriever(settings: Settings, backbone: Backbone, mask_source: MaskSource | None) -> Retriever:
+    """The retriever of ``settings`` on this backbone and mask source, its aggregator uninitialised
+    (:func:`init_aggregator`) or to be loaded from a checkpoint; with the optimizer where the settings have a
+    training recipe. Its record is the config's with the grid a fixed-grid aggregator was built for, and the
+    data the mask's segmenter was trained on."""
+    model = settings.model
+    aggregator = build_aggregator(settings, backbone)
+    whitening = PCAWhitening(aggregator.output_dim, model.pca_dim) if model.pca_dim else None
+    record = copy.deepcopy(model.record)
+    grid = _aggregator_grid(settings, backbone)
+    if grid is not None:
+        record["config"]["aggregator"]["module"]["grid"] = grid
+    trained_on = mask_trained_on(settings, mask_source)
+    if trained_on is not None:
+        record["segmenter"] = trained_on.as_dict()
     retriever = Retriever(
         backbone,
         aggregator,
         mask_source,
         whitening,
-        optimization_of(cfg) if training else None,
-        int(cfg.model.eval_batch_size),
-        frozen_workers(int(cfg.data.num_workers)),  # its image passes: eval's, localize's, the hub's
-        record=record_of(cfg, mask_trained_on(cfg, mask_source)),
-        class_weights=build_class_weights(cfg),
+        settings.training.optimization if settings.training is not None else None,
+        model.eval_batch_size,
+        frozen_workers(settings.data.num_workers),  # its image passes: eval's, localize's, the hub's
+        record=record,
+        class_weights=build_class_weights(model),
     )
     if whitening is not None:  # fixed outside training: DDP need not broadcast its 4096 x D projection each step
         from torch.nn.parallel import DistributedDataParallel
@@ -255,36 +211,47 @@ def build_retriever(
     return retriever.to(next(backbone.parameters()).device)
 
 
-def build_datamodule(cfg: DictConfig, features: dict[str, PlaceFeatures], describe: Describe) -> EvalDataModule:
+def build_datamodule(settings: Settings, features: dict[str, PlaceFeatures], describe: Describe) -> EvalDataModule:
     """The datamodule the recipe's loss trains on: mined tuples (``describe`` is what mining describes
     with) or place batches."""
-    eval_batch, workers = int(cfg.model.eval_batch_size), int(cfg.data.num_workers)
-    if loss_class(cfg).batches == "places":
-        return PlaceDataModule(features, place_batching_of(cfg), eval_batch, workers)
-    return RetrievalDataModule(features, mining_of(cfg), describe, eval_batch, workers)
+    eval_batch, workers = settings.model.eval_batch_size, settings.data.num_workers
+    training = _recipe(settings)
+    if training.batching is not None:
+        return PlaceDataModule(features, training.batching, eval_batch, workers)
+    assert training.mining is not None
+    return RetrievalDataModule(features, training.mining, describe, eval_batch, workers)
 
 
-def build_trainer(cfg: DictConfig, plan: JobPlan, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
+def build_trainer(plan: JobPlan, run_dir: Path, callbacks: list[L.Callback]) -> L.Trainer:
     """The configured Lightning Trainer with the run's loggers and checkpoints, on the plan's device (a
     one-GPU job: that GPU, not the first one). A DDP strategy waits for the ranks as long as rank 0's work
     before ``fit`` may take (:data:`DDP_TIMEOUT`)."""
-    loggers = [instantiate(node, save_dir=str(run_dir)) for node in cfg.logger.values()]
+    training = _recipe(plan.settings)
+    loggers = [instantiate(node, save_dir=str(run_dir)) for node in training.loggers]
+    trainer = training.trainer
     extra: dict[str, Any] = {}
     if plan.device.type == "cuda" and plan.ranks == (1, 1):
         extra["devices"] = [plan.device.index or 0]
-    if str(cfg.trainer.get("strategy", "auto")) == "ddp":
+    if str(trainer.get("strategy", "auto")) == "ddp":
         from lightning.pytorch.strategies import DDPStrategy
 
         extra["strategy"] = DDPStrategy(timeout=DDP_TIMEOUT)
     return instantiate(
-        cfg.trainer,
+        trainer,
         default_root_dir=str(run_dir),
         logger=loggers,
         plugins=[RunCheckpointIO()],  # checkpoints staged in the run dir, not $TMPDIR
         **trainer_kwargs("retriever", callbacks),
-        precision=lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator)),
+        precision=lightning_precision(str(trainer.precision), str(trainer.accelerator)),
         **extra,
     )
+
+
+def _recipe(settings: Settings) -> Training:
+    """The training recipe of ``settings``, which a describing job's settings lack."""
+    if settings.training is None:
+        raise SemvprError("a retriever's training needs the settings of its recipe: settings_of(cfg, training=True)")
+    return settings.training
 
 
 #: How long a DDP rank waits for the others (process group and collectives): ranks a scheduler started (SLURM,
@@ -295,34 +262,35 @@ DDP_TIMEOUT = timedelta(hours=6)
 
 
 # ----------------------------------------------------------------------------------- semantic artifacts
-def semantic_teacher(cfg: DictConfig, plan: JobPlan, backbone: Backbone) -> Teacher:
+def semantic_teacher(plan: JobPlan, backbone: Backbone) -> Teacher:
     """The run's teacher, trained once (cached) or loaded, linked to ``backbone``'s frozen prefix where its
     pixel encoder is that prefix (``Teacher.link_trunk``)."""
     from semvpr.segmentation.training import build_teacher
 
     settings = plan.masks.teacher
-    seg = cfg.data.get("segmentation")
+    seg = plan.settings.data.segmentation
     needs_training = settings.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
     seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
+    cache_dir, device = plan.settings.storage.cache_dir, next(backbone.parameters()).device
     with plan.threads.stage("teacher"):
-        teacher = build_teacher(settings, seg_train, seg_val, cfg.paths.cache_dir, next(backbone.parameters()).device)
+        teacher = build_teacher(settings, seg_train, seg_val, cache_dir, device)
     if settings.share_trunk:
         teacher.link_trunk(backbone)
     return teacher
 
 
 def semantic_levels(
-    cfg: DictConfig, masks: MaskPlan, backbone: Backbone, teacher: Teacher | None, stand_in: bool = True
+    settings: Settings, backbone: Backbone, teacher: Teacher | None, stand_in: bool = True
 ) -> tuple[set[int], set[int]]:
     """(the teacher's, the student's) frozen outputs the config's semantic side reads from the trunk pass: the
     teacher's encoder levels where it is linked to the trunk (``teacher``, or where none is given and
     ``stand_in``, the embedded teacher the config trains, whose encoder stays frozen), the student's skips where
     its own pass would run in the trunk pass's precision (bf16 where that is native)."""
-    size = tuple(int(v) for v in cfg.data.image_size)
+    size, masks = settings.data.image_size, settings.masks
     if teacher is None and stand_in:
         wanted = masks.teacher
-        if wanted.checkpoint is None and cfg.data.get("segmentation") is None:
+        if wanted.checkpoint is None and settings.data.segmentation is None:
             return set(), set()  # no teacher to be had: no semantic side on this data
         if wanted.checkpoint is None and wanted.share_trunk and float(wanted.train.backbone_lr_factor) == 0:
             teacher = embedded_teacher(wanted)
@@ -336,7 +304,6 @@ def semantic_levels(
 
 
 def skip_plan(
-    cfg: DictConfig,
     plan: JobPlan,
     backbone: Backbone,
     places: dict[str, PlaceSet],
@@ -357,10 +324,10 @@ def skip_plan(
     none = {split: () for split in places}
     if storage == "stream":
         return none
-    size = tuple(int(v) for v in cfg.data.image_size)
-    needs = plan.masks.needs
+    settings = plan.settings
+    size, needs, store = settings.data.image_size, plan.masks.needs, settings.storage
     # Only a plan that may keep them for other jobs needs the levels of a teacher this job does not build.
-    teacher_levels, student_levels = semantic_levels(cfg, plan.masks, backbone, teacher, stand_in=storage == "ram")
+    teacher_levels, student_levels = semantic_levels(settings, backbone, teacher, stand_in=storage == "ram")
     last = len(backbone.frozen_strides) - 1
 
     def total(levels: dict[str, tuple[int, ...]]) -> int:
@@ -369,7 +336,7 @@ def skip_plan(
         )
 
     everything = {split: tuple(sorted((teacher_levels | student_levels) - {last})) for split in places}
-    if storage == "ram" and total(everything) <= float(cfg.features.ram_gb) * 2**30:
+    if storage == "ram" and total(everything) <= store.ram_gb * 2**30:
         kept_levels = everything
     else:
         if teacher is None:  # a stand-in's levels are for other jobs only
@@ -383,7 +350,7 @@ def skip_plan(
             levels |= teacher_levels if needs == "teacher" else set()
             kept_levels[split] = tuple(sorted(levels - {last}))
     kept = total(kept_levels)
-    if kept and choose_storage("auto", kept, cfg.paths.cache_dir, 0.0, float(cfg.features.disk_gb)) == "stream":
+    if kept and choose_storage("auto", kept, store.cache_dir, 0.0, store.disk_gb) == "stream":
         say(
             f"the frozen outputs the semantic side reads ({kept / 2**30:.2f} GiB) exceed the disk "
             "budget: each stage passes the images through the trunk itself"
@@ -418,7 +385,6 @@ def trunk_outputs(features: PlaceFeatures) -> Callable[[Sequence[Path]], list[Te
 
 
 def build_semantic(
-    cfg: DictConfig,
     plan: JobPlan,
     train: PlaceSet,
     backbone: Backbone,
@@ -438,25 +404,25 @@ def build_semantic(
     if not plan.semantic:
         return Semantic()
     timings: dict[str, float] = {}
-    threads = plan.threads
-    workers = threads.workers(int(cfg.data.num_workers))
-    size = tuple(int(v) for v in cfg.data.image_size)
+    threads, settings = plan.threads, plan.settings
+    workers = threads.workers(settings.data.num_workers)
+    size, cache_dir = settings.data.image_size, settings.storage.cache_dir
     tic = time.time()
     if teacher is None:
-        teacher = semantic_teacher(cfg, plan, backbone)
+        teacher = semantic_teacher(plan, backbone)
         timings["teacher_s"] = time.time() - tic
     tic = time.time()
     # The set the semantic side is made from: SynthCity's training split as drawn even where the recipe
     # trains on extra traversals of it, so every recipe gets the same labels and student.
     source = train.for_semantics
     if skip_levels is None or source is not train:
-        skip_levels = skip_plan(cfg, plan, backbone, {"train": source}, teacher, storage)["train"]
+        skip_levels = skip_plan(plan, backbone, {"train": source}, teacher, storage)["train"]
     trunk, held = None, set()
     if skip_levels:
         # Memory-mapped: these are read once, here; the job's stores come later.
-        settings = store_settings(cfg, "disk" if storage == "ram" else storage, workers)
+        held_as = store_settings(settings, "disk" if storage == "ram" else storage, workers)
         with threads.stage("frozen"):
-            frozen = place_features(source, backbone, settings, skip_levels=skip_levels)
+            frozen = place_features(source, backbone, held_as, skip_levels=skip_levels)
         trunk, held = trunk_outputs(frozen), frozen.db.levels() & frozen.q.levels()
     timings["features_s"] = time.time() - tic
     tic = time.time()
@@ -467,7 +433,7 @@ def build_semantic(
             teacher,
             images,
             Reading(size, plan.masks.teacher.predict_batch_size, workers),
-            cfg.paths.cache_dir,
+            cache_dir,
             source.root,
             trunk=trunk if on_trunk else None,
         )
@@ -478,80 +444,72 @@ def build_semantic(
         reads = set(student_architecture(spec, backbone).skip_indices) <= held
         with threads.stage("student"):
             labelled = LabelledImages(images, labels_dir, source.root)
-            semantic.student = build_student(
-                spec, backbone, labelled, size, cfg.paths.cache_dir, trunk=trunk if reads else None
-            )
+            semantic.student = build_student(spec, backbone, labelled, size, cache_dir, trunk=trunk if reads else None)
         timings["student_s"] = time.time() - tic
     return semantic
 
 
-def store_settings(cfg: DictConfig, storage: str, workers: int | None = None) -> StoreSettings:
+def store_settings(settings: Settings, storage: str, workers: int | None = None) -> StoreSettings:
     """How the job's place sets are cached and held (``storage``: :func:`feature_storage`'s choice) and its
     frozen pass loads images (``workers``: default ``data.num_workers``)."""
     return StoreSettings(
-        tuple(cfg.data.image_size),
-        Path(str(cfg.paths.cache_dir)),
+        settings.data.image_size,
+        settings.storage.cache_dir,
         storage,
-        int(cfg.model.eval_batch_size),
-        int(cfg.data.num_workers) if workers is None else workers,
+        settings.model.eval_batch_size,
+        settings.data.num_workers if workers is None else workers,
     )
 
 
-def feature_storage(cfg: DictConfig, backbone: Backbone, places: dict[str, PlaceSet]) -> str:
+def feature_storage(settings: Settings, backbone: Backbone, places: dict[str, PlaceSet]) -> str:
     """How the run holds its frozen-trunk features: ram, disk or stream (semvpr.retrieval.features). Under
     DDP every rank on a node holds its own copy in RAM, so ``auto`` gives each a share of
     ``features.ram_gb`` (beyond it the memory-mapped store is shared through the page cache)."""
-    per_image = 2 * int(np.prod(trunk_shape(backbone, cfg.data.image_size)))  # bf16
+    size, store = settings.data.image_size, settings.storage
+    per_image = 2 * int(np.prod(trunk_shape(backbone, size)))  # bf16
     images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
-    cached = all(
-        trunk_cached(p, backbone.frozen_key(), cfg.data.image_size, cfg.paths.cache_dir) for p in places.values()
-    )
+    cached = all(trunk_cached(p, backbone.frozen_key(), size, store.cache_dir) for p in places.values())
     storage = choose_storage(
-        cfg.features.storage,
-        per_image * images,
-        cfg.paths.cache_dir,
-        float(cfg.features.ram_gb) / ranks_of(cfg.trainer)[0],
-        float(cfg.features.disk_gb),
-        cached,
+        store.storage, per_image * images, store.cache_dir, store.ram_gb / settings.ranks[0], store.disk_gb, cached
     )
     say(f"frozen-trunk features of {images} images ({per_image * images / 2**30:.2f} GiB): {storage}")
     return storage
 
 
-def prepare(cfg: DictConfig, plan: JobPlan, timings: dict[str, float]) -> Prepared:
+def prepare(plan: JobPlan, timings: dict[str, float]) -> Prepared:
     """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job, all on
     the plan's device; the seconds of each stage into ``timings`` (data, teacher, labels, student, features:
     the trunk passes and the masks; semantic = teacher + labels + student)."""
     tic = time.time()
-    places = build_places(cfg)  # generates SynthCity on first use
+    settings, threads = plan.settings, plan.threads
+    places = build_places(settings.data)  # generates SynthCity on first use
     timings["data_s"] = time.time() - tic
-    threads = plan.threads
-    backbone = build_backbone(cfg.backbone, int(cfg.seed), device=plan.device)
-    storage = feature_storage(cfg, backbone, places)
+    backbone = build_backbone(settings.model.backbone, settings.seed, device=plan.device)
+    storage = feature_storage(settings, backbone, places)
     semantic, teacher = Semantic(), None
     if plan.semantic:
         tic = time.time()
-        teacher = semantic_teacher(cfg, plan, backbone)
+        teacher = semantic_teacher(plan, backbone)
         timings["teacher_s"] = time.time() - tic
-    levels = skip_plan(cfg, plan, backbone, places, teacher, storage)
+    levels = skip_plan(plan, backbone, places, teacher, storage)
     if teacher is not None:
-        semantic = build_semantic(cfg, plan, places["train"], backbone, storage, levels["train"], teacher)
+        semantic = build_semantic(plan, places["train"], backbone, storage, levels["train"], teacher)
         timings.update(semantic.timings)
     mask_source = build_mask_source(plan.masks, backbone, semantic)
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()
-    settings = store_settings(cfg, storage, threads.workers(int(cfg.data.num_workers)))
-    masks = None if mask_source is None else MaskPass(mask_source, str(cfg.mask.weights))
+    held_as = store_settings(settings, storage, threads.workers(settings.data.num_workers))
+    masks = None if mask_source is None else MaskPass(mask_source, settings.model.weighting)
     with threads.stage("frozen"):
         features = {
-            split: place_features(places[split], backbone, settings, masks, skip_levels=levels[split])
+            split: place_features(places[split], backbone, held_as, masks, skip_levels=levels[split])
             for split in places
         }
     timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic
     return Prepared(places, backbone, semantic, mask_source, features, storage)
 
 
-def init_aggregator(cfg: DictConfig, retriever: Retriever, job: Prepared) -> dict[str, Any]:
+def init_aggregator(settings: Settings, retriever: Retriever, job: Prepared) -> dict[str, Any]:
     """Initialise the retriever's aggregator from a sample of the job's training features (labelled by
     the teacher's pseudo-labels where it asks for labels); returns what was used."""
     labels = None
@@ -562,9 +520,8 @@ def init_aggregator(cfg: DictConfig, retriever: Retriever, job: Prepared) -> dic
             semantic.labels_dir,
             semantic.labels_root,
             job.places["train"].db_paths,
-            list(cfg.teacher.static_classes),
-            grid_size(job.backbone, tuple(cfg.data.image_size)),
+            list(settings.model.static_classes),
+            grid_size(job.backbone, settings.data.image_size),
         )
-    return initialise_aggregator(
-        retriever.aggregator, job.backbone, job.features["train"].db, init_sample_of(cfg), labels
-    )
+    train = job.features["train"].db
+    return initialise_aggregator(retriever.aggregator, job.backbone, train, settings.model.init, labels)

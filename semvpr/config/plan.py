@@ -1,7 +1,9 @@
-"""What a job decides once from its config, before it builds anything: the device every stage runs on, the
-threads of each stage, its DDP ranks, its mask source (:class:`MaskPlan`: the class, its node, the teacher's and
-student's typed settings) and whether it needs the semantic side (teacher, pseudo-labels, student).
-:func:`job_plan` makes it as the job starts; the builders read it instead of deciding again.
+"""What a job decides once from its config, before it builds anything: its settings, typed (:class:`Settings`:
+the data, the feature storage, the model, the mask source, the training recipe, the DDP ranks), the device every
+stage runs on and the threads of each stage. :func:`settings_of` and :func:`job_plan` make them as the job starts;
+the builders (``config/build.py``) take them instead of reading the config again. The nodes a builder
+instantiates (a data reader, the backbone, the aggregator, the mask source, the trainer) travel in them as
+config nodes: Hydra builds those objects.
 
 A job runs on one device (``core/device.py``): the CPU, or a GPU: a DDP rank's own (its local rank), the one
 a sweep job leases (:func:`sweep_gpu`: a GPU per job where several are visible), else the first.
@@ -17,15 +19,22 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from semvpr.config.components import component_class
+from semvpr.config.components import component_class, instantiate_node, loss_class
+from semvpr.config.record import record_of
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
 from semvpr.core.threads import JOBS_BESIDE, Threads, standard_start_method, usable_cores
 from semvpr.models.masks import MaskSource
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
+from semvpr.retrieval.initialisation import InitSample
 from semvpr.retrieval.launch import local_rank
+from semvpr.retrieval.losses import TripletLoss
+from semvpr.retrieval.mining import Mining
+from semvpr.retrieval.places import PlaceBatching
+from semvpr.retrieval.retriever import Optimization
 
 
 @dataclass(frozen=True)
@@ -51,25 +60,216 @@ def mask_plan(cfg: DictConfig) -> MaskPlan:
 
 
 @dataclass(frozen=True)
+class DataSettings:
+    """The place sets of ``data``: the reader node of each split (None where the data has none: evaluation
+    only), the image size the models see, loader workers, the evaluation radius, and the Cityscapes-format set
+    an embedded teacher trains on (``segmentation``: its ``train`` and ``val`` reader nodes, or None)."""
+
+    name: str
+    domain: str | None
+    image_size: tuple[int, int]
+    num_workers: int
+    eval_radius: float | None
+    splits: dict[str, Any]
+    segmentation: Any
+
+
+@dataclass(frozen=True)
+class Storage:
+    """Where artifacts are cached (``paths.cache_dir``) and how frozen-trunk features are held (``features``:
+    ``storage`` auto / ram / disk / stream within ``ram_gb`` and ``disk_gb``)."""
+
+    cache_dir: Path
+    storage: str
+    ram_gb: float
+    disk_gb: float
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """The retriever's structure: the ``backbone`` node (its ``module`` builds it), the ``aggregator`` node
+    (``aggregator.module``) and its class, PCA whitening (``pca_dim``), the describing batch, the aggregator's
+    initialisation sample, the mask's ``weighting`` (binary or learned) and ``mask_name``, the static classes
+    and the learned class weights' initial logit, and ``record``: what a checkpoint records of the config
+    (:func:`~semvpr.config.record.record_of`)."""
+
+    backbone: Any
+    aggregator: Any
+    aggregator_class: type
+    aggregator_name: str
+    pca_dim: int | None
+    eval_batch_size: int
+    init: InitSample
+    weighting: str
+    mask_name: str
+    static_classes: tuple[str, ...]
+    init_logit: float
+    record: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Training:
+    """How the retriever trains (``recipe``, ``trainer``, ``logger``): the batches its loss trains on (tuples
+    mined with ``mining``, or places drawn with ``batching``: the other is None), the optimisation, the Lightning
+    trainer's and loggers' nodes, the checkpoint a killed run resumes from (``ckpt_path``) and the test
+    queries whose retrievals and maps the report's figures show (``figure_queries``)."""
+
+    mining: Mining | None
+    batching: PlaceBatching | None
+    optimization: Optimization
+    trainer: Any
+    loggers: tuple[Any, ...]
+    ckpt_path: str | None
+    figure_queries: int
+
+
+@dataclass(frozen=True)
+class Settings:
+    """A retrieval job's config, typed once (:func:`settings_of`): what the builders read."""
+
+    seed: int
+    data: DataSettings
+    storage: Storage
+    model: ModelSettings
+    masks: MaskPlan
+    #: DDP processes per node, nodes (:func:`ranks_of`).
+    ranks: tuple[int, int]
+    #: Whether the aggregator's labelled init or the mask needs the semantic side (teacher, labels, student).
+    semantic: bool
+    #: The training recipe; None where the job only describes (eval, localize, the hub).
+    training: Training | None
+    #: The job's ``threads`` setting (auto or a number: semvpr.core.threads) and its trainer's accelerator.
+    threads: str | int
+    accelerator: str
+
+
+def data_settings(cfg: DictConfig) -> DataSettings:
+    """The ``data`` node of ``cfg``, typed."""
+    data = cfg.data
+    radius = data.get("eval_radius")
+    return DataSettings(
+        name=str(data.name),
+        domain=data.get("domain"),
+        image_size=(int(data.image_size[0]), int(data.image_size[1])),
+        num_workers=int(data.num_workers),
+        eval_radius=None if radius is None else float(radius),
+        splits={split: data.get(split) for split in ("train", "val", "test")},
+        segmentation=data.get("segmentation"),
+    )
+
+
+def settings_of(cfg: DictConfig, training: bool = False) -> Settings:
+    """The settings of a retrieval job of ``cfg``; ``training`` adds its recipe (:class:`Training`)."""
+    model, masks = cfg.model, mask_plan(cfg)
+    aggregator = component_class(cfg, "aggregator")
+    return Settings(
+        seed=int(cfg.seed),
+        data=data_settings(cfg),
+        storage=Storage(
+            Path(str(cfg.paths.cache_dir)),
+            str(cfg.features.storage),
+            float(cfg.features.ram_gb),
+            float(cfg.features.disk_gb),
+        ),
+        model=ModelSettings(
+            backbone=cfg.backbone,
+            aggregator=cfg.aggregator.module,
+            aggregator_class=aggregator,
+            aggregator_name=str(cfg.aggregator.name),
+            pca_dim=int(model.pca_dim) if model.get("pca_dim") else None,
+            eval_batch_size=int(model.eval_batch_size),
+            init=InitSample(int(model.init_features), int(model.init_per_image), int(cfg.seed)),
+            weighting=str(cfg.mask.weights),
+            mask_name=str(cfg.mask.name),
+            static_classes=tuple(cfg.teacher.static_classes),
+            init_logit=float(model.class_weights.init_logit),
+            record=record_of(cfg),
+        ),
+        masks=masks,
+        ranks=ranks_of(cfg.trainer) if "trainer" in cfg else (1, 1),
+        semantic=aggregator.init_sample == "labelled" or masks.needs in ("teacher", "student"),
+        training=_training(cfg) if training else None,
+        threads=cfg.get("threads", "auto"),
+        accelerator=str(cfg.trainer.accelerator) if "trainer" in cfg else "cpu",
+    )
+
+
+def _training(cfg: DictConfig) -> Training:
+    """The recipe, trainer and loggers of ``cfg`` (``recipe.batch_size`` is the global batch)."""
+    recipe, seed = cfg.recipe, int(cfg.seed)
+    places = loss_class(cfg).batches == "places"
+    node = recipe.get("loss")
+    scheduler = recipe.get("scheduler")
+    return Training(
+        mining=None
+        if places
+        else Mining(
+            batch_size=int(recipe.batch_size),
+            cache_refresh=int(recipe.cache_refresh),
+            queries_per_epoch=recipe.queries_per_epoch,
+            seed=seed,
+            positive_radius=float(recipe.positive_radius),
+            negative_radius=float(recipe.negative_radius),
+            num_negatives=int(recipe.num_negatives),
+            negative_candidates=int(recipe.negative_candidates),
+            margin=float(recipe.margin),
+        ),
+        batching=PlaceBatching(
+            places_per_batch=int(recipe.places_per_batch),
+            images_per_place=int(recipe.images_per_place),
+            separation=float(recipe.place_separation),
+            seed=seed,
+        )
+        if places
+        else None,
+        optimization=Optimization(
+            instantiate(recipe.optimizer),
+            instantiate(scheduler) if scheduler is not None else None,
+            float(recipe.get("margin", 0.1)),
+            float(recipe.class_weights.lr),
+            loss=TripletLoss(float(recipe.margin)) if node is None else instantiate_node(node),
+            warmup_steps=int(recipe.get("warmup_steps", 0)),
+            scheduler_interval=str(recipe.get("scheduler_interval", "epoch")),
+        ),
+        trainer=cfg.trainer,
+        loggers=tuple(cfg.logger.values()),
+        ckpt_path=cfg.get("ckpt_path"),
+        figure_queries=int(cfg.num_figure_queries),
+    )
+
+
+@dataclass(frozen=True)
 class JobPlan:
     """One job's decisions: ``device`` (every stage's), ``threads`` (each stage's, adopted for its frozen
-    passes), ``ranks`` (DDP processes per node, nodes), ``masks`` (its mask source) and ``semantic`` (whether
-    the aggregator's labelled init or the mask needs the teacher)."""
+    passes) and its ``settings``."""
 
     device: torch.device
     threads: Threads
-    ranks: tuple[int, int]
-    masks: MaskPlan
-    semantic: bool
+    settings: Settings
+
+    @property
+    def masks(self) -> MaskPlan:
+        """Its mask source."""
+        return self.settings.masks
+
+    @property
+    def ranks(self) -> tuple[int, int]:
+        """DDP processes per node, nodes."""
+        return self.settings.ranks
+
+    @property
+    def semantic(self) -> bool:
+        """Whether it builds the semantic side (teacher, pseudo-labels, student)."""
+        return self.settings.semantic
 
 
-def job_plan(cfg: DictConfig, device: torch.device | None = None) -> JobPlan:
-    """The plan of a training job of ``cfg`` on ``device`` (default: :func:`job_device`'s)."""
-    device = device if device is not None else job_device(cfg)
-    masks = mask_plan(cfg)
-    semantic = component_class(cfg, "aggregator").init_sample == "labelled" or masks.needs in ("teacher", "student")
-    threads = thread_plan(cfg, gpu=device.type == "cuda")
-    return JobPlan(device, threads, ranks_of(cfg.trainer), masks, semantic)
+def job_plan(cfg: DictConfig, device: torch.device | None = None, training: bool = True) -> JobPlan:
+    """The plan of a job of ``cfg`` on ``device`` (default: :func:`job_device`'s), its threads adopted;
+    ``training``: with its recipe (:func:`settings_of`). The training command makes its own from the device
+    its sweep leases it."""
+    settings = settings_of(cfg, training)
+    device = device if device is not None else job_device(settings)
+    return JobPlan(device, job_threads(settings, device), settings)
 
 
 def student_spec(cfg: DictConfig) -> StudentSpec:
@@ -93,19 +293,18 @@ def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:
     return devices, int(trainer_cfg.get("num_nodes", 1))
 
 
-def job_device(cfg: DictConfig, leased: int | None = None) -> torch.device:
+def job_device(settings: Settings, leased: int | None = None) -> torch.device:
     """The one device of a training job, from its trainer: the CPU, or a GPU: a DDP rank's own
     (:func:`local_rank`), a sweep job's leased one (``leased``), else the first."""
-    accelerator = str(cfg.trainer.accelerator)
-    if accelerator.lower() not in GPU_WORDS:
+    if settings.accelerator.lower() not in GPU_WORDS:
         return resolve("cpu")
-    if ranks_of(cfg.trainer) != (1, 1):
+    if settings.ranks != (1, 1):
         return resolve("cuda", local_rank())
     return resolve("cuda", leased)
 
 
 @contextmanager
-def sweep_gpu(cfg: DictConfig, run_dir: Path) -> Iterator[int | None]:
+def sweep_gpu(settings: Settings, run_dir: Path) -> Iterator[int | None]:
     """The GPU a one-GPU job of a sweep takes for its life where several are visible (``GpuLease`` in the
     sweep directory), so that the jobs a launcher runs side by side never share one; None elsewhere."""
     from hydra.core.hydra_config import HydraConfig
@@ -113,7 +312,7 @@ def sweep_gpu(cfg: DictConfig, run_dir: Path) -> Iterator[int | None]:
 
     gpus = visible_gpus()
     multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    gpu_job = str(cfg.trainer.accelerator).lower() in GPU_WORDS and ranks_of(cfg.trainer) == (1, 1)
+    gpu_job = settings.accelerator.lower() in GPU_WORDS and settings.ranks == (1, 1)
     if not (multirun and gpu_job and len(gpus) > 1):
         yield None
         return
@@ -144,9 +343,20 @@ def thread_plan(cfg: DictConfig, gpu: bool | None = None) -> Threads:
     """The threads of this process (``threads``: auto or a number; semvpr.core.threads), given the job's DDP
     ranks on this node and the jobs its launcher runs beside it, and whether its networks run on a GPU
     (``gpu``; by default its trainer's accelerator), adopted as the running job's plan; every command calls
-    it (or :func:`job_plan`) as its job starts."""
+    it (or :func:`job_threads`) as its job starts."""
     ranks = ranks_of(cfg.trainer)[0] if "trainer" in cfg else 1
     if gpu is None:
         gpu = "trainer" in cfg and str(cfg.trainer.accelerator).lower() in GPU_WORDS
+    return _adopted_threads(cfg.get("threads", "auto"), ranks, gpu)
+
+
+def job_threads(settings: Settings, device: torch.device) -> Threads:
+    """The threads of a job of ``settings`` on ``device``, adopted (:func:`thread_plan`)."""
+    return _adopted_threads(settings.threads, settings.ranks[0], device.type == "cuda")
+
+
+def _adopted_threads(setting: str | int, ranks: int, gpu: bool) -> Threads:
+    """The threads of ``setting`` for ``ranks`` DDP processes on this node, the jobs the launcher runs beside
+    this one and its networks on a GPU (``gpu``) or not, adopted as the running job's plan."""
     standard_start_method()  # a job in a joblib worker: data loaders need a standard start method
-    return Threads.resolve(cfg.get("threads", "auto"), ranks, launcher_jobs(), gpu=gpu).adopt()
+    return Threads.resolve(setting, ranks, launcher_jobs(), gpu=gpu).adopt()

@@ -27,7 +27,6 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.core.checkpoint import FORMAT, check_values, segmenter_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
-from semvpr.core.provenance import TrainedOn
 
 CONF = Path(CONF_DIR)
 #: Config groups that define the model; each group file names itself in its ``name`` key.
@@ -42,9 +41,10 @@ PATH_KEYS = (("teacher", "checkpoint"), ("student", "checkpoint"))
 _HF_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*/[A-Za-z0-9][A-Za-z0-9_.\-]*$")
 
 
-def record_of(cfg: DictConfig, segmenter: TrainedOn | None = None) -> dict[str, Any]:
-    """What a checkpoint records about a run's model: format, group choices, plain values, seed, and the data
-    the mask's segmenter was trained on (``segmenter``; absent without one)."""
+def record_of(cfg: DictConfig) -> dict[str, Any]:
+    """What a checkpoint records about a run's model: format, group choices, plain values and seed (the
+    retriever's builder adds the grid a fixed-grid aggregator was built for and the data the mask's segmenter
+    was trained on: ``config.build.build_retriever``)."""
     config: dict[str, Any] = {}
     for group in (*GROUPS, *NODES):
         node = OmegaConf.to_container(cfg[group], resolve=True)
@@ -56,8 +56,6 @@ def record_of(cfg: DictConfig, segmenter: TrainedOn | None = None) -> dict[str, 
         "config": config,
         "seed": int(cfg.seed),
     }
-    if segmenter is not None:
-        record["segmenter"] = segmenter.as_dict()
     return record
 
 

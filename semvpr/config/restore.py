@@ -46,7 +46,7 @@ from semvpr.config.build import (
 )
 from semvpr.config.checks import check_model
 from semvpr.config.components import component_class, options
-from semvpr.config.plan import job_plan, mask_plan
+from semvpr.config.plan import job_plan, settings_of
 from semvpr.config.record import check_recorded_paths, model_config
 from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
 from semvpr.core.errors import SemvprError
@@ -133,11 +133,10 @@ def _trained_retriever(
         # The checkpoint's own segmenter weights are not loaded; without a mask, neither are class weights.
         dropped = ("mask_source.",) if merged.mask.module is not None else ("mask_source.", "class_weights.")
         state = {k: v for k, v in state.items() if not k.startswith(dropped)}
-    masks = mask_plan(merged)
-    backbone = build_backbone(merged.backbone, int(merged.seed), pretrained=False)
-    retriever = build_retriever(
-        merged, backbone, build_mask_source(masks, backbone) if replaced is None else None, training=False
-    )
+    settings = settings_of(merged)
+    masks = settings.masks
+    backbone = build_backbone(merged.backbone, settings.seed, pretrained=False)
+    retriever = build_retriever(settings, backbone, build_mask_source(masks, backbone) if replaced is None else None)
     misfit = weights_misfit(state, retriever.state_dict())
     if misfit is not None:
         raise SemvprError(f"{where} does not fit {trained}: {misfit}")
@@ -213,13 +212,14 @@ def released_retriever(cfg: DictConfig, explicit: set[str], release: Release) ->
             merged.data.image_size = list(layout.image_size)
     replaced = replace_mask(cfg, explicit, merged, where)
     merged = merged if replaced is None else replaced
-    backbone = build_backbone(merged.backbone, int(merged.seed), pretrained=False)
-    retriever = build_retriever(merged, backbone, None, training=False)
+    settings = settings_of(merged)
+    backbone = build_backbone(merged.backbone, settings.seed, pretrained=False)
+    retriever = build_retriever(settings, backbone, None)
     # A release holds the backbone and the aggregator; no whitening, no mask source, no class weights.
     expected = {k: v for k, v in retriever.state_dict().items() if k.startswith(("backbone.", "aggregator."))}
     retriever.load_state_dict(map_release(release, expected), strict=False)
     # Built once the trunk holds the release's weights: a student directory is checked against that trunk.
-    retriever.mask_source = build_mask_source(mask_plan(merged), backbone)
+    retriever.mask_source = build_mask_source(settings.masks, backbone)
     return retriever, merged
 
 
@@ -315,14 +315,15 @@ def untrained_retriever(
             f"ckpt=none: mask.weights={merged.mask.weights} has class weights that only VPR training learns; "
             "use mask.weights=binary"
         )
-    masks = mask_plan(merged)
+    settings = settings_of(merged)
+    masks = settings.masks
     if masks.needs in SEGMENTER_GROUPS and not merged[masks.needs].get("checkpoint"):
         raise SemvprError(
             f"ckpt=none: mask={merged.mask.name} needs a saved {masks.needs}: add {masks.needs}.checkpoint=DIR "
             f"({_saved_as(masks.needs)})"
         )
-    backbone = build_backbone(merged.backbone, int(merged.seed)).eval()
-    retriever = build_retriever(merged, backbone, build_mask_source(masks, backbone), training=False)
+    backbone = build_backbone(merged.backbone, settings.seed).eval()
+    retriever = build_retriever(settings, backbone, build_mask_source(masks, backbone))
     if retriever.aggregator.init_sample != "none":
         used = initialise_untrained(merged, retriever, evaluated)
         say(f"ckpt=none: {merged.aggregator.name} initialised on {used}")
@@ -404,7 +405,10 @@ def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Calla
             f"init.data={cfg.init.data} has no train split to initialise {cfg.aggregator.name} on; name a place "
             "set with one (synthcity, or folder / pitts30k / msls with init.root=DIR)"
         )
-    places = build_places(init_cfg, ("train",))
+    backbone = retriever.backbone
+    plan = job_plan(init_cfg, next(backbone.parameters()).device, training=False)
+    settings = plan.settings
+    places = build_places(settings.data, ("train",))
     train = places["train"]
     seen = {p.resolve() for p in evaluated()}
     shared = [p for p in train.db_paths if p.resolve() in seen] if seen else []
@@ -413,13 +417,11 @@ def initialise_untrained(cfg: DictConfig, retriever: Retriever, evaluated: Calla
             f"init.data={cfg.init.data}: {len(shared)} of its training images are evaluated here (e.g. {shared[0]}); "
             "an untrained aggregator's k-means must not see the evaluated set: name another init.data"
         )
-    backbone = retriever.backbone
-    storage = feature_storage(init_cfg, backbone, places)
-    plan = job_plan(init_cfg, next(backbone.parameters()).device)
-    semantic = build_semantic(init_cfg, plan, train, backbone, storage=storage)
-    features = place_features(train, backbone, store_settings(init_cfg, storage))
+    storage = feature_storage(settings, backbone, places)
+    semantic = build_semantic(plan, train, backbone, storage=storage)
+    features = place_features(train, backbone, store_settings(settings, storage))
     job = Prepared(places, backbone, semantic, None, {"train": features}, storage)
-    used = init_aggregator(init_cfg, retriever, job)
+    used = init_aggregator(settings, retriever, job)
     return f"{train.name} ({len(train.db_paths)} database images at {list(init_cfg.data.image_size)}): {used}"
 
 

@@ -138,6 +138,7 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(
     activation memory does not grow with the batch; descriptors are those of one whole-batch pass."""
     import semvpr.models.backbones as backbones
     from semvpr.config.build import build_places
+    from semvpr.config.plan import data_settings
     from semvpr.config.restore import load_retriever
     from semvpr.retrieval.descriptors import place_descriptors
     from semvpr.retrieval.features import grid_size
@@ -160,7 +161,11 @@ def test_eval_batches_larger_than_the_memory_budget_run_in_chunks(
         seen = record_first_unit_batches(retriever.backbone)
         return np.array(
             place_descriptors(
-                retriever, build_places(merged, ("test",))["test"], "db", merged.data.image_size, merged.paths.cache_dir
+                retriever,
+                build_places(data_settings(merged), ("test",))["test"],
+                "db",
+                merged.data.image_size,
+                merged.paths.cache_dir,
             )
         ), seen
 
@@ -221,6 +226,7 @@ def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
     process holds no per-image map or descriptor of the set in its own memory, and the descriptors are those of
     the trunk held in RAM, bit for bit."""
     from semvpr.config.build import build_places, feature_storage
+    from semvpr.config.plan import data_settings, settings_of
     from semvpr.config.restore import load_retriever
     from semvpr.retrieval.descriptors import place_descriptors
     from semvpr.retrieval.features import StoreSettings, place_features
@@ -239,8 +245,8 @@ def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
         config_name="eval",
     )
     retriever, merged = load_retriever(cfg)
-    test = build_places(merged, ("test",))["test"]
-    storage = feature_storage(merged, retriever.backbone, {"test": test})
+    test = build_places(data_settings(merged), ("test",))["test"]
+    storage = feature_storage(settings_of(merged), retriever.backbone, {"test": test})
     assert storage == ("ram" if ram_gb == 8 else "disk")
     seen: list[tuple[Path | None, Path | None]] = []
     describe_store = Retriever.describe_store

@@ -110,10 +110,11 @@ def descriptors(world: dict[str, Path], ckpt: str, cache: Path, *overrides: str)
     thread-invariant (seen on an AMD EPYC with AVX512-BF16: 2e-8 apart at 1 and 2 threads), descriptors made
     at another count differ in their last bits, which is not what these tests compare."""
     from semvpr.config.build import build_places
+    from semvpr.config.plan import data_settings
     from semvpr.retrieval.descriptors import place_descriptors
 
     retriever, merged = load(world, ckpt, cache, *overrides)
-    test = build_places(merged, ("test",))["test"]
+    test = build_places(data_settings(merged), ("test",))["test"]
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

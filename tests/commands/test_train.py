@@ -20,6 +20,7 @@ from omegaconf import OmegaConf
 
 from semvpr import train
 from semvpr.config.build import build_aggregator, build_backbone
+from semvpr.config.plan import settings_of
 from semvpr.core.checkpoint import confine_callback_state
 from semvpr.core.errors import SemvprError
 from semvpr.train import run_job
@@ -79,7 +80,7 @@ def test_fast_dev_run_each_aggregator_with_a_mask(
         cache_dir, f"aggregator={aggregator}", "mask=oracle", "model.pca_dim=8", "+trainer.fast_dev_run=true"
     )
     backbone = build_backbone(cfg.backbone, cfg.seed)
-    assert build_aggregator(cfg.copy(), backbone).output_dim == (dim or backbone.out_channels)
+    assert build_aggregator(settings_of(cfg), backbone).output_dim == (dim or backbone.out_channels)
     metrics = run_job(cfg, tmp_path)
     # PCA whitening works on any aggregator's descriptor
     assert (metrics["aggregator"], metrics["mask"], metrics["descriptor_dim"]) == (aggregator, "oracle", 8)

@@ -109,6 +109,7 @@ def test_cli_frames_positives_are_the_frame_window(frames: Path, tmp_path: Path)
 
 def test_the_gardens_point_preset_names_its_traversals(tmp_path: Path) -> None:
     from semvpr.config.build import build_places
+    from semvpr.config.plan import data_settings
 
     root = write_frames(
         tmp_path / "gp", {t: list(range(5)) for t in ("day_left", "day_right", "night_right")}, name="Image{:03d}.jpg"
@@ -116,22 +117,23 @@ def test_the_gardens_point_preset_names_its_traversals(tmp_path: Path) -> None:
     (root / "night_right" / "Thumbs.db").write_bytes(b"")  # not an image: not read
     cfg = config("data=gardens_point", f"data.root={root}", "+ckpt=none", config_name="eval")
     assert list(cfg.data.image_size) == [270, 480] and cfg.data.frame_window == 2
-    test = build_places(cfg, ("test",))["test"]
+    test = build_places(data_settings(cfg), ("test",))["test"]
     assert test.name == "gardens_point day_left→night_right ±2"
     assert [p.tolist() for p in test.positives()] == [[0, 1, 2], [0, 1, 2, 3], [0, 1, 2, 3, 4], [1, 2, 3, 4], [2, 3, 4]]
     other = config(
         "data=gardens_point", f"data.root={root}", "data.database=day_right", "+ckpt=none", config_name="eval"
     )
-    assert build_places(other, ("test",))["test"].name == "gardens_point day_right→night_right ±2"
+    assert build_places(data_settings(other), ("test",))["test"].name == "gardens_point day_right→night_right ±2"
 
 
 def test_nordland_keeps_its_commands_and_protocol_id(tmp_path: Path) -> None:
     from semvpr.config.build import build_places
+    from semvpr.config.plan import data_settings
 
     root = write_frames(tmp_path / "nordland", {"ref": [0, 1, 2], "query": [0, 1, 2]}, name="{:05d}.png")
     cfg = config("data=nordland", f"data.root={root}", "data.frame_window=1", "+ckpt=none", config_name="eval")
     assert cfg.data.benchmark == "nordland±1"  # published-number lookups key on the protocol id
-    assert build_places(cfg, ("test",))["test"].name == "nordland ref→query ±1"
+    assert build_places(data_settings(cfg), ("test",))["test"].name == "nordland ref→query ±1"
 
 
 REFUSED = {
@@ -185,10 +187,11 @@ def test_untrained_netvlad_and_sral_are_a_training_runs_initialisation(tmp_path:
 
     retriever, _ = untrained(tmp_path, f"aggregator={aggregator}")
     train_cfg = tiny_config(tmp_path, f"aggregator={aggregator}")
-    job = prepare(train_cfg, job_plan(train_cfg), {})
-    reference = build_retriever(train_cfg, job.backbone, None, training=False)
+    plan = job_plan(train_cfg)
+    job = prepare(plan, {})
+    reference = build_retriever(plan.settings, job.backbone, None)
     constructed = {k: v.clone() for k, v in reference.aggregator.state_dict().items()}
-    init_aggregator(train_cfg, reference, job)
+    init_aggregator(plan.settings, reference, job)
     for name, value in reference.aggregator.state_dict().items():
         assert torch.equal(retriever.aggregator.state_dict()[name], value), name
     assert not torch.equal(constructed["centroids"], reference.aggregator.state_dict()["centroids"])
@@ -221,6 +224,7 @@ def test_the_kmeans_never_reads_the_evaluated_set(tmp_path: Path) -> None:
 
 def test_untrained_models_with_a_student_directory_and_the_refusals(frames: Path, tmp_path: Path) -> None:
     from semvpr.config.build import build_backbone, build_places
+    from semvpr.config.plan import data_settings
     from semvpr.retrieval.descriptors import place_descriptors
     from tests.helpers import tiny_config
 
@@ -229,7 +233,7 @@ def test_untrained_models_with_a_student_directory_and_the_refusals(frames: Path
     plain, merged = untrained(tmp_path, "aggregator=gem", root=frames)
     masked, _ = untrained(tmp_path, "aggregator=gem", "mask=student", f"student.checkpoint={student}", root=frames)
     assert masked.aggregator.fc is None and masked.mask_source.student.trained_on.name == "camvid"
-    test = build_places(merged, ("test",))["test"]
+    test = build_places(data_settings(merged), ("test",))["test"]
     a = place_descriptors(plain, test, "db", merged.data.image_size, tmp_path / "d")
     b = place_descriptors(masked, test, "db", merged.data.image_size, tmp_path / "d")
     assert not np.allclose(a, b)

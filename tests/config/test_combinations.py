@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from semvpr.config.build import build_backbone, build_retriever
+from semvpr.config.plan import settings_of
 from semvpr.retrieval.losses import triplet_loss
 from tests.helpers import config
 
@@ -28,7 +29,7 @@ def test_backbone_experiment_composes_and_steps(backbone: str, experiment: str |
     cfg.backbone.weights = "none" if backbone != "efficientnet_lite0" else cfg.backbone.weights
     torch.manual_seed(0)
     model = build_backbone(cfg.backbone, cfg.seed)
-    retriever = build_retriever(cfg, model, None)
+    retriever = build_retriever(settings_of(cfg, training=True), model, None)
     aggregator = retriever.aggregator
     optimizer = retriever.configure_optimizers()
     optimizer = optimizer["optimizer"] if isinstance(optimizer, dict) else optimizer

@@ -204,10 +204,12 @@ def test_a_format_2_record_with_a_model_group_loads_its_structure(tmp_path: Path
 def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Path) -> None:
     trained = tiny_config(tmp_path, "aggregator=mixvpr")
     state = write_checkpoint(trained, tmp_path / "run.ckpt")
-    assert trained.aggregator.module.grid is not None  # filled in from the backbone's grid, recorded
+    # Left null in the config, filled in from the backbone's grid at data.image_size, recorded.
+    grid = torch.load(tmp_path / "run.ckpt", weights_only=True)["hyper_parameters"]["config"]["aggregator"]["module"]
+    assert trained.aggregator.module.grid is None and grid["grid"] == [4, 5]  # 64 x 80 at stride 16
     cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[96,128]", config_name="eval")
     retriever, merged = load_retriever(cfg)
-    assert list(merged.aggregator.module.grid) == list(trained.aggregator.module.grid)
+    assert list(merged.aggregator.module.grid) == [4, 5]
     assert all(torch.equal(retriever.state_dict()[k], state[k]) for k in state)
     with torch.no_grad():  # a larger feature grid than trained: pooled to the recorded one
         assert retriever(torch.rand(2, 3, 96, 128)).shape == (2, retriever.aggregator.output_dim)
@@ -330,7 +332,7 @@ def test_checkpoints_are_staged_beside_their_target_never_in_tmpdir(
     tmpdir.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
     cfg = tiny_config(tmp_path / "cache")
-    trainer = build_trainer(cfg, job_plan(cfg), tmp_path / "run", [])
+    trainer = build_trainer(job_plan(cfg), tmp_path / "run", [])
     io = trainer.strategy.checkpoint_io
     assert isinstance(io, RunCheckpointIO)
     moves: list[str] = []

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from semvpr.config.build import build_retriever, prepare
-from semvpr.config.plan import job_device, job_plan
+from semvpr.config.plan import job_device, job_plan, settings_of
 from semvpr.core.device import GpuLease, resolve, sweep_jobs
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import (
@@ -58,13 +58,13 @@ def test_every_stage_is_built_on_the_job_device(tmp_path: Path, monkeypatch: pyt
         return build_teacher(*args, **kwargs)
 
     monkeypatch.setattr(training, "build_teacher", teacher_spy)
-    device = job_device(cfg)
+    device = job_device(settings_of(cfg))
     assert device == torch.device("cpu")
-    job = prepare(cfg, job_plan(cfg, device), {})
+    job = prepare(job_plan(cfg, device), {})
     # The mask source holds buffers of its own (class weights) besides its segmenter's: the masks of the
     # trunk pass are made before the retriever (which would carry it along) exists, so it is moved itself.
     assert any(m is job.mask_source for m in moved)
-    retriever = build_retriever(cfg, job.backbone, job.mask_source)
+    retriever = build_retriever(settings_of(cfg, training=True), job.backbone, job.mask_source)
     assert asked == [device]  # the teacher is built (and would be trained) on the job's device
     assert seen and set(seen) == {device}, seen
     assert _devices_of(retriever) == {device}
@@ -216,9 +216,9 @@ def test_the_gather_runs_on_the_collective_device_and_returns_to_the_rows_device
 def test_a_tiny_gpu_job_runs_every_stage_on_cuda(tmp_path: Path) -> None:
     cfg = tiny_config(tmp_path / "cache", "filter=unet", "threads=1", "trainer=gpu")
     with job_precision("bf16-mixed", "gpu"):
-        device = job_device(cfg)
-        job = prepare(cfg, job_plan(cfg, device), {})
-        retriever = build_retriever(cfg, job.backbone, job.mask_source)
+        device = job_device(settings_of(cfg))
+        job = prepare(job_plan(cfg, device), {})
+        retriever = build_retriever(settings_of(cfg, training=True), job.backbone, job.mask_source)
     assert device.type == "cuda" and _devices_of(retriever) == {device}
     assert _devices_of(job.semantic.student) == {device}
 
@@ -251,4 +251,4 @@ def test_a_ddp_rank_takes_the_gpu_of_its_local_rank(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 4)
     cfg = tiny_config(Path("/nonexistent"), "trainer=ddp", "trainer.devices=4")
-    assert job_device(cfg) == torch.device("cuda", 1)
+    assert job_device(settings_of(cfg)) == torch.device("cuda", 1)

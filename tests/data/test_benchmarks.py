@@ -376,6 +376,7 @@ needs_gardens = pytest.mark.skipif(
 def test_real_gardens_point_reads_as_two_frame_aligned_traversals(database: str, queries: str) -> None:
     """The preset on the real folder: 200 frames a side, frame i's positives the frames i-2 .. i+2."""
     from semvpr.config.build import build_places
+    from semvpr.config.plan import data_settings
     from tests.helpers import config
 
     cfg = config(
@@ -386,7 +387,7 @@ def test_real_gardens_point_reads_as_two_frame_aligned_traversals(database: str,
         "+ckpt=none",
         config_name="eval",
     )
-    test = build_places(cfg, ("test",))["test"]
+    test = build_places(data_settings(cfg), ("test",))["test"]
     assert test.name == f"gardens_point {database}→{queries} ±2"
     assert (len(test.db_paths), len(test.q_paths)) == (200, 200)
     assert [p.name for p in test.q_paths[:2]] == ["Image000.jpg", "Image001.jpg"]

@@ -158,6 +158,7 @@ def test_bad_settings_are_one_line(frames: Path, camvid: Path, tmp_path: Path, s
 
 def test_the_frames_config_passes_the_setting_and_the_cache(frames: Path, camvid: Path, tmp_path: Path) -> None:
     from semvpr.config.build import build_places
+    from semvpr.config.plan import data_settings
 
     cfg = config(
         "data=frames",
@@ -171,7 +172,7 @@ def test_the_frames_config_passes_the_setting_and_the_cache(frames: Path, camvid
         "+ckpt=none",
         config_name="eval",
     )
-    test = build_places(cfg, ("test",))["test"]
+    test = build_places(data_settings(cfg), ("test",))["test"]
     assert test.q_labels is not None and test.q_paths[0].is_relative_to(tmp_path)
     assert abs(np.mean([(pixels(p) != MAGENTA).any(-1).mean() for p in test.q_paths]) - 0.1) <= 0.02
     assert torch.is_tensor(OracleMask()(None, [], list(test.q_labels)))

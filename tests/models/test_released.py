@@ -598,14 +598,14 @@ def test_a_student_is_refused_on_dinov2_token_maps_and_a_run_without_one_trains(
     """A student decodes image-aligned maps: on the DINOv2 trunk it is one line, and a run whose semantic side
     could have a student (SynthCity's labels) plans its trunk pass without one."""
     from semvpr.config.build import semantic_levels
-    from semvpr.config.plan import mask_plan, student_spec
+    from semvpr.config.plan import settings_of, student_spec
     from semvpr.models.student import student_architecture
 
     cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", "data.image_size=[70,98]")
     trunk = build_backbone(cfg.backbone, 0)
     with pytest.raises(SemvprError, match="token maps: use mask=teacher or mask=oracle"):
         student_architecture(student_spec(cfg), trunk)
-    assert semantic_levels(cfg, mask_plan(cfg), trunk, None)[1] == set()
+    assert semantic_levels(settings_of(cfg), trunk, None)[1] == set()
 
 
 def test_the_class_token_goes_with_salads_class_token_only(tmp_path: Path) -> None:

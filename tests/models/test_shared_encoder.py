@@ -21,7 +21,7 @@ from semvpr.config.build import (
     semantic_teacher,
     trunk_outputs,
 )
-from semvpr.config.plan import job_plan, mask_plan, teacher_spec
+from semvpr.config.plan import data_settings, job_plan, mask_plan, teacher_spec
 from semvpr.core.precision import autocast
 from semvpr.data.images import load_image
 from semvpr.models.masks import StudentMask, TeacherMask, pool_to_grid
@@ -45,13 +45,13 @@ def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A cache holding tiny SynthCity and its trained embedded teacher (trained once for the module)."""
     cache = tmp_path_factory.mktemp("shared")
     cfg = tiny_config(cache, "filter=mask2former")
-    build_places(cfg)
-    semantic_teacher(cfg, job_plan(cfg), build_backbone(cfg.backbone, 0))
+    build_places(data_settings(cfg))
+    semantic_teacher(job_plan(cfg), build_backbone(cfg.backbone, 0))
     return cache
 
 
 def _images(cfg, split: str = "train") -> tuple[list[Path], torch.Tensor]:
-    places = build_places(cfg)[split]
+    places = build_places(data_settings(cfg))[split]
     paths = [*places.db_paths, *places.q_paths]
     return paths, torch.stack([load_image(p, tuple(cfg.data.image_size)) for p in paths])
 
@@ -93,7 +93,7 @@ def test_the_teacher_links_only_to_the_trunk_its_encoder_is(tmp_path: Path) -> N
 def test_the_teacher_on_the_trunk_equals_its_own_encoder_within_rounding(cache: Path) -> None:
     cfg = tiny_config(cache, "filter=mask2former")
     trunk = build_backbone(cfg.backbone, 0).eval()
-    teacher = semantic_teacher(cfg, job_plan(cfg), trunk)
+    teacher = semantic_teacher(job_plan(cfg), trunk)
     assert teacher.trunk_levels == (1, 2, 3)
     _, images = _images(cfg)
     size = images.shape[-2:]
@@ -135,7 +135,7 @@ def _stores(cfg, cache: Path, places, trunk, source=None, levels=()):
 def test_one_trunk_pass_gives_the_trunk_the_skips_and_the_masks_of_separate_passes(cache: Path, tmp_path: Path) -> None:
     cfg = tiny_config(cache, "filter=mask2former")
     trunk = build_backbone(cfg.backbone, 0).eval()
-    places = build_places(cfg)["train"]
+    places = build_places(data_settings(cfg))["train"]
     kept = _stores(cfg, tmp_path / "one", places, trunk, levels=(1, 2))  # one pass: trunk and skips
     plain = _stores(cfg, tmp_path / "two", places, trunk)  # the trunk alone, as without a semantic side
     assert kept.db.levels() == {1, 2, 3} and plain.db.levels() == {3}
@@ -152,7 +152,7 @@ def test_one_trunk_pass_gives_the_trunk_the_skips_and_the_masks_of_separate_pass
     # Masks computed from the cached outputs equal those of the one pass that runs the trunk for them.
     torch.manual_seed(0)
     student = StudentMask(student_architecture(StudentSpec(width=8), trunk).eval())
-    teacher = TeacherMask(semantic_teacher(cfg, job_plan(cfg), trunk), list(cfg.teacher.static_classes))
+    teacher = TeacherMask(semantic_teacher(job_plan(cfg), trunk), list(cfg.teacher.static_classes))
     for source, levels in ((student, (1, 2)), (teacher, (1, 2))):
         assert source.trunk_levels((64, 80)) and not source.reads_pixels((64, 80))
         cached = _stores(cfg, tmp_path / "one", places, trunk, source, levels)
@@ -164,7 +164,7 @@ def test_one_trunk_pass_gives_the_trunk_the_skips_and_the_masks_of_separate_pass
 def test_the_student_reads_its_skips_from_the_trunk_cache_bit_for_bit(cache: Path, tmp_path: Path) -> None:
     cfg = tiny_config(cache, "filter=unet")
     trunk = build_backbone(cfg.backbone, 0).eval()
-    places = build_places(cfg)["train"]
+    places = build_places(data_settings(cfg))["train"]
     paths = [*places.db_paths, *places.q_paths]
     labels = tmp_path / "labels-x"
     rng = np.random.default_rng(0)
@@ -205,7 +205,7 @@ def test_a_teacher_that_is_not_the_trunk_runs_its_own_encoder(
         (own / artifact.name).symlink_to(artifact)
     # Held on disk, the trunk pass keeps only what this job reads (in RAM it also keeps the student's skips).
     cfg = tiny_config(own, "filter=mask2former", "features.storage=disk", *overrides)
-    job = prepare(cfg, job_plan(cfg), {})
+    job = prepare(job_plan(cfg), {})
     teacher = job.semantic.teacher
     assert teacher.trunk_levels is None and not job.mask_source.trunk_levels(tuple(cfg.data.image_size))
     assert job.mask_source.identity(tuple(cfg.data.image_size)).get("encoder") is None
@@ -227,7 +227,7 @@ def test_a_linked_run_keys_its_labels_and_masks_apart(cache: Path, tmp_path: Pat
     for artifact in [*cache.glob("synthcity-*"), *cache.glob("teacher-*")]:
         (own / artifact.name).symlink_to(artifact)
     cfg = tiny_config(own, "filter=mask2former")
-    job = prepare(cfg, job_plan(cfg), {})
+    job = prepare(job_plan(cfg), {})
     assert job.semantic.teacher.trunk_levels == (1, 2, 3)
     assert _label_key(own)["encoder"] == "trunk"
     assert job.mask_source.identity((64, 80))["encoder"] == "trunk"

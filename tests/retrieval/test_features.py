@@ -187,7 +187,7 @@ def test_a_training_job_holds_its_trunk_maps_in_ram_only_within_the_budget(tmp_p
 
     for ram_gb, storage in ((8, "ram"), (1e-9, "disk")):
         cfg = tiny_config(tmp_path / "cache", f"features.ram_gb={ram_gb}")
-        job = prepare(cfg, job_plan(cfg), {})
+        job = prepare(job_plan(cfg), {})
         assert job.storage == storage and set(job.features) == {"train", "val", "test"}
         for split, features in job.features.items():
             for side, store in (("db", features.db), ("q", features.q)):

@@ -17,7 +17,8 @@ import torch
 import torch.nn.functional as F
 from pytorch_metric_learning import distances, losses, miners
 
-from semvpr.config.build import build_backbone, build_retriever, loss_of
+from semvpr.config.build import build_backbone, build_retriever
+from semvpr.config.plan import settings_of
 from semvpr.core.errors import SemvprError
 from semvpr.data.gsv_cities import read_gsv_cities
 from semvpr.data.places import PlaceIds, PlaceSet, read_utm_folder
@@ -123,7 +124,7 @@ def _reference_ms_loss(x: torch.Tensor, y: torch.Tensor, alpha: float, beta: flo
 
 
 def test_the_recipe_loss_is_pytorch_metric_learning_ms_loss_with_its_miner() -> None:
-    loss = loss_of(config("recipe=gsv"))
+    loss = settings_of(config("recipe=gsv"), training=True).training.optimization.loss
     assert isinstance(loss, MultiSimilarity)
     assert isinstance(loss.loss, losses.MultiSimilarityLoss) and isinstance(loss.miner, miners.MultiSimilarityMiner)
     # gsv-cities' settings: alpha 1, beta 50, base 0, epsilon 0.1; dot-product loss, cosine miner.
@@ -188,7 +189,7 @@ def test_each_aggregator_takes_its_published_schedule_else_gsv_cities_own() -> N
 def test_warm_up_scales_every_group_linearly_then_leaves_the_rate_to_the_scheduler(tmp_path: Path) -> None:
     cfg = tiny_config(tmp_path, "recipe=gsv", "aggregator=gem", "recipe.warmup_steps=4")
     backbone = build_backbone(cfg.backbone, 0)
-    retriever = build_retriever(cfg, backbone, None)
+    retriever = build_retriever(settings_of(cfg, training=True), backbone, None)
     optimizer = retriever.configure_optimizers()["optimizer"]
     rates = []
     for step in range(6):
