@@ -95,7 +95,7 @@ def train_and_test(
     # job gives the same numbers whether its artifacts were built just now or read from the cache.
     settings = plan.settings
     training = settings.training
-    assert training is not None, "a training job's plan has its recipe (job_plan)"
+    assert training is not None, "a training job's settings hold its recipe (settings_of(cfg, training=True))"
     L.seed_everything(settings.seed, workers=True, verbose=False)
     retriever = build_retriever(settings, job.backbone, job.mask_source)
     describe = sharded(retriever.describe_store, settings.model.eval_batch_size)
