@@ -267,15 +267,15 @@ def semantic_teacher(plan: JobPlan, backbone: Backbone) -> Teacher:
     pixel encoder is that prefix (``Teacher.link_trunk``)."""
     from semvpr.segmentation.training import build_teacher
 
-    settings = plan.masks.teacher
+    spec = plan.masks.teacher
     seg = plan.settings.data.segmentation
-    needs_training = settings.checkpoint is None
+    needs_training = spec.checkpoint is None
     seg_train = instantiate_node(seg.train) if needs_training and seg is not None else None
     seg_val = instantiate_node(seg.val) if needs_training and seg is not None else None
     cache_dir, device = plan.settings.storage.cache_dir, next(backbone.parameters()).device
     with plan.threads.stage("teacher"):
-        teacher = build_teacher(settings, seg_train, seg_val, cache_dir, device)
-    if settings.share_trunk:
+        teacher = build_teacher(spec, seg_train, seg_val, cache_dir, device)
+    if spec.share_trunk:
         teacher.link_trunk(backbone)
     return teacher
 
