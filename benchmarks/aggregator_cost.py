@@ -21,10 +21,9 @@ import time
 from pathlib import Path
 
 import torch
-from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from semvpr.config.components import options
+from semvpr.config.components import build_component, options
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
@@ -33,14 +32,11 @@ DIM, GRID = 112, (12, 15)
 
 
 def build(name: str, **overrides: object) -> torch.nn.Module:
-    """The aggregator of ``conf/aggregator/<name>.yaml`` for the default trunk, with module overrides."""
-    cfg = OmegaConf.load(Path(CONF_DIR) / "aggregator" / f"{name}.yaml")
-    module = OmegaConf.to_container(cfg.module)
-    module.update({"num_clusters": 32} if "num_clusters" in module else {})
-    module.update(overrides)
-    extra = {"grid": GRID} if name == "mixvpr" else {}
-    module.pop("grid", None)
-    return instantiate(module, dim=DIM, **extra).train()
+    """The aggregator of ``conf/aggregator/<name>.yaml`` for the default trunk, with its values overridden."""
+    node = OmegaConf.load(Path(CONF_DIR) / "aggregator" / f"{name}.yaml")
+    node.merge_with({"num_clusters": 32} if "num_clusters" in node else {}, overrides)
+    extra = {"grid": GRID} if "grid" in node else {}
+    return build_component(node, "aggregator", dim=DIM, **extra).train()
 
 
 def step_ms(agg: torch.nn.Module, batch: int, repeats: int, bf16: bool) -> float:

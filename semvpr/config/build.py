@@ -24,7 +24,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import Tensor
 
-from semvpr.config.components import instantiate_node
+from semvpr.config.components import build_component, instantiate_node
 from semvpr.config.plan import DataSettings, JobPlan, MaskPlan, ModelSettings, Settings, Training
 from semvpr.core.checkpoint import RunCheckpointIO
 from semvpr.core.errors import SemvprError
@@ -97,12 +97,12 @@ def build_places(data: DataSettings, splits: tuple[str, ...] = ("train", "val", 
 def build_backbone(
     node: DictConfig, seed: int, pretrained: bool = True, device: torch.device | str = "cpu"
 ) -> Backbone:
-    """The backbone a ``backbone`` config node names (``module``), with the seed's random init or its
+    """The backbone a ``backbone`` config node names (``_target_``), with the seed's random init or its
     pretrained weights (``pretrained=False`` skips them: a checkpoint carries every weight); channels_last, on
     ``device`` (drawn on the CPU first, so a seed gives the same weights on every device)."""
     torch.manual_seed(seed)
     extra = {} if pretrained else {"weights": "none"}
-    return instantiate_node(node.module, **extra).to(device, memory_format=torch.channels_last)
+    return build_component(node, "backbone", **extra).to(device, memory_format=torch.channels_last)
 
 
 def _aggregator_grid(settings: Settings, backbone: Backbone) -> list[int] | None:
@@ -118,7 +118,7 @@ def build_aggregator(settings: Settings, backbone: Backbone) -> Aggregator:
     """The run's aggregator for the backbone's channels, on its :func:`_aggregator_grid` where it takes one."""
     grid = _aggregator_grid(settings, backbone)
     extra = {} if grid is None else {"grid": grid}
-    return instantiate_node(settings.model.aggregator, dim=backbone.out_channels, **extra)
+    return build_component(settings.model.aggregator, "aggregator", dim=backbone.out_channels, **extra)
 
 
 def build_mask_source(masks: MaskPlan, backbone: Backbone, semantic: Semantic | None = None) -> MaskSource | None:
@@ -140,7 +140,7 @@ def build_mask_source(masks: MaskPlan, backbone: Backbone, semantic: Semantic | 
         else:
             given["segmenter"] = student_architecture(spec, backbone)
     # On the backbone's device: the source's own buffers (its class weights) as well as its segmenter's.
-    source = instantiate_node(masks.module, **given).to(next(backbone.parameters()).device)
+    source = build_component(masks.node, "mask", **given).to(next(backbone.parameters()).device)
     if semantic is not None or masks.teacher.checkpoint:  # the teacher's weights are final
         link_segmenter(masks, source, backbone)
     return source
@@ -188,7 +188,7 @@ def build_retriever(settings: Settings, backbone: Backbone, mask_source: MaskSou
     record = copy.deepcopy(model.record)
     grid = _aggregator_grid(settings, backbone)
     if grid is not None:
-        record["config"]["aggregator"]["module"]["grid"] = grid
+        record["config"]["aggregator"]["grid"] = grid
     trained_on = mask_trained_on(settings, mask_source)
     if trained_on is not None:
         record["segmenter"] = trained_on.as_dict()

@@ -10,7 +10,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.components import COMPONENTS, component_class, loss_class, options
+from semvpr.config.components import COMPONENTS, component_class, constructor_values, loss_class, options
 from semvpr.core.device import GPU_WORDS
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
@@ -452,21 +452,19 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
         if cfg.model.get("pca_dim") is not None:
             whole_number(cfg.model.pca_dim, "model.pca_dim", 1, SIZE_MAX, also="or null: no whitening")
         number(cfg.model.class_weights.init_logit, "model.class_weights.init_logit", 0)
-        module = cfg.aggregator.get("module")
-        for key, value in (OmegaConf.to_container(module, resolve=True) if module is not None else {}).items():
-            if key.startswith("_"):
-                continue
-            _check_size(value, f"aggregator.module.{key}")
+        values = constructor_values(cfg.aggregator, "aggregator")
+        for key, value in values.items():
+            _check_size(value, f"aggregator.{key}")
         class_token = bool(cfg.backbone.get("class_token", False))
-        global_class = module is not None and module.get("global_token") == "class"
+        global_class = values.get("global_token") == "class"
         if global_class and not class_token:
             raise SemvprError(
-                "aggregator.module.global_token=class needs backbone.class_token=true (a DINOv2 backbone's "
+                "aggregator.global_token=class needs backbone.class_token=true (a DINOv2 backbone's "
                 "class token, after its patch channels)"
             )
         if class_token and not global_class:
             raise SemvprError(
-                f"backbone.class_token=true is read only by aggregator=salad aggregator.module.global_token=class, "
+                f"backbone.class_token=true is read only by aggregator=salad aggregator.global_token=class, "
                 f"not by aggregator={cfg.aggregator.name}: set backbone.class_token=false"
             )
     except SemvprError as err:
@@ -551,7 +549,7 @@ def _check_retrieval(cfg: DictConfig) -> None:
             f"student.checkpoint={cfg.student.checkpoint}: a saved student is read by semvpr.eval, localize and "
             "the hub (mask=student student.checkpoint=DIR); a training run trains its own: drop it"
         )
-    if weighting == "learned" and cfg.mask.get("module") is None:
+    if weighting == "learned" and cfg.mask._target_ is None:
         raise SemvprError(
             "mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
             "mask=student, teacher or oracle (filter=unet, mask2former or oracle)"

@@ -1,18 +1,21 @@
-"""Components are classes named in their yaml by a ``module`` node: a backbone (``conf/backbone``), an
-aggregator (``conf/aggregator``) and a mask source (``conf/mask``, ``module: null`` for none). Each
-class declares what it needs (an aggregator's ``init_sample``, a mask source's ``needs``), so no builder
-switches on a name; adding one is one class and one yaml file. A recipe's loss (``recipe.loss``) declares
-the batches it trains on (``batches``) the same way."""
+"""Components are classes named in their yaml by a ``_target_`` on the group's own node, the constructor's values
+beside it, as every other class in ``conf/`` is named (a reader, the trainer, an optimiser, a loss): a backbone
+(``conf/backbone``), an aggregator (``conf/aggregator``) and a mask source (``conf/mask``, ``_target_: null`` for
+none). A group's own settings (:data:`COMPONENTS`: its ``name`` and what the run reads beside the class) sit next
+to them and are never passed to the class. Each class declares what it needs (an aggregator's ``init_sample``, a
+mask source's ``needs``), so no builder switches on a name; adding one is one class and one yaml file. A recipe's
+loss (``recipe.loss``) declares the batches it trains on (``batches``) the same way."""
 
 from __future__ import annotations
 
 import inspect
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import MissingMandatoryValue
+from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
 from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
 from semvpr.core.io import CONF_DIR
@@ -22,8 +25,22 @@ from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
 from semvpr.retrieval.losses import Loss, TripletLoss
 
-#: The component groups and the class each group's ``module`` must be.
-COMPONENTS: dict[str, type] = {"backbone": Backbone, "aggregator": Aggregator, "mask": MaskSource}
+
+@dataclass(frozen=True)
+class Group:
+    """A component group: the class its ``_target_`` must be, and the group's own settings beside the
+    constructor's values (read by the run, never passed to the class)."""
+
+    base: type
+    settings: tuple[str, ...]
+
+
+#: The component groups.
+COMPONENTS: dict[str, Group] = {
+    "backbone": Group(Backbone, ("name", "paper_train_from")),
+    "aggregator": Group(Aggregator, ("name", "baseline", "gsv")),
+    "mask": Group(MaskSource, ("name", "upper_bound", "weights")),
+}
 
 
 def options(group: str) -> list[str]:
@@ -42,32 +59,69 @@ def _subclass_named(node: Any, base: type) -> tuple[type | None, Any]:
 
 
 def component_class(cfg: DictConfig, group: str) -> type | None:
-    """The class ``cfg.<group>.module`` names (None for ``module: null``), checked against its group's base
-    class without building it (a builder reads what it needs first)."""
-    node = cfg[group].get("module")
-    if node is None:
+    """The class ``cfg.<group>._target_`` names (None for ``_target_: null``: no mask), checked without building
+    it (a builder reads what it needs first): see :func:`node_class`."""
+    return node_class(cfg[group], group)
+
+
+def node_class(node: DictConfig, group: str) -> type | None:
+    """The class a component node names, checked against its group's base class, and every key of the node
+    either the group's own setting or a parameter of the class (one line naming the first that is neither)."""
+    name = node.get("name")
+    if "_target_" not in node:
+        raise SemvprError(f"{group}={name}: its file names no class (_target_)")
+    if node._target_ is None:
+        if group != "mask":
+            raise SemvprError(f"{group}={name}: {group}._target_=null; a {group} is a class")
         return None
-    base = COMPONENTS[group]
-    cls, target = _subclass_named(node, base)
+    spec = COMPONENTS[group]
+    cls, target = _subclass_named(node, spec.base)
     if cls is None:
-        raise SemvprError(
-            f"{group}={cfg[group].get('name')}: {group}.module._target_={target!r} is not a "
-            f"{base.__module__}.{base.__name__}"
-        )
+        base = spec.base
+        raise SemvprError(f"{group}={name}: {group}._target_={target!r} is not a {base.__module__}.{base.__name__}")
+    params = inspect.signature(cls).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        unknown = sorted(k for k in node if k != "_target_" and k not in spec.settings and k not in params)
+        if unknown:
+            raise SemvprError(
+                f"{group}.{unknown[0]} is not a setting of {group}={name}: {target} takes "
+                f"{', '.join(params) or 'nothing'}; the group's own settings are {', '.join(spec.settings)}"
+            )
     return cls
 
 
-def instantiate_node(node: Any, **kwargs: Any) -> Any:
+def constructor_values(node: DictConfig, group: str) -> dict[str, Any]:
+    """The values of a component node its class is built with: every key but ``_target_`` and the group's own
+    settings, resolved."""
+    values = OmegaConf.to_container(node, resolve=True)
+    assert isinstance(values, dict)
+    return {k: v for k, v in values.items() if k != "_target_" and k not in COMPONENTS[group].settings}
+
+
+def build_component(node: DictConfig, group: str, **given: Any) -> Any:
+    """The object a component node names (:func:`node_class`), built with its :func:`constructor_values`
+    (``given`` adds or replaces some) through :func:`instantiate_node`."""
+    if node_class(node, group) is None:
+        raise SemvprError(f"{group}={node.get('name')} names no class to build")
+    return instantiate_node(node, _leave_out=COMPONENTS[group].settings, **given)
+
+
+def instantiate_node(node: Any, _leave_out: tuple[str, ...] = (), **kwargs: Any) -> Any:
     """hydra.utils.instantiate, with a SemvprError from inside the target re-raised unwrapped and a missing
-    mandatory value (``???``) or a required argument set to null as one line naming its key."""
+    mandatory value (``???``) or a required argument set to null as one line naming its key; the node's keys in
+    ``_leave_out`` are not passed to the target."""
     _refuse_null_arguments(node, kwargs)
     try:
+        if _leave_out:
+            values = OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
+            assert isinstance(values, dict)
+            return instantiate(OmegaConf.create({k: v for k, v in values.items() if k not in _leave_out}), **kwargs)
         return instantiate(node, **kwargs)
     except Exception as err:
         user = unwrap_user_error(err)
         if user is not None:
             raise user from None
-        if isinstance(err, MissingMandatoryValue):
+        if isinstance(err, MissingMandatoryValue | InterpolationToMissingValueError):
             raw = OmegaConf.to_container(node._get_root(), resolve=False) if isinstance(node, DictConfig) else {}
             raise unset(raw, err.full_key) from None
         asked = allocation_failure(err)

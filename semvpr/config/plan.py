@@ -40,11 +40,11 @@ from semvpr.retrieval.retriever import Optimization
 @dataclass(frozen=True)
 class MaskPlan:
     """A config's mask source, looked up once (:func:`mask_plan`): its class (``source``, None without one), the
-    node that builds it (``mask.module``), and the ``teacher``'s and ``student``'s settings, what a segmenter
-    source is made from."""
+    ``mask`` node that builds it, and the ``teacher``'s and ``student``'s settings, what a segmenter source is
+    made from."""
 
     source: type[MaskSource] | None
-    module: Any
+    node: Any
     teacher: TeacherSpec
     student: StudentSpec
 
@@ -56,7 +56,7 @@ class MaskPlan:
 
 def mask_plan(cfg: DictConfig) -> MaskPlan:
     """The mask source ``cfg`` asks for (its ``mask``, ``teacher`` and ``student`` groups)."""
-    return MaskPlan(component_class(cfg, "mask"), cfg.mask.get("module"), teacher_spec(cfg), student_spec(cfg))
+    return MaskPlan(component_class(cfg, "mask"), cfg.mask, teacher_spec(cfg), student_spec(cfg))
 
 
 @dataclass(frozen=True)
@@ -87,8 +87,8 @@ class Storage:
 
 @dataclass(frozen=True)
 class ModelSettings:
-    """The retriever's structure: the ``backbone`` node (its ``module`` builds it), the ``aggregator`` node
-    (``aggregator.module``) and its class, PCA whitening (``pca_dim``), the describing batch, the aggregator's
+    """The retriever's structure: the ``backbone`` and ``aggregator`` nodes (each names its class) and the
+    aggregator's class, PCA whitening (``pca_dim``), the describing batch, the aggregator's
     initialisation sample, the mask's ``weighting`` (binary or learned) and ``mask_name``, the static classes
     and the learned class weights' initial logit, and ``record``: what a checkpoint records of the config
     (:func:`~semvpr.config.record.record_of`)."""
@@ -173,7 +173,7 @@ def settings_of(cfg: DictConfig, training: bool = False) -> Settings:
         ),
         model=ModelSettings(
             backbone=cfg.backbone,
-            aggregator=cfg.aggregator.module,
+            aggregator=cfg.aggregator,
             aggregator_class=aggregator,
             aggregator_name=str(cfg.aggregator.name),
             pca_dim=int(model.pca_dim) if model.get("pca_dim") else None,

@@ -13,7 +13,9 @@ Checkpoints written before the aggregator and the mask were groups of their own 
 choice (SRAL + student for ``unet``, ...); they are read as the aggregator and mask that the
 project's filter preset selects, with the filter's recorded ``weights``. Checkpoints of format 2 recorded
 the training protocol and the model's structure together in a ``model`` group; the structure is read,
-the protocol (which eval never needs) is left out.
+the protocol (which eval never needs) is left out. Checkpoints of formats 2 and 3 recorded the constructor's
+values of the backbone, the aggregator and the mask source in a ``module`` node of each group; they are read
+as the group's own values, where the project's files hold them now.
 """
 
 from __future__ import annotations
@@ -85,6 +87,8 @@ def model_config(
         choices, config = _from_filter(choices, config, where)
     if record.get("format") == 2:
         choices, config = _from_model_group(choices, config, base)
+    if record.get("format") in (2, 3):
+        config = _from_module_nodes(config)
     unknown = sorted(set(choices) - set(GROUPS)) or sorted(set(config) - set(GROUPS) - set(NODES))
     if unknown:
         raise SemvprError(f"{where}: '{unknown[0]}' is not a model config group ({', '.join(GROUPS)})")
@@ -147,6 +151,23 @@ def _from_model_group(choices: dict[str, Any], config: dict[str, Any], base: Dic
     if isinstance(stored, dict):
         config["model"] = _known_part(stored, OmegaConf.to_container(base.model, resolve=True))
     return choices, config
+
+
+def _from_module_nodes(config: dict[str, Any]) -> dict[str, Any]:
+    """A record of format 2 or 3: each component group's ``module`` node (its constructor's values; a backbone's
+    repeated the group's own) is read as the group's values, which the project's files now hold beside the class."""
+    config = dict(config)
+    for group in ("backbone", "aggregator", "mask"):
+        stored = config.get(group)
+        if isinstance(stored, dict) and "module" in stored:
+            stored = dict(stored)
+            module = stored.pop("module")
+            if isinstance(module, dict):
+                stored.update(module)
+            elif module is not None:
+                stored["module"] = module  # refused by the value check, as any value the files cannot hold
+            config[group] = stored
+    return config
 
 
 def _known_part(stored: dict[str, Any], schema: Any) -> dict[str, Any]:

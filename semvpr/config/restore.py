@@ -45,7 +45,7 @@ from semvpr.config.build import (
     store_settings,
 )
 from semvpr.config.checks import check_model
-from semvpr.config.components import component_class, options
+from semvpr.config.components import component_class, constructor_values, options
 from semvpr.config.plan import job_plan, settings_of
 from semvpr.config.record import check_recorded_paths, model_config
 from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
@@ -131,7 +131,7 @@ def _trained_retriever(
     else:
         merged = replaced
         # The checkpoint's own segmenter weights are not loaded; without a mask, neither are class weights.
-        dropped = ("mask_source.",) if merged.mask.module is not None else ("mask_source.", "class_weights.")
+        dropped = ("mask_source.",) if merged.mask._target_ is not None else ("mask_source.", "class_weights.")
         state = {k: v for k, v in state.items() if not k.startswith(dropped)}
     settings = settings_of(merged)
     masks = settings.masks
@@ -250,7 +250,7 @@ def replace_mask(cfg: DictConfig, explicit: set[str], merged: DictConfig, where:
             f"{needs}.checkpoint=DIR ({_saved_as(needs)})"
         )
     out = merged.copy()
-    own = merged.mask.weights if merged.mask.module is not None else None
+    own = merged.mask.weights if merged.mask._target_ is not None else None
     with open_dict(out):
         out.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=False))
         if cls is None:
@@ -331,7 +331,7 @@ def untrained_retriever(
 
 
 def untrained_aggregator(cfg: DictConfig, explicit: set[str]) -> None:
-    """Set ``cfg.aggregator.module`` to the aggregator's untrained form, refusing (one line) an aggregator
+    """Set ``cfg.aggregator``'s values to the aggregator's untrained form, refusing (one line) an aggregator
     that has none, or a command-line setting the untrained form would change."""
     cls = component_class(cfg, "aggregator")
     if cls.untrained_form is None:
@@ -340,23 +340,23 @@ def untrained_aggregator(cfg: DictConfig, explicit: set[str]) -> None:
             f"ckpt=none: aggregator={cfg.aggregator.name} has no untrained form (its layers are random until "
             f"VPR training); evaluate a trained checkpoint, or ckpt=none with one of aggregator={forms}"
         )
-    settings = {k: v for k, v in OmegaConf.to_container(cfg.aggregator.module, resolve=True).items()}  # type: ignore[union-attr]
+    settings = constructor_values(cfg.aggregator, "aggregator")
     untrained = cls.untrained_settings(settings)
     for key, value in untrained.items():
         if settings.get(key) == value:
             continue
-        if f"aggregator.module.{key}" in explicit:
+        if f"aggregator.{key}" in explicit:
             raise SemvprError(
-                f"ckpt=none: aggregator.module.{key}={settings.get(key)!r} has no untrained form (random "
+                f"ckpt=none: aggregator.{key}={settings.get(key)!r} has no untrained form (random "
                 f"until VPR training); {cfg.aggregator.name}'s is {cls.untrained_form}: drop the override"
             )
         with open_dict(cfg):
-            cfg.aggregator.module[key] = value
+            cfg.aggregator[key] = value
 
 
 def _untrained_form(choice: str) -> str | None:
     """The untrained form of ``conf/aggregator/<choice>.yaml``'s class (None where it has none)."""
-    node = OmegaConf.load(Path(CONF_DIR) / "aggregator" / f"{choice}.yaml").get("module")
+    node = OmegaConf.load(Path(CONF_DIR) / "aggregator" / f"{choice}.yaml")
     try:
         return get_class(str(node.get("_target_"))).untrained_form
     except Exception:  # noqa: BLE001 - a file that names no aggregator has no form to offer

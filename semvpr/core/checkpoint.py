@@ -34,9 +34,10 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_file
 from semvpr.core.provenance import TrainedOn
 
-FORMAT = 3
-#: Older formats read here: 2 recorded the training protocol in a ``model`` group (``model=netvlad``).
-READABLE_FORMATS = (2, FORMAT)
+FORMAT = 4
+#: Older formats read here: 2 recorded the training protocol in a ``model`` group (``model=netvlad``); 2 and 3
+#: recorded a backbone's, an aggregator's and a mask source's constructor values in a ``module`` node of each.
+READABLE_FORMATS = (2, 3, FORMAT)
 
 #: What a weights-only read lets a file hold besides tensors and plain containers: numpy scalars (the
 #: recall values pytorch-NetVlad's ``checkpoint.pth.tar`` stores beside its weights), rebuilt from bytes.

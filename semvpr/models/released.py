@@ -72,7 +72,7 @@ class Layout:
     prefixes: tuple[tuple[str, str], ...]
     #: Keys that tell this layout apart (all present).
     marks: tuple[str, ...]
-    #: The semvpr settings the weights' shapes fix: backbone stage, aggregator module settings, model node.
+    #: The semvpr settings the weights' shapes fix: backbone stage, the aggregator's values, model node.
     settings: Callable[[dict[str, Tensor]], dict[str, Any]]
     #: semvpr keys the author's model has no weight for, and the value that reproduces its forward pass.
     derived: Callable[[dict[str, Tensor]], dict[str, Tensor]] = field(default=lambda state: {})
@@ -140,7 +140,7 @@ def _square(hw: int, where: str) -> list[int]:
 
 def _netvlad_settings(state: dict[str, Tensor]) -> dict[str, Any]:
     k = int(state["pool.centroids"].shape[0])
-    return {"backbone": {}, "aggregator": {"module": {}}, "model": {"num_clusters": k}}
+    return {"backbone": {}, "aggregator": {}, "model": {"num_clusters": k}}
 
 
 def _netvlad_derived(state: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -152,20 +152,20 @@ def _netvlad_derived(state: dict[str, Tensor]) -> dict[str, Tensor]:
 
 def _mixvpr_settings(state: dict[str, Tensor]) -> dict[str, Any]:
     hw = int(state["aggregator.row_proj.weight"].shape[1])
-    module = {
+    values = {
         "grid": _square(hw, "aggregator.row_proj.weight"),
         "out_channels": int(state["aggregator.channel_proj.weight"].shape[0]),
         "out_rows": int(state["aggregator.row_proj.weight"].shape[0]),
         "mix_depth": _count(state, "aggregator.mix."),
         "mlp_ratio": float(state["aggregator.mix.0.mix.1.weight"].shape[0]) / hw,
     }
-    return {"backbone": {"stage": "layer3"}, "aggregator": {"module": module}, "model": {}}
+    return {"backbone": {"stage": "layer3"}, "aggregator": values, "model": {}}
 
 
 def _gem_settings(state: dict[str, Tensor]) -> dict[str, Any]:
     stage = "layer4" if "backbone.7.0.conv1.weight" in state else "layer3"
-    module = {"fc_dim": int(state["aggregation.3.weight"].shape[0])}
-    return {"backbone": {"stage": stage}, "aggregator": {"module": module}, "model": {}}
+    values = {"fc_dim": int(state["aggregation.3.weight"].shape[0])}
+    return {"backbone": {"stage": stage}, "aggregator": values, "model": {}}
 
 
 def _boq_settings(backbone: dict[str, Any]) -> Callable[[dict[str, Tensor]], dict[str, Any]]:
@@ -173,14 +173,14 @@ def _boq_settings(backbone: dict[str, Any]) -> Callable[[dict[str, Tensor]], dic
 
     def settings(state: dict[str, Tensor]) -> dict[str, Any]:
         queries = state["aggregator.boqs.0.queries"]
-        module = {
+        values = {
             "proj_channels": int(queries.shape[2]),
             "num_queries": int(queries.shape[1]),
             "num_layers": _count(state, "aggregator.boqs."),
             "row_dim": int(state["aggregator.fc.weight"].shape[0]),
             "proj_kernel": int(state["aggregator.proj_c.weight"].shape[-1]),
         }
-        return {"backbone": dict(backbone), "aggregator": {"module": module}, "model": {}}
+        return {"backbone": dict(backbone), "aggregator": values, "model": {}}
 
     return settings
 
@@ -188,7 +188,7 @@ def _boq_settings(backbone: dict[str, Any]) -> Callable[[dict[str, Tensor]], dic
 def _salad_settings(state: dict[str, Tensor]) -> dict[str, Any]:
     """SALAD's sizes from its weights; its MLPs hold the authors' dropout (the module at index 1) and the
     Sinkhorn runs the authors' 3 iterations; the global token is DINOv2's class token."""
-    module = {
+    values = {
         "cluster_dim": int(state["aggregator.cluster_features.3.weight"].shape[0]),
         "token_dim": int(state["aggregator.token_features.2.weight"].shape[0]),
         "hidden_dim": int(state["aggregator.token_features.0.weight"].shape[0]),
@@ -197,7 +197,7 @@ def _salad_settings(state: dict[str, Tensor]) -> dict[str, Any]:
         "global_token": "class",
     }
     clusters = int(state["aggregator.score.3.weight"].shape[0])
-    return {"backbone": {"class_token": True}, "aggregator": {"module": module}, "model": {"num_clusters": clusters}}
+    return {"backbone": {"class_token": True}, "aggregator": values, "model": {"num_clusters": clusters}}
 
 
 #: MixVPR's ``FeatureMixerLayer.mix`` (LayerNorm, Linear, ReLU, Linear) → semvpr's ``FeatureMixer``.

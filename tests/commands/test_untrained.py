@@ -141,8 +141,8 @@ REFUSED = {
     "salad": (["aggregator=salad"], "ckpt=none: aggregator=salad has no untrained form"),
     "boq": (["aggregator=boq"], "ckpt=none: aggregator=boq has no untrained form"),
     "gem-with-head": (
-        ["aggregator=gem", "aggregator.module.fc_dim=512"],
-        "ckpt=none: aggregator.module.fc_dim=512 has no untrained form",
+        ["aggregator=gem", "aggregator.fc_dim=512"],
+        "ckpt=none: aggregator.fc_dim=512 has no untrained form",
     ),
 }
 

@@ -71,14 +71,14 @@ CASES: dict[str, Case] = {
     "num_clusters=2^31-1": Case(
         EVAL,
         lambda t, c: ["ckpt=none", "aggregator=netvlad", "model.num_clusters=2147483647"],
-        "more than this machine could allocate; lower its sizes (aggregator.module.num_clusters=2147483647)",
+        "more than this machine could allocate; lower its sizes (aggregator.num_clusters=2147483647)",
     ),
     "mixvpr descriptor of 1e10": Case(
         TRAIN,
         lambda t, c: [
             "aggregator=mixvpr",
-            "aggregator.module.out_channels=100000",
-            "aggregator.module.out_rows=100000",
+            "aggregator.out_channels=100000",
+            "aggregator.out_rows=100000",
         ],
         "out of memory: a step asked for",
     ),

@@ -7,14 +7,17 @@ and an image whose mask keeps nothing is described unmasked. Mask sources: a (B,
 
 from __future__ import annotations
 
+import inspect
+import re
+
 import pytest
 import torch
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 from semvpr.config.build import build_backbone, build_mask_source
-from semvpr.config.components import COMPONENTS, component_class, options
+from semvpr.config.components import COMPONENTS, build_component, component_class, node_class, options
 from semvpr.config.plan import mask_plan
+from semvpr.core.errors import SemvprError
 from semvpr.data.classes import NUM_CLASSES
 from semvpr.models.aggregators.base import Aggregator
 from tests.helpers import config
@@ -23,21 +26,56 @@ torch.set_num_threads(2)
 D, H, W = 32, 4, 5
 #: Variants beyond the shipped files, as overrides of them.
 AGGREGATOR_VARIANTS = {
-    "gem (plain)": ("gem", ["aggregator.module.fc_dim=null"]),
-    "boq (1x1)": ("boq", ["aggregator.module.proj_kernel=1"]),
-    "boq (3x3)": ("boq", ["aggregator.module.proj_kernel=3"]),
+    "gem (plain)": ("gem", ["aggregator.fc_dim=null"]),
+    "boq (1x1)": ("boq", ["aggregator.proj_kernel=1"]),
+    "boq (3x3)": ("boq", ["aggregator.proj_kernel=3"]),
 }
 AGGREGATORS = {name: (name, []) for name in options("aggregator")} | AGGREGATOR_VARIANTS
 
 
 def test_every_group_has_components_and_each_names_its_kind_of_class() -> None:
-    for group, base in COMPONENTS.items():
+    for group, spec in COMPONENTS.items():
         names = options(group)
         assert len(names) >= 3, (group, names)
         for name in names:
             cls = component_class(config(f"{group}={name}"), group)
-            assert cls is None or issubclass(cls, base), (group, name, cls)
+            assert cls is None or issubclass(cls, spec.base), (group, name, cls)
     assert {"netvlad", "sral", "gem", "mixvpr", "salad", "boq"} <= set(options("aggregator"))
+
+
+def test_a_group_setting_is_never_a_parameter_of_its_class() -> None:
+    """A group's own settings are left out of its class's values (``build_component``): none may be a name the
+    class takes, or a value set there would never reach it."""
+    for group, spec in COMPONENTS.items():
+        for name in options(group):
+            cls = component_class(config(f"{group}={name}"), group)
+            if cls is not None:
+                assert not set(spec.settings) & set(inspect.signature(cls).parameters), (group, name)
+
+
+def test_a_key_that_is_neither_a_class_value_nor_a_group_setting_is_one_line() -> None:
+    """A key added to a component's file (or an experiment file) that its class does not take is refused as
+    the class is looked up (check_config), not left unread."""
+    node = config("aggregator=gem").aggregator
+    component_class(config("aggregator=gem"), "aggregator")  # the shipped file passes
+    with open_dict(node):
+        node.fc_dimm = 256
+    with pytest.raises(
+        SemvprError, match=r"^aggregator\.fc_dimm is not a setting of aggregator=gem: .*GeM takes .*fc_dim"
+    ):
+        node_class(node, "aggregator")
+    with pytest.raises(SemvprError, match=r"aggregator\.fc_dimm is not a setting"):
+        build_component(node, "aggregator", dim=8)
+
+
+@pytest.mark.parametrize(("aggregator", "key"), [("netvlad", "model.num_clusters"), ("gem", "aggregator.fc_dim")])
+def test_an_unset_component_value_is_one_line_naming_the_key_to_set(aggregator: str, key: str) -> None:
+    """A value left ``???``, in the component's node (GeM's ``fc_dim``) or where it interpolates from (NetVLAD's
+    ``num_clusters: ${model.num_clusters}``), names the setting to pass."""
+    cfg = config(f"aggregator={aggregator}")
+    OmegaConf.update(cfg, key, "???")
+    with pytest.raises(SemvprError, match=rf"^{re.escape(key)} is not set; pass it on the command line"):
+        build_component(cfg.aggregator, "aggregator", dim=8)
 
 
 @pytest.mark.parametrize("command", ["train", "eval", "localize"])
@@ -54,10 +92,10 @@ def build_aggregator(name: str) -> Aggregator:
     HxW grid, initialised from a random sample where its class asks for one."""
     file, overrides = AGGREGATORS[name]
     cfg = config(f"aggregator={file}", "experiment=tiny", *overrides)
-    node = cfg.aggregator.module
+    node = cfg.aggregator
     extra = {"grid": [H, W]} if "grid" in node else {}
     torch.manual_seed(0)
-    agg = instantiate(node, dim=D, **extra).eval()
+    agg = build_component(node, "aggregator", dim=D, **extra).eval()
     assert isinstance(agg, Aggregator)
     if agg.init_sample != "none":  # shadows / centroids near real features, so assignments vary
         feats = torch.randn(400, D)
@@ -118,7 +156,7 @@ def test_every_mask_source_gives_a_grid_mask(name: str, tmp_path) -> None:
     cfg = config(f"mask={name}", "experiment=tiny", "backbone.weights=none")
     backbone = build_backbone(cfg.backbone, 0).eval()
     source = build_mask_source(mask_plan(cfg), backbone)
-    if cfg.mask.module is None:
+    if cfg.mask._target_ is None:
         assert source is None
         return
     assert source.needs in ("teacher", "student", "ground_truth")

@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from semvpr.config.restore import load_retriever
 from semvpr.core.checkpoint import read_weights
@@ -88,7 +89,7 @@ SENTINEL_TEXT = "untouched"
             lambda s: _set("config.backbone", {"_target_": "semvpr.train.write_json", "path": s, "obj": "pwned"}),
             r"backbone\._target_ is refused",
         ),
-        (lambda s: _set("config.aggregator.module._target_", "torch.save"), r"aggregator\.module\._target_ is refused"),
+        (lambda s: _set("config.aggregator._target_", "torch.save"), r"aggregator\._target_ is refused"),
         (lambda s: _set("config.teacher.checkpoint", "${oc.env:HOME}"), r"teacher\.checkpoint=.*interpolations"),
         (lambda s: _set("config.model.evil", 1), r"model\.evil is not a key"),
         (lambda s: _set("config.model.num_clusters", "32"), r"model\.num_clusters='32' has the wrong type"),
@@ -186,7 +187,7 @@ def test_a_format_2_record_with_a_model_group_loads_its_structure(tmp_path: Path
     trained = tiny_config(tmp_path, "filter=attention", "model.pca_dim=8", "model.num_clusters=6")
     state = write_checkpoint(trained, tmp_path / "new.ckpt")
     record = torch.load(tmp_path / "new.ckpt", weights_only=True)["hyper_parameters"]
-    assert record["format"] == 3 and "model" not in record["choices"]
+    assert record["format"] == 4 and "model" not in record["choices"]
     protocol = {"name": "netvlad", "margin": 0.1, "batch_size": 2, "positive_radius": 10.0, "class_weights": {}}
     old = {
         **record,
@@ -201,15 +202,63 @@ def test_a_format_2_record_with_a_model_group_loads_its_structure(tmp_path: Path
     assert "margin" not in merged.model and merged.recipe.name == "triplet"
 
 
+#: The group's own keys, which format 3 recorded beside each component group's ``module`` node (the class's
+#: values; a backbone's file also held its values beside the node, which repeated them).
+FORMAT_3_BESIDE = {
+    "backbone": ("name", "paper_train_from"),
+    "aggregator": ("name", "baseline", "gsv"),
+    "mask": ("name", "upper_bound", "weights"),
+}
+
+
+def _format_3(config: dict[str, Any]) -> dict[str, Any]:
+    """A format-4 record's config as format 3 wrote it."""
+    old = copy.deepcopy(config)
+    for group, beside in FORMAT_3_BESIDE.items():
+        values = {k: v for k, v in config[group].items() if k not in beside}
+        if group != "backbone":
+            old[group] = {k: v for k, v in config[group].items() if k in beside}
+        old[group]["module"] = None if group == "mask" and config["mask"]["name"] == "none" else values
+    return old
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ("aggregator=mixvpr", "aggregator.out_channels=24", "aggregator.out_rows=2", "mask=student"),
+        ("aggregator=netvlad", "mask=none"),
+    ],
+)
+def test_a_format_3_record_reads_its_module_nodes_as_the_groups_values(tmp_path: Path, overrides: tuple) -> None:
+    """Format 3 recorded the backbone's, aggregator's and mask source's constructor values in a ``module`` node
+    (a backbone's repeating the group's own; ``module: null`` for no mask); they load as the group's values:
+    the same model, the same weights."""
+    state = write_checkpoint(tiny_config(tmp_path, *overrides), tmp_path / "new.ckpt")
+    record = torch.load(tmp_path / "new.ckpt", weights_only=True)["hyper_parameters"]
+    old = {**record, "format": 3, "config": _format_3(record["config"])}
+    assert "module" in old["config"]["aggregator"] and "module" not in record["config"]["aggregator"]
+    torch.save({"state_dict": state, "hyper_parameters": old}, tmp_path / "old.ckpt")
+    loaded = {}
+    for name in ("new", "old"):
+        cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / f'{name}.ckpt'}", config_name="eval")
+        retriever, merged = load_retriever(cfg)
+        weights = retriever.state_dict()
+        assert weights.keys() == state.keys() and all(torch.equal(weights[k], state[k]) for k in state)
+        loaded[name] = {g: OmegaConf.to_container(merged[g], resolve=True) for g in FORMAT_3_BESIDE}
+    assert loaded["old"] == loaded["new"] and "module" not in loaded["old"]["aggregator"]
+    if "aggregator=mixvpr" in overrides:
+        assert (loaded["old"]["aggregator"]["out_channels"], loaded["old"]["aggregator"]["grid"]) == (24, [4, 5])
+
+
 def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Path) -> None:
     trained = tiny_config(tmp_path, "aggregator=mixvpr")
     state = write_checkpoint(trained, tmp_path / "run.ckpt")
     # Left null in the config, filled in from the backbone's grid at data.image_size, recorded.
-    grid = torch.load(tmp_path / "run.ckpt", weights_only=True)["hyper_parameters"]["config"]["aggregator"]["module"]
-    assert trained.aggregator.module.grid is None and grid["grid"] == [4, 5]  # 64 x 80 at stride 16
+    grid = torch.load(tmp_path / "run.ckpt", weights_only=True)["hyper_parameters"]["config"]["aggregator"]["grid"]
+    assert trained.aggregator.grid is None and grid == [4, 5]  # 64 x 80 at stride 16
     cfg = tiny_config(tmp_path, f"+ckpt={tmp_path / 'run.ckpt'}", "data.image_size=[96,128]", config_name="eval")
     retriever, merged = load_retriever(cfg)
-    assert list(merged.aggregator.module.grid) == [4, 5]
+    assert list(merged.aggregator.grid) == [4, 5]
     assert all(torch.equal(retriever.state_dict()[k], state[k]) for k in state)
     with torch.no_grad():  # a larger feature grid than trained: pooled to the recorded one
         assert retriever(torch.rand(2, 3, 96, 128)).shape == (2, retriever.aggregator.output_dim)

@@ -12,9 +12,9 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-from hydra.utils import instantiate
 from torch import Tensor, nn
 
+from semvpr.config.components import build_component
 from semvpr.core.errors import SemvprError
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.aggregators.boq import BoQ
@@ -32,9 +32,9 @@ N = H * W
 def shipped(name: str, *overrides: str) -> Aggregator:
     """The aggregator ``conf/aggregator/<name>.yaml`` builds (default config, ``overrides`` on top) for the
     default trunk's features, in eval mode, initialised from a random sample where its class asks for one."""
-    node = config(f"aggregator={name}", *overrides).aggregator.module
+    node = config(f"aggregator={name}", *overrides).aggregator
     torch.manual_seed(0)
-    agg = instantiate(node, dim=D, **({"grid": [H, W]} if "grid" in node else {})).eval()
+    agg = build_component(node, "aggregator", dim=D, **({"grid": [H, W]} if "grid" in node else {})).eval()
     assert isinstance(agg, Aggregator)
     if agg.init_sample != "none":
         feats = torch.randn(3000, D)
@@ -172,7 +172,7 @@ def cirtorch_gem(x: Tensor, p: float, eps: float, w: Tensor | None) -> Tensor:
 
 
 def test_gem_matches_cirtorch() -> None:
-    agg = shipped("gem", "aggregator.module.fc_dim=null")
+    agg = shipped("gem", "aggregator.fc_dim=null")
     with torch.no_grad():
         agg.p.fill_(2.5)
     x, w = features()
@@ -462,7 +462,7 @@ def masked_boq(agg: BoQ, x: Tensor, w: Tensor) -> Tensor:
 
 @pytest.mark.parametrize("kernel", [3, 1])
 def test_boq_matches_the_authors(kernel: int) -> None:
-    agg = shipped("boq", f"aggregator.module.proj_kernel={kernel}")
+    agg = shipped("boq", f"aggregator.proj_kernel={kernel}")
     assert (agg.proj_kernel, agg.proj_c.weight.shape[-2:], agg.output_dim) == (kernel, (kernel, kernel), 128 * 16)
     x, w = features()
     with torch.no_grad():
@@ -475,7 +475,7 @@ def test_boq_matches_the_authors(kernel: int) -> None:
 
 def test_boq_projection_with_weights_of_one_is_the_authors_convolution_bit_for_bit() -> None:
     """w ≡ 1 renormalises by exactly 1, at the zero-padded border too."""
-    agg = shipped("boq", "aggregator.module.proj_kernel=3")
+    agg = shipped("boq", "aggregator.proj_kernel=3")
     x = features()[0]
     plain = F.conv2d(x, agg.proj_c.weight, agg.proj_c.bias, padding=1)
     with torch.no_grad():
@@ -484,7 +484,7 @@ def test_boq_projection_with_weights_of_one_is_the_authors_convolution_bit_for_b
 
 
 def test_boq_projection_keeps_a_masked_location_out_of_its_neighbours() -> None:
-    agg = shipped("boq", "aggregator.module.proj_kernel=3")
+    agg = shipped("boq", "aggregator.proj_kernel=3")
     x, w = features()
     moved = x.clone()
     moved[:, :, 5, 7] += 10.0 * torch.randn(2, D)

@@ -613,7 +613,7 @@ def test_the_class_token_goes_with_salads_class_token_only(tmp_path: Path) -> No
 
     for overrides, error in (
         (["aggregator=gem", "backbone.class_token=true"], "backbone.class_token=true is read only by aggregator=salad"),
-        (["aggregator=salad", "aggregator.module.global_token=class"], "global_token=class needs backbone.class_token"),
+        (["aggregator=salad", "aggregator.global_token=class"], "global_token=class needs backbone.class_token"),
     ):
         cfg = tiny_config(tmp_path / "cache", "backbone=dinov2_vitb14", *overrides)
         with pytest.raises(SemvprError, match=error):
@@ -741,9 +741,9 @@ def test_each_layout_fixes_the_authors_image_size(tmp_path: Path) -> None:
     _, mixvpr = released(tmp_path, tmp_path / "m.ckpt")
     _, cosplace = released(tmp_path, tmp_path / "c.pth", "ckpt_format=cosplace")
     data_size = list(tiny_config(tmp_path, config_name="eval").data.image_size)
-    assert list(mixvpr.data.image_size) == [320, 320] and list(mixvpr.aggregator.module.grid) == [20, 20]
+    assert list(mixvpr.data.image_size) == [320, 320] and list(mixvpr.aggregator.grid) == [20, 20]
     assert list(cosplace.data.image_size) == data_size  # CosPlace evaluates the images at their own size
-    assert (cosplace.backbone.stage, cosplace.aggregator.module.fc_dim) == ("layer4", 128)
+    assert (cosplace.backbone.stage, cosplace.aggregator.fc_dim) == ("layer4", 128)
 
 
 @pytest.mark.slow

@@ -98,7 +98,7 @@ class BoQ(Aggregator):
         convolution under a mask; 1: per location)."""
         super().__init__()
         if proj_kernel < 1 or proj_kernel % 2 == 0:
-            raise SemvprError(f"aggregator.module.proj_kernel must be an odd kernel size (1 or 3), got {proj_kernel}")
+            raise SemvprError(f"aggregator.proj_kernel must be an odd kernel size (1 or 3), got {proj_kernel}")
         self.proj_channels, self.row_dim, self.proj_kernel = proj_channels, row_dim, proj_kernel
         self.proj_c = nn.Conv2d(dim, proj_channels, kernel_size=proj_kernel, padding=proj_kernel // 2)
         self.norm_input = nn.LayerNorm(proj_channels)

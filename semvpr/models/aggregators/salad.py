@@ -78,7 +78,7 @@ class SALAD(Aggregator):
         ``global_token``: ``mean`` or ``class`` (the module docstring)."""
         super().__init__()
         if global_token not in GLOBAL_TOKENS:
-            raise SemvprError(f"aggregator.module.global_token={global_token!r} is not one of {list(GLOBAL_TOKENS)}")
+            raise SemvprError(f"aggregator.global_token={global_token!r} is not one of {list(GLOBAL_TOKENS)}")
         self.dim, self.global_token = dim, global_token
         self.num_clusters, self.cluster_dim, self.token_dim, self.iters = num_clusters, cluster_dim, token_dim, iters
         self.token_features = _mlp(False, dim, hidden_dim, token_dim, 0.0)
