@@ -9,6 +9,7 @@ loss (``recipe.loss``) declares the batches it trains on (``batches``) the same 
 from __future__ import annotations
 
 import inspect
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryV
 
 from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
 from semvpr.core.io import CONF_DIR
-from semvpr.core.spec import set_where, unset
+from semvpr.core.spec import expected, set_where, unset
 from semvpr.models.aggregators.base import Aggregator
 from semvpr.models.backbones import Backbone
 from semvpr.models.masks import MaskSource
@@ -65,8 +66,9 @@ def component_class(cfg: DictConfig, group: str) -> type | None:
 
 
 def node_class(node: DictConfig, group: str) -> type | None:
-    """The class a component node names, checked against its group's base class, and every key of the node
-    either the group's own setting or a parameter of the class (one line naming the first that is neither)."""
+    """The class a component node names, checked against its group's base class; every key of the node either
+    the group's own setting or a parameter of the class (one line naming the first that is neither), of the kind
+    the class's annotation says (:func:`_refuse_mistyped`)."""
     name = node.get("name")
     if "_target_" not in node:
         raise SemvprError(f"{group}={name}: its file names no class (_target_)")
@@ -87,7 +89,26 @@ def node_class(node: DictConfig, group: str) -> type | None:
                 f"{group}.{unknown[0]} is not a setting of {group}={name}: {target} takes "
                 f"{', '.join(params) or 'nothing'}; the group's own settings are {', '.join(spec.settings)}"
             )
+    _refuse_mistyped(node, group, cls)
     return cls
+
+
+def _refuse_mistyped(node: DictConfig, group: str, cls: type) -> None:
+    """A constructor value of another kind than the class's annotation says (``aggregator.p=abc`` for a float):
+    one line naming it, before any work, not the class's own error once the caches are built. Values that do
+    not resolve yet, nulls (a value the builder fills in, as MixVPR's ``grid``, or one it refuses by name:
+    :func:`instantiate_node`) and annotations other than the plain kinds (``core.spec.expected``) are left to
+    the build."""
+    try:
+        hints = typing.get_type_hints(cls.__init__)
+        values = OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
+    except Exception:  # noqa: BLE001 - an unset value or an unresolved annotation: instantiate_node reports it
+        return
+    assert isinstance(values, dict)
+    for key, value in values.items():
+        wanted = expected(hints[key], value) if key in hints and value is not None else None
+        if wanted is not None:
+            raise SemvprError(f"{group}.{key}={value!r}: {group}={node.get('name')} expects {wanted}")
 
 
 def constructor_values(node: DictConfig, group: str) -> dict[str, Any]:

@@ -70,13 +70,13 @@ def from_mapping(cls: type[S], node: Mapping[str, Any], where: str) -> S:
         raise SemvprError(f"{where}.{missing[0]} is not set")
     hints = typing.get_type_hints(cls)
     for name, value in values.items():
-        expected = _expected(hints[name], value)
-        if expected is not None:
-            raise SemvprError(f"{where}.{name}={value!r}: expected {expected}")
+        wanted = expected(hints[name], value)
+        if wanted is not None:
+            raise SemvprError(f"{where}.{name}={value!r}: expected {wanted}")
     return cls(**values)  # type: ignore[call-arg]
 
 
-def _expected(hint: Any, value: Any) -> str | None:
+def expected(hint: Any, value: Any) -> str | None:
     """What a setting of type ``hint`` takes, where ``value`` is not that (None where it fits, or where the
     type is not one of the plain kinds checked here: bool, int, float, str, sequences of them, optional)."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
@@ -84,7 +84,7 @@ def _expected(hint: Any, value: Any) -> str | None:
         if value is None and type(None) in args:
             return None
         kinds = [a for a in args if a is not type(None)]
-        wrong = [_expected(k, value) for k in kinds]
+        wrong = [expected(k, value) for k in kinds]
         if any(w is None for w in wrong):
             return None
         return " or ".join(w for w in wrong if w) + (" or null" if type(None) in args else "")
@@ -100,7 +100,7 @@ def _expected(hint: Any, value: Any) -> str | None:
         item = args[0]
         if not isinstance(value, list | tuple):
             return f"a list of {_kind(item)}"
-        return None if all(_expected(item, v) is None for v in value) else f"a list of {_kind(item)}"
+        return None if all(expected(item, v) is None for v in value) else f"a list of {_kind(item)}"
     return None
 
 

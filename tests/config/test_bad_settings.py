@@ -304,6 +304,10 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         # NetVLAD's alpha is set from each feature's two nearest centroids: an IndexError after the trunk pass.
         (["model.num_clusters=1"], r"^model\.num_clusters=1 must be a whole number from 2 .* two nearest"),
         (["model.num_clusters=1", "aggregator=sral"], r"^model\.num_clusters=1 must be a whole number from 2"),
+        # A constructor value of the wrong kind: the class's ValueError once the trunk pass had run.
+        (["aggregator=gem", "aggregator.p=abc"], r"^aggregator\.p='abc': aggregator=gem expects a number$"),
+        (["aggregator=mixvpr", "aggregator.grid=abc"], r"^aggregator\.grid='abc': .* a list of whole numbers$"),
+        (["aggregator=gem", "aggregator.fc_dim=0.5"], r"^aggregator\.fc_dim=0\.5: .* a whole number or null$"),
     ],
 )
 def test_a_value_the_run_would_misread_or_a_class_refuses_is_one_line_first(overrides: list[str], line: str) -> None:
