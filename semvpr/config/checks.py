@@ -436,10 +436,13 @@ def number(value: object, key: str, low: float, *, above: bool = False, high: fl
 
 
 def check_model(cfg: DictConfig, where: str = "") -> None:
-    """The model's structure (the ``model`` node and the aggregator's sizes): what a checkpoint records,
-    so eval checks it again on the config merged from the checkpoint (``where`` says so)."""
+    """The model's structure (its components' classes and values, the ``model`` node and the aggregator's
+    sizes): what a checkpoint records, so eval checks it again on the config merged from the checkpoint
+    (``where`` says so)."""
     prefix = f"{where}: " if where else ""
     try:
+        for group in COMPONENTS:
+            component_class(cfg, group)
         for key in ("num_shadows", "eval_batch_size", "init_features", "init_per_image"):
             whole_number(cfg.model[key], f"model.{key}", 1, SIZE_MAX)
         whole_number(  # as pytorch-NetVlad's init, which asks for 2 neighbours
@@ -513,8 +516,6 @@ def _check_retrieval(cfg: DictConfig) -> None:
                 f"ckpt_path={cfg.ckpt_path} holds the model's weights only (a run's tested.ckpt, for evaluation); a "
                 "run resumes from its last.ckpt: ckpt_path=last hydra.run.dir=<its run dir>"
             )
-    for group in COMPONENTS:
-        component_class(cfg, group)
     check_model(cfg)
     if loss_class(cfg).batches == "places":
         _check_place_recipe(cfg)

@@ -250,6 +250,24 @@ def test_a_format_3_record_reads_its_module_nodes_as_the_groups_values(tmp_path:
         assert (loaded["old"]["aggregator"]["out_channels"], loaded["old"]["aggregator"]["grid"]) == (24, [4, 5])
 
 
+@pytest.mark.parametrize(
+    ("grid", "line"),
+    [
+        ("abc", r"^checkpoint .*: aggregator\.grid='abc': aggregator=mixvpr expects a list of whole numbers$"),
+        ([4, 5, 6], r"^aggregator\.grid=\[4, 5, 6\] is not \[h, w\]"),  # read as 4 x 5 before
+    ],
+)
+def test_a_recorded_grid_that_is_not_h_w_is_one_line(tmp_path: Path, grid: Any, line: str) -> None:
+    """The grid a fixed-grid aggregator's file leaves null has no kind a record's value is checked against: the
+    class's annotation, and MixVPR itself, check it."""
+    state = write_checkpoint(tiny_config(tmp_path, "aggregator=mixvpr"), tmp_path / "run.ckpt")
+    record = torch.load(tmp_path / "run.ckpt", weights_only=True)["hyper_parameters"]
+    record["config"]["aggregator"]["grid"] = grid
+    torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "bad.ckpt")
+    with pytest.raises(SemvprError, match=line):
+        load_retriever(tiny_config(tmp_path, f"+ckpt={tmp_path / 'bad.ckpt'}", config_name="eval"))
+
+
 def test_fixed_grid_aggregator_keeps_its_grid_at_another_image_size(tmp_path: Path) -> None:
     trained = tiny_config(tmp_path, "aggregator=mixvpr")
     state = write_checkpoint(trained, tmp_path / "run.ckpt")

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from semvpr.core.errors import SemvprError
 from semvpr.models.aggregators.base import Aggregator, check_weights
 
 MIXER_INIT_STD = 0.02  # the authors' truncated-normal std for the mixers' linears
@@ -57,6 +58,8 @@ class MixVPR(Aggregator):
         mlp_ratio: float = 1.0,
     ) -> None:
         super().__init__()
+        if len(grid) != 2:
+            raise SemvprError(f"aggregator.grid={list(grid)} is not [h, w], the feature grid MixVPR mixes")
         self.dim, self.grid = dim, (int(grid[0]), int(grid[1]))
         self.out_channels, self.out_rows = out_channels, out_rows
         width = self.grid[0] * self.grid[1]
