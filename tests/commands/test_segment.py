@@ -206,6 +206,25 @@ def test_unset_root_is_a_user_error(tmp_path: Path) -> None:
         run(segment_config(f"paths.cache_dir={tmp_path}"), tmp_path / "run")
 
 
+@pytest.mark.parametrize(
+    ("override", "line"),
+    [
+        ("backbones.efficientnet_lite0.stage=stage9", r"^backbone\.stage='stage9' is not one of"),
+        ("backbones.efficientnet_lite0.weights=/nonexistent.pth", r"nonexistent\.pth"),
+    ],
+)
+def test_a_student_trunk_it_cannot_build_is_refused_before_the_teacher_trains(
+    tmp_path: Path, override: str, line: str
+) -> None:
+    """The trunks were built after the teacher had trained and labelled the set (an hour on CamVid)."""
+    cfg = segment_config(
+        f"seg.root={write_camvid(tmp_path / 'camvid')}", f"paths.cache_dir={tmp_path / 'cache'}", override
+    )
+    with pytest.raises(SemvprError, match=line):
+        run(cfg, tmp_path / "run")
+    assert not any(p.name.startswith("teacher-") for p in (tmp_path / "cache").glob("*"))
+
+
 def test_worker_wrapped_error_prints_its_own_line() -> None:
     wrapped = SemvprError(
         "Caught SemvprError in DataLoader worker process 0.\nOriginal Traceback (most recent "
