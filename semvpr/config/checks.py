@@ -338,11 +338,13 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
             f"init.overrides={_shown(init)!r} must be a list of the init set's settings: "
             "\"init.overrides=['preset=tiny']\""
         )
-    if "backbone" in cfg:
-        weights = cfg.backbone.get("weights", "none")
+    trunks = {"backbone": cfg.backbone} if "backbone" in cfg else {}  # segment's students' trunks: backbones.*
+    trunks |= {f"backbones.{name}": node for name, node in (cfg.get("backbones") or {}).items()}
+    for where, node in trunks.items():
+        weights = node.get("weights", "none")
         if weights is None:
-            raise SemvprError("backbone.weights=null: give imagenet, none (a random-init trunk) or a weight file")
-        _check_path_setting(weights, "backbone.weights")
+            raise SemvprError(f"{where}.weights=null: give imagenet, none (a random-init trunk) or a weight file")
+        _check_path_setting(weights, f"{where}.weights")
     fmt = cfg.get("ckpt_format")
     if fmt is not None and fmt not in CKPT_FORMATS:
         raise SemvprError(f"ckpt_format={fmt!r} is not one of {', '.join(CKPT_FORMATS)}")

@@ -107,8 +107,10 @@ def _refuse_mistyped(node: DictConfig, group: str, cls: type) -> None:
     assert isinstance(values, dict)
     for key, value in values.items():
         wanted = expected(hints[key], value) if key in hints and value is not None else None
-        if wanted is not None:
-            raise SemvprError(f"{group}.{key}={value!r}: {group}={node.get('name')} expects {wanted}")
+        if wanted is not None:  # named where it is set (model.num_clusters for NetVLAD's interpolation of it)
+            raw = OmegaConf.to_container(node._get_root(), resolve=False)
+            source = set_where(raw, f"{node._get_full_key('')}.{key}".lstrip("."))
+            raise SemvprError(f"{source}={value!r}: {group}={node.get('name')} expects {wanted}")
 
 
 def constructor_values(node: DictConfig, group: str) -> dict[str, Any]:

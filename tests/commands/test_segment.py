@@ -211,6 +211,8 @@ def test_unset_root_is_a_user_error(tmp_path: Path) -> None:
     [
         ("backbones.efficientnet_lite0.stage=stage9", r"^backbone\.stage='stage9' is not one of"),
         ("backbones.efficientnet_lite0.weights=/nonexistent.pth", r"nonexistent\.pth"),
+        # torch's TypeError (an int for a path) once the trunk was built; train's backbone.weights was checked
+        ("backbones.efficientnet_lite0.weights=3", r"^backbones\.efficientnet_lite0\.weights=3 is not a path"),
     ],
 )
 def test_a_student_trunk_it_cannot_build_is_refused_before_the_teacher_trains(
