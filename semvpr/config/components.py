@@ -29,18 +29,20 @@ from semvpr.retrieval.losses import Loss, TripletLoss
 
 @dataclass(frozen=True)
 class Group:
-    """A component group: the class its ``_target_`` must be, and the group's own settings beside the
-    constructor's values (read by the run, never passed to the class)."""
+    """A component group: the class its ``_target_`` must be, the group's own settings beside the
+    constructor's values (read by the run, never passed to the class), and whether ``_target_: null`` (none)
+    is one of its choices."""
 
     base: type
     settings: tuple[str, ...]
+    optional: bool = False
 
 
 #: The component groups.
 COMPONENTS: dict[str, Group] = {
     "backbone": Group(Backbone, ("name", "paper_train_from")),
     "aggregator": Group(Aggregator, ("name", "baseline", "gsv")),
-    "mask": Group(MaskSource, ("name", "upper_bound", "weights")),
+    "mask": Group(MaskSource, ("name", "upper_bound", "weights"), optional=True),
 }
 
 
@@ -72,11 +74,11 @@ def node_class(node: DictConfig, group: str) -> type | None:
     name = node.get("name")
     if "_target_" not in node:
         raise SemvprError(f"{group}={name}: its file names no class (_target_)")
+    spec = COMPONENTS[group]
     if node._target_ is None:
-        if group != "mask":
+        if not spec.optional:
             raise SemvprError(f"{group}={name}: {group}._target_=null; a {group} is a class")
         return None
-    spec = COMPONENTS[group]
     cls, target = _subclass_named(node, spec.base)
     if cls is None:
         base = spec.base
