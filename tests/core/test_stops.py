@@ -106,6 +106,10 @@ def test_a_sweeps_worker_is_ended_even_when_a_second_signal_kills_a_helper(monke
 
         monkeypatch.setattr(utils.subprocess, "check_output", killed_pgrep)
         utils.kill_process_tree(worker)
+        # Killed, the worker is gone within moments (is_alive can still say True just after loky's join).
+        deadline = time.monotonic() + 30
+        while worker.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
         assert not worker.is_alive()
     finally:
         executor.shutdown(wait=False, kill_workers=True)
