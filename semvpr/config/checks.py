@@ -10,7 +10,14 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from semvpr.config.components import COMPONENTS, component_class, constructor_values, loss_class, options
+from semvpr.config.components import (
+    COMPONENTS,
+    component_class,
+    constructor_values,
+    loss_class,
+    options,
+    refuse_mistyped_values,
+)
 from semvpr.core.device import GPU_WORDS
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
@@ -606,6 +613,8 @@ def _check_optimization(cfg: DictConfig) -> None:
     from hydra.utils import instantiate
 
     recipe = cfg.recipe
+    refuse_mistyped_values(recipe.optimizer)
+    refuse_mistyped_values(recipe.get("scheduler"))
     where = "recipe.optimizer"
     try:
         optimizer = instantiate(recipe.optimizer)([torch.nn.Parameter(torch.zeros(1))])

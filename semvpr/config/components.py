@@ -8,6 +8,7 @@ loss (``recipe.loss``) declares the batches it trains on (``batches``) the same 
 
 from __future__ import annotations
 
+import collections.abc
 import inspect
 import typing
 from dataclasses import dataclass
@@ -70,7 +71,7 @@ def component_class(cfg: DictConfig, group: str) -> type | None:
 def node_class(node: DictConfig, group: str) -> type | None:
     """The class a component node names, checked against its group's base class; every key of the node either
     the group's own setting or a parameter of the class (one line naming the first that is neither), of the kind
-    the class's annotation says (:func:`_refuse_mistyped`)."""
+    the class's annotation says (:func:`refuse_mistyped`)."""
     name = node.get("name")
     if "_target_" not in node:
         raise SemvprError(f"{group}={name}: its file names no class (_target_)")
@@ -91,20 +92,21 @@ def node_class(node: DictConfig, group: str) -> type | None:
                 f"{group}.{unknown[0]} is not a setting of {group}={name}: {target} takes "
                 f"{', '.join(params) or 'nothing'}; the group's own settings are {', '.join(spec.settings)}"
             )
-    _refuse_mistyped(node, group, cls)
+    refuse_mistyped(node, cls, f"{group}={name}")
     return cls
 
 
-def _refuse_mistyped(node: DictConfig, group: str, cls: type) -> None:
-    """A constructor value of another kind than the class's annotation says (``aggregator.p=abc`` for a float):
-    one line naming it, before any work, not the class's own error once the caches are built. Values that do
-    not resolve yet, nulls (a value the builder fills in, as MixVPR's ``grid``, or one it refuses by name:
-    :func:`instantiate_node`) and annotations other than the plain kinds (``core.spec.expected``) are left to
-    the build."""
+def refuse_mistyped(node: DictConfig, cls: type, owner: str) -> None:
+    """A constructor value of another kind than the class's annotation says (``aggregator.p=abc`` for a float,
+    ``recipe.scheduler.step_size=2.5`` for a whole number): one line naming it where it is set and ``owner``
+    (``aggregator=gem``, or the class), before any work, not the class's own error once the caches are built or
+    a value it takes and misreads. Values that do not resolve yet, nulls (a value the builder fills in, as
+    MixVPR's ``grid``, or one it refuses by name: :func:`instantiate_node`) and annotations other than the plain
+    kinds (``core.spec.expected``) are left to the build."""
+    hints = _init_hints(cls)
     try:
-        hints = typing.get_type_hints(cls.__init__)
         values = OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
-    except Exception:  # noqa: BLE001 - an unset value or an unresolved annotation: instantiate_node reports it
+    except Exception:  # noqa: BLE001 - an unset value: instantiate_node reports it
         return
     assert isinstance(values, dict)
     for key, value in values.items():
@@ -112,7 +114,33 @@ def _refuse_mistyped(node: DictConfig, group: str, cls: type) -> None:
         if wanted is not None:  # named where it is set (model.num_clusters for NetVLAD's interpolation of it)
             raw = OmegaConf.to_container(node._get_root(), resolve=False)
             source = set_where(raw, f"{node._get_full_key('')}.{key}".lstrip("."))
-            raise SemvprError(f"{source}={value!r}: {group}={node.get('name')} expects {wanted}")
+            raise SemvprError(f"{source}={value!r}: {owner} expects {wanted}")
+
+
+def refuse_mistyped_values(node: Any) -> None:
+    """:func:`refuse_mistyped` for a node naming any importable class (a recipe's optimiser or scheduler); a
+    node naming none, or a class that does not import, is left to ``instantiate``'s own line."""
+    cls, target = _subclass_named(node, object)
+    if cls is not None:
+        refuse_mistyped(node, cls, str(target))
+
+
+#: Names an annotation may use without its module importing them at run time (torch's ``milestones:
+#: Iterable[int]`` under postponed annotations): looked up in ``typing`` and ``collections.abc`` where the
+#: constructor's own module has no such name.
+_ANNOTATION_NAMES: dict[str, Any] = {
+    **{k: getattr(typing, k) for k in typing.__all__},
+    **{k: getattr(collections.abc, k) for k in collections.abc.__all__},
+}
+
+
+def _init_hints(cls: type) -> dict[str, Any]:
+    """The resolved annotations of a class's constructor ({} where one still names what cannot be found)."""
+    try:
+        init = cls.__init__
+        return typing.get_type_hints(init, globalns={**_ANNOTATION_NAMES, **getattr(init, "__globals__", {})})
+    except Exception:  # noqa: BLE001 - an unresolvable annotation: nothing to check against
+        return {}
 
 
 def constructor_values(node: DictConfig, group: str) -> dict[str, Any]:
@@ -201,4 +229,5 @@ def loss_class(cfg: DictConfig) -> type[Loss]:
         raise SemvprError(
             f"recipe={cfg.recipe.get('name')}: recipe.loss._target_={target!r} is not a {Loss.__module__}.Loss"
         )
+    refuse_mistyped(node, cls, str(target))
     return cls

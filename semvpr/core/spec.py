@@ -7,7 +7,7 @@ import dataclasses
 import re
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, TypeVar
 
 import numpy as np
@@ -78,7 +78,8 @@ def from_mapping(cls: type[S], node: Mapping[str, Any], where: str) -> S:
 
 def expected(hint: Any, value: Any) -> str | None:
     """What a setting of type ``hint`` takes, where ``value`` is not that (None where it fits, or where the
-    type is not one of the plain kinds checked here: bool, int, float, str, sequences of them, optional)."""
+    type is not one of the plain kinds checked here: bool, int, float, str, sequences (or iterables) of them,
+    optional)."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
@@ -96,7 +97,7 @@ def expected(hint: Any, value: Any) -> str | None:
         return None if isinstance(value, int | float) and not isinstance(value, bool) else "a number"
     if hint is str:
         return None if isinstance(value, str) else "a string"
-    if origin in (Sequence, list, tuple) and len(args) == 1 or (origin is tuple and args[-1:] == (Ellipsis,)):
+    if origin in (Sequence, Iterable, list, tuple) and len(args) == 1 or (origin is tuple and args[-1:] == (Ellipsis,)):
         item = args[0]
         if not isinstance(value, list | tuple):
             return f"a list of {_kind(item)}"

@@ -308,6 +308,24 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         (["aggregator=gem", "aggregator.p=abc"], r"^aggregator\.p='abc': aggregator=gem expects a number$"),
         (["aggregator=mixvpr", "aggregator.grid=abc"], r"^aggregator\.grid='abc': .* a list of whole numbers$"),
         (["aggregator=gem", "aggregator.fc_dim=0.5"], r"^aggregator\.fc_dim=0\.5: .* a whole number or null$"),
+        # A recipe class's value of the wrong kind, taken and misread: StepLR decayed at epochs 5, 10 for a step
+        # of 2.5; MultiStepLR counted a string's letters (never decaying); a gamma of [1] trained and left a
+        # checkpoint that does not load; MultiSimilarity's ValueError came as Hydra's traceback.
+        (
+            ["recipe.scheduler.step_size=2.5"],
+            r"^recipe\.scheduler\.step_size=2\.5: torch\.optim\.lr_scheduler\.StepLR "
+            r"expects a whole number$",
+        ),
+        (
+            ["recipe=gsv", "aggregator=gem", "aggregator.gsv.scheduler.milestones=abc"],
+            r"^aggregator\.gsv\.scheduler\.milestones='abc': .*MultiStepLR expects a list of whole numbers$",
+        ),
+        (["recipe.scheduler.gamma=[1]"], r"^recipe\.scheduler\.gamma=\[1\]: .*StepLR expects a number$"),
+        (["recipe.optimizer.weight_decay=abc"], r"^recipe\.optimizer\.weight_decay='abc': torch\.optim\.Adam expects"),
+        (
+            ["recipe=gsv", "recipe.loss.alpha=abc"],
+            r"^recipe\.loss\.alpha='abc': semvpr\.retrieval\.losses\.MultiSimilarity expects a number$",
+        ),
     ],
 )
 def test_a_value_the_run_would_misread_or_a_class_refuses_is_one_line_first(overrides: list[str], line: str) -> None:
