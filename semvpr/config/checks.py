@@ -23,7 +23,7 @@ from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
 from semvpr.core.patterns import bounded_regex
 from semvpr.core.precision import lightning_precision
-from semvpr.core.spec import MAX_IMAGE_SIDE
+from semvpr.core.spec import MAX_IMAGE_SIDE, number, whole_number
 from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
@@ -32,16 +32,6 @@ from semvpr.retrieval.features import STORAGES
 
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
 SIZE_MAX = 2**31 - 1  # a model size or count: beyond it a tensor's element count overflows torch's kernels
-
-
-def whole_number(value: object, key: str, low: int, high: int | None = None, also: str = "") -> int:
-    """``value`` as an int in [low, high], or one line naming ``key`` (``also``: the other values allowed)."""
-    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
-    if not ok:
-        bounds = f"from {low} to {high}" if high is not None else f">= {low}"
-        shown = "null" if value is None else repr(value)  # as written on the command line
-        raise SemvprError(f"{key}={shown} must be a whole number {bounds}{f' ({also})' if also else ''}")
-    return int(value)  # type: ignore[arg-type]
 
 
 def _leaves(node: object, prefix: str = "") -> set[str]:
@@ -428,20 +418,6 @@ def _check_path_setting(value: object, key: str) -> None:
     if not value:
         raise SemvprError(f"{key}='' names no file or folder")
     check_path_text(value, key)
-
-
-def number(value: object, key: str, low: float, *, above: bool = False, high: float | None = None) -> float:
-    """``value`` as a finite float >= low (> low with ``above``; <= high if given), or one line naming ``key``."""
-    try:
-        ok = not isinstance(value, bool) and math.isfinite(float(value))  # type: ignore[arg-type]
-        number_ = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        ok, number_ = False, math.nan
-    ok = ok and (number_ > low if above else number_ >= low) and (high is None or number_ <= high)
-    if not ok:
-        bound = f"> {low:g}" if above else f">= {low:g}"
-        raise SemvprError(f"{key}={value!r} must be a finite number {bound}" + (f" and <= {high:g}" if high else ""))
-    return number_
 
 
 def check_model(cfg: DictConfig, where: str = "") -> None:

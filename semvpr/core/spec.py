@@ -4,6 +4,7 @@ takes named, typed values instead of a whole config."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import types
 import typing
@@ -128,6 +129,30 @@ def image_size(value: Any, where: str) -> list[int]:
     if isinstance(value, list | tuple) and len(value) == 2 and all(count(v, 1, MAX_IMAGE_SIDE) for v in value):
         return [int(v) for v in value]
     raise SemvprError(f"{where}={value!r} is not [H, W] (two whole numbers from 1 to {MAX_IMAGE_SIDE})")
+
+
+def whole_number(value: object, key: str, low: int, high: int | None = None, also: str = "") -> int:
+    """``value`` as an int in [low, high], or one line naming ``key`` (``also``: the other values allowed)."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+    if not ok:
+        bounds = f"from {low} to {high}" if high is not None else f">= {low}"
+        shown = "null" if value is None else repr(value)  # as written on the command line
+        raise SemvprError(f"{key}={shown} must be a whole number {bounds}{f' ({also})' if also else ''}")
+    return int(value)  # type: ignore[arg-type]
+
+
+def number(value: object, key: str, low: float, *, above: bool = False, high: float | None = None) -> float:
+    """``value`` as a finite float >= low (> low with ``above``; <= high if given), or one line naming ``key``."""
+    try:
+        ok = not isinstance(value, bool) and math.isfinite(float(value))  # type: ignore[arg-type]
+        number_ = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        ok, number_ = False, math.nan
+    ok = ok and (number_ > low if above else number_ >= low) and (high is None or number_ <= high)
+    if not ok:
+        bound = f"> {low:g}" if above else f">= {low:g}"
+        raise SemvprError(f"{key}={value!r} must be a finite number {bound}" + (f" and <= {high:g}" if high else ""))
+    return number_
 
 
 def float32_number(value: Any) -> bool:

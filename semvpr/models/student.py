@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_dir, read_json, regular_file, write_json
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import from_mapping, image_size
+from semvpr.core.spec import from_mapping, image_size, number, whole_number
 from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, check_class_names
 from semvpr.models.masks import static_vector
 from semvpr.models.weights import check_tensor
@@ -66,6 +66,15 @@ class StudentSpec:
         if not _count(spec.width, 4096):
             raise SemvprError(f"student.width={spec.width!r} is not a whole number from 1 to 4096")
         check_class_names(spec.static_classes, "student.static_classes")
+        # Counts and rates: max_images=0 saved an untrained student as a trained one; 0 epochs, a zero batch or
+        # a negative rate was a traceback once the teacher had trained and labelled the set.
+        whole_number(spec.epochs, "student.epochs", 1)
+        whole_number(spec.batch_size, "student.batch_size", 1)
+        number(spec.lr, "student.lr", 0, above=True)
+        number(spec.weight_decay, "student.weight_decay", 0)
+        whole_number(spec.num_workers, "student.num_workers", 0)
+        if spec.max_images is not None:
+            whole_number(spec.max_images, "student.max_images", 1, also="or null: all")
         return spec
 
 

@@ -24,7 +24,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import count, from_mapping, image_size, plain
+from semvpr.core.spec import count, from_mapping, image_size, number, plain, whole_number
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES, check_class_names
 from semvpr.models.backbones import (
     EFFICIENTNET_LITE,
@@ -60,6 +60,20 @@ class TeacherTraining:
     val_every: int | None = None
     seed: int = 0
 
+    def check(self, where: str = "teacher.train") -> None:
+        """Counts and rates in range, one line naming the setting before any work: an epoch count of 0 saved
+        an untrained teacher as a trained one, a negative ``backbone_lr_factor`` trained the encoder uphill,
+        and a zero batch or a negative rate was torch's traceback once the teacher's data was built."""
+        whole_number(self.epochs, f"{where}.epochs", 1)
+        whole_number(self.batch_size, f"{where}.batch_size", 1)
+        number(self.lr, f"{where}.lr", 0, above=True)
+        number(self.weight_decay, f"{where}.weight_decay", 0)
+        whole_number(self.warmup_steps, f"{where}.warmup_steps", 0)
+        number(self.backbone_lr_factor, f"{where}.backbone_lr_factor", 0)
+        whole_number(self.num_workers, f"{where}.num_workers", 0)
+        if self.val_every is not None:
+            whole_number(self.val_every, f"{where}.val_every", 1, also="or null: once, after the last epoch")
+
 
 @dataclass(frozen=True)
 class TeacherSpec:
@@ -88,6 +102,7 @@ class TeacherSpec:
         """From a ``teacher`` config node (unknown keys refused in one line)."""
         values = dict(plain(node))
         values["train"] = from_mapping(TeacherTraining, values.get("train", {}), "teacher.train")
+        values["train"].check()
         spec = from_mapping(cls, values, "teacher")
         spec.check()
         return spec

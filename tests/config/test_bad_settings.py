@@ -129,6 +129,9 @@ CASES: dict[str, Case] = {
             ("score_test=maybe", "score_test='maybe' must be true or false"),
             ("seg.num_workers=-1", "seg.num_workers=-1 must be a whole number >= 0"),
             ("student.train.epochs=3", "student.train.epochs is not a setting of the project's config"),
+            # The segmenters' counts and rates: an untrained teacher saved as trained, or torch's traceback.
+            ("teacher.train.epochs=0", "teacher.train.epochs=0 must be a whole number >= 1"),
+            ("student.lr=-1", "student.lr=-1 must be a finite number > 0"),
         )
     },
     "frame_pattern alternation in a repeat": Case(

@@ -173,6 +173,50 @@ def test_files_that_are_not_regular_files_are_one_line(tmp_path: Path) -> None:
         assert "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize(
+    ("group", "values", "line"),
+    [
+        # Taken before, and saved as a trained segmenter: no training at all, or the encoder trained uphill.
+        ("teacher", {"epochs": 0}, r"^teacher\.train\.epochs=0 must be a whole number >= 1$"),
+        ("teacher", {"backbone_lr_factor": -0.1}, r"^teacher\.train\.backbone_lr_factor=-0\.1 must be .* >= 0$"),
+        ("teacher", {"warmup_steps": -1}, r"^teacher\.train\.warmup_steps=-1 must be a whole number >= 0$"),
+        ("teacher", {"val_every": 0}, r"^teacher\.train\.val_every=0 must be a whole number >= 1 \(or null"),
+        ("student", {"max_images": 0}, r"^student\.max_images=0 must be a whole number >= 1 \(or null: all\)$"),
+        # torch's or the loader's traceback once the teacher had trained and labelled the set.
+        ("teacher", {"batch_size": 0}, r"^teacher\.train\.batch_size=0 must be a whole number >= 1$"),
+        ("teacher", {"lr": 0}, r"^teacher\.train\.lr=0 must be a finite number > 0$"),
+        ("teacher", {"weight_decay": -1}, r"^teacher\.train\.weight_decay=-1 must be a finite number >= 0$"),
+        ("teacher", {"num_workers": -1}, r"^teacher\.train\.num_workers=-1 must be a whole number >= 0$"),
+        ("student", {"epochs": 0}, r"^student\.epochs=0 must be a whole number >= 1$"),
+        ("student", {"batch_size": 0}, r"^student\.batch_size=0 must be a whole number >= 1$"),
+        ("student", {"lr": -1}, r"^student\.lr=-1 must be a finite number > 0$"),
+        ("student", {"weight_decay": -1e-4}, r"^student\.weight_decay=-0\.0001 must be a finite number >= 0$"),
+        ("student", {"num_workers": -1}, r"^student\.num_workers=-1 must be a whole number >= 0$"),
+    ],
+)
+def test_segmenter_counts_and_rates_out_of_range_are_one_line(group: str, values: dict, line: str) -> None:
+    from semvpr.core.errors import SemvprError
+    from semvpr.models.student import StudentSpec
+    from semvpr.models.teacher import TeacherSpec
+
+    with pytest.raises(SemvprError, match=line):
+        if group == "teacher":
+            TeacherSpec.from_mapping({"train": values})
+        else:
+            StudentSpec.from_mapping(values)
+
+
+def test_segmenter_counts_and_rates_at_their_bounds_are_taken() -> None:
+    from semvpr.models.student import StudentSpec
+    from semvpr.models.teacher import TeacherSpec
+
+    low = {"epochs": 1, "batch_size": 1, "weight_decay": 0, "num_workers": 0}
+    teacher = TeacherSpec.from_mapping({"train": {**low, "lr": 1e-9, "warmup_steps": 0, "backbone_lr_factor": 0}})
+    assert (teacher.train.epochs, teacher.train.backbone_lr_factor, teacher.train.val_every) == (1, 0, None)
+    student = StudentSpec.from_mapping({**low, "lr": 1e-9, "max_images": 1})
+    assert (student.epochs, student.max_images) == (1, 1)
+
+
 def test_typed_settings_refuse_values_of_another_kind() -> None:
     """A config value of the wrong kind is one line naming it: a string where a switch is expected was
     truthy (``student.flip=maybe`` mirrored), a fraction where a count is expected reached range()."""
