@@ -60,10 +60,12 @@ class TeacherTraining:
     val_every: int | None = None
     seed: int = 0
 
-    def check(self, where: str = "teacher.train") -> None:
-        """Counts and rates in range, one line naming the setting before any work: an epoch count of 0 saved
-        an untrained teacher as a trained one, a negative ``backbone_lr_factor`` trained the encoder uphill,
-        and a zero batch or a negative rate was torch's traceback once the teacher's data was built."""
+    def check(self) -> None:
+        """Counts and rates in range, one line naming the setting (``teacher.train.*``) before any work: an
+        epoch count of 0 saved an untrained teacher as a trained one, a negative ``backbone_lr_factor`` trained
+        the encoder uphill, and a zero batch or a negative rate was torch's traceback once the teacher's data
+        was built."""
+        where = "teacher.train"
         whole_number(self.epochs, f"{where}.epochs", 1)
         whole_number(self.batch_size, f"{where}.batch_size", 1)
         number(self.lr, f"{where}.lr", 0, above=True)
