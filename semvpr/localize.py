@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import functools
 import json
-import stat
 import sys
 from pathlib import Path
 from typing import Any
@@ -29,37 +28,15 @@ from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import write_json
 from semvpr.core.stops import run_stoppable
-from semvpr.data.places import image_files
+from semvpr.data.places import folder_images
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
-
-
-def query_images(folder: str | Path | None) -> list[Path]:
-    """Image files of a folder and its subfolders (:func:`semvpr.data.places.image_files`), sorted; one clear
-    error if there are none."""
-    if folder is None:
-        raise SemvprError("queries=null: name the folder of query images (queries=DIR)")
-    folder = Path(folder)
-    if not folder.is_dir():
-        problem = "is a file: queries= names the folder of images" if folder.exists() else "does not exist"
-        raise SemvprError(f"query folder {folder} {problem} (queries=DIR)")
-    paths = image_files(folder, nested=True)
-    if not paths:
-        raise SemvprError(f"no .jpg/.png images in {folder}")
-    for path in paths:
-        try:
-            regular = stat.S_ISREG(path.stat().st_mode)
-        except OSError as err:
-            raise SemvprError(f"query image {path} cannot be read ({err.strerror or type(err).__name__})") from None
-        if not regular:
-            raise SemvprError(f"query image {path} is not a regular file (a folder, FIFO or device)")
-    return paths
 
 
 def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None) -> list[dict[str, Any]]:
     """Top-k database matches (path, position as the set gives one, distance) for every query image."""
     check_config(cfg, run_dir)
-    paths = query_images(cfg.queries)
+    paths = folder_images(cfg.queries, "queries")
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
@@ -96,7 +73,7 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     for result in results:
         best = result["matches"][0]
         print(f"{Path(result['query']).name}: {Path(best['path']).name} ({_where(best)}d={best['distance']:.3f})")
-    # top_k as returned (at most the database's size); query_images refuses a folder without images.
+    # top_k as returned (at most the database's size); folder_images refuses a folder without images.
     print(json.dumps({"queries": len(results), "top_k": len(results[0]["matches"]), "output": str(output)}))
 
 

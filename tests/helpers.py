@@ -394,3 +394,37 @@ def write_gsv_cities(root: Path, cities: dict[str, tuple[str, list[tuple[int, in
         for i, row in enumerate(rows):
             write_image(root / "Images" / city_id / gsv_name(row), 1000 * index + i)
     return root
+
+
+def espnetv2_state(widths: list[int], seed: int = 0) -> dict[str, torch.Tensor]:
+    """A state dict in the layout of ESPNetv2's Cityscapes files (20 channels), every value drawn (convolutions
+    of unit gain, BatchNorm statistics and scales near 1, PReLU slopes in [0, 0.3]) so that inference reads each of
+    them and the logits carry the input's signal."""
+    from semvpr.models.espnetv2 import ESPNetv2Segmentation
+
+    g = torch.Generator().manual_seed(seed)
+    model = ESPNetv2Segmentation(widths, 20)
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, torch.nn.Conv2d):
+                module.weight.copy_(
+                    torch.randn(module.weight.shape, generator=g) * (1.0 / module.weight[0].numel()) ** 0.5
+                )
+                if module.bias is not None:
+                    module.bias.copy_(torch.randn(module.bias.shape, generator=g) * 0.1)
+            elif isinstance(module, torch.nn.BatchNorm2d):
+                n = module.num_features
+                module.weight.copy_(torch.rand(n, generator=g) * 0.4 + 0.8)
+                module.bias.copy_(torch.randn(n, generator=g) * 0.1)
+                module.running_mean.copy_(torch.randn(n, generator=g) * 0.1)
+                module.running_var.copy_(torch.rand(n, generator=g) * 1.0 + 0.5)
+            elif isinstance(module, torch.nn.PReLU):
+                module.weight.copy_(torch.rand(module.weight.shape, generator=g) * 0.3)
+    return model.state_dict()
+
+
+def write_espnetv2(path: Path, widths: tuple[int, ...] = (16, 32, 64, 128), seed: int = 0) -> Path:
+    """A weight file in the layout of ESPNetv2's authors' Cityscapes releases (random weights)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(espnetv2_state(list(widths), seed), path)
+    return path

@@ -83,3 +83,26 @@ def check_class_names(names: Sequence[str], where: str, *, empty: bool = False) 
         raise SemvprError(f"{where}: {unknown[0]!r} is not a Cityscapes class name ({', '.join(TRAIN_ID_NAMES)})")
     if len(set(names)) != len(names):
         raise SemvprError(f"{where}={list(names)!r} names a class twice")
+
+#: The colour of each trainId in Cityscapes' own label images (cityscapesScripts ``labels.py``), for label PNGs.
+TRAIN_ID_COLOURS: tuple[tuple[int, int, int], ...] = (
+    (128, 64, 128),
+    (244, 35, 232),
+    (70, 70, 70),
+    (102, 102, 156),
+    (190, 153, 153),
+    (153, 153, 153),
+    (250, 170, 30),
+    (220, 220, 0),
+    (107, 142, 35),
+    (152, 251, 152),
+    (70, 130, 180),
+    (220, 20, 60),
+    (255, 0, 0),
+    (0, 0, 142),
+    (0, 0, 70),
+    (0, 60, 100),
+    (0, 80, 100),
+    (0, 0, 230),
+    (119, 11, 32),
+)

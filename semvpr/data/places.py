@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -329,6 +330,29 @@ def listed_image(folder: Path, name: str, source: Path) -> Path:
             f"{source}: image name {name!r} leaves the folder {folder}; names must be relative, without '..'"
         )
     return folder / rel
+
+
+def folder_images(folder: str | Path | None, key: str) -> list[Path]:
+    """The images a command is given as a folder (``key``: the setting that names it, e.g. ``queries``): its
+    image files and its subfolders' (:func:`image_files`), sorted; one clear line where the folder is unset,
+    missing, a file, holds no image or lists something that is not a regular file."""
+    if folder is None:
+        raise SemvprError(f"{key}=null: name the folder of {'query ' if key == 'queries' else ''}images ({key}=DIR)")
+    folder = Path(folder)
+    if not folder.is_dir():
+        problem = f"is a file: {key}= names the folder of images" if folder.exists() else f"does not exist ({key}=DIR)"
+        raise SemvprError(f"{'query folder' if key == 'queries' else 'image folder'} {folder} {problem}")
+    paths = image_files(folder, nested=True)
+    if not paths:
+        raise SemvprError(f"no .jpg/.png images in {folder}")
+    for path in paths:
+        try:
+            regular = stat.S_ISREG(path.stat().st_mode)
+        except OSError as err:
+            raise SemvprError(f"image {path} cannot be read ({err.strerror or type(err).__name__})") from None
+        if not regular:
+            raise SemvprError(f"image {path} is not a regular file (a folder, FIFO or device)")
+    return paths
 
 
 def image_files(folder: Path, nested: bool = False) -> list[Path]:

@@ -82,8 +82,10 @@ class TeacherSpec:
     """The teacher (``conf/teacher/*.yaml``): a pretrained checkpoint, or the embedded Mask2Former with
     its architecture (``model``, the Hugging Face config values) and training settings."""
 
+    #: mask2former (a checkpoint directory, or the embedded model) or espnetv2 (its authors' Cityscapes file).
     name: str = "mask2former"
-    #: A Hugging Face id (local cache only) or a local directory; None = the embedded teacher.
+    #: mask2former: a Hugging Face id (local cache only) or a local directory, None = the embedded teacher;
+    #: espnetv2: the authors' weight file.
     checkpoint: str | None = None
     #: [H, W] the teacher sees (images are resized, predictions resized back); None = the size it was
     #: trained at where that is known (the embedded teacher's image_size, a semvpr.segment directory's
@@ -112,6 +114,8 @@ class TeacherSpec:
     def check(self) -> None:
         """Sizes and class lists in range (the same rule as the values a teacher directory gives): one line
         naming the setting, before anything is built."""
+        if self.name not in TEACHERS:
+            raise SemvprError(f"teacher.name={self.name!r} is not one of {list(TEACHERS)}")
         if self.inference_size is not None:
             image_size(list(self.inference_size), "teacher.inference_size")
         image_size(list(self.image_size), "teacher.image_size")
@@ -124,24 +128,36 @@ class TeacherSpec:
         check_embedded_model(self.model, "teacher.model")
 
 
+#: The teachers ``teacher=`` names (``conf/teacher/*.yaml``).
+TEACHERS = ("mask2former", "espnetv2")
+
+
 class Teacher(nn.Module):
-    """Mask2Former semantic segmenter that speaks Cityscapes trainIds and a static probability."""
+    """A semantic segmenter that speaks Cityscapes trainIds and a static probability: a Mask2Former (its
+    classes from its config), or a network that returns per-pixel logits of the classes ``id2label`` names
+    (ESPNetv2: ``models.espnetv2``)."""
 
     def __init__(
         self,
-        model: Mask2FormerForUniversalSegmentation,
+        model: nn.Module,
         image_mean: Sequence[float] = IMAGENET_MEAN,
         image_std: Sequence[float] = IMAGENET_STD,
         static_names: Sequence[str] = STATIC_NAMES,
         dynamic_names: Sequence[str] = DYNAMIC_NAMES,
         inference_size: Sequence[int] | None = None,
         bf16: bool = True,
+        id2label: Mapping[int, str] | None = None,
+        antialias: bool = False,
     ) -> None:
         super().__init__()
         self.model = model
-        self.id2label = {int(k): str(v) for k, v in model.config.id2label.items()}
+        self.is_mask2former = isinstance(model, Mask2FormerForUniversalSegmentation)
+        labels = model.config.id2label if id2label is None else id2label
+        self.id2label = {int(k): str(v) for k, v in labels.items()}
         self.inference_size = tuple(inference_size) if inference_size else None
         self.bf16 = bf16
+        #: Resize to the inference size with antialiasing (as PIL's resize, which ESPNetv2's authors use).
+        self.antialias = antialias
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
         #: Which ``forward_frozen`` outputs of the linked trunk are this teacher's encoder feature maps (the
         #: first ones; the others come from ``_tail``), or None: the teacher runs its own encoder.
@@ -188,12 +204,17 @@ class Teacher(nn.Module):
         """Normalise [0,1] RGB the way the checkpoint was trained, at the inference size."""
         x = (images.to(self.mean.device, torch.float32) - self.mean) / self.std
         if self.inference_size and tuple(x.shape[-2:]) != self.inference_size:
-            x = F.interpolate(x, size=self.inference_size, mode="bilinear", align_corners=False)
+            x = F.interpolate(
+                x, size=self.inference_size, mode="bilinear", align_corners=False, antialias=self.antialias
+            )
         return x
 
     def semantic_scores(self, images: Tensor) -> Tensor:
-        """Mask2Former semantic scores (B,C,h,w) at mask resolution: softmax(class)[..., :-1] ⊗ sigmoid(mask)."""
+        """Semantic scores (B,C,h,w): a Mask2Former's at mask resolution, softmax(class)[..., :-1] ⊗
+        sigmoid(mask); a per-pixel network's softmax over its classes."""
         with autocast(self.device, enabled=self.bf16):
+            if not self.is_mask2former:
+                return self.model(self.pixels(images)).float().softmax(1)
             out = self.model(pixel_values=self.pixels(images))
         return _semantic(out)
 
@@ -211,6 +232,8 @@ class Teacher(nn.Module):
         differ from the teacher's own encoder by float rounding only (tests/models/test_shared_encoder.py bounds it).
         """
         self.trunk_levels, self._tail = None, []
+        if not self.is_mask2former:
+            return False
         config = getattr(self.model.config, "backbone_config", None)
         encoder = getattr(self.model.model.pixel_level_module.encoder, "_backbone", None)
         if not isinstance(config, TimmBackboneConfig) or encoder is None or not hasattr(backbone, "timm_name"):

@@ -25,6 +25,7 @@ from semvpr.core.logs import no_hf_progress_bars, quiet_third_party
 from semvpr.core.provenance import TrainedOn
 from semvpr.core.spec import MAX_IMAGE_SIDE, float32_number, image_size
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
+from semvpr.models.espnetv2 import CITYSCAPES_CHANNELS, load_espnetv2
 from semvpr.models.teacher import Teacher, TeacherSpec, check_size, embedded_teacher, teacher_options
 from semvpr.models.weights import check_tensor
 
@@ -375,8 +376,31 @@ def file_hash(path: Path, length: int = 16) -> str:
     return digest.hexdigest()[:length]
 
 
+def espnetv2_teacher(spec: TeacherSpec) -> Teacher:
+    """ESPNetv2 from its authors' Cityscapes file (``teacher=espnetv2 teacher.checkpoint=FILE``), seeing images
+    as the authors' test script does: resized to the inference size (1024x512) bilinearly with antialiasing,
+    ImageNet's mean and std."""
+    if not spec.checkpoint:
+        raise SemvprError(
+            "teacher=espnetv2 needs teacher.checkpoint=FILE: an ESPNetv2 Cityscapes segmentation file of its "
+            "authors (espnetv2_s_2.0_city_1024x512.pth)"
+        )
+    path = Path(str(spec.checkpoint)).expanduser()
+    kwargs = teacher_options(spec)
+    kwargs["id2label"] = dict(enumerate(CITYSCAPES_CHANNELS))
+    teacher = Teacher(load_espnetv2(path), image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD, antialias=True, **kwargs)
+    teacher.source_hash = file_hash(path)
+    teacher.trained_on = TrainedOn(f"cityscapes ({path.name})", "real")
+    size = list(teacher.inference_size) if teacher.inference_size is not None else None
+    teacher.teacher_key = f"espnetv2-{config_hash([teacher.source_hash, size])}"
+    return teacher
+
+
 def teacher_architecture(spec: TeacherSpec) -> Teacher:
-    """The teacher this spec describes: a pretrained checkpoint, or the embedded model untrained."""
+    """The teacher this spec describes: ESPNetv2 from its authors' file, a pretrained Mask2Former checkpoint,
+    or the embedded Mask2Former untrained."""
+    if spec.name == "espnetv2":
+        return espnetv2_teacher(spec)
     if spec.checkpoint:
         teacher = load_pretrained(str(spec.checkpoint), **teacher_options(spec))
         # Keyed by content, not by name: a directory whose weights changed is another teacher.

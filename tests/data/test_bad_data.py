@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from semvpr.core.errors import SemvprError
-from semvpr.localize import query_images
+from semvpr.data.places import folder_images
 from tests.bad_input import EVAL, LOCALIZE, TRAIN, Case, a_file, dangling, folder, nordland, rows, run_case
 from tests.camvid_fixture import write_camvid
 from tests.helpers import make_folder, object_array, write_gsv_cities, write_image, write_lists, write_pitts_mat
@@ -284,14 +284,14 @@ def test_localize_names_what_is_wrong_with_the_query_folder(tmp_path: Path) -> N
     image = tmp_path / "q.jpg"
     write_image(image, seed=0)
     with pytest.raises(SemvprError, match=r"q.jpg is a file: queries= names the folder of images"):
-        query_images(image)
+        folder_images(image, "queries")
     with pytest.raises(SemvprError, match=r"absent does not exist \(queries=DIR\)"):
-        query_images(tmp_path / "absent")
+        folder_images(tmp_path / "absent", "queries")
     (tmp_path / "empty").mkdir()
     with pytest.raises(SemvprError, match=r"no .jpg/.png images in"):
-        query_images(tmp_path / "empty")
-    assert query_images(tmp_path) == [image]
+        folder_images(tmp_path / "empty", "queries")
+    assert folder_images(tmp_path, "queries") == [image]
     # Subfolders are read (VPR-methods-evaluation's queries_folder: glob(**/*)); hidden names are not.
     write_image(tmp_path / "walk" / "b.png", seed=1)
     (tmp_path / "._q.jpg").write_bytes(b"\x00\x05\x16\x07")
-    assert query_images(tmp_path) == [image, tmp_path / "walk" / "b.png"]
+    assert folder_images(tmp_path, "queries") == [image, tmp_path / "walk" / "b.png"]
