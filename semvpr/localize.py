@@ -25,7 +25,6 @@ from semvpr.config.command import hydra_command, model_pass
 from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
-from semvpr.core.errors import SemvprError
 from semvpr.core.io import write_json
 from semvpr.core.stops import run_stoppable
 from semvpr.data.places import folder_images

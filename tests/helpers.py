@@ -424,7 +424,13 @@ def espnetv2_state(widths: list[int], seed: int = 0) -> dict[str, torch.Tensor]:
 
 
 def write_espnetv2(path: Path, widths: tuple[int, ...] = (16, 32, 64, 128), seed: int = 0) -> Path:
-    """A weight file in the layout of ESPNetv2's authors' Cityscapes releases (random weights)."""
+    """A weight file in the layout of ESPNetv2's authors' Cityscapes releases (random weights), its classifier
+    made decisive (rows of zero mean, scaled up): its labels change across an image, static and dynamic classes
+    both, as a trained segmenter's do."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(espnetv2_state(list(widths), seed), path)
+    state = espnetv2_state(list(widths), seed)
+    head = state["bu_dec_l4.merge_layer.3.weight"]
+    state["bu_dec_l4.merge_layer.3.weight"] = (head - head.mean(1, keepdim=True)) * 30
+    state["bu_dec_l4.merge_layer.3.bias"].zero_()
+    torch.save(state, path)
     return path

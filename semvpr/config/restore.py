@@ -267,6 +267,8 @@ def replace_mask(cfg: DictConfig, explicit: set[str], merged: DictConfig, where:
                 f"{where} was trained without a mask, so it has no learned class weights: "
                 f"mask.weights={cfg.mask.weights} needs a checkpoint trained with them; use mask.weights=binary"
             )
+        if needs == "teacher" and cfg.teacher.name != merged.teacher.name:  # another kind of teacher: all its own
+            out.teacher = OmegaConf.create(OmegaConf.to_container(cfg.teacher, resolve=False))
         for group in SEGMENTER_GROUPS:
             # No directory recorded in the checkpoint is ever read: only the invocation's.
             out[group].checkpoint = given[group] if group == needs else None

@@ -84,6 +84,7 @@ def check_class_names(names: Sequence[str], where: str, *, empty: bool = False) 
     if len(set(names)) != len(names):
         raise SemvprError(f"{where}={list(names)!r} names a class twice")
 
+
 #: The colour of each trainId in Cityscapes' own label images (cityscapesScripts ``labels.py``), for label PNGs.
 TRAIN_ID_COLOURS: tuple[tuple[int, int, int], ...] = (
     (128, 64, 128),

@@ -383,3 +383,16 @@ def test_localize_and_the_hub_take_the_replacement(world: dict[str, Path], tmp_p
     results = localize(cfg, {"mask", "student.checkpoint"})
     # Query frame i is database frame i's image: the nearest is itself, mask or not.
     assert [Path(r["matches"][0]["path"]).name for r in results] == [Path(r["query"]).name for r in results]
+
+
+def test_espnetv2_replaces_the_mask_at_evaluation(world: dict[str, Path], tmp_path: Path) -> None:
+    from semvpr.models.espnetv2 import ESPNetv2Segmentation
+    from tests.helpers import write_espnetv2
+
+    overrides = ["mask=teacher", "teacher=espnetv2", f"teacher.checkpoint={write_espnetv2(tmp_path / 'esp.pth')}"]
+    own, _ = descriptors(world, "plain", tmp_path / "a")
+    ours, retriever = descriptors(world, "plain", tmp_path / "b", *overrides, "teacher.inference_size=[32,64]")
+    assert isinstance(retriever.mask_source.teacher.model, ESPNetv2Segmentation)
+    assert retriever.mask_source.teacher.inference_size == (32, 64) and not np.allclose(ours, own)
+    for name, value in checkpoint_state(world["plain"], "aggregator.").items():
+        assert torch.equal(retriever.aggregator.state_dict()[name], value), name
