@@ -19,15 +19,19 @@ Timed, each the median over ``--repeats`` batches after one warm-up:
 - ``teacher@HxW``: the teacher's grid mask with the teacher seeing the images at HxW: 270x480 (as given)
   and the size the CamVid teacher trains at (``seg.image_size`` of ``conf/seg/camvid.yaml``: a
   semvpr.segment teacher's ``semvpr.json`` makes it its inference size, and the embedded teacher's is its
-  ``image_size``).
+  ``image_size``);
+- ``espnetv2 s=W``: the grid mask of ESPNetv2 (``teacher=espnetv2``, the widths of its authors' s=2.0 and
+  s=1.0 files, untrained) seeing the images at its authors' 1024x512, in fp32 as ``conf/teacher/espnetv2.yaml``
+  runs it.
 
     python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1] [--teacher-backbone efficientnet_lite0]
 
 Last line: ``name=value`` pairs, ratios of times measured in this run: ``student_over_trunk`` (an
 evaluation with the student's mask over one without), ``trunk_share_of_student`` (the part of the
 student's pass that is the shared trunk), ``teacher_over_trunk`` (trunk + teacher at 270x480 over the
-trunk), ``teacher_inference_over_trunk`` (the same with the teacher at its training size) and ``teacher_cut``
-(teacher at 270x480 over teacher at its training size).
+trunk), ``teacher_inference_over_trunk`` (the same with the teacher at its training size), ``teacher_cut``
+(teacher at 270x480 over teacher at its training size), and ``espnetv2_<s>_over_trunk`` (trunk + ESPNetv2 over
+the trunk) and ``espnetv2_<s>_over_teacher`` (ESPNetv2 over the CamVid teacher at its training size).
 """
 
 from __future__ import annotations
@@ -43,10 +47,11 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
-from semvpr.models.backbones import EFFICIENTNET_LITE, Backbone, EfficientNetLite0Backbone
+from semvpr.models.backbones import EFFICIENTNET_LITE, IMAGENET_MEAN, IMAGENET_STD, Backbone, EfficientNetLite0Backbone
+from semvpr.models.espnetv2 import CITYSCAPES_CHANNELS, ESPNetv2Segmentation
 from semvpr.models.masks import StudentMask, TeacherMask
 from semvpr.models.student import StudentSpec, student_architecture
-from semvpr.models.teacher import TeacherSpec, embedded_teacher
+from semvpr.models.teacher import Teacher, TeacherSpec, embedded_teacher
 from semvpr.retrieval.features import grid_size
 
 SIZE = (270, 480)
@@ -93,6 +98,26 @@ def camvid_teacher(inference_size: Sequence[int], encoder: str | None = None) ->
     node = camvid_teacher_node(encoder)
     spec = TeacherSpec.from_mapping({**OmegaConf.to_container(node), "inference_size": list(inference_size)})
     return TeacherMask(embedded_teacher(spec))
+
+
+#: The level widths of ESPNetv2's authors' Cityscapes files, by scale.
+ESPNETV2_WIDTHS = {"2.0": [32, 128, 256, 512], "1.0": [32, 64, 128, 256]}
+
+
+def espnetv2_teacher(scale: str) -> TeacherMask:
+    """An untrained ESPNetv2 of the authors' widths at ``scale``, as ``conf/teacher/espnetv2.yaml`` builds it."""
+    node = OmegaConf.load(Path(CONF_DIR) / "teacher" / "espnetv2.yaml")
+    model = ESPNetv2Segmentation(ESPNETV2_WIDTHS[scale], len(CITYSCAPES_CHANNELS)).eval()
+    teacher = Teacher(
+        model,
+        IMAGENET_MEAN,
+        IMAGENET_STD,
+        inference_size=list(node.inference_size),
+        bf16=bool(node.train.bf16),
+        id2label=dict(enumerate(CITYSCAPES_CHANNELS)),
+        antialias=True,
+    )
+    return TeacherMask(teacher)
 
 
 @exit_on_user_error
@@ -145,6 +170,11 @@ def main() -> None:
         t[f"teacher@{size[0]}x{size[1]}"] = timed(
             f"teacher seeing {size[0]}x{size[1]}", lambda teacher=teacher: teacher.grid_mask(images, [], None, grid)
         )
+    for scale in ESPNETV2_WIDTHS:
+        espnet = espnetv2_teacher(scale)
+        t[f"espnetv2_{scale}"] = timed(
+            f"espnetv2 s={scale} at 1024x512", lambda m=espnet: m.grid_mask(images, [], None, grid)
+        )
     teacher_full = t[f"teacher@{SIZE[0]}x{SIZE[1]}"]
     teacher_small = t[f"teacher@{TEACHER_TRAINED_AT[0]}x{TEACHER_TRAINED_AT[1]}"]
     print(
@@ -155,7 +185,12 @@ def main() -> None:
         f"trunk_share_of_student={t['trunk'] / t['trunk+student']:.2f} "
         f"teacher_over_trunk={(t['trunk'] + teacher_full) / t['trunk']:.2f} "
         f"teacher_inference_over_trunk={(t['trunk'] + teacher_small) / t['trunk']:.2f} "
-        f"teacher_cut={teacher_full / teacher_small:.2f}"
+        f"teacher_cut={teacher_full / teacher_small:.2f} "
+        + " ".join(
+            f"espnetv2_{s}_over_trunk={(t['trunk'] + t[f'espnetv2_{s}']) / t['trunk']:.2f} "
+            f"espnetv2_{s}_over_teacher={t[f'espnetv2_{s}'] / teacher_small:.2f}"
+            for s in ESPNETV2_WIDTHS
+        )
     )
 
 

@@ -396,3 +396,7 @@ def test_espnetv2_replaces_the_mask_at_evaluation(world: dict[str, Path], tmp_pa
     assert retriever.mask_source.teacher.inference_size == (32, 64) and not np.allclose(ours, own)
     for name, value in checkpoint_state(world["plain"], "aggregator.").items():
         assert torch.equal(retriever.aggregator.state_dict()[name], value), name
+    from semvpr.hub import load_model
+
+    hub = load_model(world["plain"], overrides=[*overrides, "teacher.inference_size=[32,64]"])
+    assert isinstance(hub.retriever.mask_source.teacher.model, ESPNetv2Segmentation)

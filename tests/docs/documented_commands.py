@@ -32,6 +32,7 @@ HYDRA_COMMANDS = {
     "semvpr.eval": "eval",
     "semvpr.localize": "localize",
     "semvpr.segment": "segment",
+    "semvpr.label": "label",
 }
 
 
