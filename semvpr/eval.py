@@ -11,8 +11,10 @@ benchmark) and, where some query has no positive, over queries with positives (M
 one JSON object, also written as ``eval.json``. Beside it, ``ranks.npy`` holds each query's first-hit
 rank (0-based; k, the number retrieved, when no positive is in the top k; -1 when the query has no
 positive), in the set's query order: what paired comparisons of two evaluations of the same queries
-resample. With ``-m`` over several datasets (``data=a,b``, ``data.root=A,B``) or mask sources, a job's
-bad input fails its own row only, and ``semvpr.evaltable`` writes one table for the sweep.
+resample. ``mask.control``, ``mask.apply`` and ``mask.control_seed`` control the mask
+(``retrieval.controls``): the invocation's where given, else the checkpoint's. With ``-m`` over several
+datasets (``data=a,b``, ``data.root=A,B``), mask sources or controls, a job's bad input fails its own row
+only, and ``semvpr.evaltable`` writes one table for the sweep.
 """
 
 from __future__ import annotations
@@ -47,11 +49,14 @@ from semvpr.retrieval.retriever import Retriever
 
 def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[np.ndarray, np.ndarray]:
     """Database and query descriptors of ``places`` (``retrieval.descriptors``: from the cached trunk outputs
-    and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream)."""
+    and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream),
+    under the mask control of ``cfg.mask`` (``retrieval.controls``)."""
     settings = settings_of(cfg)
     storage = feature_storage(settings, retriever.backbone, {"test": places})
-    size, cache = settings.data.image_size, settings.storage.cache_dir
-    return tuple(place_descriptors(retriever, places, side, size, cache, storage) for side in ("db", "q"))  # type: ignore[return-value]
+    size, cache, control = settings.data.image_size, settings.storage.cache_dir, settings.masks.control
+    return tuple(  # type: ignore[return-value]
+        place_descriptors(retriever, places, side, size, cache, storage, control) for side in ("db", "q")
+    )
 
 
 def evaluate_checkpoint(
@@ -83,6 +88,10 @@ def evaluate_checkpoint(
         "mask": merged.mask.name,
         # The directory (or Hub id) the mask's segmenter was read from; null: the checkpoint's own weights.
         "mask_checkpoint": str(segmenter_dir) if segmenter_dir else None,
+        # The mask's control (retrieval.controls): none and both for the source's own mask on every image.
+        "mask_control": str(merged.mask.control),
+        "mask_apply": str(merged.mask.apply),
+        "mask_control_seed": int(merged.mask.control_seed),
         "backbone": merged.backbone.name,
         "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
         # An author's release file: its name in tables, e.g. "mixvpr (ResNet50, released)".
