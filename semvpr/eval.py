@@ -11,7 +11,8 @@ benchmark) and, where some query has no positive, over queries with positives (M
 one JSON object, also written as ``eval.json``. Beside it, ``ranks.npy`` holds each query's first-hit
 rank (0-based; k, the number retrieved, when no positive is in the top k; -1 when the query has no
 positive), in the set's query order: what paired comparisons of two evaluations of the same queries
-resample. ``mask.control``, ``mask.apply`` and ``mask.control_seed`` control the mask
+resample; ``hits.npz``, each query's hit at N = 1, 5, 10, 20 and the database indices it retrieved
+(:func:`query_hits`). ``mask.control``, ``mask.apply`` and ``mask.control_seed`` control the mask
 (``retrieval.controls``): the invocation's where given, else the checkpoint's. With ``-m`` over several
 datasets (``data=a,b``, ``data.root=A,B``), mask sources or controls, a job's bad input fails its own row
 only, and ``semvpr.evaltable`` writes one table for the sweep.
@@ -38,10 +39,10 @@ from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, one_line
-from semvpr.core.io import write_json, write_npy
+from semvpr.core.io import write_json, write_npy, write_npz
 from semvpr.core.stops import Interrupted, received_stop, run_stoppable, sweep_stopped_line
 from semvpr.data.places import PlaceSet
-from semvpr.reporting.benchmarks_table import RANKS_FILE, write_table
+from semvpr.reporting.benchmarks_table import HITS_FILE, RANKS_FILE, write_table
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import RECALL_NS, evaluate, first_hit_ranks
 from semvpr.retrieval.retriever import Retriever
@@ -64,7 +65,8 @@ def evaluate_checkpoint(
 ) -> dict[str, Any]:
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
     beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time; under
-    ``ranks`` (not written to eval.json) each query's first-hit rank."""
+    ``ranks`` and ``top`` (not written to eval.json) each query's first-hit rank and the database indices it
+    retrieved, nearest first."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
@@ -107,7 +109,19 @@ def evaluate_checkpoint(
         out.update({f"test/R@{n}_pos": round(v, 2) for n, v in result["recalls_pos"].items()})
     out["wall_s"] = round(time.perf_counter() - start, 1)
     out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
+    out["top"] = result["predictions"]
     return out
+
+
+def query_hits(ranks: np.ndarray, top: np.ndarray) -> dict[str, np.ndarray]:
+    """What ``hits.npz`` holds: ``ns`` (the cut-offs N), ``hits`` (queries × N, bool: a positive among the first
+    N retrieved; a query without positives never hits) and ``top`` (queries × k, the retrieved database
+    indices, nearest first; k = 20, or the database's size where smaller)."""
+    ns = np.asarray(RECALL_NS, dtype=np.int32)
+    # A rank of k is a miss (k retrieved, none a positive): beyond k, the first k are all there is.
+    retrieved = np.minimum(ns, np.asarray(top).shape[1])
+    hits = (ranks[:, None] >= 0) & (ranks[:, None] < retrieved[None, :])
+    return {"ns": ns, "hits": hits, "top": np.asarray(top, dtype=np.int32)}
 
 
 @hydra_command("eval", "eval.json")
@@ -123,8 +137,10 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
         write_json(out_dir / "eval.json", {"status": "failed", "error": line})
         print(f"semvpr: job failed ({out_dir}): {line}", file=sys.stderr)
         return
-    # ranks.npy first: an eval.json beside it says both are complete.
-    write_npy(out_dir / RANKS_FILE, np.asarray(result.pop("ranks"), dtype=np.int32))
+    # ranks.npy and hits.npz first: an eval.json beside them says all are complete.
+    ranks = np.asarray(result.pop("ranks"), dtype=np.int32)
+    write_npy(out_dir / RANKS_FILE, ranks)
+    write_npz(out_dir / HITS_FILE, query_hits(ranks, result.pop("top")))
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""

@@ -38,6 +38,8 @@ COLUMNS = (
 )
 #: Each eval job's per-query first-hit ranks (``semvpr.eval``), in the set's query order.
 RANKS_FILE = "ranks.npy"
+#: Each eval job's per-query hits at each N and retrieved database indices (``semvpr.eval.query_hits``).
+HITS_FILE = "hits.npz"
 
 
 def _job_dirs(sweep_dir: Path) -> list[Path]:

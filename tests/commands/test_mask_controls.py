@@ -1,6 +1,6 @@
 """Mask controls at evaluation: where the mask applies (the other side's descriptors are the unmasked ones),
 controls kept apart in the descriptor cache, a checkpoint's recorded control and the invocation's in its
-place, and an evaluation multirun over controls: eval.json and the table name each one."""
+place, and an evaluation multirun over controls: eval.json, hits.npz and the table name each one."""
 
 from __future__ import annotations
 
@@ -135,9 +135,25 @@ def test_localize_refuses_a_control(world: dict[str, Path], tmp_path: Path) -> N
         load_retriever(cfg, set(), new_images=True)
 
 
+def test_the_hits_eval_writes_give_its_recalls(world: dict[str, Path], tmp_path: Path) -> None:
+    """hits.npz's columns (here on a database of 8 frames: fewer than 20 retrieved) average to eval.json's R@N."""
+    from semvpr.eval import evaluate_checkpoint, query_hits
+
+    overrides = [*student(world), "mask.control=random"]
+    cfg = config(
+        *frames_args(world), f"+ckpt={world['plain']}", f"paths.cache_dir={tmp_path}", *overrides, config_name="eval"
+    )
+    result = evaluate_checkpoint(cfg, {o.split("=", 1)[0] for o in overrides})
+    hits = query_hits(np.asarray(result["ranks"]), result["top"])
+    assert hits["top"].shape == (8, 8) and hits["hits"].shape == (8, 4)
+    for i, n in enumerate(hits["ns"]):
+        assert round(100 * hits["hits"][:, i].mean(), 2) == result[f"test/R@{n}"]
+
+
 @pytest.mark.slow
 def test_an_eval_multirun_over_controls_writes_and_names_each(world: dict[str, Path], tmp_path: Path) -> None:
-    """Two jobs through the CLI: eval.json records the control, and the table's row names it."""
+    """Two jobs through the CLI: eval.json records the control, hits.npz gives eval.json's recalls, and the
+    table's row names the control."""
     (tmp_path / "cwd").mkdir()
     sweep = tmp_path / "sweep"
     proc = subprocess.run(
@@ -165,6 +181,15 @@ def test_an_eval_multirun_over_controls_writes_and_names_each(world: dict[str, P
     for job, control in (("0", "none"), ("1", "random")):
         result = json.loads((sweep / job / "eval.json").read_text())
         assert (result["mask_control"], result["mask_apply"], result["mask_control_seed"]) == (control, "database", 0)
+        with np.load(sweep / job / "hits.npz") as hits:
+            assert hits["ns"].tolist() == [1, 5, 10, 20]
+            assert hits["hits"].shape == (result["queries"], 4) and hits["hits"].dtype == bool
+            assert hits["top"].shape == (result["queries"], min(20, result["database"]))
+            for i, n in enumerate(hits["ns"]):
+                assert abs(100 * hits["hits"][:, i].mean() - result[f"test/R@{n}"]) < 0.006
+                # Query frame q's positives are the database frames within ±2 (data.frame_window).
+                near = np.abs(hits["top"][:, :n] - np.arange(result["queries"])[:, None]) <= 2
+                assert np.array_equal(near.any(1), hits["hits"][:, i])
     with open(sweep / "results.csv", newline="") as fh:
         sources = [row["source"] for row in csv.DictReader(fh) if row["data"] != "published"]
     assert "control=random (seed 0), on the database only" in sources[1]
