@@ -24,6 +24,7 @@ from tests.helpers import (
     write_checkpoint,
     write_frames,
     write_student_dir,
+    write_teacher_dir,
 )
 
 SIZE = [f"data.image_size=[{FRAME_SIZE[0]},{FRAME_SIZE[1]}]", "data.num_workers=0"]
@@ -101,6 +102,20 @@ def test_each_control_is_another_descriptor_cache(world: dict[str, Path], tmp_pa
     # student's sky or objects alone may never make most of a cell).
     drawn = [seen[k].tobytes() for k in ("own", "random", "shuffled", "random 1")]
     assert len(set(drawn)) == len(drawn)
+
+
+def test_every_control_takes_a_teacher_mask(world: dict[str, Path], tmp_path: Path) -> None:
+    """The teacher's mask (it reads the images at its own size) under each control: one mask pass per weighting,
+    none for a control."""
+    from semvpr.retrieval.controls import CONTROLS
+
+    teacher = ["mask=teacher", f"teacher.checkpoint={write_teacher_dir(tmp_path / 'teacher')}"]
+    cache = tmp_path / "cache"
+    for control in CONTROLS:
+        db, q = described(world, cache, *teacher, f"mask.control={control}")
+        assert np.isfinite(db).all() and np.isfinite(q).all()
+    assert len(list(cache.glob("descriptors-*"))) == 2 * len(CONTROLS)
+    assert len(list(cache.glob("masks-*"))) == 2  # binary (none, random, shuffled) and pooled classes (objects, sky)
 
 
 def test_a_checkpoint_records_its_control_and_the_command_line_replaces_it(
