@@ -11,8 +11,11 @@ benchmark) and, where some query has no positive, over queries with positives (M
 one JSON object, also written as ``eval.json``. Beside it, ``ranks.npy`` holds each query's first-hit
 rank (0-based; k, the number retrieved, when no positive is in the top k; -1 when the query has no
 positive), in the set's query order: what paired comparisons of two evaluations of the same queries
-resample. With ``-m`` over several datasets (``data=a,b``, ``data.root=A,B``) or mask sources, a job's
-bad input fails its own row only, and ``semvpr.evaltable`` writes one table for the sweep.
+resample; ``hits.npz``, each query's hit at N = 1, 5, 10, 20 and the database indices it retrieved
+(:func:`query_hits`). ``mask.control``, ``mask.apply`` and ``mask.control_seed`` control the mask
+(``retrieval.controls``): the invocation's where given, else the checkpoint's. With ``-m`` over several
+datasets (``data=a,b``, ``data.root=A,B``), mask sources or controls, a job's bad input fails its own row
+only, and ``semvpr.evaltable`` writes one table for the sweep.
 """
 
 from __future__ import annotations
@@ -36,10 +39,10 @@ from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, one_line
-from semvpr.core.io import write_json, write_npy
+from semvpr.core.io import write_json, write_npy, write_npz
 from semvpr.core.stops import Interrupted, received_stop, run_stoppable, sweep_stopped_line
 from semvpr.data.places import PlaceSet
-from semvpr.reporting.benchmarks_table import RANKS_FILE, write_table
+from semvpr.reporting.benchmarks_table import HITS_FILE, RANKS_FILE, write_table
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import RECALL_NS, evaluate, first_hit_ranks
 from semvpr.retrieval.retriever import Retriever
@@ -47,11 +50,14 @@ from semvpr.retrieval.retriever import Retriever
 
 def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[np.ndarray, np.ndarray]:
     """Database and query descriptors of ``places`` (``retrieval.descriptors``: from the cached trunk outputs
-    and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream)."""
+    and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream),
+    under the mask control of ``cfg.mask`` (``retrieval.controls``)."""
     settings = settings_of(cfg)
     storage = feature_storage(settings, retriever.backbone, {"test": places})
-    size, cache = settings.data.image_size, settings.storage.cache_dir
-    return tuple(place_descriptors(retriever, places, side, size, cache, storage) for side in ("db", "q"))  # type: ignore[return-value]
+    size, cache, control = settings.data.image_size, settings.storage.cache_dir, settings.masks.control
+    return tuple(  # type: ignore[return-value]
+        place_descriptors(retriever, places, side, size, cache, storage, control) for side in ("db", "q")
+    )
 
 
 def evaluate_checkpoint(
@@ -59,7 +65,8 @@ def evaluate_checkpoint(
 ) -> dict[str, Any]:
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
     beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time; under
-    ``ranks`` (not written to eval.json) each query's first-hit rank."""
+    ``ranks`` and ``top`` (not written to eval.json) each query's first-hit rank and the database indices it
+    retrieved, nearest first."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
@@ -83,6 +90,10 @@ def evaluate_checkpoint(
         "mask": merged.mask.name,
         # The directory (or Hub id) the mask's segmenter was read from; null: the checkpoint's own weights.
         "mask_checkpoint": str(segmenter_dir) if segmenter_dir else None,
+        # The mask's control (retrieval.controls): none and both for the source's own mask on every image.
+        "mask_control": str(merged.mask.control),
+        "mask_apply": str(merged.mask.apply),
+        "mask_control_seed": int(merged.mask.control_seed),
         "backbone": merged.backbone.name,
         "model": f"{merged.backbone.name}-{type(retriever.aggregator).__name__.lower()}",
         # An author's release file: its name in tables, e.g. "mixvpr (ResNet50, released)".
@@ -98,7 +109,19 @@ def evaluate_checkpoint(
         out.update({f"test/R@{n}_pos": round(v, 2) for n, v in result["recalls_pos"].items()})
     out["wall_s"] = round(time.perf_counter() - start, 1)
     out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
+    out["top"] = result["predictions"]
     return out
+
+
+def query_hits(ranks: np.ndarray, top: np.ndarray) -> dict[str, np.ndarray]:
+    """What ``hits.npz`` holds: ``ns`` (the cut-offs N), ``hits`` (queries × N, bool: a positive among the first
+    N retrieved; a query without positives never hits) and ``top`` (queries × k, the retrieved database
+    indices, nearest first; k = 20, or the database's size where smaller)."""
+    ns = np.asarray(RECALL_NS, dtype=np.int32)
+    # A rank of k is a miss (k retrieved, none a positive): beyond k, the first k are all there is.
+    retrieved = np.minimum(ns, np.asarray(top).shape[1])
+    hits = (ranks[:, None] >= 0) & (ranks[:, None] < retrieved[None, :])
+    return {"ns": ns, "hits": hits, "top": np.asarray(top, dtype=np.int32)}
 
 
 @hydra_command("eval", "eval.json")
@@ -114,8 +137,10 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
         write_json(out_dir / "eval.json", {"status": "failed", "error": line})
         print(f"semvpr: job failed ({out_dir}): {line}", file=sys.stderr)
         return
-    # ranks.npy first: an eval.json beside it says both are complete.
-    write_npy(out_dir / RANKS_FILE, np.asarray(result.pop("ranks"), dtype=np.int32))
+    # ranks.npy and hits.npz first: an eval.json beside them says all are complete.
+    ranks = np.asarray(result.pop("ranks"), dtype=np.int32)
+    write_npy(out_dir / RANKS_FILE, ranks)
+    write_npz(out_dir / HITS_FILE, query_hits(ranks, result.pop("top")))
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""

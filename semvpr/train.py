@@ -222,8 +222,8 @@ def job_metrics(cfg: DictConfig, measured: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_labels(cfg: DictConfig) -> dict[str, Any]:
-    """What the report groups a run by: aggregator, the recipe it trained with, mask, its weighting,
-    backbone and what its weights are (imagenet, none or file), seed; ``filter`` is the preset the config
+    """What the report groups a run by: aggregator, the recipe it trained with, mask, its weighting and
+    control, backbone and what its weights are (imagenet, none or file), seed; ``filter`` is the preset the config
     started from (an explicit aggregator= or mask= may have replaced its choices)."""
     return {
         "aggregator": cfg.aggregator.get("name"),
@@ -232,6 +232,10 @@ def run_labels(cfg: DictConfig) -> dict[str, Any]:
         "mask": cfg.mask.get("name"),
         "weights": cfg.mask.get("weights"),
         "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)),
+        # The mask's control (retrieval.controls): none and both for the source's own mask on every image.
+        "mask_control": cfg.mask.get("control"),
+        "mask_apply": cfg.mask.get("apply"),
+        "mask_control_seed": cfg.mask.get("control_seed"),
         "backbone": cfg.backbone.get("name"),
         "backbone_weights": weights_kind(cfg.backbone.get("weights")),
         "filter": cfg.filter.get("name"),

@@ -41,6 +41,7 @@ from semvpr.models.student import Student, load_student, student_architecture
 from semvpr.models.teacher import Teacher, embedded_teacher
 from semvpr.models.teacher_folder import teacher_architecture
 from semvpr.models.whitening import PCAWhitening
+from semvpr.retrieval.control_masks import control_features
 from semvpr.retrieval.datamodule import EvalDataModule, PlaceDataModule, RetrievalDataModule
 from semvpr.retrieval.distributed import Describe
 from semvpr.retrieval.features import (
@@ -478,8 +479,9 @@ def feature_storage(settings: Settings, backbone: Backbone, places: dict[str, Pl
 
 def prepare(plan: JobPlan, timings: dict[str, float]) -> Prepared:
     """Place sets, backbone, the semantic artifacts and the frozen-trunk features of a training job, all on
-    the plan's device; the seconds of each stage into ``timings`` (data, teacher, labels, student, features:
-    the trunk passes and the masks; semantic = teacher + labels + student)."""
+    the plan's device, the masks under the plan's control (``retrieval.controls``); the seconds of each stage
+    into ``timings`` (data, teacher, labels, student, features: the trunk passes and the masks; semantic =
+    teacher + labels + student)."""
     tic = time.time()
     settings, threads = plan.settings, plan.threads
     places = build_places(settings.data)  # generates SynthCity on first use
@@ -499,10 +501,13 @@ def prepare(plan: JobPlan, timings: dict[str, float]) -> Prepared:
     timings["semantic_s"] = sum(timings.get(k, 0.0) for k in ("teacher_s", "labels_s", "student_s"))
     tic = time.time()
     held_as = store_settings(settings, storage, threads.workers(settings.data.num_workers))
-    masks = None if mask_source is None else MaskPass(mask_source, settings.model.weighting)
+    control = plan.masks.control
+    masks = None if mask_source is None else MaskPass(mask_source, control.cached_weighting(settings.model.weighting))
     with threads.stage("frozen"):
         features = {
-            split: place_features(places[split], backbone, held_as, masks, skip_levels=levels[split])
+            split: control_features(
+                place_features(places[split], backbone, held_as, masks, skip_levels=levels[split]), control
+            )
             for split in places
         }
     timings["features_s"] = timings.get("features_s", 0.0) + time.time() - tic

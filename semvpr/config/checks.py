@@ -28,6 +28,7 @@ from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.models.released import FORMATS as CKPT_FORMATS
+from semvpr.retrieval.controls import APPLIES, CONTROLS, REMOVED_CLASSES
 from semvpr.retrieval.features import STORAGES
 
 SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
@@ -440,6 +441,7 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
         if cfg.model.get("pca_dim") is not None:
             whole_number(cfg.model.pca_dim, "model.pca_dim", 1, SIZE_MAX, also="or null: no whitening")
         number(cfg.model.class_weights.init_logit, "model.class_weights.init_logit", 0)
+        _check_control_values(cfg.mask)
         values = constructor_values(cfg.aggregator, "aggregator")
         for key, value in values.items():
             _check_size(value, f"aggregator.{key}")
@@ -540,6 +542,45 @@ def _check_retrieval(cfg: DictConfig) -> None:
             "mask=none has no mask to weight; mask.weights=learned (filter.weights=learned) needs "
             "mask=student, teacher or oracle (filter=unet, mask2former or oracle)"
         )
+    if not evaluation:  # eval applies the invocation's control to the checkpoint's mask (config.restore)
+        check_control_fits(cfg.mask, training=True)
+
+
+def _check_control_values(mask: DictConfig) -> None:
+    """``mask.control``, ``mask.apply`` and ``mask.control_seed`` hold values the controls know
+    (``retrieval.controls``)."""
+    for key, known in (("control", CONTROLS), ("apply", APPLIES)):
+        value = mask.get(key)
+        if value not in known:
+            raise SemvprError(f"mask.{key}={_shown(value)!r} is not one of {list(known)}")
+    whole_number(mask.get("control_seed"), "mask.control_seed", 0, SEED_MAX)
+
+
+def check_control_fits(mask: DictConfig, training: bool) -> None:
+    """The mask control fits the mask it controls: there is a mask; ``objects``, ``sky`` and ``random`` make
+    binary masks, which a model with learned class weights does not read; in ``training`` the unmasked side
+    of ``mask.apply`` is weighted 1 per cell, which only a binary mask means."""
+    control, apply = mask.control, mask.apply
+    if mask._target_ is None:
+        if control != "none":
+            raise SemvprError(
+                f"mask.control={control} needs a mask to control; mask=none has none (mask=student, teacher or oracle)"
+            )
+        if apply != "both":
+            raise SemvprError(
+                f"mask.apply={apply} needs a mask to apply; mask=none has none (mask=student, teacher or oracle)"
+            )
+    if mask.weights == "learned":
+        if control in (*REMOVED_CLASSES, "random"):
+            raise SemvprError(
+                f"mask.control={control} makes a binary mask; mask.weights=learned weights class probabilities "
+                "(use mask.weights=binary, or mask.control=shuffled)"
+            )
+        if training and apply != "both":
+            raise SemvprError(
+                f"mask.apply={apply} in training weights the other side 1 per cell, a binary mask; "
+                "mask.weights=learned needs mask.apply=both"
+            )
 
 
 def _shown(value: Any) -> Any:

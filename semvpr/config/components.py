@@ -43,7 +43,7 @@ class Group:
 COMPONENTS: dict[str, Group] = {
     "backbone": Group(Backbone, ("name", "paper_train_from")),
     "aggregator": Group(Aggregator, ("name", "baseline", "gsv")),
-    "mask": Group(MaskSource, ("name", "upper_bound", "weights"), optional=True),
+    "mask": Group(MaskSource, ("name", "upper_bound", "weights", "control", "apply", "control_seed"), optional=True),
 }
 
 

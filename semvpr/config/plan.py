@@ -29,6 +29,7 @@ from semvpr.core.threads import JOBS_BESIDE, Threads, standard_start_method, usa
 from semvpr.models.masks import MaskSource
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
+from semvpr.retrieval.controls import MaskControl
 from semvpr.retrieval.initialisation import InitSample
 from semvpr.retrieval.launch import local_rank
 from semvpr.retrieval.losses import TripletLoss
@@ -40,13 +41,14 @@ from semvpr.retrieval.retriever import Optimization
 @dataclass(frozen=True)
 class MaskPlan:
     """A config's mask source, looked up once (:func:`mask_plan`): its class (``source``, None without one), the
-    ``mask`` node that builds it, and the ``teacher``'s and ``student``'s settings, what a segmenter source is
-    made from."""
+    ``mask`` node that builds it, the ``teacher``'s and ``student``'s settings, what a segmenter source is
+    made from, and the mask's ``control`` (``mask.control``, ``mask.apply``, ``mask.control_seed``)."""
 
     source: type[MaskSource] | None
     node: Any
     teacher: TeacherSpec
     student: StudentSpec
+    control: MaskControl
 
     @property
     def needs(self) -> str | None:
@@ -56,7 +58,13 @@ class MaskPlan:
 
 def mask_plan(cfg: DictConfig) -> MaskPlan:
     """The mask source ``cfg`` asks for (its ``mask``, ``teacher`` and ``student`` groups)."""
-    return MaskPlan(component_class(cfg, "mask"), cfg.mask, teacher_spec(cfg), student_spec(cfg))
+    return MaskPlan(component_class(cfg, "mask"), cfg.mask, teacher_spec(cfg), student_spec(cfg), mask_control(cfg))
+
+
+def mask_control(cfg: DictConfig) -> MaskControl:
+    """The mask control ``cfg.mask`` sets (checked by ``config.checks``)."""
+    mask = cfg.mask
+    return MaskControl(str(mask.control), str(mask.apply), int(mask.control_seed))
 
 
 @dataclass(frozen=True)

@@ -5,10 +5,12 @@ share.
 
 A checkpoint's model comes from its record (``semvpr.config.record``: validated against the project's
 own configs, nothing stored in the file is run) and is assembled by the same builder as a training run.
-A command-line choice that would change the model is refused, with one exception: the mask source.
+A command-line choice that would change the model is refused, with two exceptions. The mask source:
 ``mask=teacher teacher.checkpoint=DIR``, ``mask=student student.checkpoint=DIR`` (directories saved by
 ``semvpr.segment``, read as data) or ``mask=none`` replaces the checkpoint's own; the backbone, the
-aggregator and its weights, and learned class weights stay the checkpoint's (ARCHITECTURE §3.2).
+aggregator and its weights, and learned class weights stay the checkpoint's (ARCHITECTURE §3.2). And the
+mask's control (``mask.control``, ``mask.apply``, ``mask.control_seed``: ``retrieval.controls``): the
+invocation's, where it gives one, else the checkpoint's.
 
 An author's released file (pytorch-NetVlad, MixVPR, CosPlace, EigenPlaces, BoQ, SALAD: ``models.released``; told
 from a semvpr checkpoint by its keys, or named with ``ckpt_format=``) becomes a record of the same form: the
@@ -44,9 +46,9 @@ from semvpr.config.build import (
     link_segmenter,
     store_settings,
 )
-from semvpr.config.checks import check_model
+from semvpr.config.checks import check_control_fits, check_model
 from semvpr.config.components import component_class, constructor_values, options
-from semvpr.config.plan import job_plan, settings_of
+from semvpr.config.plan import job_plan, mask_control, settings_of
 from semvpr.config.record import check_recorded_paths, model_config
 from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
 from semvpr.core.errors import SemvprError
@@ -66,6 +68,9 @@ MODEL_OVERRIDES = {
 }
 #: The mask sources read from a directory, by what they need: the config group naming the directory.
 SEGMENTER_GROUPS = ("teacher", "student")
+#: The mask node's control settings (``retrieval.controls``): the invocation's, where it gives them, apply to
+#: any model's mask.
+CONTROL_KEYS = ("control", "apply", "control_seed")
 #: ``ckpt=`` values that mean "no checkpoint: the untrained model of the config".
 UNTRAINED = ("none", None)
 
@@ -88,12 +93,13 @@ def load_retriever(
 
     ``explicit``: the keys the command line set (a ``mask=`` there replaces the checkpoint's mask source).
     ``new_images``: the caller describes images that come without label maps (localize, the hub), which a
-    mask source that reads ground truth cannot. ``evaluated``: gives the images the retriever will be scored
-    on, which an untrained aggregator's initialisation must not see (called only then: a checkpoint is
-    validated before any data is read). ``warn``: print one line when the
-    checkpoint's own mask was trained on another kind of images than ``cfg.data`` holds. ``ckpt``: the
-    checkpoint file when it is not ``cfg.ckpt`` (the hub passes its path as a value, never through Hydra's
-    override syntax, where ``,``, ``=`` and quotes are syntax and ``${...}`` an interpolation).
+    mask source that reads ground truth cannot, and not as a place set's side, which a mask control needs.
+    ``evaluated``: gives the images the retriever will be scored on, which an untrained aggregator's
+    initialisation must not see (called only then: a checkpoint is validated before any data is read).
+    ``warn``: print one line when the checkpoint's own mask was trained on another kind of images than
+    ``cfg.data`` holds. ``ckpt``: the checkpoint file when it is not ``cfg.ckpt`` (the hub passes its path as
+    a value, never through Hydra's override syntax, where ``,``, ``=`` and quotes are syntax and ``${...}``
+    an interpolation).
 
     A trained checkpoint's model values are checked as a run's are (``check_model``): a record may hold
     values of the right type that no run could use.
@@ -114,7 +120,28 @@ def load_retriever(
         raise SemvprError(
             f"mask={merged.mask.name} needs ground-truth label maps for every image; it cannot describe new images"
         )
+    merged = invocation_control(cfg, explicit, merged)
+    check_control_fits(merged.mask, training=False)
+    if new_images and mask_control(merged).active:
+        raise SemvprError(
+            f"mask.control={merged.mask.control} mask.apply={merged.mask.apply} is a control of an evaluation of "
+            "a place set; new images are described with the mask source's own mask: add mask.control=none "
+            "mask.apply=both"
+        )
     return retriever.eval(), merged
+
+
+def invocation_control(cfg: DictConfig, explicit: set[str], merged: DictConfig) -> DictConfig:
+    """``merged`` with the mask control settings the command line gave (``mask.control``, ``mask.apply``,
+    ``mask.control_seed``) in place of the checkpoint's; a ``mask=`` that replaced the mask source brought the
+    invocation's already."""
+    given = [key for key in CONTROL_KEYS if f"mask.{key}" in explicit]
+    if not given:
+        return merged
+    out = merged.copy()
+    for key in given:
+        out.mask[key] = cfg.mask[key]
+    return out
 
 
 def _trained_retriever(

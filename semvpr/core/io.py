@@ -200,6 +200,14 @@ def write_npy(path: Path, array: Any) -> None:
         np.save(handle, np.asarray(array), allow_pickle=False)
 
 
+def write_npz(path: Path, arrays: Mapping[str, Any]) -> None:
+    """Write NumPy arrays of numbers or booleans as one uncompressed ``.npz`` atomically."""
+    import numpy as np
+
+    with atomic_file(Path(path)) as handle:
+        np.savez(handle, **{name: np.asarray(a) for name, a in arrays.items()})
+
+
 def write_json(path: Path, obj: Any) -> None:
     """Write JSON atomically (numpy scalars as floats)."""
     write_text(path, json.dumps(obj, indent=1, default=float))

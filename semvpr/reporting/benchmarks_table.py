@@ -21,6 +21,7 @@ from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.paired import paired_gain
 from semvpr.reporting.sweep import job_dirs
+from semvpr.retrieval.controls import APPLIES, CONTROLS, MaskControl
 from semvpr.retrieval.recall import RECALL_NS
 
 COLUMNS = (
@@ -37,6 +38,8 @@ COLUMNS = (
 )
 #: Each eval job's per-query first-hit ranks (``semvpr.eval``), in the set's query order.
 RANKS_FILE = "ranks.npy"
+#: Each eval job's per-query hits at each N and retrieved database indices (``semvpr.eval.query_hits``).
+HITS_FILE = "hits.npz"
 
 
 def _job_dirs(sweep_dir: Path) -> list[Path]:
@@ -84,13 +87,20 @@ _RESULT_KEYS: dict[str, tuple[type, ...]] = {
 
 def _malformed(result: dict[str, Any]) -> str | None:
     """Why an ok eval.json cannot make a row (a missing key, a value of the wrong type or out of its range:
-    recalls in [0, 100] and not falling with N, counts >= 1, a finite wall time >= 0), or None."""
+    recalls in [0, 100] and not falling with N, counts >= 1, a finite wall time >= 0, a known mask control),
+    or None."""
     for key, types in _RESULT_KEYS.items():
         value = result.get(key)
         if not isinstance(value, types) or isinstance(value, bool):
             return f"eval.json has no usable {key!r} ({type(value).__name__})"
     if result.get("benchmark") is not None and not isinstance(result["benchmark"], str):
         return "eval.json has no usable 'benchmark'"
+    for key, known in (("mask_control", CONTROLS), ("mask_apply", APPLIES)):
+        if key in result and result[key] not in known:
+            return f"eval.json's {key}={result[key]!r} is not one of {list(known)}"
+    seed = result.get("mask_control_seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        return f"eval.json's mask_control_seed={seed!r} is not a whole number >= 0"
     recalls = [result[f"test/R@{n}"] for n in RECALL_NS]
     for n, value in zip(RECALL_NS, recalls, strict=True):
         if not 0 <= value <= 100:  # NaN fails too
@@ -118,6 +128,18 @@ def _model_name(result: dict[str, Any]) -> str:
     """The model as a row names it: an author's release by its name, else semvpr's backbone-aggregator."""
     release = result.get("release")
     return release if isinstance(release, str) and release else result["model"]
+
+
+def _mask_label(result: dict[str, Any]) -> str:
+    """The mask as a row names it: the source, the directory its segmenter came from, and its control where it
+    is not the source's own mask on every image (``retrieval.controls``; an eval.json without one had none)."""
+    label = f"mask={result['mask']}"
+    if result.get("mask_checkpoint"):
+        label += f" from {result['mask_checkpoint']}"
+    control = MaskControl(
+        result.get("mask_control", "none"), result.get("mask_apply", "both"), result.get("mask_control_seed", 0)
+    )
+    return f"{label}, {control.label()}" if control.active else label
 
 
 def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
@@ -150,8 +172,7 @@ def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
                 "database": result["database"],
                 "descriptor_dim": result["descriptor_dim"],
                 "wall_s": result["wall_s"],
-                "source": f"measured: {_model_name(result)} ({result['aggregator']}, mask={result['mask']}"
-                f"{' from ' + str(result['mask_checkpoint']) if result.get('mask_checkpoint') else ''}), "
+                "source": f"measured: {_model_name(result)} ({result['aggregator']}, {_mask_label(result)}), "
                 f"{_source(result['checkpoint'], sweep_dir)}",
             }
         )

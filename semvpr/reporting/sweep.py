@@ -240,6 +240,9 @@ def _select(node: Any, dotted: str) -> Any:
     return node
 
 
+#: Command-line settings of a mask control (``retrieval.controls``), named in a row's label even when no job of
+#: the sweep varies them.
+CONTROL_SETTINGS = ("mask.control", "mask.apply")
 #: Command-line settings that never make a run another (where it caches, how Hydra launches it).
 NOT_SETTINGS = ("paths.cache_dir", "hydra")
 
@@ -420,7 +423,8 @@ def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
     for job in jobs:
         for key, seen in values.items():
             seen.add(job.settings.get(key))
-    varied = sorted(k for k, seen in values.items() if len(seen) > 1)
+    # A mask control is named wherever a job sets one, varied or not: its numbers are not its mask's own.
+    varied = sorted(k for k, seen in values.items() if len(seen) > 1 or k.startswith(CONTROL_SETTINGS))
     for job in jobs if varied else ():
         shown = ", ".join(f"{k}={job.settings.get(k, 'default')}" for k in varied)
         job.backbone = f"{job.backbone} ({shown})"

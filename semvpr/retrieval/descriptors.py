@@ -5,7 +5,8 @@ They are computed as training's validation computes them: from the feature cache
 (``retrieval.features.place_features``: the frozen trunk's outputs keyed by the frozen weights and the
 images, the masks by the mask source's weights and settings), so every checkpoint on the same trunk shares
 one trunk pass per image set and every checkpoint with the same mask source one mask pass; the
-checkpoint's trainable part and aggregator then run on them."""
+checkpoint's trainable part and aggregator then run on them. A mask control (``retrieval.controls``) is
+computed from the cached masks of the side it masks; the other side is described unmasked."""
 
 from __future__ import annotations
 
@@ -18,6 +19,8 @@ from semvpr.core.cache import build_once, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
 from semvpr.data.places import PlaceSet
+from semvpr.retrieval.control_masks import control_masks
+from semvpr.retrieval.controls import NO_CONTROL, MaskControl
 from semvpr.retrieval.features import MaskPass, StoreSettings, place_features
 from semvpr.retrieval.recall import check_finite
 from semvpr.retrieval.retriever import Retriever
@@ -30,29 +33,36 @@ def place_descriptors(
     image_size: Sequence[int],
     cache_dir: str | Path,
     storage: str = "disk",
+    control: MaskControl = NO_CONTROL,
 ) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
     the model's weights (the mask source's included), the mask source's settings and weighting, and the
-    images. ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once,
+    images, and the mask ``control`` (``retrieval.controls``: a side it leaves unmasked is described without a
+    mask). ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once,
     read memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
     Anonymous memory holds a batch at a time: the descriptors are written into their memory-mapped cache."""
     paths = places.db_paths if side == "db" else places.q_paths
     key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
-    if retriever.mask_source is not None:
-        # Another mask source (or the same weights at another input size) gives other descriptors.
-        key["mask"] = {**retriever.mask_source.identity(image_size), "weighting": retriever.weighting}
+    source = retriever.mask_source if control.masked(side) else None
+    if source is not None:
+        # Another mask source (or the same weights at another input size), or another control, gives other
+        # descriptors.
+        key["mask"] = {**source.identity(image_size), "weighting": retriever.weighting, **control.key()}
     dim = retriever.descriptor_dim
 
     def build(tmp: Path) -> None:
-        source, backbone = retriever.mask_source, retriever.backbone
+        backbone = retriever.backbone
         # Each row is read once, in order: the cache's pages serve it, where a copy in RAM would add the
         # set's trunk maps to the process's anonymous memory and the time to copy them.
         held = "disk" if storage == "ram" else storage
         settings = StoreSettings(image_size, cache_dir, held, retriever.eval_batch_size, retriever.num_workers)
-        masks = None if source is None else MaskPass(source, retriever.weighting)
+        masks = None if source is None else MaskPass(source, control.cached_weighting(retriever.weighting))
         features = place_features(places, backbone, settings, masks)
+        store = features.db if side == "db" else features.q
+        if store.mask is not None:
+            store.mask = control_masks(control, store.mask, side)
         out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")
-        retriever.describe_store(features.db if side == "db" else features.q, out=out)
+        retriever.describe_store(store, out=out)
         out.flush()
         check_finite(out, f"{places.name} {side}")  # a non-finite cache is never kept
 

@@ -45,6 +45,13 @@ CASES: dict[str, Case] = {
         lambda t, c: [f"ckpt={c}", "data=frames", f"data.root={t}", "data.queries=b"],
         "error: data.database is not set",
     ),
+    # A control of a checkpoint without a mask: refused before any pass.
+    "eval mask.control=random without a mask": Case(
+        EVAL,
+        lambda t, c: [f"ckpt={c}", "mask.control=random"],
+        "mask.control=random needs a mask to control; mask=none has none",
+        cache_check=_no_descriptors,
+    ),
     "localize top_k=0": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=0"], "top_k=0"),
     "localize top_k=-1": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=-1"], "top_k=-1"),
     "localize top_k=abc": Case(LOCALIZE, lambda t, c: [f"ckpt={c}", f"queries={t}", "top_k=abc"], "top_k='abc'"),
@@ -228,6 +235,7 @@ CASES: dict[str, Case] = {
 #: The rows that run by default (each starts a Python with torch): one per class; the whole table with -m slow.
 FAST = {
     "eval data.eval_radius=0",
+    "eval mask.control=random without a mask",
     "eval without ckpt",
     "eval data=frames without data.database",
     "seed=abc",
@@ -304,6 +312,15 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         (["trainer.num_sanity_val_steps=1.5"], r"^trainer\.num_sanity_val_steps=1\.5 must be a whole number"),
         # The report's flags: any text read as true (a run reported as the upper bound).
         (["mask.upper_bound=abc"], r"^mask\.upper_bound='abc' must be true or false"),
+        # The mask controls: unknown values, and a control the mask cannot take.
+        (["mask=student", "mask.control=bogus"], r"^mask\.control='bogus' is not one of \['none', 'objects', 'sky',"),
+        (["mask=student", "mask.apply=db"], r"^mask\.apply='db' is not one of \['both', 'database', 'queries'\]$"),
+        (["mask=student", "mask.control_seed=-1"], r"^mask\.control_seed=-1 must be a whole number"),
+        (["mask=student", "mask.control_seed=abc"], r"^mask\.control_seed='abc' must be a whole number"),
+        (["mask.control=shuffled"], r"^mask\.control=shuffled needs a mask to control; mask=none has none"),
+        (["mask.apply=queries"], r"^mask\.apply=queries needs a mask to apply; mask=none has none"),
+        (["mask=oracle", "mask.weights=learned", "mask.control=sky"], r"^mask\.control=sky makes a binary mask"),
+        (["mask=student", "mask.weights=learned", "mask.apply=database"], r"^mask\.apply=database in training"),
         # NetVLAD's alpha is set from each feature's two nearest centroids: an IndexError after the trunk pass.
         (["model.num_clusters=1"], r"^model\.num_clusters=1 must be a whole number from 2 .* two nearest"),
         (["model.num_clusters=1", "aggregator=sral"], r"^model\.num_clusters=1 must be a whole number from 2"),

@@ -275,6 +275,15 @@ def test_a_sweep_over_any_other_setting_gives_each_value_its_own_rows(tmp_path: 
     assert len({job.backbone for job in load_sweep(tmp_path).jobs}) == 2
 
 
+def test_a_mask_control_is_named_in_its_rows_even_where_no_job_varies_it(tmp_path: Path) -> None:
+    for seed in (0, 1):
+        job = _job(tmp_path, f"filter=unet,mask.control=random,seed={seed}", _metrics("unet", seed, 60.0 + seed))
+        overrides = ["filter=unet", "mask.control=random", "mask.apply=database", f"seed={seed}"]
+        (job / ".hydra" / "overrides.yaml").write_text("".join(f"- {o}\n" for o in overrides))
+    text = write_report(tmp_path).read_text()
+    assert "| vgg16 (mask.apply=database, mask.control=random) | unet (sral · student) | 60.5 ± 0.7 |" in text
+
+
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
     for target in (tmp_path, tmp_path / "missing"):
         proc = subprocess.run(
