@@ -213,11 +213,16 @@ def _ranks(job: Path, result: dict[str, Any]) -> np.ndarray | str | None:
 
 
 def _mask_gains(measured: list[tuple[dict[str, Any], dict[str, Any], Path]]) -> None:
-    """Fill ``R@1 vs no mask`` of each masked row whose checkpoint the sweep also evaluated on the same set
-    without a mask: the paired gain where both jobs' ranks agree with their recalls, else why not."""
-    unmasked = {(r["set"], r["checkpoint"], r["queries"]): (r, job) for _, r, job in measured if r["mask"] == "none"}
+    """Fill ``R@1 vs no mask`` of each masked row whose model (its checkpoint, or with ``ckpt=none`` the
+    untrained backbone and aggregator) the sweep also evaluated on the same set without a mask: the paired gain
+    where both jobs' ranks agree with their recalls, else why not."""
+
+    def model(r: dict[str, Any]) -> tuple[Any, ...]:
+        return (r["set"], r["checkpoint"], r.get("model"), r["queries"])
+
+    unmasked = {model(r): (r, job) for _, r, job in measured if r["mask"] == "none"}
     for row, result, job in measured:
-        reference = unmasked.get((result["set"], result["checkpoint"], result["queries"]))
+        reference = unmasked.get(model(result))
         if result["mask"] == "none" or reference is None:
             continue
         ranks, base = _ranks(job, result), _ranks(reference[1], reference[0])

@@ -156,6 +156,37 @@ def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a
     assert "R@1 vs no mask" in write_table(tmp_path).read_text()
 
 
+def test_untrained_models_are_paired_by_model_not_by_their_shared_checkpoint_name(tmp_path: Path) -> None:
+    """``ckpt=none aggregator=gem,netvlad mask=none,teacher``: every job's checkpoint is "none"; each masked row is
+    paired with its own aggregator's unmasked job, never with the other aggregator's."""
+    rng = np.random.default_rng(5)
+    ranks = {name: rng.integers(0, 4, 100) for name in ("gem", "gem+mask", "netvlad", "netvlad+mask")}
+    for num, name in enumerate(ranks):
+        aggregator, _, masked = name.partition("+")
+        result = {
+            "status": "ok",
+            "data": "folder",
+            "set": "s",
+            "checkpoint": "none",
+            "aggregator": aggregator,
+            "backbone": "b",
+            "model": f"b-{aggregator}",
+            "mask": "teacher" if masked else "none",
+            "database": 50,
+            "queries": 100,
+            "descriptor_dim": 8,
+            "wall_s": 1.0,
+            **_recalls(ranks[name]),
+        }
+        _job(tmp_path, num, result)
+        np.save(tmp_path / str(num) / "ranks.npy", ranks[name])
+    rows = {r["source"]: r for r in table_rows(tmp_path) if r["data"] != "published"}
+    for aggregator in ("gem", "netvlad"):
+        row = next(r for s, r in rows.items() if f"b-{aggregator} ({aggregator}, mask=teacher" in s)
+        gain = 100.0 * ((ranks[f"{aggregator}+mask"] == 0).mean() - (ranks[aggregator] == 0).mean())
+        assert row["R@1 vs no mask"].startswith(f"{gain:+.1f}".replace("-", "−")), row["R@1 vs no mask"]
+
+
 def _recalls(ranks: np.ndarray) -> dict[str, float]:
     """The recalls eval.json records for these first-hit ranks (-1: no positive, never a hit), 2 decimals."""
     return {
