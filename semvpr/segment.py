@@ -2,10 +2,11 @@
 
 Trains the embedded Mask2Former teacher on the set's train split (cached; its settings were chosen
 on val), scores it on val and test and saves it in Hugging Face format (``<run dir>/teacher``, for
-``teacher.checkpoint=``; given ``teacher.checkpoint=DIR`` it scores that teacher instead and leaves it
-where it is); labels the train images with it and trains one U-Net student per entry of
-``backbones`` on those pseudo-labels, scored against the ground truth, and saves each as
-``<run dir>/student_<backbone>`` (for ``student.checkpoint=``). Both directories record the data they
+``teacher.checkpoint=``; given ``teacher.checkpoint=DIR``, or ``teacher=espnetv2 teacher.checkpoint=FILE``, it
+scores that teacher instead and leaves it where it is); labels the train images with it and trains one U-Net
+student per entry of ``backbones`` on those pseudo-labels, scored against the ground truth, and saves each as
+``<run dir>/student_<backbone>`` (for ``student.checkpoint=``; no entry, ``~backbone@backbones.<name>``: no
+pseudo-labels, no student). Both directories record the data they
 were trained on. Writes ``results.json``, ``figure_masks.png`` and CSV / TensorBoard logs into
 ``outputs/segment/<date>/<time>``; the last stdout line is a JSON summary naming the directories.
 """
@@ -213,7 +214,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     # The students' trunks first: a setting none of them takes is one line now, not after the teacher has trained.
     backbones = {
         name: (build_backbone(node, int(cfg.seed), device=device).eval(), str(node.get("weights", "none")))
-        for name, node in cfg.backbones.items()
+        for name, node in (cfg.get("backbones") or {}).items()
     }
     tic = time.time()
     with threads.stage("teacher"):
@@ -241,31 +242,32 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if cfg.score_test:
         del results["teacher"]["test"]
 
-    tic = time.time()
-    root = common_root(list(sets["train"].images))
-    with threads.stage("frozen"):
-        labels = pseudo_labels(
-            teacher,
-            list(sets["train"].images),
-            Reading(size, teacher_settings.predict_batch_size, workers),
-            cfg.paths.cache_dir,
-            root,
-        )
-    results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
-
-    with threads.stage("student"):
-        student_run = StudentRun(
-            LabelledImages(list(sets["train"].images), labels, root),
-            reading,
-            static_names,
-            scored,
-            trained_on,
-            run_dir,
-            cfg.paths.cache_dir,
-            loggers,
-        )
-        entries, students = train_students(student_settings, backbones, sets, student_run)
-    results.update(entries)
+    students: dict[str, tuple[Student, Backbone]] = {}
+    if backbones:  # none (~backbone@backbones.<name>): the teacher is scored, nothing is distilled from it
+        tic = time.time()
+        root = common_root(list(sets["train"].images))
+        with threads.stage("frozen"):
+            labels = pseudo_labels(
+                teacher,
+                list(sets["train"].images),
+                Reading(size, teacher_settings.predict_batch_size, workers),
+                cfg.paths.cache_dir,
+                root,
+            )
+        results["pseudo_labels"] = {"dir": str(labels), "images": len(sets["train"]), "build_s": time.time() - tic}
+        with threads.stage("student"):
+            student_run = StudentRun(
+                LabelledImages(list(sets["train"].images), labels, root),
+                reading,
+                static_names,
+                scored,
+                trained_on,
+                run_dir,
+                cfg.paths.cache_dir,
+                loggers,
+            )
+            entries, students = train_students(student_settings, backbones, sets, student_run)
+        results.update(entries)
 
     columns = {
         "gt": "ground truth\n(bright = static)",

@@ -692,10 +692,6 @@ def _check_segmentation(cfg: DictConfig) -> None:
         raise SemvprError(f"seg.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
     for i, side in enumerate(size):
         whole_number(side, f"seg.image_size[{i}]", 1, MAX_IMAGE_SIDE, also="seg.image_size is [H, W]")
-    if not cfg.backbones:
-        raise SemvprError(
-            "backbones is empty: the command trains one student per backbone (e.g. backbone@backbones.vgg16=vgg16)"
-        )
     # Read after the segmenters have trained: checked before, not an error an hour in.
     whole_number(cfg.seg.get("num_workers"), "seg.num_workers", 0)
     whole_number(cfg.eval_batch_size, "eval_batch_size", 1, SIZE_MAX)

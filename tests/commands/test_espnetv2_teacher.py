@@ -151,3 +151,30 @@ def test_label_writes_train_ids_and_the_static_mask_for_a_folder(espnet: Path, t
         assert set(np.unique(static_png)) <= {0, 255}
         assert row["removed"] == pytest.approx(float((static_png == 0).mean()), abs=1e-4)
     assert not list((tmp_path / "cwd").iterdir())  # nothing written outside the run directory
+
+
+def test_segment_without_students_scores_the_teacher_alone(espnet: Path, tmp_path: Path) -> None:
+    from hydra import compose, initialize_config_dir
+
+    from semvpr.segment import run, summary
+
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(
+            config_name="segment",
+            overrides=[
+                f"seg.root={write_camvid(tmp_path / 'camvid')}",
+                "seg.image_size=[32,48]",
+                "seg.num_workers=0",
+                "num_figure_images=1",
+                f"paths.cache_dir={tmp_path / 'cache'}",
+                "teacher=espnetv2",
+                f"teacher.checkpoint={espnet}",
+                f"teacher.inference_size=[{SIZE[0]},{SIZE[1]}]",
+                "~backbone@backbones.efficientnet_lite0",
+            ],
+        )
+    results = run(cfg, tmp_path / "run")
+    assert not any(k.startswith("student_") for k in results) and "pseudo_labels" not in results
+    assert set(results["teacher"]["val"]) >= {"miou", "dynamic_iou"}
+    assert not list((tmp_path / "cache").glob("labels-*"))  # nothing distilled, nothing labelled
+    assert set(summary(results, tmp_path / "run")) >= {"teacher/miou", "teacher/checkpoint"}
