@@ -17,6 +17,7 @@ import numpy as np
 from semvpr.core.cache import build_once, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
+from semvpr.core.precision import compute_key
 from semvpr.data.places import PlaceSet
 from semvpr.retrieval.features import MaskPass, StoreSettings, place_features
 from semvpr.retrieval.recall import check_finite
@@ -32,12 +33,18 @@ def place_descriptors(
     storage: str = "disk",
 ) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
-    the model's weights (the mask source's included), the mask source's settings and weighting, and the
-    images. ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once,
-    read memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
+    the model's weights (the mask source's included), the mask source's settings and weighting, the images and
+    the arithmetic they are computed in (``precision.compute_key``: device, precision, CPU threads).
+    ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once, read
+    memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
     Anonymous memory holds a batch at a time: the descriptors are written into their memory-mapped cache."""
     paths = places.db_paths if side == "db" else places.q_paths
-    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
+    key = {
+        "model": state_hash(retriever.state_dict()),
+        "images": places.identity(side),
+        "image_size": list(image_size),
+        **compute_key(retriever.device),
+    }
     if retriever.mask_source is not None:
         # Another mask source (or the same weights at another input size) gives other descriptors.
         key["mask"] = {**retriever.mask_source.identity(image_size), "weighting": retriever.weighting}
