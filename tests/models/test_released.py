@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from semvpr.config.build import build_backbone
 from semvpr.config.restore import load_retriever
 from semvpr.core.errors import SemvprError
+from semvpr.data.images import load_image
 from semvpr.eval import evaluate_checkpoint
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
@@ -779,6 +780,67 @@ def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path, fmt: 
         assert result["descriptor_dim"] == dim and result["image_size"] == size
         json.dumps({k: v for k, v in result.items() if k != "ranks"})
     assert results["teacher"]["mask_checkpoint"] == str(teacher) and results["none"]["mask_checkpoint"] is None
+
+
+def evaluated(tmp_path: Path, common: list[str], *extra: str) -> tuple[dict, list[Path]]:
+    """``semvpr.eval``'s result with ``common`` and ``extra`` overrides (caching under ``tmp_path / "cache"``),
+    and the descriptor caches this run added there."""
+    cache = tmp_path / "cache"
+    before = set(cache.glob("descriptors-*"))
+    cfg = tiny_config(cache, *common, *extra, config_name="eval")
+    result = evaluate_checkpoint(cfg, {o.split("=", 1)[0].lstrip("+") for o in [*common, *extra]})
+    return result, sorted(set(cache.glob("descriptors-*")) - before)
+
+
+def test_a_release_is_evaluated_in_its_authors_fp32_unless_a_precision_is_given(tmp_path: Path) -> None:
+    """By default eval's descriptors are the fp32 model's (its trunk output rounded to bf16 as the trunk cache
+    holds it), within cos 0.9999 of the author's forward pass; trainer.precision= on the command line is
+    honoured, and the descriptor cache keeps the two apart (fp32 asked or defaulted: one entry)."""
+    from semvpr.core.precision import bf16_native, lightning_precision
+
+    build, save, name, _ = CASES["eigenplaces"]
+    model = build()
+    save(model, tmp_path / name)
+    root = make_folder(tmp_path / "places")
+    common = [f"+ckpt={tmp_path / name}", "ckpt_format=eigenplaces", "data=folder", f"data.root={root}"]
+    common += [f"data.image_size=[{SMALL},{SMALL}]", "data.num_workers=0"]
+    default, default_cached = evaluated(tmp_path, common)
+    bf16, bf16_cached = evaluated(tmp_path, common, "trainer.precision=bf16-mixed")
+    asked, asked_cached = evaluated(tmp_path, common, "trainer.precision=32")
+    assert default["precision"] == "32-true" and asked["precision"] == "32-true"
+    assert bf16["precision"] == lightning_precision("bf16-mixed", "cpu")
+    assert len(default_cached) == 2 and asked_cached == []  # database and queries; fp32 again: cached
+    assert len(bf16_cached) == (2 if bf16_native("cpu") else 0)
+    paths = sorted((root / "images" / "test" / "database").iterdir())
+    x = torch.stack([load_image(p, [SMALL, SMALL]) for p in paths])
+    retriever, _ = released(tmp_path, tmp_path / name, f"data.image_size=[{SMALL},{SMALL}]", "ckpt_format=eigenplaces")
+    with torch.no_grad():
+        expected = model(normalised(x))
+        rounded = retriever.describe(retriever.backbone.forward_frozen(x)[-1].to(torch.bfloat16), None)
+    for folder in default_cached:
+        desc = torch.from_numpy(np.load(folder / "descriptors.npy"))
+        torch.testing.assert_close(desc, rounded, rtol=0, atol=1e-6)
+        assert float((desc * expected).sum(1).min()) >= 0.9999
+    if bf16_native("cpu"):
+        half = torch.from_numpy(np.load(bf16_cached[0] / "descriptors.npy"))
+        assert float((half - rounded).abs().max()) > 1e-4  # what the default ran before: bf16 autocast
+
+
+def test_masks_in_another_precision_are_cached_apart(tmp_path: Path) -> None:
+    """A teacher's masks of a release in fp32 (the default) and in bf16 are two mask cache entries; asking for
+    fp32 again shares the default's."""
+    from semvpr.core.precision import bf16_native
+
+    save_state(cosplace_model(), tmp_path / "c.pth")
+    root = make_folder(tmp_path / "places")
+    teacher = write_teacher_dir(tmp_path / "teacher")
+    common = [f"+ckpt={tmp_path / 'c.pth'}", "ckpt_format=cosplace", "data=folder", f"data.root={root}"]
+    common += ["data.image_size=[32,48]", "data.num_workers=0", "mask=teacher", f"teacher.checkpoint={teacher}"]
+    masks = []
+    for extra in ([], ["trainer.precision=bf16-mixed"], ["trainer.precision=32"]):
+        evaluated(tmp_path, common, *extra)
+        masks.append(len(list((tmp_path / "cache").glob("masks-*"))))
+    assert masks == ([1, 2, 2] if bf16_native("cpu") else [1, 1, 1])
 
 
 @pytest.mark.parametrize("fmt", ["mixvpr", "netvlad"])
