@@ -50,8 +50,8 @@ def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[n
     and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream)."""
     settings = settings_of(cfg)
     storage = feature_storage(settings, retriever.backbone, {"test": places})
-    size, cache = settings.data.image_size, settings.storage.cache_dir
-    return tuple(place_descriptors(retriever, places, side, size, cache, storage) for side in ("db", "q"))  # type: ignore[return-value]
+    size, cache, resize = settings.data.image_size, settings.storage.cache_dir, settings.data.resize
+    return tuple(place_descriptors(retriever, places, side, size, cache, storage, resize) for side in ("db", "q"))  # type: ignore[return-value]
 
 
 def evaluate_checkpoint(

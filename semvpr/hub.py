@@ -22,6 +22,7 @@ from torchvision import transforms
 
 from semvpr.config.checks import check_config, check_overrides
 from semvpr.config.command import Arithmetic, model_arithmetic
+from semvpr.config.plan import data_settings
 from semvpr.config.restore import is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
@@ -37,18 +38,25 @@ class HubModel(nn.Module):
     ``arithmetic`` (``model.arithmetic``: eval's for the same model) on the device the model is on: eval's
     descriptors, a half precision's rounding included."""
 
-    def __init__(self, retriever: Retriever, arithmetic: Arithmetic, image_size: Sequence[int] | None = None) -> None:
+    def __init__(
+        self,
+        retriever: Retriever,
+        arithmetic: Arithmetic,
+        image_size: Sequence[int] | None = None,
+        resize: str = "bilinear",
+    ) -> None:
         super().__init__()
         self.retriever = retriever
         self.arithmetic = arithmetic
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.feature_dim = retriever.descriptor_dim
-        resize = [transforms.Resize(tuple(image_size), antialias=True)] if image_size else []
         #: PIL image → the normalised tensor this module takes: RGB as semvpr's image reader makes it (grey,
-        #: palette, alpha and CMYK converted; 16-bit refused), resized to ``image_size`` if given.
+        #: palette, alpha and CMYK converted; 16-bit refused), resized to ``image_size`` if given as semvpr's
+        #: loader resizes for this model (``resize``, ``data.images.RESIZES``: PIL's bilinear, or bicubic with
+        #: antialiasing on the tensor as Bag-of-Queries' transform does).
         self.transform = transforms.Compose(
-            [EightBitRGB(), *resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
+            [EightBitRGB(), *_resized(image_size, resize), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
         )
 
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> HubModel:
@@ -119,7 +127,18 @@ def load_model(
     target = None if untrained else Path(ckpt).expanduser()
     retriever, merged = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
     arithmetic = model_arithmetic(cfg, merged, explicit)
-    return HubModel(retriever, arithmetic, image_size).to(resolve(str(device))).eval()
+    resize = data_settings(merged).resize
+    return HubModel(retriever, arithmetic, image_size, resize).to(resolve(str(device))).eval()
+
+
+def _resized(image_size: Sequence[int] | None, resize: str) -> list[Callable[[object], object]]:
+    """PIL image → [0, 1] tensor, resized to ``image_size`` (if given) as ``data.images.load_image`` resizes."""
+    if not image_size:
+        return [transforms.ToTensor()]
+    if resize == "bilinear":
+        return [transforms.Resize(tuple(image_size), antialias=True), transforms.ToTensor()]
+    bicubic = transforms.InterpolationMode.BICUBIC
+    return [transforms.ToTensor(), transforms.Resize(tuple(image_size), interpolation=bicubic, antialias=True)]
 
 
 def _image_size(value: object) -> bool:

@@ -67,12 +67,12 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     device = resolve(cfg.get("device"))
     retriever.to(device)
     places, settings = database(), settings_of(merged)
-    size = settings.data.image_size
+    size, resize = settings.data.image_size, settings.data.resize
     storage = feature_storage(settings, retriever.backbone, {"test": places})
     q_desc = np.empty((len(paths), retriever.descriptor_dim), np.float32)
     with model_arithmetic(cfg, merged, explicit).run(device.type):
-        db_desc = place_descriptors(retriever, places, "db", size, settings.storage.cache_dir, storage)
-        retriever.describe_images(paths, None, size, q_desc, desc="queries")
+        db_desc = place_descriptors(retriever, places, "db", size, settings.storage.cache_dir, storage, resize)
+        retriever.describe_images(paths, None, size, q_desc, desc="queries", resize=resize)
     check_finite(q_desc, f"the query images in {cfg.queries}")
     top = knn(db_desc, q_desc, int(cfg.top_k))
     out = []

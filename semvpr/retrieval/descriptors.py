@@ -31,13 +31,15 @@ def place_descriptors(
     image_size: Sequence[int],
     cache_dir: str | Path,
     storage: str = "disk",
+    resize: str = "bilinear",
 ) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
     the model's weights (the mask source's included), the mask source's settings and weighting, the images and
     the arithmetic they are computed in (``precision.compute_key``: device, precision, CPU threads).
     ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once, read
     memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
-    Anonymous memory holds a batch at a time: the descriptors are written into their memory-mapped cache."""
+    ``resize``: how the images are resized to ``image_size`` (``data.images.RESIZES``). Anonymous memory holds a
+    batch at a time: the descriptors are written into their memory-mapped cache."""
     paths = places.db_paths if side == "db" else places.q_paths
     key = {
         "model": state_hash(retriever.state_dict()),
@@ -45,6 +47,8 @@ def place_descriptors(
         "image_size": list(image_size),
         **compute_key(retriever.device),
     }
+    if resize != "bilinear":
+        key["resize"] = resize
     if retriever.mask_source is not None:
         # Another mask source (or the same weights at another input size) gives other descriptors.
         key["mask"] = {**retriever.mask_source.identity(image_size), "weighting": retriever.weighting}
@@ -55,7 +59,7 @@ def place_descriptors(
         # Each row is read once, in order: the cache's pages serve it, where a copy in RAM would add the
         # set's trunk maps to the process's anonymous memory and the time to copy them.
         held = "disk" if storage == "ram" else storage
-        settings = StoreSettings(image_size, cache_dir, held, retriever.eval_batch_size, retriever.num_workers)
+        settings = StoreSettings(image_size, cache_dir, held, retriever.eval_batch_size, retriever.num_workers, resize)
         masks = None if source is None else MaskPass(source, retriever.weighting)
         features = place_features(places, backbone, settings, masks)
         out = open_array(tmp / "descriptors.npy", np.float32, (len(paths), dim), f"the descriptors of {places.name}")

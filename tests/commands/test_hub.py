@@ -11,7 +11,6 @@ import torch
 from PIL import Image
 
 from semvpr.core.errors import SemvprError
-from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from tests.helpers import REPO, make_folder, tiny_config, write_checkpoint
 
 
@@ -47,9 +46,9 @@ def eval_descriptors(tmp_path: Path, ckpt: Path, given: list[str]) -> list[np.nd
 
 @pytest.mark.parametrize("release", [False, True], ids=["checkpoint", "release"])
 def test_hub_gives_evals_descriptors_of_the_same_images(checkpoint: Path, tmp_path: Path, release: bool) -> None:
-    """The hub computes in eval's arithmetic for the same model and overrides: the job's bf16 for a semvpr
-    checkpoint, fp32 for a release (bf16 when asked), so the same images give eval's descriptors."""
-    from semvpr.data.images import load_image
+    """The hub computes in eval's arithmetic for the same model and overrides (the job's bf16 for a semvpr
+    checkpoint, fp32 for a release, bf16 when asked) and its transform resizes as eval's loader does (PIL's
+    bilinear; BoQ's bicubic on the tensor), so the same image files give eval's descriptors."""
     from semvpr.hub import load_model
     from tests.models.test_released import boq_model, save_state
 
@@ -59,15 +58,14 @@ def test_hub_gives_evals_descriptors_of_the_same_images(checkpoint: Path, tmp_pa
     else:
         ckpt, precisions = checkpoint, [[]]
     root = make_folder(tmp_path / "places")
-    x = torch.stack([load_image(p, (32, 48)) for p in sorted((root / "images" / "test" / "database").iterdir())])
-    normalised = (x - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    files = sorted((root / "images" / "test" / "database").iterdir())
     for asked in precisions:
         given = ["experiment=tiny", "data=folder", f"data.root={root}", "data.image_size=[32,48]", *asked]
         shutil.rmtree(tmp_path / "cache", ignore_errors=True)
         expected = eval_descriptors(tmp_path, ckpt, [*given, "data.num_workers=0"])
-        model = load_model(ckpt, overrides=[*given, f"paths.cache_dir={tmp_path / 'cache'}"])
+        model = load_model(ckpt, [32, 48], overrides=[*given, f"paths.cache_dir={tmp_path / 'cache'}"])
         assert model.arithmetic.precision == ("32-true" if release and not asked else "bf16-mixed")
-        desc = model(normalised).numpy()
+        desc = model(torch.stack([model.transform(Image.open(f)) for f in files])).numpy()
         assert len(expected) == 2
         for cached in expected:
             # The hub un-normalises its input (rounding of 1e-7), which an fp32 trunk output can carry over a bf16

@@ -745,6 +745,11 @@ def test_each_layout_fixes_the_authors_image_size(tmp_path: Path) -> None:
     assert list(mixvpr.data.image_size) == [320, 320] and list(mixvpr.aggregator.grid) == [20, 20]
     assert list(cosplace.data.image_size) == data_size  # CosPlace evaluates the images at their own size
     assert (cosplace.backbone.stage, cosplace.aggregator.fc_dim) == ("layer4", 128)
+    save_state(boq_model(), tmp_path / "b.pth")
+    _, boq = released(tmp_path, tmp_path / "b.pth")
+    assert list(boq.data.image_size) == [384, 384]
+    # Each author's test transform: PIL's bilinear (torchvision on PIL images), BoQ's bicubic on the tensor.
+    assert (mixvpr.data.resize, cosplace.data.resize, boq.data.resize) == ("bilinear", "bilinear", "bicubic")
 
 
 @pytest.mark.slow
@@ -824,6 +829,28 @@ def test_a_release_is_evaluated_in_its_authors_fp32_unless_a_precision_is_given(
     if bf16_native("cpu"):
         half = torch.from_numpy(np.load(bf16_cached[0] / "descriptors.npy"))
         assert float((half - rounded).abs().max()) > 1e-4  # what the default ran before: bf16 autocast
+
+
+def test_boq_is_evaluated_on_images_resized_as_its_transform_resizes_them(tmp_path: Path) -> None:
+    """BoQ's images are resized bicubic with antialiasing on the tensor (its ToTensor, Resize(BICUBIC)): eval's
+    descriptors are its model's on those images, not on PIL's bilinear ones; the trunk cache keeps them apart."""
+    save_state(boq_model(), tmp_path / "b.pth")
+    root = make_folder(tmp_path / "places")
+    common = [f"+ckpt={tmp_path / 'b.pth'}", "data=folder", f"data.root={root}", "data.num_workers=0"]
+    common.append(f"data.image_size=[{SMALL},{SMALL}]")
+    _, cached = evaluated(tmp_path, common)
+    retriever, _ = released(tmp_path, tmp_path / "b.pth", f"data.image_size=[{SMALL},{SMALL}]")
+    paths = sorted((root / "images" / "test" / "database").iterdir())
+    described = {}
+    for resize in ("bicubic", "bilinear"):
+        x = torch.stack([load_image(p, [SMALL, SMALL], resize) for p in paths])
+        with torch.no_grad():
+            described[resize] = retriever.describe(retriever.backbone.forward_frozen(x)[-1].to(torch.bfloat16), None)
+    desc = torch.from_numpy(np.load(cached[0] / "descriptors.npy"))
+    torch.testing.assert_close(desc, described["bicubic"], rtol=0, atol=1e-6)
+    assert float((desc - described["bilinear"]).abs().max()) > 1e-3
+    (trunk,) = (tmp_path / "cache").glob("trunk-*")
+    assert '"resize": "bicubic"' in (trunk / "key.json").read_text()
 
 
 def test_masks_in_another_precision_are_cached_apart(tmp_path: Path) -> None:
