@@ -831,6 +831,42 @@ def test_a_release_is_evaluated_in_its_authors_fp32_unless_a_precision_is_given(
         assert float((half - rounded).abs().max()) > 1e-4  # what the default ran before: bf16 autocast
 
 
+#: (layout, the author's model, how its file is written, the size evaluated at) of every released layout.
+EVALUATED: dict[str, tuple[Callable[[], nn.Module], Callable[[nn.Module, Path], None], tuple[int, int]]] = {
+    "netvlad": (netvlad_model, save_netvlad, (SMALL, SMALL)),
+    "mixvpr": (mixvpr_model, save_mixvpr, (SMALL, SMALL)),
+    "eigenplaces": (cosplace_model, save_state, (SMALL, SMALL)),
+    "boq": (boq_model, save_state, (SMALL, SMALL)),
+    "boq_dinov2": (boq_dinov2_model, save_state, VIT_SIZE),
+    "salad": (salad_model, save_state, VIT_SIZE),
+}
+
+
+@pytest.mark.parametrize(
+    "fmt",
+    [pytest.param(f, marks=pytest.mark.slow) if EVALUATED[f][2] == VIT_SIZE else f for f in sorted(EVALUATED)],
+)  # the DINOv2 layouts' full ViT-B/14: 30-45 s each here
+def test_every_release_is_evaluated_to_its_authors_descriptors_by_default(tmp_path: Path, fmt: str) -> None:
+    """semvpr.eval's default run of each layout is fp32: its descriptors within cos 0.9999 of the author's fp32
+    forward pass on the images its transform makes (the trunk cache's bf16 rounding is all that is left)."""
+    from semvpr.models.released import LAYOUTS
+
+    build, save, size = EVALUATED[fmt]
+    model = build()
+    save(model, tmp_path / f"{fmt}.pth")
+    root = make_folder(tmp_path / "places")
+    common = [f"+ckpt={tmp_path / f'{fmt}.pth'}", f"ckpt_format={fmt}", "data=folder", f"data.root={root}"]
+    result, cached = evaluated(tmp_path, [*common, f"data.image_size=[{size[0]},{size[1]}]", "data.num_workers=0"])
+    assert result["precision"] == "32-true" and len(cached) == 2
+    paths = sorted((root / "images" / "test" / "database").iterdir())
+    x = torch.stack([load_image(p, list(size), LAYOUTS[fmt].resize) for p in paths])
+    with torch.no_grad():
+        expected = model(normalised(x))
+    for folder in cached:  # the database's and the queries' (the same pixels)
+        cosine = (torch.from_numpy(np.load(folder / "descriptors.npy")) * expected).sum(1)
+        assert float(cosine.min()) >= 0.9999, cosine
+
+
 def test_boq_is_evaluated_on_images_resized_as_its_transform_resizes_them(tmp_path: Path) -> None:
     """BoQ's images are resized bicubic with antialiasing on the tensor (its ToTensor, Resize(BICUBIC)): eval's
     descriptors are its model's on those images, not on PIL's bilinear ones; the trunk cache keeps them apart."""
