@@ -88,12 +88,16 @@ def load_image(path: str | Path, size: Size | None = None, resize: str = "biline
     """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes it as ``resize`` says (:data:`RESIZES`)."""
     img = eight_bit_rgb(open_image(Path(path), "image"), path)
     hw = hw_of(size)
-    if hw is not None and img.size != (hw[1], hw[0]) and resize == "bilinear":
-        img = img.resize((hw[1], hw[0]), Image.BILINEAR)
-    x = torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
-    if hw is not None and tuple(x.shape[1:]) != hw:
-        x = F.interpolate(x[None], size=hw, mode="bicubic", antialias=True, align_corners=False)[0]
-    return x
+    if hw is None or img.size == (hw[1], hw[0]):
+        return _tensor(img)
+    if resize == "bilinear":
+        return _tensor(img.resize((hw[1], hw[0]), Image.BILINEAR))
+    return F.interpolate(_tensor(img)[None], size=hw, mode="bicubic", antialias=True, align_corners=False)[0]
+
+
+def _tensor(img: Image.Image) -> torch.Tensor:
+    """An RGB image as (3,H,W) floats in [0, 1]."""
+    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
 
 
 @dataclass(frozen=True)
