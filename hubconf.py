@@ -3,8 +3,9 @@
 Returns a module mapping a batch of ImageNet-normalised images (B, 3, H, W) to L2-normalised
 descriptors (B, model.feature_dim), as VPR-methods-evaluation's models do; ``model.transform``
 is its preprocessing (PIL image → normalised tensor, resized to ``image_size`` if given). The
-checkpoint is loaded as ``semvpr.eval`` loads it (weights only, record validated; see
-``semvpr.hub``).
+checkpoint is loaded as ``semvpr.eval`` loads it (weights only, record validated) and computes eval's
+descriptors: in eval's precision for it (an author's release file in fp32 unless
+``overrides=["trainer.precision=..."]``), on the device the model is on (see ``semvpr.hub``).
 """
 
 dependencies = ["torch", "torchvision", "hydra", "omegaconf"]

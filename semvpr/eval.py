@@ -34,7 +34,7 @@ from omegaconf import DictConfig
 
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
-from semvpr.config.command import hydra_command, model_pass
+from semvpr.config.command import hydra_command, model_arithmetic, model_pass
 from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
 from semvpr.core.device import resolve
@@ -55,8 +55,9 @@ def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[n
     settings = settings_of(cfg)
     storage = feature_storage(settings, retriever.backbone, {"test": places})
     size, cache, control = settings.data.image_size, settings.storage.cache_dir, settings.masks.control
+    resize = settings.data.resize
     return tuple(  # type: ignore[return-value]
-        place_descriptors(retriever, places, side, size, cache, storage, control) for side in ("db", "q")
+        place_descriptors(retriever, places, side, size, cache, storage, control, resize) for side in ("db", "q")
     )
 
 
@@ -66,16 +67,20 @@ def evaluate_checkpoint(
     """Recall@1/5/10/20 of the checkpoint on cfg.data's test split, with what the table reports
     beside it: the set, its protocol (``data.benchmark``), counts, descriptor size, wall time; under
     ``ranks`` and ``top`` (not written to eval.json) each query's first-hit rank and the database indices it
-    retrieved, nearest first."""
+    retrieved, nearest first. The descriptors are computed in the model's arithmetic
+    (``config.command.model_arithmetic``: an author's release file in fp32 unless ``trainer.precision`` is
+    given), recorded as ``precision``."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
-    retriever.to(resolve(cfg.get("device")))
+    device = resolve(cfg.get("device"))
+    retriever.to(device)
     test = test_set()
     test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
-    db, q = describe(retriever, merged, test)
+    with model_arithmetic(cfg, merged, explicit).run(device.type) as precision:
+        db, q = describe(retriever, merged, test)
     result = evaluate(db, q, test.positives())
     source = retriever.mask_source
     has_segmenter = source is not None and source.segmenter is not None
@@ -102,6 +107,7 @@ def evaluate_checkpoint(
         "database": len(test.db_paths),
         "queries": len(test.q_paths),
         "descriptor_dim": int(db.shape[1]),
+        "precision": precision,
         "queries_without_positives": result["num_without_positives"],
         **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()},
     }

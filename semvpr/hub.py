@@ -5,45 +5,65 @@
 loads the weights and takes eval's overrides: another mask source, or ``ckpt="none"``) and wraps it
 in :class:`HubModel`: a module mapping a batch of images normalised with the ImageNet mean/std to
 L2-normalised global descriptors, with the matching preprocessing as ``model.transform`` (PIL image →
-normalised tensor) and ``model.feature_dim``.
+normalised tensor) and ``model.feature_dim``. It computes them in ``semvpr.eval``'s arithmetic for the same
+model and overrides (``config.command.model_arithmetic``: an author's release file in fp32 unless
+``trainer.precision=`` is given), so the same images give eval's descriptors.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision import transforms
 
 from semvpr.config.checks import check_config, check_overrides
+from semvpr.config.command import Arithmetic, model_arithmetic
+from semvpr.config.plan import data_settings
 from semvpr.config.restore import is_untrained, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
+from semvpr.core.precision import autocast
 from semvpr.data.images import EightBitRGB
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
 
 
 class HubModel(nn.Module):
-    """ImageNet-normalised images (B, 3, H, W) → L2-normalised descriptors (B, feature_dim)."""
+    """ImageNet-normalised images (B, 3, H, W) → L2-normalised descriptors (B, feature_dim), computed in
+    ``arithmetic`` (``model.arithmetic``: eval's for the same model) on the device the model is on: eval's
+    descriptors, a half precision's rounding included."""
 
-    def __init__(self, retriever: Retriever, image_size: Sequence[int] | None = None) -> None:
+    def __init__(
+        self,
+        retriever: Retriever,
+        arithmetic: Arithmetic,
+        image_size: Sequence[int] | None = None,
+        resize: str = "bilinear",
+    ) -> None:
         super().__init__()
         self.retriever = retriever
+        self.arithmetic = arithmetic
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.feature_dim = retriever.descriptor_dim
-        resize = [transforms.Resize(tuple(image_size), antialias=True)] if image_size else []
         #: PIL image → the normalised tensor this module takes: RGB as semvpr's image reader makes it (grey,
-        #: palette, alpha and CMYK converted; 16-bit refused), resized to ``image_size`` if given.
+        #: palette, alpha and CMYK converted; 16-bit refused), resized to ``image_size`` if given as semvpr's
+        #: loader resizes for this model (``resize``, ``data.images.RESIZES``: PIL's bilinear, or bicubic with
+        #: antialiasing on the tensor as Bag-of-Queries' transform does).
         self.transform = transforms.Compose(
-            [EightBitRGB(), *resize, transforms.ToTensor(), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
+            [EightBitRGB(), *_resized(image_size, resize), transforms.Normalize(IMAGENET_MEAN, IMAGENET_STD)]
         )
+
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> HubModel:
+        """Moved as a module (``model.to``, ``.cuda``): the retriever's own (Lightning's) device follows."""
+        super()._apply(fn, recurse)
+        self.retriever.to(self.mean.device)
+        return self
 
     @torch.no_grad()
     def forward(self, images: Tensor) -> Tensor:
@@ -58,15 +78,21 @@ class HubModel(nn.Module):
         cast = {p.dtype for p in self.retriever.parameters() if p.is_floating_point()} - {torch.float32}
         if cast:  # .half() / .bfloat16() / .double(): weights the float activations of its layers cannot meet
             raise SemvprError(
-                f"the model's weights are {min(map(str, cast))}; it keeps them float32 and runs mixed precision "
-                f"itself where the device runs it natively: model.float() (or load it again: 16 bits rounded them)"
+                f"the model's weights are {min(map(str, cast))}; it keeps them float32 and computes in semvpr.eval's "
+                f"precision for it ({self.arithmetic.precision}; overrides=['trainer.precision=...'] sets another): "
+                "model.float() (or load it again: 16 bits rounded them)"
+            )
+        device = self.mean.device
+        if images.device != device:
+            raise SemvprError(
+                f"images are on {images.device}, the model on {device}: move the images there "
+                f"(images.to('{device}')), or the model (model.to('{images.device}'))"
             )
         if not len(images):
             return images.new_zeros((0, self.feature_dim), dtype=torch.float32)
         images = images.to(self.mean.dtype)
-        if self.retriever.device != images.device:  # moved as a submodule (.cuda()): Lightning's own device follows
-            self.retriever.to(images.device)
-        return F.normalize(self.retriever(images * self.std + self.mean).float(), dim=1)
+        with self.arithmetic.run(device.type), autocast(device):
+            return self.retriever(images * self.std + self.mean).float()
 
 
 def load_model(
@@ -99,8 +125,20 @@ def load_model(
     check_config(cfg)
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
     target = None if untrained else Path(ckpt).expanduser()
-    retriever, _ = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
-    return HubModel(retriever, image_size).to(resolve(str(device))).eval()
+    retriever, merged = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
+    arithmetic = model_arithmetic(cfg, merged, explicit)
+    resize = data_settings(merged).resize
+    return HubModel(retriever, arithmetic, image_size, resize).to(resolve(str(device))).eval()
+
+
+def _resized(image_size: Sequence[int] | None, resize: str) -> list[Callable[[object], object]]:
+    """PIL image → [0, 1] tensor, resized to ``image_size`` (if given) as ``data.images.load_image`` resizes."""
+    if not image_size:
+        return [transforms.ToTensor()]
+    if resize == "bilinear":
+        return [transforms.Resize(tuple(image_size), antialias=True), transforms.ToTensor()]
+    bicubic = transforms.InterpolationMode.BICUBIC
+    return [transforms.ToTensor(), transforms.Resize(tuple(image_size), interpolation=bicubic, antialias=True)]
 
 
 def _image_size(value: object) -> bool:

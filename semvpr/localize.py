@@ -5,7 +5,8 @@ and matched against the database of ``data``'s test split (its descriptors cache
 ``semvpr.eval``). The model is the one ``semvpr.eval`` evaluates: a checkpoint (its mask source
 replaceable with ``mask=``), or ``ckpt=none``. Prints, per query, the best database image with its
 position (UTM metres, or the frame of a frame-aligned set) and descriptor distance; writes the top-k of each
-to ``localize.json`` in the run directory.
+to ``localize.json`` in the run directory. Images pass through the model in eval's arithmetic (an author's
+release file in fp32 unless ``trainer.precision`` is given: ``config.command.model_arithmetic``).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from omegaconf import DictConfig
 
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
-from semvpr.config.command import hydra_command, model_pass
+from semvpr.config.command import hydra_command, model_arithmetic, model_pass
 from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
@@ -39,13 +40,15 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
-    retriever.to(resolve(cfg.get("device")))
+    device = resolve(cfg.get("device"))
+    retriever.to(device)
     places, settings = database(), settings_of(merged)
-    size = settings.data.image_size
+    size, resize = settings.data.image_size, settings.data.resize
     storage = feature_storage(settings, retriever.backbone, {"test": places})
-    db_desc = place_descriptors(retriever, places, "db", size, settings.storage.cache_dir, storage)
-    q_desc = np.empty((len(paths), db_desc.shape[1]), np.float32)
-    retriever.describe_images(paths, None, size, q_desc, desc="queries")
+    q_desc = np.empty((len(paths), retriever.descriptor_dim), np.float32)
+    with model_arithmetic(cfg, merged, explicit).run(device.type):
+        db_desc = place_descriptors(retriever, places, "db", size, settings.storage.cache_dir, storage, resize=resize)
+        retriever.describe_images(paths, None, size, q_desc, desc="queries", resize=resize)
     check_finite(q_desc, f"the query images in {cfg.queries}")
     top = knn(db_desc, q_desc, int(cfg.top_k))
     out = []

@@ -253,7 +253,9 @@ def make_images(root: Path, n: int = 10) -> list[Path]:
 
 
 def labels_key(paths: list[Path], root: Path) -> dict:
-    """The labels key pseudo_labels builds (kept in sync by test_interrupted_run_resumes_with_the_rest)."""
+    """The labels key pseudo_labels builds on a CPU in the running precision (kept in sync by
+    test_interrupted_run_resumes_with_the_rest)."""
+    from semvpr.core.precision import compute_key
     from semvpr.segmentation.pseudolabels import VERSION, image_list_identity
 
     return {
@@ -261,6 +263,7 @@ def labels_key(paths: list[Path], root: Path) -> dict:
         "teacher": "teacher-abc",
         "images": image_list_identity(paths, root),
         "image_size": list(LABEL_SIZE),
+        **compute_key("cpu"),
     }
 
 

@@ -6,8 +6,9 @@
 #   bash experiments/espnetv2-streets/run.sh OUT [GARDENS_ROOT] [ESPNETV2_FILE]
 set -euo pipefail
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [ESPNETV2_FILE]}")
-GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
-ESPNET=$(realpath "${3:-../shared/realdata/segmenters/espnetv2/espnetv2_s_2.0_city_1024x512.pth}")
+GARDENS=${2:-../shared/realdata/gardens_point}
+# As given (relative to the repository root by default): the tables name the file by this path.
+ESPNET=${3:-../shared/realdata/segmenters/espnetv2/espnetv2_s_2.0_city_1024x512.pth}
 export HF_HUB_OFFLINE=1
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
   db=${pair%%:*}; q=${pair##*:}

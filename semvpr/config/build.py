@@ -459,6 +459,7 @@ def store_settings(settings: Settings, storage: str, workers: int | None = None)
         storage,
         settings.model.eval_batch_size,
         settings.data.num_workers if workers is None else workers,
+        settings.data.resize,
     )
 
 
@@ -469,7 +470,8 @@ def feature_storage(settings: Settings, backbone: Backbone, places: dict[str, Pl
     size, store = settings.data.image_size, settings.storage
     per_image = 2 * int(np.prod(trunk_shape(backbone, size)))  # bf16
     images = sum(len(p.db_paths) + len(p.q_paths) for p in places.values())
-    cached = all(trunk_cached(p, backbone.frozen_key(), size, store.cache_dir) for p in places.values())
+    key, resize = backbone.frozen_key(), settings.data.resize
+    cached = all(trunk_cached(p, key, size, store.cache_dir, resize) for p in places.values())
     storage = choose_storage(
         store.storage, per_image * images, store.cache_dir, store.ram_gb / settings.ranks[0], store.disk_gb, cached
     )

@@ -1,5 +1,6 @@
 """What the Hydra commands (train, eval, localize, segment) share: the frame of their task function, and for the
-commands that pass images through a whole trained model (eval, localize) its device, threads and precision."""
+commands that pass images through a whole trained model (eval, localize, the hub) its device, threads and
+precision."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import functools
 import hashlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -132,3 +134,33 @@ def model_pass(cfg: DictConfig) -> Iterator[Threads]:
     threads = thread_plan(cfg, gpu=device.type == "cuda")
     with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
         yield threads
+
+
+#: The precision an author's release file is evaluated in unless the command line sets ``trainer.precision``:
+#: its authors' arithmetic, fp32 (on a GPU without TF32), which their published numbers come from.
+RELEASE_PRECISION = "32-true"
+
+
+@dataclass(frozen=True)
+class Arithmetic:
+    """The precision a pass through a model asks for (a ``trainer.precision`` value) and whether its fp32 matmuls
+    and convolutions on a GPU may use TF32 (``precision.job_precision``)."""
+
+    precision: str
+    tf32: bool
+
+    @contextmanager
+    def run(self, device: str) -> Iterator[str]:
+        """Adopt it on ``device`` (a device type: ``cpu``, ``cuda``) while the block runs; yields the precision as
+        run (``precision.lightning_precision``)."""
+        with job_precision(self.precision, device, self.tf32) as precision:
+            yield precision
+
+
+def model_arithmetic(cfg: DictConfig, merged: DictConfig, explicit: set[str]) -> Arithmetic:
+    """How eval, localize and the hub pass images through ``merged``'s model: a semvpr checkpoint (or
+    ``ckpt=none``) in ``trainer.precision``, as the job runs; an author's release file (``merged.release``) in its
+    authors' fp32 (:data:`RELEASE_PRECISION`), unless the command line sets ``trainer.precision``."""
+    if merged.get("release") and "trainer.precision" not in explicit:
+        return Arithmetic(RELEASE_PRECISION, tf32=False)
+    return Arithmetic(str(cfg.trainer.precision), tf32=True)

@@ -25,7 +25,9 @@ from omegaconf import DictConfig
 from semvpr.config.components import component_class, instantiate_node, loss_class
 from semvpr.config.record import record_of
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
+from semvpr.core.errors import SemvprError
 from semvpr.core.threads import JOBS_BESIDE, Threads, standard_start_method, usable_cores
+from semvpr.data.images import RESIZES
 from semvpr.models.masks import MaskSource
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
@@ -70,8 +72,10 @@ def mask_control(cfg: DictConfig) -> MaskControl:
 @dataclass(frozen=True)
 class DataSettings:
     """The place sets of ``data``: the reader node of each split (None where the data has none: evaluation
-    only), the image size the models see, loader workers, the evaluation radius, and the Cityscapes-format set
-    an embedded teacher trains on (``segmentation``: its ``train`` and ``val`` reader nodes, or None)."""
+    only), the image size the models see, loader workers, the evaluation radius, the Cityscapes-format set
+    an embedded teacher trains on (``segmentation``: its ``train`` and ``val`` reader nodes, or None), and how
+    images are resized to the size (``data.images.RESIZES``: bilinear, or what an author's release file's
+    layout sets, ``config.restore.released_retriever``)."""
 
     name: str
     domain: str | None
@@ -80,6 +84,7 @@ class DataSettings:
     eval_radius: float | None
     splits: dict[str, Any]
     segmentation: Any
+    resize: str = "bilinear"
 
 
 @dataclass(frozen=True)
@@ -155,6 +160,9 @@ def data_settings(cfg: DictConfig) -> DataSettings:
     """The ``data`` node of ``cfg``, typed."""
     data = cfg.data
     radius = data.get("eval_radius")
+    resize = str(data.get("resize", "bilinear"))
+    if resize not in RESIZES:
+        raise SemvprError(f"data.resize={resize!r} is not one of {list(RESIZES)}")
     return DataSettings(
         name=str(data.name),
         domain=data.get("domain"),
@@ -163,6 +171,7 @@ def data_settings(cfg: DictConfig) -> DataSettings:
         eval_radius=None if radius is None else float(radius),
         splits={split: data.get(split) for split in ("train", "val", "test")},
         segmentation=data.get("segmentation"),
+        resize=resize,
     )
 
 

@@ -211,7 +211,8 @@ def _refuse_model_overrides(cfg: DictConfig, explicit: set[str], merged: DictCon
 def released_retriever(cfg: DictConfig, explicit: set[str], release: Release) -> tuple[Retriever, DictConfig]:
     """The author's model of a release file (``models.released``) as semvpr's backbone and aggregator, with
     no mask or the invocation's (``mask=teacher|student ...``), at the author's image size unless the
-    command line sets ``data.image_size``. Its config is validated as a checkpoint's record is."""
+    command line sets ``data.image_size``, the images resized as the author's transform does
+    (``data.resize``). Its config is validated as a checkpoint's record is."""
     where = release.where
     layout, settings = release.layout, release.settings()
     record = {
@@ -235,6 +236,7 @@ def released_retriever(cfg: DictConfig, explicit: set[str], release: Release) ->
     _refuse_model_overrides(cfg, explicit, merged, where)
     with open_dict(merged):
         merged.release = layout.label
+        merged.data.resize = layout.resize
         if layout.image_size is not None and "data.image_size" not in explicit:
             merged.data.image_size = list(layout.image_size)
     replaced = replace_mask(cfg, explicit, merged, where)

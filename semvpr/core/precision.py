@@ -28,8 +28,9 @@ MIXED = {"bf16-mixed": "bf16-mixed", "bf16": "bf16-mixed", "16-mixed": "16-mixed
 FULL = {"32-true": "32-true", "32": "32-true"}
 AUTOCAST_DTYPE = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16, "32-true": None}
 
-#: The job's precision as run (a key of AUTOCAST_DTYPE): bf16 where native until a job says otherwise.
-_JOB = {"precision": "bf16-mixed"}
+#: The job's precision as run (a key of AUTOCAST_DTYPE), bf16 where native until a job says otherwise, and
+#: whether its fp32 matmuls and convolutions on a GPU use TF32.
+_JOB: dict[str, str | bool] = {"precision": "bf16-mixed", "tf32": False}
 
 
 @functools.cache
@@ -66,36 +67,44 @@ def lightning_precision(requested: str, accelerator: str) -> str:
 
 
 @contextmanager
-def job_precision(requested: str, accelerator: str) -> Iterator[str]:
+def job_precision(requested: str, accelerator: str, tf32: bool = True) -> Iterator[str]:
     """Run a job in ``requested`` precision on ``accelerator``: semvpr's own autocast follows it; on a GPU,
-    fp32 matmuls outside the fp32 sections may use TF32. Yields the
-    precision as run; restores the previous settings after."""
+    fp32 matmuls and cuDNN convolutions outside the fp32 sections use TF32 where ``tf32`` (else full fp32: an
+    author's arithmetic). Yields the precision as run; restores the previous settings after."""
     precision = lightning_precision(requested, accelerator)
-    before = _JOB["precision"], torch.get_float32_matmul_precision()
-    _JOB["precision"] = precision
-    if str(accelerator).lower() in ("gpu", "cuda"):
-        torch.set_float32_matmul_precision("high")
+    gpu = str(accelerator).lower() in ("gpu", "cuda")
+    before = dict(_JOB), torch.get_float32_matmul_precision(), torch.backends.cudnn.allow_tf32
+    _JOB.update(precision=precision, tf32=gpu and tf32)
+    if gpu:
+        torch.set_float32_matmul_precision("high" if tf32 else "highest")
+        torch.backends.cudnn.allow_tf32 = tf32
     try:
         yield precision
     finally:
-        _JOB["precision"] = before[0]
+        _JOB.update(before[0])
         torch.set_float32_matmul_precision(before[1])
+        torch.backends.cudnn.allow_tf32 = before[2]
 
 
 def running_precision() -> str:
     """The precision semvpr's own autocast runs in now (the current job's, else bf16-mixed)."""
-    return _JOB["precision"]
+    return str(_JOB["precision"])
+
+
+def device_precision(device_type: str) -> str:
+    """The running precision as it runs on a device of ``device_type``: a half type the device does not run
+    natively is fp16 on a GPU and fp32 on a CPU (where fp16 autocast is not offered either)."""
+    precision = running_precision()
+    if precision == "bf16-mixed" and not bf16_native(device_type):
+        precision = "16-mixed" if device_type == "cuda" else "32-true"
+    return "32-true" if precision == "16-mixed" and device_type != "cuda" else precision
 
 
 def autocast(device: torch.device | str = "cpu", enabled: bool = True) -> torch.autocast:
     """The job's autocast on ``device`` (``enabled=False``, full precision, or a half type the device does
     not run natively: a disabled autocast)."""
     device_type = torch.device(device).type
-    dtype = AUTOCAST_DTYPE[_JOB["precision"]]
-    if dtype is torch.bfloat16 and not bf16_native(device_type):
-        dtype = torch.float16 if device_type == "cuda" else None
-    if dtype is torch.float16 and device_type != "cuda":
-        dtype = None
+    dtype = AUTOCAST_DTYPE[device_precision(device_type)]
     return torch.autocast(device_type=device_type, dtype=dtype or torch.bfloat16, enabled=enabled and dtype is not None)
 
 
@@ -116,14 +125,13 @@ def fp32(device_type: str) -> Iterator[None]:
 
 
 def compute_key(device: torch.device | str) -> dict[str, str | int]:
-    """What a cached artifact computed on ``device`` in the running precision adds to its key: on a CPU, the
-    thread count of the job's frozen passes (``threads.frozen_threads``: a CPU reduction's bits depend on
-    it); the device kind and precision off the CPU's default arithmetic (bf16 where native, else fp32): a
-    GPU's, or another precision asked for."""
-    device_type = torch.device(device).type
-    precision = _JOB["precision"]
-    default = "bf16-mixed" if bf16_native("cpu") else "32-true"
-    key: dict[str, str | int] = {"frozen_threads": frozen_threads()} if device_type == "cpu" else {}
-    if device_type != "cpu" or precision not in ("bf16-mixed", default):
-        key["compute"] = f"{device_type}/{precision}"
-    return key
+    """What a cached artifact computed on ``device`` in the running precision adds to its key: the device kind
+    and the precision as it runs there (:func:`device_precision`: ``cpu/bf16-mixed``) and, on a CPU, the thread
+    count of the job's frozen passes (``threads.frozen_threads``: a CPU reduction's bits depend on it); on a GPU
+    its model instead of a thread count, and whether fp32 ran as TF32 (``cuda/NVIDIA H200/bf16-mixed/tf32``)."""
+    device = torch.device(device)
+    precision = device_precision(device.type)
+    if device.type == "cpu":
+        return {"frozen_threads": frozen_threads(), "compute": f"cpu/{precision}"}
+    tf32 = "/tf32" if _JOB["tf32"] else ""
+    return {"compute": f"{device.type}/{torch.cuda.get_device_name(device)}/{precision}{tf32}"}

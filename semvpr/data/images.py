@@ -1,5 +1,5 @@
 """Images as every stage reads them: decoded whole (a corrupt file fails with its name), RGB in
-[0, 1], resized to [H, W] where asked, and a dataset of image files for batched passes.
+[0, 1], resized to [H, W] where asked (:data:`RESIZES`), and a dataset of image files for batched passes.
 
 Only regular files are opened (a FIFO named ``.jpg`` would block the reader forever), and only 8-bit
 images are decoded: a 16-bit or float image (PIL modes ``I``, ``I;16*``, ``F``: a 16-bit PNG, a float
@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from PIL import Image
 from torch.utils.data import Dataset
 
@@ -24,6 +25,11 @@ from semvpr.core.errors import SemvprError
 
 #: [H, W] as a config gives it.
 Size = tuple[int, int] | list[int]
+
+#: How an image is resized to the size a model sees: ``bilinear``, PIL's bilinear (antialiased when it shrinks:
+#: torchvision's ``Resize`` on a PIL image, most authors' test transform); ``bicubic``, torch's bicubic with
+#: antialiasing on the [0, 1] tensor (Bag-of-Queries' ``ToTensor`` then ``Resize(BICUBIC, antialias=True)``).
+RESIZES = ("bilinear", "bicubic")
 
 
 #: PIL modes of 8-bit images, which convert to RGB without loss of meaning.
@@ -78,12 +84,19 @@ def hw_of(size: Size | None) -> tuple[int, int] | None:
     return h, w
 
 
-def load_image(path: str | Path, size: Size | None = None) -> torch.Tensor:
-    """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes bilinearly (antialiased)."""
+def load_image(path: str | Path, size: Size | None = None, resize: str = "bilinear") -> torch.Tensor:
+    """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes it as ``resize`` says (:data:`RESIZES`)."""
     img = eight_bit_rgb(open_image(Path(path), "image"), path)
     hw = hw_of(size)
-    if hw is not None and img.size != (hw[1], hw[0]):
-        img = img.resize((hw[1], hw[0]), Image.BILINEAR)
+    if hw is None or img.size == (hw[1], hw[0]):
+        return _tensor(img)
+    if resize == "bilinear":
+        return _tensor(img.resize((hw[1], hw[0]), Image.BILINEAR))
+    return F.interpolate(_tensor(img)[None], size=hw, mode="bicubic", antialias=True, align_corners=False)[0]
+
+
+def _tensor(img: Image.Image) -> torch.Tensor:
+    """An RGB image as (3,H,W) floats in [0, 1]."""
     return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
 
 
@@ -97,14 +110,15 @@ class Reading:
 
 
 class ImageDataset(Dataset):
-    """Images from paths as (image (3,H,W) float [0,1], index)."""
+    """Images from paths as (image (3,H,W) float [0,1], index), at ``image_size`` resized as ``resize`` says."""
 
-    def __init__(self, paths: Sequence[str | Path], image_size: Size | None) -> None:
+    def __init__(self, paths: Sequence[str | Path], image_size: Size | None, resize: str = "bilinear") -> None:
         self.paths = [Path(p) for p in paths]
         self.image_size = image_size
+        self.resize = resize
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, int]:
-        return load_image(self.paths[index], self.image_size), index
+        return load_image(self.paths[index], self.image_size, self.resize), index

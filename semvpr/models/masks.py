@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from semvpr.core.cache import config_hash, state_hash
 from semvpr.core.errors import SemvprError
+from semvpr.core.precision import compute_key
 from semvpr.data.classes import IGNORE, NUM_CLASSES, STATIC_NAMES, TRAIN_ID_NAMES, static_lut
 
 WEIGHTINGS = ("binary", "learned")
@@ -147,9 +148,11 @@ class MaskSource(nn.Module):
         return {}
 
     def cache_key(self, image_size: Sequence[int]) -> str:
-        """The key of its masks of images at ``image_size``: its weights and :meth:`identity` (the one key
-        training's and evaluation's mask caches share)."""
-        return config_hash([state_hash(self.state_dict()), self.identity(image_size)])
+        """The key of its masks of images at ``image_size``: its weights, :meth:`identity` and, where a network
+        computes them, the arithmetic it runs in (``precision.compute_key``: device, precision, CPU threads); the
+        one key training's and evaluation's mask caches share."""
+        computed = compute_key(self.static_weight.device) if self.segmenter is not None else {}
+        return config_hash([state_hash(self.state_dict()), self.identity(image_size), computed])
 
     def static_prob(self, class_prob: Tensor) -> Tensor:
         """Probability of a static class, (B,1,H,W)."""

@@ -3,7 +3,9 @@
 A release file is a state dict (or a dict holding one under ``state_dict``, as pytorch-NetVlad's
 ``checkpoint.pth.tar`` and Lightning's ``.ckpt``) read by ``core.checkpoint.read_weights``: weights only,
 nothing in it is run. Its layout is recognised from its keys, or named (``ckpt_format=``). Each layout
-fixes what the author's own evaluation fixes (model, key names, image size):
+fixes what the author's own evaluation fixes (model, key names, image size, how images are resized to it: PIL's
+bilinear as most authors' torchvision transforms do on PIL images, Bag-of-Queries' bicubic with antialiasing on
+the tensor):
 
 - ``netvlad``: VGG16 ``features[:-2]`` (conv5_3, no ReLU) + NetVLAD, vladv1 (pytorch-NetVlad ``main.py``);
   ``encoder.N``, ``pool.conv``, ``pool.centroids``; the images' own size.
@@ -12,10 +14,10 @@ fixes what the author's own evaluation fixes (model, key names, image size):
 - ``cosplace``, ``eigenplaces``: ResNet50 ``children()[:-2]`` + L2, GeM, Linear, L2 (``GeoLocalizationNet``);
   ``backbone.N``, ``aggregation.1.p``, ``aggregation.3``; the images' own size.
 - ``boq``: ResNet50 to ``layer3`` + BoQ with its 3×3 projection (Bag-of-Queries ``hubconf.py``);
-  ``backbone.net.N``, ``aggregator.{proj_c,norm_input,boqs.I,fc}``; 384 × 384.
+  ``backbone.net.N``, ``aggregator.{proj_c,norm_input,boqs.I,fc}``; 384 × 384, bicubic on the tensor.
 - ``boq_dinov2``: DINOv2 ViT-B/14's patch tokens after its last block, without the final norm (Bag-of-Queries
   ``src/backbones.py`` ``DinoV2``) + BoQ with its 3×3 projection; ``backbone.dino.*`` in DINOv2's naming,
-  ``aggregator.*`` as ``boq``; 322 × 322.
+  ``aggregator.*`` as ``boq``; 322 × 322, bicubic on the tensor.
 - ``salad``: DINOv2 ViT-B/14's normalised patch tokens and class token (SALAD ``models/backbones/dinov2.py``,
   ``return_token``, ``norm_layer``) + SALAD with the class token as its global token (``hubconf.py``);
   ``backbone.model.*`` in DINOv2's naming, ``aggregator.{token_features,cluster_features,score,dust_bin}``;
@@ -76,6 +78,8 @@ class Layout:
     settings: Callable[[dict[str, Tensor]], dict[str, Any]]
     #: semvpr keys the author's model has no weight for, and the value that reproduces its forward pass.
     derived: Callable[[dict[str, Tensor]], dict[str, Tensor]] = field(default=lambda state: {})
+    #: How the author's test transform resizes the images (``data.images.RESIZES``).
+    resize: str = "bilinear"
 
 
 @dataclass(frozen=True)
@@ -266,6 +270,7 @@ LAYOUTS: dict[str, Layout] = {
             (*_resnet("backbone.net.", children=True), *_BOQ),
             ("backbone.net.0.weight", "aggregator.boqs.0.queries"),
             _boq_settings({"stage": "layer3"}),
+            resize="bicubic",
         ),
         Layout(
             "boq_dinov2",
@@ -276,6 +281,7 @@ LAYOUTS: dict[str, Layout] = {
             (*_dinov2("backbone.dino."), *_BOQ),
             ("backbone.dino.cls_token", "aggregator.boqs.0.queries"),
             _boq_settings({"final_norm": False}),
+            resize="bicubic",
         ),
         Layout(
             "salad",

@@ -32,6 +32,7 @@ COLUMNS = (
     "queries",
     "database",
     "descriptor_dim",
+    "precision",
     "wall_s",
     "R@1 vs no mask",
     "source",
@@ -171,6 +172,7 @@ def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
                 "queries": result["queries"],
                 "database": result["database"],
                 "descriptor_dim": result["descriptor_dim"],
+                "precision": result.get("precision") or "",
                 "wall_s": result["wall_s"],
                 "source": f"measured: {_model_name(result)} ({result['aggregator']}, {_mask_label(result)}), "
                 f"{_source(result['checkpoint'], sweep_dir)}",
@@ -214,15 +216,15 @@ def _ranks(job: Path, result: dict[str, Any]) -> np.ndarray | str | None:
 
 def _mask_gains(measured: list[tuple[dict[str, Any], dict[str, Any], Path]]) -> None:
     """Fill ``R@1 vs no mask`` of each masked row whose model (its checkpoint, or with ``ckpt=none`` the
-    untrained backbone and aggregator) the sweep also evaluated on the same set without a mask: the paired gain
-    where both jobs' ranks agree with their recalls, else why not."""
+    untrained backbone and aggregator) the sweep also evaluated on the same set without a mask in the same
+    precision: the paired gain where both jobs' ranks agree with their recalls, else why not."""
 
-    def model(r: dict[str, Any]) -> tuple[Any, ...]:
-        return (r["set"], r["checkpoint"], r.get("model"), r["queries"])
+    def pairing(r: dict[str, Any]) -> tuple[Any, ...]:
+        return r["set"], r["checkpoint"], r.get("model"), r["queries"], r.get("precision")
 
-    unmasked = {model(r): (r, job) for _, r, job in measured if r["mask"] == "none"}
+    unmasked = {pairing(r): (r, job) for _, r, job in measured if r["mask"] == "none"}
     for row, result, job in measured:
-        reference = unmasked.get(model(result))
+        reference = unmasked.get(pairing(result))
         if result["mask"] == "none" or reference is None:
             continue
         ranks, base = _ranks(job, result), _ranks(reference[1], reference[0])
@@ -247,7 +249,8 @@ def write_table(sweep_dir: str | Path) -> Path:
         "",
         (
             "Recall@N in percent over all queries; `published` rows: the same model family on the same "
-            "protocol, as cited (semvpr/data/published.yaml). `R@1 vs no mask`: the paired R@1 difference "
+            "protocol, as cited (semvpr/data/published.yaml). `precision`: the arithmetic the descriptors were "
+            "computed in (`32-true`: fp32). `R@1 vs no mask`: the paired R@1 difference "
             "from the same checkpoint on the same set without a mask, in points, with its 95 % bootstrap "
             "interval over the queries."
         ),

@@ -18,6 +18,7 @@ import numpy as np
 from semvpr.core.cache import build_once, state_hash
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import open_array
+from semvpr.core.precision import compute_key
 from semvpr.data.places import PlaceSet
 from semvpr.retrieval.control_masks import control_masks
 from semvpr.retrieval.controls import NO_CONTROL, MaskControl
@@ -34,15 +35,25 @@ def place_descriptors(
     cache_dir: str | Path,
     storage: str = "disk",
     control: MaskControl = NO_CONTROL,
+    resize: str = "bilinear",
 ) -> np.ndarray:
     """Descriptors (N, D) float32 of ``places``' database (``side="db"``) or queries (``"q"``), cached under
-    the model's weights (the mask source's included), the mask source's settings and weighting, and the
-    images, and the mask ``control`` (``retrieval.controls``: a side it leaves unmasked is described without a
-    mask). ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once,
-    read memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
-    Anonymous memory holds a batch at a time: the descriptors are written into their memory-mapped cache."""
+    the model's weights (the mask source's included), the mask source's settings and weighting, the images, the
+    mask ``control`` (``retrieval.controls``: a side it leaves unmasked is described without a mask) and the
+    arithmetic they are computed in (``precision.compute_key``: device, precision, CPU threads).
+    ``storage``: where the frozen features come from: the trunk cache (``ram`` or ``disk``: built once, read
+    memory-mapped, as each row is read once) or the images (``stream``: where the cache fits no budget).
+    ``resize``: how the images are resized to ``image_size`` (``data.images.RESIZES``). Anonymous memory holds a
+    batch at a time: the descriptors are written into their memory-mapped cache."""
     paths = places.db_paths if side == "db" else places.q_paths
-    key = {"model": state_hash(retriever.state_dict()), "images": places.identity(side), "image_size": list(image_size)}
+    key = {
+        "model": state_hash(retriever.state_dict()),
+        "images": places.identity(side),
+        "image_size": list(image_size),
+        **compute_key(retriever.device),
+    }
+    if resize != "bilinear":
+        key["resize"] = resize
     source = retriever.mask_source if control.masked(side) else None
     if source is not None:
         # Another mask source (or the same weights at another input size), or another control, gives other
@@ -55,7 +66,7 @@ def place_descriptors(
         # Each row is read once, in order: the cache's pages serve it, where a copy in RAM would add the
         # set's trunk maps to the process's anonymous memory and the time to copy them.
         held = "disk" if storage == "ram" else storage
-        settings = StoreSettings(image_size, cache_dir, held, retriever.eval_batch_size, retriever.num_workers)
+        settings = StoreSettings(image_size, cache_dir, held, retriever.eval_batch_size, retriever.num_workers, resize)
         masks = None if source is None else MaskPass(source, control.cached_weighting(retriever.weighting))
         features = place_features(places, backbone, settings, masks)
         store = features.db if side == "db" else features.q

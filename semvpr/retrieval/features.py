@@ -78,6 +78,8 @@ class FeatureStore:
     skips: dict[int, Tensor] = field(default_factory=dict)
     #: The trunk's index in ``forward_frozen(x)`` (its last output).
     trunk_level: int = -1
+    #: How streamed images are resized to ``image_size`` (``data.images.RESIZES``).
+    resize: str = "bilinear"
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -89,7 +91,10 @@ class FeatureStore:
 
     def item(self, i: int) -> dict[str, Tensor]:
         """{"trunk": (C,h',w')} or {"image": (3,H,W)}, plus "mask" ((1,h,w) or empty)."""
-        x = {"image": load_image(self.paths[i], self.image_size)} if self.trunk is None else {"trunk": self.trunk[i]}
+        if self.trunk is None:
+            x = {"image": load_image(self.paths[i], self.image_size, self.resize)}
+        else:
+            x = {"trunk": self.trunk[i]}
         x["mask"] = self.mask[i].float() if self.mask is not None else torch.empty(0)
         return x
 
@@ -98,7 +103,7 @@ class FeatureStore:
         """Trunk features of a few images (cached rows, or the frozen prefix on the images)."""
         if self.trunk is not None:
             return torch.stack([self.trunk[int(i)] for i in index])
-        images = torch.stack([load_image(self.paths[int(i)], self.image_size) for i in index])
+        images = torch.stack([load_image(self.paths[int(i)], self.image_size, self.resize) for i in index])
         device = next(backbone.parameters()).device
         with autocast(device), frozen_pass():
             out = backbone.forward_frozen(
@@ -204,13 +209,15 @@ def choose_storage(
 @dataclass(frozen=True)
 class StoreSettings:
     """How a place set's stores are made and held: the image size, the artifact cache, the storage (``ram``,
-    ``disk`` or ``stream``: :func:`choose_storage` decides ``auto``) and the frozen pass's loader."""
+    ``disk`` or ``stream``: :func:`choose_storage` decides ``auto``), the frozen pass's loader and how it resizes
+    the images (``data.images.RESIZES``)."""
 
     image_size: tuple[int, int]
     cache_dir: Path
     storage: str
     batch_size: int = 32
     num_workers: int = 2
+    resize: str = "bilinear"
 
     def __post_init__(self) -> None:
         if self.storage not in ("ram", "disk", "stream"):
@@ -255,7 +262,9 @@ def _extract(
     # Chunks of images whose frozen-prefix activations (and kept skips) fit the backbone's budget.
     step = backbone.images_per_forward(image_size, keep_scales=keep)
     loader = DataLoader(
-        ImageDataset(list(paths), image_size), batch_size=settings.batch_size, num_workers=settings.num_workers
+        ImageDataset(list(paths), image_size, settings.resize),
+        batch_size=settings.batch_size,
+        num_workers=settings.num_workers,
     )
     backbone.eval()
     for batch, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
@@ -319,15 +328,20 @@ def _open(path: Path, shape: tuple[int, ...], dtype: Any, what: Path) -> np.ndar
     return arr
 
 
-def _data_key(places: PlaceSet, size: tuple[int, int]) -> dict[str, Any]:
-    """What the features of a place set are made of: each side's images (and labels) by name and content."""
-    return {"db": places.identity("db"), "q": places.identity("q"), "image_size": list(size)}
+def _data_key(places: PlaceSet, size: tuple[int, int], resize: str) -> dict[str, Any]:
+    """What the features of a place set are made of: each side's images (and labels) by name and content, at
+    ``size`` resized as ``resize`` says (the default, bilinear, unnamed)."""
+    key = {"db": places.identity("db"), "q": places.identity("q"), "image_size": list(size)}
+    return key if resize == "bilinear" else {**key, "resize": resize}
 
 
-def trunk_cached(places: PlaceSet, backbone_key: Any, image_size: Sequence[int], cache_dir: str | Path) -> bool:
+def trunk_cached(
+    places: PlaceSet, backbone_key: Any, image_size: Sequence[int], cache_dir: str | Path, resize: str
+) -> bool:
     """Whether this place set's trunk cache exists already."""
     size = (int(image_size[0]), int(image_size[1]))
-    return artifact_dir(cache_dir, "trunk", {"backbone": backbone_key, "data": _data_key(places, size)}).is_dir()
+    data = _data_key(places, size, resize)
+    return artifact_dir(cache_dir, "trunk", {"backbone": backbone_key, "data": data}).is_dir()
 
 
 def skip_shape(backbone: nn.Module, image_size: Sequence[int], level: int) -> tuple[int, int, int]:
@@ -378,7 +392,7 @@ def place_features(
     the cached outputs where the mask source reads nothing else (else in the same pass, from the images)."""
     size, cache_dir = settings.image_size, settings.cache_dir
     backbone_key = backbone.frozen_key()
-    data_key = _data_key(places, size)
+    data_key = _data_key(places, size, settings.resize)
     sides: dict[str, Side] = {"db": (places.db_paths, places.db_labels), "q": (places.q_paths, places.q_labels)}
     last = _last_level(backbone)
     kinds: dict[str, _Kind] = {}
@@ -454,7 +468,7 @@ def _stores(
             if name.startswith("skips")
         }
         mask = torch.from_numpy(arrays["masks"]) if "masks" in arrays else None
-        stores[side] = FeatureStore(tuple(paths), settings.image_size, trunk, mask, skips, last)
+        stores[side] = FeatureStore(tuple(paths), settings.image_size, trunk, mask, skips, last, settings.resize)
     return stores
 
 

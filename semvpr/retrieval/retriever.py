@@ -144,11 +144,13 @@ class Retriever(L.LightningModule):
         image_size: Sequence[int],
         out: np.ndarray,
         desc: str = "descriptors",
+        resize: str = "bilinear",
     ) -> None:
-        """Descriptors of image files in one pass (decoding in workers), written into ``out`` (N,D)."""
+        """Descriptors of image files in one pass (decoding in workers, resizing as ``resize`` says:
+        ``data.images.RESIZES``), written into ``out`` (N,D)."""
         self.eval()
         loader = DataLoader(
-            ImageDataset(list(paths), tuple(image_size)),
+            ImageDataset(list(paths), tuple(image_size), resize),
             batch_size=self.eval_batch_size,
             num_workers=self.num_workers,
             pin_memory=self.device.type == "cuda",

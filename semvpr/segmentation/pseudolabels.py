@@ -22,7 +22,7 @@ from semvpr.core.cache import build_once, files_identity
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_file, inside
 from semvpr.core.logs import Progress
-from semvpr.core.precision import autocast
+from semvpr.core.precision import autocast, compute_key
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES
 from semvpr.data.images import ImageDataset, Reading
 
@@ -113,7 +113,8 @@ def pseudo_labels(
 ) -> Path:
     """Directory of one trainId PNG per image (at ``reading.image_size``, see ``label_path``; the images read in
     its batches by its workers), built once and resumable,
-    keyed by the teacher's ``teacher_key`` (what identifies its weights: ``segmentation.training.build_teacher``).
+    keyed by the teacher's ``teacher_key`` (what identifies its weights: ``segmentation.training.build_teacher``)
+    and the arithmetic it labels in (``precision.compute_key``: device, precision, CPU threads).
 
     ``trunk``: the images' cached outputs of the trunk the teacher is linked to (``Teacher.link_trunk``); the
     teacher then runs only its decoder. Its labels differ from those of the teacher's own encoder by float
@@ -126,11 +127,13 @@ def pseudo_labels(
         label_path("", p, root)  # every image must sit under the root: fail before any work
     size = (int(reading.image_size[0]), int(reading.image_size[1]))
     batch_size = reading.batch_size
+    device = getattr(teacher, "device", torch.device("cpu"))
     key = {
         "version": VERSION,
         "teacher": teacher.teacher_key,
         "images": image_list_identity(paths, root),
         "image_size": list(size),
+        **compute_key(device),
     }
     if trunk is not None:
         key["encoder"] = "trunk"
@@ -147,7 +150,6 @@ def pseudo_labels(
         bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
         if not todo:
             return
-        device = getattr(teacher, "device", torch.device("cpu"))
         with torch.no_grad(), autocast(device):
             if trunk is not None:
                 for first in range(0, len(todo), batch_size):

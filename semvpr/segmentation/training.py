@@ -43,13 +43,14 @@ def dataset_identity(seg: SegmentationSet) -> str:
     return config_hash(files if lut is None else [files, list(lut)])
 
 
-def training_threads() -> int:
-    """The torch threads a training run here gets (the caller's ``Threads.stage``), part of its artifact's key:
-    a multi-threaded CPU reduction splits its sums by thread, so the same training at another thread count
-    ends with other weights (one teacher step's gradients measured to differ at 1 and 2 threads), and a
-    cached teacher or student must be the one this run's settings would train (frozen passes are keyed by
-    the job's frozen-pass count: ``core.threads``)."""
-    return torch.get_num_threads()
+def training_threads(device: torch.device) -> dict[str, int]:
+    """The torch threads a training run on ``device`` gets (the caller's ``Threads.stage``), part of its
+    artifact's key on a CPU: a multi-threaded CPU reduction splits its sums by thread, so the same training at
+    another thread count ends with other weights (one teacher step's gradients measured to differ at 1 and 2
+    threads), and a cached teacher or student must be the one this run's settings would train (frozen passes
+    are keyed by the job's frozen-pass count: ``core.threads``). A GPU's sums do not follow the CPU's threads:
+    nothing then."""
+    return {"threads": torch.get_num_threads()} if device.type == "cpu" else {}
 
 
 def build_teacher(
@@ -77,7 +78,7 @@ def build_teacher(
             "train": {k: v for k, v in dataclasses.asdict(spec.train).items() if k != "val_every"},
             "train_set": dataset_identity(seg_train),
             "val_set": dataset_identity(seg_val),
-            "threads": training_threads(),
+            **training_threads(device),
             **compute_key(device),
         }
         art = build_once(cache_dir, "teacher", key, lambda tmp: train_teacher(spec, seg_train, seg_val, tmp, device))
@@ -211,7 +212,7 @@ def build_student(
         "backbone": backbone.frozen_key(),
         "labels": label_dir.name,
         "image_size": size,
-        "threads": training_threads(),
+        **training_threads(next(backbone.parameters()).device),
     }
 
     def build(out: Path) -> None:

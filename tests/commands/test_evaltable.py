@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from semvpr.core.precision import lightning_precision
 from semvpr.reporting.benchmarks_table import table_rows, write_table
 from tests.helpers import (
     REPO,
@@ -59,6 +60,7 @@ def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> No
         # Each query is its place's database image again: any model retrieves it first.
         assert (row["R@1"], row["R@20"], row["queries"], row["database"]) == ("100.0", "100.0", "4", "4")
         assert int(row["descriptor_dim"]) > 0 and float(row["wall_s"]) > 0
+        assert row["precision"] == lightning_precision("bf16-mixed", "cpu")  # a semvpr checkpoint: the job's
         assert row["source"].startswith("measured: ") and "(sral, mask=none)" in row["source"]
     assert rows[2]["benchmark"] == "tiny_test"  # gsv_npy names its protocol after the set
     failed = [r for r in rows if not r["set"]]
@@ -97,7 +99,11 @@ def test_published_numbers_stand_beside_the_same_model_and_protocol(tmp_path: Pa
         "wall_s": 12.5,
         **{f"test/R@{n}": 80.0 + n / 10 for n in (1, 5, 10, 20)},
     }
-    _job(tmp_path, 0, {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test"})
+    _job(
+        tmp_path,
+        0,
+        {**base, "data": "pitts30k", "set": "pitts30k-test", "benchmark": "pitts30k_test", "precision": "32-true"},
+    )
     _job(tmp_path, 1, {**base, "data": "tokyo247", "set": "tokyo247-test", "benchmark": "tokyo247"})
     _job(
         tmp_path,
@@ -111,8 +117,12 @@ def test_published_numbers_stand_beside_the_same_model_and_protocol(tmp_path: Pa
     assert "pytorch-NetVlad" in rows[1]["source"] and rows[1]["benchmark"] == "pitts30k_test"
     md = write_table(tmp_path).read_text()
     assert (
-        "| pitts30k | pitts30k-test | pitts30k_test | 80.10 | 80.50 | 81.00 | 82.00 | 6816 | 10000 | 32768 | 12.50 |"
-        in md
+        "| pitts30k | pitts30k-test | pitts30k_test | 80.10 | 80.50 | 81.00 | 82.00 | 6816 | 10000 | 32768 | 32-true "
+        "| 12.50 |" in md
+    )  # the precision eval.json records; an eval.json without one has an empty cell
+    assert (
+        "| tokyo247 | tokyo247-test | tokyo247 | 80.10 | 80.50 | 81.00 | 82.00 | 6816 | 10000 | 32768 |  | 12.50 |"
+        in (md)
     )
     assert "| published | pitts30k-test | pitts30k_test | 85.20 | 94.80 | 97.00 |  |" in md
     assert (tmp_path / "results.csv").read_text().count("\n") == len(rows) + 1
@@ -129,6 +139,7 @@ def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a
         "database": 200,
         "queries": 200,
         "descriptor_dim": 4096,
+        "precision": "bf16-mixed",
         "wall_s": 1.0,
         **{f"test/R@{n}": 50.0 for n in (1, 5, 10, 20)},
     }
@@ -140,6 +151,7 @@ def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a
         ({**base, "checkpoint": "a.ckpt", "mask": "student"}, mask_ranks),
         ({**base, "checkpoint": "b.ckpt", "mask": "student"}, mask_ranks),  # b was never evaluated without
         ({**base, "checkpoint": "a.ckpt", "mask": "teacher"}, None),  # no ranks.npy: no paired gain
+        ({**base, "checkpoint": "a.ckpt", "mask": "student", "precision": "32-true"}, mask_ranks),  # a's was bf16
     ]
     for num, (result, ranks) in enumerate(jobs):
         _job(tmp_path, num, {**result, **_recalls(ranks)} if ranks is not None else result)
@@ -152,7 +164,7 @@ def test_a_masked_row_gets_its_paired_r1_gain_over_the_same_checkpoint_without_a
     assert match, rows[1]["R@1 vs no mask"]
     value, low, high = (float(g.replace("−", "-")) for g in match.groups())
     assert value == round(expected, 1) and low < value < high and low > 0  # 30 % of misses flipped: significant
-    assert [r.get("R@1 vs no mask", "") for r in (rows[0], rows[2], rows[3])] == ["", "", ""]
+    assert [r.get("R@1 vs no mask", "") for r in (rows[0], rows[2], rows[3], rows[4])] == ["", "", "", ""]
     assert "R@1 vs no mask" in write_table(tmp_path).read_text()
 
 

@@ -8,12 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 from PIL import Image
-from torchvision.transforms.functional import to_tensor
 
 from semvpr.core.errors import SemvprError
-from tests.helpers import REPO, config, tiny_config, write_checkpoint
+from tests.helpers import REPO, make_folder, tiny_config, write_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -24,8 +22,6 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_hub_model_takes_normalised_images_and_gives_unit_descriptors(checkpoint: Path) -> None:
-    from semvpr.config.restore import load_retriever
-
     model = torch.hub.load(str(REPO), "semvpr", ckpt=str(checkpoint), source="local", image_size=[32, 48])
     rng = np.random.default_rng(0)
     images = [Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)) for _ in range(3)]
@@ -37,21 +33,54 @@ def test_hub_model_takes_normalised_images_and_gives_unit_descriptors(checkpoint
     desc = model(batch)
     assert desc.shape == (3, model.feature_dim) and desc.dtype == torch.float32
     np.testing.assert_allclose(desc.norm(dim=1).numpy(), 1.0, atol=1e-5)
-    # The same weights as semvpr.eval loads, fed the [0, 1] images it takes.
-    retriever, _ = load_retriever(config(f"+ckpt={checkpoint}", config_name="eval"))
-    with torch.no_grad():
-        expected = F.normalize(
-            retriever(torch.stack([to_tensor(im.resize((48, 32), Image.BILINEAR)) for im in images])).float(), dim=1
-        )
-    reference = F.normalize(
-        retriever(
-            batch * torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
-            + torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
-        ).float(),
-        dim=1,
-    )
-    torch.testing.assert_close(desc, reference, rtol=0, atol=1e-5)
-    torch.testing.assert_close(desc, expected, rtol=0, atol=1e-4)  # normalise then un-normalise: rounding only
+
+
+def eval_descriptors(tmp_path: Path, ckpt: Path, given: list[str]) -> list[np.ndarray]:
+    """``semvpr.eval``'s descriptors (database and queries, from its descriptor cache) of ``ckpt`` with ``given``."""
+    from semvpr.eval import evaluate_checkpoint
+
+    cfg = tiny_config(tmp_path / "cache", f"+ckpt={ckpt}", *given, config_name="eval")
+    evaluate_checkpoint(cfg, {o.split("=", 1)[0].lstrip("+") for o in given})
+    return [np.load(f) for f in sorted((tmp_path / "cache").glob("descriptors-*/descriptors.npy"))]
+
+
+@pytest.mark.parametrize("release", [False, True], ids=["checkpoint", "release"])
+def test_hub_gives_evals_descriptors_of_the_same_images(checkpoint: Path, tmp_path: Path, release: bool) -> None:
+    """The hub computes in eval's arithmetic for the same model and overrides (the job's bf16 for a semvpr
+    checkpoint, fp32 for a release, bf16 when asked) and its transform resizes as eval's loader does (PIL's
+    bilinear; BoQ's bicubic on the tensor), so the same image files give eval's descriptors."""
+    from semvpr.hub import load_model
+    from tests.models.test_released import boq_model, save_state
+
+    if release:
+        save_state(boq_model(), tmp_path / "b.pth")
+        ckpt, precisions = tmp_path / "b.pth", [[], ["trainer.precision=bf16-mixed"]]
+    else:
+        ckpt, precisions = checkpoint, [[]]
+    root = make_folder(tmp_path / "places")
+    files = sorted((root / "images" / "test" / "database").iterdir())
+    for asked in precisions:
+        given = ["experiment=tiny", "data=folder", f"data.root={root}", "data.image_size=[32,48]", *asked]
+        shutil.rmtree(tmp_path / "cache", ignore_errors=True)
+        expected = eval_descriptors(tmp_path, ckpt, [*given, "data.num_workers=0"])
+        model = load_model(ckpt, [32, 48], overrides=[*given, f"paths.cache_dir={tmp_path / 'cache'}"])
+        assert model.arithmetic.precision == ("32-true" if release and not asked else "bf16-mixed")
+        desc = model(torch.stack([model.transform(Image.open(f)) for f in files])).numpy()
+        assert len(expected) == 2
+        for cached in expected:
+            # The hub un-normalises its input (rounding of 1e-7), which an fp32 trunk output can carry over a bf16
+            # rounding step of the trunk cache: 2e-5 here. The old hub ran a bf16 job's model in fp32: 1.6e-3.
+            np.testing.assert_allclose(desc, cached, rtol=0, atol=5e-5)
+
+
+def test_hub_refuses_images_on_another_device_in_one_line(checkpoint: Path) -> None:
+    from semvpr.hub import load_model
+
+    model = load_model(checkpoint)
+    with pytest.raises(SemvprError, match=r"^images are on meta, the model on cpu: move the images there") as err:
+        model(torch.empty(2, 3, 32, 48, device="meta"))
+    assert "\n" not in str(err.value)
+    assert {p.device.type for p in model.parameters()} == {"cpu"}  # the model stays where it is
 
 
 def test_hub_refuses_what_eval_refuses(checkpoint: Path, tmp_path: Path) -> None:
@@ -137,7 +166,7 @@ def test_hub_transform_reads_any_8_bit_pil_image_as_semvpr_reads_image_files(che
 
 @pytest.mark.parametrize("cast", ["half", "bfloat16", "double"])
 def test_hub_model_with_cast_weights_is_refused_in_one_line_and_float_restores_it(checkpoint: Path, cast: str) -> None:
-    """The model runs its own mixed precision (the job's, where the device runs it natively); weights cast with
+    """The model keeps float32 weights and computes in eval's precision for it (model.arithmetic); weights cast with
     .half() / .bfloat16() / .double() met float activations in the first layer (a dtype RuntimeError)."""
     from semvpr.hub import load_model
 
@@ -145,7 +174,8 @@ def test_hub_model_with_cast_weights_is_refused_in_one_line_and_float_restores_i
     images = torch.rand(2, 3, 32, 48)
     expected = model(images)
     getattr(model, cast)()
-    with pytest.raises(SemvprError, match=r"weights are torch\.\w+; .* model\.float\(\)"):
+    line = r"weights are torch\.\w+; it keeps them float32 and computes in semvpr\.eval's precision for it \(bf16"
+    with pytest.raises(SemvprError, match=line + r".* model\.float\(\)"):
         model(images)
     restored = model.float()(images)  # a float64 round trip is exact; 16 bits rounded the weights
     torch.testing.assert_close(restored, expected, rtol=0, atol=0 if cast == "double" else 0.05)

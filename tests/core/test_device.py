@@ -108,11 +108,27 @@ def test_the_project_autocast_follows_the_job_precision() -> None:
         assert run == "32-true" and running_precision() == "32-true"
         with autocast("cpu"):
             assert not torch.is_autocast_enabled("cpu")
-        fp32_machine = not bf16_native("cpu")
-        assert compute_key("cpu").get("compute") == (None if fp32_machine else "cpu/32-true")
+        assert compute_key("cpu")["compute"] == "cpu/32-true"
     assert running_precision() == default
-    assert "compute" not in compute_key("cpu")  # the CPU's default arithmetic: the thread count only
-    assert compute_key("cuda") == {"compute": f"cuda/{default}"}  # a GPU's bits do not follow CPU threads
+    as_run = "bf16-mixed" if bf16_native("cpu") else "32-true"  # bf16 asked of a CPU without it runs fp32
+    assert compute_key("cpu")["compute"] == f"cpu/{as_run}"
+
+
+def test_a_gpu_key_names_the_gpu_its_precision_and_tf32_and_no_cpu_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two GPU models, or fp32 with and without TF32, give other bits: each its own cache entry."""
+    from semvpr.core import precision
+
+    monkeypatch.setattr(precision, "bf16_native", lambda device_type: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H200")
+    with job_precision("bf16-mixed", "gpu"):
+        assert compute_key("cuda") == {"compute": "cuda/NVIDIA H200/bf16-mixed/tf32"}
+    with job_precision("32-true", "gpu", tf32=False):
+        assert compute_key("cuda:0") == {"compute": "cuda/NVIDIA H200/32-true"}
+        assert torch.get_float32_matmul_precision() == "highest" and not torch.backends.cudnn.allow_tf32
+    assert torch.backends.cudnn.allow_tf32  # restored
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA A100-SXM4-80GB")
+    with job_precision("bf16-mixed", "gpu"):
+        assert compute_key("cuda") == {"compute": "cuda/NVIDIA A100-SXM4-80GB/bf16-mixed/tf32"}
 
 
 def test_the_fp32_sections_turn_autocast_and_tf32_off_and_restore_them() -> None:

@@ -236,11 +236,12 @@ def test_the_frozen_pass_gives_the_same_bits_at_any_batch_size() -> None:
 
 
 @pytest.mark.reproducibility
-def test_cpu_caches_are_keyed_by_the_jobs_frozen_thread_count() -> None:
+def test_cpu_caches_are_keyed_by_the_jobs_frozen_thread_count(monkeypatch: pytest.MonkeyPatch) -> None:
     """fp32 convolutions split their sums by thread (measured on every CPU here: other bits at 1 and 2
     threads), so a CPU pass's cache names the count its job runs frozen passes at, and a GPU pass's does not."""
     from semvpr.core.precision import compute_key, job_precision
 
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H200")  # a GPU's key names it
     trunk, _ = _trunk_and_images()
     with job_precision("32-true", "cpu"):
         keys = [Threads.resolve(n, cores=2).adopt() and trunk.frozen_key() for n in (1, 2)]
@@ -265,7 +266,7 @@ def test_images_streamed_in_a_retriever_step_run_at_the_frozen_count(monkeypatch
 
     monkeypatch.setattr(trunk, "forward_frozen", counting)
     plan = Threads.resolve("auto", cores=2).adopt()
-    monkeypatch.setattr("semvpr.retrieval.features.load_image", lambda _path, _size: images[0])
+    monkeypatch.setattr("semvpr.retrieval.features.load_image", lambda _path, _size, _resize: images[0])
     store = FeatureStore(paths=(Path("a"), Path("b")), image_size=tuple(images.shape[-2:]), trunk=None, mask=None)
     with plan.stage("retriever") as n:
         assert n == 1

@@ -74,6 +74,25 @@ def test_load_image_rgb_float_and_resize(tmp_path: Path) -> None:
     assert load_image(tmp_path / "gray.png").shape == (3, 4, 4)
 
 
+def test_load_image_resizes_bilinear_on_pil_or_bicubic_on_the_tensor_as_torchvision_does(tmp_path: Path) -> None:
+    """``bilinear``: torchvision's Resize on the PIL image (MixVPR's, SALAD's transform); ``bicubic``: ToTensor
+    then Resize(BICUBIC, antialias=True) on the tensor (Bag-of-Queries' transform), shrinking and enlarging."""
+    from torchvision import transforms
+
+    rng = np.random.default_rng(0)
+    path = tmp_path / "a.png"
+    Image.fromarray(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)).save(path)
+    pil = Image.open(path).convert("RGB")
+    for size in ([24, 36], [90, 100]):
+        bilinear = transforms.Compose([transforms.Resize(size, antialias=True), transforms.ToTensor()])(pil)
+        bicubic = transforms.Resize(size, transforms.InterpolationMode.BICUBIC, antialias=True)(
+            transforms.ToTensor()(pil)
+        )
+        torch.testing.assert_close(load_image(path, size), bilinear, rtol=0, atol=0)
+        torch.testing.assert_close(load_image(path, size, "bicubic"), bicubic, rtol=0, atol=1e-6)
+        assert float((bicubic - bilinear).abs().max()) > 0.05  # the two are other images
+
+
 def test_load_image_corrupt_names_file(tmp_path: Path) -> None:
     bad = tmp_path / "broken.jpg"
     bad.write_bytes(b"\xff\xd8\xff not really a jpeg")

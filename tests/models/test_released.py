@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from semvpr.config.build import build_backbone
 from semvpr.config.restore import load_retriever
 from semvpr.core.errors import SemvprError
+from semvpr.data.images import load_image
 from semvpr.eval import evaluate_checkpoint
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
 from semvpr.retrieval.retriever import Retriever
@@ -744,6 +745,11 @@ def test_each_layout_fixes_the_authors_image_size(tmp_path: Path) -> None:
     assert list(mixvpr.data.image_size) == [320, 320] and list(mixvpr.aggregator.grid) == [20, 20]
     assert list(cosplace.data.image_size) == data_size  # CosPlace evaluates the images at their own size
     assert (cosplace.backbone.stage, cosplace.aggregator.fc_dim) == ("layer4", 128)
+    save_state(boq_model(), tmp_path / "b.pth")
+    _, boq = released(tmp_path, tmp_path / "b.pth")
+    assert list(boq.data.image_size) == [384, 384]
+    # Each author's test transform: PIL's bilinear (torchvision on PIL images), BoQ's bicubic on the tensor.
+    assert (mixvpr.data.resize, cosplace.data.resize, boq.data.resize) == ("bilinear", "bilinear", "bicubic")
 
 
 @pytest.mark.slow
@@ -779,6 +785,125 @@ def test_release_evaluates_with_and_without_a_teacher_mask(tmp_path: Path, fmt: 
         assert result["descriptor_dim"] == dim and result["image_size"] == size
         json.dumps({k: v for k, v in result.items() if k not in ("ranks", "top")})
     assert results["teacher"]["mask_checkpoint"] == str(teacher) and results["none"]["mask_checkpoint"] is None
+
+
+def evaluated(tmp_path: Path, common: list[str], *extra: str) -> tuple[dict, list[Path]]:
+    """``semvpr.eval``'s result with ``common`` and ``extra`` overrides (caching under ``tmp_path / "cache"``),
+    and the descriptor caches this run added there."""
+    cache = tmp_path / "cache"
+    before = set(cache.glob("descriptors-*"))
+    cfg = tiny_config(cache, *common, *extra, config_name="eval")
+    result = evaluate_checkpoint(cfg, {o.split("=", 1)[0].lstrip("+") for o in [*common, *extra]})
+    return result, sorted(set(cache.glob("descriptors-*")) - before)
+
+
+def test_a_release_is_evaluated_in_its_authors_fp32_unless_a_precision_is_given(tmp_path: Path) -> None:
+    """By default eval's descriptors are the fp32 model's (its trunk output rounded to bf16 as the trunk cache
+    holds it), within cos 0.9999 of the author's forward pass; trainer.precision= on the command line is
+    honoured, and the descriptor cache keeps the two apart (fp32 asked or defaulted: one entry)."""
+    from semvpr.core.precision import bf16_native, lightning_precision
+
+    build, save, name, _ = CASES["eigenplaces"]
+    model = build()
+    save(model, tmp_path / name)
+    root = make_folder(tmp_path / "places")
+    common = [f"+ckpt={tmp_path / name}", "ckpt_format=eigenplaces", "data=folder", f"data.root={root}"]
+    common += [f"data.image_size=[{SMALL},{SMALL}]", "data.num_workers=0"]
+    default, default_cached = evaluated(tmp_path, common)
+    bf16, bf16_cached = evaluated(tmp_path, common, "trainer.precision=bf16-mixed")
+    asked, asked_cached = evaluated(tmp_path, common, "trainer.precision=32")
+    assert default["precision"] == "32-true" and asked["precision"] == "32-true"
+    assert bf16["precision"] == lightning_precision("bf16-mixed", "cpu")
+    assert len(default_cached) == 2 and asked_cached == []  # database and queries; fp32 again: cached
+    assert len(bf16_cached) == (2 if bf16_native("cpu") else 0)
+    paths = sorted((root / "images" / "test" / "database").iterdir())
+    x = torch.stack([load_image(p, [SMALL, SMALL]) for p in paths])
+    retriever, _ = released(tmp_path, tmp_path / name, f"data.image_size=[{SMALL},{SMALL}]", "ckpt_format=eigenplaces")
+    with torch.no_grad():
+        expected = model(normalised(x))
+        rounded = retriever.describe(retriever.backbone.forward_frozen(x)[-1].to(torch.bfloat16), None)
+    for folder in default_cached:
+        desc = torch.from_numpy(np.load(folder / "descriptors.npy"))
+        torch.testing.assert_close(desc, rounded, rtol=0, atol=1e-6)
+        assert float((desc * expected).sum(1).min()) >= 0.9999
+    if bf16_native("cpu"):
+        half = torch.from_numpy(np.load(bf16_cached[0] / "descriptors.npy"))
+        assert float((half - rounded).abs().max()) > 1e-4  # what the default ran before: bf16 autocast
+
+
+#: (layout, the author's model, how its file is written, the size evaluated at) of every released layout.
+EVALUATED: dict[str, tuple[Callable[[], nn.Module], Callable[[nn.Module, Path], None], tuple[int, int]]] = {
+    "netvlad": (netvlad_model, save_netvlad, (SMALL, SMALL)),
+    "mixvpr": (mixvpr_model, save_mixvpr, (SMALL, SMALL)),
+    "eigenplaces": (cosplace_model, save_state, (SMALL, SMALL)),
+    "boq": (boq_model, save_state, (SMALL, SMALL)),
+    "boq_dinov2": (boq_dinov2_model, save_state, VIT_SIZE),
+    "salad": (salad_model, save_state, VIT_SIZE),
+}
+
+
+@pytest.mark.parametrize(
+    "fmt",
+    [pytest.param(f, marks=pytest.mark.slow) if EVALUATED[f][2] == VIT_SIZE else f for f in sorted(EVALUATED)],
+)  # the DINOv2 layouts' full ViT-B/14: 30-45 s each here
+def test_every_release_is_evaluated_to_its_authors_descriptors_by_default(tmp_path: Path, fmt: str) -> None:
+    """semvpr.eval's default run of each layout is fp32: its descriptors within cos 0.9999 of the author's fp32
+    forward pass on the images its transform makes (the trunk cache's bf16 rounding is all that is left)."""
+    from semvpr.models.released import LAYOUTS
+
+    build, save, size = EVALUATED[fmt]
+    model = build()
+    save(model, tmp_path / f"{fmt}.pth")
+    root = make_folder(tmp_path / "places")
+    common = [f"+ckpt={tmp_path / f'{fmt}.pth'}", f"ckpt_format={fmt}", "data=folder", f"data.root={root}"]
+    result, cached = evaluated(tmp_path, [*common, f"data.image_size=[{size[0]},{size[1]}]", "data.num_workers=0"])
+    assert result["precision"] == "32-true" and len(cached) == 2
+    paths = sorted((root / "images" / "test" / "database").iterdir())
+    x = torch.stack([load_image(p, list(size), LAYOUTS[fmt].resize) for p in paths])
+    with torch.no_grad():
+        expected = model(normalised(x))
+    for folder in cached:  # the database's and the queries' (the same pixels)
+        cosine = (torch.from_numpy(np.load(folder / "descriptors.npy")) * expected).sum(1)
+        assert float(cosine.min()) >= 0.9999, cosine
+
+
+def test_boq_is_evaluated_on_images_resized_as_its_transform_resizes_them(tmp_path: Path) -> None:
+    """BoQ's images are resized bicubic with antialiasing on the tensor (its ToTensor, Resize(BICUBIC)): eval's
+    descriptors are its model's on those images, not on PIL's bilinear ones; the trunk cache keeps them apart."""
+    save_state(boq_model(), tmp_path / "b.pth")
+    root = make_folder(tmp_path / "places")
+    common = [f"+ckpt={tmp_path / 'b.pth'}", "data=folder", f"data.root={root}", "data.num_workers=0"]
+    common.append(f"data.image_size=[{SMALL},{SMALL}]")
+    _, cached = evaluated(tmp_path, common)
+    retriever, _ = released(tmp_path, tmp_path / "b.pth", f"data.image_size=[{SMALL},{SMALL}]")
+    paths = sorted((root / "images" / "test" / "database").iterdir())
+    described = {}
+    for resize in ("bicubic", "bilinear"):
+        x = torch.stack([load_image(p, [SMALL, SMALL], resize) for p in paths])
+        with torch.no_grad():
+            described[resize] = retriever.describe(retriever.backbone.forward_frozen(x)[-1].to(torch.bfloat16), None)
+    desc = torch.from_numpy(np.load(cached[0] / "descriptors.npy"))
+    torch.testing.assert_close(desc, described["bicubic"], rtol=0, atol=1e-6)
+    assert float((desc - described["bilinear"]).abs().max()) > 1e-3
+    (trunk,) = (tmp_path / "cache").glob("trunk-*")
+    assert '"resize": "bicubic"' in (trunk / "key.json").read_text()
+
+
+def test_masks_in_another_precision_are_cached_apart(tmp_path: Path) -> None:
+    """A teacher's masks of a release in fp32 (the default) and in bf16 are two mask cache entries; asking for
+    fp32 again shares the default's."""
+    from semvpr.core.precision import bf16_native
+
+    save_state(cosplace_model(), tmp_path / "c.pth")
+    root = make_folder(tmp_path / "places")
+    teacher = write_teacher_dir(tmp_path / "teacher")
+    common = [f"+ckpt={tmp_path / 'c.pth'}", "ckpt_format=cosplace", "data=folder", f"data.root={root}"]
+    common += ["data.image_size=[32,48]", "data.num_workers=0", "mask=teacher", f"teacher.checkpoint={teacher}"]
+    masks = []
+    for extra in ([], ["trainer.precision=bf16-mixed"], ["trainer.precision=32"]):
+        evaluated(tmp_path, common, *extra)
+        masks.append(len(list((tmp_path / "cache").glob("masks-*"))))
+    assert masks == ([1, 2, 2] if bf16_native("cpu") else [1, 1, 1])
 
 
 @pytest.mark.parametrize("fmt", ["mixvpr", "netvlad"])
@@ -926,7 +1051,8 @@ def test_the_hub_takes_a_release(tmp_path: Path) -> None:
     x = images()
     with torch.no_grad():
         cosine = (hub(normalised(x)) * model(normalised(x))).sum(1)
-    assert hub.feature_dim == 512 and bool((cosine > 0.99).all()), cosine
+    # fp32 by default, as eval runs a release: the trunk output's bf16 rounding (the trunk cache's) only
+    assert hub.arithmetic.precision == "32-true" and hub.feature_dim == 512 and bool((cosine > 0.9999).all()), cosine
 
 
 def test_localize_takes_a_release(tmp_path: Path) -> None:

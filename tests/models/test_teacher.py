@@ -185,6 +185,32 @@ def test_build_teacher_trains_once_then_loads(tmp_path: Path, monkeypatch: pytes
     assert not second.training and not any(p.requires_grad for p in second.parameters())
 
 
+def test_a_teacher_trained_in_another_precision_is_cached_apart_and_a_gpu_key_holds_no_cpu_threads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The precision a teacher trains in moves its weights: fp32 and bf16 are two entries where the CPU runs bf16
+    natively (elsewhere one); the labelling batch size is not part of the key. A GPU's training sums do not
+    follow the CPU's thread count: no thread count in its key."""
+    from semvpr.core.precision import bf16_native, job_precision
+    from semvpr.models.teacher_folder import teacher_architecture
+
+    write_cityscapes(tmp_path / "cs")
+    train, val = read_cityscapes(tmp_path / "cs", "train"), read_cityscapes(tmp_path / "cs", "val")
+
+    def untrained(spec: TeacherSpec, *args: object) -> None:  # the key is under test, not the training
+        torch.save(teacher_architecture(spec).model.state_dict(), Path(str(args[2])) / "model.pt")
+
+    monkeypatch.setattr(training_mod, "train_teacher", untrained)
+    keys = []
+    runs = (("32-true", tiny_spec()), ("bf16-mixed", tiny_spec()), ("32-true", tiny_spec(predict_batch_size=3)))
+    for precision, spec in runs:
+        with job_precision(precision, "cpu"):
+            keys.append(build_teacher(spec, train, val, tmp_path / "cache").teacher_key)
+    assert (keys[0] != keys[1]) == bf16_native("cpu") and keys[2] == keys[0]
+    assert training_mod.training_threads(torch.device("cuda", 0)) == {}
+    assert training_mod.training_threads(torch.device("cpu")) == {"threads": torch.get_num_threads()}
+
+
 def test_the_embedded_mask2former_starts_from_the_original_init() -> None:
     """The authors' Mask2Former keeps nn.Embedding's N(0, 1) for its query features, query positions and
     level embeddings, draws the pixel decoder's level embedding N(0, 1), and keeps nn.Linear's default

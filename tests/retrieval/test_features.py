@@ -90,6 +90,22 @@ def test_ram_disk_and_stream_give_the_same_trunk(tmp_path: Path, backbone: VGG16
     assert mapped_file(ram.data_ptr()) is None
 
 
+def test_a_trunk_pass_in_another_precision_is_cached_apart_and_a_batch_size_shares_it(
+    tmp_path: Path, backbone: VGG16Backbone
+) -> None:
+    """fp32 and bf16 trunk outputs are two entries (where the CPU runs bf16 natively; elsewhere bf16 runs fp32:
+    one); another batch size gives the same bits, so the same entry."""
+    from semvpr.core.precision import bf16_native, job_precision
+
+    places = _places(tmp_path / "img")
+    counts = []
+    for precision, batch in (("32-true", 4), ("bf16-mixed", 4), ("32-true", 2)):
+        with job_precision(precision, "cpu"):
+            place_features(places, backbone, StoreSettings((32, 48), tmp_path / "cache", "disk", batch, 0))
+        counts.append(len(list((tmp_path / "cache").glob("trunk-*"))))
+    assert counts == ([1, 2, 2] if bf16_native("cpu") else [1, 1, 1])
+
+
 def test_a_foreign_or_damaged_cache_is_refused(tmp_path: Path, backbone: VGG16Backbone) -> None:
     places = _places(tmp_path / "img")
     disk = StoreSettings((32, 48), tmp_path / "cache", "disk", num_workers=0)

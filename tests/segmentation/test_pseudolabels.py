@@ -38,6 +38,23 @@ def test_labels_every_image_once(tmp_path: Path) -> None:
     assert other != out  # a different teacher gets its own labels
 
 
+def test_labels_in_another_precision_are_cached_apart_and_a_batch_size_shares_them(tmp_path: Path) -> None:
+    """The teacher's arithmetic moves its labels' bits: fp32 and bf16 labels are two entries (where the CPU runs
+    bf16 natively; elsewhere bf16 runs fp32, the same labels); the batch size moves no bit, one entry."""
+    from semvpr.core.precision import bf16_native, job_precision
+
+    paths, root = make_images(tmp_path / "img"), tmp_path / "img"
+    with job_precision("32-true", "cpu"):
+        fp32 = pseudo_labels(CountingTeacher(), paths, Reading(SIZE, 4, 0), tmp_path / "cache", root)
+        again = CountingTeacher()
+        assert pseudo_labels(again, paths, Reading(SIZE, 16, 0), tmp_path / "cache", root) == fp32
+        assert again.seen == 0
+    with job_precision("bf16-mixed", "cpu"):
+        bf16 = pseudo_labels(CountingTeacher(), paths, Reading(SIZE, 4, 0), tmp_path / "cache", root)
+    assert (bf16 != fp32) == bf16_native("cpu")
+    assert len(list((tmp_path / "cache").glob("labels-*"))) == (2 if bf16_native("cpu") else 1)
+
+
 def test_interrupted_run_resumes_with_the_rest(tmp_path: Path) -> None:
     paths = make_images(tmp_path / "img")
     key_args = (paths, Reading(SIZE, 2, 0), tmp_path / "cache", tmp_path / "img")
