@@ -13,10 +13,11 @@ export HF_HUB_OFFLINE=1
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
   db=${pair%%:*}; q=${pair##*:}
   dir="$OUT/${db}-${q}"
-  [ -f "$dir/results.md" ] || python -m semvpr.eval -m ckpt=none aggregator=gem,netvlad mask=none,teacher \
+  # Done where all four jobs ended ok; a stopped or failed sweep runs again (its table says what it holds).
+  done_jobs() { grep -l '"status": "ok"' "$dir"/*/eval.json 2>/dev/null | wc -l; }
+  [ "$(done_jobs)" -eq 4 ] || python -m semvpr.eval -m ckpt=none aggregator=gem,netvlad mask=none,teacher \
     teacher=espnetv2 teacher.checkpoint="$ESPNET" data=gardens_point data.root="$GARDENS" data.database="$db" \
     data.queries="$q" paths.cache_dir="$OUT/cache" threads=1 hydra.sweep.dir="$dir"
-  # A sweep that did not end with every job's eval.json is not a result.
-  [ "$(find "$dir" -name eval.json | wc -l)" -eq 4 ] || { echo "run.sh: $dir holds fewer than 4 evaluations" >&2; exit 1; }
+  [ "$(done_jobs)" -eq 4 ] || { echo "run.sh: $dir holds fewer than 4 finished evaluations" >&2; exit 1; }
 done
 echo "done: results in $OUT/<pair>/results.md"

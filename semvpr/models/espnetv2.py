@@ -21,31 +21,11 @@ from torch import Tensor, nn
 
 from semvpr.core.checkpoint import read_weights
 from semvpr.core.errors import SemvprError
+from semvpr.data.classes import TRAIN_ID_NAMES
 from semvpr.models.weights import check_tensor
 
 #: The channel order of the authors' Cityscapes files: train ids 0-18, then background.
-CITYSCAPES_CHANNELS: tuple[str, ...] = (
-    "road",
-    "sidewalk",
-    "building",
-    "wall",
-    "fence",
-    "pole",
-    "traffic light",
-    "traffic sign",
-    "vegetation",
-    "terrain",
-    "sky",
-    "person",
-    "rider",
-    "car",
-    "truck",
-    "bus",
-    "train",
-    "motorcycle",
-    "bicycle",
-    "background",
-)
+CITYSCAPES_CHANNELS: tuple[str, ...] = (*TRAIN_ID_NAMES, "background")
 #: Parallel branches of every EESP unit, and the receptive-field limit (a 3x3 kernel dilated up to it) of
 #: level 2's, level 3's and level 4's down-sampler and of the units at levels 3 and 4.
 BRANCHES = 4

@@ -158,6 +158,9 @@ class Teacher(nn.Module):
         self.bf16 = bf16
         #: Resize to the inference size with antialiasing (as PIL's resize, which ESPNetv2's authors use).
         self.antialias = antialias
+        #: Images per forward pass (None: the whole batch given): a network at a large inference size (ESPNetv2
+        #: at 1024x512 holds about 0.3 GB of activations per image) labels a retriever's batch in parts.
+        self.chunk: int | None = None
         self.teacher_key = ""  # set by build_teacher; downstream artifacts hash it
         #: Which ``forward_frozen`` outputs of the linked trunk are this teacher's encoder feature maps (the
         #: first ones; the others come from ``_tail``), or None: the teacher runs its own encoder.
@@ -212,6 +215,8 @@ class Teacher(nn.Module):
     def semantic_scores(self, images: Tensor) -> Tensor:
         """Semantic scores (B,C,h,w): a Mask2Former's at mask resolution, softmax(class)[..., :-1] ⊗
         sigmoid(mask); a per-pixel network's softmax over its classes."""
+        if self.chunk is not None and len(images) > self.chunk:
+            return torch.cat([self.semantic_scores(part) for part in images.split(self.chunk)])
         with autocast(self.device, enabled=self.bf16):
             if not self.is_mask2former:
                 return self.model(self.pixels(images)).float().softmax(1)

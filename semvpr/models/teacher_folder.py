@@ -379,7 +379,7 @@ def file_hash(path: Path, length: int = 16) -> str:
 def espnetv2_teacher(spec: TeacherSpec) -> Teacher:
     """ESPNetv2 from its authors' Cityscapes file (``teacher=espnetv2 teacher.checkpoint=FILE``), seeing images
     as the authors' test script does: resized to the inference size (1024x512) bilinearly with antialiasing,
-    ImageNet's mean and std."""
+    ImageNet's mean and std; ``predict_batch_size`` images per pass, whatever batch a caller gives."""
     if not spec.checkpoint:
         raise SemvprError(
             "teacher=espnetv2 needs teacher.checkpoint=FILE: an ESPNetv2 Cityscapes segmentation file of its "
@@ -389,6 +389,7 @@ def espnetv2_teacher(spec: TeacherSpec) -> Teacher:
     kwargs = teacher_options(spec)
     kwargs["id2label"] = dict(enumerate(CITYSCAPES_CHANNELS))
     teacher = Teacher(load_espnetv2(path), image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD, antialias=True, **kwargs)
+    teacher.chunk = spec.predict_batch_size
     teacher.source_hash = file_hash(path)
     teacher.trained_on = TrainedOn(f"cityscapes ({path.name})", "real")
     size = list(teacher.inference_size) if teacher.inference_size is not None else None

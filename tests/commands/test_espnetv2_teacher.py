@@ -64,6 +64,17 @@ def test_the_teacher_sees_images_as_the_authors_test_script_does(espnet: Path) -
     assert other.teacher_key != teacher.teacher_key
 
 
+def test_it_labels_predict_batch_size_images_per_pass_whatever_batch_it_is_given(espnet: Path) -> None:
+    teacher = teacher_architecture(spec(espnet, predict_batch_size=2))
+    seen: list[int] = []
+    teacher.model.register_forward_pre_hook(lambda _, args: seen.append(len(args[0])))
+    images = torch.rand(5, 3, 30, 40, generator=torch.Generator().manual_seed(1))
+    parts = teacher.class_prob(images)
+    assert seen == [2, 2, 1]
+    whole = torch.cat([teacher.class_prob(images[i : i + 1]) for i in range(5)])
+    assert torch.allclose(parts, whole, atol=1e-5)
+
+
 def test_without_a_file_it_is_one_line_naming_the_setting(tmp_path: Path) -> None:
     with pytest.raises(SemvprError, match=r"teacher=espnetv2 needs teacher.checkpoint=FILE"):
         teacher_architecture(TeacherSpec(name="espnetv2"))
