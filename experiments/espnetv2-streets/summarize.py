@@ -8,13 +8,14 @@ resample of the 200 places draws the same places for all six comparisons).
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
+from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.reporting.paired import LEVEL, RESAMPLES, paired_gain
 
 PAIRS = ("day_left-night_right", "day_right-night_right", "day_left-day_right")
@@ -29,14 +30,14 @@ def sweep_jobs(folder: Path) -> dict[tuple[str, str], tuple[dict, np.ndarray]]:
     for record in sorted(folder.glob("*/eval.json")):
         result = json.loads(record.read_text())
         if result.get("status") != "ok":
-            raise SystemExit(f"{record}: status {result.get('status')!r}; rerun run.sh")
+            raise SemvprError(f"{record}: status {result.get('status')!r}; rerun run.sh")
         ranks = np.load(record.parent / "ranks.npy", allow_pickle=False)
         if abs(100.0 * np.mean(ranks == 0) - result["test/R@1"]) > 0.006:
-            raise SystemExit(f"{record.parent}: ranks.npy does not give eval.json's R@1")
+            raise SemvprError(f"{record.parent}: ranks.npy does not give eval.json's R@1")
         jobs[(result["aggregator"], result["mask"])] = (result, ranks)
     wanted = {(a, m) for a in MODELS for m in MASKS}
     if set(jobs) != wanted:
-        raise SystemExit(f"{folder}: jobs {sorted(jobs)}, expected {sorted(wanted)}; rerun run.sh")
+        raise SemvprError(f"{folder}: jobs {sorted(jobs)}, expected {sorted(wanted)}; rerun run.sh")
     return jobs
 
 
@@ -51,7 +52,13 @@ def pooled(differences: list[np.ndarray], seed: int = 0) -> tuple[float, float, 
     return float(stacked.mean()), float(low), float(high)
 
 
-def main(out: Path) -> None:
+@exit_on_user_error
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", type=Path, help="the folder run.sh wrote")
+    out = ap.parse_args().out
+    if not out.is_dir():
+        raise SemvprError(f"{out} is not a folder run.sh wrote (bash experiments/espnetv2-streets/run.sh OUT)")
     rows, differences = [], []
     for pair in PAIRS:
         jobs = sweep_jobs(out / pair)
@@ -82,4 +89,4 @@ def main(out: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]))
+    main()
