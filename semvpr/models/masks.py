@@ -217,8 +217,8 @@ class SegmenterMask(MaskSource):
 
 
 class TeacherMask(SegmenterMask):
-    """Class probabilities from the Mask2Former teacher, run on the images themselves, or on the trunk's
-    frozen outputs where its pixel encoder is that trunk (``Teacher.link_trunk``)."""
+    """Class probabilities from the teacher (Mask2Former or ESPNetv2), run on the images themselves, or on the
+    trunk's frozen outputs where its pixel encoder is that trunk (``Teacher.link_trunk``)."""
 
     needs = "teacher"
 
