@@ -50,6 +50,8 @@ class Command:
         """What the command needs that the tests lack (rule 2), None where it runs as it is (rule 3)."""
         if self.module == "semvpr.segment" and not any(a.startswith("seg.root=") for a in self.args):
             return "a segmentation set (seg.root)"
+        if self.module == "semvpr.label" and not any(a.startswith("images=") for a in self.args):
+            return "a folder of images and a trained teacher (images, teacher.checkpoint)"
         if self.module == "semvpr.reporting.claims":
             return "the repository's own docs (tests/reporting/test_claims.py runs it on them)"
         if self.module in ("semvpr.data.synthcity", "semvpr.report", "semvpr.evaltable") and not self.args:
