@@ -140,31 +140,66 @@ def test_joblib_jobs_side_by_side_split_the_cores_and_a_job_alone_has_them_all(
     assert build.launcher_jobs() == jobs
 
 
-def test_importing_semvpr_first_makes_waiting_openmp_threads_sleep(tmp_path: Path) -> None:
+#: Python run as ``python -m semvpr.train`` would be, up to ``import semvpr`` (its package is imported first).
+AS_COMMAND = "import sys; sys.orig_argv = [sys.executable, '-m', 'semvpr.train']; "
+
+
+def test_a_semvpr_command_makes_waiting_openmp_threads_sleep_and_a_library_import_does_not(tmp_path: Path) -> None:
     """libgomp's spin count is 0 under OMP_WAIT_POLICY=PASSIVE (300000 busy iterations per wait otherwise),
-    as it reports itself (OMP_DISPLAY_ENV); a policy the environment sets is kept."""
-    code = "import semvpr, torch; torch.ones(4).sum()"
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | {"OMP_DISPLAY_ENV": "VERBOSE"}
+    as it reports itself (OMP_DISPLAY_ENV); a policy the environment sets is kept; importing the library (the
+    hub, a user's program) leaves the environment as it was."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY" and not k.startswith("MALLOC_")}
+    env |= {"OMP_DISPLAY_ENV": "VERBOSE"}
 
-    def reported(environment: dict[str, str]) -> str:
+    def reported(code: str, environment: dict[str, str]) -> tuple[str, str]:
+        code += "import os, torch; torch.ones(4).sum(); "
+        code += "print(sorted(k for k in os.environ if k.startswith(('OMP_W', 'MALLOC_'))))"
         out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=environment, capture_output=True, text=True)
-        return next(line.strip() for line in out.stderr.splitlines() if "GOMP_SPINCOUNT" in line)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return next(ln.strip() for ln in out.stderr.splitlines() if "GOMP_SPINCOUNT" in ln), out.stdout.strip()
 
-    assert reported(env) == "GOMP_SPINCOUNT = '0'"
-    assert reported(env | {"OMP_WAIT_POLICY": "ACTIVE"}) != "GOMP_SPINCOUNT = '0'"
+    command = AS_COMMAND + "import semvpr; "
+    assert reported(command, env) == (
+        "GOMP_SPINCOUNT = '0'",
+        "['MALLOC_MMAP_THRESHOLD_', 'MALLOC_TRIM_THRESHOLD_', 'OMP_WAIT_POLICY']",  # the command's processes too
+    )
+    assert reported(command, env | {"OMP_WAIT_POLICY": "ACTIVE"})[0] != "GOMP_SPINCOUNT = '0'"
+    library = reported("import semvpr, semvpr.hub; ", env)
+    assert library[0] != "GOMP_SPINCOUNT = '0'" and library[1] == "[]"
 
 
-def test_importing_semvpr_keeps_freed_memory_for_the_next_allocation() -> None:
+@pytest.mark.parametrize(
+    ("argv", "command"),
+    [
+        (["python", "-m", "semvpr.eval", "ckpt=x"], True),
+        (["python", "-X", "importtime", "-msemvpr.train"], True),
+        (["/venv/bin/python3", "/venv/bin/semvpr-localize", "data=folder"], True),
+        (["python", "-c", "import semvpr"], False),
+        (["python", "-m", "pytest", "-m", "semvpr.eval"], False),
+        (["python", "script.py", "-m", "semvpr.eval"], False),
+        (["python", "-m", "semvprx"], False),
+        (["python"], False),
+    ],
+)
+def test_a_command_is_a_module_of_the_package_or_a_console_script(argv: list[str], command: bool) -> None:
+    import semvpr
+
+    assert semvpr.runs_a_command(argv) is command
+
+
+def test_a_semvpr_command_keeps_freed_memory_for_the_next_allocation() -> None:
     """glibc hands a freed 320 MiB block back to the kernel, so writing the next one faults in every page again;
-    after ``import semvpr`` the block stays in the heap and the next one reuses its pages. A policy the
-    environment sets is glibc's to keep. The heap keeps as much as a frozen pass may use."""
+    in a semvpr command the block stays in the heap and the next one reuses its pages; a library import leaves
+    glibc's policy alone. A policy the environment sets is glibc's to keep. The heap keeps as much as a frozen
+    pass may use."""
     import semvpr
     from semvpr.models.backbones import FORWARD_BYTES
 
     assert semvpr.TRIM_THRESHOLD >= FORWARD_BYTES and semvpr.MMAP_THRESHOLD >= FORWARD_BYTES // 2
     code = (
         "import resource, sys\n"
-        "if sys.argv[1] == 'semvpr': import semvpr\n"
+        f"if sys.argv[1] == 'command': {AS_COMMAND}\n"
+        "if sys.argv[1] != 'numpy': import semvpr\n"
         "import numpy as np\n"
         "np.empty(40 * 2**20).fill(1.0)\n"  # 320 MiB, written, freed
         "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
@@ -180,9 +215,10 @@ def test_importing_semvpr_keeps_freed_memory_for_the_next_allocation() -> None:
     # Every fresh page faults at least once: 4 KiB pages, or 2 MiB where huge pages serve (how many do
     # varies with the machine's load, so the fresh counts are bounded below, not compared with each other).
     pages = 320 * 2**20 // 2**21
-    kept = faults("semvpr", env)  # kept in the heap: its pages are the freed block's
+    kept = faults("command", env)  # kept in the heap: its pages are the freed block's
     assert faults("numpy", env) >= pages > 10 * kept
-    assert faults("semvpr", env | {"MALLOC_TRIM_THRESHOLD_": "131072"}) >= pages
+    assert faults("library", env) >= pages
+    assert faults("command", env | {"MALLOC_TRIM_THRESHOLD_": "131072"}) >= pages
 
 
 def _load_in_worker() -> list[int]:
