@@ -307,7 +307,13 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
 def _resumed(cfg: DictConfig, run_dir: Path) -> DictConfig:
     """A resume's config (``ckpt_path`` into a run whose record is kept): the run's own, checked, so that a
     contradicting override or a checkpoint it cannot resume from is refused before anything of the run is
-    touched; any other job's as given (Hydra has replaced its record already)."""
+    touched (``ckpt_path=last`` where the run has no ``last.ckpt`` too: Lightning would train from scratch over
+    it); any other job's as given (Hydra has replaced its record already)."""
+    if cfg.get("ckpt_path") == "last" and not (run_dir / "checkpoints" / "last.ckpt").is_file():
+        raise SemvprError(
+            f"ckpt_path=last: {run_dir} has no checkpoints/last.ckpt to resume from (a finished run keeps "
+            "tested.ckpt only; a job stopped before its first epoch ended left none); a new run: drop ckpt_path"
+        )
     hydra_cfg = HydraConfig.get()
     record = run_dir / ".hydra" / "config.yaml"
     if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():

@@ -192,3 +192,20 @@ def test_resuming_from_a_checkpoint_of_weights_only_is_one_line_naming_last_ckpt
     write_checkpoint(tiny_config(tmp_path), tested)
     with pytest.raises(SemvprError, match=r"holds the model's weights only .* ckpt_path=last hydra\.run\.dir="):
         check_config(tiny_config(tmp_path, f"ckpt_path={tested}"))
+
+
+def test_ckpt_path_last_on_a_run_without_last_ckpt_is_refused_and_leaves_the_run_as_it_was(tmp_path: Path) -> None:
+    """Lightning trains from scratch where ``last`` finds no checkpoint (a warning only), over the finished run's
+    metrics.json and checkpoints."""
+    run, cwd = tmp_path / "run", tmp_path / "cwd"
+    cwd.mkdir()
+    write_run_record(run, tiny_config(tmp_path / "cache"))
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "tested.ckpt").write_bytes(b"the finished run's weights")
+    (run / "metrics.json").write_text('{"status": "ok"}')
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    refused = train_cli(cwd, "ckpt_path=last", f"hydra.run.dir={run}")
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr[-2000:]
+    assert f"ckpt_path=last: {run} has no checkpoints/last.ckpt to resume from" in refused.stderr
+    assert {p: p.read_bytes() for p in before} == before  # Hydra's job log may be added, nothing else changed
+    assert list(cwd.iterdir()) == []
