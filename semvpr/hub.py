@@ -30,6 +30,7 @@ from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast
 from semvpr.data.images import EightBitRGB
 from semvpr.models.backbones import IMAGENET_MEAN, IMAGENET_STD
+from semvpr.retrieval.recall import check_finite
 from semvpr.retrieval.retriever import Retriever
 
 
@@ -92,7 +93,10 @@ class HubModel(nn.Module):
             return images.new_zeros((0, self.feature_dim), dtype=torch.float32)
         images = images.to(self.mean.dtype)
         with self.arithmetic.run(device.type), autocast(device):
-            return self.retriever(images * self.std + self.mean).float()
+            descriptors = self.retriever(images * self.std + self.mean).float()
+        if not bool(torch.isfinite(descriptors).all()):  # refused as semvpr.eval refuses them
+            check_finite(descriptors.cpu().numpy(), "these images")
+        return descriptors
 
 
 def load_model(

@@ -50,7 +50,14 @@ from semvpr.config.checks import check_control_fits, check_model
 from semvpr.config.components import component_class, constructor_values, options
 from semvpr.config.plan import job_plan, mask_control, settings_of
 from semvpr.config.record import check_recorded_paths, model_config
-from semvpr.core.checkpoint import FORMAT, is_semvpr_checkpoint, read_checkpoint, read_weights, segmenter_of
+from semvpr.core.checkpoint import (
+    FORMAT,
+    dtype_fault,
+    is_semvpr_checkpoint,
+    read_checkpoint,
+    read_weights,
+    segmenter_of,
+)
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 from semvpr.core.logs import say
@@ -66,6 +73,11 @@ MODEL_OVERRIDES = {
     "aggregator": ("aggregator",),
     "filter": ("aggregator", "mask"),
 }
+#: The nodes whose values define a checkpoint's or a release's model (a command-line value there is refused
+#: unless it is the model's own or an evaluation honours it).
+MODEL_NODES = ("backbone.", "aggregator.", "model.")
+#: Model values an evaluation takes from its command line: how the images are described, not what.
+EVAL_HONOURS = ("model.eval_batch_size",)
 #: The mask sources read from a directory, by what they need: the config group naming the directory.
 SEGMENTER_GROUPS = ("teacher", "student")
 #: The mask node's control settings (``retrieval.controls``): the invocation's, where it gives them, apply to
@@ -180,14 +192,17 @@ def _trained_retriever(
 
 def weights_misfit(state: dict[str, Any], expected: dict[str, Any]) -> str | None:
     """How a checkpoint's weights fail the model its record builds (``expected``: that model's state dict), as
-    a phrase naming the first key and how many more there are; None when every weight has its place and shape."""
+    a phrase naming the first key and how many more there are; None when every weight has its place, shape and a
+    dtype it can be used in (``core.checkpoint.dtype_fault``)."""
     missing = sorted(set(expected) - set(state))
     extra = sorted(set(state) - set(expected))
     reshaped = [k for k in state if k in expected and tuple(state[k].shape) != tuple(expected[k].shape)]
+    retyped = {k: why for k in state if k in expected and (why := dtype_fault(state[k], expected[k])) is not None}
     faults = [
         *(f"no weight {k!r}, which the model needs" for k in missing),
         *(f"key {k!r} is not part of the model" for k in extra),
         *(f"{k!r} has shape {tuple(state[k].shape)}, the model needs {tuple(expected[k].shape)}" for k in reshaped),
+        *(f"{k!r} {why}" for k, why in retyped.items()),
     ]
     if not faults:
         return None
@@ -195,14 +210,26 @@ def weights_misfit(state: dict[str, Any], expected: dict[str, Any]) -> str | Non
 
 
 def _refuse_model_overrides(cfg: DictConfig, explicit: set[str], merged: DictConfig, where: str) -> str:
-    """Refuse (one line) a command-line choice that would change the model ``where`` defines; returns the
-    model's choices as a phrase."""
+    """Refuse (one line) a command-line choice or value that would change the model ``where`` defines (a value
+    of the backbone, aggregator or model nodes other than the model's own, e.g. ``model.pca_dim=64``: the
+    checkpoint's model would be evaluated without it), and apply those an evaluation honours
+    (:data:`EVAL_HONOURS`); returns the model's choices as a phrase."""
     trained = f"backbone={merged.backbone.name} aggregator={merged.aggregator.name} mask={merged.mask.name}"
     for override in sorted(explicit & set(MODEL_OVERRIDES)):
         if any(cfg[group].name != merged[group].name for group in MODEL_OVERRIDES[override]):
             raise SemvprError(
                 f"{where} was trained with {trained}; drop the {override}= override "
                 "(the model comes from the checkpoint; only mask= may replace its mask source)"
+            )
+    for key in sorted(k for k in explicit if k.startswith(MODEL_NODES)):
+        given, own = OmegaConf.select(cfg, key, default=None), OmegaConf.select(merged, key, default=None)
+        if key in EVAL_HONOURS:
+            OmegaConf.update(merged, key, given)
+        elif given != own:
+            shown = lambda v: "null" if v is None else v  # noqa: E731
+            raise SemvprError(
+                f"{where} defines {key}={shown(own)}, which an evaluation cannot change ({key}={shown(given)} "
+                "would be ignored); drop the override, or train a model with it"
             )
     return trained
 

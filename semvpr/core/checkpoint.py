@@ -19,6 +19,7 @@ so a run killed mid-save leaves nothing outside its run directory.
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from pathlib import Path
@@ -31,7 +32,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import atomic_file
+from semvpr.core.io import atomic_file, regular_file
 from semvpr.core.provenance import TrainedOn
 
 FORMAT = 4
@@ -47,7 +48,7 @@ _SAFE_NUMPY = (
     np.dtype,
     *(type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.bool_)),
 )
-_UNSUPPORTED = re.compile(r"Unsupported global: GLOBAL (\S+)")
+_UNSUPPORTED = re.compile(r"[Uu]nsupported (?:global: )?GLOBAL (\S+)")
 #: The file that marks a folder as a saved segmenter (a student's spec; a teacher's record, or a Hugging Face
 #: model's config), and which it is.
 SEGMENTER_FILES = {"student.json": "student", "semvpr.json": "teacher", "config.json": "teacher"}
@@ -57,6 +58,8 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
     """A torch file's contents read weights-only (tensors, plain values and numpy scalars; nothing in it
     runs). A file that pickles any other object is refused in one line naming that object."""
     path = Path(path)
+    if os.path.lexists(path) and not path.is_dir():
+        regular_file(path, what)  # a FIFO or a device is named as what it is, never opened
     if not path.is_file():
         problem = "is a directory, not a file" if path.is_dir() else "not found"
         if what != "checkpoint":
@@ -97,7 +100,9 @@ def read_weights(path: str | Path, what: str = "checkpoint") -> Any:
         reason = next(
             (lines[i + 1] for i, line in enumerate(lines[:-1]) if line.endswith("WeightsUnpickler error:")), None
         )
-        detail = f"the weights-only reader cannot read it: {reason}" if reason else (lines or [""])[0]
+        # Never torch's advice to load the file unsafely (weights_only=False), nor its pointer to its docs.
+        plain = [ln for ln in lines if "weights_only" not in ln and not ln.startswith("Check the documentation")]
+        detail = f"the weights-only reader cannot read it: {reason}" if reason else (plain or [""])[0]
         raise SemvprError(
             f"{path} is not a readable {what} ({type(err).__name__}{': ' + detail if detail else ''})"
         ) from None
@@ -166,6 +171,22 @@ def weight_fault(key: Any, value: Any) -> str | None:
         return f"has shape {tuple(value.shape)} ({value.numel():,} values) from {stored:,} stored"
     if value.is_floating_point() and not torch.isfinite(value).all():
         return "is not finite"
+    return None
+
+
+def dtype_fault(value: torch.Tensor, needed: torch.Tensor) -> str | None:
+    """Why a file's weight ``value`` cannot take the place of the model's ``needed`` in the dtype the model
+    holds it in (None when it can): integers or booleans where the model holds floats (a cast would make
+    weights of them without a word), or values beyond the largest finite number of that dtype (finite in the
+    file, infinite once cast)."""
+    if not needed.is_floating_point():
+        return None
+    held, given = (str(t.dtype).removeprefix("torch.") for t in (needed, value))
+    if not value.is_floating_point():
+        return f"is {given}, where the model holds {held} weights"
+    largest = float(value.detach().abs().max()) if value.numel() else 0.0
+    if largest > torch.finfo(needed.dtype).max:
+        return f"holds {largest:.3g}, beyond {held}'s range"
     return None
 
 

@@ -361,8 +361,15 @@ def regular_file(path: Path, what: str) -> bool:
     except OSError as err:
         raise SemvprError(f"{what} {path} cannot be read ({err.strerror or type(err).__name__})") from None
     if not stat.S_ISREG(mode):
-        raise SemvprError(f"{what} {path} is not a regular file")
+        raise SemvprError(f"{what} {path} is not a regular file: {file_kind(mode)}")
     return True
+
+
+def file_kind(mode: int) -> str:
+    """What a file of ``mode`` (``os.stat``'s) is, in words: a FIFO, a character device, ..."""
+    kinds = {stat.S_ISDIR: "a folder", stat.S_ISFIFO: "a FIFO (named pipe)", stat.S_ISCHR: "a character device"}
+    kinds |= {stat.S_ISBLK: "a block device", stat.S_ISSOCK: "a socket", stat.S_ISREG: "a regular file"}
+    return next((name for test, name in kinds.items() if test(mode)), "of an unknown kind")
 
 
 def _read_limited(path: Path, what: str, decode: bool = True) -> Any:
@@ -371,7 +378,7 @@ def _read_limited(path: Path, what: str, decode: bool = True) -> Any:
     try:
         st = os.stat(path)
         if not stat.S_ISREG(st.st_mode):
-            raise SemvprError(f"{what} {path} is not a regular file")
+            raise SemvprError(f"{what} {path} is not a regular file: {file_kind(st.st_mode)}")
         if st.st_size > MAX_RECORD_BYTES:
             raise SemvprError(f"{what} {path} is {st.st_size} bytes; the limit is {MAX_RECORD_BYTES}")
         with open(path, "rb") as fh:

@@ -44,7 +44,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from semvpr.core.checkpoint import read_weights, weight_fault, weights_in
+from semvpr.core.checkpoint import dtype_fault, read_weights, weight_fault, weights_in
 from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16_SLICES
 from semvpr.models.dinov2 import DINOV2_KEYS
@@ -380,7 +380,8 @@ def rename(key: str, pairs: tuple[tuple[str, str], ...]) -> str | None:
 def map_release(release: Release, expected: dict[str, Tensor]) -> dict[str, Tensor]:
     """The release's weights in the names of ``expected`` (the backbone's and aggregator's entries of the
     retriever's state dict, built for it), checked key by key: a key of the file the layout has no place
-    for, a place the file has no weight for, and a weight of another shape are each one line naming the key."""
+    for, a place the file has no weight for, a weight of another shape and one the model cannot hold in its dtype
+    (``core.checkpoint.dtype_fault``) are each one line naming the key."""
     layout, where = release.layout, release.where
     pairs = layout.prefixes
     inverse = tuple((b, a) for a, b in pairs)
@@ -396,6 +397,8 @@ def map_release(release: Release, expected: dict[str, Tensor]) -> dict[str, Tens
                 f"{where}: {key!r} has shape {tuple(value.shape)}, the {layout.name} model built from the file's "
                 f"other weights needs {tuple(expected[target].shape)}"
             )
+        if (why := dtype_fault(value, expected[target])) is not None:
+            raise SemvprError(f"{where}: {key!r} {why}; the file is damaged")
         out[target] = value.to(expected[target].dtype)
     missing = sorted(set(expected) - set(out))
     if missing:

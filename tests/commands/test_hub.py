@@ -93,6 +93,20 @@ def test_hub_refuses_what_eval_refuses(checkpoint: Path, tmp_path: Path) -> None
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "tampered.ckpt"), source="local")
     with pytest.raises(SemvprError, match=r"checkpoint .*missing.ckpt not found"):
         torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / "missing.ckpt"), source="local")
+    # Weights eval refuses at load, and weights whose descriptors overflow (eval refuses them before scoring;
+    # the hub returned NaN descriptors).
+    key = next(k for k, v in ckpt["state_dict"].items() if k.startswith("aggregator.") and v.ndim >= 2)
+    weight = torch.load(checkpoint, weights_only=True)["state_dict"][key]
+    for name, value, line in (
+        ("wide", weight.double().fill_(1e39), rf"'{key}' holds 1e\+39, beyond float32's range"),
+        ("huge", torch.full_like(weight, 3e38), r"the descriptors of these images are not finite"),
+    ):
+        damaged = torch.load(checkpoint, weights_only=True)
+        damaged["state_dict"][key] = value
+        torch.save(damaged, tmp_path / f"{name}.ckpt")
+        with pytest.raises(SemvprError, match=line):
+            model = torch.hub.load(str(REPO), "semvpr", ckpt=str(tmp_path / f"{name}.ckpt"), source="local")
+            model(torch.rand(2, 3, 64, 80))
 
 
 @pytest.mark.parametrize(

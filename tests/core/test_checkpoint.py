@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 import pickle
 import re
 import subprocess
@@ -330,6 +331,11 @@ def test_a_checkpoint_with_damaged_weights_is_refused(
         ("add", r"key 'aggregator\.extra' is not part of the model$"),
         ("reshape", r"'{key}' has shape \(3,\), the model needs \("),
         ("drop all of it", r"no weight '{key}', which the model needs \(and [0-9]+ more\)$"),
+        # Cast without a word, they evaluated "ok": integers or booleans for float weights, float64 values
+        # finite in the file and infinite in float32 (refused only after the whole trunk pass).
+        ("int64", r"'{key}' is int64, where the model holds float32 weights$"),
+        ("bool", r"'{key}' is bool, where the model holds float32 weights$"),
+        ("float64 beyond float32", r"'{key}' holds 1e\+39, beyond float32's range$"),
     ],
 )
 def test_weights_that_do_not_fit_the_recorded_model_name_the_key(
@@ -345,6 +351,11 @@ def test_weights_that_do_not_fit_the_recorded_model_name_the_key(
         state["aggregator.extra"] = torch.zeros(2)
     elif edit == "reshape":
         state[key] = torch.zeros(3)
+    elif edit in ("int64", "bool"):
+        state[key] = state[key].to(getattr(torch, edit))
+    elif edit.startswith("float64"):
+        state[key] = state[key].double().clone()
+        state[key].view(-1)[0] = 1e39
     else:
         state = {k: v for k, v in state.items() if not k.startswith("aggregator.")}
     torch.save({"state_dict": state, "hyper_parameters": record}, tmp_path / "misfit.ckpt")
@@ -442,3 +453,54 @@ def test_a_file_torch_cannot_read_is_one_line_without_torchs_advice(
     message = str(err.value)
     assert message.startswith(f"{path} is not a readable checkpoint") and line in message, message
     assert "\n" not in message and "weights_only" not in message
+
+
+class _Calls:
+    """Pickled as a call of ``function`` (a global of ``os``, ``posix``, ``sys``...): loading it unsafely runs it."""
+
+    def __init__(self, function: object) -> None:
+        self.function = function
+
+    def __reduce__(self) -> tuple[object, tuple[str, ...]]:
+        return (self.function, ("true",))
+
+
+@pytest.mark.parametrize("function", [os.system, os.getcwd, sys.exit])
+def test_a_pickled_call_of_a_blocked_module_is_named_and_no_unsafe_load_is_advised(
+    tmp_path: Path, function: object
+) -> None:
+    """torch refuses globals of os, posix, sys and nt with its own line, which advises re-running the load with
+    weights_only=False."""
+    torch.save({"state_dict": {}, "hook": _Calls(function)}, tmp_path / "calls.ckpt")
+    with pytest.raises(SemvprError) as err:
+        read_weights(tmp_path / "calls.ckpt")
+    line = str(err.value)
+    module, name = function.__module__, function.__name__  # type: ignore[attr-defined]
+    assert f"it pickles an object ({'posix' if module == 'os' else module}.{name})" in line, line
+    assert "weights_only" not in line and "\n" not in line
+
+
+def test_a_fifo_or_a_device_as_a_checkpoint_is_named_as_what_it_is(tmp_path: Path) -> None:
+    os.mkfifo(tmp_path / "pipe.ckpt")
+    with pytest.raises(SemvprError, match=r"pipe\.ckpt is not a regular file: a FIFO \(named pipe\)$"):
+        read_weights(tmp_path / "pipe.ckpt")
+    with pytest.raises(SemvprError, match=r"checkpoint /dev/zero is not a regular file: a character device$"):
+        read_weights("/dev/zero")
+
+
+def test_a_model_value_eval_cannot_honour_is_refused_and_the_describing_batch_is_taken(tmp_path: Path) -> None:
+    """``model.pca_dim=64`` at eval gave the checkpoint's own descriptors (no whitening) with no word."""
+    write_checkpoint(tiny_config(tmp_path), tmp_path / "t.ckpt")
+
+    def load(override: str) -> Any:
+        key = override.partition("=")[0]
+        return load_retriever(
+            tiny_config(tmp_path, f"+ckpt={tmp_path / 't.ckpt'}", override, config_name="eval"), {key}
+        )
+
+    for override, own in (("model.pca_dim=16", "null"), ("model.num_shadows=2", "4")):
+        key = override.partition("=")[0]
+        with pytest.raises(SemvprError, match=rf"t\.ckpt defines {re.escape(key)}={own}, which an evaluation cannot"):
+            load(override)
+    assert load("model.eval_batch_size=7")[1].model.eval_batch_size == 7
+    assert load("model.num_shadows=4")[1].model.num_shadows == 4  # the model's own value: nothing to change

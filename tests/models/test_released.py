@@ -1069,3 +1069,19 @@ def test_localize_takes_a_release(tmp_path: Path) -> None:
     cfg = tiny_config(tmp_path / "cache", *overrides, config_name="localize")
     results = localize(cfg, {o.split("=", 1)[0].lstrip("+") for o in overrides})
     assert Path(results[0]["matches"][0]["path"]).name == names[3] and len(results[0]["matches"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("value", "match"),
+    [
+        (lambda w: w.to(torch.int64), r"is int64, where the model holds float32 weights; the file is damaged"),
+        (lambda w: w.to(torch.bool), r"is bool, where the model holds float32 weights; the file is damaged"),
+        (lambda w: w.double().fill_(1e39), r"holds 1e\+39, beyond float32's range; the file is damaged"),
+    ],
+)
+def test_a_weight_the_model_cannot_hold_in_float32_is_named(tmp_path: Path, value: Callable, match: str) -> None:
+    """Cast silently, they evaluated "ok" (integers) or gave infinite weights after the whole trunk pass."""
+    state = mixvpr_model().state_dict()
+    state["aggregator.mix.1.mix.3.bias"] = value(state["aggregator.mix.1.mix.3.bias"])
+    torch.save({"state_dict": state}, tmp_path / "m.ckpt")
+    refused(tmp_path, tmp_path / "m.ckpt", r"'aggregator.mix.1.mix.3.bias' " + match)
