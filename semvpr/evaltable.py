@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.stops import stop_on_signals
 from semvpr.reporting.benchmarks_table import write_table
+from semvpr.reporting.markdown import terminal_text
 from semvpr.reporting.sweep import sweep_dir_of
 
 
@@ -34,7 +35,10 @@ class EvalTableCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """A signal to the sweep's own process stops it whole (``core.stops``): one line and the table."""
+        from semvpr.config.runs import record_plan  # torch and Lightning: only where a sweep runs
+
         stop_on_signals(_sweep_dir(config))
+        record_plan(config, _sweep_dir(config))  # its report counts the jobs that never started too
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Never raise: each job's eval.json is the result; the table is a summary of them."""
@@ -44,7 +48,7 @@ class EvalTableCallback(Callback):
             where = str(sweep_dir)
             md = write_table(sweep_dir)
             print(f"semvpr eval table: {md}")
-            print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith("|")))
+            print(terminal_text(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith("|")))
         except Exception as err:  # noqa: BLE001
             print(
                 f"semvpr: eval table failed for {where} ({type(err).__name__}: {err}); "

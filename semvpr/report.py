@@ -29,7 +29,10 @@ class ReportCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """A signal to the sweep's own process stops it whole (``core.stops``): one line and the report."""
+        from semvpr.config.runs import record_plan  # torch and Lightning: only where a sweep runs
+
         stop_on_signals(_sweep_dir(config))
+        record_plan(config, _sweep_dir(config))  # its report counts the jobs that never started too
 
     def on_job_end(self, config: DictConfig, job_return: Any, **kwargs: Any) -> None:
         """Rewrite the partial table after a sweep's job (one writer at a time); never raise."""

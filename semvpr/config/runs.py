@@ -145,3 +145,31 @@ def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
             out.update(_leaves(value, f"{prefix}{key}."))
         return out
     return {prefix[:-1]: node}
+
+
+#: Hydra's own sweeper, whose jobs are the product of the swept values (:func:`record_plan`).
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+def record_plan(config: DictConfig, sweep_dir: Path) -> None:
+    """Write the overrides of every job a multirun is given into ``sweep_dir/jobs.json``
+    (``reporting.sweep.JOBS_FILE``), as Hydra's basic sweeper makes them from its ``params`` and the command
+    line, before the first job starts: the report of a stopped sweep counts the jobs that never started. With
+    another sweeper (its jobs are not known beforehand) an earlier launch's list is removed."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from semvpr.core.io import write_json
+    from semvpr.reporting.sweep import JOBS_FILE
+
+    sweeper = OmegaConf.select(config, "hydra.sweeper")
+    target = sweeper.get("_target_") if sweeper is not None else None
+    if target != BASIC_SWEEPER:
+        (sweep_dir / JOBS_FILE).unlink(missing_ok=True)
+        return
+    params = OmegaConf.to_container(sweeper.get("params") or OmegaConf.create({}), resolve=False)
+    given = [f"{key}={value}" for key, value in params.items()]
+    given += [str(o) for o in OmegaConf.to_container(config.hydra.overrides.task, resolve=False)]
+    (batch,) = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(given), None)
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    write_json(sweep_dir / JOBS_FILE, {"jobs": [list(job) for job in batch]})

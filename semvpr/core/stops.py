@@ -116,11 +116,11 @@ def lightning_stop() -> Iterator[None]:
 
 def sweep_stopped_line(stop: Interrupted, write_report: Callable[[Path], Path], resume: str = "") -> str:
     """The one line of a stopped sweep (``stop.sweep_dir`` set): why, and where its report is, written now
-    from what the jobs left (those that finished, and the others as failed rows); ``resume``: how to go
-    on with a stopped job."""
+    from what the jobs left (those that finished, those that did not, those that never started); ``resume``:
+    how to go on with a stopped job."""
     assert stop.sweep_dir is not None
     try:
-        where = f"its report, with the jobs that did not finish as failed rows: {write_report(stop.sweep_dir)}"
+        where = f"its report, naming the jobs that did not finish or never started: {write_report(stop.sweep_dir)}"
     except Exception as err:  # noqa: BLE001 - the jobs' own files are the results; the line must still come
         where = f"its report was not written ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
     return f"semvpr: error: {stop}; {where}{'; ' + resume if resume else ''}"

@@ -20,7 +20,7 @@ from semvpr.core.io import check_replaceable, existing_dir, read_json, read_yaml
 from semvpr.data.published import results_for
 from semvpr.reporting.markdown import md_cell
 from semvpr.reporting.paired import paired_gain
-from semvpr.reporting.sweep import job_dirs
+from semvpr.reporting.sweep import job_dirs, unstarted_jobs
 from semvpr.retrieval.controls import APPLIES, CONTROLS, MaskControl
 from semvpr.retrieval.recall import RECALL_NS
 
@@ -62,12 +62,8 @@ def _overrides(job_dir: Path, sweep_dir: Path) -> str:
         items = read_yaml(path, "run record") if path.is_file() else []
     except SemvprError:  # a damaged .hydra dir only costs the label
         return job_dir.name
-    given = [o for o in items if isinstance(o, str)] if isinstance(items, list) else []
-    picked = [o for o in given if o.startswith(("data=", "data.root="))] or [
-        f"{key}={_source(value.strip(_QUOTES), sweep_dir)}" if sep else key
-        for key, sep, value in (o.partition("=") for o in given)
-    ]
-    return " ".join(picked) or job_dir.name
+    given = tuple(o for o in items if isinstance(o, str)) if isinstance(items, list) else ()
+    return _label(given, sweep_dir) or job_dir.name
 
 
 #: What an ok eval.json must hold for its row, and the types each may have.
@@ -154,8 +150,9 @@ def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
     for job in jobs:
         try:
             result = read_json(job / "eval.json", "job result")
-        except SemvprError as err:
-            result = {"status": "failed", "error": f"no readable eval.json ({err})"}
+        except SemvprError as err:  # the job's folder named as the table's rows name it, not by an absolute path
+            why = str(err).replace(f"{job / 'eval.json'}", "eval.json").replace(f"{sweep_dir}{os.sep}", "")
+            result = {"status": "failed", "error": UNFINISHED if not (job / "eval.json").exists() else why}
         if not isinstance(result, dict):
             result = {"status": "failed", "error": "eval.json is not an object"}
         elif result.get("status") == "ok" and (why := _malformed(result)) is not None:
@@ -189,8 +186,24 @@ def table_rows(sweep_dir: str | Path) -> list[dict[str, Any]]:
                     "source": f"{published['model']}: {published['source']}",
                 }
             )
+    rows += [{"data": _label(job, sweep_dir), "source": NOT_STARTED} for job in unstarted_jobs(sweep_dir, set(jobs))]
     _mask_gains(measured)
     return rows
+
+
+#: The ``source`` of a job's row that started and left no eval.json (stopped, killed or still running), and of
+#: one the sweep was given that never started.
+UNFINISHED = "did not finish: no eval.json"
+NOT_STARTED = "not started"
+
+
+def _label(overrides: tuple[str, ...], sweep_dir: Path) -> str:
+    """A job's label from its overrides, as :func:`_overrides` makes it from its record."""
+    picked = [o for o in overrides if o.startswith(("data=", "data.root="))] or [
+        f"{key}={_source(value.strip(_QUOTES), sweep_dir)}" if sep else key
+        for key, sep, value in (o.partition("=") for o in overrides)
+    ]
+    return " ".join(picked)
 
 
 def _ranks(job: Path, result: dict[str, Any]) -> np.ndarray | str | None:
@@ -258,6 +271,14 @@ def write_table(sweep_dir: str | Path) -> Path:
         "| " + " | ".join(COLUMNS) + " |",
         "|" + "---|" * len(COLUMNS),
     ]
+    unfinished = sum(str(row.get("source")).endswith(UNFINISHED) for row in rows)
+    unstarted = sum(row.get("source") == NOT_STARTED for row in rows)
+    if unfinished or unstarted:
+        lines[3:3] = [
+            f"**Incomplete:** {unfinished} job(s) did not finish and {unstarted} never started (the sweep was "
+            "stopped, or a job's process was killed or has not ended yet); their rows say so.",
+            "",
+        ]
     lines += ["| " + " | ".join(cell(row.get(c, "")) for c in COLUMNS) + " |" for row in rows]
     md = Path(sweep_dir) / "results.md"
     write_text(md, "\n".join(lines) + "\n")

@@ -112,6 +112,18 @@ class Sweep:
 
     dir: Path
     jobs: list[Job]
+    #: The overrides of the jobs the sweep was given that never started (:func:`unstarted_jobs`).
+    not_started: list[tuple[str, ...]] = field(default_factory=list)
+
+    @property
+    def unfinished(self) -> list[Job]:
+        """The jobs that started and left no end record (stopped, killed or still running)."""
+        return [j for j in self.jobs if not j.ok and j.error.startswith(UNFINISHED)]
+
+    @property
+    def complete(self) -> bool:
+        """Whether every job the sweep was given ended, ok or failed."""
+        return not self.not_started and not self.unfinished
 
     @property
     def backbones(self) -> list[str]:
@@ -310,6 +322,10 @@ def out_of_range(metrics: dict[str, Any]) -> str | None:
     return None
 
 
+#: How a job that started and left no end record is described (stopped, killed, or still running).
+UNFINISHED = "did not finish"
+
+
 def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     """Read one job directory; a missing or unreadable metrics.json makes a failed job."""
     rel = job_dir.relative_to(sweep_dir).as_posix()
@@ -318,7 +334,7 @@ def read_job(job_dir: Path, sweep_dir: Path) -> Job:
     error = ""
     path = job_dir / "metrics.json"
     if not path.is_file():
-        error = "did not finish: no metrics.json"
+        error = f"{UNFINISHED}: no metrics.json"
     else:
         try:
             loaded = read_json(path, "job metrics")
@@ -406,9 +422,44 @@ def job_dirs(sweep_dir: Path, command: str, finished_only: bool = False) -> set[
     return dirs - others
 
 
+#: The file a sweep's launch writes into its sweep dir before its first job starts (``config.runs.record_plan``):
+#: every job's overrides.
+JOBS_FILE = "jobs.json"
+
+
+def planned_jobs(sweep_dir: Path) -> list[tuple[str, ...]] | None:
+    """The overrides of every job the sweep's latest launch was given (:data:`JOBS_FILE`), each as its
+    ``.hydra/overrides.yaml`` lists them; None where that is not known (no such file: another sweeper, or a
+    sweep from before it was written)."""
+    path = sweep_dir / JOBS_FILE
+    if not path.is_file():
+        return None
+    data = read_json(path, "sweep's job list")
+    jobs = data.get("jobs") if isinstance(data, dict) else None
+    if not isinstance(jobs, list) or not all(isinstance(j, list) and all(isinstance(o, str) for o in j) for j in jobs):
+        raise SemvprError(f"{path} is not a sweep's job list (jobs: lists of overrides)")
+    return [tuple(job) for job in jobs]
+
+
+def unstarted_jobs(sweep_dir: Path, dirs: set[Path]) -> list[tuple[str, ...]]:
+    """The planned jobs (:func:`planned_jobs`) that no folder among ``dirs`` ran: none has their overrides."""
+    planned = planned_jobs(sweep_dir)
+    if planned is None:
+        return []
+    started = set()
+    for job_dir in dirs:
+        try:
+            overrides = _yaml(job_dir / ".hydra" / "overrides.yaml")
+        except SemvprError:
+            continue
+        if isinstance(overrides, list):
+            started.add(tuple(str(o) for o in overrides))
+    return [job for job in planned if job not in started]
+
+
 def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
     """Discover the training job dirs (:func:`job_dirs`: metrics.json or a .hydra dir; ``finished_only``:
-    metrics.json) and read them."""
+    metrics.json) and read them; unless ``finished_only``, the jobs the sweep was given that never started too."""
     sweep_dir = existing_dir(sweep_dir, "sweep dir", "pass the multirun dir, e.g. outputs/multiruns/<date>/<time>")
     dirs = job_dirs(sweep_dir, "train", finished_only)
     if not dirs:
@@ -417,6 +468,7 @@ def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
             "pass the multirun dir written by `python -m semvpr.train -m ...`"
         )
     jobs = [read_job(d, sweep_dir) for d in sorted(dirs)]
+    not_started = [] if finished_only else unstarted_jobs(sweep_dir, dirs)
     # Jobs that differ in a setting besides the seed and the labelled choices are other runs, not more seeds of
     # one: their backbone label names it, so they form rows (and gains) of their own.
     values: dict[str, set[str | None]] = {k: set() for j in jobs for k in j.settings}
@@ -428,7 +480,7 @@ def load_sweep(sweep_dir: str | Path, finished_only: bool = False) -> Sweep:
     for job in jobs if varied else ():
         shown = ", ".join(f"{k}={job.settings.get(k, 'default')}" for k in varied)
         job.backbone = f"{job.backbone} ({shown})"
-    return Sweep(sweep_dir, jobs)
+    return Sweep(sweep_dir, jobs, not_started)
 
 
 def mean_std(values: list[float]) -> tuple[float, float]:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from semvpr.core.io import check_replaceable, temp_dir, write_text
-from semvpr.reporting.markdown import md_cell
+from semvpr.reporting.markdown import md_cell, terminal_text
 from semvpr.reporting.sweep import LEARNED, NO_MASK, Sweep, cell_name, load_sweep, mean_std, numeric_weights
 from semvpr.retrieval.recall import RECALL_NS
 
@@ -63,7 +63,8 @@ def _epochs(epochs: list[Any], sep: str) -> str:
 
 def _csv_text(rows: list[dict[str, Any]], partial: bool = False) -> str:
     """Machine-readable table: means and stds unrounded-enough (4 decimals), blanks for missing; each row says
-    whether the sweep was still running (``partial``: its row may lack jobs not finished yet)."""
+    whether a job of the sweep had not finished (``partial``: still running, stopped, or never started, so its
+    row may lack jobs)."""
     buf = io.StringIO()
     cols = (
         ["aggregator", "mask", "backbone", "n", "seeds"]
@@ -209,12 +210,19 @@ def _class_weight_table(sweep: Sweep) -> list[str]:
 
 def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str | None]) -> str:
     """Human-readable report: table, matrix, paired R@1 gains, failed jobs, figures."""
-    n_ok = sum(j.ok for j in sweep.jobs)
+    n_ok, n_unfinished = sum(j.ok for j in sweep.jobs), len(sweep.unfinished)
+    given = len(sweep.jobs) + len(sweep.not_started)
+    counts = f"{given} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok - n_unfinished} failed"
+    if not sweep.complete:
+        counts = (
+            f"**Incomplete:** {counts}, {n_unfinished} did not finish, {len(sweep.not_started)} never started "
+            "(the sweep was stopped, or a job's process was killed or has not ended yet); the rows hold only "
+            "the jobs that finished"
+        )
     out = [
         "# semvpr sweep results",
         "",
-        f"{len(sweep.jobs)} jobs, {n_ok} ok, {len(sweep.jobs) - n_ok} failed. "
-        "Recall@N in %, mean ± sample std over seeds.",
+        f"{counts}. Recall@N in %, mean ± sample std over seeds.",
         "",
         "| backbone | aggregator · mask | R@1 | R@5 | R@10 | R@20 | runs ok | seeds | best epoch (val) | failed "
         "| wall time (s) |",
@@ -257,10 +265,17 @@ def _markdown(sweep: Sweep, rows: list[dict[str, Any]], figures: dict[str, str |
             f"{md_cell(j.error)}"
             for j in failed
         ]
-    out += ["", "## Figures", ""] if failed else ["## Figures", ""]
+    if sweep.not_started:
+        out += ["", "## Jobs not started", ""] if failed else ["## Jobs not started", ""]
+        out += [f"- `{md_cell(' '.join(job))}`" for job in sweep.not_started]
+    out += ["", "## Figures", ""] if failed or sweep.not_started else ["## Figures", ""]
     for fname, skipped in figures.items():  # blank-line separated so each image renders as its own block
         out += [f"- `{fname}` skipped: {md_cell(skipped)}" if skipped else f"![{fname}]({fname})", ""]
     return "\n".join(out).rstrip() + "\n"
+
+
+#: Every figure a report may draw.
+FIGURES = ("recall_at_n.png", "r1_by_aggregator.png", "figure3.png", "retrievals.png", "class_weights.png")
 
 
 def write_report(sweep_dir: str | Path, partial: bool = False) -> Path:
@@ -296,7 +311,7 @@ def write_report(sweep_dir: str | Path, partial: bool = False) -> Path:
                 figures[fname] = draw(sweep, scratch / fname)
             except Exception as err:  # one broken figure must not cost the table
                 figures[fname] = f"{type(err).__name__}: {err}"
-        write_text(scratch / "results.csv", _csv_text(rows, partial))
+        write_text(scratch / "results.csv", _csv_text(rows, partial or not sweep.complete))
         text = _markdown(sweep, rows, figures)
         if partial:
             title, _, rest = text.partition("\n")
@@ -306,8 +321,12 @@ def write_report(sweep_dir: str | Path, partial: bool = False) -> Path:
             )
             text = f"{title}\n\n{note}\n{rest}"
         write_text(scratch / "results.md", text)
-        for made in sorted(scratch.iterdir(), key=lambda p: p.name == "results.md"):  # the md last
-            os.replace(made, sweep.dir / made.name)
+        made = sorted(scratch.iterdir(), key=lambda p: p.name == "results.md")  # the md last
+        for path in made:
+            os.replace(path, sweep.dir / path.name)
+        if not partial:  # an earlier report's figure this one did not draw would stand beside it as if it had
+            for stale in set(FIGURES) - {p.name for p in made}:
+                (sweep.dir / stale).unlink(missing_ok=True)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return sweep.dir / "results.md"
@@ -316,4 +335,5 @@ def write_report(sweep_dir: str | Path, partial: bool = False) -> Path:
 def print_summary(md: Path) -> None:
     """Print where the report is and its table."""
     print(f"semvpr report: {md}")
-    print("\n".join(ln for ln in md.read_text(encoding="utf-8").splitlines() if ln.startswith(("|", "**R@1", "- "))))
+    lines = md.read_text(encoding="utf-8").splitlines()
+    print(terminal_text(ln for ln in lines if ln.startswith(("|", "**R@1", "**Incomplete", "- "))))

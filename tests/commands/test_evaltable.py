@@ -72,6 +72,7 @@ def test_multirun_over_datasets_and_roots_writes_one_table(tmp_path: Path) -> No
         assert np.load(job / "ranks.npy").tolist() == [0, 0, 0, 0]
     md = (sweep / "results.md").read_text()
     assert md.count("| folder | city/test |") == 1 and "semvpr eval table:" in proc.stdout
+    assert "Incomplete" not in md  # the four jobs it was given all ended, two of them failed
     assert "semvpr: job failed" in proc.stderr and "Traceback" not in proc.stderr
     # The jobs run side by side: each stage line names its job by number and overrides.
     staged = [ln for ln in proc.stderr.splitlines() if ln.startswith("semvpr: ") and "job failed" not in ln]
@@ -269,3 +270,31 @@ def test_an_eval_json_with_values_out_of_range_is_a_failed_row(tmp_path: Path) -
             and key.removeprefix("test/") in row["source"]
             or (key == "test/R@20" and "fall as N grows" in row["source"])
         ), (key, row)
+
+
+def test_a_stopped_evaluation_sweep_names_the_jobs_that_did_not_finish_or_never_started(tmp_path: Path) -> None:
+    """Of three jobs given (recorded as the sweep starts), one finished, one started and left no eval.json, one never
+    started: three rows, the table says it is incomplete, and no row holds the sweep's absolute path."""
+    from omegaconf import OmegaConf
+
+    from semvpr.config.runs import BASIC_SWEEPER, record_plan
+
+    sweep = tmp_path / "sweep"
+    task = ["ckpt=none", "aggregator=gem,netvlad,mixvpr"]
+    hydra = {"sweeper": {"_target_": BASIC_SWEEPER, "params": None}, "overrides": {"task": task}}
+    result = {"status": "ok", "data": "folder", "set": "s", "aggregator": "gem", "backbone": "b", "model": "m"}
+    result |= {"database": 5, "queries": 4, "descriptor_dim": 8, "wall_s": 1.0, "checkpoint": "none", "mask": "none"}
+    _job(sweep, 0, result | _recalls(np.zeros(4)))
+    for num, aggregator in ((0, "gem"), (1, "netvlad")):
+        (sweep / str(num) / ".hydra").mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(
+            OmegaConf.create(["ckpt=none", f"aggregator={aggregator}"]), sweep / str(num) / ".hydra" / "overrides.yaml"
+        )
+    record_plan(OmegaConf.create({"hydra": hydra}), sweep)
+    rows = table_rows(sweep)
+    assert [r["source"] for r in rows[1:]] == ["failed: did not finish: no eval.json", "not started"]
+    assert [r["data"] for r in rows[1:]] == ["ckpt=none aggregator=netvlad", "ckpt=none aggregator=mixvpr"]
+    md = write_table(sweep).read_text()
+    assert "**Incomplete:** 1 job(s) did not finish and 1 never started" in md and str(sweep) not in md
+    (sweep / "1" / "eval.json").write_text("{not json")
+    assert str(sweep) not in write_table(sweep).read_text()

@@ -97,7 +97,7 @@ def test_a_stop_of_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_
 ) -> None:
     """Stopped while two jobs run (a signal to it, or one of its workers killed under it): the sweep's own
     process ends its workers (none left running), exits 2 with one line naming its report, and the report
-    is final (not marked as still running), the jobs that did not finish as failed rows."""
+    is final (not marked as still running), counting the jobs that did not finish and the one never started."""
     sweep = tmp_path / "sweep"
     args = [
         "experiment=tiny",
@@ -146,6 +146,9 @@ def test_a_stop_of_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_
     assert alive == [], f"workers left running: {alive}"
     md = (sweep / "results.md").read_text()
     assert "still running" not in md and "did not finish: no metrics.json" in md
+    # Three jobs given, two at a time: the third never started, and the report counts it.
+    assert md.splitlines()[2].startswith("**Incomplete:** 3 jobs, 0 ok, 0 failed, 2 did not finish, 1 never started")
+    assert "## Jobs not started" in md and "seed=2" in md.split("## Jobs not started")[1]
     stopped = next(p.parents[1] for p in sweep.glob("*/checkpoints/last.ckpt"))
     assert not (stopped / "metrics.json").exists()
 

@@ -15,6 +15,7 @@ import pytest
 from omegaconf import OmegaConf
 from PIL import Image
 
+from semvpr.config.runs import BASIC_SWEEPER, record_plan
 from semvpr.report import ReportCallback
 from semvpr.reporting.sweep import load_sweep
 from semvpr.reporting.sweep_report import write_report
@@ -372,6 +373,13 @@ def test_learned_weights_rows_gains_and_weights_figure(tmp_path: Path) -> None:
     assert "](class_weights.png)" in text
     with Image.open(tmp_path / "class_weights.png") as im:
         assert im.format == "PNG" and im.width > 400
+    # The learned runs gone, the next report draws no class weights, and the earlier figure goes with them.
+    for job in tmp_path.glob("*filter.weights=learned*"):
+        (job / "metrics.json").unlink()
+        (job / ".hydra").rmdir()
+        job.rmdir()
+    assert "class_weights.png" not in write_report(tmp_path).read_text()
+    assert not (tmp_path / "class_weights.png").exists() and (tmp_path / "recall_at_n.png").exists()
 
 
 def test_aggregator_by_mask_matrix_and_bars(tmp_path: Path) -> None:
@@ -451,7 +459,37 @@ def test_a_partial_report_has_the_finished_jobs_and_says_so(sweep: Path) -> None
     assert {row["partial"] for row in _csv_rows(sweep).values()} == {"true"}  # the csv says so too
     final = write_report(sweep).read_text()
     assert "Partial" not in final and f"{finished + 1} jobs, " in final and list(sweep.glob("*.png"))
+    # The hard crash left no metrics.json: the final report says the sweep is incomplete, and so does the csv.
+    assert final.splitlines()[2].startswith(f"**Incomplete:** {finished + 1} jobs, ") and "1 did not finish" in final
+    assert {row["partial"] for row in _csv_rows(sweep).values()} == {"true"}
+    (sweep / "filter=mask2former,seed=3" / "metrics.json").write_text(json.dumps({"status": "failed", "error": "OOM"}))
+    assert "Incomplete" not in write_report(sweep).read_text()
     assert {row["partial"] for row in _csv_rows(sweep).values()} == {"false"}
+
+
+def _plan(sweep: Path, task: list[str], sweeper: str = BASIC_SWEEPER) -> None:
+    """What a multirun's launch records before its first job (the report callback's ``on_multirun_start``)."""
+    record = {"hydra": {"sweeper": {"_target_": sweeper, "params": None}, "overrides": {"task": task}}}
+    record_plan(OmegaConf.create(record), sweep)
+
+
+def test_a_stopped_sweeps_report_counts_every_job_it_was_given(tmp_path: Path) -> None:
+    """Two of four jobs finished, one stopped mid-way, one never started: the report counts four, names the
+    one that never started, and neither it nor the csv reads as complete."""
+    sweep = tmp_path / "sweep"
+    for seed, metrics in ((0, _metrics("none", 0, 50.0)), (1, _metrics("none", 1, 52.0)), (2, None)):
+        job = _job(sweep, f"seed={seed}", metrics)
+        OmegaConf.save(OmegaConf.create(["filter=none", f"seed={seed}"]), job / ".hydra" / "overrides.yaml")
+    _plan(sweep, ["filter=none", "seed=0,1,2,3"])
+    md = write_report(sweep).read_text()
+    assert md.splitlines()[2].startswith("**Incomplete:** 4 jobs, 2 ok, 0 failed, 1 did not finish, 1 never started"), (
+        md
+    )
+    assert "## Jobs not started\n\n- `filter=none seed=3`" in md
+    assert {row["partial"] for row in _csv_rows(sweep).values()} == {"true"}
+    # Another sweeper's plan is not known here: the folders are all there is.
+    _plan(sweep, ["filter=none", "seed=0,1,2,3"], sweeper="hydra_plugins.optuna.OptunaSweeper")
+    assert "3 jobs, 2 ok, 0 failed, 1 did not finish, 0 never started" in write_report(sweep).read_text()
 
 
 def test_the_callback_rewrites_the_partial_table_after_each_job_of_a_multirun(
@@ -515,3 +553,10 @@ def test_each_table_reads_its_own_commands_jobs_and_names_the_other_table(sweep:
         SemvprError, match=r"holds semvpr.eval jobs, not semvpr.train's; their table: `python -m semvpr.evaltable"
     ):
         load_sweep(evals)
+
+
+def test_the_terminal_shows_the_characters_a_report_escaped_and_no_control_characters() -> None:
+    """The eval table's interval printed as ``&#91;`` in the terminal (an escape meant for rendered markdown)."""
+    from semvpr.reporting.markdown import md_cell, terminal_text
+
+    assert terminal_text([md_cell("−4.5 [−10.0, +1.0] a|b <c>"), "x\x1b[2Jy"]) == "−4.5 [−10.0, +1.0] a|b <c>\nx[2Jy"
