@@ -14,6 +14,7 @@
 # be set in the environment; the defaults are the experiment's. OUT/eval/<pair>/<sweep>/ holds one evaluation
 # multirun each; summarize.py reads them.
 set -euo pipefail
+source "$(dirname "$0")/../sweeps.sh"
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
 GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
 CAMVID=$(realpath "${3:-../shared/realdata/camvid}")
@@ -24,38 +25,43 @@ SEEDS=${SEEDS:-0,1,2}
 read -r -a EXTRA <<< "${EXTRA:-}"
 export HF_HUB_OFFLINE=1
 
-# The models: NetVLAD from k-means on SynthCity's training database (no VPR training), and CKPTS where given.
-models=("ckpt=none aggregator=netvlad")
-if [ -n "${CKPTS:-}" ]; then models+=("ckpt=$CKPTS"); fi
-# The mask sources besides none and the oracle.
+# The models: NetVLAD from k-means on SynthCity's training database (no VPR training), and CKPTS where given
+# (model M's overrides: model M).
+models=(0)
+if [ -n "${CKPTS:-}" ]; then models+=(1); fi
+model() { if [ "$1" = 0 ]; then MODEL=(ckpt=none aggregator=netvlad); else MODEL=("ckpt=$CKPTS"); fi; }
+# The mask sources besides none and the oracle, by name (mask_source NAME: its overrides into MASK).
 masks=()
-if [ -n "${CAMVID_STUDENT:-}" ]; then masks+=("student mask=student student.checkpoint=$(realpath "$CAMVID_STUDENT")"); fi
-if [ -n "${CAMVID_TEACHER:-}" ]; then masks+=("teacher mask=teacher teacher.checkpoint=$(realpath "$CAMVID_TEACHER")"); fi
+if [ -n "${CAMVID_STUDENT:-}" ]; then masks+=(student); fi
+if [ -n "${CAMVID_TEACHER:-}" ]; then masks+=(teacher); fi
+mask_source() {
+  local dir
+  if [ "$1" = student ]; then dir=$CAMVID_STUDENT; else dir=$CAMVID_TEACHER; fi
+  MASK=("mask=$1" "$1.checkpoint=$(hq "$(realpath "$dir")")")
+}
 
-FAILED='"status": "failed"'  # what eval.json says of a job that failed (a sweep goes on past it)
-# evaluate PAIR NAME OVERRIDES...: one evaluation sweep of a pair, skipped when its table exists and no job failed
+# evaluate PAIR NAME OVERRIDES...: one evaluation sweep of a pair (sweeps.sh: rerun unless every job ended ok)
 evaluate() {
   local db=${1%%:*} q=${1##*:} name=$2; shift 2
   local dir="$OUT/eval/${db}-${q}/$name"
-  if [ -f "$dir/results.md" ] && ! grep -qs "$FAILED" "$dir"/*/eval.json; then return; fi
-  python -m semvpr.eval -m data=gardens_point data.root="$GARDENS" data.database="$db" \
-    data.queries="$q" paths.cache_dir="$CACHE" threads=1 "${EXTRA[@]}" "$@" hydra.sweep.dir="$dir"
+  sweep "$dir" python -m semvpr.eval -m data=gardens_point "data.root=$(hq "$GARDENS")" data.database="$db" \
+    data.queries="$q" "paths.cache_dir=$(hq "$CACHE")" threads=1 "${EXTRA[@]}" "$@" "hydra.sweep.dir=$(hq "$dir")"
 }
-occluders=(data.occluders.source=camvid data.occluders.root="$CAMVID" data.occluders.coverage="$COVERAGES"
+occluders=(data.occluders.source=camvid "data.occluders.root=$(hq "$CAMVID")" data.occluders.coverage="$COVERAGES"
            data.occluders.seed="$SEEDS")
 
 # 1. Every pair and model: the frames as they are (coverage 0: the oracle's mask keeps every pixel there, so it
 #    is the no-mask run), then with the objects, without a mask and with each mask source.
 for pair in $PAIRS; do
-  for m in "${!models[@]}"; do
-    read -r -a model <<< "${models[$m]}"
-    evaluate "$pair" "m$m-clean-none" "${model[@]}" mask=none
-    evaluate "$pair" "m$m-occluded-none" "${model[@]}" mask=none "${occluders[@]}"
-    evaluate "$pair" "m$m-occluded-oracle" "${model[@]}" mask=oracle "${occluders[@]}"
-    for spec in "${masks[@]}"; do
-      read -r -a mask <<< "$spec"
-      evaluate "$pair" "m$m-clean-${mask[0]}" "${model[@]}" "${mask[@]:1}"
-      evaluate "$pair" "m$m-occluded-${mask[0]}" "${model[@]}" "${mask[@]:1}" "${occluders[@]}"
+  for m in "${models[@]}"; do
+    model "$m"
+    evaluate "$pair" "m$m-clean-none" "${MODEL[@]}" mask=none
+    evaluate "$pair" "m$m-occluded-none" "${MODEL[@]}" mask=none "${occluders[@]}"
+    evaluate "$pair" "m$m-occluded-oracle" "${MODEL[@]}" mask=oracle "${occluders[@]}"
+    for name in "${masks[@]}"; do
+      mask_source "$name"
+      evaluate "$pair" "m$m-clean-$name" "${MODEL[@]}" "${MASK[@]}"
+      evaluate "$pair" "m$m-occluded-$name" "${MODEL[@]}" "${MASK[@]}" "${occluders[@]}"
     done
   done
 done
@@ -63,17 +69,12 @@ done
 # 2. The artefact control: the oracle's masks of the same draws on the frames without the objects (the cost
 #    of the holes alone; a new trunk pass per draw, as the set's key holds its label maps).
 for pair in $PAIRS; do
-  for m in "${!models[@]}"; do
-    read -r -a model <<< "${models[$m]}"
-    evaluate "$pair" "m$m-holes-oracle" "${model[@]}" mask=oracle "${occluders[@]}" data.occluders.paste=false
+  for m in "${models[@]}"; do
+    model "$m"
+    evaluate "$pair" "m$m-holes-oracle" "${MODEL[@]}" mask=oracle "${occluders[@]}" data.occluders.paste=false
   done
 done
-failed=$(grep -ls "$FAILED" "$OUT"/eval/*/*/*/eval.json || true)
-if [ -n "$failed" ]; then  # each job's error is in its eval.json; a rerun redoes their sweeps only
-  echo "run.sh: these evaluations failed (their eval.json says why; rerun run.sh once that is fixed):" >&2
-  echo "$failed" >&2
-  exit 1
-fi
+sweeps_done
 echo "done: python experiments/occluded-streets/summarize.py $OUT"
 sources=()
 if [ -n "${CAMVID_STUDENT:-}" ]; then sources+=(--source "student=$(realpath "$CAMVID_STUDENT")"); fi

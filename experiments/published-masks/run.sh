@@ -13,6 +13,7 @@
 # token maps no student decodes).
 # EVAL_ARGS: more semvpr.eval overrides for every job (e.g. "threads=1").
 set -euo pipefail
+source "$(dirname "$0")/../sweeps.sh"
 usage="usage: run.sh OUT TEACHER_DIR STUDENT_DIR RELEASE..."
 OUT=$(realpath -m "${1:?$usage}")
 TEACHER="${2:?$usage}"
@@ -22,18 +23,18 @@ shift 3
 export HF_HUB_OFFLINE=1
 read -r -a extra <<< "${EVAL_ARGS:-}"
 
-
-# Each place set given: its name and the overrides that read it.
+# Each place set given, by name; place_set NAME puts the overrides that read it into DATA.
 sets=()
-[ -n "${PITTS30K:-}" ] && sets+=("pitts30k|data=pitts30k data.root='$(realpath "$PITTS30K")'")
-[ -n "${TOKYO247:-}" ] && sets+=("tokyo247|data=tokyo247 data.root='$(realpath "$TOKYO247")'")
-if [ -n "${MSLS_VAL:-}" ]; then
-  sets+=("msls_val|data=msls_val data.gt_dir='$(realpath "${MSLS_VAL%%:*}")' data.root='$(realpath "${MSLS_VAL#*:}")'")
-fi
-[ -n "${NORDLAND:-}" ] && sets+=("nordland|data=nordland data.root='$(realpath "$NORDLAND")'")
-[ -n "${GARDENS:-}" ] && sets+=("gardens_point|data=gardens_point data.root='$(realpath "$GARDENS")'")
-[ -n "${FOLDER:-}" ] && sets+=("folder|data=folder data.root='$(realpath "$FOLDER")'")
+for name in PITTS30K TOKYO247 MSLS_VAL NORDLAND GARDENS FOLDER; do [ -z "${!name:-}" ] || sets+=("$name"); done
 [ "${#sets[@]}" -gt 0 ] || { echo "run.sh: no place set given (PITTS30K=DIR, ...)" >&2; exit 2; }
+place_set() {
+  case $1 in
+    MSLS_VAL) DATA=(data=msls_val "data.gt_dir=$(hq "$(realpath "${MSLS_VAL%%:*}")")"
+                    "data.root=$(hq "$(realpath "${MSLS_VAL#*:}")")") ;;
+    GARDENS) DATA=(data=gardens_point "data.root=$(hq "$(realpath "$GARDENS")")") ;;
+    *) DATA=("data=${1,,}" "data.root=$(hq "$(realpath "${!1}")")") ;;
+  esac
+}
 
 for release in "$@"; do
   spec="$release"
@@ -45,18 +46,18 @@ for release in "$@"; do
   name=$(basename "$file")
   masks=(none)
   segmenters=()
-  if [ "$TEACHER" != "-" ]; then masks+=(teacher); segmenters+=("teacher.checkpoint='$(realpath "$TEACHER")'"); fi
-  if [ "$student" != "-" ]; then masks+=(student); segmenters+=("student.checkpoint='$(realpath "$student")'"); fi
+  if [ "$TEACHER" != "-" ]; then masks+=(teacher); segmenters+=("teacher.checkpoint=$(hq "$(realpath "$TEACHER")")"); fi
+  if [ "$student" != "-" ]; then masks+=(student); segmenters+=("student.checkpoint=$(hq "$(realpath "$student")")"); fi
   mask_list=$(IFS=,; echo "${masks[*]}")
-  for entry in "${sets[@]}"; do
-    set_name="${entry%%|*}"
-    read -r -a data <<< "${entry#*|}"
-    sweep="$OUT/eval/$name/$set_name"
-    [ -f "$sweep/results.md" ] && continue
-    python -m semvpr.eval -m ckpt="'$(realpath "$file")'" ckpt_format="$format" "${data[@]}" mask="$mask_list" \
-      "${segmenters[@]}" paths.cache_dir="$OUT/cache" hydra.sweep.dir="$sweep" "${extra[@]}"
+  for set_name in "${sets[@]}"; do
+    place_set "$set_name"
+    dir="$OUT/eval/$name/${DATA[0]#data=}"
+    sweep "$dir" python -m semvpr.eval -m "ckpt=$(hq "$(realpath "$file")")" ckpt_format="$format" "${DATA[@]}" \
+      mask="$mask_list" "${segmenters[@]}" "paths.cache_dir=$(hq "$OUT/cache")" "hydra.sweep.dir=$(hq "$dir")" \
+      "${extra[@]}"
   done
 done
+sweeps_done
 
 {
   echo "# Masks on released models"

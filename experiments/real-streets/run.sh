@@ -9,6 +9,7 @@
 # checkpoints trained without a mask or with the student's, gsv-teacher-<mask> for those trained with the
 # teacher's, learned-<mask> for those with learned class weights); summarize.py and figure.py read OUT.
 set -euo pipefail
+source "$(dirname "$0")/../sweeps.sh"
 OUT=$(realpath -m "${1:?usage: run.sh OUT [GARDENS_ROOT] [CAMVID_ROOT]}")
 GARDENS=$(realpath "${2:-../shared/realdata/gardens_point}")
 CAMVID=$(realpath "${3:-../shared/realdata/camvid}")
@@ -17,19 +18,20 @@ export HF_HUB_OFFLINE=1
 
 # 1. The checkpoints: the four-way comparison on SynthCity, 3 seeds (synthcity-default's command; the
 #    oracle's checkpoints are not evaluated here: Gardens Point has no label maps).
-[ -f "$OUT/synthcity/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=none,attention,unet,mask2former,oracle \
-  paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/synthcity"
+sweep "$OUT/synthcity" python -m semvpr.train -m seed=0,1,2 filter=none,attention,unet,mask2former,oracle \
+  "paths.cache_dir=$(hq "$CACHE")" "hydra.sweep.dir=$(hq "$OUT/synthcity")"
 
 # 1b. GeM, MixVPR, SALAD and BoQ on their authors' recipe, 3 seeds: the command of aggregators-x-masks
 #     (its converged matrix); the checkpoints trained without a mask, with the student's and with the
 #     teacher's are evaluated here.
-[ -f "$OUT/gsv/results.md" ] || python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
-  mask=none,student,teacher seed=0,1,2 paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/gsv"
+sweep "$OUT/gsv" python -m semvpr.train -m recipe=gsv aggregator=gem,mixvpr,salad,boq \
+  mask=none,student,teacher seed=0,1,2 "paths.cache_dir=$(hq "$CACHE")" "hydra.sweep.dir=$(hq "$OUT/gsv")"
 
 # 1c. The student's and the teacher's masks with learned class weights (mask.weights=learned), 3 seeds: the
 #     learned half of synthcity-class-weights' command.
-[ -f "$OUT/learned/results.md" ] || python -m semvpr.train -m seed=0,1,2 filter=unet,mask2former \
-  filter.weights=learned paths.cache_dir="$CACHE" hydra.sweep.dir="$OUT/learned"
+sweep "$OUT/learned" python -m semvpr.train -m seed=0,1,2 filter=unet,mask2former \
+  filter.weights=learned "paths.cache_dir=$(hq "$CACHE")" "hydra.sweep.dir=$(hq "$OUT/learned")"
+sweeps_done  # the evaluations below read these sweeps' checkpoints
 
 # 2. The real-street segmenters: the CamVid teacher and student (camvid-semantic's command: about 2 h of
 #    teacher training and 20 min of student on one thread, as they trained; another thread count trains other
@@ -38,9 +40,9 @@ export HF_HUB_OFFLINE=1
 #    camvid-semantic's 40-epoch student (conf/segment.yaml) is not evaluated on Gardens Point.
 if [ ! -f "$OUT/camvid/results.json" ]; then
   given=()
-  if [ -n "${CAMVID_TEACHER:-}" ]; then given=(teacher.checkpoint="$(realpath "$CAMVID_TEACHER")"); fi
-  python -m semvpr.segment seg.root="$CAMVID" paths.cache_dir="$CACHE" threads=1 hydra.run.dir="$OUT/camvid" \
-    student.epochs=20 "${given[@]}"
+  if [ -n "${CAMVID_TEACHER:-}" ]; then given=("teacher.checkpoint=$(hq "$(realpath "$CAMVID_TEACHER")")"); fi
+  python -m semvpr.segment "seg.root=$(hq "$CAMVID")" "paths.cache_dir=$(hq "$CACHE")" threads=1 \
+    "hydra.run.dir=$(hq "$OUT/camvid")" student.epochs=20 "${given[@]}"
 fi
 # The teacher that run scored and labelled the student's training images with (trained there, or given).
 TEACHER=$(python -c 'import json, sys; print(json.load(open(sys.argv[1]))["teacher"]["checkpoint"])' \
@@ -50,20 +52,20 @@ STUDENT="$OUT/camvid/student_efficientnet_lite0"
 # 3. Every checkpoint and baseline on every pair, with each mask source.
 ckpts() {  # the sweep's best checkpoints whose filter is one of "$@": a Hydra sweep of quoted paths
   local out=()
-  for f in "$@"; do for s in 0 1 2; do out+=("'$OUT/synthcity/filter=$f,seed=$s/checkpoints/best.ckpt'"); done; done
+  for f in "$@"; do for s in 0 1 2; do out+=("$(hq "$OUT/synthcity/filter=$f,seed=$s/checkpoints/best.ckpt")"); done; done
   local IFS=,; echo "${out[*]}"
 }
 gsv_ckpts() {  # the recipe=gsv sweep's best checkpoints trained with a mask of "$@" (none: without one)
   local out=()
   for m in "$@"; do for a in gem mixvpr salad boq; do for s in 0 1 2; do
-    out+=("'$OUT/gsv/aggregator=$a,mask=$m,recipe=gsv,seed=$s/checkpoints/best.ckpt'")
+    out+=("$(hq "$OUT/gsv/aggregator=$a,mask=$m,recipe=gsv,seed=$s/checkpoints/best.ckpt")")
   done; done; done
   local IFS=,; echo "${out[*]}"
 }
 learned_ckpts() {  # the learned class-weights sweep's best checkpoints
   local out=()
   for f in unet mask2former; do for s in 0 1 2; do
-    out+=("'$OUT/learned/filter.weights=learned,filter=$f,seed=$s/checkpoints/best.ckpt'")
+    out+=("$(hq "$OUT/learned/filter.weights=learned,filter=$f,seed=$s/checkpoints/best.ckpt")")
   done; done
   local IFS=,; echo "${out[*]}"
 }
@@ -75,30 +77,32 @@ GSV_OWN=$(gsv_ckpts student)
 GSV_TEACHER=$(gsv_ckpts teacher)
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
   db=${pair%%:*}; q=${pair##*:}
-  data=(data=gardens_point data.root="$GARDENS" data.database="$db" data.queries="$q" paths.cache_dir="$CACHE")
+  data=(data=gardens_point "data.root=$(hq "$GARDENS")" data.database="$db" data.queries="$q"
+        "paths.cache_dir=$(hq "$CACHE")")
   dir="$OUT/eval/${db}-${q}"
-  run() {  # run NAME OVERRIDES...: one evaluation sweep, skipped when its table exists
+  run() {  # run NAME OVERRIDES...: one evaluation sweep (sweeps.sh: rerun unless every job ended ok)
     local name=$1; shift
-    [ -f "$dir/$name/results.md" ] || python -m semvpr.eval -m "${data[@]}" "$@" hydra.sweep.dir="$dir/$name"
+    sweep "$dir/$name" python -m semvpr.eval -m "${data[@]}" "$@" "hydra.sweep.dir=$(hq "$dir/$name")"
   }
   run none ckpt="$ALL" mask=none
   run own ckpt="$OWN"
-  run camvid-student ckpt="$ALL" mask=student student.checkpoint="$STUDENT"
-  run camvid-teacher ckpt="$ALL" mask=teacher teacher.checkpoint="$TEACHER"
+  run camvid-student ckpt="$ALL" mask=student "student.checkpoint=$(hq "$STUDENT")"
+  run camvid-teacher ckpt="$ALL" mask=teacher "teacher.checkpoint=$(hq "$TEACHER")"
   run gsv-none ckpt="$GSV_ALL" mask=none
   run gsv-own ckpt="$GSV_OWN"
-  run gsv-camvid-student ckpt="$GSV_ALL" mask=student student.checkpoint="$STUDENT"
-  run gsv-camvid-teacher ckpt="$GSV_ALL" mask=teacher teacher.checkpoint="$TEACHER"
+  run gsv-camvid-student ckpt="$GSV_ALL" mask=student "student.checkpoint=$(hq "$STUDENT")"
+  run gsv-camvid-teacher ckpt="$GSV_ALL" mask=teacher "teacher.checkpoint=$(hq "$TEACHER")"
   run gsv-teacher-none ckpt="$GSV_TEACHER" mask=none
   run gsv-teacher-own ckpt="$GSV_TEACHER"
-  run gsv-teacher-camvid-student ckpt="$GSV_TEACHER" mask=student student.checkpoint="$STUDENT"
-  run gsv-teacher-camvid-teacher ckpt="$GSV_TEACHER" mask=teacher teacher.checkpoint="$TEACHER"
+  run gsv-teacher-camvid-student ckpt="$GSV_TEACHER" mask=student "student.checkpoint=$(hq "$STUDENT")"
+  run gsv-teacher-camvid-teacher ckpt="$GSV_TEACHER" mask=teacher "teacher.checkpoint=$(hq "$TEACHER")"
   run learned-none ckpt="$LEARNED" mask=none
   run learned-own ckpt="$LEARNED"
-  run learned-camvid-student ckpt="$LEARNED" mask=student student.checkpoint="$STUDENT"
-  run learned-camvid-teacher ckpt="$LEARNED" mask=teacher teacher.checkpoint="$TEACHER"
+  run learned-camvid-student ckpt="$LEARNED" mask=student "student.checkpoint=$(hq "$STUDENT")"
+  run learned-camvid-teacher ckpt="$LEARNED" mask=teacher "teacher.checkpoint=$(hq "$TEACHER")"
   run untrained-none ckpt=none aggregator=gem,netvlad mask=none
-  run untrained-camvid-student ckpt=none aggregator=gem,netvlad mask=student student.checkpoint="$STUDENT"
-  run untrained-camvid-teacher ckpt=none aggregator=gem,netvlad mask=teacher teacher.checkpoint="$TEACHER"
+  run untrained-camvid-student ckpt=none aggregator=gem,netvlad mask=student "student.checkpoint=$(hq "$STUDENT")"
+  run untrained-camvid-teacher ckpt=none aggregator=gem,netvlad mask=teacher "teacher.checkpoint=$(hq "$TEACHER")"
 done
+sweeps_done
 echo "done: python experiments/real-streets/summarize.py $OUT"
