@@ -147,11 +147,12 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
     ranks = np.asarray(result.pop("ranks"), dtype=np.int32)
     write_npy(out_dir / RANKS_FILE, ranks)
     write_npz(out_dir / HITS_FILE, query_hits(ranks, result.pop("top")))
+    result["files"] = [RANKS_FILE, HITS_FILE]  # what the job wrote beside eval.json
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""
         print(f"R@{n:<2d} {result[f'test/R@{n}']:6.2f}{pos}")
-    print(json.dumps(result))
+    print(json.dumps({"run_dir": str(out_dir), **result}))  # last, as train's: where the job's files are
 
 
 def main() -> None:

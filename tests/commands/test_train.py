@@ -327,6 +327,11 @@ def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["test/R@1"] == pytest.approx(metrics["test/R@1"], abs=0.01)
+    # The last line names the job's folder first, as train's does, and eval.json every file written beside it.
+    run_dir = cache_dir.parent / "eval"
+    assert next(iter(result)) == "run_dir" and result["run_dir"] == str(run_dir)
+    recorded = json.loads((run_dir / "eval.json").read_text())
+    assert recorded["files"] == ["ranks.npy", "hits.npz"] and all((run_dir / f).is_file() for f in recorded["files"])
     # Run alone, the command has no job beside it: the cores are its own, as they are the in-process job's
     # (its config names the sweep launcher all the same).
     assert result["threads"]["processes"] == metrics["threads"]["processes"] == 1
