@@ -1,7 +1,12 @@
-"""results.csv of the espnetv2-streets sweeps (run.sh OUT): per pair and model, Recall@1/5/10 with no mask and
-with ESPNetv2's, the mask's R@1 gain paired by query with its 95 % bootstrap interval, and one pooled gain over
-every pair and model, the places resampled jointly (frame i is the same place in every traversal, so one
-resample of the 200 places draws the same places for all six comparisons).
+"""results.csv and hits.npz of the espnetv2-streets sweeps (run.sh OUT).
+
+results.csv: per pair, model and condition (no mask, ESPNetv2's mask, and its controls), Recall@1/5/10 and the
+R@1 gain over the same model without a mask, paired by query, with its 95 % bootstrap interval (random and
+shuffled: each query's hits averaged over the three control seeds); then the contrasts stated before the runs,
+each pooled over the three pairs and both models with the places resampled jointly (frame i is the same place in
+every traversal) and its interval corrected for the seven claims together (Bonferroni).
+
+hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``<pair>|<aggregator>|<condition>|<seed>``).
 
     python experiments/espnetv2-streets/summarize.py OUT
 """
@@ -16,40 +21,73 @@ from pathlib import Path
 import numpy as np
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.reporting.paired import LEVEL, RESAMPLES, paired_gain
+from semvpr.reporting.paired import LEVEL, corrected_level, paired_gain, pooled_gain
 
 PAIRS = ("day_left-night_right", "day_right-night_right", "day_left-day_right")
 MODELS = {"gem": "no VPR training: GeM (p = 3)", "netvlad": "no VPR training: NetVLAD (k-means on SynthCity)"}
-MASKS = {"none": "none", "teacher": "ESPNetv2 (Cityscapes, s=2.0)"}
-FIELDS = ("pair", "model", "mask", "R@1", "R@5", "R@10", "gain", "ci_low", "ci_high", "excludes_0", "precision")
+SEEDS = (0, 1, 2)
+#: Each condition: the sweep run.sh writes it into, what its jobs' eval.json record, the seeds it is drawn over,
+#: and its label.
+CONDITIONS = {
+    "none": ("masks", {"mask": "none"}, (0,), "none"),
+    "mask": ("masks", {"mask": "teacher", "mask_control": "none", "mask_apply": "both"}, (0,), "ESPNetv2 mask"),
+    "objects": ("classes", {"mask_control": "objects"}, (0,), "its objects only (sky kept)"),
+    "sky": ("classes", {"mask_control": "sky"}, (0,), "its sky only"),
+    "random": ("drawn", {"mask_control": "random"}, SEEDS, "as many cells at random (3 seeds)"),
+    "shuffled": ("drawn", {"mask_control": "shuffled"}, SEEDS, "another image's mask (3 seeds)"),
+    "database": ("sides", {"mask_apply": "database"}, (0,), "on the database only"),
+    "queries": ("sides", {"mask_apply": "queries"}, (0,), "on the queries only"),
+}
+#: The contrasts claimed, stated before the runs: (condition, reference, label).
+CONTRASTS = (
+    ("mask", "none", "ESPNetv2 mask − none"),
+    ("objects", "none", "objects only − none"),
+    ("sky", "none", "sky only − none"),
+    ("mask", "random", "ESPNetv2 mask − random cells"),
+    ("mask", "shuffled", "ESPNetv2 mask − another image's mask"),
+    ("database", "none", "database only − none"),
+    ("queries", "none", "queries only − none"),
+)
+FIELDS = ("pair", "model", "mask", "R@1", "R@5", "R@10", "gain", "ci_low", "ci_high", "excludes_0", "level")
 
 
-def sweep_jobs(folder: Path) -> dict[tuple[str, str], tuple[dict, np.ndarray]]:
-    """Each job of one pair's sweep by (aggregator, mask): its eval.json and its first-hit ranks."""
+def sweep_hits(folder: Path, condition: str) -> dict[tuple[str, int], tuple[dict, np.ndarray]]:
+    """The jobs of one condition in one sweep folder by (aggregator, control seed): eval.json and hits (queries
+    × N, bool), checked against each other and against the jobs run.sh gives the condition."""
+    sweep, recorded, seeds, _ = CONDITIONS[condition]
     jobs = {}
-    for record in sorted(folder.glob("*/eval.json")):
-        result = json.loads(record.read_text())
+    for record in sorted((folder / sweep).glob("*/eval.json")):
+        result = json.loads(record.read_text(encoding="utf-8"))
         if result.get("status") != "ok":
             raise SemvprError(f"{record}: status {result.get('status')!r}; rerun run.sh")
-        ranks = np.load(record.parent / "ranks.npy", allow_pickle=False)
-        if abs(100.0 * np.mean(ranks == 0) - result["test/R@1"]) > 0.006:
-            raise SemvprError(f"{record.parent}: ranks.npy does not give eval.json's R@1")
-        jobs[(result["aggregator"], result["mask"])] = (result, ranks)
-    wanted = {(a, m) for a in MODELS for m in MASKS}
+        if any(result.get(k) != v for k, v in recorded.items()):
+            continue
+        with np.load(record.parent / "hits.npz", allow_pickle=False) as saved:
+            ns, hits = saved["ns"], saved["hits"]
+        if list(ns) != [1, 5, 10, 20] or hits.shape != (result["queries"], 4) or hits.dtype != bool:
+            raise SemvprError(f"{record.parent}/hits.npz is not the hits of eval.json's {result['queries']} queries")
+        for column, n in enumerate(ns):
+            if abs(100.0 * hits[:, column].mean() - result[f"test/R@{n}"]) > 0.006:
+                raise SemvprError(f"{record.parent}: hits.npz does not give eval.json's R@{n}")
+        jobs[(result["aggregator"], int(result["mask_control_seed"]) if len(seeds) > 1 else 0)] = (result, hits)
+    wanted = {(a, s) for a in MODELS for s in seeds}
     if set(jobs) != wanted:
-        raise SemvprError(f"{folder}: jobs {sorted(jobs)}, expected {sorted(wanted)}; rerun run.sh")
+        raise SemvprError(f"{folder / sweep}: {condition} jobs {sorted(jobs)}, expected {sorted(wanted)}; rerun run.sh")
     return jobs
 
 
-def pooled(differences: list[np.ndarray], seed: int = 0) -> tuple[float, float, float]:
-    """The mean of several per-place differences (same places, same order) and its percentile-bootstrap interval,
-    the places resampled jointly."""
-    stacked = np.stack(differences)
-    draws = np.random.default_rng(seed).integers(0, stacked.shape[1], (RESAMPLES, stacked.shape[1]))
-    means = stacked[:, draws].mean(axis=(0, 2))
-    tail = 100.0 * (1 - LEVEL) / 2
-    low, high = np.percentile(means, [tail, 100.0 - tail])
-    return float(stacked.mean()), float(low), float(high)
+def _row(pair: str, model: str, mask: str, **values: object) -> dict[str, object]:
+    return {"pair": pair, "model": model, "mask": mask, **values}
+
+
+def _interval(gain: object, level: float) -> dict[str, object]:
+    return {
+        "gain": round(gain.gain, 2),
+        "ci_low": round(gain.low, 2),
+        "ci_high": round(gain.high, 2),
+        "excludes_0": "yes" if gain.significant else "no",
+        "level": level,
+    }
 
 
 @exit_on_user_error
@@ -59,33 +97,36 @@ def main() -> None:
     out = ap.parse_args().out
     if not out.is_dir():
         raise SemvprError(f"{out} is not a folder run.sh wrote (bash experiments/espnetv2-streets/run.sh OUT)")
-    rows, differences = [], []
+    rows: list[dict[str, object]] = []
+    saved: dict[str, np.ndarray] = {}
+    rates: dict[tuple[str, str, str], np.ndarray] = {}  # (pair, aggregator, condition): each query's R@1 rate
     for pair in PAIRS:
-        jobs = sweep_jobs(out / pair)
+        jobs = {condition: sweep_hits(out / pair, condition) for condition in CONDITIONS}
         for aggregator, model in MODELS.items():
-            base = jobs[(aggregator, "none")][1] == 0
-            for mask, label in MASKS.items():
-                result, ranks = jobs[(aggregator, mask)]
-                row = {"pair": pair.replace("-", " → "), "model": model, "mask": label}
-                row |= {f"R@{n}": result[f"test/R@{n}"] for n in (1, 5, 10)}
-                row["precision"] = result.get("precision", "")
-                if mask != "none":
-                    gain = paired_gain(ranks == 0, base)
-                    row |= {"gain": round(gain.gain, 2), "ci_low": round(gain.low, 2), "ci_high": round(gain.high, 2)}
-                    row["excludes_0"] = "yes" if gain.significant else "no"
-                    differences.append(100.0 * ((ranks == 0).astype(float) - base))
+            for condition, (_, _, seeds, label) in CONDITIONS.items():
+                drawn = [jobs[condition][(aggregator, seed)] for seed in seeds]
+                for seed, (_, hits) in zip(seeds, drawn, strict=True):
+                    saved[f"{pair}|{aggregator}|{condition}|{seed}"] = hits
+                rates[(pair, aggregator, condition)] = np.mean([hits[:, 0] for _, hits in drawn], axis=0)
+                recalls = {f"R@{n}": round(float(np.mean([r[f"test/R@{n}"] for r, _ in drawn])), 2) for n in (1, 5, 10)}
+                row = _row(pair.replace("-", " → "), model, label, **recalls)
+                if condition != "none":
+                    row |= _interval(
+                        paired_gain(rates[(pair, aggregator, condition)], rates[(pair, aggregator, "none")]), LEVEL
+                    )
                 rows.append(row)
-    mean, low, high = pooled(differences)
-    rows.append(
-        {"pair": "all three", "model": "both", "mask": MASKS["teacher"], "gain": round(mean, 2)}
-        | {"ci_low": round(low, 2), "ci_high": round(high, 2), "excludes_0": "yes" if low > 0 or high < 0 else "no"}
-    )
-    target = Path(__file__).parent / "results.csv"
-    with target.open("w", newline="", encoding="utf-8") as fh:
+    level = round(corrected_level(len(CONTRASTS)), 4)
+    for condition, reference, label in CONTRASTS:
+        keys = [(p, a) for p in PAIRS for a in MODELS]
+        gain = pooled_gain([(rates[(*k, condition)], rates[(*k, reference)]) for k in keys], level=level)
+        rows.append(_row("all three", "both", label, **_interval(gain, level)))
+    here = Path(__file__).parent
+    with (here / "results.csv").open("w", newline="", encoding="utf-8") as fh:
         writer = csv.DictWriter(fh, FIELDS)
         writer.writeheader()
         writer.writerows(rows)
-    print(f"wrote {target}")
+    np.savez_compressed(here / "hits.npz", **saved)
+    print(f"wrote {here / 'results.csv'} and {here / 'hits.npz'} ({len(saved)} evaluations)")
 
 
 if __name__ == "__main__":

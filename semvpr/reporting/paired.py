@@ -8,6 +8,7 @@ the query sample supports.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,8 +57,8 @@ def _resampled_means(diffs: np.ndarray, resamples: int, seed: int) -> np.ndarray
     return means
 
 
-def _interval(values: np.ndarray) -> tuple[float, float]:
-    tail = 100.0 * (1 - LEVEL) / 2
+def _interval(values: np.ndarray, level: float = LEVEL) -> tuple[float, float]:
+    tail = 100.0 * (1 - level) / 2
     low, high = np.percentile(values, [tail, 100.0 - tail])
     return float(low), float(high)
 
@@ -69,6 +70,32 @@ def paired_gain(hits: np.ndarray, reference: np.ndarray, resamples: int = RESAMP
     diff = 100.0 * (a - b)
     low, high = _interval(_resampled_means(diff[None], resamples, seed)[:, 0])
     return PairedGain(float(diff.mean()), low, high, len(diff))
+
+
+def pooled_gain(
+    comparisons: Sequence[tuple[np.ndarray, np.ndarray]],
+    level: float = LEVEL,
+    resamples: int = RESAMPLES,
+    seed: int = 0,
+) -> PairedGain:
+    """The mean gain of several paired comparisons over the same queries (``(hits, reference)`` each; query i is
+    the same query, or the same place, in all of them), in percentage points, with a ``level`` percentile-bootstrap
+    interval that resamples the queries jointly across the comparisons, so that their correlation (one query set,
+    one model in several) is kept. Hits may be rates in [0, 1] (a query's hits averaged over seeds or draws)."""
+    if not comparisons:
+        raise ValueError("a pooled gain needs at least one comparison")
+    arrays = _check(*(a for pair in comparisons for a in pair))
+    diffs = 100.0 * np.stack([a - b for a, b in zip(arrays[::2], arrays[1::2], strict=True)])
+    low, high = _interval(_resampled_means(diffs, resamples, seed).mean(axis=1), level)
+    return PairedGain(float(diffs.mean()), low, high, diffs.shape[1])
+
+
+def corrected_level(claims: int, level: float = LEVEL) -> float:
+    """The coverage each of ``claims`` intervals needs for all of them to hold together at ``level``
+    (Bonferroni: the error rate ``1 - level`` split evenly)."""
+    if claims < 1:
+        raise ValueError(f"claims must be at least 1, got {claims}")
+    return 1.0 - (1.0 - level) / claims
 
 
 @dataclass(frozen=True)

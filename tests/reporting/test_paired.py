@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semvpr.reporting.paired import paired_gain, recovered_share
+from semvpr.reporting.paired import corrected_level, paired_gain, pooled_gain, recovered_share
 
 
 def test_the_gain_is_the_difference_of_hit_rates_in_points() -> None:
@@ -70,3 +70,30 @@ def test_the_recovered_share_is_the_part_of_the_damage_undone() -> None:
     worse[40:50] = False  # the fix loses 10 more
     assert recovered_share(worse, damaged, clean).high < 0
     assert recovered_share(quarter, clean, clean) is None
+
+
+def test_a_pooled_gain_resamples_the_queries_jointly_across_its_comparisons() -> None:
+    """The mean of several comparisons' gains, its interval the normal one of the per-query mean difference (an
+    independent derivation); a comparison repeated adds no information (resampled jointly, not as new queries)."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    reference = rng.random((3, n)) < 0.5
+    hits = reference ^ (rng.random((3, n)) < np.array([[0.10], [0.20], [0.30]]))
+    pooled = pooled_gain(list(zip(hits, reference)))
+    gains = [paired_gain(h, r).gain for h, r in zip(hits, reference)]
+    assert pooled.gain == pytest.approx(np.mean(gains)) and pooled.queries == n
+    per_query = 100.0 * (hits.astype(float) - reference).mean(axis=0)
+    half = 1.96 * per_query.std(ddof=1) / np.sqrt(n)
+    assert pooled.low == pytest.approx(pooled.gain - half, abs=0.1 * half)
+    assert pooled.high == pytest.approx(pooled.gain + half, abs=0.1 * half)
+    one = paired_gain(hits[0], reference[0])
+    twice = pooled_gain([(hits[0], reference[0])] * 2)
+    assert (twice.gain, twice.low, twice.high) == pytest.approx((one.gain, one.low, one.high))
+    # Rates averaged over seeds are hits too; a corrected level widens the interval.
+    rates = pooled_gain([(hits.mean(axis=0), reference.mean(axis=0))])
+    assert rates.gain == pytest.approx(pooled.gain)
+    wide = pooled_gain(list(zip(hits, reference)), level=corrected_level(5))
+    assert wide.low < pooled.low and wide.high > pooled.high
+    assert corrected_level(5) == pytest.approx(0.99) and corrected_level(1) == 0.95
+    with pytest.raises(ValueError, match="same length"):
+        pooled_gain([(hits[0], reference[0]), (hits[1][:10], reference[1][:10])])
