@@ -16,6 +16,10 @@ another, a later one in front of an earlier one, until the pasted pixels cover t
 the image (within ``TOLERANCE``); a candidate that would overshoot is skipped. Pixels are replaced
 outright (no blending): the artefacts this leaves are what ``paste=false`` measures.
 
+``coverage`` is a fixed fraction, or ``camvid``: each image's fraction drawn from the shares of CamVid
+**train** frames' pixels that its moving classes cover (measured from the split's label maps, frames with
+none included: :func:`camvid_shares`), so the occlusion is as much as real street frames hold.
+
 Each image gets its own draw, seeded by ``seed`` and the image's name below the set's root, so two
 traversals (the database and the queries) see different objects, as two visits do, and one image
 gets the same objects in every set it belongs to. The composites and their label maps are a cached
@@ -49,6 +53,8 @@ from semvpr.data.places import PlaceSet
 
 #: Where the objects come from (``data.occluders.source``): ``none`` leaves the set as it is.
 SOURCES = ("none", "camvid")
+#: The coverage that draws each image's fraction from CamVid train's frames (:func:`camvid_shares`).
+MEASURED = "camvid"
 #: Cityscapes classes an object may be made of: the moving ones (every dynamic class but sky).
 OBJECT_CLASSES: tuple[int, ...] = tuple(TRAIN_ID_NAMES.index(n) for n in DYNAMIC_NAMES if n != "sky")
 #: The label of every pixel that is not pasted: a static class.
@@ -73,7 +79,7 @@ class OccluderSpec:
 
     source: str = "none"
     root: str | None = None
-    coverage: float = 0.2
+    coverage: float | str = 0.2
     seed: int = 0
     min_area: float = 0.002
     paste: bool = True
@@ -89,16 +95,36 @@ class OccluderSpec:
             raise SemvprError(
                 "data.occluders.root is not set: the CamVid folder (SegNet layout) whose test split gives the objects"
             )
-        if not 0 < spec.coverage <= MAX_COVERAGE:
+        if (
+            isinstance(spec.coverage, str)
+            and spec.coverage != MEASURED
+            or not (isinstance(spec.coverage, str) or 0 < spec.coverage <= MAX_COVERAGE)
+        ):
             raise SemvprError(
                 f"data.occluders.coverage={spec.coverage!r}: expected a fraction of the pixels in (0, {MAX_COVERAGE}] "
-                "(data.occluders.source=none for the set without objects)"
+                f"or {MEASURED} (each image's drawn from CamVid train's frames; data.occluders.source=none for the "
+                "set without objects)"
             )
         if not 0 < spec.min_area < 1:
             raise SemvprError(f"data.occluders.min_area={spec.min_area!r}: expected a fraction of a frame in (0, 1)")
         if spec.seed < 0:
             raise SemvprError(f"data.occluders.seed={spec.seed!r}: expected a whole number >= 0")
         return spec
+
+    @property
+    def label(self) -> str:
+        """How a set's name gives the coverage: ``20%``, or ``at train coverage`` (CamVid train's frames')."""
+        return "at train coverage" if self.coverage == MEASURED else f"{self.coverage:.0%}"
+
+
+def camvid_shares(root: str | Path) -> np.ndarray:
+    """Per CamVid **train** frame, the fraction of its pixels that its moving classes (:data:`OBJECT_CLASSES`)
+    cover, in the split's order (float64; frames without any included)."""
+    seg = read_camvid(root, "train", "data.occluders.root")
+    lut = np.asarray(seg.label_lut, dtype=np.uint8)
+    moving = np.zeros(256, dtype=bool)
+    moving[list(OBJECT_CLASSES)] = True
+    return np.array([moving[lut[np.asarray(open_image(p, "CamVid label map"))]].mean() for p in seg.labels])
 
 
 @dataclass(frozen=True)
@@ -179,6 +205,8 @@ def composite(
     labels = np.full((height, width), BACKGROUND, dtype=np.uint8)
     covered = np.zeros((height, width), dtype=bool)
     total, target, pasted = 0, coverage * height * width, []
+    if target <= TOLERANCE * height * width:  # the frame as it is is within the tolerance of the asked fraction
+        return out, labels, pasted
     for _ in range(MAX_TRIES):
         index = int(rng.integers(len(objects)))
         obj = objects[index]
@@ -225,6 +253,7 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
     if places.root is None:
         raise SemvprError(f"place set {places.name!r} has no root folder to key its images by")
     camvid = read_camvid(spec.root, "test", "data.occluders.root")
+    train = read_camvid(spec.root, "train", "data.occluders.root") if spec.coverage == MEASURED else None
     sides = {"db": places.db_paths, "q": places.q_paths}
     names = {side: [places.relative(p) for p in paths] for side, paths in sides.items()}
     key = {
@@ -235,6 +264,7 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
             [*camvid.images, *camvid.labels],
         ),
         "coverage": spec.coverage,
+        **({"camvid_train": files_identity([p.name for p in train.labels], list(train.labels))} if train else {}),
         "seed": spec.seed,
         "min_area": spec.min_area,
         "paste": spec.paste,
@@ -242,8 +272,15 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
 
     def build(tmp: Path) -> None:
         objects = cut_objects(spec.root, spec.min_area)
+        shares = camvid_shares(spec.root) if spec.coverage == MEASURED else None
         scaled: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-        record: dict[str, object] = {"objects": len(objects), "images": {}}
+        record: dict[str, object] = {"objects": len(objects), "coverage": spec.coverage, "images": {}}
+        if shares is not None:
+            record["camvid_train_shares"] = {
+                "frames": len(shares),
+                **{k: float(f(shares)) for k, f in (("mean", np.mean), ("median", np.median), ("max", np.max))},
+                "p90": float(np.percentile(shares, 90)),
+            }
         bar = Progress(
             f"{places.name}: CamVid objects ({len(objects)} cut from its test split)",
             len(set(names["db"] + names["q"])),
@@ -253,7 +290,9 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
                 if name in record["images"]:  # an image on both sides: one draw
                     continue
                 image = np.asarray(eight_bit_rgb(open_image(path, "image"), path))
-                pixels, labels, pasted = composite(image, objects, spec.coverage, draw_seed(spec.seed, name), scaled)
+                rng = draw_seed(spec.seed, name)
+                asked = float(shares[rng.integers(len(shares))]) if shares is not None else float(spec.coverage)
+                pixels, labels, pasted = composite(image, objects, asked, rng, scaled)
                 (tmp / "images" / name).parent.mkdir(parents=True, exist_ok=True)
                 (tmp / "labels" / name).parent.mkdir(parents=True, exist_ok=True)
                 if spec.paste:
@@ -261,7 +300,8 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
                 else:
                     shutil.copyfile(path, tmp / "images" / name)
                 Image.fromarray(labels).save((tmp / "labels" / name).with_suffix(".png"))
-                record["images"][name] = {"coverage": float((labels != BACKGROUND).mean()), "pasted": pasted}
+                covered = float((labels != BACKGROUND).mean())
+                record["images"][name] = {"asked": asked, "coverage": covered, "pasted": pasted}
                 bar.update()
         bar.close()
         (tmp / "occluders.json").write_text(json.dumps(record, indent=1))
@@ -278,7 +318,7 @@ def occlude(places: PlaceSet, spec: OccluderSpec, cache_dir: str | Path) -> Plac
     (db_paths, db_labels), (q_paths, q_labels) = moved("db"), moved("q")
     return replace(
         places,
-        name=f"{places.name} + CamVid {spec.coverage:.0%} seed {spec.seed}{'' if spec.paste else ' (holes only)'}",
+        name=f"{places.name} + CamVid {spec.label} seed {spec.seed}{'' if spec.paste else ' (holes only)'}",
         root=image_root,
         db_paths=db_paths,
         q_paths=q_paths,

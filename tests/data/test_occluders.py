@@ -115,6 +115,38 @@ def test_objects_come_from_the_test_split_only(frames: Path, camvid: Path, tmp_p
     assert sources and sources <= test_names
 
 
+#: CamVid's SegNet ids of its moving classes (Car, Pedestrian, Bicyclist), as the dataset defines them.
+CAMVID_MOVING = (8, 9, 10)
+
+
+def test_coverage_camvid_draws_each_images_fraction_from_camvid_trains_frames(
+    frames: Path, camvid: Path, tmp_path: Path
+) -> None:
+    """Each image's pasted fraction is one of CamVid train's frames' moving-object shares (a frame without any
+    among them: nothing pasted), measured from the train label maps; the test split still gives the objects."""
+    from semvpr.data.occluders import camvid_shares
+
+    measured = tmp_path / "camvid"
+    shutil.copytree(camvid, measured)
+    maps = sorted((measured / "trainannot").iterdir())
+    h, w = pixels(maps[0]).shape
+    for path, moving in zip(maps, (h * w // 8, 0), strict=True):  # 12.5 % of one frame, none of the other
+        ids = np.full(h * w, 3, np.uint8)  # road
+        ids[:moving] = np.resize(np.array(CAMVID_MOVING, np.uint8), moving)
+        Image.fromarray(ids.reshape(h, w)).save(path)
+    assert camvid_shares(measured).tolist() == [0.125, 0.0]
+    places = occluded(frames, tmp_path / "cache", measured, coverage="camvid")
+    record = json.loads((places.db_paths[0].parents[2] / "occluders.json").read_text())
+    assert record["camvid_train_shares"] == {"frames": 2, "mean": 0.0625, "median": 0.0625, "max": 0.125, "p90": 0.1125}
+    asked = {name: image["asked"] for name, image in record["images"].items()}
+    assert set(asked.values()) == {0.125, 0.0}  # eight images, two values: both drawn
+    for image in [*places.db_paths, *places.q_paths]:
+        share = asked[image.relative_to(places.root).as_posix()]
+        assert abs((pixels(image) != MAGENTA).any(-1).mean() - share) <= 0.01 + 1e-9, image
+    assert places.name.endswith("+ CamVid at train coverage seed 0")
+    assert places.db_paths[0].parents[2] != occluded(frames, tmp_path / "cache", measured).db_paths[0].parents[2]
+
+
 def test_every_setting_is_part_of_the_cache_key(frames: Path, camvid: Path, tmp_path: Path) -> None:
     def folder(**settings: object) -> Path:
         return occluded(frames, tmp_path, camvid, **settings).db_paths[0].parents[2]
@@ -144,7 +176,7 @@ def test_every_setting_is_part_of_the_cache_key(frames: Path, camvid: Path, tmp_
         ({"min_area": 1.5}, "min_area=1.5"),
         ({"min_area": 0.9}, "no object of the moving classes"),
         ({"colour": "red"}, "data.occluders.colour is not a setting"),
-        ({"coverage": "lots"}, "coverage='lots': expected a number"),
+        ({"coverage": "lots"}, "coverage='lots': expected a fraction of the pixels in (0, 0.5] or camvid"),
         # The fixture's cars stand in a band a quarter of the frame high: 35 % is out of reach.
         ({"coverage": 0.35}, "could not cover 35% of a 128x96 image"),
     ],
