@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.reporting.evaluations import read_evaluations
 from semvpr.reporting.paired import LEVEL, corrected_level, paired_gain, pooled_gain
 
 PAIRS = ("day_left-night_right", "day_right-night_right", "day_left-day_right")
@@ -52,24 +52,14 @@ FIELDS = ("pair", "model", "mask", "R@1", "R@5", "R@10", "gain", "ci_low", "ci_h
 
 
 def sweep_hits(folder: Path, condition: str) -> dict[tuple[str, int], tuple[dict, np.ndarray]]:
-    """The jobs of one condition in one sweep folder by (aggregator, control seed): eval.json and hits (queries
-    × N, bool), checked against each other and against the jobs run.sh gives the condition."""
+    """The jobs of one condition in one pair's folder by (aggregator, control seed): eval.json and hits
+    (``reporting.evaluations``), checked against the jobs run.sh gives the condition."""
     sweep, recorded, seeds, _ = CONDITIONS[condition]
-    jobs = {}
-    for record in sorted((folder / sweep).glob("*/eval.json")):
-        result = json.loads(record.read_text(encoding="utf-8"))
-        if result.get("status") != "ok":
-            raise SemvprError(f"{record}: status {result.get('status')!r}; rerun run.sh")
-        if any(result.get(k) != v for k, v in recorded.items()):
-            continue
-        with np.load(record.parent / "hits.npz", allow_pickle=False) as saved:
-            ns, hits = saved["ns"], saved["hits"]
-        if list(ns) != [1, 5, 10, 20] or hits.shape != (result["queries"], 4) or hits.dtype != bool:
-            raise SemvprError(f"{record.parent}/hits.npz is not the hits of eval.json's {result['queries']} queries")
-        for column, n in enumerate(ns):
-            if abs(100.0 * hits[:, column].mean() - result[f"test/R@{n}"]) > 0.006:
-                raise SemvprError(f"{record.parent}: hits.npz does not give eval.json's R@{n}")
-        jobs[(result["aggregator"], int(result["mask_control_seed"]) if len(seeds) > 1 else 0)] = (result, hits)
+    jobs = {
+        (e.result["aggregator"], int(e.result["mask_control_seed"]) if len(seeds) > 1 else 0): (e.result, e.hits)
+        for e in read_evaluations(folder / sweep)
+        if all(e.result.get(k) == v for k, v in recorded.items())
+    }
     wanted = {(a, s) for a in MODELS for s in seeds}
     if set(jobs) != wanted:
         raise SemvprError(f"{folder / sweep}: {condition} jobs {sorted(jobs)}, expected {sorted(wanted)}; rerun run.sh")
