@@ -34,6 +34,7 @@ from semvpr.core.io import reclaim_orphans, write_json
 from semvpr.core.logs import say
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.stops import (
+    RECEIVED,
     Interrupted,
     lightning_stop,
     received_stop,
@@ -295,8 +296,9 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
             return {"status": "failed"}
         raise
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        for sig, handler in previous.items():  # not while a stop is being finished: its signals stay caught
+            if not RECEIVED:
+                signal.signal(sig, handler)
     assert metrics is not None  # rank 0
     write_json(run_dir / "metrics.json", metrics)
     summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@") and not k.endswith("_pos")}

@@ -13,7 +13,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +73,8 @@ def stop_on_signals(sweep_dir: Path | None = None) -> dict[int, Any]:
 
     def interrupt(signum: int, _frame: object) -> None:
         RECEIVED.append(signum)
+        if len(RECEIVED) > 1:  # the stop is under way: another signal must not break off its clean-up
+            return
         stop = Interrupted(f"stopped by {signal.Signals(signum).name}")
         stop.sweep_dir = sweep_dir
         raise stop
@@ -96,8 +98,40 @@ def run_stoppable(
         with killed_workers_stop(argv):
             main()
     except Interrupted as stop:  # one line, not the traceback of wherever the signal landed
+        for sig in STOP_SIGNALS:  # more signals change nothing now: the stop is being finished
+            signal.signal(sig, signal.SIG_IGN)
+        end_descendants()
         print(line(stop) if line is not None else f"semvpr: error: {stop}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def _tracker(process: Any) -> bool:
+    """Whether ``process`` is joblib's resource tracker: it runs no job, ends with this process, and ended
+    before it, it is relaunched with a traceback."""
+    try:
+        return any("resource_tracker" in part for part in process.cmdline())
+    except Exception:  # noqa: BLE001 - gone already, or not ours to read: nothing to spare
+        return False
+
+
+def end_descendants(grace_s: float = 5.0) -> None:
+    """End every process this one started that is still running (a sweep's workers, their data-loader
+    workers; not joblib's resource tracker: :func:`_tracker`): SIGTERM, then SIGKILL after ``grace_s`` for
+    those still there, so none writes a result after the stop's line."""
+    import psutil
+
+    try:
+        alive = [p for p in psutil.Process().children(recursive=True) if not _tracker(p)]
+    except psutil.Error:
+        return
+    for process in alive:
+        with suppress(psutil.Error):
+            process.terminate()
+    _, alive = psutil.wait_procs(alive, timeout=grace_s)
+    for process in alive:
+        with suppress(psutil.Error):
+            process.kill()
+    psutil.wait_procs(alive, timeout=grace_s)
 
 
 @contextmanager

@@ -159,3 +159,58 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
     except OSError:
         return "Z"
+
+
+@pytest.mark.slow
+def test_a_stop_hammered_at_10_hz_on_an_evaluation_sweep_is_one_line_exit_2_and_no_result_after_it(
+    tmp_path: Path,
+) -> None:
+    """SIGINT to the sweep's process group ten times a second (Ctrl-C held down): joblib's abort was broken
+    off (four tracebacks, exit 130) and an orphaned worker wrote its job's eval.json after the stop line. Now:
+    one line, exit 2, no process of the sweep left, nothing written after it, a table that says so."""
+    sweep = tmp_path / "sweep"
+    args = ["experiment=tiny", "ckpt=none", "aggregator=gem,netvlad,mixvpr", "threads=1"]
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "semvpr.eval",
+            "-m",
+            *args,
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"},
+    )
+    try:
+        deadline = time.monotonic() + 600
+        while not list(sweep.glob("*/.hydra")) and proc.poll() is None:  # a job has started
+            assert time.monotonic() < deadline, "no job started"
+            time.sleep(0.2)
+        group = [
+            int(p)
+            for p in subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True, text=True).stdout.split()
+        ]
+        for _ in range(30):
+            if proc.poll() is not None:
+                break
+            os.killpg(proc.pid, signal.SIGINT)
+            time.sleep(0.1)
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    ended = time.time()
+    errors = [ln for ln in stderr.splitlines() if ln.startswith("semvpr: error: ")]
+    assert proc.returncode == 2 and len(errors) == 1 and "Traceback" not in stderr, stderr[-3000:]
+    assert errors[0].startswith("semvpr: error: stopped by SIGINT; its report") and stderr.strip().endswith(errors[0])
+    time.sleep(2)
+    alive = [pid for pid in group if pid != proc.pid and Path(f"/proc/{pid}").exists() and "Z" not in _state(pid)]
+    assert alive == [], f"processes of the sweep left running: {alive}"
+    written = [p for p in sweep.rglob("*") if p.is_file() and p.stat().st_mtime > ended]
+    assert written == [], f"written after the stop: {written}"
+    assert (sweep / "results.md").read_text().count("**Incomplete:**") == 1
