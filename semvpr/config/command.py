@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import logging
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from semvpr.config.plan import thread_plan
 from semvpr.core.device import resolve
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, sole_writer
-from semvpr.core.logs import job_label, job_named, quiet_third_party
+from semvpr.core.logs import job_label, job_log, job_named, quiet_third_party
 from semvpr.core.precision import job_precision
 from semvpr.core.spec import unset
 from semvpr.core.stops import stop_over_errors
@@ -104,7 +105,13 @@ def hydra_command(
                 return
             multirun = hydra_cfg.mode == RunMode.MULTIRUN
             sweep_job = job_label(hydra_cfg.job.num, hydra_cfg.job.override_dirname) if multirun else None
-            with sole_writer(run_dir, "hydra.run.dir"), job_named(sweep_job), stop_over_errors(), named_unset(cfg):
+            with (
+                sole_writer(run_dir, "hydra.run.dir"),
+                job_named(sweep_job),
+                job_log(_hydra_log_file(run_dir)),
+                stop_over_errors(),
+                named_unset(cfg),
+            ):
                 cfg = prepare(cfg, run_dir) if prepare else cfg
                 (run_dir / record).unlink(missing_ok=True)
                 task(cfg, run_dir)
@@ -113,6 +120,18 @@ def hydra_command(
         return main(exit_on_user_error(task_function))
 
     return command
+
+
+def _hydra_log_file(run_dir: Path) -> Path | None:
+    """The job's log file Hydra opened in its run dir (``<command>.log``, its job logging's file handler), where
+    the stage lines go too; None where Hydra's job logging writes none there."""
+    for handler in logging.getLogger().handlers:
+        if (
+            isinstance(handler, logging.FileHandler)
+            and Path(handler.baseFilename).resolve().parent == run_dir.resolve()
+        ):
+            return Path(handler.baseFilename)
+    return None
 
 
 @contextmanager

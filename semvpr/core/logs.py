@@ -18,6 +18,7 @@ import time
 import warnings
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
 import lightning as L
@@ -57,9 +58,33 @@ def line(text: str) -> str:
     return f"semvpr: [{label}] {text}" if label else f"semvpr: {text}"
 
 
+#: The log file of the job this process runs now (its stage lines are written there too); None: none.
+_LOG: dict[str, TextIO | None] = {"file": None}
+
+
+@contextmanager
+def job_log(path: Path | None) -> Iterator[None]:
+    """Inside the block every line :func:`say` prints is also appended to ``path`` (a command's job log,
+    ``<run dir>/<command>.log``; None: none), so the run's folder holds what its console showed."""
+    if path is None:
+        yield
+        return
+    previous = _LOG["file"]
+    with open(path, "a", encoding="utf-8") as fh:
+        _LOG["file"] = fh
+        try:
+            yield
+        finally:
+            _LOG["file"] = previous
+
+
 def say(text: str, stream: TextIO | None = None) -> None:
-    """Print a stage or warning line (:func:`line`) on ``stream`` (stderr by default), flushed."""
-    print(line(text), file=stream or sys.stderr, flush=True)
+    """Print a stage or warning line (:func:`line`) on ``stream`` (stderr by default), flushed; inside
+    :func:`job_log`, append it to the job's log too."""
+    shown = line(text)
+    print(shown, file=stream or sys.stderr, flush=True)
+    if (log := _LOG["file"]) is not None:
+        print(shown, file=log, flush=True)
 
 
 # Informational lines Lightning logs once per Trainer (so once per job of a sweep).

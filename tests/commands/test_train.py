@@ -332,6 +332,9 @@ def test_eval_reproduces_test_recall(cache_dir: Path, trained_run: Path) -> None
     assert next(iter(result)) == "run_dir" and result["run_dir"] == str(run_dir)
     recorded = json.loads((run_dir / "eval.json").read_text())
     assert recorded["files"] == ["ranks.npy", "hits.npz"] and all((run_dir / f).is_file() for f in recorded["files"])
+    # The job's log holds its stage lines (it was created empty): what the console showed.
+    stages = [ln for ln in proc.stderr.splitlines() if ln.startswith("semvpr: ")]
+    assert stages and (run_dir / "eval.log").read_text().splitlines()[-len(stages) :] == stages
     # Run alone, the command has no job beside it: the cores are its own, as they are the in-process job's
     # (its config names the sweep launcher all the same).
     assert result["threads"]["processes"] == metrics["threads"]["processes"] == 1
