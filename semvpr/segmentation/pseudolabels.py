@@ -7,6 +7,8 @@ database image, ``queries_real/000/000546_pitch1_yaw1.jpg`` a query).
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +45,21 @@ VALID_IDS = np.array([*range(len(TRAIN_ID_NAMES)), IGNORE], dtype=np.uint8)
 
 #: The linked trunk's cached ``forward_frozen`` outputs of some images (``Teacher.link_trunk``).
 TrunkOutputs = Callable[[Sequence[Path]], list[Tensor | None]]
+
+
+def _remove_strays(out: Path, wanted: set[Path]) -> None:
+    """Remove everything under ``out`` (a resumed build's directory, left by anyone) that is neither one of the
+    ``wanted`` labels nor a folder on the way to one: the finished artifact holds its labels only."""
+    folders = {parent for path in wanted for parent in path.parents}
+    for top, dirs, files in os.walk(out, followlinks=False):
+        for name in files:
+            if (path := Path(top) / name) not in wanted:
+                path.unlink()
+        for name in list(dirs):
+            path = Path(top) / name
+            if path.is_symlink() or path not in folders:
+                shutil.rmtree(path) if not path.is_symlink() else path.unlink()
+                dirs.remove(name)
 
 
 def _label_name(image: str | Path, root: str | Path) -> Path:
@@ -146,6 +163,7 @@ def pseudo_labels(
             planted = out / _label_name(p, root)
             if planted.is_symlink():
                 planted.unlink()
+        _remove_strays(out, {out / _label_name(p, root) for p in paths})
         todo = [p for p in paths if not _label_ok(label_path(out, p, root), size)]
         bar = Progress("pseudo-labels", len(paths), done=len(paths) - len(todo))
         if not todo:

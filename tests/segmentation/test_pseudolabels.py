@@ -147,6 +147,8 @@ def test_a_planted_partial_directory_is_checked_before_its_labels_are_kept(tmp_p
             Image.fromarray(np.zeros((*SIZE, 3), np.uint8)).save(target)  # RGB, not ids
         else:
             Image.fromarray(np.zeros((1, 1), np.uint8)).save(target)  # the wrong size
+    (partial / "stray.txt").write_text("not a label")  # kept in the finished artifact, as if it were its own
+    (partial / "folder").mkdir()
     teacher = CountingTeacher()
     out = pseudo_labels(teacher, paths, Reading(SIZE, 4, 0), tmp_path / "cache", root)
     assert out == final and teacher.seen == len(paths) - 1
@@ -156,3 +158,6 @@ def test_a_planted_partial_directory_is_checked_before_its_labels_are_kept(tmp_p
         with Image.open(label) as img:
             assert img.mode == "L" and img.size == SIZE[::-1]
     assert (tmp_path / "victim.png").read_bytes() == b"x"
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [*(label_path(out, p, root).name for p in paths), "key.json"]
+    )
