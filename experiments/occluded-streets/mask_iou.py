@@ -70,8 +70,16 @@ def composites(cache: Path) -> dict[tuple[int, int], SegmentationSet]:
         key, folder = read_json(key_file, "occluders cache key"), key_file.parent
         if not key.get("paste", True):
             continue  # the holes-only control: the frames without objects
+        if not isinstance(key.get("coverage"), int | float) or not isinstance(key.get("seed"), int):
+            continue  # another experiment's draws (coverage=camvid): not a cell of this one
         cell = (round(100 * float(key["coverage"])), int(key["seed"]))
-        for name in read_json(folder / "occluders.json", "occluders record")["images"]:
+        record = read_json(folder / "occluders.json", "occluders record")
+        names = record.get("images") if isinstance(record, dict) else None
+        if not isinstance(names, dict):
+            raise SemvprError(f"{folder / 'occluders.json'} is not an occluders record (no images)")
+        for name in names:
+            if not isinstance(name, str) or Path(name).is_absolute() or ".." in Path(name).parts:
+                raise SemvprError(f"{folder / 'occluders.json'} names {name!r}, not an image inside its folder")
             found[cell][name] = (folder / "images" / name, (folder / "labels" / name).with_suffix(".png"))
     if not found:
         raise SemvprError(f"no composites with pasted objects under {cache}; run run.sh first (or give --cache)")

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semvpr.core.errors import exit_on_user_error
+from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import atomic_file, read_json, write_csv, write_text
 from semvpr.reporting.paired import PairedGain, RecoveredShare, paired_gain, recovered_share
 
@@ -107,6 +107,8 @@ def _model(result: dict) -> tuple[str, int]:
     """(model, training seed): an untrained aggregator (seed 0), or the checkpoint's run folder
     (…/<run>/checkpoints/x.ckpt) without its ``seed=N`` and ``threads=N`` (a sweep's runs of one setting are one
     model)."""
+    if not isinstance(result.get("checkpoint"), str) or not isinstance(result.get("aggregator"), str):
+        raise SemvprError("an eval.json without its checkpoint and aggregator; rerun run.sh")
     if result["checkpoint"] == "none":
         return f"untrained {result['aggregator']}", 0
     path = Path(result["checkpoint"])
@@ -117,25 +119,49 @@ def _model(result: dict) -> tuple[str, int]:
     return rest or run, seeds[0] if seeds else 0
 
 
+def _ranks(job: Path, result: dict) -> np.ndarray:
+    """The job's first-hit ranks (``ranks.npy``: whole numbers, one per query), checked against its eval.json's
+    R@1 and R@5."""
+    try:
+        ranks = np.load(job / "ranks.npy", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SemvprError(f"{job / 'ranks.npy'} is not readable ranks ({type(err).__name__})") from None
+    if ranks.ndim != 1 or ranks.dtype.kind not in "iu" or len(ranks) != result.get("queries"):
+        raise SemvprError(f"{job / 'ranks.npy'}: not {result.get('queries')} whole-number ranks ({ranks.dtype})")
+    for n in (1, 5):
+        if abs(100.0 * float(np.mean((ranks >= 0) & (ranks < n))) - result.get(f"test/R@{n}", np.nan)) > 0.006:
+            raise SemvprError(f"{job}: ranks.npy does not give eval.json's R@{n}; rerun its sweep")
+    return ranks
+
+
 def collect(out: Path) -> Runs:
-    """Every ok evaluation under OUT/eval, by pair and cell, with its per-query ranks."""
+    """Every ok evaluation under OUT/eval, by pair and cell, with its per-query ranks; every occluded cell of a
+    pair must hold the same occluder draws (a stopped sweep left fewer)."""
     runs: Runs = defaultdict(lambda: defaultdict(dict))
     for found in sorted((out / "eval").glob("*/*/*/eval.json")):
         job, sweep, pair = found.parent, found.parent.parent.name, found.parent.parent.parent.name
         named = SWEEP.fullmatch(sweep)
         if named is None:
-            raise SystemExit(f"{found.parent.parent}: not a sweep of run.sh (m<i>-<condition>-<mask>)")
+            raise SemvprError(f"{found.parent.parent}: not a sweep of run.sh (m<i>-<condition>-<mask>)")
         result = read_json(found, "eval result")
-        if result.get("status") != "ok":
-            raise SystemExit(f"{job}: {result.get('error')}")
+        if not isinstance(result, dict) or result.get("status") != "ok":
+            raise SemvprError(f"{job}: not a finished evaluation; rerun run.sh")
         condition, mask = named.group(2), named.group(3)
-        occluded = OCCLUDED_NAME.search(result["set"])
+        occluded = OCCLUDED_NAME.search(str(result.get("set")))
         if (occluded is None) != (condition == "clean"):
-            raise SystemExit(f"{job}: set {result['set']!r} does not match its sweep {sweep}")
+            raise SemvprError(f"{job}: set {result.get('set')!r} does not match its sweep {sweep}")
         coverage, seed = (int(occluded.group(1)), int(occluded.group(2))) if occluded else (0, 0)
-        ranks = np.load(job / "ranks.npy", allow_pickle=False)
         model, train_seed = _model(result)
-        runs[pair][(model, condition, mask, coverage)][(train_seed, seed)] = ranks
+        runs[pair][(model, condition, mask, coverage)][(train_seed, seed)] = _ranks(job, result)
+    for pair, cells in runs.items():
+        draws = {k: {d for _, d in seeds} for k, seeds in cells.items() if k[1] != "clean"}
+        every = set().union(*draws.values()) if draws else set()
+        for key, held in draws.items():
+            if held != every:
+                raise SemvprError(
+                    f"{out / 'eval' / pair}: {' '.join(map(str, key))} holds occluder seeds {sorted(held)}, the pair's "
+                    f"other cells {sorted(every)}; rerun run.sh (a stopped sweep left it short)"
+                )
     return runs
 
 
@@ -337,7 +363,7 @@ def main() -> None:
     args = parser.parse_args()
     runs = collect(args.out)
     if not runs:
-        raise SystemExit(f"no evaluations under {args.out / 'eval'}; run run.sh first")
+        raise SemvprError(f"no evaluations under {args.out / 'eval'}; run run.sh first")
     pairs = sorted(runs, key=_pair_order)
     by_pair = {pair: rows(pair, runs[pair]) for pair in pairs}
     all_rows = [r for pair in pairs for r in by_pair[pair]]

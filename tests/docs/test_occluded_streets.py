@@ -274,6 +274,7 @@ def test_summarize_pools_a_sweeps_training_seeds(tmp_path: Path) -> None:
                     name += f" + CamVid 20% seed {occluder}"
                 checkpoint = tmp_path / "runs" / f"filter=unet,seed={train},threads=1" / "checkpoints" / "best.ckpt"
                 result = {"status": "ok", "checkpoint": str(checkpoint), "aggregator": "sral", "set": name}
+                result |= {"queries": 60, "test/R@1": 100 * np.mean(found == 0), "test/R@5": 100 * np.mean(found < 5)}
                 (folder / "eval.json").write_text(json.dumps(result))
                 np.save(folder / "ranks.npy", found)
     runs = summarize.collect(tmp_path)
@@ -312,3 +313,40 @@ def test_mask_iou_scores_a_confusion_of_objects_and_the_rest() -> None:
     counts[sky] = [10, 0, 0]
     scores = module.object_scores(counts)
     assert scores == {"object_iou": round(35 / (50 + 16), 4), "objects_removed": 0.7, "rest_removed": 0.16}
+
+
+def test_summarize_refuses_ranks_that_contradict_eval_json_and_a_cell_short_of_a_draw(tmp_path: Path) -> None:
+    """Float ranks that eval.json does not give read as "R@1 41.0 ± 51.1"; a stopped sweep's cell with 2 of 3
+    occluder draws was averaged with no word. Each is one line."""
+    from semvpr.core.errors import SemvprError
+
+    summarize = _load("summarize")
+    pair = tmp_path / "eval" / "day_left-night_right"
+
+    def job(sweep: str, num: int, draw: int, ranks: np.ndarray) -> Path:
+        folder = pair / sweep / str(num)
+        folder.mkdir(parents=True)
+        result = {"status": "ok", "checkpoint": "none", "aggregator": "netvlad", "queries": len(ranks)}
+        result |= {"set": f"gardens_point day_left→night_right ±2 + CamVid 20% seed {draw}"}
+        result |= {"test/R@1": 100 * np.mean(ranks == 0), "test/R@5": 100 * np.mean((ranks >= 0) & (ranks < 5))}
+        (folder / "eval.json").write_text(json.dumps(result))
+        np.save(folder / "ranks.npy", ranks)
+        return folder
+
+    ranks = np.array([0, 3, 0, 7, 1, 0])
+    for draw in (0, 1, 2):
+        job("m0-occluded-none", draw, draw, ranks)
+    for draw in (0, 1):
+        job("m0-occluded-oracle", draw, draw, ranks)
+    with pytest.raises(
+        SemvprError, match=r"oracle 20 holds occluder seeds \[0, 1\], the pair's other cells \[0, 1, 2\]"
+    ):
+        summarize.collect(tmp_path)
+    folder = job("m0-occluded-oracle", 2, 2, ranks)
+    assert summarize.collect(tmp_path)
+    np.save(folder / "ranks.npy", ranks.astype(float) + 0.5)
+    with pytest.raises(SemvprError, match=r"ranks\.npy: not 6 whole-number ranks \(float64\)"):
+        summarize.collect(tmp_path)
+    np.save(folder / "ranks.npy", np.zeros(6, dtype=int))
+    with pytest.raises(SemvprError, match=r"ranks\.npy does not give eval\.json's R@1"):
+        summarize.collect(tmp_path)
