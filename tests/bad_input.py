@@ -72,7 +72,7 @@ class Case:
     args: Callable[[Path, Path], list[str]]
     fragment: str
     env: dict[str, str] = field(default_factory=dict)
-    timeout: int = 300
+    timeout: int = 600
     cache_check: Callable[[Path], None] | None = None
 
 
@@ -85,7 +85,7 @@ def files(folder: Path) -> set[Path]:
     return {Path(d) / n for d, dirs, names in os.walk(folder) for n in names + dirs}
 
 
-def cli(module: str, *args: str, cwd: Path, timeout: int = 300, env: dict | None = None, limit_gb: float = 0):
+def cli(module: str, *args: str, cwd: Path, timeout: int = 600, env: dict | None = None, limit_gb: float = 0):
     """Run ``python -m module args`` (optionally with its address space limited, so a blow-up fails fast)."""
 
     def limit() -> None:

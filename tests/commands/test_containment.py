@@ -184,7 +184,7 @@ def test_a_second_process_in_a_run_directory_is_refused(tmp_path: Path) -> None:
             sole_writer(run, "hydra.run.dir"),
         ):
             pass
-        proc = cli("semvpr.eval", "experiment=tiny", "ckpt=none", f"hydra.run.dir={run}", cwd=tmp_path, timeout=120)
+        proc = cli("semvpr.eval", "experiment=tiny", "ckpt=none", f"hydra.run.dir={run}", cwd=tmp_path, timeout=600)
         assert proc.returncode == 2, proc.stderr
         assert proc.stderr.strip().splitlines()[-1] == (
             f"semvpr: error: another process is running a job in {run}: two jobs in one directory overwrite each "
@@ -261,7 +261,7 @@ def test_an_earlier_jobs_record_never_stands_beside_a_new_jobs_files(tmp_path: P
         f"data.root={tmp_path / 'nowhere'}",
         f"hydra.run.dir={run}",
         cwd=tmp_path,
-        timeout=120,
+        timeout=600,
     )
     assert proc.returncode == 2 and "nowhere" in proc.stderr.strip().splitlines()[-1], proc.stderr
     assert not (run / "eval.json").exists()

@@ -82,7 +82,7 @@ def cli(tmp: Path, *args: str, module: str = "semvpr.eval") -> subprocess.Comple
         env={**os.environ, "PYTHONPATH": str(REPO)},
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
 
 

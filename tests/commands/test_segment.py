@@ -250,7 +250,7 @@ def test_cli_bad_root_one_line_exit_2(tmp_path: Path) -> None:
         env=env,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
     )
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [
@@ -297,7 +297,7 @@ def test_paired_masks_scores_each_saved_source_as_the_run_did(segment_run: tuple
         ],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -324,7 +324,7 @@ def test_a_sigterm_while_the_teacher_trains_is_one_line_exit_2(tmp_path: Path) -
             if line.startswith("semvpr: teacher: epoch 2/"):
                 proc.send_signal(signal.SIGTERM)
                 break
-        rest = proc.communicate(timeout=120)[1]
+        rest = proc.communicate(timeout=600)[1]
     finally:
         proc.kill()
     assert proc.returncode == 2, "".join(lines) + rest

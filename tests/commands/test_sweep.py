@@ -133,7 +133,7 @@ def test_a_stop_of_a_two_at_a_time_sweep_is_one_line_no_worker_left_and_a_final_
         else:
             loky = [pid for pid in workers if "LokyProcess" in Path(f"/proc/{pid}/cmdline").read_text()]
             os.kill(loky[0], signal.SIGKILL)
-        _, stderr = proc.communicate(timeout=120)
+        _, stderr = proc.communicate(timeout=600)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -200,7 +200,7 @@ def test_a_stop_hammered_at_10_hz_on_an_evaluation_sweep_is_one_line_exit_2_and_
                 break
             os.killpg(proc.pid, signal.SIGINT)
             time.sleep(0.1)
-        _, stderr = proc.communicate(timeout=180)
+        _, stderr = proc.communicate(timeout=600)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

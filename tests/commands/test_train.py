@@ -293,7 +293,7 @@ def test_a_signal_during_training_is_one_line_that_says_how_to_resume(tmp_path: 
             break
     proc.send_signal(signal.SIGTERM)
     rest = proc.stderr.read()
-    assert proc.wait(timeout=120) == 2, rest[-3000:]
+    assert proc.wait(timeout=600) == 2, rest[-3000:]
     tail = [ln for ln in rest.splitlines() if ln.strip() and not ln.startswith("semvpr: retriever: epoch")]
     assert tail == [
         f"semvpr: error: stopped by SIGTERM; resume it: python -m semvpr.train ckpt_path=last hydra.run.dir={run}"
@@ -317,7 +317,7 @@ def _eval(cache_dir: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
         cwd=REPO,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
 
 
@@ -379,7 +379,7 @@ def test_localize_matches_the_cached_pipeline(cache_dir: Path, trained_run: Path
         cwd=REPO,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "out" / "localize.json").read_text())
@@ -398,7 +398,7 @@ def test_localize_matches_the_cached_pipeline(cache_dir: Path, trained_run: Path
         cwd=REPO,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
     assert empty.returncode == 2 and "does not exist" in empty.stderr
 

@@ -38,7 +38,7 @@ def cli(tmp: Path, *args: str) -> subprocess.CompletedProcess:
         env={**os.environ, "PYTHONPATH": str(REPO)},
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
 
 

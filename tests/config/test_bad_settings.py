@@ -145,13 +145,13 @@ CASES: dict[str, Case] = {
         EVAL,
         lambda t, c: nordland(t, c, "data.frame_pattern='(x|xx)*(\\d+)\\.jpg'", frame="x" * 40),
         "repeats a repeat or an alternation",
-        timeout=90,
+        timeout=600,
     ),
     "frame_pattern nested repeat": Case(
         EVAL,
         lambda t, c: nordland(t, c, "data.frame_pattern='(?:y+)+z?(\\d+)\\.jpg'", frame="y" * 40),
         "repeats a repeat or an alternation",
-        timeout=90,
+        timeout=600,
     ),
     "frame_pattern backreference": Case(
         EVAL, lambda t, c: nordland(t, c, "data.frame_pattern='(\\d)\\1(\\d*)\\.jpg'"), "backreference"

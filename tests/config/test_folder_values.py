@@ -256,7 +256,7 @@ def test_a_damaged_folder_value_is_one_line_and_exit_2(world: dict[str, Path], t
         cwd=cwd,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]

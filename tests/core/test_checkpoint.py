@@ -148,7 +148,7 @@ def test_cli_refuses_a_hostile_checkpoint_with_one_line(tmp_path: Path, genuine_
         cwd=REPO,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "_target_ is refused" in proc.stderr

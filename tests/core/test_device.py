@@ -165,7 +165,7 @@ def test_a_sweep_runs_one_job_per_visible_gpu() -> None:
 def _lease(folder: str, gpus: list[int], start: mp.synchronize.Barrier, queue: mp.Queue) -> None:
     with GpuLease(Path(folder), gpus) as lease:
         queue.put(lease.index)
-        start.wait(timeout=60)  # hold it until every job has taken one
+        start.wait(timeout=600)  # hold it until every job has taken one
 
 
 def test_sweep_jobs_side_by_side_lease_distinct_gpus(tmp_path: Path) -> None:
@@ -177,9 +177,9 @@ def test_sweep_jobs_side_by_side_lease_distinct_gpus(tmp_path: Path) -> None:
     jobs = [ctx.Process(target=_lease, args=(str(tmp_path), gpus, start, queue)) for _ in gpus]
     for job in jobs:
         job.start()
-    taken = sorted(queue.get(timeout=60) for _ in jobs)
+    taken = sorted(queue.get(timeout=600) for _ in jobs)
     for job in jobs:
-        job.join(timeout=60)
+        job.join(timeout=600)
     assert taken == gpus
     with GpuLease(tmp_path, gpus) as lease:
         assert lease.index == 3
@@ -220,9 +220,9 @@ def test_the_gather_runs_on_the_collective_device_and_returns_to_the_rows_device
     procs = [ctx.Process(target=_gather, args=(r, port, queue)) for r in range(2)]
     for p in procs:
         p.start()
-    results = dict((r, (rows, dev)) for r, rows, dev in (queue.get(timeout=120) for _ in procs))
+    results = dict((r, (rows, dev)) for r, rows, dev in (queue.get(timeout=600) for _ in procs))
     for p in procs:
-        p.join(timeout=60)
+        p.join(timeout=600)
     expected = [[0.0] * 3, [1.0] * 3, [1.0] * 3]
     assert results[0] == (expected, "cpu") and results[1] == (expected, "cpu")
 

@@ -98,7 +98,7 @@ def test_a_sweeps_worker_is_ended_even_when_a_second_signal_kills_a_helper(monke
 
     executor = ProcessPoolExecutor(max_workers=1)
     try:
-        executor.submit(os.getpid).result(timeout=60)
+        executor.submit(os.getpid).result(timeout=600)
         (worker,) = executor._processes.values()
 
         def killed_pgrep(*args: object, **kwargs: object) -> bytes:
@@ -134,7 +134,7 @@ def _run_script(body: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1"}
     code = _STOPPED_AS_AN_ERROR + textwrap.dedent(body)
     return subprocess.run(
-        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
     )
 
 

@@ -223,7 +223,7 @@ CASES: dict[str, Case] = {
     ),
     "gsv_cities csv not UTF-8": Case(TRAIN, lambda t, c: _gsv_csv(t, "cp1252"), "London.csv: not UTF-8 text"),
     "segment CamVid split list a FIFO": Case(
-        ["semvpr.segment"], lambda t, c: _camvid(t, "list a FIFO"), "train.txt is not a regular file", timeout=90
+        ["semvpr.segment"], lambda t, c: _camvid(t, "list a FIFO"), "train.txt is not a regular file", timeout=600
     ),
     "segment CamVid split list not UTF-8": Case(
         ["semvpr.segment"], lambda t, c: _camvid(t, "list not UTF-8"), "train.txt is not UTF-8 text (a byte 0xff"
@@ -234,13 +234,13 @@ CASES: dict[str, Case] = {
     "absolute path in a gsv-cities list": Case(EVAL, _absolute_in_npy, "leaves the folder"),
     "absolute path in a Patch-NetVLAD list": Case(EVAL, _absolute_in_patchnetvlad, "leaves the folder"),
     "NUL in a listed name": Case(EVAL, _nul_in_npy, "control character"),
-    "a gsv-cities list that is a FIFO": Case(EVAL, _fifo_npy_list, "x_qImages.npy is not a regular file", timeout=90),
+    "a gsv-cities list that is a FIFO": Case(EVAL, _fifo_npy_list, "x_qImages.npy is not a regular file", timeout=600),
     "a Patch-NetVLAD list that is a FIFO": Case(
-        EVAL, _fifo_patchnetvlad_list, "db.txt is not a regular file", timeout=90
+        EVAL, _fifo_patchnetvlad_list, "db.txt is not a regular file", timeout=600
     ),
     "16-bit PNG": Case(EVAL, lambda t, c: folder(t, c, _sixteen_bit_png), "PIL mode I"),
     "float TIFF named .jpg": Case(EVAL, lambda t, c: folder(t, c, _float_tiff_as_jpg), "PIL mode F"),
-    "FIFO named .jpg": Case(EVAL, lambda t, c: folder(t, c, _fifo), "not a regular file", timeout=90),
+    "FIFO named .jpg": Case(EVAL, lambda t, c: folder(t, c, _fifo), "not a regular file", timeout=600),
     "localize FIFO named .jpg": Case(
         LOCALIZE,
         lambda t, c: [
@@ -250,7 +250,7 @@ CASES: dict[str, Case] = {
             f"data.root={make_folder(t / 'folder', n=2)}",
         ],
         "not a regular file",
-        timeout=90,
+        timeout=600,
     ),
     "dangling symlink": Case(EVAL, lambda t, c: folder(t, c, dangling), "not found"),
     "looping symlinks": Case(EVAL, lambda t, c: folder(t, c, _looping), "Too many levels of symbolic links"),

@@ -527,7 +527,7 @@ def test_cli_refuses_non_empty_out(tmp_path: Path) -> None:
         env=env,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
     )
     assert proc.returncode == 2, proc.stderr
     line = one_error_line(proc.stderr)
@@ -611,7 +611,7 @@ def test_sigterm_during_generation_is_one_line_and_leaves_nothing(tmp_path: Path
     while time.time() < deadline and not any((tmp_path / "parent").glob(".city.*.tmp/*")):
         time.sleep(0.2)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    _, err = proc.communicate(timeout=600)
     assert proc.returncode == 2, err[-2000:]
     assert one_error_line(err) == "semvpr: error: stopped by SIGTERM; the unfinished dataset was removed"
     assert list(out.parent.iterdir()) == []

@@ -144,7 +144,7 @@ def _tracked_files() -> set[str]:
 
     try:
         out = subprocess.run(
-            ["git", "-C", str(REPO), "ls-files", "-z"], capture_output=True, check=True, timeout=60
+            ["git", "-C", str(REPO), "ls-files", "-z"], capture_output=True, check=True, timeout=600
         ).stdout
     except (OSError, subprocess.SubprocessError):
         out = b""

@@ -370,7 +370,7 @@ def test_a_teacher_directory_never_runs_its_own_code(tmp_path: Path, file: str, 
         input="y\ny\n",
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
         cwd=REPO,
     )
     assert not sentinel.exists()
@@ -408,7 +408,7 @@ def test_a_teacher_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
         [sys.executable, "-c", code],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
         cwd=REPO,
         env={**os.environ, "HF_HUB_OFFLINE": "1"},
     )

@@ -83,7 +83,7 @@ def test_an_alias_bomb_in_a_sweeps_record_costs_nothing(tmp_path: Path) -> None:
     (table / "0" / "eval.json").write_text(json.dumps({"status": "failed", "error": "x"}))
     (table / "0" / ".hydra" / "overrides.yaml").write_text(_alias_bomb(as_list=True))
     for module, sweep in (("semvpr.report", report), ("semvpr.evaltable", table)):
-        proc = cli(module, str(sweep), cwd=tmp_path, timeout=60, limit_gb=3)
+        proc = cli(module, str(sweep), cwd=tmp_path, timeout=600, limit_gb=3)
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert (sweep / "results.md").is_file()
 
@@ -107,7 +107,7 @@ def test_a_sweep_dir_that_is_empty_a_file_or_absent_is_one_line_and_writes_nothi
     problem = {"": "sweep dir: an empty name names no folder", "a_file": "a_file is a file", "absent": "does not exist"}
     for module in ("semvpr.report", "semvpr.evaltable"):
         before = files(tmp_path)
-        proc = cli(module, given, cwd=tmp_path, timeout=60)
+        proc = cli(module, given, cwd=tmp_path, timeout=600)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and problem[given] in lines[0], proc.stderr
         assert "pass the multirun dir" in lines[0] and files(tmp_path) == before

@@ -131,7 +131,7 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
         cwd=cwd,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
 
@@ -188,7 +188,7 @@ def test_a_derived_data_file_is_what_its_script_makes_of_the_report(tmp_path: Pa
         [sys.executable, str(REPO / script), str(copy)],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=600,
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
     assert proc.returncode == 0, proc.stderr

@@ -288,7 +288,7 @@ def test_a_mask_control_is_named_in_its_rows_even_where_no_job_varies_it(tmp_pat
 def test_cli_without_job_dirs_exits_2_with_one_line(tmp_path: Path) -> None:
     for target in (tmp_path, tmp_path / "missing"):
         proc = subprocess.run(
-            [sys.executable, "-m", "semvpr.report", str(target)], capture_output=True, text=True, cwd=REPO, timeout=120
+            [sys.executable, "-m", "semvpr.report", str(target)], capture_output=True, text=True, cwd=REPO, timeout=600
         )
         assert proc.returncode == 2
         lines = proc.stderr.strip().splitlines()
@@ -344,7 +344,7 @@ def test_hydra_multirun_calls_callback(tmp_path: Path) -> None:
         env=env,
         capture_output=True,
         text=True,
-        timeout=180,
+        timeout=600,
     )
     assert proc.returncode == 0, proc.stderr
     (md,) = tmp_path.glob("multiruns/*/*/results.md")

@@ -75,7 +75,7 @@ def test_per_rank_batches_recombine_to_the_single_process_batch(world: int, monk
 
 def _worker(world: int, out: Path) -> dict:
     proc = subprocess.run(
-        [sys.executable, str(WORKER), str(world), str(out)], cwd=REPO, capture_output=True, text=True, timeout=300
+        [sys.executable, str(WORKER), str(world), str(out)], cwd=REPO, capture_output=True, text=True, timeout=600
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return torch.load(out, weights_only=False)
@@ -345,7 +345,7 @@ def test_a_started_rank_whose_rank_0_is_gone_ends_with_one_line(tmp_path: Path) 
         port = listener.getsockname()[1]  # closed below: nothing listens there any more
     log = tmp_path / "rank.log"
     env = {"PYTHONPATH": str(REPO), "LOCAL_RANK": "1", "SEMVPR_DDP_CHECK_IN": str(port)}
-    child = subprocess.run([sys.executable, "-c", _fake_rank_command(log)], env=env, timeout=60)
+    child = subprocess.run([sys.executable, "-c", _fake_rank_command(log)], env=env, timeout=600)
     assert child.returncode == 1
     assert log.read_text().strip() == "refused rank 0 of the DDP job ended before training began; its output says why"
 
