@@ -43,6 +43,7 @@ from semvpr.core.io import write_json, write_npy, write_npz
 from semvpr.core.stops import Interrupted, received_stop, run_stoppable, sweep_stopped_line
 from semvpr.data.places import PlaceSet
 from semvpr.reporting.benchmarks_table import HITS_FILE, RANKS_FILE, write_table
+from semvpr.reporting.exports import SaveSpec, write_exports
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import RECALL_NS, evaluate, first_hit_ranks
 from semvpr.retrieval.retriever import Retriever
@@ -72,6 +73,7 @@ def evaluate_checkpoint(
     given), recorded as ``precision``."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
+    SaveSpec.from_mapping(cfg.get("save"))  # before any pass: a bad value, or h5py missing, is one line
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
@@ -116,6 +118,7 @@ def evaluate_checkpoint(
     out["wall_s"] = round(time.perf_counter() - start, 1)
     out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
     out["top"] = result["predictions"]
+    out["exports"] = (test, db, q)
     return out
 
 
@@ -145,9 +148,12 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
         return
     # ranks.npy and hits.npz first: an eval.json beside them says all are complete.
     ranks = np.asarray(result.pop("ranks"), dtype=np.int32)
+    top = result.pop("top")
+    places, db, q = result.pop("exports")
     write_npy(out_dir / RANKS_FILE, ranks)
-    write_npz(out_dir / HITS_FILE, query_hits(ranks, result.pop("top")))
-    result["files"] = [RANKS_FILE, HITS_FILE]  # what the job wrote beside eval.json
+    write_npz(out_dir / HITS_FILE, query_hits(ranks, top))
+    exported = write_exports(SaveSpec.from_mapping(cfg.get("save")), out_dir, places, db, q, top, places.positives())
+    result["files"] = [RANKS_FILE, HITS_FILE, *exported]  # what the job wrote beside eval.json
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:
         pos = f"   ({result[f'test/R@{n}_pos']:.2f} of queries with positives)" if f"test/R@{n}_pos" in result else ""

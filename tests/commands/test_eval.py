@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 from pathlib import Path
@@ -266,3 +267,79 @@ def test_descriptors_read_the_trunk_maps_from_the_cache_pages(
     held = place_features(test, retriever.backbone, StoreSettings(tuple(size), cache, "ram"))
     assert mapped_file(held.db.trunk.data_ptr()) is None  # the RAM store: the process's own memory
     assert np.array_equal(db, retriever.describe_store(held.db)) and np.array_equal(q, retriever.describe_store(held.q))
+
+
+def _hloc_names(path: Path) -> list[str]:
+    """An hloc global-features file's image names as hloc lists them: the parent group of every dataset."""
+    import h5py
+
+    names: list[str] = []
+    with h5py.File(path, "r") as fh:
+        fh.visititems(
+            lambda _, obj: names.append(obj.parent.name.strip("/")) if isinstance(obj, h5py.Dataset) else None
+        )
+    return sorted(set(names))
+
+
+def test_eval_saves_descriptors_hloc_features_pairs_and_predictions_that_read_back(tmp_path: Path) -> None:
+    """save.descriptors / hloc / predictions: the descriptors with their images, hloc's global-feats.h5 read back
+    as hloc reads it (names from the datasets' groups, ``global_descriptor``), its pairs the nearest database
+    images by those descriptors, and predictions.csv's first rank correct exactly where hits.npz has a hit."""
+    import h5py
+
+    root = make_folder(tmp_path / "city", n=5)
+    run = tmp_path / "run"
+    proc = cli(
+        "semvpr.eval",
+        "experiment=tiny",
+        "ckpt=none",
+        "aggregator=gem",
+        "data=folder",
+        f"data.root={root}",
+        *EVAL_SIZE,
+        "save.descriptors=true",
+        "save.hloc=true",
+        "save.predictions=true",
+        "save.pairs=3",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"hydra.run.dir={run}",
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((run / "eval.json").read_text())
+    exported = ["db_descriptors.npy", "db_images.txt", "q_descriptors.npy", "q_images.txt", "global-feats.h5"]
+    assert result["files"] == ["ranks.npy", "hits.npz", *exported, "pairs-retrieval.txt", "predictions.csv"]
+    db, q = np.load(run / "db_descriptors.npy"), np.load(run / "q_descriptors.npy")
+    db_names, q_names = ((run / f"{s}_images.txt").read_text().splitlines() for s in ("db", "q"))
+    assert (
+        db.shape == (5, result["descriptor_dim"])
+        and q.shape == (5, result["descriptor_dim"])
+        and db.dtype == np.float32
+    )
+    # The folder reader's database and queries are one set's two subfolders: names below its root.
+    assert all(n.startswith("test/database/") for n in db_names) and len(set(q_names)) == 5
+    assert _hloc_names(run / "global-feats.h5") == sorted(db_names + q_names)
+    with h5py.File(run / "global-feats.h5", "r") as fh:
+        read = np.stack([fh[n]["global_descriptor"][()] for n in db_names + q_names])
+    assert np.array_equal(read, np.concatenate([db, q]))
+    distances = ((q[:, None, :].astype(np.float64) - db[None, :, :]) ** 2).sum(-1)
+    nearest = np.argsort(distances, axis=1, kind="stable")[:, :3]
+    pairs = [line.split(" ") for line in (run / "pairs-retrieval.txt").read_text().splitlines()]
+    assert pairs == [[q_names[i], db_names[j]] for i in range(5) for j in nearest[i]]
+    with (run / "predictions.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 15 and [r["rank"] for r in rows[:3]] == ["1", "2", "3"]
+    hits = np.load(run / "hits.npz")["hits"][:, 0]
+    assert [r["correct"] == "true" for r in rows if r["rank"] == "1"] == hits.tolist()
+    for row in rows:
+        i, j = q_names.index(row["query"]), db_names.index(row["database"])
+        assert float(row["distance"]) == pytest.approx(np.sqrt(distances[i, j]), abs=1e-5)
+
+
+def test_a_bad_save_setting_is_one_line_before_any_pass(tmp_path: Path) -> None:
+    proc = cli(
+        "semvpr.eval", "experiment=tiny", "ckpt=none", "save.pairs=0", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path
+    )
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
+        "semvpr: error: save.pairs=0: expected a whole number >= 1 (database images per query)"
+    ], proc.stderr[-2000:]
