@@ -57,7 +57,6 @@ for release in "$@"; do
       "${extra[@]}"
   done
 done
-sweeps_done
 
 {
   echo "# Masks on released models"
@@ -69,3 +68,4 @@ sweeps_done
   done
 } > "$OUT/results.md"
 echo "wrote $OUT/results.md"
+sweeps_done

@@ -36,7 +36,11 @@ def test_run_sh_evaluates_a_release_with_each_mask(tmp_path: Path) -> None:
     releases = [f"{tmp_path / 'cosplace.pth'}:cosplace", f"{tmp_path / 'boq.pth'}={boq_student}"]
     args = ["bash", str(SCRIPT), str(out), str(teacher), str(student), *releases]
     done = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stderr[-2000:]
+    # One job fails by design (below): the script still writes every table, then exits 1 naming that sweep.
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines()[-1].endswith(f"{out / 'eval' / 'cosplace.pth' / 'folder'}"), done.stderr[
+        -2000:
+    ]
     table = (out / "results.md").read_text()
     assert "## cosplace.pth on folder" in table and "## boq.pth on folder" in table
     rows = [line for line in table.splitlines() if "measured:" in line or "failed:" in line]
