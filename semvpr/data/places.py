@@ -382,6 +382,31 @@ def dataset_root(root: str | Path, what: str, key: str, holds: str) -> Path:
     return root
 
 
+def read_utm_folders(database: str | Path, queries: str | Path) -> PlaceSet:
+    """Any two folders of @UTM@-named images (at any depth below each), the database's and the queries', as
+    VPR-methods-evaluation takes them (``--database_folder``, ``--queries_folder``). The set's root is the
+    folders' nearest common parent, which names its images; its name is the two folders'."""
+    folders = {
+        side: dataset_root(folder, f"{side} folder", f"data.{side}=DIR", "@UTM@-named images")
+        for side, folder in (("database", database), ("queries", queries))
+    }
+    paths = {}
+    for side, folder in folders.items():
+        paths[side] = image_files(folder.absolute(), nested=True)
+        if not paths[side]:
+            raise SemvprError(f"{side} folder {folder}: no images (.jpg/.jpeg/.png) found below it")
+    root = Path(os.path.commonpath([f.absolute() for f in folders.values()]))
+    db, q = (paths[s] for s in ("database", "queries"))
+    return PlaceSet(
+        name=f"{folders['database'].name}→{folders['queries'].name}",
+        root=root,
+        db_paths=tuple(db),
+        q_paths=tuple(q),
+        db_utm=np.array([parse_utm_name(p) for p in db], dtype=np.float64),
+        q_utm=np.array([parse_utm_name(p) for p in q], dtype=np.float64),
+    )
+
+
 def read_utm_folder(root: str | Path, split: str) -> PlaceSet:
     """Read `root/images/<split>/{database,queries}/*.jpg` (@UTM@ names); root may also be images/."""
     root = dataset_root(root, "dataset root", "data.root=...", f"images/{split}/database and images/{split}/queries")

@@ -343,3 +343,31 @@ def test_a_bad_save_setting_is_one_line_before_any_pass(tmp_path: Path) -> None:
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
         "semvpr: error: save.pairs=0: expected a whole number >= 1 (database images per query)"
     ], proc.stderr[-2000:]
+
+
+def test_eval_takes_any_two_folders(tmp_path: Path) -> None:
+    """data=folders data.database=DIR data.queries=DIR, as VPR-methods-evaluation takes them."""
+    root = make_folder(tmp_path / "city", n=4)
+    run = tmp_path / "run"
+    proc = cli(
+        "semvpr.eval",
+        "experiment=tiny",
+        "ckpt=none",
+        "aggregator=gem",
+        "data=folders",
+        f"data.database={root / 'images' / 'test' / 'database'}",
+        f"data.queries={root / 'images' / 'test' / 'queries'}",
+        *EVAL_SIZE,
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        f"hydra.run.dir={run}",
+        cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((run / "eval.json").read_text())
+    # Each query is its place's database image again: any model retrieves it first.
+    assert (result["set"], result["database"], result["queries"], result["test/R@1"]) == (
+        "database→queries",
+        4,
+        4,
+        100.0,
+    )

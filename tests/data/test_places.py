@@ -10,7 +10,7 @@ import pytest
 
 from semvpr.core.errors import SemvprError
 from semvpr.data.places import PlaceSet, parse_utm_name, read_dbstruct_mat, read_msls, read_utm_folder
-from tests.helpers import REPO, write_dbstruct, write_jpg, write_msls_cities, write_msls_side
+from tests.helpers import REPO, write_dbstruct, write_image, write_jpg, write_msls_cities, write_msls_side
 
 
 def utm_name(east: float, north: float) -> str:
@@ -273,3 +273,26 @@ def test_a_record_names_a_position_as_the_set_has_it() -> None:
     assert frames.position("db", 0) == {"frame": 12} and frames.position("q", 0) == {"frame": 7}
     nan = np.full((1, 2), np.nan)
     assert PlaceSet("n", ("d",), ("q",), nan, nan, ground_truth=(np.array([0]),)).position("q", 0) == {}
+
+
+def test_any_two_folders_are_a_place_set_named_below_their_common_parent(tmp_path: Path) -> None:
+    """data=folders: VPR-methods-evaluation's --database_folder / --queries_folder, any two folders of @UTM@
+    images (nested at any depth), not the images/<split>/{database,queries} layout."""
+    from semvpr.data.places import read_utm_folders
+
+    db_dir, q_dir = tmp_path / "maps" / "2019" / "db", tmp_path / "phone" / "q"
+    for i, folder in enumerate((db_dir, db_dir / "more", q_dir)):
+        write_image(folder / f"@{585000 + 10 * i:.2f}@4477000.00@17@T@@@@@@@@@@@.jpg", i)
+    places = read_utm_folders(db_dir, q_dir)
+    assert places.root == tmp_path and places.name == "db→q"
+    assert [places.relative(p) for p in places.db_paths] == [
+        "maps/2019/db/@585000.00@4477000.00@17@T@@@@@@@@@@@.jpg",
+        "maps/2019/db/more/@585010.00@4477000.00@17@T@@@@@@@@@@@.jpg",
+    ]
+    assert places.q_utm.tolist() == [[585020.0, 4477000.0]]
+    assert [list(p) for p in places.positives(25.0)] == [[1, 0]]  # within 25 m, nearest first
+    with pytest.raises(SemvprError, match=r"^queries folder .*nowhere is not a directory; set data.queries=DIR"):
+        read_utm_folders(db_dir, tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SemvprError, match=r"^database folder .*empty: no images \(.jpg/.jpeg/.png\) found below it$"):
+        read_utm_folders(tmp_path / "empty", q_dir)
