@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -205,3 +207,27 @@ def test_submitit_local_runs_the_four_way_sweep_with_one_shared_cache(tmp_path: 
     assert len(teachers) == 1
     assert (sweep / "results.md").is_file() and (sweep / "results.csv").is_file()
     assert proc.stdout.count("results.md") <= 1 and proc.stderr.count("wrote the report") <= 1
+
+
+@pytest.mark.parametrize(
+    "command", ["eval", *(pytest.param(c, marks=pytest.mark.slow) for c in ("train", "localize", "segment", "label"))]
+)
+def test_help_says_what_the_command_does_its_settings_and_examples_not_the_config(command: str) -> None:
+    """``--help`` was Hydra's stock config dump (241 lines); each command's says what it does, its main settings
+    (every group option it names is one of the project's config files) and examples."""
+    proc = subprocess.run(
+        [sys.executable, "-m", f"semvpr.{command}", "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0].startswith(f"semvpr.{command}: ") and "Examples:" in lines and len(lines) < 40
+    assert "_target_" not in proc.stdout and f"python -m semvpr.{command} " in proc.stdout
+    groups = {p.name for p in (REPO / "conf").iterdir() if p.is_dir()}
+    for group, options in re.findall(r"\b([a-z_]+)=([a-z0-9_]+(?:\|[a-z0-9_]+)+)", proc.stdout):
+        if group in groups:
+            assert all((REPO / "conf" / group / f"{o}.yaml").is_file() for o in options.split("|")), (group, options)
