@@ -22,7 +22,7 @@ from torch.utils.data import DataLoader
 from semvpr.core.cache import build_once, config_hash, files_identity
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import Progress, progress
-from semvpr.core.precision import autocast, compute_key
+from semvpr.core.precision import autocast, compute_key, device_precision
 from semvpr.data.classes import IGNORE, NUM_CLASSES
 from semvpr.data.images import ImageDataset
 from semvpr.data.segmentation import SegmentationSet
@@ -148,6 +148,9 @@ def fit_student(
     opt = torch.optim.AdamW(student.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=steps, pct_start=0.1)
     device = student.head.weight.device
+    # fp16 (a GPU without native bf16: V100, T4) needs its loss scaled, as Lightning's 16-mixed does; bf16 and
+    # fp32 do not (the scaler then passes everything through).
+    scaler = torch.amp.GradScaler(device.type, enabled=bool(spec.bf16) and device_precision(device.type) == "16-mixed")
     student.train()
     inter = union = 0
     bar = Progress("student", steps, unit="steps")
@@ -170,8 +173,9 @@ def fit_student(
             logits = F.interpolate(logits.float(), size=target.shape[-2:], mode="bilinear", align_corners=False)
             loss = F.cross_entropy(logits, target, ignore_index=IGNORE)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+            scaler.scale(loss).backward()
+            scaler.step(opt)
+            scaler.update()
             sched.step()
             if last:
                 valid = target != IGNORE

@@ -15,7 +15,7 @@ from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import Student, StudentSpec
 from semvpr.segmentation import training as student_mod
 from semvpr.segmentation.pseudolabels import LabelledImages
-from semvpr.segmentation.training import build_student
+from semvpr.segmentation.training import build_student, fit_student
 from tests.helpers import REPO
 
 SIZE = (32, 48)
@@ -159,7 +159,6 @@ def test_a_flipping_student_reads_each_image_or_its_mirror_with_its_labels(
 ) -> None:
     """student.flip: every sample of a batch is an image's own features and labels, or its mirror image's
     features and its labels mirrored; both occur, about half each."""
-    from semvpr.segmentation.training import fit_student
 
     n, h, w = 24, SIZE[0] // 4, SIZE[1] // 4
     student = Student(backbone.frozen_channels, backbone.frozen_strides, strides=(4,), width=8)
@@ -269,3 +268,30 @@ def test_a_student_folder_that_is_not_one_is_one_line(tmp_path: Path) -> None:
     (tmp_path / "tested.ckpt").write_bytes(b"")
     with pytest.raises(SemvprError, match=r"tested.ckpt is a file; student.checkpoint=DIR names a student saved"):
         load_student(tmp_path / "tested.ckpt", None)
+
+
+@pytest.mark.parametrize(("precision", "scaled"), [("16-mixed", True), ("bf16-mixed", False), ("32-true", False)])
+def test_the_student_scales_its_loss_where_it_trains_in_fp16(
+    backbone: VGG16Backbone, monkeypatch: pytest.MonkeyPatch, precision: str, scaled: bool
+) -> None:
+    """On a GPU without native bf16 (V100, T4) the student's half type is fp16, whose gradients underflow
+    without loss scaling (its plain loop had none): there a GradScaler scales the loss, as Lightning's 16-mixed
+    does; in bf16 and fp32 none does."""
+    import semvpr.segmentation.training as training
+
+    monkeypatch.setattr(training, "device_precision", lambda device_type: precision)
+    scales: list[bool] = []
+    real = torch.amp.GradScaler.scale
+
+    def spy(self: torch.amp.GradScaler, outputs: torch.Tensor) -> torch.Tensor:
+        scales.append(self.is_enabled())
+        return real(self, outputs)
+
+    monkeypatch.setattr(torch.amp.GradScaler, "scale", spy)
+    n = 8
+    student = Student(backbone.frozen_channels, backbone.frozen_strides, strides=(4,), width=8)
+    channels = backbone.frozen_channels[student.skip_indices[0]]
+    feats = torch.rand(n, channels, SIZE[0] // 4, SIZE[1] // 4)
+    targets = torch.from_numpy(np.random.default_rng(0).integers(0, 19, (n, *SIZE), dtype=np.uint8))
+    metrics = fit_student(student, [feats], targets, StudentSpec(width=8, epochs=1, batch_size=4, bf16=True))
+    assert scales == [scaled, scaled] and np.isfinite(metrics["train/loss"])
