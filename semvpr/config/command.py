@@ -15,11 +15,11 @@ from pathlib import Path
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
-from semvpr.config.plan import thread_plan
-from semvpr.core.device import resolve
+from semvpr.config.plan import lease_folder, thread_plan
+from semvpr.core.device import GpuLease, resolve, visible_gpus
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, sole_writer
 from semvpr.core.logs import job_label, job_log, job_named, quiet_third_party
@@ -148,11 +148,33 @@ def named_unset(cfg: DictConfig) -> Iterator[None]:
 def model_pass(cfg: DictConfig) -> Iterator[Threads]:
     """The threads and precision (``trainer.precision``) of a command that passes images through a whole model on
     its ``device``, adopted while it runs (yields the threads): the trunk pass dominates, so it runs as the
-    ``frozen`` stage."""
-    device = resolve(cfg.get("device"))
-    threads = thread_plan(cfg, gpu=device.type == "cuda")
-    with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
-        yield threads
+    ``frozen`` stage. A sweep's job with ``device=auto`` or ``cuda`` where several GPUs are visible takes one
+    no other job holds (:func:`leased_gpu`), as a training sweep's job does."""
+    with leased_gpu(cfg):
+        device = resolve(cfg.get("device"))
+        threads = thread_plan(cfg, gpu=device.type == "cuda")
+        with threads.stage("frozen"), job_precision(str(cfg.trainer.precision), device.type):
+            yield threads
+
+
+@contextmanager
+def leased_gpu(cfg: DictConfig) -> Iterator[None]:
+    """In a sweep where several GPUs are visible, ``device=auto`` or ``cuda`` becomes ``cuda:N`` for the job's
+    life, N a GPU that no other job of this or another sweep on the cache holds (``core.device.GpuLease`` in
+    ``config.plan.lease_folder``); every job took cuda:0 before. Elsewhere ``cfg`` is left as it is."""
+    gpus = visible_gpus()
+    word = str(cfg.get("device") or "auto")
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if not (multirun and word in ("auto", "cuda") and len(gpus) > 1):
+        yield
+        return
+    sweep_dir = Path(str(HydraConfig.get().sweep.dir))
+    with GpuLease(lease_folder(Path(str(cfg.paths.cache_dir)), sweep_dir), gpus) as lease, open_dict(cfg):
+        cfg.device = f"cuda:{lease.index}"
+        try:
+            yield
+        finally:
+            cfg.device = word
 
 
 #: The precision an author's release file is evaluated in unless the command line sets ``trainer.precision``:

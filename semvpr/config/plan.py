@@ -322,8 +322,8 @@ def job_device(settings: Settings, leased: int | None = None) -> torch.device:
 
 @contextmanager
 def sweep_gpu(settings: Settings, run_dir: Path) -> Iterator[int | None]:
-    """The GPU a one-GPU job of a sweep takes for its life where several are visible (``GpuLease`` in the
-    sweep directory), so that the jobs a launcher runs side by side never share one; None elsewhere."""
+    """The GPU a one-GPU job of a sweep takes for its life where several are visible (``GpuLease`` in
+    :func:`lease_folder`), so that the jobs launchers run side by side never share one; None elsewhere."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
@@ -333,8 +333,20 @@ def sweep_gpu(settings: Settings, run_dir: Path) -> Iterator[int | None]:
     if not (multirun and gpu_job and len(gpus) > 1):
         yield None
         return
-    with GpuLease(run_dir.parent / ".gpus", gpus) as lease:
+    with GpuLease(lease_folder(settings.storage.cache_dir, run_dir.parent), gpus) as lease:
         yield lease.index
+
+
+def lease_folder(cache_dir: Path, sweep_dir: Path) -> Path:
+    """Where a sweep job's GPU locks live: ``<paths.cache_dir>/.gpus``, shared by every sweep on the machine
+    that uses the cache (two sweeps side by side never take one GPU), or the sweep dir's where the cache
+    cannot be written (a read-only cache holding what the runs read)."""
+    folder = Path(cache_dir) / ".gpus"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return sweep_dir / ".gpus"
+    return folder if os.access(folder, os.W_OK) else sweep_dir / ".gpus"
 
 
 def launcher_jobs() -> int:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from semvpr.config.build import build_retriever, prepare
 from semvpr.config.plan import job_device, job_plan, settings_of
@@ -268,3 +269,36 @@ def test_a_ddp_rank_takes_the_gpu_of_its_local_rank(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 4)
     cfg = tiny_config(Path("/nonexistent"), "trainer=ddp", "trainer.devices=4")
     assert job_device(settings_of(cfg)) == torch.device("cuda", 1)
+
+
+def test_an_evaluation_sweeps_job_takes_a_gpu_no_job_of_any_sweep_on_the_cache_holds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """eval -m and localize -m put every job on cuda:0, and two sweeps side by side both took GPU 0 (the locks
+    were per sweep): with a fake list of three GPUs and GPU 0 held by another sweep's job on the same cache, the
+    job takes GPU 1 for its life, and device=cpu or a job outside a sweep is left alone."""
+    import semvpr.config.command as command
+    from semvpr.config.plan import lease_folder
+
+    cache = tmp_path / "cache"
+    monkeypatch.setattr(command, "visible_gpus", lambda: [0, 1, 2])
+
+    class Sweep:
+        mode = command.RunMode.MULTIRUN
+        sweep = OmegaConf.create({"dir": str(tmp_path / "this-sweep")})
+
+    monkeypatch.setattr(command.HydraConfig, "initialized", staticmethod(lambda: True))
+    monkeypatch.setattr(command.HydraConfig, "get", staticmethod(lambda: Sweep))
+    cfg = OmegaConf.create({"device": "auto", "paths": {"cache_dir": str(cache)}})
+    OmegaConf.set_struct(cfg, True)
+    with GpuLease(lease_folder(cache, tmp_path / "other-sweep"), [0, 1, 2]) as other:
+        assert other.index == 0
+        with command.leased_gpu(cfg):
+            assert cfg.device == "cuda:1"
+    assert cfg.device == "auto"
+    cpu = OmegaConf.create({"device": "cpu", "paths": {"cache_dir": str(cache)}})
+    with command.leased_gpu(cpu):
+        assert cpu.device == "cpu"
+    Sweep.mode = command.RunMode.RUN
+    with command.leased_gpu(cfg):
+        assert cfg.device == "auto"
