@@ -21,6 +21,8 @@ import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
+from lightning.pytorch.callbacks import LearningRateMonitor
+from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
@@ -116,7 +118,9 @@ def train_and_test(
     )
     threads, device = plan.threads, plan.device
     reclaim_orphans(run_dir / "checkpoints")  # what a killed save left (checkpoints are staged there)
-    callbacks = [evaluation, checkpoint, latest, KeepThreads(threads.of("retriever"))]
+    # The learning rate each epoch, as Lightning's own callback logs it (lr-<optimizer>), beside val/R@N.
+    lr = [LearningRateMonitor(logging_interval="epoch")] if training.loggers else []
+    callbacks = [evaluation, checkpoint, latest, *lr, KeepThreads(threads.of("retriever"))]
     trainer = build_trainer(plan, run_dir, callbacks)
     datamodule = build_datamodule(settings, job.features, describe)
     leader = trainer.global_rank == 0
@@ -156,6 +160,11 @@ def train_and_test(
     ran_on = trainer.strategy.root_device  # where fit and test ran (teardown has moved the model to the CPU)
     retriever.to(device)  # the figures' maps are made on the job's device too
     tested = evaluation.results["test"]
+    for logger in trainer.loggers:  # TensorBoard's hparams view: the run's labels with its test R@1
+        if isinstance(logger, TensorBoardLogger):
+            labels = {"aggregator": type(retriever.aggregator).__name__, "mask": settings.model.mask_name}
+            labels |= {"seed": settings.seed, "descriptor_dim": retriever.descriptor_dim}
+            logger.log_hyperparams(labels, metrics={"hp_metric": tested["recalls"][1]})
     write_job_figure_data(
         run_dir,
         job.places["test"],

@@ -114,6 +114,14 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     assert (trained_run / "checkpoints" / "best.ckpt").is_file()
     assert metrics["checkpoint"] == str(trained_run / "checkpoints" / "tested.ckpt")
     assert list((trained_run / "tensorboard").rglob("events.out.tfevents.*"))
+    # TensorBoard holds the learning rate per epoch and hp_metric set to the test R@1 (it stayed -1).
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (events,) = {p.parent for p in (trained_run / "tensorboard").rglob("events.out.tfevents.*")}
+    scalars = EventAccumulator(str(events)).Reload().Tags()["scalars"]
+    accumulated = EventAccumulator(str(events)).Reload()
+    assert any(tag.startswith("lr-") for tag in scalars) and "val/R@1" in scalars, scalars
+    assert accumulated.Scalars("hp_metric")[-1].value == pytest.approx(metrics["test/R@1"], abs=1e-4)
     # The tested weights' epoch is the first with the best val/R@5 in the run's own CSV log (1-based).
     (log,) = list((trained_run / "csv").rglob("metrics.csv"))
     rows = list(csv.DictReader(log.read_text().splitlines()))
