@@ -3,6 +3,8 @@
 #   sweep DIR CMD...    run the sweep CMD (a semvpr.train -m or semvpr.eval -m writing into DIR) unless DIR holds
 #                       it finished already; a stop of the script (SIGINT, SIGTERM) stops the sweep first
 #   sweeps_done         exit 1 naming every sweep that did not end with all its jobs ok
+#   gardens_point DIR DB:Q OVERRIDES...   the evaluation sweep OVERRIDES on Gardens Point's traversals DB
+#                       (database) and Q (queries) under $GARDENS, cached in $CACHE, one thread a job, into DIR
 # A sweep is finished where its table (results.md, written when it ends) counts every job it was given (no
 # "Incomplete" or "Partial" line: none stopped, killed or never started) and no job failed. A stopped or
 # failed sweep runs again on a rerun: its finished jobs read their caches.
@@ -38,4 +40,11 @@ sweeps_done() {
   echo "run.sh: ${#INCOMPLETE[@]} sweep(s) did not end with every job ok (each results.md says which and why);" \
     "rerun run.sh once that is fixed: ${INCOMPLETE[*]}" >&2
   exit 1
+}
+
+gardens_point() {
+  local dir=$1 db=${2%%:*} q=${2##*:}
+  shift 2
+  sweep "$dir" python -m semvpr.eval -m data=gardens_point "data.root=$(hq "$GARDENS")" data.database="$db" \
+    data.queries="$q" "paths.cache_dir=$(hq "$CACHE")" threads=1 "$@" "hydra.sweep.dir=$(hq "$dir")"
 }

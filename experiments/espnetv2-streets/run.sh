@@ -13,15 +13,14 @@ GARDENS=${2:-../shared/realdata/gardens_point}
 ESPNET=${3:-../shared/realdata/segmenters/espnetv2/espnetv2_s_2.0_city_1024x512.pth}
 export HF_HUB_OFFLINE=1
 
+CACHE="$OUT/cache"
 for pair in day_left:night_right day_right:night_right day_left:day_right; do
-  db=${pair%%:*}; q=${pair##*:}
-  dir="$OUT/${db}-${q}"
-  evaluate() {  # evaluate NAME OVERRIDES...: one sweep over both models
+  dir="$OUT/${pair/:/-}"
+  evaluate() {  # evaluate NAME OVERRIDES...: one sweep of the pair over both models
     local name=$1
     shift
-    sweep "$dir/$name" python -m semvpr.eval -m ckpt=none aggregator=gem,netvlad "$@" teacher=espnetv2 \
-      "teacher.checkpoint=$(hq "$ESPNET")" data=gardens_point "data.root=$(hq "$GARDENS")" data.database="$db" \
-      data.queries="$q" "paths.cache_dir=$(hq "$OUT/cache")" threads=1 "hydra.sweep.dir=$(hq "$dir/$name")"
+    gardens_point "$dir/$name" "$pair" ckpt=none aggregator=gem,netvlad teacher=espnetv2 \
+      "teacher.checkpoint=$(hq "$ESPNET")" "$@"
   }
   evaluate masks mask=none,teacher
   evaluate classes mask=teacher mask.control=objects,sky

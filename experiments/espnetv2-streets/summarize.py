@@ -13,14 +13,12 @@ hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``<pair>|<aggre
 
 from __future__ import annotations
 
-import argparse
-import csv
 from pathlib import Path
 
 import numpy as np
 
 from semvpr.core.errors import SemvprError, exit_on_user_error
-from semvpr.reporting.evaluations import read_evaluations
+from semvpr.reporting.evaluations import read_evaluations, summary_input, write_summary
 from semvpr.reporting.paired import LEVEL, corrected_level, paired_gain, pooled_gain
 
 PAIRS = ("day_left-night_right", "day_right-night_right", "day_left-day_right")
@@ -70,23 +68,9 @@ def _row(pair: str, model: str, mask: str, **values: object) -> dict[str, object
     return {"pair": pair, "model": model, "mask": mask, **values}
 
 
-def _interval(gain: object, level: float) -> dict[str, object]:
-    return {
-        "gain": round(gain.gain, 2),
-        "ci_low": round(gain.low, 2),
-        "ci_high": round(gain.high, 2),
-        "excludes_0": "yes" if gain.significant else "no",
-        "level": level,
-    }
-
-
 @exit_on_user_error
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("out", type=Path, help="the folder run.sh wrote")
-    out = ap.parse_args().out
-    if not out.is_dir():
-        raise SemvprError(f"{out} is not a folder run.sh wrote (bash experiments/espnetv2-streets/run.sh OUT)")
+    out = summary_input(__doc__.splitlines()[0], "experiments/espnetv2-streets/run.sh")
     rows: list[dict[str, object]] = []
     saved: dict[str, np.ndarray] = {}
     rates: dict[tuple[str, str, str], np.ndarray] = {}  # (pair, aggregator, condition): each query's R@1 rate
@@ -101,22 +85,15 @@ def main() -> None:
                 recalls = {f"R@{n}": round(float(np.mean([r[f"test/R@{n}"] for r, _ in drawn])), 2) for n in (1, 5, 10)}
                 row = _row(pair.replace("-", " → "), model, label, **recalls)
                 if condition != "none":
-                    row |= _interval(
-                        paired_gain(rates[(pair, aggregator, condition)], rates[(pair, aggregator, "none")]), LEVEL
-                    )
+                    gain = paired_gain(rates[(pair, aggregator, condition)], rates[(pair, aggregator, "none")])
+                    row |= gain.record(LEVEL)
                 rows.append(row)
     level = round(corrected_level(len(CONTRASTS)), 4)
     for condition, reference, label in CONTRASTS:
         keys = [(p, a) for p in PAIRS for a in MODELS]
         gain = pooled_gain([(rates[(*k, condition)], rates[(*k, reference)]) for k in keys], level=level)
-        rows.append(_row("all three", "both", label, **_interval(gain, level)))
-    here = Path(__file__).parent
-    with (here / "results.csv").open("w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    np.savez_compressed(here / "hits.npz", **saved)
-    print(f"wrote {here / 'results.csv'} and {here / 'hits.npz'} ({len(saved)} evaluations)")
+        rows.append(_row("all three", "both", label, **gain.record(level)))
+    write_summary(Path(__file__).parent, FIELDS, rows, saved)
 
 
 if __name__ == "__main__":

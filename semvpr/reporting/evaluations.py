@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -10,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import read_json
+from semvpr.core.io import read_json, write_csv, write_npz
 from semvpr.reporting.benchmarks_table import HITS_FILE
 from semvpr.retrieval.recall import RECALL_NS
 
@@ -50,4 +52,23 @@ def read_evaluations(sweep_dir: Path) -> list[Evaluation]:
             if abs(100.0 * hits[:, column].mean() - result.get(f"test/R@{n}", float("nan"))) > 0.006:
                 raise SemvprError(f"{record.parent}: {HITS_FILE} does not give eval.json's R@{n}")
         out.append(Evaluation(record.parent, result, hits))
+    return out
+
+
+def write_summary(folder: Path, fields: Sequence[str], rows: list[dict[str, Any]], hits: dict[str, np.ndarray]) -> None:
+    """An experiment's summary: ``results.csv`` (``rows`` of ``fields``) and ``hits.npz`` (every evaluation's
+    per-query hits, by the names ``hits`` gives them) in ``folder``, each written whole or not at all."""
+    write_csv(folder / "results.csv", fields, rows)
+    write_npz(folder / "hits.npz", hits)
+    print(f"wrote {folder / 'results.csv'} and {folder / 'hits.npz'} ({len(hits)} evaluations)")
+
+
+def summary_input(description: str, run_sh: str) -> Path:
+    """The folder an experiment's summary reads, from its command line (``summarize.py OUT``: what ``run_sh``
+    wrote); a missing one is one line saying how to make it."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("out", type=Path, help="the folder run.sh wrote")
+    out = parser.parse_args().out
+    if not out.is_dir():
+        raise SemvprError(f"{out} is not a folder run.sh wrote (bash {run_sh} OUT)")
     return out

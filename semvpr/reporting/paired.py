@@ -32,6 +32,17 @@ class PairedGain:
         """Whether the interval excludes 0."""
         return self.low > 0 or self.high < 0
 
+    def record(self, level: float = LEVEL) -> dict[str, object]:
+        """The fields a data file keeps of it (rounded to 0.01 points): ``gain``, ``ci_low``, ``ci_high``,
+        ``excludes_0`` (yes / no) and the interval's ``level``."""
+        return {
+            "gain": round(self.gain, 2),
+            "ci_low": round(self.low, 2),
+            "ci_high": round(self.high, 2),
+            "excludes_0": "yes" if self.significant else "no",
+            "level": level,
+        }
+
     def text(self) -> str:
         """``+3.5 [+0.5, +6.5]`` (a typographic minus)."""
         return f"{self.gain:+.1f} [{self.low:+.1f}, {self.high:+.1f}]".replace("-", "−")
