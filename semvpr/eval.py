@@ -118,7 +118,9 @@ def evaluate_checkpoint(
     out["wall_s"] = round(time.perf_counter() - start, 1)
     out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
     out["top"] = result["predictions"]
-    out["exports"] = (test, db, q)
+    if run_dir is not None:  # the files for other tools it was asked for (save.*), beside eval.json
+        spec = SaveSpec.from_mapping(cfg.get("save"))
+        out["exported"] = write_exports(spec, run_dir, test, db, q, out["top"], test.positives())
     return out
 
 
@@ -148,11 +150,9 @@ def _hydra_main(cfg: DictConfig, out_dir: Path) -> None:
         return
     # ranks.npy and hits.npz first: an eval.json beside them says all are complete.
     ranks = np.asarray(result.pop("ranks"), dtype=np.int32)
-    top = result.pop("top")
-    places, db, q = result.pop("exports")
+    exported = result.pop("exported", [])
     write_npy(out_dir / RANKS_FILE, ranks)
-    write_npz(out_dir / HITS_FILE, query_hits(ranks, top))
-    exported = write_exports(SaveSpec.from_mapping(cfg.get("save")), out_dir, places, db, q, top, places.positives())
+    write_npz(out_dir / HITS_FILE, query_hits(ranks, result.pop("top")))
     result["files"] = [RANKS_FILE, HITS_FILE, *exported]  # what the job wrote beside eval.json
     write_json(out_dir / "eval.json", result)
     for n in RECALL_NS:

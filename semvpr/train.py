@@ -36,7 +36,6 @@ from semvpr.core.io import reclaim_orphans, write_json
 from semvpr.core.logs import say
 from semvpr.core.precision import job_precision, running_precision
 from semvpr.core.stops import (
-    RECEIVED,
     Interrupted,
     lightning_stop,
     received_stop,
@@ -305,9 +304,8 @@ def run_job(cfg: DictConfig, run_dir: Path, multirun: bool = False) -> dict[str,
             return {"status": "failed"}
         raise
     finally:
-        for sig, handler in previous.items():  # not while a stop is being finished: its signals stay caught
-            if not RECEIVED:
-                signal.signal(sig, handler)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     assert metrics is not None  # rank 0
     write_json(run_dir / "metrics.json", metrics)
     summary = {k: round(v, 2) for k, v in metrics.items() if k.startswith("test/R@") and not k.endswith("_pos")}
@@ -320,11 +318,6 @@ def _resumed(cfg: DictConfig, run_dir: Path) -> DictConfig:
     contradicting override or a checkpoint it cannot resume from is refused before anything of the run is
     touched (``ckpt_path=last`` where the run has no ``last.ckpt`` too: Lightning would train from scratch over
     it); any other job's as given (Hydra has replaced its record already)."""
-    if cfg.get("ckpt_path") == "last" and not (run_dir / "checkpoints" / "last.ckpt").is_file():
-        raise SemvprError(
-            f"ckpt_path=last: {run_dir} has no checkpoints/last.ckpt to resume from (a finished run keeps "
-            "tested.ckpt only; a job stopped before its first epoch ended left none); a new run: drop ckpt_path"
-        )
     hydra_cfg = HydraConfig.get()
     record = run_dir / ".hydra" / "config.yaml"
     if cfg.ckpt_path and hydra_cfg.output_subdir is None and hydra_cfg.mode == RunMode.RUN and record.is_file():
@@ -335,6 +328,11 @@ def _resumed(cfg: DictConfig, run_dir: Path) -> DictConfig:
             lambda overrides: hydra.compose(config_name="train", overrides=overrides),
         )
         check_config(cfg, run_dir)
+    if cfg.get("ckpt_path") == "last" and not (run_dir / "checkpoints" / "last.ckpt").is_file():
+        raise SemvprError(
+            f"ckpt_path=last: {run_dir} has no checkpoints/last.ckpt to resume from (a finished run keeps "
+            "tested.ckpt only; a job stopped before its first epoch ended left none); a new run: drop ckpt_path"
+        )
     return cfg
 
 

@@ -199,8 +199,7 @@ def test_ckpt_path_last_on_a_run_without_last_ckpt_is_refused_and_leaves_the_run
     metrics.json and checkpoints."""
     run, cwd = tmp_path / "run", tmp_path / "cwd"
     cwd.mkdir()
-    write_run_record(run, tiny_config(tmp_path / "cache"))
-    (run / "checkpoints").mkdir()
+    (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "tested.ckpt").write_bytes(b"the finished run's weights")
     (run / "metrics.json").write_text('{"status": "ok"}')
     before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
