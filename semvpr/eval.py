@@ -73,7 +73,7 @@ def evaluate_checkpoint(
     given), recorded as ``precision``."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
-    SaveSpec.from_mapping(cfg.get("save"))  # before any pass: a bad value, or h5py missing, is one line
+    save = SaveSpec.from_mapping(cfg.get("save"))  # before any pass: a bad value, or h5py missing, is one line
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
@@ -118,9 +118,8 @@ def evaluate_checkpoint(
     out["wall_s"] = round(time.perf_counter() - start, 1)
     out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
     out["top"] = result["predictions"]
-    if run_dir is not None:  # the files for other tools it was asked for (save.*), beside eval.json
-        spec = SaveSpec.from_mapping(cfg.get("save"))
-        out["exported"] = write_exports(spec, run_dir, test, db, q, out["top"], test.positives())
+    if run_dir is not None and save.any:  # the files for other tools it was asked for (save.*), beside eval.json
+        out["exported"] = write_exports(save, run_dir, test, db, q, out["top"], test.positives())
     return out
 
 
