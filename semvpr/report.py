@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import fcntl
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from semvpr.core.errors import exit_on_user_error
+from semvpr.core.io import open_lock
 from semvpr.core.stops import stop_on_signals
 from semvpr.reporting.sweep import sweep_dir_of
 from semvpr.reporting.sweep_report import print_summary, write_report
@@ -45,7 +47,7 @@ class ReportCallback(Callback):
             return
         try:
             sweep_dir = Path(str(HydraConfig.get().sweep.dir))
-            with open(sweep_dir / ".report.lock", "a") as lock:
+            with os.fdopen(open_lock(sweep_dir / ".report.lock"), "rb") as lock:
                 fcntl.flock(lock, fcntl.LOCK_EX)
                 write_report(sweep_dir, partial=True)
         except Exception as err:  # noqa: BLE001 - the job's own files are the results

@@ -14,10 +14,12 @@ from semvpr.config.components import (
     COMPONENTS,
     component_class,
     constructor_values,
-    loss_class,
+    group_settings,
     options,
+    recipe_of,
     refuse_mistyped_values,
 )
+from semvpr.config.schema import SEED_MAX, SIZE_MAX, Features, GsvRecipe, Model, TripletRecipe, typed
 from semvpr.core.device import GPU_WORDS
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
@@ -26,13 +28,8 @@ from semvpr.core.precision import lightning_precision
 from semvpr.core.spec import MAX_IMAGE_SIDE, number, whole_number
 from semvpr.core.threads import parse_setting
 from semvpr.data.places import check_radius
-from semvpr.models.masks import WEIGHTINGS
 from semvpr.models.released import FORMATS as CKPT_FORMATS
-from semvpr.retrieval.controls import APPLIES, CONTROLS, REMOVED_CLASSES
-from semvpr.retrieval.features import STORAGES
-
-SEED_MAX = 2**32 - 1  # numpy's (and Lightning's seed_everything) range
-SIZE_MAX = 2**31 - 1  # a model size or count: beyond it a tensor's element count overflows torch's kernels
+from semvpr.retrieval.controls import REMOVED_CLASSES
 
 
 def _leaves(node: object, prefix: str = "") -> set[str]:
@@ -429,19 +426,9 @@ def check_model(cfg: DictConfig, where: str = "") -> None:
     try:
         for group in COMPONENTS:
             component_class(cfg, group)
-        for key in ("num_shadows", "eval_batch_size", "init_features", "init_per_image"):
-            whole_number(cfg.model[key], f"model.{key}", 1, SIZE_MAX)
-        whole_number(  # as pytorch-NetVlad's init, which asks for 2 neighbours
-            cfg.model.num_clusters,
-            "model.num_clusters",
-            2,
-            SIZE_MAX,
-            "NetVLAD's α is set from each feature's two nearest centroids",
-        )
-        if cfg.model.get("pca_dim") is not None:
-            whole_number(cfg.model.pca_dim, "model.pca_dim", 1, SIZE_MAX, also="or null: no whitening")
-        number(cfg.model.class_weights.init_logit, "model.class_weights.init_logit", 0)
-        _check_control_values(cfg.mask)
+        typed(Model, cfg.model, "model")
+        group_settings(cfg, "mask")
+        group_settings(cfg, "aggregator")
         values = constructor_values(cfg.aggregator, "aggregator")
         for key, value in values.items():
             _check_size(value, f"aggregator.{key}")
@@ -504,11 +491,16 @@ def _check_retrieval(cfg: DictConfig) -> None:
                 "run resumes from its last.ckpt: ckpt_path=last hydra.run.dir=<its run dir>"
             )
     check_model(cfg)
-    if loss_class(cfg).batches == "places":
-        _check_place_recipe(cfg)
-    else:
-        _check_tuple_recipe(cfg)
-    number(cfg.recipe.class_weights.lr, "recipe.class_weights.lr", 0, above=True)
+    recipe = recipe_of(cfg)
+    if isinstance(recipe, TripletRecipe) and recipe.negative_radius < recipe.positive_radius:
+        raise SemvprError(
+            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
+            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
+        )
+    if isinstance(recipe, GsvRecipe) and str(cfg.trainer.get("strategy", "auto")).startswith("ddp"):
+        raise SemvprError(
+            f"recipe={recipe.name} mines its pairs within the whole batch on one device; use trainer=cpu or trainer=gpu"
+        )
     eval_sets = cfg.data.get("eval_sets")
     if eval_sets is not None and cfg.data.get("eval_on") not in eval_sets:
         raise SemvprError(f"data.eval_on={cfg.data.get('eval_on')!r} is not one of {list(eval_sets)}")
@@ -520,17 +512,8 @@ def _check_retrieval(cfg: DictConfig) -> None:
     whole_number(cfg.data.get("num_workers"), "data.num_workers", 0)
     if cfg.data.get("eval_radius") is not None:
         check_radius(cfg.data.eval_radius, "data.eval_radius")
-    if cfg.features.storage not in STORAGES:
-        raise SemvprError(f"features.storage={cfg.features.storage!r} is not one of {list(STORAGES)}")
-    for key in ("ram_gb", "disk_gb"):
-        number(cfg.features[key], f"features.{key}", 0)
-    for key in ("aggregator.baseline", "mask.upper_bound"):  # the report's flags: any text would read as true
-        flag = OmegaConf.select(cfg, key, default=False)
-        if not isinstance(flag, bool):
-            raise SemvprError(f"{key}={flag!r} must be true or false")
+    typed(Features, cfg.features, "features")
     weighting = cfg.mask.weights
-    if weighting not in WEIGHTINGS:
-        raise SemvprError(f"mask.weights={weighting!r} is not one of {list(WEIGHTINGS)}")
     evaluation = "ckpt" in cfg or OmegaConf.is_missing(cfg, "ckpt")  # the hub names its file as a value, not here
     if not evaluation and cfg.student.get("checkpoint"):
         raise SemvprError(
@@ -544,16 +527,6 @@ def _check_retrieval(cfg: DictConfig) -> None:
         )
     if not evaluation:  # eval applies the invocation's control to the checkpoint's mask (config.restore)
         check_control_fits(cfg.mask, training=True)
-
-
-def _check_control_values(mask: DictConfig) -> None:
-    """``mask.control``, ``mask.apply`` and ``mask.control_seed`` hold values the controls know
-    (``retrieval.controls``)."""
-    for key, known in (("control", CONTROLS), ("apply", APPLIES)):
-        value = mask.get(key)
-        if value not in known:
-            raise SemvprError(f"mask.{key}={_shown(value)!r} is not one of {list(known)}")
-    whole_number(mask.get("control_seed"), "mask.control_seed", 0, SEED_MAX)
 
 
 def check_control_fits(mask: DictConfig, training: bool) -> None:
@@ -647,39 +620,6 @@ def _check_optimization(cfg: DictConfig) -> None:
         raise SemvprError(f"{where} ({target}) refuses its settings: {type(err).__name__}: {err}") from None
     if not all(math.isfinite(group["lr"]) and group["lr"] >= 0 for group in optimizer.param_groups):
         raise SemvprError(f"{where}: the learning rate it schedules becomes {optimizer.param_groups[0]['lr']}")
-
-
-def _check_tuple_recipe(cfg: DictConfig) -> None:
-    """recipe=triplet: mining and batching of tuples."""
-    for key in ("batch_size", "num_negatives", "negative_candidates", "cache_refresh"):
-        whole_number(cfg.recipe[key], f"recipe.{key}", 1)
-    if cfg.recipe.get("queries_per_epoch") is not None:
-        whole_number(cfg.recipe.queries_per_epoch, "recipe.queries_per_epoch", 1, also="or null: all")
-    number(cfg.recipe.margin, "recipe.margin", 0)
-    positive = check_radius(cfg.recipe.positive_radius, "recipe.positive_radius")
-    if check_radius(cfg.recipe.negative_radius, "recipe.negative_radius") < positive:
-        raise SemvprError(
-            f"recipe.negative_radius={cfg.recipe.negative_radius} is below recipe.positive_radius="
-            f"{cfg.recipe.positive_radius}: a negative could then be a positive"
-        )
-
-
-def _check_place_recipe(cfg: DictConfig) -> None:
-    """recipe=gsv: place batches, warm-up, scheduler interval; one device."""
-    recipe = cfg.recipe
-    whole_number(recipe.places_per_batch, "recipe.places_per_batch", 2)
-    whole_number(recipe.images_per_place, "recipe.images_per_place", 2)
-    whole_number(recipe.warmup_steps, "recipe.warmup_steps", 0)
-    separation = recipe.place_separation
-    ok = isinstance(separation, (int, float)) and not isinstance(separation, bool) and math.isfinite(separation)
-    if not ok or separation < 0:
-        raise SemvprError(f"recipe.place_separation={separation!r} must be a finite distance >= 0 (metres)")
-    if recipe.scheduler_interval not in ("epoch", "step"):
-        raise SemvprError(f"recipe.scheduler_interval={recipe.scheduler_interval!r} is not one of ['epoch', 'step']")
-    if str(cfg.trainer.get("strategy", "auto")).startswith("ddp"):
-        raise SemvprError(
-            f"recipe={recipe.name} mines its pairs within the whole batch on one device; use trainer=cpu or trainer=gpu"
-        )
 
 
 def _check_segmentation(cfg: DictConfig) -> None:

@@ -9,6 +9,7 @@ loss (``recipe.loss``) declares the batches it trains on (``batches``) the same 
 from __future__ import annotations
 
 import collections.abc
+import dataclasses
 import inspect
 import typing
 from dataclasses import dataclass
@@ -19,6 +20,14 @@ from hydra.utils import get_class, get_object, instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
+from semvpr.config.schema import (
+    AggregatorSettings,
+    BackboneSettings,
+    GsvRecipe,
+    MaskSettings,
+    TripletRecipe,
+    typed,
+)
 from semvpr.core.errors import SemvprError, allocation_failure, unwrap_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.spec import expected, set_where, unset
@@ -30,21 +39,33 @@ from semvpr.retrieval.losses import Loss, TripletLoss
 
 @dataclass(frozen=True)
 class Group:
-    """A component group: the class its ``_target_`` must be, the group's own settings beside the
-    constructor's values (read by the run, never passed to the class), and whether ``_target_: null`` (none)
-    is one of its choices."""
+    """A component group: the class its ``_target_`` must be, the schema of the group's own settings beside the
+    constructor's values (read by the run, never passed to the class: ``config.schema``), and whether
+    ``_target_: null`` (none) is one of its choices."""
 
     base: type
-    settings: tuple[str, ...]
+    schema: type
     optional: bool = False
+
+    @property
+    def settings(self) -> tuple[str, ...]:
+        """The names of the group's own settings."""
+        return tuple(f.name for f in dataclasses.fields(self.schema))
 
 
 #: The component groups.
 COMPONENTS: dict[str, Group] = {
-    "backbone": Group(Backbone, ("name", "paper_train_from")),
-    "aggregator": Group(Aggregator, ("name", "baseline", "gsv")),
-    "mask": Group(MaskSource, ("name", "upper_bound", "weights", "control", "apply", "control_seed"), optional=True),
+    "backbone": Group(Backbone, BackboneSettings),
+    "aggregator": Group(Aggregator, AggregatorSettings),
+    "mask": Group(MaskSource, MaskSettings, optional=True),
 }
+
+
+def group_settings(cfg: DictConfig, group: str) -> Any:
+    """The group's own settings of ``cfg.<group>``, typed by its schema (``config.schema.typed``)."""
+    node = cfg[group]
+    schema = COMPONENTS[group].schema
+    return typed(schema, {k: node[k] for k in COMPONENTS[group].settings if k in node}, group)
 
 
 def options(group: str) -> list[str]:
@@ -231,3 +252,10 @@ def loss_class(cfg: DictConfig) -> type[Loss]:
         )
     refuse_mistyped(node, cls, str(target))
     return cls
+
+
+def recipe_of(cfg: DictConfig) -> TripletRecipe | GsvRecipe:
+    """``cfg.recipe`` typed by the schema of the batches its loss trains on (:func:`loss_class`): mined tuples
+    (recipe=triplet) or drawn places (recipe=gsv)."""
+    schema = GsvRecipe if loss_class(cfg).batches == "places" else TripletRecipe
+    return typed(schema, cfg.recipe, "recipe")

@@ -22,8 +22,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from semvpr.config.components import component_class, instantiate_node, loss_class
+from semvpr.config.components import component_class, group_settings, instantiate_node, recipe_of
 from semvpr.config.record import record_of
+from semvpr.config.schema import Features, Model, TripletRecipe, typed
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
 from semvpr.core.errors import SemvprError
 from semvpr.core.threads import JOBS_BESIDE, Threads, standard_start_method, usable_cores
@@ -65,8 +66,8 @@ def mask_plan(cfg: DictConfig) -> MaskPlan:
 
 def mask_control(cfg: DictConfig) -> MaskControl:
     """The mask control ``cfg.mask`` sets (checked by ``config.checks``)."""
-    mask = cfg.mask
-    return MaskControl(str(mask.control), str(mask.apply), int(mask.control_seed))
+    mask = group_settings(cfg, "mask")
+    return MaskControl(mask.control, mask.apply, mask.control_seed)
 
 
 @dataclass(frozen=True)
@@ -177,29 +178,25 @@ def data_settings(cfg: DictConfig) -> DataSettings:
 
 def settings_of(cfg: DictConfig, training: bool = False) -> Settings:
     """The settings of a retrieval job of ``cfg``; ``training`` adds its recipe (:class:`Training`)."""
-    model, masks = cfg.model, mask_plan(cfg)
+    model, masks = typed(Model, cfg.model, "model"), mask_plan(cfg)
+    features = typed(Features, cfg.features, "features")
     aggregator = component_class(cfg, "aggregator")
     return Settings(
         seed=int(cfg.seed),
         data=data_settings(cfg),
-        storage=Storage(
-            Path(str(cfg.paths.cache_dir)),
-            str(cfg.features.storage),
-            float(cfg.features.ram_gb),
-            float(cfg.features.disk_gb),
-        ),
+        storage=Storage(Path(str(cfg.paths.cache_dir)), features.storage, features.ram_gb, features.disk_gb),
         model=ModelSettings(
             backbone=cfg.backbone,
             aggregator=cfg.aggregator,
             aggregator_class=aggregator,
             aggregator_name=str(cfg.aggregator.name),
-            pca_dim=int(model.pca_dim) if model.get("pca_dim") else None,
-            eval_batch_size=int(model.eval_batch_size),
-            init=InitSample(int(model.init_features), int(model.init_per_image), int(cfg.seed)),
+            pca_dim=model.pca_dim,
+            eval_batch_size=model.eval_batch_size,
+            init=InitSample(model.init_features, model.init_per_image, int(cfg.seed)),
             weighting=str(cfg.mask.weights),
             mask_name=str(cfg.mask.name),
             static_classes=tuple(cfg.teacher.static_classes),
-            init_logit=float(model.class_weights.init_logit),
+            init_logit=model.class_weights.init_logit,
             record=record_of(cfg),
         ),
         masks=masks,
@@ -213,40 +210,34 @@ def settings_of(cfg: DictConfig, training: bool = False) -> Settings:
 
 def _training(cfg: DictConfig) -> Training:
     """The recipe, trainer and loggers of ``cfg`` (``recipe.batch_size`` is the global batch)."""
-    recipe, seed = cfg.recipe, int(cfg.seed)
-    places = loss_class(cfg).batches == "places"
-    node = recipe.get("loss")
-    scheduler = recipe.get("scheduler")
+    seed, recipe = int(cfg.seed), recipe_of(cfg)
+    node, scheduler = cfg.recipe.get("loss"), cfg.recipe.get("scheduler")
+    tuples = isinstance(recipe, TripletRecipe)
     return Training(
-        mining=None
-        if places
-        else Mining(
-            batch_size=int(recipe.batch_size),
-            cache_refresh=int(recipe.cache_refresh),
+        mining=Mining(
+            batch_size=recipe.batch_size,
+            cache_refresh=recipe.cache_refresh,
             queries_per_epoch=recipe.queries_per_epoch,
             seed=seed,
-            positive_radius=float(recipe.positive_radius),
-            negative_radius=float(recipe.negative_radius),
-            num_negatives=int(recipe.num_negatives),
-            negative_candidates=int(recipe.negative_candidates),
-            margin=float(recipe.margin),
-        ),
-        batching=PlaceBatching(
-            places_per_batch=int(recipe.places_per_batch),
-            images_per_place=int(recipe.images_per_place),
-            separation=float(recipe.place_separation),
-            seed=seed,
+            positive_radius=recipe.positive_radius,
+            negative_radius=recipe.negative_radius,
+            num_negatives=recipe.num_negatives,
+            negative_candidates=recipe.negative_candidates,
+            margin=recipe.margin,
         )
-        if places
+        if tuples
         else None,
+        batching=None
+        if tuples
+        else PlaceBatching(recipe.places_per_batch, recipe.images_per_place, recipe.place_separation, seed),
         optimization=Optimization(
-            instantiate(recipe.optimizer),
+            instantiate(cfg.recipe.optimizer),
             instantiate(scheduler) if scheduler is not None else None,
-            float(recipe.get("margin", 0.1)),
-            float(recipe.class_weights.lr),
-            loss=TripletLoss(float(recipe.margin)) if node is None else instantiate_node(node),
-            warmup_steps=int(recipe.get("warmup_steps", 0)),
-            scheduler_interval=str(recipe.get("scheduler_interval", "epoch")),
+            recipe.margin if tuples else 0.1,
+            recipe.class_weights.lr,
+            loss=TripletLoss(recipe.margin) if node is None else instantiate_node(node),
+            warmup_steps=0 if tuples else recipe.warmup_steps,
+            scheduler_interval="epoch" if tuples else recipe.scheduler_interval,
         ),
         trainer=cfg.trainer,
         loggers=tuple(cfg.logger.values()),

@@ -74,6 +74,7 @@ def from_mapping(cls: type[S], node: Mapping[str, Any], where: str) -> S:
         wanted = expected(hints[name], value)
         if wanted is not None:
             raise SemvprError(f"{where}.{name}={value!r}: expected {wanted}")
+    check_ranges(cls, values, where)
     return cls(**values)  # type: ignore[call-arg]
 
 
@@ -158,3 +159,58 @@ def number(value: object, key: str, low: float, *, above: bool = False, high: fl
 def float32_number(value: Any) -> bool:
     """Whether ``value`` is a number (not a bool) that stays finite as a float32."""
     return isinstance(value, int | float) and not isinstance(value, bool) and abs(value) <= FLOAT32_MAX
+
+
+#: The default of a :func:`setting` that its config file must give (OmegaConf's mandatory value).
+REQUIRED = "???"
+
+
+def setting(
+    default: Any = REQUIRED,
+    *,
+    low: float = 0,
+    high: float | None = None,
+    above: bool = False,
+    choices: tuple[str, ...] = (),
+    also: str = "",
+) -> Any:
+    """A typed settings field with its range beside it: a whole number or number in [``low``, ``high``]
+    (``above``: > ``low``), or one of ``choices``; ``also`` says what else the key takes (``or null: none``)
+    or why the bound is there. Without ``default``, the config file gives the value. Checked by
+    :func:`check_ranges` (``config.schema.typed``, :func:`from_mapping`)."""
+    meta = {"low": low, "high": high, "above": above, "choices": choices, "also": also}
+    if isinstance(default, list | dict):
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def check_ranges(schema: type, values: Mapping[str, Any], key: str) -> None:
+    """Each value of ``values`` (a node's plain values) against its field's :func:`setting` range and kind,
+    nested settings dataclasses too: one line naming ``key.<field>`` and the value as given."""
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):  # type: ignore[arg-type]
+        if f.name not in values:
+            continue
+        value, where, hint = values[f.name], f"{key}.{f.name}", hints[f.name]
+        args = typing.get_args(hint)
+        optional = type(None) in args
+        if optional:
+            if value is None:
+                continue
+            hint = next(a for a in args if a is not type(None))
+        if dataclasses.is_dataclass(hint) and isinstance(value, Mapping):
+            check_ranges(hint, value, where)  # type: ignore[arg-type]
+            continue
+        meta = f.metadata
+        if not meta:
+            continue
+        also = meta["also"] or ("or null" if optional else "")
+        if meta["choices"]:
+            if value not in meta["choices"]:
+                raise SemvprError(f"{where}={value!r} is not one of {list(meta['choices'])}")
+        elif hint is int:
+            whole_number(value, where, int(meta["low"]), None if meta["high"] is None else int(meta["high"]), also)
+        elif hint is float:
+            number(value, where, meta["low"], above=meta["above"], high=meta["high"])
+        elif hint is bool and not isinstance(value, bool):
+            raise SemvprError(f"{where}={value!r} must be true or false")

@@ -91,7 +91,7 @@ Needs = Literal["teacher", "student", "ground_truth"]
 class MaskSource(nn.Module):
     """Gives class probabilities (B,C,H,W) of a batch; ``grid_mask`` reduces them to the grid.
 
-    A mask source is one class and one ``conf/mask/*.yaml`` whose ``module`` node names it; ``needs``
+    A mask source is one class and one ``conf/mask/*.yaml`` whose ``_target_`` names it; ``needs``
     says what the builder must provide.
     """
 

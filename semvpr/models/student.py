@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_dir, read_json, regular_file, write_json
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import from_mapping, image_size, number, whole_number
+from semvpr.core.spec import from_mapping, image_size, setting
 from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, check_class_names
 from semvpr.models.masks import static_vector
 from semvpr.models.weights import check_tensor
@@ -37,21 +37,21 @@ class StudentSpec:
     name: str = "unet"
     #: Strides of the frozen features it decodes (the output is at the smallest).
     strides: Sequence[int] = (4, 8, 16)
-    width: int = 32
+    width: int = setting(32, low=1, high=4096)
     #: Pseudo-label classes that count as static (the binary target).
     static_classes: Sequence[str] = STATIC_NAMES
-    epochs: int = 10
-    batch_size: int = 16
-    lr: float = 3.0e-3
-    weight_decay: float = 1.0e-4
-    bf16: bool = True
-    num_workers: int = 2
+    epochs: int = setting(10, low=1)
+    batch_size: int = setting(16, low=1)
+    lr: float = setting(3.0e-3, above=True)
+    weight_decay: float = setting(1.0e-4)
+    bf16: bool = setting(True)
+    num_workers: int = setting(2)
     #: Train on at most this many of the given images (a fixed random subset; None = all).
-    max_images: int | None = None
+    max_images: int | None = setting(None, low=1, also="or null: all")
     #: Mirror a random half of each batch: the frozen features of each image's mirror image (one more trunk
     #: pass while the student is built; the student is cached) with its labels mirrored. Off: every step as
     #: without the option.
-    flip: bool = False
+    flip: bool = setting(False)
     seed: int = 0
     #: A student directory saved by ``semvpr.segment`` (read by eval, localize and the hub); None = trained.
     checkpoint: str | None = None
@@ -63,18 +63,7 @@ class StudentSpec:
         spec = from_mapping(cls, node, "student")
         if not (spec.strides and all(_count(s, 64) for s in spec.strides)):
             raise SemvprError(f"student.strides={list(spec.strides)!r} is not a list of strides from 1 to 64")
-        if not _count(spec.width, 4096):
-            raise SemvprError(f"student.width={spec.width!r} is not a whole number from 1 to 4096")
         check_class_names(spec.static_classes, "student.static_classes")
-        # Counts and rates: max_images=0 saved an untrained student as a trained one; 0 epochs, a zero batch or
-        # a negative rate was a traceback once the teacher had trained and labelled the set.
-        whole_number(spec.epochs, "student.epochs", 1)
-        whole_number(spec.batch_size, "student.batch_size", 1)
-        number(spec.lr, "student.lr", 0, above=True)
-        number(spec.weight_decay, "student.weight_decay", 0)
-        whole_number(spec.num_workers, "student.num_workers", 0)
-        if spec.max_images is not None:
-            whole_number(spec.max_images, "student.max_images", 1, also="or null: all")
         return spec
 
 

@@ -24,7 +24,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import count, from_mapping, image_size, number, plain, whole_number
+from semvpr.core.spec import count, from_mapping, image_size, plain, setting
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES, check_class_names
 from semvpr.models.backbones import (
     EFFICIENTNET_LITE,
@@ -41,40 +41,28 @@ def _norm_name(name: str) -> str:
     return name.lower().replace("_", " ").replace("-", " ").strip()
 
 
+#: The teachers ``teacher=`` names (``conf/teacher/*.yaml``).
+TEACHERS = ("mask2former", "espnetv2")
+
+
 @dataclass(frozen=True)
 class TeacherTraining:
     """How the embedded teacher trains (``teacher.train``)."""
 
-    epochs: int = 3
-    batch_size: int = 4
-    lr: float = 1.0e-3
-    weight_decay: float = 0.05
-    warmup_steps: int = 50
+    epochs: int = setting(3, low=1)
+    batch_size: int = setting(4, low=1)
+    lr: float = setting(1.0e-3, above=True)
+    weight_decay: float = setting(0.05)
+    warmup_steps: int = setting(50)
     #: The pixel-level backbone learns at lr x this; 0 freezes it (no backward through it).
-    backbone_lr_factor: float = 1.0
-    bf16: bool = True
-    augment: bool = False
-    flip: bool = False
-    num_workers: int = 2
+    backbone_lr_factor: float = setting(1.0)
+    bf16: bool = setting(True)
+    augment: bool = setting(False)
+    flip: bool = setting(False)
+    num_workers: int = setting(2)
     #: Validate every n epochs; None = once, after the last one.
-    val_every: int | None = None
+    val_every: int | None = setting(None, low=1, also="or null: once, after the last epoch")
     seed: int = 0
-
-    def check(self) -> None:
-        """Counts and rates in range, one line naming the setting (``teacher.train.*``) before any work: an
-        epoch count of 0 saved an untrained teacher as a trained one, a negative ``backbone_lr_factor`` trained
-        the encoder uphill, and a zero batch or a negative rate was torch's traceback once the teacher's data
-        was built."""
-        where = "teacher.train"
-        whole_number(self.epochs, f"{where}.epochs", 1)
-        whole_number(self.batch_size, f"{where}.batch_size", 1)
-        number(self.lr, f"{where}.lr", 0, above=True)
-        number(self.weight_decay, f"{where}.weight_decay", 0)
-        whole_number(self.warmup_steps, f"{where}.warmup_steps", 0)
-        number(self.backbone_lr_factor, f"{where}.backbone_lr_factor", 0)
-        whole_number(self.num_workers, f"{where}.num_workers", 0)
-        if self.val_every is not None:
-            whole_number(self.val_every, f"{where}.val_every", 1, also="or null: once, after the last epoch")
 
 
 @dataclass(frozen=True)
@@ -83,7 +71,7 @@ class TeacherSpec:
     its architecture (``model``, the Hugging Face config values) and training settings."""
 
     #: mask2former (a checkpoint directory, or the embedded model) or espnetv2 (its authors' Cityscapes file).
-    name: str = "mask2former"
+    name: str = setting("mask2former", choices=TEACHERS)
     #: mask2former: a Hugging Face id (local cache only) or a local directory, None = the embedded teacher;
     #: espnetv2: the authors' weight file.
     checkpoint: str | None = None
@@ -93,7 +81,7 @@ class TeacherSpec:
     inference_size: Sequence[int] | None = None
     static_classes: Sequence[str] = STATIC_NAMES
     dynamic_classes: Sequence[str] = DYNAMIC_NAMES
-    predict_batch_size: int = 16
+    predict_batch_size: int = setting(16, low=1, high=4096)
     #: Read the retrieval trunk's frozen outputs in place of the pixel encoder where that encoder is the trunk.
     share_trunk: bool = True
     #: [H, W] the embedded teacher trains at.
@@ -106,7 +94,6 @@ class TeacherSpec:
         """From a ``teacher`` config node (unknown keys refused in one line)."""
         values = dict(plain(node))
         values["train"] = from_mapping(TeacherTraining, values.get("train", {}), "teacher.train")
-        values["train"].check()
         spec = from_mapping(cls, values, "teacher")
         spec.check()
         return spec
@@ -114,22 +101,12 @@ class TeacherSpec:
     def check(self) -> None:
         """Sizes and class lists in range (the same rule as the values a teacher directory gives): one line
         naming the setting, before anything is built."""
-        if self.name not in TEACHERS:
-            raise SemvprError(f"teacher.name={self.name!r} is not one of {list(TEACHERS)}")
         if self.inference_size is not None:
             image_size(list(self.inference_size), "teacher.inference_size")
         image_size(list(self.image_size), "teacher.image_size")
         check_class_names(self.static_classes, "teacher.static_classes")
         check_class_names(self.dynamic_classes, "teacher.dynamic_classes", empty=True)
-        if not count(self.predict_batch_size, 1, 4096):
-            raise SemvprError(
-                f"teacher.predict_batch_size={self.predict_batch_size!r} is not a whole number from 1 to 4096"
-            )
         check_embedded_model(self.model, "teacher.model")
-
-
-#: The teachers ``teacher=`` names (``conf/teacher/*.yaml``).
-TEACHERS = ("mask2former", "espnetv2")
 
 
 class Teacher(nn.Module):
