@@ -19,15 +19,25 @@ from semvpr.config.components import (
     recipe_of,
     refuse_mistyped_values,
 )
-from semvpr.config.schema import SEED_MAX, SIZE_MAX, Features, GsvRecipe, Model, TripletRecipe, typed
-from semvpr.core.device import GPU_WORDS
+from semvpr.config.schema import (
+    SIZE_MAX,
+    DataNode,
+    Features,
+    GsvRecipe,
+    Model,
+    RunSettings,
+    SegmentSettings,
+    SegNode,
+    TrainerSettings,
+    TripletRecipe,
+    typed,
+)
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import CONF_DIR, check_dir_path, check_path_text
 from semvpr.core.patterns import bounded_regex
 from semvpr.core.precision import lightning_precision
-from semvpr.core.spec import MAX_IMAGE_SIDE, number, whole_number
+from semvpr.core.spec import number, whole_number
 from semvpr.core.threads import parse_setting
-from semvpr.data.places import check_radius
 from semvpr.models.released import FORMATS as CKPT_FORMATS
 from semvpr.retrieval.controls import REMOVED_CLASSES
 
@@ -320,7 +330,6 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
     eval, localize), the segmentation set's where it has one (segment); ``run_dir``, the directory the
     command writes into, must be usable as written (``core.io.check_dir_path``).
     """
-    whole_number(cfg.seed, "seed", 0, SEED_MAX)
     parse_setting(cfg.get("threads", "auto"))
     check_dir_path(str(cfg.paths.cache_dir), "paths.cache_dir", writable=False)
     if run_dir is not None:
@@ -467,9 +476,7 @@ def _check_size(value: Any, key: str) -> None:
 
 
 def _check_retrieval(cfg: DictConfig) -> None:
-    for key in ("num_figure_queries", "top_k"):  # null too: each is read as a number
-        if key in cfg:
-            whole_number(cfg[key], key, 1)
+    typed(RunSettings, cfg, part=True)
     lr = cfg.recipe.optimizer.get("lr")
     try:
         lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0
@@ -477,7 +484,6 @@ def _check_retrieval(cfg: DictConfig) -> None:
         lr_ok = False
     if not lr_ok:
         raise SemvprError(f"recipe.optimizer.lr={lr!r} must be a number > 0")
-    lightning_precision(str(cfg.trainer.precision), str(cfg.trainer.accelerator))  # supported here, or one line
     _check_trainer(cfg.trainer)
     _check_optimization(cfg)
     if cfg.get("ckpt_path") not in (None, "last"):
@@ -504,14 +510,7 @@ def _check_retrieval(cfg: DictConfig) -> None:
     eval_sets = cfg.data.get("eval_sets")
     if eval_sets is not None and cfg.data.get("eval_on") not in eval_sets:
         raise SemvprError(f"data.eval_on={cfg.data.get('eval_on')!r} is not one of {list(eval_sets)}")
-    size = cfg.data.get("image_size")
-    if not OmegaConf.is_list(size) or len(size) != 2:
-        raise SemvprError(f"data.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
-    for i, side in enumerate(size):
-        whole_number(side, f"data.image_size[{i}]", 1, MAX_IMAGE_SIDE, also="data.image_size is [H, W]")
-    whole_number(cfg.data.get("num_workers"), "data.num_workers", 0)
-    if cfg.data.get("eval_radius") is not None:
-        check_radius(cfg.data.eval_radius, "data.eval_radius")
+    typed(DataNode, cfg.data, "data", part=True)
     typed(Features, cfg.features, "features")
     weighting = cfg.mask.weights
     evaluation = "ckpt" in cfg or OmegaConf.is_missing(cfg, "ckpt")  # the hub names its file as a value, not here
@@ -562,35 +561,20 @@ def _shown(value: Any) -> Any:
 
 
 def _check_trainer(trainer: DictConfig) -> None:
-    """The accelerator (each stage's device follows it: ``config.plan.job_device``), epochs, devices and nodes:
-    whole numbers Lightning accepts, and more than one device only with a DDP strategy (Lightning would
-    otherwise relaunch the whole command line in a second process)."""
-    accelerator = trainer.get("accelerator")
-    if accelerator not in ("cpu", *GPU_WORDS):
-        raise SemvprError(
-            f"trainer.accelerator={accelerator!r} must be cpu or gpu (trainer=cpu, trainer=gpu): every stage runs "
-            "on the device it names"
-        )
-    epochs = trainer.get("max_epochs")
-    if epochs != -1:
-        whole_number(epochs, "trainer.max_epochs", 1, also="or -1: no limit")
-    devices = trainer.get("devices")
-    if devices != -1:
-        whole_number(devices, "trainer.devices", 1, also="or -1: every GPU")
-    whole_number(trainer.get("num_nodes", 1), "trainer.num_nodes", 1)
-    for key, low in (("log_every_n_steps", 1), ("num_sanity_val_steps", -1)):  # null: Lightning's default
-        if trainer.get(key) is not None:
-            whole_number(trainer[key], f"trainer.{key}", low, also="or null: Lightning's default")
+    """The trainer's settings semvpr reads (``config.schema.TrainerSettings``), a precision this machine supports,
+    every epoch's own batches, and more than one device only with a DDP strategy (Lightning would otherwise
+    relaunch the whole command line in a second process)."""
+    settings = typed(TrainerSettings, trainer, "trainer", part=True)
+    lightning_precision(settings.precision, settings.accelerator)  # supported here, or one line
     reload = trainer.get("reload_dataloaders_every_n_epochs", 1)
     if reload != 1 or isinstance(reload, bool):
         raise SemvprError(
             f"trainer.reload_dataloaders_every_n_epochs={'null' if reload is None else reload}: every epoch draws "
             "its own batches (mining, place sampling), so it must be 1"
         )
-    ddp = str(trainer.get("strategy", "auto")).startswith("ddp")
-    if not ddp and (devices != 1 or trainer.get("num_nodes", 1) != 1):
+    if not settings.strategy.startswith("ddp") and (settings.devices != 1 or settings.num_nodes != 1):
         raise SemvprError(
-            f"trainer.devices={devices} needs trainer=ddp (one process per device, started by semvpr); "
+            f"trainer.devices={settings.devices} needs trainer=ddp (one process per device, started by semvpr); "
             f"without it use trainer.devices=1"
         )
 
@@ -623,18 +607,6 @@ def _check_optimization(cfg: DictConfig) -> None:
 
 
 def _check_segmentation(cfg: DictConfig) -> None:
-    if OmegaConf.is_missing(cfg.seg, "root"):
-        raise SemvprError(
-            f"seg.root is not set; pass the {cfg.seg.name} folder, e.g. seg.root=../shared/realdata/camvid"
-        )
-    size = cfg.seg.get("image_size")
-    if not OmegaConf.is_list(size) or len(size) != 2:
-        raise SemvprError(f"seg.image_size={_shown(size)} must be [H, W] (two whole numbers >= 1)")
-    for i, side in enumerate(size):
-        whole_number(side, f"seg.image_size[{i}]", 1, MAX_IMAGE_SIDE, also="seg.image_size is [H, W]")
-    # Read after the segmenters have trained: checked before, not an error an hour in.
-    whole_number(cfg.seg.get("num_workers"), "seg.num_workers", 0)
-    whole_number(cfg.eval_batch_size, "eval_batch_size", 1, SIZE_MAX)
-    whole_number(cfg.num_figure_images, "num_figure_images", 1)
-    if not isinstance(cfg.score_test, bool):
-        raise SemvprError(f"score_test={cfg.score_test!r} must be true or false")
+    """semvpr.segment's settings, read after the segmenters have trained: checked before, not an error an hour in."""
+    typed(SegNode, cfg.seg, "seg", part=True)
+    typed(SegmentSettings, cfg, part=True)

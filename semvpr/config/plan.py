@@ -24,11 +24,9 @@ from omegaconf import DictConfig
 
 from semvpr.config.components import component_class, group_settings, instantiate_node, recipe_of
 from semvpr.config.record import record_of
-from semvpr.config.schema import Features, Model, TripletRecipe, typed
+from semvpr.config.schema import DataNode, Features, Model, RunSettings, TripletRecipe, typed
 from semvpr.core.device import GPU_WORDS, GpuLease, resolve, visible_gpus
-from semvpr.core.errors import SemvprError
 from semvpr.core.threads import JOBS_BESIDE, Threads, standard_start_method, usable_cores
-from semvpr.data.images import RESIZES
 from semvpr.models.masks import MaskSource
 from semvpr.models.student import StudentSpec
 from semvpr.models.teacher import TeacherSpec
@@ -159,20 +157,16 @@ class Settings:
 
 def data_settings(cfg: DictConfig) -> DataSettings:
     """The ``data`` node of ``cfg``, typed."""
-    data = cfg.data
-    radius = data.get("eval_radius")
-    resize = str(data.get("resize", "bilinear"))
-    if resize not in RESIZES:
-        raise SemvprError(f"data.resize={resize!r} is not one of {list(RESIZES)}")
+    data = typed(DataNode, cfg.data, "data", part=True)
     return DataSettings(
-        name=str(data.name),
-        domain=data.get("domain"),
-        image_size=(int(data.image_size[0]), int(data.image_size[1])),
-        num_workers=int(data.num_workers),
-        eval_radius=None if radius is None else float(radius),
-        splits={split: data.get(split) for split in ("train", "val", "test")},
-        segmentation=data.get("segmentation"),
-        resize=resize,
+        name=data.name,
+        domain=data.domain,
+        image_size=(data.image_size[0], data.image_size[1]),
+        num_workers=data.num_workers,
+        eval_radius=data.eval_radius,
+        splits={split: cfg.data.get(split) for split in ("train", "val", "test")},
+        segmentation=cfg.data.get("segmentation"),
+        resize=data.resize,
     )
 
 
@@ -242,7 +236,7 @@ def _training(cfg: DictConfig) -> Training:
         trainer=cfg.trainer,
         loggers=tuple(cfg.logger.values()),
         ckpt_path=cfg.get("ckpt_path"),
-        figure_queries=int(cfg.num_figure_queries),
+        figure_queries=typed(RunSettings, cfg, part=True).num_figure_queries,
     )
 
 

@@ -13,11 +13,13 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, ValidationError
 
+from semvpr.core.device import GPU_WORDS
 from semvpr.core.errors import SemvprError
-from semvpr.core.spec import REQUIRED, check_ranges, setting
+from semvpr.core.spec import MAX_IMAGE_SIDE, REQUIRED, check_ranges, setting
+from semvpr.data.images import RESIZES
 from semvpr.models.masks import WEIGHTINGS
 from semvpr.retrieval.controls import APPLIES, CONTROLS
 
@@ -27,26 +29,41 @@ S = TypeVar("S")
 SIZE_MAX = 2**31 - 1
 
 
-def typed(schema: type[S], node: Any, key: str) -> S:
-    """The config node ``node`` (set at ``key``: ``model``, ``recipe``) as its ``schema`` dataclass, its
-    interpolations resolved; a key the schema lacks, an unset value or one out of its field's type or range is
-    one line naming ``key.<field>`` and the value."""
-    values = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
-    if not isinstance(values, dict):
-        raise SemvprError(f"{key}={values!r} must be a mapping of settings")
+def typed(schema: type[S], node: Any, key: str = "", part: bool = False) -> S:
+    """The config node ``node`` (set at ``key``: ``model``, ``recipe``; "" for the config's top level) as its
+    ``schema`` dataclass, its interpolations resolved; ``part``: only the schema's keys of a node that holds others
+    (a reader's, Lightning's). A key the schema lacks, an unset value or one out of its field's type or range is
+    one line naming the key and the value."""
+    if not isinstance(node, dict | DictConfig):
+        raise SemvprError(f"{key}={node!r} must be a mapping of settings")
+    names = [f.name for f in dataclasses.fields(schema)]  # type: ignore[arg-type]
+    values = {k: _resolved(node, k) for k in node if k in names or not part}
     check_ranges(schema, values, key)
+    at = f"{key}." if key else ""
     try:
         return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), values))  # type: ignore[return-value]
     except ConfigKeyError as err:
-        known = ", ".join(f.name for f in dataclasses.fields(schema))  # type: ignore[arg-type]
         owner = f"{key}={values['name']}" if "name" in values else key
         raise SemvprError(
-            f"{key}.{err.key} is not a setting of {owner} (a typo, or one of another {key}?); its settings: {known}"
+            f"{at}{err.key} is not a setting of {owner} (a typo, or one of another {key}?); its settings: "
+            f"{', '.join(names)}"
         ) from None
     except MissingMandatoryValue as err:
-        raise SemvprError(f"{key}.{err.full_key} is not set; pass it on the command line") from None
-    except ValidationError as err:  # a kind the ranges above leave to OmegaConf (a str for a str field...)
-        raise SemvprError(f"{key}.{err.full_key}={err.value!r}: {str(err).splitlines()[0]}") from None
+        raise SemvprError(
+            f"{at}{err.full_key} is not set; pass it on the command line ({at}{err.full_key}=...)"
+        ) from None
+    except ValidationError as err:  # a kind the ranges leave to OmegaConf (a number for a text, a list for a number)
+        raise SemvprError(f"{at}{err.full_key}={err.value!r}: {str(err).splitlines()[0]}") from None
+
+
+def _resolved(node: Any, key: str) -> Any:
+    """``node[key]`` with its interpolations resolved, as plain values (an unset one as OmegaConf's ``???``)."""
+    if not isinstance(node, DictConfig):
+        return node[key]
+    if OmegaConf.is_missing(node, key):
+        return REQUIRED
+    value = node[key]
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
 @dataclass
@@ -160,3 +177,64 @@ class MaskSettings:
     control: str = setting(choices=CONTROLS)
     apply: str = setting(choices=APPLIES)
     control_seed: int = setting(low=0, high=SEED_MAX)
+
+
+@dataclass
+class RunSettings:
+    """The top-level settings of a retrieval command (train, eval, localize) that its code reads."""
+
+    seed: int = setting(low=0, high=SEED_MAX)
+    #: Test queries whose retrievals and maps the report's figures show.
+    num_figure_queries: int = setting(48, low=1)
+    #: localize: the database places it lists per query.
+    top_k: int = setting(5, low=1)
+
+
+@dataclass
+class TrainerSettings:
+    """The keys of ``trainer`` that semvpr reads itself (the others are Lightning's Trainer arguments, passed on)."""
+
+    accelerator: str = setting(
+        choices=("cpu", *GPU_WORDS), also="trainer=cpu, trainer=gpu: every stage runs on the device it names"
+    )
+    max_epochs: int = setting(-1, low=1, values=(-1,), also="or -1: no limit")
+    devices: int = setting(1, low=1, values=(-1,), also="or -1: every GPU")
+    num_nodes: int = setting(1, low=1)
+    log_every_n_steps: int | None = setting(None, low=1, also="or null: Lightning's default")
+    num_sanity_val_steps: int | None = setting(None, low=-1, also="or null: Lightning's default")
+    strategy: str = "auto"
+    precision: str = REQUIRED
+
+
+@dataclass
+class DataNode:
+    """The keys of ``data`` every place set has (beside its readers'): the image size the models see, loader
+    workers, the evaluation radius, how images are resized, the kind of images (``domain``)."""
+
+    name: str = REQUIRED
+    image_size: tuple[int, int] = setting(low=1, high=MAX_IMAGE_SIDE, also="[H, W]: two whole numbers")
+    num_workers: int = setting(low=0)
+    #: Evaluation positives: the database images within this many metres of a query (null: the set's own).
+    eval_radius: float | None = setting(None, above=True)
+    resize: str = setting("bilinear", choices=RESIZES)
+    domain: str | None = None
+
+
+@dataclass
+class SegNode:
+    """The keys of ``seg`` (semvpr.segment's segmentation set) beside its readers'."""
+
+    name: str = REQUIRED
+    root: str = REQUIRED
+    image_size: tuple[int, int] = setting(low=1, high=MAX_IMAGE_SIDE, also="[H, W]: two whole numbers")
+    num_workers: int = setting(low=0)
+
+
+@dataclass
+class SegmentSettings:
+    """semvpr.segment's top-level settings that its code reads."""
+
+    seed: int = setting(low=0, high=SEED_MAX)
+    eval_batch_size: int = setting(low=1, high=SIZE_MAX)
+    num_figure_images: int = setting(low=1)
+    score_test: bool = setting()

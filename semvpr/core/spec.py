@@ -172,45 +172,56 @@ def setting(
     high: float | None = None,
     above: bool = False,
     choices: tuple[str, ...] = (),
+    values: tuple[Any, ...] = (),
     also: str = "",
 ) -> Any:
     """A typed settings field with its range beside it: a whole number or number in [``low``, ``high``]
-    (``above``: > ``low``), or one of ``choices``; ``also`` says what else the key takes (``or null: none``)
-    or why the bound is there. Without ``default``, the config file gives the value. Checked by
+    (``above``: > ``low``), or one of ``choices``; ``values``: others it takes besides (``-1``: no limit), ``also``
+    says what those mean or why the bound is there. A list or tuple field's range is each item's (a tuple of a
+    fixed length has that many). Without ``default``, the config file gives the value. Checked by
     :func:`check_ranges` (``config.schema.typed``, :func:`from_mapping`)."""
-    meta = {"low": low, "high": high, "above": above, "choices": choices, "also": also}
-    if isinstance(default, list | dict):
-        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
+    meta = {"low": low, "high": high, "above": above, "choices": choices, "values": values, "also": also}
     return dataclasses.field(default=default, metadata=meta)
 
 
-def check_ranges(schema: type, values: Mapping[str, Any], key: str) -> None:
-    """Each value of ``values`` (a node's plain values) against its field's :func:`setting` range and kind,
-    nested settings dataclasses too: one line naming ``key.<field>`` and the value as given."""
+def check_ranges(schema: type, values: Mapping[str, Any], key: str = "") -> None:
+    """Each value of ``values`` (a node's plain values, set at ``key``; "" for the config's top level) against its
+    field's :func:`setting`, nested settings dataclasses too: one line naming the key and the value as given."""
     hints = typing.get_type_hints(schema)
     for f in dataclasses.fields(schema):  # type: ignore[arg-type]
         if f.name not in values:
             continue
-        value, where, hint = values[f.name], f"{key}.{f.name}", hints[f.name]
+        value, where, hint = values[f.name], f"{key}.{f.name}" if key else f.name, hints[f.name]
         args = typing.get_args(hint)
-        optional = type(None) in args
-        if optional:
+        if type(None) in args:
             if value is None:
                 continue
             hint = next(a for a in args if a is not type(None))
         if dataclasses.is_dataclass(hint) and isinstance(value, Mapping):
             check_ranges(hint, value, where)  # type: ignore[arg-type]
-            continue
-        meta = f.metadata
-        if not meta:
-            continue
-        also = meta["also"] or ("or null" if optional else "")
-        if meta["choices"]:
-            if value not in meta["choices"]:
-                raise SemvprError(f"{where}={value!r} is not one of {list(meta['choices'])}")
-        elif hint is int:
-            whole_number(value, where, int(meta["low"]), None if meta["high"] is None else int(meta["high"]), also)
-        elif hint is float:
-            number(value, where, meta["low"], above=meta["above"], high=meta["high"])
-        elif hint is bool and not isinstance(value, bool):
-            raise SemvprError(f"{where}={value!r} must be true or false")
+        elif f.metadata:
+            _check_value(value, hint, f.metadata, where, optional=type(None) in args)
+
+
+def _check_value(value: Any, hint: Any, meta: Mapping[str, Any], where: str, optional: bool) -> None:
+    """One value of a :func:`setting` field of type ``hint``."""
+    also = meta["also"] or ("or null" if optional else "")
+    origin, items = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (list, tuple):
+        fixed = origin is tuple and Ellipsis not in items
+        if not isinstance(value, list | tuple) or (fixed and len(value) != len(items)) or not value:
+            shown = "null" if value is None else repr(value)
+            raise SemvprError(f"{where}={shown} must be {also or 'a list'}")
+        for i, item in enumerate(value):
+            _check_value(item, items[0], {**meta, "also": also}, f"{where}[{i}]", optional=False)
+    elif value in meta["values"] and not isinstance(value, bool):
+        return
+    elif meta["choices"]:
+        if value not in meta["choices"]:
+            raise SemvprError(f"{where}={value!r} is not one of {list(meta['choices'])}{f' ({also})' if also else ''}")
+    elif hint is int:
+        whole_number(value, where, int(meta["low"]), None if meta["high"] is None else int(meta["high"]), also)
+    elif hint is float:
+        number(value, where, meta["low"], above=meta["above"], high=meta["high"])
+    elif hint is bool and not isinstance(value, bool):
+        raise SemvprError(f"{where}={value!r} must be true or false")
