@@ -76,9 +76,10 @@ def evaluate_checkpoint(
     save = SaveSpec.from_mapping(cfg.get("save"))  # before any pass: a bad value, or h5py missing, is one line
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
-    retriever, merged = load_retriever(cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths))
     device = resolve(cfg.get("device"))
-    retriever.to(device)
+    retriever, merged = load_retriever(
+        cfg, explicit, evaluated=lambda: (*test_set().db_paths, *test_set().q_paths), device=device
+    )
     test = test_set()
     test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
     with model_arithmetic(cfg, merged, explicit).run(device.type) as precision:

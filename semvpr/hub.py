@@ -129,10 +129,11 @@ def load_model(
     check_config(cfg)
     explicit = {o.split("=", 1)[0].lstrip("+~") for o in given}
     target = None if untrained else Path(ckpt).expanduser()
-    retriever, merged = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target)
+    where = resolve(str(device))
+    retriever, merged = load_retriever(cfg, explicit, new_images=True, warn=False, ckpt=target, device=where)
     arithmetic = model_arithmetic(cfg, merged, explicit)
     resize = data_settings(merged).resize
-    return HubModel(retriever, arithmetic, image_size, resize).to(resolve(str(device))).eval()
+    return HubModel(retriever, arithmetic, image_size, resize).to(where).eval()
 
 
 def _resized(image_size: Sequence[int] | None, resize: str) -> list[Callable[[object], object]]:

@@ -39,9 +39,10 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
     paths = folder_images(cfg.queries, "queries")
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
-    retriever, merged = load_retriever(cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths))
     device = resolve(cfg.get("device"))
-    retriever.to(device)
+    retriever, merged = load_retriever(
+        cfg, explicit, new_images=True, evaluated=lambda: (*database().db_paths, *paths), device=device
+    )
     places, settings = database(), settings_of(merged)
     size, resize = settings.data.image_size, settings.data.resize
     storage = feature_storage(settings, retriever.backbone, {"test": places})

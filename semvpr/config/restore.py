@@ -29,6 +29,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+import torch
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import get_class
@@ -100,8 +101,10 @@ def load_retriever(
     evaluated: Callable[[], Iterable[Path]] = tuple,
     warn: bool = True,
     ckpt: str | Path | None = None,
+    device: torch.device | None = None,
 ) -> tuple[Retriever, DictConfig]:
-    """The retriever ``cfg.ckpt`` names, in eval mode, and the config it was built with.
+    """The retriever ``cfg.ckpt`` names, in eval mode on ``device`` (default: the CPU), and the config it was
+    built with.
 
     ``explicit``: the keys the command line set (a ``mask=`` there replaces the checkpoint's mask source).
     ``new_images``: the caller describes images that come without label maps (localize, the hub), which a
@@ -111,15 +114,17 @@ def load_retriever(
     ``warn``: print one line when the checkpoint's own mask was trained on another kind of images than
     ``cfg.data`` holds. ``ckpt``: the checkpoint file when it is not ``cfg.ckpt`` (the hub passes its path as
     a value, never through Hydra's override syntax, where ``,``, ``=`` and quotes are syntax and ``${...}``
-    an interpolation).
+    an interpolation). An untrained model is moved to ``device`` before its initialisation, so its trunk pass,
+    k-means and any teacher it trains run there.
 
     A trained checkpoint's model values are checked as a run's are (``check_model``): a record may hold
     values of the right type that no run could use.
     """
     target = cfg.ckpt if ckpt is None else ckpt
     fmt = str(cfg.get("ckpt_format") or "auto")
+    device = torch.device("cpu") if device is None else device
     if is_untrained(target):
-        retriever, merged = untrained_retriever(cfg, explicit, evaluated)
+        retriever, merged = untrained_retriever(cfg, explicit, evaluated, device)
     else:
         path = Path(str(target))
         contents = read_weights(path, "checkpoint" if fmt in ("auto", "semvpr") else "release file")
@@ -356,11 +361,14 @@ def warn_foreign_mask(record: dict[str, Any], merged: DictConfig, where: str) ->
 
 # ----------------------------------------------------------------------------------- ckpt=none
 def untrained_retriever(
-    cfg: DictConfig, explicit: set[str], evaluated: Callable[[], Iterable[Path]] = tuple
+    cfg: DictConfig,
+    explicit: set[str],
+    evaluated: Callable[[], Iterable[Path]] = tuple,
+    device: torch.device | None = None,
 ) -> tuple[Retriever, DictConfig]:
-    """The config's model with no VPR training: the pretrained trunk, the aggregator's untrained form
-    (initialised on ``init.data``'s training database images where it has a sample initialisation) and
-    the mask source from its directory, if any."""
+    """The config's model with no VPR training, on ``device`` (default: the CPU): the pretrained trunk, the
+    aggregator's untrained form (initialised there on ``init.data``'s training database images where it has a
+    sample initialisation) and the mask source from its directory, if any."""
     merged = cfg.copy()
     untrained_aggregator(merged, explicit)
     if merged.model.get("pca_dim"):
@@ -382,6 +390,7 @@ def untrained_retriever(
         )
     backbone = build_backbone(merged.backbone, settings.seed).eval()
     retriever = build_retriever(settings, backbone, build_mask_source(masks, backbone))
+    retriever.to(torch.device("cpu") if device is None else device)
     if retriever.aggregator.init_sample != "none":
         used = initialise_untrained(merged, retriever, evaluated)
         say(f"ckpt=none: {merged.aggregator.name} initialised on {used}")

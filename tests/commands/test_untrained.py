@@ -197,6 +197,37 @@ def test_untrained_netvlad_and_sral_are_a_training_runs_initialisation(tmp_path:
     assert not torch.equal(constructed["centroids"], reference.aggregator.state_dict()["centroids"])
 
 
+def test_an_untrained_model_is_on_the_jobs_device_before_its_initialisation(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """ckpt=none's trunk pass, k-means (and SRAL's teacher) run where the job runs: the retriever is moved to
+    the device load_retriever is given before it is initialised, not after (they ran on the CPU before a GPU
+    job's model moved)."""
+    from semvpr.config import restore
+    from semvpr.retrieval.retriever import Retriever
+
+    events: list[tuple[str, object]] = []
+    to, initialise = Retriever.to, restore.initialise_untrained
+
+    def spy_to(self: Retriever, *args: object, **kwargs: object) -> Retriever:
+        events.append(("to", args[0] if args else kwargs.get("device")))
+        return to(self, *args, **kwargs)
+
+    def spy_initialise(cfg: object, retriever: Retriever, evaluated: object) -> str:
+        events.append(("initialise", next(retriever.backbone.parameters()).device))
+        return initialise(cfg, retriever, evaluated)
+
+    monkeypatch.setattr(Retriever, "to", spy_to)
+    monkeypatch.setattr(restore, "initialise_untrained", spy_initialise)
+    device = torch.device("cpu", 0)  # the CPU under a name no other call moves a module to
+    cfg = config(
+        "+ckpt=none", f"paths.cache_dir={tmp_path}", *TINY_INIT, *SIZE, "aggregator=netvlad", config_name="eval"
+    )
+    restore.load_retriever(cfg, {"aggregator"}, device=device)
+    kinds = [kind for kind, _ in events]
+    assert "initialise" in kinds and ("to", device) in events[: kinds.index("initialise")], events
+
+
 def test_the_kmeans_never_reads_the_evaluated_set(tmp_path: Path) -> None:
     """init.data naming the evaluated images (here a folder whose train split is its test split) is refused."""
     root = make_folder(tmp_path / "folder", n=3)

@@ -113,7 +113,9 @@ CASES: dict[str, Case] = {
     # Lightning would put fit on a GPU its "auto" finds while every other stage ran on the CPU.
     **{
         f"trainer.accelerator={v}": Case(
-            TRAIN, lambda t, c, v=v: [f"trainer.accelerator={v}"], f"trainer.accelerator='{v}' is not one of ['cpu', 'gpu', 'cuda']"
+            TRAIN,
+            lambda t, c, v=v: [f"trainer.accelerator={v}"],
+            f"trainer.accelerator='{v}' is not one of ['cpu', 'gpu', 'cuda']",
         )
         for v in ("tpu", "auto", "CPU")
     },
