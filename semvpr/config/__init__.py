@@ -1,5 +1,6 @@
-"""The one place where configs become objects: ``checks`` refuses bad values, ``components`` finds the
-classes the yaml files name, ``build`` assembles a run's parts, ``restore`` a checkpoint's model,
+"""The one place where configs become objects: ``schema`` types each settings node, ``checks`` refuses bad
+values across them, ``components`` finds the classes the yaml files name, ``build`` assembles a run's parts,
+``restore`` a checkpoint's model,
 ``record`` a checkpoint's model record and the config rebuilt from it, ``runs`` a resumed run's config.
 Everything below this package takes typed values, not a ``DictConfig``."""
 

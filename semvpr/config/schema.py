@@ -1,5 +1,5 @@
 """The typed schema of the config's settings nodes: one dataclass per node, each setting one field whose type and
-range sit beside it (:func:`setting`). :func:`typed` reads a node into its dataclass: OmegaConf refuses a key
+range sit beside it (``core.spec.setting``). :func:`typed` reads a node into its dataclass: OmegaConf refuses a key
 the schema does not have, a value it leaves unset and a value it cannot convert; the fields' ranges and choices
 are checked here, each in one line naming the key as the user sets it. The values themselves live in the yaml
 files (``conf/``); a field without a default must be given there.

@@ -42,6 +42,7 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         ),
         "",
     ),
+    "code_shape.py": (lambda t: [str(REPO / "semvpr" / "core")], "raise SemvprError sites"),
     "ddp.py": (lambda t: ["--db", "8", "--batch", "2", "--steps", "1", "--reps", "1"], "world=2"),
     "eval_memory.py": (
         lambda t: ["--sizes", "10", "20", "--image-size", "64", "80", "--batch", "2", "--workers", "0"],
