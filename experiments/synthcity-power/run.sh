@@ -5,7 +5,8 @@
 # (attention = sral · none, unet = sral · student, mask2former = sral · teacher) and one evaluation sweep of
 # their best checkpoints on that draw's test split, which keeps each query's hits (hits.npz) for the pooled
 # estimate (summarize.py). Seeds run in the outer loop, so a stopped run has every draw at equal depth.
-# Usage, from the repository root (each step is cached; a rerun skips every finished sweep):
+# A cell recorded in cells/ (summarize.py OUT records the finished ones) is skipped: a run goes on from another
+# machine's records. Usage, from the repository root (each step is cached; a rerun skips every finished sweep):
 #   bash experiments/synthcity-power/run.sh OUT [SEEDS] [DRAWS]      (defaults: 15 seeds, 3 draws)
 # One job at a time with one thread (the other core stays free).
 set -euo pipefail
@@ -14,11 +15,13 @@ OUT=$(realpath -m "${1:?usage: run.sh OUT [SEEDS] [DRAWS]}")
 SEEDS=${2:-15}
 DRAWS=${3:-3}
 CACHE="$OUT/cache"
+CELLS="$(dirname "$0")/cells"
 export HF_HUB_OFFLINE=1
 
 for ((seed = 0; seed < SEEDS; seed++)); do
   for ((draw = 0; draw < DRAWS; draw++)); do
     name="seed=$seed,draw=$draw"
+    [ -f "$CELLS/$name.npz" ] && continue
     sweep "$OUT/train/$name" python -m semvpr.train -m filter=attention,unet,mask2former seed="$seed" \
       data.seed="$draw" threads=1 hydra.launcher.n_jobs=1 "paths.cache_dir=$(hq "$CACHE")" \
       "hydra.sweep.dir=$(hq "$OUT/train/$name")"

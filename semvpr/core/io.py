@@ -201,7 +201,7 @@ def write_npy(path: Path, array: Any) -> None:
 
 
 def write_npz(path: Path, arrays: Mapping[str, Any]) -> None:
-    """Write NumPy arrays of numbers or booleans as one uncompressed ``.npz`` atomically."""
+    """Write NumPy arrays of numbers, booleans or text as one uncompressed ``.npz`` atomically (no pickled objects)."""
     import numpy as np
 
     with atomic_file(Path(path)) as handle:

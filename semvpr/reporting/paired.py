@@ -101,6 +101,33 @@ def pooled_gain(
     return PairedGain(float(diffs.mean()), low, high, diffs.shape[1])
 
 
+def seeds_and_queries_gain(
+    sets: Sequence[np.ndarray], level: float = LEVEL, resamples: int = RESAMPLES, seed: int = 0
+) -> PairedGain:
+    """The mean gain over independent query sets (``sets``: one (seeds, queries) array per set, each row a training
+    seed's per-query hits minus its reference's, 0/1 or rates), every set weighted alike, with a ``level``
+    interval from a two-level bootstrap: in each set the training seeds are resampled and, jointly for all of
+    them, the queries. It counts the spread between seeds (what another training draw would give) beside the
+    query sample's, which a bootstrap over the queries alone leaves out."""
+    if not sets:
+        raise ValueError("a gain over sets needs at least one set")
+    diffs = [100.0 * np.asarray(d, dtype=np.float64) for d in sets]
+    if any(d.ndim != 2 or not d.size for d in diffs):
+        raise ValueError(f"each set must be a (seeds, queries) array, got {[d.shape for d in diffs]}")
+    rng = np.random.default_rng(seed)
+    totals = np.zeros(resamples)
+    for d in diffs:
+        n_seeds, n = d.shape
+        for start in range(0, resamples, 1000):
+            k = min(1000, resamples - start)
+            queries = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(k)]) / n
+            seeds = np.stack([np.bincount(rng.integers(0, n_seeds, n_seeds), minlength=n_seeds) for _ in range(k)])
+            per_seed = queries @ d.T  # (k, seeds): each seed's mean over the resampled queries
+            totals[start : start + k] += (per_seed * seeds).sum(axis=1) / n_seeds
+    low, high = _interval(totals / len(diffs), level)
+    return PairedGain(float(np.mean([d.mean() for d in diffs])), low, high, sum(d.shape[1] for d in diffs))
+
+
 def corrected_level(claims: int, level: float = LEVEL) -> float:
     """The coverage each of ``claims`` intervals needs for all of them to hold together at ``level``
     (Bonferroni: the error rate ``1 - level`` split evenly)."""

@@ -97,3 +97,32 @@ def test_a_pooled_gain_resamples_the_queries_jointly_across_its_comparisons() ->
     assert corrected_level(5) == pytest.approx(0.99) and corrected_level(1) == 0.95
     with pytest.raises(ValueError, match="same length"):
         pooled_gain([(hits[0], reference[0]), (hits[1][:10], reference[1][:10])])
+
+
+def test_a_gain_over_seeds_and_sets_counts_the_seeds_spread() -> None:
+    """Seeds that differ by whole offsets widen the interval (another training draw would move the gain); the
+    point estimate is the mean over sets of the mean over seeds and queries; one seed of one set is a query
+    bootstrap as paired_gain's."""
+    from semvpr.reporting.paired import paired_gain, seeds_and_queries_gain
+
+    rng = np.random.default_rng(3)
+    n = 600
+    noise = (rng.random((8, n)) < 0.5).astype(float) - (rng.random((8, n)) < 0.5)
+    offsets = np.linspace(-0.2, 0.2, 8)[:, None]  # seed means from -20 to +20 points
+    spread = np.clip(noise * 0.1 + offsets, -1, 1)
+    tight = np.clip(noise * 0.1 + offsets.mean(), -1, 1)
+    wide = seeds_and_queries_gain([spread, spread[::-1]])
+    narrow = seeds_and_queries_gain([tight, tight])
+    assert np.isclose(wide.gain, 100 * spread.mean()) and np.isclose(narrow.gain, 100 * tight.mean())
+    assert (wide.high - wide.low) > 4 * (narrow.high - narrow.low)
+    # Independent sets: a set's draw moves only its half of the mean.
+    one = seeds_and_queries_gain([tight])
+    assert (narrow.high - narrow.low) < (one.high - one.low)
+    hits = rng.random(n) < 0.7
+    reference = rng.random(n) < 0.6
+    single = seeds_and_queries_gain([(hits.astype(float) - reference)[None]], resamples=20_000)
+    plain = paired_gain(hits, reference, resamples=20_000)
+    assert abs(single.gain - plain.gain) < 1e-9
+    assert abs(single.low - plain.low) < 0.6 and abs(single.high - plain.high) < 0.6
+    with pytest.raises(ValueError):
+        seeds_and_queries_gain([np.zeros(5)])

@@ -1,0 +1,130 @@
+"""The synthcity-power cells recorded from run.sh's folder, and results.csv over every recorded cell.
+
+A *cell* is one training seed and city draw: its three evaluations (SRAL with no mask, the student's, the
+teacher's). ``summarize.py OUT`` first records each cell of OUT whose two sweeps have finished and that is not
+recorded yet: ``cells/seed=<s>,draw=<d>.npz`` here holds each mask's per-query hits at N = 1, 5, 10, 20, every
+evaluation checked against its training run's own test R@1, with the machine it ran on. The records are the
+experiment's data, kept in the repository, so a run stopped on one machine goes on elsewhere (run.sh skips a
+recorded cell). ``summarize.py`` alone summarises the records.
+
+The contrasts, stated before the runs: the R@1 gain of SRAL with the student's mask, and with the teacher's, over
+SRAL without a mask (synthcity-default's protocol), pooled over every training seed and city draw, each draw
+weighted alike; the 95 % interval resamples the training seeds and, jointly for them, the test queries within
+each draw (``reporting.paired.seeds_and_queries_gain``), corrected for the two claims together (Bonferroni). The
+target: an interval half-width of at most 1 R@1 with 15 seeds × 3 draws.
+
+results.csv: per seed and draw, each mask's test R@1 and gain over none; then per draw and pooled, each contrast
+with its interval and the seeds it pools. The pooled rows say how many of the planned cells they hold.
+
+    python experiments/synthcity-power/summarize.py [OUT] [--seeds 15] [--draws 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from semvpr.core import machine
+from semvpr.core.errors import SemvprError, exit_on_user_error
+from semvpr.core.io import read_json, write_csv, write_npz
+from semvpr.reporting.evaluations import read_evaluations
+from semvpr.reporting.paired import LEVEL, corrected_level, seeds_and_queries_gain
+
+HERE = Path(__file__).parent
+CELLS = HERE / "cells"
+MASKS = {"none": "attention", "student": "unet", "teacher": "mask2former"}  # mask: the training filter
+CONTRASTS = (("student", "student's mask − none"), ("teacher", "teacher's mask − none"))
+FIELDS = ("draw", "seed", "contrast", "R@1", "reference_R@1", "gain", "ci_low", "ci_high", "excludes_0", "level")
+CELL_NAME = re.compile(r"seed=(\d+),draw=(\d+)")
+
+
+def checked_cell(out: Path, name: str) -> dict[str, np.ndarray] | None:
+    """One cell's hits by mask from run.sh's folder, each evaluation checked against its training run's test
+    R@1; None where its sweeps have not both finished."""
+    test, train = out / "test" / name, out / "train" / name
+    if not (test / "results.md").is_file() or not (train / "results.md").is_file():
+        return None
+    jobs = {e.result["mask"]: e for e in read_evaluations(test)}
+    if set(jobs) != set(MASKS):
+        raise SemvprError(f"{test}: masks {sorted(jobs)}, expected {sorted(MASKS)}; rerun run.sh")
+    for mask, evaluation in jobs.items():
+        run = Path(str(evaluation.result["checkpoint"])).parents[1]
+        if run.parent != train or f"filter={MASKS[mask]}" not in run.name:
+            raise SemvprError(f"{evaluation.dir}: evaluates {run}, not {name}'s filter={MASKS[mask]} run")
+        trained = read_json(run / "metrics.json", "training metrics")["test/R@1"]
+        if abs(trained - evaluation.result["test/R@1"]) > 0.006:
+            raise SemvprError(f"{evaluation.dir}: R@1 {evaluation.result['test/R@1']} where its run tested {trained}")
+    return {mask: e.hits for mask, e in jobs.items()}
+
+
+def record_cells(out: Path) -> int:
+    """Record every finished cell of ``out`` not recorded yet; the number recorded."""
+    if not (out / "test").is_dir():
+        raise SemvprError(f"{out} holds no evaluation sweeps (bash experiments/synthcity-power/run.sh OUT)")
+    added = 0
+    for folder in sorted((out / "test").iterdir()):
+        if not CELL_NAME.fullmatch(folder.name) or (CELLS / f"{folder.name}.npz").exists():
+            continue
+        hits = checked_cell(out, folder.name)
+        if hits is not None:
+            CELLS.mkdir(exist_ok=True)
+            write_npz(CELLS / f"{folder.name}.npz", {**hits, "machine": np.array(json.dumps(machine.describe()))})
+            added += 1
+    return added
+
+
+def read_cells() -> dict[tuple[int, int], dict[str, np.ndarray]]:
+    """Every recorded cell's hits by mask, by (seed, draw)."""
+    cells = {}
+    for path in sorted(CELLS.glob("*.npz")):
+        match = CELL_NAME.fullmatch(path.stem)
+        with np.load(path, allow_pickle=False) as saved:
+            hits = {mask: saved[mask] for mask in MASKS if mask in saved}
+        if match is None or len(hits) != len(MASKS) or len({h.shape for h in hits.values()}) != 1:
+            raise SemvprError(f"{path} is not a cell record (seed=S,draw=D.npz with the hits of {sorted(MASKS)})")
+        cells[int(match[1]), int(match[2])] = hits
+    return cells
+
+
+@exit_on_user_error
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path, nargs="?", help="the folder run.sh wrote (its finished cells recorded)")
+    parser.add_argument("--seeds", type=int, default=15, help="training seeds planned (run.sh's SEEDS)")
+    parser.add_argument("--draws", type=int, default=3, help="city draws planned (run.sh's DRAWS)")
+    args = parser.parse_args()
+    if args.out is not None:
+        print(f"recorded {record_cells(args.out)} new cell(s) in {CELLS}")
+    cells = {key: hits for key, hits in read_cells().items() if key[0] < args.seeds and key[1] < args.draws}
+    if not cells:
+        raise SemvprError(f"no cell recorded in {CELLS} yet (python experiments/synthcity-power/summarize.py OUT)")
+    level = corrected_level(len(CONTRASTS))
+    rows: list[dict[str, object]] = []
+    diffs: dict[str, dict[int, list[np.ndarray]]] = {m: {} for m, _ in CONTRASTS}
+    for (seed, draw), hits in sorted(cells.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        none = hits["none"][:, 0]
+        for mask, label in CONTRASTS:
+            r1 = hits[mask][:, 0]
+            diffs[mask].setdefault(draw, []).append(r1.astype(float) - none)
+            rows.append({
+                "draw": draw, "seed": seed, "contrast": label, "R@1": round(100 * r1.mean(), 2),
+                "reference_R@1": round(100 * none.mean(), 2), "gain": round(100 * (r1.mean() - none.mean()), 2),
+            })  # fmt: skip
+    planned = f"{len(cells)} of {args.seeds * args.draws} cells"
+    for mask, label in CONTRASTS:
+        for draw, sets in diffs[mask].items():
+            gain = seeds_and_queries_gain([np.stack(sets)], level=level)
+            rows.append({"draw": draw, "seed": f"{len(sets)} seeds", "contrast": label, **gain.record(level)})
+        pooled = seeds_and_queries_gain([np.stack(s) for s in diffs[mask].values()], level=level)
+        rows.append({"draw": "all", "seed": planned, "contrast": label, **pooled.record(level)})
+        print(f"{label}: {pooled.text()} R@1 ({planned}; {LEVEL:.0%} family-wise, {level:.1%} each)")
+    write_csv(HERE / "results.csv", FIELDS, rows)
+    print(f"wrote {HERE / 'results.csv'}")
+
+
+if __name__ == "__main__":
+    main()
