@@ -11,8 +11,6 @@ import json
 import signal
 import sys
 import threading
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,19 +20,25 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from lightning.pytorch.callbacks import LearningRateMonitor
-from lightning.pytorch.loggers import TensorBoardLogger
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from semvpr.config.build import Prepared, build_datamodule, build_retriever, build_trainer, init_aggregator, prepare
+from semvpr.config.build import build_datamodule, build_retriever, build_trainer, init_aggregator
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command, name_swept_keys
-from semvpr.config.plan import JobPlan, job_device, job_threads, settings_of, sweep_gpu
+from semvpr.config.job import (
+    KeepThreads,
+    TrainingJob,
+    job_metrics,
+    log_hyperparams,
+    run_checkpoints,
+    run_labels,
+    tested_facts,
+    training_job,
+)
+from semvpr.config.plan import settings_of
 from semvpr.config.runs import keep_run_record, resumed_config
-from semvpr.core.checkpoint import RunCheckpoint
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import reclaim_orphans, write_json
-from semvpr.core.logs import say
-from semvpr.core.precision import job_precision, running_precision
+from semvpr.core.io import write_json
 from semvpr.core.stops import (
     Interrupted,
     lightning_stop,
@@ -44,220 +48,81 @@ from semvpr.core.stops import (
     sweep_stopped_line,
 )
 from semvpr.reporting.job_files import write_job_figure_data
-from semvpr.reporting.sweep import weights_kind
 from semvpr.reporting.sweep_report import write_report
 from semvpr.retrieval.distributed import sharded
-from semvpr.retrieval.launch import job_ranks, launched_rank
+from semvpr.retrieval.launch import launched_rank
 from semvpr.retrieval.validation import RecallEvaluation
 
 
 def fit_and_test(cfg: DictConfig, run_dir: Path) -> dict[str, Any] | None:
-    """Run one training job: check, build, fit, test, write; returns the metrics to write (None on the
-    ranks other than 0)."""
-    start, timings = time.time(), {}
+    """Run one training job: check, build, fit, test; the metrics to write (None on the ranks other than 0)."""
     check_config(cfg, run_dir)
     settings = settings_of(cfg, training=True)  # the config, typed once: what every builder below reads
-    training, (devices, nodes) = settings.training, settings.ranks
-    assert training is not None
-    if devices * nodes > 1 and not HydraConfig.initialized():
-        raise SemvprError("trainer=ddp starts its ranks from the command line: run it as python -m semvpr.train")
-    overrides = list(HydraConfig.get().overrides.task) if devices * nodes > 1 else []
-    batch = training.mining.batch_size if training.mining is not None else devices * nodes
-    if 0 < batch < devices * nodes:
-        say(
-            f"recipe.batch_size={batch} is the global batch: "
-            f"{devices * nodes - batch} of the {devices * nodes} ranks idle in every step"
-        )
-    precision = str(training.trainer.precision)
-    with sweep_gpu(settings, run_dir) as leased, job_precision(precision, settings.accelerator):
-        device = job_device(settings, leased)
-        plan = JobPlan(device, job_threads(settings, device), settings)  # every stage below runs on plan.device
-        if plan.device.type == "cuda":
-            torch.cuda.set_device(plan.device)
-        job = prepare(plan, timings)  # SynthCity, the teacher, labels, student, trunk caches
-        ranks = job_ranks(devices, nodes, overrides, run_dir, plan.threads.jobs)
-        with ranks as join, plan.threads.stage("retriever"):
-            measured = train_and_test(plan, run_dir, job, timings, start, join)
+    with training_job(settings, run_dir) as job:  # device, precision, threads, ranks; the artifacts prepared
+        measured = train_and_test(job, run_dir)
     return None if measured is None else job_metrics(cfg, measured)
 
 
-def train_and_test(
-    plan: JobPlan,
-    run_dir: Path,
-    job: Prepared,
-    timings: dict[str, float],
-    start: float,
-    join: Callable[[], None],
-) -> dict[str, Any] | None:
-    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; on rank 0 the measures
-    :func:`job_metrics` records (None on the others). ``join`` waits for the DDP ranks this process started
-    (:func:`~semvpr.retrieval.launch.job_ranks`) once rank 0's own work before ``fit`` is done."""
-    # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them):
-    # seed before the aggregator's random layers are drawn and again before its initialisation, so that a
-    # job gives the same numbers whether its artifacts were built just now or read from the cache.
-    settings = plan.settings
-    training = settings.training
+def train_and_test(job: TrainingJob, run_dir: Path) -> dict[str, Any] | None:
+    """Initialise, evaluate untrained (rank 0), fit, test the best checkpoint; on rank 0 what the job measured
+    (None on the others)."""
+    settings, training, prepared = job.settings, job.settings.training, job.prepared
     assert training is not None, "a training job's settings hold its recipe (settings_of(cfg, training=True))"
+    # Building artifacts in this job draws from the global RNGs (a student's training re-seeds them): seed
+    # before the aggregator's random layers are drawn and again before its initialisation, so that a job gives
+    # the same numbers whether its artifacts were built just now or read from the cache.
     L.seed_everything(settings.seed, workers=True, verbose=False)
-    retriever = build_retriever(settings, job.backbone, job.mask_source)
+    retriever = build_retriever(settings, prepared.backbone, prepared.mask_source)
     describe = sharded(retriever.describe_store, settings.model.eval_batch_size)
-    evaluation = RecallEvaluation({s: job.features[s] for s in ("val", "test")}, describe)
-    # Best validation R@5 (Lightning's own selection), and last.ckpt after every epoch
-    # (ModelCheckpoint's save_last only refreshes it when the best changes).
-    checkpoint = RunCheckpoint(
-        dirpath=run_dir / "checkpoints",
-        filename="best",
-        monitor="val/R@5",
-        mode="max",
-        auto_insert_metric_name=False,
-        enable_version_counter=False,  # best.ckpt is this run's, never an earlier run's beside a best-v1.ckpt
-    )
-    latest = RunCheckpoint(
-        dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1, enable_version_counter=False
-    )
-    threads, device = plan.threads, plan.device
-    reclaim_orphans(run_dir / "checkpoints")  # what a killed save left (checkpoints are staged there)
+    evaluation = RecallEvaluation({s: prepared.features[s] for s in ("val", "test")}, describe)
+    best, last = run_checkpoints(run_dir)
     # The learning rate each epoch, as Lightning's own callback logs it (lr-<optimizer>), beside val/R@N.
     lr = [LearningRateMonitor(logging_interval="epoch")] if training.loggers else []
-    callbacks = [evaluation, checkpoint, latest, *lr, KeepThreads(threads.of("retriever"))]
-    trainer = build_trainer(plan, run_dir, callbacks)
-    datamodule = build_datamodule(settings, job.features, describe)
-    leader = trainer.global_rank == 0
-    # The other ranks skip the initialisation: DDP gives them rank 0's weights.
+    trainer = build_trainer(
+        job.plan, run_dir, [evaluation, best, last, *lr, KeepThreads(job.plan.threads.of("retriever"))]
+    )
+    datamodule = build_datamodule(settings, prepared.features, describe)
+    leader = trainer.global_rank == 0  # the other ranks skip the initialisation: DDP gives them rank 0's weights
     L.seed_everything(settings.seed, workers=True, verbose=False)
-    tic = time.time()
-    init_info = init_aggregator(settings, retriever, job) if leader else None
-    timings["init_s"] = time.time() - tic
-    tic = time.time()
-    untrained = evaluation.evaluate(job.features["test"]) if leader else None
-    timings["untrained_eval_s"] = time.time() - tic
-    join()
-    tic = time.time()
-    # A resumed checkpoint is read as data too (tensors, numbers, strings): no pickled code runs.
-    with lightning_stop():
+    with job.timed("init_s"):
+        init_info = init_aggregator(settings, retriever, prepared) if leader else None
+    with job.timed("untrained_eval_s"):
+        untrained = evaluation.evaluate(prepared.features["test"]) if leader else None
+    job.join()
+    with job.timed("fit_s"), lightning_stop():  # a resumed checkpoint is read as data: no pickled code runs
         trainer.fit(retriever, datamodule, ckpt_path=training.ckpt_path, weights_only=True)
-    timings["fit_s"] = time.time() - tic
-    reason = datamodule.nothing_trained() or retriever.nothing_learned()
-    if reason is not None:
+    if (reason := datamodule.nothing_trained() or retriever.nothing_learned()) is not None:
         raise SemvprError(f"{reason}; nothing was trained")
-    tic = time.time()
-    trainer.strategy.barrier("best checkpoint written")
-    retriever.to(device)  # Lightning's teardown moved it to the CPU: the whitening fit runs on the job's device
-    if checkpoint.best_model_path:
-        best = torch.load(checkpoint.best_model_path, map_location="cpu", weights_only=True)
-        retriever.load_state_dict(best["state_dict"])
-    if retriever.whitening is not None:
-        retriever.fit_whitening(job.features["train"].db, describe)
-    with lightning_stop():
-        trainer.test(retriever, datamodule, verbose=False)
-    # The tested model (best weights, fitted whitening): what semvpr.eval should be given.
-    tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
-    trainer.save_checkpoint(tested_ckpt, weights_only=True)  # no optimizer state: eval needs none
-    timings["test_s"] = time.time() - tic
+    with job.timed("test_s"):
+        trainer.strategy.barrier("best checkpoint written")
+        retriever.to(job.plan.device)  # Lightning's teardown moved it to the CPU: whitening fits on the device
+        if best.best_model_path:
+            retriever.load_state_dict(
+                torch.load(best.best_model_path, map_location="cpu", weights_only=True)["state_dict"]
+            )
+        if retriever.whitening is not None:
+            retriever.fit_whitening(prepared.features["train"].db, describe)
+        with lightning_stop():
+            trainer.test(retriever, datamodule, verbose=False)
+        # The tested model (best weights, fitted whitening, no optimizer state): what semvpr.eval should be given.
+        tested_ckpt = run_dir / "checkpoints" / "tested.ckpt"
+        trainer.save_checkpoint(tested_ckpt, weights_only=True)
     if not leader:
         return None
-    ran_on = trainer.strategy.root_device  # where fit and test ran (teardown has moved the model to the CPU)
-    retriever.to(device)  # the figures' maps are made on the job's device too
     tested = evaluation.results["test"]
-    for logger in trainer.loggers:  # TensorBoard's hparams view: the run's labels with its test R@1
-        if isinstance(logger, TensorBoardLogger):
-            labels = {"aggregator": type(retriever.aggregator).__name__, "mask": settings.model.mask_name}
-            labels |= {"seed": settings.seed, "descriptor_dim": retriever.descriptor_dim}
-            logger.log_hyperparams(labels, metrics={"hp_metric": tested["recalls"][1]})
+    log_hyperparams(trainer, retriever, settings, tested["recalls"][1])
+    retriever.to(job.plan.device)  # the figures' maps are made on the job's device too
     write_job_figure_data(
         run_dir,
-        job.places["test"],
-        job.features["test"],
+        prepared.places["test"],
+        prepared.features["test"],
         retriever,
         tested["predictions"],
         training.figure_queries,
         settings.model.mask_name,
     )
-    class_weights = retriever.class_weights
-    return {
-        "descriptor_dim": retriever.descriptor_dim,
-        "class_weights": class_weights.named_weights() if class_weights is not None else None,
-        **{f"test/R@{n}": v for n, v in tested["recalls"].items()},
-        **{f"test/R@{n}_pos": v for n, v in tested["recalls_pos"].items()},
-        **{f"untrained/test/R@{n}": v for n, v in untrained["recalls"].items()},
-        "recalls": {str(n): v for n, v in tested["curve"].items()},
-        "test_queries_without_positives": tested["num_without_positives"],
-        "feature_storage": job.storage,
-        "checkpoint": str(tested_ckpt),
-        "best/val/R@5": float(checkpoint.best_model_score) if checkpoint.best_model_score is not None else None,
-        "best/val/R@1": evaluation.best_val["R@1"] if evaluation.best_val else None,
-        # The epoch the tested weights come from (chosen on val): None for a checkpoint from before it was kept.
-        "best/epoch": evaluation.best_val.get("epoch") if evaluation.best_val else None,
-        **datamodule.epoch_facts(),
-        "aggregator_init": init_info,
-        "threads": threads.record(),
-        # Where fit and test ran (the builders put every earlier stage on the same device) and how.
-        "device": str(ran_on),
-        "distributed": {
-            "world_size": trainer.world_size,
-            "backend": torch.distributed.get_backend() if torch.distributed.is_initialized() else None,
-        },
-        "precision": running_precision(),
-        "timings": timings,
-        "wall_time_s": time.time() - start,
-    }
-
-
-class KeepThreads(L.Callback):
-    """Keep the retriever stage's thread count inside fit and test: Lightning's DDP launcher sets its own
-    (cores / ranks) when OMP_NUM_THREADS is unset."""
-
-    def __init__(self, threads: int) -> None:
-        self.threads = threads
-
-    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        torch.set_num_threads(self.threads)
-
-
-def job_metrics(cfg: DictConfig, measured: dict[str, Any]) -> dict[str, Any]:
-    """The job's metrics.json: what ran (``cfg``'s labels, its data and recipe) and what ``measured`` holds
-    (:func:`train_and_test`'s: the test recalls, trained and untrained, and the run's facts)."""
-    return {
-        "status": "ok",
-        "error": None,
-        **run_labels(cfg),
-        "data": cfg.data.name,
-        # The recipe's settings as this run resolved them (each aggregator's schedule under recipe=gsv).
-        "recipe_settings": {
-            k: v for k, v in OmegaConf.to_container(cfg.recipe, resolve=True).items() if k != "default"
-        },
-        **measured,
-    }
-
-
-def run_labels(cfg: DictConfig) -> dict[str, Any]:
-    """What the report groups a run by: aggregator, the recipe it trained with, mask, its weighting and
-    control, backbone and what its weights are (imagenet, none or file), seed; ``filter`` is the preset the config
-    started from (an explicit aggregator= or mask= may have replaced its choices)."""
-    return {
-        "aggregator": cfg.aggregator.get("name"),
-        "recipe": cfg.recipe.get("name"),
-        "baseline_aggregator": bool(cfg.aggregator.get("baseline", False)),
-        "mask": cfg.mask.get("name"),
-        "weights": cfg.mask.get("weights"),
-        "mask_upper_bound": bool(cfg.mask.get("upper_bound", False)),
-        # The mask's control (retrieval.controls): none and both for the source's own mask on every image.
-        "mask_control": cfg.mask.get("control"),
-        "mask_apply": cfg.mask.get("apply"),
-        "mask_control_seed": cfg.mask.get("control_seed"),
-        "backbone": cfg.backbone.get("name"),
-        "backbone_weights": weights_kind(cfg.backbone.get("weights")),
-        "filter": cfg.filter.get("name"),
-        "seed": _seed_of(cfg),
-    }
-
-
-def _seed_of(cfg: DictConfig) -> int | str | None:
-    """The seed as recorded: a whole number, or as given when it is not one (a refused job's record)."""
-    try:
-        return int(cfg.get("seed"))
-    except (TypeError, ValueError):
-        return None if cfg.get("seed") is None else str(cfg.get("seed"))
+    facts = tested_facts(job, trainer, retriever, tested, untrained, best, evaluation.best_val)
+    return {**facts, "checkpoint": str(tested_ckpt), **datamodule.epoch_facts(), "aggregator_init": init_info}
 
 
 def interrupted_line(stop: Interrupted) -> str:

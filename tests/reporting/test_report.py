@@ -54,7 +54,7 @@ ROW = {f: f"{a} · {m}" for f, (a, m) in PRESETS.items()}
 
 
 def _labels(filter_: str, aggregator: str | None = None, mask: str | None = None) -> dict:
-    """What a run records to be grouped by (semvpr.train.run_labels)."""
+    """What a run records to be grouped by (semvpr.config.job.run_labels)."""
     aggregator = aggregator or PRESETS[filter_][0]
     mask = mask or PRESETS[filter_][1]
     return {
