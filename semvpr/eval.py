@@ -28,38 +28,99 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command, model_arithmetic, model_pass
 from semvpr.config.plan import data_settings, settings_of
-from semvpr.config.restore import explicit_keys, is_untrained, load_retriever
+from semvpr.config.restore import explicit_keys, is_untrained, load_retriever, with_place_set
+from semvpr.config.schema import EvalPca, typed
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError, one_line
 from semvpr.core.io import write_json, write_npy, write_npz
+from semvpr.core.logs import say
+from semvpr.core.precision import autocast, fp32
 from semvpr.core.stops import Interrupted, received_stop, run_stoppable, sweep_stopped_line
+from semvpr.data.images import load_image
 from semvpr.data.places import PlaceSet
+from semvpr.models.whitening import PCAWhitening
 from semvpr.reporting.benchmarks_table import HITS_FILE, RANKS_FILE, write_table
 from semvpr.reporting.exports import SaveSpec, write_exports
+from semvpr.reporting.prediction_images import MaskOf
 from semvpr.retrieval.descriptors import place_descriptors
+from semvpr.retrieval.features import grid_size
 from semvpr.retrieval.recall import RECALL_NS, evaluate, first_hit_ranks
 from semvpr.retrieval.retriever import Retriever
 
 
-def describe(retriever: Retriever, cfg: DictConfig, places: PlaceSet) -> tuple[np.ndarray, np.ndarray]:
-    """Database and query descriptors of ``places`` (``retrieval.descriptors``: from the cached trunk outputs
-    and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say stream),
-    under the mask control of ``cfg.mask`` (``retrieval.controls``)."""
+def describe(
+    retriever: Retriever, cfg: DictConfig, places: PlaceSet, sides: tuple[str, ...] = ("db", "q")
+) -> tuple[np.ndarray, ...]:
+    """The descriptors of ``places``' database and queries (``sides``; ``retrieval.descriptors``: from the cached
+    trunk outputs and masks, memory-mapped, or from the images where ``features.storage`` and the set's size say
+    stream), under the mask control of ``cfg.mask`` (``retrieval.controls``)."""
     settings = settings_of(cfg)
-    storage = feature_storage(settings, retriever.backbone, {"test": places})
+    storage = feature_storage(settings, retriever.backbone, {"set": places})
     size, cache, control = settings.data.image_size, settings.storage.cache_dir, settings.masks.control
     resize = settings.data.resize
-    return tuple(  # type: ignore[return-value]
-        place_descriptors(retriever, places, side, size, cache, storage, control, resize) for side in ("db", "q")
-    )
+    return tuple(place_descriptors(retriever, places, side, size, cache, storage, control, resize) for side in sides)
+
+
+def fitted_pca(
+    cfg: DictConfig, retriever: Retriever, merged: DictConfig, evaluated: PlaceSet
+) -> tuple[PCAWhitening, dict[str, Any]] | None:
+    """The PCA-whitening ``pca.dim`` asks for (the benchmark's ``--pca_dim`` with ``--pca_dataset_folder``) and
+    what it was fitted on: the model's descriptors of the training database images of the place set ``pca.data``
+    names, described as the evaluated database is (its image size and resize, the mask and its control), never an
+    evaluated image; None without ``pca.dim``."""
+    pca = typed(EvalPca, cfg.get("pca") or {"data": "synthcity"}, "pca")
+    if pca.dim is None:
+        return None
+    if retriever.whitening is not None:
+        raise SemvprError(
+            f"pca.dim={pca.dim}: {cfg.ckpt} has its own PCA-whitening (model.pca_dim={merged.model.pca_dim}), "
+            "fitted after its training; drop pca.dim, or give a checkpoint trained with model.pca_dim=null"
+        )
+    dim = retriever.aggregator.output_dim
+    if pca.dim > dim:
+        raise SemvprError(f"pca.dim={pca.dim}: the model's descriptors have {dim} dims; PCA keeps at most that many")
+    fit_cfg = merged.copy()
+    with open_dict(fit_cfg):
+        fit_cfg.data = with_place_set(cfg.pca, "pca").data
+        fit_cfg.data.image_size = merged.data.image_size
+        if "resize" in merged.data:
+            fit_cfg.data.resize = merged.data.resize
+    if fit_cfg.data.get("train") is None:
+        raise SemvprError(
+            f"pca.data={pca.data} has no train split to fit a PCA-whitening on; name a place set with one "
+            "(synthcity, or folder / pitts30k / msls with pca.root=DIR)"
+        )
+    train = build_places(data_settings(fit_cfg), ("train",))["train"]
+    seen = {p.resolve() for p in (*evaluated.db_paths, *evaluated.q_paths)}
+    shared = [p for p in train.db_paths if p.resolve() in seen]
+    if shared:
+        raise SemvprError(
+            f"pca.data={pca.data}: {len(shared)} of its training images are evaluated here (e.g. {shared[0]}); "
+            "a PCA fitted on the evaluated set sees its test images: name another pca.data"
+        )
+    (db,) = describe(retriever, fit_cfg, train, ("db",))
+    say(f"PCA-whitening to {pca.dim} dims: fitted on {train.name}'s {len(db)} training database images")
+    return PCAWhitening(dim, pca.dim).fit(db), {"dim": pca.dim, "set": train.name, "images": len(db)}
+
+
+def whitened(whitening: PCAWhitening, descriptors: np.ndarray, device_type: str) -> np.ndarray:
+    """``descriptors`` through a fitted PCA-whitening, in fp32 whatever the job's precision, a chunk of rows at a
+    time (a memory-mapped set is never held whole twice)."""
+    out = np.empty((len(descriptors), whitening.out_dim), np.float32)
+    with fp32(device_type):
+        for start in range(0, len(descriptors), 65536):
+            rows = np.array(descriptors[start : start + 65536], dtype=np.float32)
+            out[start : start + len(rows)] = whitening(torch.from_numpy(rows)).numpy()
+    return out
 
 
 def evaluate_checkpoint(
@@ -84,6 +145,9 @@ def evaluate_checkpoint(
     test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
     with model_arithmetic(cfg, merged, explicit).run(device.type) as precision:
         db, q = describe(retriever, merged, test)
+        pca = fitted_pca(cfg, retriever, merged, test)
+    if pca is not None:
+        db, q = whitened(pca[0], db, device.type), whitened(pca[0], q, device.type)
     result = evaluate(db, q, test.positives())
     source = retriever.mask_source
     has_segmenter = source is not None and source.segmenter is not None
@@ -110,6 +174,8 @@ def evaluate_checkpoint(
         "database": len(test.db_paths),
         "queries": len(test.q_paths),
         "descriptor_dim": int(db.shape[1]),
+        # A PCA-whitening fitted here (pca.dim): its size and the training database it was fitted on.
+        "pca": pca[1] if pca is not None else None,
         "precision": precision,
         "queries_without_positives": result["num_without_positives"],
         **{f"test/R@{n}": round(v, 2) for n, v in result["recalls"].items()},
@@ -120,8 +186,35 @@ def evaluate_checkpoint(
     out["ranks"] = first_hit_ranks(result["predictions"], test.positives())
     out["top"] = result["predictions"]
     if run_dir is not None and save.any:  # the files for other tools it was asked for (save.*), beside eval.json
-        out["exported"] = write_exports(save, run_dir, test, db, q, out["top"], test.positives())
+        masks = image_masks(retriever, merged, test) if save.images else None
+        size = merged.data.image_size
+        out["exported"] = write_exports(save, run_dir, test, db, q, out["top"], test.positives(), size, masks)
     return out
+
+
+def image_masks(retriever: Retriever, merged: DictConfig, places: PlaceSet) -> MaskOf | None:
+    """The weight map each drawn image's features are weighted by (its mask source's own mask, through the learned
+    class weights where the model has them), for ``save.images``; None without a mask source, or where a mask
+    control replaces the source's masks."""
+    source = retriever.mask_source
+    if source is None or str(merged.mask.control) != "none":
+        return None
+    size, resize = tuple(int(v) for v in merged.data.image_size), str(merged.data.get("resize", "bilinear"))
+    keep = bool(source.trunk_levels(size))
+
+    @torch.no_grad()
+    def mask_of(side: str, i: int) -> np.ndarray:
+        paths, labels = (places.db_paths, places.db_labels) if side == "db" else (places.q_paths, places.q_labels)
+        image = load_image(paths[i], size, resize)[None].to(retriever.device)
+        with autocast(retriever.device):
+            outs = retriever.backbone.forward_frozen(image.contiguous(memory_format=torch.channels_last), keep)
+            grid = grid_size(retriever.backbone, size)
+            mask = source.grid_mask(image, outs, None if labels is None else [labels[i]], grid, retriever.weighting)
+            if retriever.class_weights is not None:
+                mask = retriever.class_weights(mask)
+        return mask[0, 0].float().cpu().numpy()
+
+    return mask_of
 
 
 def query_hits(ranks: np.ndarray, top: np.ndarray) -> dict[str, np.ndarray]:

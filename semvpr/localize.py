@@ -5,8 +5,11 @@ and matched against the database of ``data``'s test split (its descriptors cache
 ``semvpr.eval``). The model is the one ``semvpr.eval`` evaluates: a checkpoint (its mask source
 replaceable with ``mask=``), or ``ckpt=none``. Prints, per query, the best database image with its
 position (UTM metres, or the frame of a frame-aligned set) and descriptor distance; writes the top-k of each
-to ``localize.json`` in the run directory. Images pass through the model in eval's arithmetic (an author's
-release file in fp32 unless ``trainer.precision`` is given: ``config.command.model_arithmetic``).
+to ``localize.json`` in the run directory. Where a query's name gives where it was taken (``@east@north@...``, as
+VPR-datasets-downloader names images) and the database has UTM positions, each match also has how far it is
+(``metres``) and whether it is right (``correct``: within ``data.eval_radius``, else 25 m). Images pass through
+the model in eval's arithmetic (an author's release file in fp32 unless ``trainer.precision`` is given:
+``config.command.model_arithmetic``).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from semvpr.config.build import build_places, feature_storage
 from semvpr.config.checks import check_config, check_overrides_or_exit
@@ -26,16 +29,28 @@ from semvpr.config.command import hydra_command, model_arithmetic, model_pass
 from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
+from semvpr.core.errors import SemvprError
 from semvpr.core.io import write_json
 from semvpr.core.stops import run_stoppable
-from semvpr.data.places import folder_images
+from semvpr.data.places import folder_images, parse_utm_name
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
+
+#: The radius a match counts as right within, for a set without its own (``data.eval_radius``): the benchmarks' 25 m.
+DEFAULT_RADIUS = 25.0
+
+#: Settings of semvpr.eval's (its config is localize's base) that localize does not read: refused when set.
+EVAL_ONLY = ("pca.dim", "save.descriptors", "save.hloc", "save.predictions", "save.images")
 
 
 def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None) -> list[dict[str, Any]]:
     """Top-k database matches (path, position as the set gives one, distance) for every query image."""
     check_config(cfg, run_dir)
+    for key in EVAL_ONLY:
+        if OmegaConf.select(cfg, key, default=None) not in (None, False):
+            raise SemvprError(
+                f"{key}={OmegaConf.select(cfg, key)} is semvpr.eval's; localize does not read it: drop it"
+            )
     paths = folder_images(cfg.queries, "queries")
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
@@ -52,19 +67,28 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
         retriever.describe_images(paths, None, size, q_desc, desc="queries", resize=resize)
     check_finite(q_desc, f"the query images in {cfg.queries}")
     top = knn(db_desc, q_desc, int(cfg.top_k))
+    radius = places.eval_radius if places.eval_radius is not None else DEFAULT_RADIUS
     out = []
     for path, row, desc in zip(paths, top, q_desc):
         dist = np.linalg.norm(db_desc[row] - desc[None], axis=1)
-        out.append(
-            {
-                "query": str(path),
-                "matches": [
-                    {"path": str(places.db_paths[j]), **places.position("db", j), "distance": float(d)}
-                    for j, d in zip(row, dist)
-                ],
-            }
-        )
+        where = query_utm(path) if places.positions == "utm" else None
+        matches = []
+        for j, d in zip(row, dist):
+            match = {"path": str(places.db_paths[j]), **places.position("db", j), "distance": float(d)}
+            if where is not None and "utm" in match:  # the query's own position: the match is right or wrong
+                match["metres"] = float(np.hypot(*np.subtract(match["utm"], where)))
+                match["correct"] = match["metres"] <= radius
+            matches.append(match)
+        out.append({"query": str(path), **({"utm": list(where)} if where is not None else {}), "matches": matches})
     return out
+
+
+def query_utm(path: Path) -> tuple[float, float] | None:
+    """A query's position where its name gives one (VPR-datasets-downloader's ``@east@north@...`` names)."""
+    try:
+        return parse_utm_name(path)
+    except SemvprError:
+        return None
 
 
 @hydra_command("localize", "localize.json")
@@ -75,7 +99,10 @@ def _hydra_main(cfg: DictConfig, run_dir: Path) -> None:
     write_json(output, results)
     for result in results:
         best = result["matches"][0]
-        print(f"{Path(result['query']).name}: {Path(best['path']).name} ({_where(best)}d={best['distance']:.3f})")
+        verdict = {True: ", right", False: ", wrong"}.get(best.get("correct"), "")
+        print(
+            f"{Path(result['query']).name}: {Path(best['path']).name} ({_where(best)}d={best['distance']:.3f}{verdict})"
+        )
     # top_k as returned (at most the database's size); folder_images refuses a folder without images.
     print(json.dumps({"queries": len(results), "top_k": len(results[0]["matches"]), "output": str(output)}))
 

@@ -232,9 +232,10 @@ def _refuse_model_overrides(cfg: DictConfig, explicit: set[str], merged: DictCon
             OmegaConf.update(merged, key, given)
         elif given != own:
             shown = lambda v: "null" if v is None else v  # noqa: E731
+            hint = " (a PCA-whitening fitted here: pca.dim=N pca.data=SET)" if key == "model.pca_dim" else ""
             raise SemvprError(
                 f"{where} defines {key}={shown(own)}, which an evaluation cannot change ({key}={shown(given)} "
-                "would be ignored); drop the override, or train a model with it"
+                f"would be ignored); drop the override{hint}, or train a model with it"
             )
     return trained
 
@@ -434,11 +435,7 @@ def init_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with its data replaced by the place set ``init.data`` names (``init.root`` its folder where it
     reads one, ``init.overrides`` more of its settings), at that set's own image size, and no mask: what an
     untrained aggregator's k-means reads."""
-    overrides = [f"data={cfg.init.data}"]
-    if cfg.init.get("root") is not None:
-        overrides.append(f"data.root={cfg.init.root}")
-    overrides += [f"data.{o}" for o in cfg.init.get("overrides") or []]
-    composed = _compose("train", overrides)
+    composed = with_place_set(cfg.init, "init")
     out = cfg.copy()
     with open_dict(out):
         out.data = composed.data
@@ -446,8 +443,20 @@ def init_config(cfg: DictConfig) -> DictConfig:
     return out
 
 
-def _compose(config_name: str, overrides: list[str]) -> DictConfig:
-    """The project's config ``config_name`` with ``overrides``, inside or outside a running Hydra app."""
+def with_place_set(node: DictConfig, key: str) -> DictConfig:
+    """The training config with the place set a command's ``key`` node names beside the evaluated one
+    (``key.data``: a conf/data choice; ``key.root``: its folder where it reads one; ``key.overrides``: more of its
+    settings)."""
+    overrides = [f"data={node.data}"]
+    if node.get("root") is not None:
+        overrides.append(f"data.root={node.root}")
+    overrides += [f"data.{o}" for o in node.get("overrides") or []]
+    return _compose("train", overrides, key)
+
+
+def _compose(config_name: str, overrides: list[str], key: str) -> DictConfig:
+    """The project's config ``config_name`` with ``overrides`` (from the command's ``key`` node), inside or outside
+    a running Hydra app."""
     from hydra import compose, initialize_config_dir
 
     try:
@@ -459,7 +468,7 @@ def _compose(config_name: str, overrides: list[str]) -> DictConfig:
         raise
     except Exception as err:  # noqa: BLE001 - an unknown data choice or a bad override: one line
         raise SemvprError(
-            f"init.data / init.root / init.overrides: {str(err).splitlines()[0] if str(err) else err!r}"
+            f"{key}.data / {key}.root / {key}.overrides: {str(err).splitlines()[0] if str(err) else err!r}"
         ) from None
 
 

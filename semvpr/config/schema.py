@@ -238,3 +238,17 @@ class SegmentSettings:
     eval_batch_size: int = setting(low=1, high=SIZE_MAX)
     num_figure_images: int = setting(low=1)
     score_test: bool = setting()
+
+
+@dataclass
+class EvalPca:
+    """semvpr.eval's ``pca``: a PCA-whitening fitted at evaluation on another place set's training database."""
+
+    #: The whitened descriptor's size (null: the model's own descriptors).
+    dim: int | None = setting(None, low=1, high=SIZE_MAX, also="or null: no PCA-whitening here")
+    #: The place set (a conf/data choice with a train split) whose training database images it is fitted on.
+    data: str = REQUIRED
+    #: Its folder, for the sets that read one.
+    root: str | None = None
+    #: More of its settings, e.g. ['preset=tiny'].
+    overrides: list[str] = dataclasses.field(default_factory=list)

@@ -27,7 +27,7 @@ class PCAWhitening(nn.Module):
     @torch.no_grad()
     def fit(self, db: Tensor | np.ndarray) -> PCAWhitening:
         """Fit mean and whitened top-``out_dim`` principal directions on (N,in_dim) descriptors."""
-        x = torch.as_tensor(np.asarray(db) if not isinstance(db, Tensor) else db).float().cpu()
+        x = db.float().cpu() if isinstance(db, Tensor) else torch.from_numpy(np.array(db, dtype=np.float32))
         n = x.shape[0]
         if x.ndim != 2 or x.shape[1] != self.in_dim:
             raise ValueError(f"expected (N,{self.in_dim}) descriptors, got {tuple(x.shape)}")

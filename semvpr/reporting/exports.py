@@ -8,7 +8,9 @@
   ``pairs_from_retrieval`` writes them), for hloc's matching and localization; needs h5py
   (``pip install 'semvpr[hloc]'``);
 - ``predictions``: ``predictions.csv``, every query's top ``pairs`` retrieved database images (rank, image,
-  descriptor distance, and whether it is a positive).
+  descriptor distance, and whether it is a positive);
+- ``images``: that many queries drawn with their first ``image_top`` retrieved images (``only_wrong``: of the
+  queries whose first is not a positive), ``predictions/<query>.jpg`` (``reporting.prediction_images``).
 
 An image's name is its path below the set's root (``PlaceSet.relative``); where a name stands on both sides
 (one folder read as database and queries), every name gets its side's prefix (``db/``, ``q/``), so no group of
@@ -21,6 +23,7 @@ import csv
 import io
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,8 +32,9 @@ import numpy as np
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import check_replaceable, temp_prefix, write_npy, write_text
-from semvpr.core.spec import from_mapping
+from semvpr.core.spec import from_mapping, setting
 from semvpr.data.places import PlaceSet
+from semvpr.reporting.prediction_images import MaskOf, drawn_queries, write_prediction_images
 
 
 @dataclass(frozen=True)
@@ -41,13 +45,14 @@ class SaveSpec:
     descriptors: bool = False
     hloc: bool = False
     predictions: bool = False
-    pairs: int = 20
+    pairs: int = setting(20, low=1, also="database images per query")
+    images: int = setting(0, low=0, also="queries drawn")
+    image_top: int = setting(5, low=1, also="database images beside each drawn query")
+    only_wrong: bool = False
 
     @classmethod
     def from_mapping(cls, node: object) -> SaveSpec:
         spec = from_mapping(cls, node or {}, "save")  # type: ignore[arg-type]
-        if spec.pairs < 1:
-            raise SemvprError(f"save.pairs={spec.pairs}: expected a whole number >= 1 (database images per query)")
         if spec.hloc:
             try:
                 import h5py  # noqa: F401
@@ -59,7 +64,7 @@ class SaveSpec:
 
     @property
     def any(self) -> bool:
-        return self.descriptors or self.hloc or self.predictions
+        return self.descriptors or self.hloc or self.predictions or self.images > 0
 
 
 def image_names(places: PlaceSet) -> tuple[list[str], list[str]]:
@@ -84,9 +89,12 @@ def write_exports(
     q: np.ndarray,
     top: np.ndarray,
     positives: list[np.ndarray],
+    image_size: Sequence[int] = (480, 640),
+    mask_of: MaskOf | None = None,
 ) -> list[str]:
     """Write the files ``spec`` asks for into ``out_dir`` (``top``: each query's retrieved database indices,
-    nearest first); returns their names."""
+    nearest first; ``image_size`` the drawn tiles' aspect, ``mask_of`` each drawn image's mask); returns their
+    names."""
     db_names, q_names = image_names(places)
     k = min(spec.pairs, top.shape[1])
     written: list[str] = []
@@ -112,6 +120,14 @@ def write_exports(
                 writer.writerow([name, rank, db_names[j], f"{d:.6f}", str(int(j) in right).lower()])
         write_text(out_dir / "predictions.csv", buffer.getvalue())
         written.append("predictions.csv")
+    if spec.images:
+        right = np.array([int(top[i, 0]) in set(np.asarray(p).tolist()) for i, p in enumerate(positives)], bool)
+        queries = drawn_queries(right, spec.images, spec.only_wrong)
+        drawn = top[queries, : spec.image_top]
+        distances = np.linalg.norm(
+            np.asarray(db[drawn], np.float64) - np.asarray(q[queries], np.float64)[:, None], axis=2
+        )
+        written += write_prediction_images(out_dir, places, queries, drawn, distances, positives, image_size, mask_of)
     return written
 
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import csv
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from semvpr.core.errors import SemvprError
 from semvpr.eval import evaluate_checkpoint
@@ -341,7 +343,7 @@ def test_a_bad_save_setting_is_one_line_before_any_pass(tmp_path: Path) -> None:
         "semvpr.eval", "experiment=tiny", "ckpt=none", "save.pairs=0", f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path
     )
     assert proc.returncode == 2 and proc.stderr.strip().splitlines() == [
-        "semvpr: error: save.pairs=0: expected a whole number >= 1 (database images per query)"
+        "semvpr: error: save.pairs=0 must be a whole number >= 1 (database images per query)"
     ], proc.stderr[-2000:]
 
 
@@ -371,3 +373,157 @@ def test_eval_takes_any_two_folders(tmp_path: Path) -> None:
         4,
         100.0,
     )
+
+
+def _pca_sets(tmp_path: Path) -> tuple[Path, Path]:
+    """An evaluated folder set (8 places) and a PCA set whose training database holds copies of its images."""
+    evaluated = make_folder(tmp_path / "evaluated", n=8)
+    fit = tmp_path / "fit" / "images" / "train"
+    fit.mkdir(parents=True)
+    shutil.copytree(evaluated / "images" / "test" / "database", fit / "database")
+    shutil.copytree(evaluated / "images" / "test" / "queries", fit / "queries")
+    return evaluated, tmp_path / "fit"
+
+
+def _pca_eval(tmp_path: Path, evaluated: Path, run: str, *overrides: str) -> dict:
+    cfg = config(
+        "experiment=tiny",
+        "ckpt=none",
+        "aggregator=gem",
+        "data=folder",
+        f"data.root={evaluated}",
+        "save.descriptors=true",
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        *EVAL_SIZE,
+        *overrides,
+        config_name="eval",
+    )
+    (tmp_path / run).mkdir()
+    return evaluate_checkpoint(cfg, {"aggregator", "data.root", *(o.split("=")[0] for o in overrides)}, tmp_path / run)
+
+
+def test_pca_at_eval_whitens_with_a_pca_fitted_on_the_named_sets_training_database(tmp_path: Path) -> None:
+    """pca.dim / pca.data / pca.root (the benchmark's --pca_dim / --pca_dataset_folder): the descriptors are the
+    model's own through a PCA-whitening fitted on the PCA set's training database, as an SVD of those
+    descriptors gives it (re-derived here from the unwhitened descriptors, each component up to its sign)."""
+    evaluated, fit = _pca_sets(tmp_path)
+    plain = _pca_eval(tmp_path, evaluated, "plain")
+    pca = _pca_eval(tmp_path, evaluated, "pca", "pca.dim=4", "pca.data=folder", f"pca.root={fit}")
+    assert plain["pca"] is None and plain["descriptor_dim"] > 4
+    assert pca["pca"] == {"dim": 4, "set": pca["pca"]["set"], "images": 8} and pca["descriptor_dim"] == 4
+    # The PCA set's training database holds the evaluated database's images: its descriptors are plain's.
+    raw_db, raw_q = (np.load(tmp_path / "plain" / f"{s}_descriptors.npy").astype(np.float64) for s in ("db", "q"))
+    mean = raw_db.mean(0)
+    _, singular, vt = np.linalg.svd(raw_db - mean, full_matrices=False)
+    projection = vt[:4].T / np.sqrt(singular[:4] ** 2 / (len(raw_db) - 1) + 1e-9)
+    for side, raw in (("db", raw_db), ("q", raw_q)):
+        expected = (raw - mean) @ projection
+        expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+        got = np.load(tmp_path / "pca" / f"{side}_descriptors.npy")
+        signs = np.sign((got * expected).sum(0))  # each principal axis is defined up to its sign
+        np.testing.assert_allclose(got, expected * signs, atol=2e-4)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "line"),
+    [
+        (["pca.dim=0"], r"^pca\.dim=0 must be a whole number from 1"),
+        (["pca.dim=4", "pca.data=folders", "pca.overrides=['database=X','queries=Y']"], r"no train split"),
+        (["pca.dim=100000", "pca.data=folder", "pca.root=FIT"], r"^pca\.dim=100000: the model's descriptors have"),
+        (["pca.dim=4", "pca.data=folder", "pca.root=EVALUATED"], r"^split folder .*/images/train not found"),
+    ],
+)
+def test_pca_at_eval_refuses_what_it_cannot_fit_in_one_line(tmp_path: Path, overrides: list[str], line: str) -> None:
+    evaluated, fit = _pca_sets(tmp_path)
+    given = [o.replace("FIT", str(fit)).replace("EVALUATED", str(evaluated)) for o in overrides]
+    with pytest.raises(SemvprError, match=line):
+        _pca_eval(tmp_path, evaluated, "run", *given)
+
+
+def test_pca_at_eval_never_fits_on_an_evaluated_image(tmp_path: Path) -> None:
+    evaluated, fit = _pca_sets(tmp_path)
+    cfg_overrides = ["pca.dim=4", "pca.data=folder", f"pca.root={fit}"]
+    with pytest.raises(SemvprError, match=r"^pca\.data=folder: 8 of its training images are evaluated here"):
+        _pca_eval(tmp_path, fit, "run", *cfg_overrides, "data.test.split=train")
+
+
+def test_eval_draws_queries_with_their_retrievals_framed_by_the_ground_truth(tmp_path: Path) -> None:
+    """save.images=N: N queries' images, each the query then its first save.image_top retrievals, every
+    retrieved tile framed green where hits.npz says a positive, red elsewhere; only_wrong draws only queries whose
+    first retrieval is wrong. Queries here are other pixels than their place's database image: some miss."""
+    from semvpr.reporting.prediction_images import FRAME, GAP, RIGHT, WRONG
+
+    root = make_folder(tmp_path / "city", n=8)
+    for i, path in enumerate(sorted((root / "images" / "test" / "queries").iterdir())):
+        write_image(path, 100 + i)
+    runs = {}
+    for name, extra in (("all", []), ("wrong", ["save.only_wrong=true"])):
+        (tmp_path / name).mkdir()
+        cfg = config(
+            *["experiment=tiny", "ckpt=none", "aggregator=gem", "data=folder", f"data.root={root}", *EVAL_SIZE],
+            *["save.images=3", "save.image_top=4", f"paths.cache_dir={tmp_path / 'cache'}", *extra],
+            config_name="eval",
+        )
+        runs[name] = evaluate_checkpoint(cfg, {"aggregator", "data.root"}, tmp_path / name)
+    top = runs["all"]["top"]
+    positives = [np.flatnonzero(np.arange(8) == i) for i in range(8)]  # 100 m apart: a query's own place only
+    drawn = [f for f in runs["all"]["exported"] if f.startswith("predictions/")]
+    assert drawn == ["predictions/0.jpg", "predictions/4.jpg", "predictions/7.jpg"]  # spread over the queries
+    for name in drawn:
+        image = np.asarray(Image.open(tmp_path / "all" / name).convert("RGB"), dtype=int)
+        tile = (image.shape[1] - 4 * GAP) // 5
+        assert image.shape[1] == 5 * tile + 4 * GAP
+        i = int(Path(name).stem)
+        for rank, j in enumerate(top[i, :4], start=1):
+            frame = image[image.shape[0] - FRAME // 2, rank * (tile + GAP) + tile // 2]
+            expected = RIGHT if j in positives[i] else WRONG
+            assert np.abs(frame - expected).max() < 40, (name, rank, frame)
+    wrong = [int(Path(f).stem) for f in runs["wrong"]["exported"] if f.startswith("predictions/")]
+    missed = [i for i in range(8) if top[i, 0] != i]
+    assert wrong and set(wrong) <= set(missed) and len(wrong) == min(3, len(missed))
+
+
+def test_drawn_predictions_shade_what_the_mask_weights_down(tmp_path: Path) -> None:
+    """With a mask source the drawn images are shaded where its mask weights features down (the oracle's sky and
+    dynamic objects here): the same query's tile is darker than without the mask, and its frame unchanged."""
+    from semvpr.reporting.prediction_images import CAPTION, FRAME, THUMB_H
+
+    tiles = {}
+    for mask in ("none", "oracle"):
+        (tmp_path / mask).mkdir()
+        cfg = config(
+            *["experiment=tiny", "ckpt=none", "aggregator=gem", f"mask={mask}", "save.images=1", "save.image_top=1"],
+            f"paths.cache_dir={tmp_path / 'cache'}",
+            config_name="eval",
+        )
+        result = evaluate_checkpoint(cfg, {"aggregator", "mask"}, tmp_path / mask)
+        (drawn,) = [f for f in result["exported"] if f.startswith("predictions/")]
+        tiles[mask] = np.asarray(Image.open(tmp_path / mask / drawn).convert("L"), dtype=float)
+    inside = (slice(CAPTION + FRAME, CAPTION + FRAME + THUMB_H), slice(FRAME, FRAME + 100))
+    assert tiles["oracle"][inside].mean() < 0.9 * tiles["none"][inside].mean()
+    assert abs(tiles["oracle"][CAPTION + 2, 2] - tiles["none"][CAPTION + 2, 2]) < 10
+
+
+def test_localize_marks_each_match_right_or_wrong_where_the_query_name_gives_its_position(tmp_path: Path) -> None:
+    """Queries named @east@north@... (VPR-datasets-downloader's) are checked: each match's distance in metres and
+    whether it is within data.eval_radius; a query named otherwise has neither."""
+    root = make_folder(tmp_path / "city", n=6)
+    queries = tmp_path / "queries"
+    named = sorted((root / "images" / "test" / "queries").iterdir())[2]
+    queries.mkdir()
+    shutil.copy(named, queries / named.name)  # database image 2's pixels, at its place
+    shutil.copy(named, queries / "photo.jpg")  # the same pixels, no position
+    cfg = config(
+        *["experiment=tiny", "ckpt=none", "aggregator=gem", "data=folder", f"data.root={root}", *EVAL_SIZE],
+        *[f"queries={queries}", "top_k=3", f"paths.cache_dir={tmp_path / 'cache'}"],
+        config_name="localize",
+    )
+    by_name = {Path(r["query"]).name: r for r in localize(cfg, {"aggregator", "data.root"})}
+    located = by_name[named.name]
+    assert located["utm"] == list(place_utm(2))
+    first, *others = located["matches"]
+    assert (first["metres"], first["correct"]) == (0.0, True)
+    for match in others:  # every other place is 100 m or more away
+        assert match["metres"] == pytest.approx(np.hypot(*np.subtract(match["utm"], place_utm(2))))
+        assert match["metres"] >= 100 and match["correct"] is False
+    assert "utm" not in by_name["photo.jpg"] and all("correct" not in m for m in by_name["photo.jpg"]["matches"])
