@@ -49,6 +49,7 @@ from semvpr.core.stops import (
 )
 from semvpr.reporting.job_files import write_job_figure_data
 from semvpr.reporting.sweep_report import write_report
+from semvpr.reporting.tensorboard import RetrievalImages
 from semvpr.retrieval.distributed import sharded
 from semvpr.retrieval.launch import launched_rank
 from semvpr.retrieval.validation import RecallEvaluation
@@ -76,11 +77,21 @@ def train_and_test(job: TrainingJob, run_dir: Path) -> dict[str, Any] | None:
     describe = sharded(retriever.describe_store, settings.model.eval_batch_size)
     evaluation = RecallEvaluation({s: prepared.features[s] for s in ("val", "test")}, describe)
     best, last = run_checkpoints(run_dir)
-    # The learning rate each epoch, as Lightning's own callback logs it (lr-<optimizer>), beside val/R@N.
-    lr = [LearningRateMonitor(logging_interval="epoch")] if training.loggers else []
-    trainer = build_trainer(
-        job.plan, run_dir, [evaluation, best, last, *lr, KeepThreads(job.plan.threads.of("retriever"))]
-    )
+    # The learning rate each epoch, as Lightning's own callback logs it (lr-<optimizer>), and a few validation
+    # queries' retrievals as images, beside val/R@N.
+    size = settings.data.image_size
+    logged = [
+        LearningRateMonitor(logging_interval="epoch"),
+        RetrievalImages(evaluation, prepared.features["val"], retriever, size),
+    ]
+    callbacks = [
+        evaluation,
+        best,
+        last,
+        *(logged if training.loggers else []),
+        KeepThreads(job.plan.threads.of("retriever")),
+    ]
+    trainer = build_trainer(job.plan, run_dir, callbacks)
     datamodule = build_datamodule(settings, prepared.features, describe)
     leader = trainer.global_rank == 0  # the other ranks skip the initialisation: DDP gives them rank 0's weights
     L.seed_everything(settings.seed, workers=True, verbose=False)

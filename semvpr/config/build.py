@@ -10,6 +10,7 @@ caches come from the artifact cache (built on first use).
 from __future__ import annotations
 
 import copy
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -228,6 +229,9 @@ def build_trainer(plan: JobPlan, run_dir: Path, callbacks: list[L.Callback]) -> 
     one-GPU job: that GPU, not the first one). A DDP strategy waits for the ranks as long as rank 0's work
     before ``fit`` may take (:data:`DDP_TIMEOUT`)."""
     training = _recipe(plan.settings)
+    if any(str(node.get("_target_", "")).endswith("WandbLogger") for node in training.loggers):
+        for variable in ("WANDB_CACHE_DIR", "WANDB_DATA_DIR"):  # wandb's own logs and staging: the cache, not ~/
+            os.environ.setdefault(variable, str(Path(plan.settings.storage.cache_dir) / "wandb"))
     loggers = [instantiate(node, save_dir=str(run_dir)) for node in training.loggers]
     trainer = training.trainer
     extra: dict[str, Any] = {}

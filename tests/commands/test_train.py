@@ -122,6 +122,14 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     accumulated = EventAccumulator(str(events)).Reload()
     assert any(tag.startswith("lr-") for tag in scalars) and "val/R@1" in scalars, scalars
     assert accumulated.Scalars("hp_metric")[-1].value == pytest.approx(metrics["test/R@1"], abs=1e-4)
+    # After each validation, four validation queries drawn with their retrievals (reporting.tensorboard).
+    from semvpr.reporting.prediction_images import CAPTION, FRAME, GAP, THUMB_H
+
+    (retrievals,) = accumulated.Tags()["images"]
+    drawn = accumulated.Images(retrievals)
+    assert retrievals == "val/retrievals" and [e.step for e in drawn] == [0, 1], drawn
+    tile = round(THUMB_H * 80 / 64) + 2 * FRAME  # tiny's images are 64 x 80
+    assert (drawn[-1].height, drawn[-1].width) == (4 * (THUMB_H + 2 * FRAME + CAPTION), 5 * tile + 4 * GAP)
     # The tested weights' epoch is the first with the best val/R@5 in the run's own CSV log (1-based).
     (log,) = list((trained_run / "csv").rglob("metrics.csv"))
     rows = list(csv.DictReader(log.read_text().splitlines()))
