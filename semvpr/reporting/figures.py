@@ -321,8 +321,9 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
 
     queries = sorted(order, key=disagreement)[:max_queries]
     rows = list(per_row)
-    fig = _new_figure(2.0 * (k + 1.4), 1.45 * len(queries) * len(rows) + 0.7)
-    grid = fig.add_gridspec(len(queries) * len(rows), k + 1, width_ratios=[1.4] + [1.0] * k)
+    fig = _new_figure(2.0 * (k + 2.2), 1.45 * len(queries) * len(rows) + 0.7)
+    # A column of its own for the rows' labels, written across: a label down the side of a row clips.
+    grid = fig.add_gridspec(len(queries) * len(rows), k + 2, width_ratios=[1.4, 0.8] + [1.0] * k)
     for b, q in enumerate(queries):
         r0 = b * len(rows)
         ax = fig.add_subplot(grid[r0 : r0 + len(rows), 0])
@@ -330,8 +331,11 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
         ax.set_title(f"query: {Path(q).name[:24]}", fontsize=8)
         for i, f in enumerate(rows):
             entry = per_row[f].get(q, {})
+            label = fig.add_subplot(grid[r0 + i, 1])
+            label.axis("off")
+            label.text(0.5, 0.5, textwrap.fill(sweep.label(f), 14), ha="center", va="center", fontsize=9)
             for c in range(k):
-                ax = fig.add_subplot(grid[r0 + i, c + 1])
+                ax = fig.add_subplot(grid[r0 + i, c + 2])
                 hits = entry.get("topk") or []
                 if c >= len(hits):
                     _na(ax)
@@ -348,8 +352,6 @@ def retrievals(sweep: Sweep, out: Path, max_queries: int = 3, k: int = 3) -> str
                 for spine in ax.spines.values():
                     spine.set(edgecolor=colour, linewidth=4)
                 ax.set_title(f"#{c + 1}" + _apart(entry, hit), fontsize=8)
-                if c == 0:
-                    ax.set_ylabel(sweep.label(f), fontsize=9)
     fig.suptitle(
         f"Top-{k} retrievals per aggregator · mask ({bb}; green = correct, red = wrong)\n"
         "queries where the runs disagree most on the top-1"
