@@ -70,13 +70,9 @@ def describe(
     return tuple(place_descriptors(retriever, places, side, size, cache, storage, control, resize) for side in sides)
 
 
-def fitted_pca(
-    cfg: DictConfig, retriever: Retriever, merged: DictConfig, evaluated: PlaceSet
-) -> tuple[PCAWhitening, dict[str, Any]] | None:
-    """The PCA-whitening ``pca.dim`` asks for (the benchmark's ``--pca_dim`` with ``--pca_dataset_folder``) and
-    what it was fitted on: the model's descriptors of the training database images of the place set ``pca.data``
-    names, described as the evaluated database is (its image size and resize, the mask and its control), never an
-    evaluated image; None without ``pca.dim``."""
+def pca_settings(cfg: DictConfig, retriever: Retriever, merged: DictConfig) -> EvalPca | None:
+    """``pca`` as a PCA-whitening to fit here (None without ``pca.dim``), refused in one line before any pass where
+    it cannot be: a model whitened already, a dimension above its descriptors'."""
     pca = typed(EvalPca, cfg.get("pca") or {"data": "synthcity"}, "pca")
     if pca.dim is None:
         return None
@@ -85,9 +81,18 @@ def fitted_pca(
             f"pca.dim={pca.dim}: {cfg.ckpt} has its own PCA-whitening (model.pca_dim={merged.model.pca_dim}), "
             "fitted after its training; drop pca.dim, or give a checkpoint trained with model.pca_dim=null"
         )
-    dim = retriever.aggregator.output_dim
-    if pca.dim > dim:
-        raise SemvprError(f"pca.dim={pca.dim}: the model's descriptors have {dim} dims; PCA keeps at most that many")
+    if pca.dim > retriever.aggregator.output_dim:
+        raise SemvprError(
+            f"pca.dim={pca.dim}: the model's descriptors have {retriever.aggregator.output_dim} dims; PCA keeps at "
+            "most that many"
+        )
+    return pca
+
+
+def pca_fit_set(cfg: DictConfig, pca: EvalPca, merged: DictConfig, evaluated: PlaceSet) -> tuple[DictConfig, PlaceSet]:
+    """The config and the training split of the place set ``pca.data`` names (the benchmark's
+    ``--pca_dataset_folder``), at the evaluated set's image size and resize; refused in one line where it has no
+    training split or shares an image with the evaluated set."""
     fit_cfg = merged.copy()
     with open_dict(fit_cfg):
         fit_cfg.data = with_place_set(cfg.pca, "pca").data
@@ -107,9 +112,19 @@ def fitted_pca(
             f"pca.data={pca.data}: {len(shared)} of its training images are evaluated here (e.g. {shared[0]}); "
             "a PCA fitted on the evaluated set sees its test images: name another pca.data"
         )
+    return fit_cfg, train
+
+
+def fitted_pca(
+    pca: EvalPca, retriever: Retriever, fit_cfg: DictConfig, train: PlaceSet
+) -> tuple[PCAWhitening, dict[str, Any]]:
+    """The PCA-whitening ``pca`` asks for, fitted on the model's descriptors of ``train``'s database images
+    (:func:`pca_fit_set`), described as the evaluated database is (the mask and its control too), and what it was
+    fitted on."""
     (db,) = describe(retriever, fit_cfg, train, ("db",))
     say(f"PCA-whitening to {pca.dim} dims: fitted on {train.name}'s {len(db)} training database images")
-    return PCAWhitening(dim, pca.dim).fit(db), {"dim": pca.dim, "set": train.name, "images": len(db)}
+    whitening = PCAWhitening(retriever.aggregator.output_dim, int(pca.dim or 0)).fit(db)
+    return whitening, {"dim": pca.dim, "set": train.name, "images": len(db)}
 
 
 def whitened(whitening: PCAWhitening, descriptors: np.ndarray, device_type: str) -> np.ndarray:
@@ -143,9 +158,11 @@ def evaluate_checkpoint(
     )
     test = test_set()
     test.identity("db"), test.identity("q")  # every listed file is checked before the first pass
+    asked = pca_settings(cfg, retriever, merged)  # a PCA that cannot be fitted is refused before any pass
+    fit_set = pca_fit_set(cfg, asked, merged, test) if asked is not None else None
     with model_arithmetic(cfg, merged, explicit).run(device.type) as precision:
         db, q = describe(retriever, merged, test)
-        pca = fitted_pca(cfg, retriever, merged, test)
+        pca = fitted_pca(asked, retriever, *fit_set) if asked is not None and fit_set is not None else None
     if pca is not None:
         db, q = whitened(pca[0], db, device.type), whitened(pca[0], q, device.type)
     result = evaluate(db, q, test.positives())

@@ -527,3 +527,15 @@ def test_localize_marks_each_match_right_or_wrong_where_the_query_name_gives_its
         assert match["metres"] == pytest.approx(np.hypot(*np.subtract(match["utm"], place_utm(2))))
         assert match["metres"] >= 100 and match["correct"] is False
     assert "utm" not in by_name["photo.jpg"] and all("correct" not in m for m in by_name["photo.jpg"]["matches"])
+
+
+def test_pca_at_eval_refuses_a_checkpoint_that_has_its_own_whitening(tmp_path: Path) -> None:
+    evaluated, fit = _pca_sets(tmp_path)
+    write_checkpoint(tiny_config(tmp_path, "filter=none", "aggregator=gem", "model.pca_dim=8"), tmp_path / "w.ckpt")
+    cfg = config(
+        *["experiment=tiny", f"ckpt={tmp_path / 'w.ckpt'}", "data=folder", f"data.root={evaluated}", *EVAL_SIZE],
+        *["pca.dim=4", "pca.data=folder", f"pca.root={fit}", f"paths.cache_dir={tmp_path / 'cache'}"],
+        config_name="eval",
+    )
+    with pytest.raises(SemvprError, match=r"^pca\.dim=4: .*w\.ckpt has its own PCA-whitening \(model\.pca_dim=8\)"):
+        evaluate_checkpoint(cfg, {"data.root", "pca.dim", "pca.data", "pca.root"})
