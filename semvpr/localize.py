@@ -7,7 +7,8 @@ replaceable with ``mask=``), or ``ckpt=none``. Prints, per query, the best datab
 position (UTM metres, or the frame of a frame-aligned set) and descriptor distance; writes the top-k of each
 to ``localize.json`` in the run directory. Where a query's name gives where it was taken (``@east@north@...``, as
 VPR-datasets-downloader names images) and the database has UTM positions, each match also has how far it is
-(``metres``) and whether it is right (``correct``: within ``data.eval_radius``, else 25 m). Images pass through
+(``metres``) and whether it is right (``correct``: within ``data.eval_radius``, else 25 m); ``save.images=N``
+draws N queries with their matches (``predictions/<query index>.jpg``, as ``semvpr.eval`` does). Images pass through
 the model in eval's arithmetic (an author's release file in fp32 unless ``trainer.precision`` is given:
 ``config.command.model_arithmetic``).
 """
@@ -30,9 +31,11 @@ from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import write_json
+from semvpr.core.io import atomic_file, write_json
 from semvpr.core.stops import run_stoppable
-from semvpr.data.places import folder_images, parse_utm_name
+from semvpr.data.places import PlaceSet, folder_images, parse_utm_name
+from semvpr.reporting.exports import SaveSpec
+from semvpr.reporting.prediction_images import FOLDER, drawn_queries, query_row
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
 
@@ -40,7 +43,7 @@ from semvpr.retrieval.recall import check_finite, knn
 DEFAULT_RADIUS = 25.0
 
 #: Settings of semvpr.eval's (its config is localize's base) that localize does not read: refused when set.
-EVAL_ONLY = ("pca.dim", "save.descriptors", "save.hloc", "save.predictions", "save.images")
+EVAL_ONLY = ("pca.dim", "save.descriptors", "save.hloc", "save.predictions")
 
 
 def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | None = None) -> list[dict[str, Any]]:
@@ -51,6 +54,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
             raise SemvprError(
                 f"{key}={OmegaConf.select(cfg, key)} is semvpr.eval's; localize does not read it: drop it"
             )
+    save = SaveSpec.from_mapping(cfg.get("save"))
     paths = folder_images(cfg.queries, "queries")
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
@@ -80,7 +84,35 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
                 match["correct"] = match["metres"] <= radius
             matches.append(match)
         out.append({"query": str(path), **({"utm": list(where)} if where is not None else {}), "matches": matches})
+    if run_dir is not None and save.images:
+        draw_matches(run_dir, places, paths, out, top, save, tuple(size))
     return out
+
+
+def draw_matches(
+    run_dir: Path,
+    places: PlaceSet,
+    paths: list[Path],
+    results: list[dict[str, Any]],
+    top: np.ndarray,
+    save: SaveSpec,
+    image_size: tuple[int, int],
+) -> None:
+    """``save.images`` queries spread over the folder, each drawn with its first ``save.image_top`` matches as
+    ``predictions/<query index>.jpg`` (``reporting.prediction_images``): framed right or wrong where the query's
+    name gives its position, grey where nothing says; ``save.only_wrong``: of the queries whose first is wrong."""
+    wrong = np.array([r["matches"][0].get("correct") is False for r in results], bool)
+    digits = len(str(max(len(paths) - 1, 1)))
+    (run_dir / FOLDER).mkdir(exist_ok=True)
+    for i in drawn_queries(~wrong, save.images, save.only_wrong):
+        matches = results[i]["matches"][: save.image_top]
+        known = "correct" in matches[0]
+        positives = np.array([j for j, m in zip(top[i], matches) if m.get("correct")]) if known else None
+        at = {"utm": results[i]["utm"]} if "utm" in results[i] else {}
+        distances = [m["distance"] for m in matches]
+        row = query_row(places, (paths[i], at), top[i, : len(matches)], distances, positives, image_size)
+        with atomic_file(run_dir / f"{FOLDER}/{int(i):0{digits}d}.jpg") as fh:
+            row.save(fh, "JPEG", quality=90)
 
 
 def query_utm(path: Path) -> tuple[float, float] | None:

@@ -18,8 +18,8 @@ from semvpr.core.io import atomic_file
 from semvpr.data.images import eight_bit_rgb, open_image
 from semvpr.data.places import PlaceSet
 
-#: Frame colours: the query, a positive, a retrieved image that is not one.
-QUERY, RIGHT, WRONG = (31, 119, 180), (44, 160, 44), (214, 39, 40)
+#: Frame colours: the query, a positive, a retrieved image that is not one, one whose query has no ground truth.
+QUERY, RIGHT, WRONG, UNKNOWN = (31, 119, 180), (44, 160, 44), (214, 39, 40), (150, 150, 150)
 #: A thumbnail's height, its frame's width, the caption band above it and the gap between tiles (pixels).
 THUMB_H, FRAME, CAPTION, GAP = 192, 6, 18, 8
 #: How dark a location the mask weights by 0 is drawn (its pixels times 1 - DIM).
@@ -60,7 +60,7 @@ def write_prediction_images(
         name = f"{FOLDER}/{i:0{digits}d}.jpg"
         with atomic_file(out_dir / name) as fh:
             query_row(places, i, top[row], distances[row], positives[i], image_size, mask_of).save(
-                fh, format="JPEG", quality=90
+                fh, "JPEG", quality=90
             )
         written.append(name)
     return written
@@ -68,30 +68,34 @@ def write_prediction_images(
 
 def query_row(
     places: PlaceSet,
-    i: int,
+    i: int | tuple[Path, dict],
     top: Sequence[int],
     distances: Sequence[float] | None,
-    positives: np.ndarray,
+    positives: np.ndarray | None,
     image_size: Sequence[int],
     mask_of: MaskOf | None = None,
 ) -> Image.Image:
-    """Query ``i`` and its retrieved database images ``top`` (nearest first; ``distances`` their descriptor
-    distances, None: not captioned) side by side, every tile at ``image_size``'s aspect (module docstring)."""
+    """Query ``i`` of ``places`` (or another image: its path and position, ``{"utm": [e, n]}`` or ``{}``) and its
+    retrieved database images ``top`` (nearest first; ``distances`` their descriptor distances, None: not
+    captioned) side by side, every tile at ``image_size``'s aspect, framed by ``positives`` (None: no ground
+    truth, grey) (module docstring)."""
     height, width = image_size
     thumb = (max(1, round(THUMB_H * width / height)), THUMB_H)
-    right = set(np.asarray(positives).tolist())
-    tiles = [_tile(places.q_paths[i], thumb, QUERY, f"query {i}", mask_of and mask_of("q", i))]
+    query, at = (places.q_paths[i], places.position("q", i)) if isinstance(i, int) else i
+    right = None if positives is None else set(np.asarray(positives).tolist())
+    name = f"query {i}" if isinstance(i, int) else "query"
+    tiles = [_tile(query, thumb, QUERY, name, mask_of("q", i) if mask_of and isinstance(i, int) else None)]
     for rank, j in enumerate((int(j) for j in top), start=1):
         shown = f"d={distances[rank - 1]:.3f}" if distances is not None else ""
-        caption = ", ".join(t for t in (f"{rank}: {shown}" if shown else f"{rank}", _offset(places, i, j)) if t)
-        colour = RIGHT if j in right else WRONG
+        caption = ", ".join(t for t in (f"{rank}: {shown}" if shown else f"{rank}", _offset(at, places, j)) if t)
+        colour = UNKNOWN if right is None else RIGHT if j in right else WRONG
         tiles.append(_tile(places.db_paths[j], thumb, colour, caption, mask_of and mask_of("db", j)))
     return _row(tiles)
 
 
-def _offset(places: PlaceSet, i: int, j: int) -> str:
-    """How far database image ``j`` was taken from query ``i``, where the set gives both positions."""
-    q, db = places.position("q", i), places.position("db", j)
+def _offset(q: dict, places: PlaceSet, j: int) -> str:
+    """How far database image ``j`` was taken from the query at ``q``, where both positions are known."""
+    db = places.position("db", j)
     if "utm" in q and "utm" in db:
         return f"{float(np.hypot(*np.subtract(db['utm'], q['utm']))):.0f} m"
     if "frame" in q and "frame" in db:

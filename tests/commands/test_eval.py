@@ -515,10 +515,22 @@ def test_localize_marks_each_match_right_or_wrong_where_the_query_name_gives_its
     shutil.copy(named, queries / "photo.jpg")  # the same pixels, no position
     cfg = config(
         *["experiment=tiny", "ckpt=none", "aggregator=gem", "data=folder", f"data.root={root}", *EVAL_SIZE],
-        *[f"queries={queries}", "top_k=3", f"paths.cache_dir={tmp_path / 'cache'}"],
+        *[f"queries={queries}", "top_k=3", f"paths.cache_dir={tmp_path / 'cache'}", "save.images=2"],
         config_name="localize",
     )
-    by_name = {Path(r["query"]).name: r for r in localize(cfg, {"aggregator", "data.root"})}
+    (tmp_path / "run").mkdir()
+    results = localize(cfg, {"aggregator", "data.root"}, tmp_path / "run")
+    by_name = {Path(r["query"]).name: r for r in results}
+    # save.images: each query drawn; its first match framed green where its name says where it was taken, grey
+    # where nothing says.
+    from semvpr.reporting.prediction_images import FRAME, GAP, RIGHT, UNKNOWN
+
+    for i, result in enumerate(results):
+        image = np.asarray(Image.open(tmp_path / "run" / "predictions" / f"{i}.jpg").convert("RGB"), dtype=int)
+        tile = (image.shape[1] - 3 * GAP) // 4
+        frame = image[image.shape[0] - FRAME // 2, tile + GAP + tile // 2]
+        expected = RIGHT if "utm" in result else UNKNOWN
+        assert np.abs(frame - expected).max() < 40, (result["query"], frame)
     located = by_name[named.name]
     assert located["utm"] == list(place_utm(2))
     first, *others = located["matches"]
