@@ -116,15 +116,15 @@ def pca_fit_set(cfg: DictConfig, pca: EvalPca, merged: DictConfig, evaluated: Pl
 
 
 def fitted_pca(
-    pca: EvalPca, retriever: Retriever, fit_cfg: DictConfig, train: PlaceSet
+    dim: int, retriever: Retriever, fit_cfg: DictConfig, train: PlaceSet
 ) -> tuple[PCAWhitening, dict[str, Any]]:
-    """The PCA-whitening ``pca`` asks for, fitted on the model's descriptors of ``train``'s database images
-    (:func:`pca_fit_set`), described as the evaluated database is (the mask and its control too), and what it was
+    """The ``dim``-D PCA-whitening ``pca.dim`` asks for, fitted on the model's descriptors of ``train``'s database
+    images (:func:`pca_fit_set`), described as the evaluated database is (the mask and its control too), and what it was
     fitted on."""
     (db,) = describe(retriever, fit_cfg, train, ("db",))
-    say(f"PCA-whitening to {pca.dim} dims: fitted on {train.name}'s {len(db)} training database images")
-    whitening = PCAWhitening(retriever.aggregator.output_dim, int(pca.dim or 0)).fit(db)
-    return whitening, {"dim": pca.dim, "set": train.name, "images": len(db)}
+    say(f"PCA-whitening to {dim} dims: fitted on {train.name}'s {len(db)} training database images")
+    whitening = PCAWhitening(retriever.aggregator.output_dim, dim).fit(db)
+    return whitening, {"dim": dim, "set": train.name, "images": len(db)}
 
 
 def whitened(whitening: PCAWhitening, descriptors: np.ndarray, device_type: str) -> np.ndarray:
@@ -162,7 +162,7 @@ def evaluate_checkpoint(
     fit_set = pca_fit_set(cfg, asked, merged, test) if asked is not None else None
     with model_arithmetic(cfg, merged, explicit).run(device.type) as precision:
         db, q = describe(retriever, merged, test)
-        pca = fitted_pca(asked, retriever, *fit_set) if asked is not None and fit_set is not None else None
+        pca = fitted_pca(asked.dim, retriever, *fit_set) if asked is not None and asked.dim and fit_set else None
     if pca is not None:
         db, q = whitened(pca[0], db, device.type), whitened(pca[0], q, device.type)
     result = evaluate(db, q, test.positives())

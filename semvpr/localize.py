@@ -31,11 +31,11 @@ from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
-from semvpr.core.io import atomic_file, write_json
+from semvpr.core.io import write_json
 from semvpr.core.stops import run_stoppable
 from semvpr.data.places import PlaceSet, folder_images, parse_utm_name
 from semvpr.reporting.exports import SaveSpec
-from semvpr.reporting.prediction_images import FOLDER, drawn_queries, query_row
+from semvpr.reporting.prediction_images import drawn_queries, query_row, save_row
 from semvpr.retrieval.descriptors import place_descriptors
 from semvpr.retrieval.recall import check_finite, knn
 
@@ -102,8 +102,6 @@ def draw_matches(
     ``predictions/<query index>.jpg`` (``reporting.prediction_images``): framed right or wrong where the query's
     name gives its position, grey where nothing says; ``save.only_wrong``: of the queries whose first is wrong."""
     wrong = np.array([r["matches"][0].get("correct") is False for r in results], bool)
-    digits = len(str(max(len(paths) - 1, 1)))
-    (run_dir / FOLDER).mkdir(exist_ok=True)
     for i in drawn_queries(~wrong, save.images, save.only_wrong):
         matches = results[i]["matches"][: save.image_top]
         known = "correct" in matches[0]
@@ -111,8 +109,7 @@ def draw_matches(
         at = {"utm": results[i]["utm"]} if "utm" in results[i] else {}
         distances = [m["distance"] for m in matches]
         row = query_row(places, (paths[i], at), top[i, : len(matches)], distances, positives, image_size)
-        with atomic_file(run_dir / f"{FOLDER}/{int(i):0{digits}d}.jpg") as fh:
-            row.save(fh, "JPEG", quality=90)
+        save_row(run_dir, int(i), len(paths), row)
 
 
 def query_utm(path: Path) -> tuple[float, float] | None:

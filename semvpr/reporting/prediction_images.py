@@ -53,17 +53,25 @@ def write_prediction_images(
     """Draw each of ``queries`` with its retrieved database images (``top``, a row per drawn query: their
     indices, nearest first; ``distances``: their descriptor distances), every tile at ``image_size``'s aspect;
     returns the files' names below ``out_dir``."""
+    return [
+        save_row(
+            out_dir,
+            i,
+            len(places.q_paths),
+            query_row(places, i, top[r], distances[r], positives[i], image_size, mask_of),
+        )
+        for r, i in enumerate(int(i) for i in queries)
+    ]
+
+
+def save_row(out_dir: Path, i: int, queries: int, row: Image.Image) -> str:
+    """Query ``i``'s drawn row (of ``queries``) as ``predictions/<i>.jpg`` below ``out_dir``, the index padded to
+    the queries' width; its name."""
+    name = f"{FOLDER}/{i:0{len(str(max(queries - 1, 1)))}d}.jpg"
     (out_dir / FOLDER).mkdir(exist_ok=True)
-    digits = len(str(max(len(places.q_paths) - 1, 1)))
-    written = []
-    for row, i in enumerate(int(i) for i in queries):
-        name = f"{FOLDER}/{i:0{digits}d}.jpg"
-        with atomic_file(out_dir / name) as fh:
-            query_row(places, i, top[row], distances[row], positives[i], image_size, mask_of).save(
-                fh, "JPEG", quality=90
-            )
-        written.append(name)
-    return written
+    with atomic_file(out_dir / name) as fh:
+        row.save(fh, "JPEG", quality=90)
+    return name
 
 
 def query_row(
