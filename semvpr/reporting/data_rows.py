@@ -1,12 +1,13 @@
 """Committed data files read as rows, and what the docs generate or count from them (docs/trust.md,
-"Numbers in the docs"): the tables of ``<!-- table: ... -->`` markers and the counts of
-``<!-- count: ... -->`` markers, both checked by :mod:`semvpr.reporting.claims`.
+"Numbers in the docs"): the tables of ``<!-- table: ... -->`` markers, the values of ``<!-- value: ... -->``
+markers and the counts of ``<!-- count: ... -->`` markers, all checked by :mod:`semvpr.reporting.claims`.
 
 A *source* is a committed CSV (one row per line), or a JSON / YAML file with an optional ``#/pointer``
 to a part of it: a list of objects gives one row per object, an object of objects one row per member
 (its name in the field ``key``); nested objects are flattened to dotted fields
-(``recall.none.R@1``). Several sources joined by ``+`` are read one after the other, each row naming
-its source in the field ``source``.
+(``recall.none.R@1``); a value read from a JSON / YAML source without conditions reads the whole part
+as one row, lists too (``per_seed.0.R@1``). Several sources joined by ``+`` are read one after the other,
+each row naming its source in the field ``source``.
 
 A *condition* keeps the rows whose field ``F`` ``F=a|b`` is one of the values, ``F!=a|b`` none of them,
 ``F~a|b`` contains one of them, ``F!~a|b`` none of them, ``F<x`` / ``F>x`` is a number below / above x.
@@ -20,7 +21,7 @@ import math
 import re
 import shlex
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from semvpr.core.errors import SemvprError
@@ -30,9 +31,9 @@ Row = dict[str, str]
 
 #: A condition: a field name, an operator, the values (``|``-separated).
 _CONDITION = re.compile(r"^(?P<field>[^=!~<>]+?)(?P<op>!=|!~|=|~|<|>)(?P<value>.*)$", re.S)
-#: A template field: ``{F}`` (as written), ``{F:SPEC}`` (a number in a format spec), ``{F?TEXT}`` (TEXT
-#: where the field is yes / true / 1).
-_FIELD = re.compile(r"\{(?P<name>[^{}:?]+)(?::(?P<spec>[^{}]*)|\?(?P<flag>[^{}]*))?\}")
+#: A template field: ``{F}`` (as written), ``{F:SPEC}`` (a number in a format spec), ``{-F:SPEC}`` (its negative),
+#: ``{F?TEXT}`` (TEXT where the field is yes / true / 1).
+_FIELD = re.compile(r"\{(?P<neg>-)?(?P<name>[^{}:?]+)(?::(?P<spec>[^{}]*)|\?(?P<flag>[^{}]*))?\}")
 #: A part of a template left out where one of its fields has no value.
 _OPTIONAL = re.compile(r"\[\[(.*?)\]\]", re.S)
 #: Counts as prose writes them in words.
@@ -114,6 +115,17 @@ def _one_source(source: str, root: Path) -> list[Row]:
     if isinstance(node, dict):
         return [{"key": str(k), **_flat(v)} for k, v in node.items() if isinstance(v, dict)]
     raise SemvprError(f"{source}: names no list or object of rows")
+
+
+def _document_row(node: object, prefix: str = "") -> Row:
+    """A JSON / YAML part as one row: every scalar under it, named by its dotted path."""
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else None
+    if items is None:
+        return {prefix.rstrip("."): _text(node)}
+    row: Row = {}
+    for key, value in items:
+        row |= _document_row(value, f"{prefix}{key}.")
+    return row
 
 
 def source_rows(sources: str, root: Path) -> list[Row]:
@@ -198,11 +210,12 @@ def stated_count(text: str) -> int | None:
     return _WORDS.get(text)
 
 
-def _number(value: str, spec: str) -> str:
-    """A field in a format spec, the minus typographic; ``.1%``: a fraction as a percentage (``87.7 %``)."""
+def _number(value: str, spec: str, negated: bool = False) -> str:
+    """A field in a format spec, the minus typographic; ``.1%``: a fraction as a percentage (``87.7 %``);
+    ``negated``: the field's negative (a loss written as the size of a negative gain)."""
     if not _is_number(value):
         raise SemvprError(f"expected a number in the data file, got {value!r}")
-    number = float(value)
+    number = -float(value) if negated else float(value)
     try:
         text = format(100.0 * number, spec[:-1] + "f") + " %" if spec.endswith("%") else format(number, spec)
     except ValueError:
@@ -226,6 +239,8 @@ def fill(template: str, row: Row) -> str | None:
             if value == "":
                 missing = True
                 return ""
+            if m["neg"]:
+                return _number(value, m["spec"] or "", negated=True)
             return _number(value, m["spec"]) if m["spec"] else value
 
         text = _FIELD.sub(field, text)
@@ -245,25 +260,27 @@ class TableSpec:
 
     ``KEYS``: the comma-separated fields that label a row (joined by ' · '); ``METRICS``: comma-separated
     fields, each shown as ``<m>_mean ± <m>_std`` (or ``<m>`` alone) at one decimal. Options:
-    ``col=LABEL=TEMPLATE`` a column (:func:`fill`: ``{F:.1f}``, ``{F:.1%}``, ``{F?*}``, ``[[...]]``),
-    ``where=CONDITION`` keeps rows, ``pivot=FIELD`` makes each value of the field a group of columns,
-    ``rows=LABEL|LABEL`` picks and orders rows by label, ``as=VALUE=LABEL`` shows a key or pivot value as
-    LABEL, ``head=TEXT`` heads the label column.
+    ``col=LABEL=TEMPLATE`` a column (:func:`fill`: ``{F:.1f}``, ``{F:.1%}``, ``{-F:.1f}``, ``{F?*}``,
+    ``[[...]]``), ``where=CONDITION`` keeps rows, ``pivot=FIELD[,FIELD]`` makes each value of the fields
+    (joined by ' · ') a group of columns, ``groups=LABEL|LABEL`` picks and orders those groups (as shown),
+    ``rows=LABEL|LABEL`` picks and orders rows by label, ``as=VALUE=LABEL`` shows a key value or a group
+    as LABEL, ``head=TEXT`` heads the label column.
     """
 
     source: str
     keys: tuple[str, ...]
     columns: tuple[tuple[str, str], ...]
     where: tuple[Condition, ...] = ()
-    pivot: str | None = None
+    pivot: tuple[str, ...] = ()
+    groups: tuple[str, ...] = ()
     rows: tuple[str, ...] = ()
-    renames: dict[str, str] = field(default_factory=dict)
+    renames: tuple[str, ...] = ()
     head: str | None = None
 
     @classmethod
     def parse(cls, args: Sequence[str], metric_fields: Iterable[str] = ()) -> TableSpec:
         """The spec of a marker's arguments (split as a shell splits: quote a value with spaces)."""
-        positional = [a for a in args if not re.match(r"^(col|where|pivot|rows|as|head)=", a)]
+        positional = [a for a in args if not re.match(r"^(col|where|pivot|groups|rows|as|head)=", a)]
         if len(positional) not in (2, 3):
             raise SemvprError("expected '<!-- table: SOURCE KEYS [METRICS] [OPTION=VALUE ...] -->'")
         source, keys, *metrics = positional
@@ -272,7 +289,7 @@ class TableSpec:
             (m, f"{{{m}_mean:.1f}}[[ ± {{{m}_std:.1f}}]]" if f"{m}_mean" in known else f"{{{m}:.1f}}")
             for m in (metrics[0].split(",") if metrics else [])
         ]
-        where, renames, rows, pivot, head = [], {}, (), None, None
+        where, renames, rows, pivot, groups, head = [], [], (), (), (), None
         for arg in args:
             name, _, value = arg.partition("=")
             if arg in positional:
@@ -285,19 +302,33 @@ class TableSpec:
             elif name == "where":
                 where.append(Condition.parse(value))
             elif name == "as":
-                old, sep, new = value.partition("=")
-                if not sep:
+                if "=" not in value:
                     raise SemvprError(f"{arg!r}: expected as=VALUE=LABEL")
-                renames[old] = new
+                renames.append(value)
             elif name == "rows":
                 rows = tuple(value.split("|"))
             elif name == "pivot":
-                pivot = value
+                pivot = tuple(value.split(","))
+            elif name == "groups":
+                groups = tuple(value.split("|"))
             else:
                 head = value
         if not columns:
             raise SemvprError(f"{source}: a table needs METRICS or a col=LABEL=TEMPLATE")
-        return cls(source, tuple(keys.split(",")), tuple(columns), tuple(where), pivot, rows, renames, head)
+        return cls(
+            source, tuple(keys.split(",")), tuple(columns), tuple(where), pivot, groups, rows, tuple(renames), head
+        )
+
+    def shown_as(self, values: Iterable[str]) -> dict[str, str]:
+        """The ``as=VALUE=LABEL`` options as a map of the key values and groups that ``values`` holds (the
+        first ``=`` after which the prefix is one of them ends VALUE: both sides may hold ``=``)."""
+        known, shown = set(values), {}
+        for option in self.renames:
+            cuts = [i for i, char in enumerate(option) if char == "=" and option[:i] in known]
+            if not cuts:
+                raise SemvprError(f"'as={option}': names no key value or group of {self.source}")
+            shown[option[: cuts[0]]] = option[cuts[0] + 1 :]
+        return shown
 
     @classmethod
     def of_marker(cls, args: Sequence[str], root: Path) -> TableSpec:
@@ -309,28 +340,38 @@ class TableSpec:
 
 def render_table(spec: TableSpec, root: Path) -> str:
     """The markdown table a spec makes of its source: one row per label (its KEYS' values), in the order
-    of the source or of ``rows``; with ``pivot``, one group of columns per value of that field."""
+    of the source or of ``rows``; with ``pivot``, one group of columns per value of those fields."""
     rows = source_rows(spec.source, root)
-    fields = [*spec.keys, *(c.field for c in spec.where), *([spec.pivot] if spec.pivot else [])]
+    fields = [*spec.keys, *(c.field for c in spec.where), *spec.pivot]
     _check_fields(rows, [*fields, *(f for _, t in spec.columns for f in template_fields(t))], spec.source)
     kept = [row for row in rows if all(c.holds(row) for c in spec.where)]
+    shown = spec.shown_as(
+        {row[k] for row in kept for k in spec.keys} | {" · ".join(row[f] for f in spec.pivot) for row in kept}
+    )
     by_label: dict[str, dict[str | None, Row]] = {}
     groups: list[str | None] = [] if spec.pivot else [None]
     lines = []
     for row in kept:
-        label = " · ".join(spec.renames.get(row[k], row[k]) for k in spec.keys)
-        group = spec.renames.get(row[spec.pivot], row[spec.pivot]) if spec.pivot else None
+        label = " · ".join(shown.get(row[k], row[k]) for k in spec.keys)
+        group = shown.get(joined := " · ".join(row[f] for f in spec.pivot), joined) if spec.pivot else None
+        if spec.groups and group not in spec.groups:
+            continue
         if group not in groups:
             groups.append(group)
-        if spec.pivot is None:
+        if not spec.pivot:
             lines.append((label, {None: row}))
             continue
         cells = by_label.setdefault(label, {})
         if group in cells:
-            raise SemvprError(f"{spec.source}: two rows for {label!r} in {spec.pivot} {group!r}")
+            raise SemvprError(f"{spec.source}: two rows for {label!r} in {','.join(spec.pivot)} {group!r}")
         cells[group] = row
     if spec.pivot:
         lines = list(by_label.items())
+    if spec.groups:
+        absent = [g for g in spec.groups if g not in groups]
+        if absent:
+            raise SemvprError(f"{spec.source}: no group {absent[0]!r} (groups: {' | '.join(map(str, groups))})")
+        groups = list(spec.groups)
     if spec.rows:
         labelled = dict(lines)
         absent = [r for r in spec.rows if r not in labelled]
@@ -352,6 +393,30 @@ def render_table(spec: TableSpec, root: Path) -> str:
         ]
         out.append(f"| {label} | " + " | ".join(values) + " |")
     return "\n".join(out)
+
+
+def value_text(args: Sequence[str], root: Path) -> str:
+    """A value marker's text: ``SOURCE [CONDITION ...] TEMPLATE``, the template (:func:`fill`) filled from
+    the rows the conditions keep, which must all give the same text (a JSON / YAML source without
+    conditions: the whole part, one row)."""
+    if len(args) < 2 or "{" not in args[-1]:
+        raise SemvprError("expected '<!-- value: SOURCE [CONDITION ...] TEMPLATE -->'")
+    source, *conditions, template = args
+    name, _, pointer = source.partition("#")
+    if Path(name).suffix in (".json", ".yaml", ".yml") and not conditions:
+        path = root / name
+        rows = [_document_row(pointed(read_document(path), pointer, path))]
+    else:
+        rows = source_rows(source, root)
+    kept_by = [Condition.parse(c) for c in conditions]
+    _check_fields(rows, [*(c.field for c in kept_by), *template_fields(template)], source)
+    texts = {fill(template, row) for row in rows if all(c.holds(row) for c in kept_by)}
+    kept = " ".join(conditions) or "no condition"
+    if None in texts:
+        raise SemvprError(f"{source}: {template!r} names a field that is empty in a row {kept} keeps")
+    if len(texts) != 1:
+        raise SemvprError(f"{source}: {kept} keeps {'no row' if not texts else 'rows that differ'} ({template!r})")
+    return texts.pop()
 
 
 def marker_args(text: str) -> list[str]:

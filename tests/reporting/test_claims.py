@@ -1,7 +1,6 @@
-"""Every result the committed docs state is held to a committed data file (docs/trust.md, "Numbers in
-the docs"): numbers inside a claim marker must be in its sources, a generated table must equal what its
-CSV renders, and a result-like number outside every marker fails unless ``claims.NOT_RESULTS`` names it as a
-hyper-parameter, a version or a definition."""
+"""Every result the committed docs state is generated from a committed data file (docs/trust.md, "Numbers
+in the docs"): a value marker holds what its row gives, a table what its source renders, a count the rows
+its conditions keep, and a result-like number outside every marker fails."""
 
 from __future__ import annotations
 
@@ -28,7 +27,7 @@ def test_marked_numbers_match_their_sources(doc: Path) -> None:
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(REPO)))
 def test_no_result_without_a_source(doc: Path) -> None:
     loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"))
-    assert not loose, "results outside a claim marker (mark them with their data file, or drop them):\n" + "\n".join(
+    assert not loose, "results outside every marker (generate them from their data file, or drop them):\n" + "\n".join(
         f"{doc.relative_to(REPO)}:{s.line}: {s.text}" for s in loose
     )
 
@@ -37,13 +36,14 @@ def test_the_committed_docs_mark_claims() -> None:
     """The markers are in use where the front page states results (not an empty check)."""
     readme = (REPO / "README.md").read_text(encoding="utf-8")
     kinds = {span.kind for span in claims.marked_spans(readme)}
-    assert kinds == {"claim", "table"}, kinds
+    assert kinds == {"value", "table"}, kinds
 
 
 def _write(tmp_path: Path, markdown: str) -> Path:
-    (tmp_path / "data").mkdir()
+    (tmp_path / "data").mkdir(exist_ok=True)
     (tmp_path / "data" / "r.csv").write_text(
-        "aggregator,mask,R@1_mean,R@1_std,gain\nnetvlad,none,70.6032,1.3345,\nsral,student,78.9841,1.1481,+8.4\n",
+        "aggregator,mask,R@1_mean,R@1_std,gain,seeds\nnetvlad,none,70.6032,1.3345,,3\n"
+        "sral,student,78.9841,1.1481,+8.4,3\nsral,teacher,78.2,0.9,-0.8,3\n",
         encoding="utf-8",
     )
     doc = tmp_path / "doc.md"
@@ -51,78 +51,95 @@ def _write(tmp_path: Path, markdown: str) -> Path:
     return doc
 
 
-def test_a_right_claim_passes(tmp_path: Path) -> None:
-    text = "NetVLAD 70.6 ± 1.3, the student +8.4 (79.0 %)."
-    doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{text}\n<!-- /claim -->\n")
-    assert claims.check_markdown(doc, tmp_path) == []
+def _value(conditions: str, template: str, text: str) -> str:
+    return f"<!-- value: data/r.csv {conditions} '{template}' -->{text}<!-- /value -->"
+
+
+def test_a_value_is_what_its_row_gives(tmp_path: Path) -> None:
+    text = (
+        f"NetVLAD {_value('aggregator=netvlad', '{R@1_mean:.1f} ± {R@1_std:.1f}', '70.6 ± 1.3')}, the student "
+        f"{_value('mask=student', '{gain:+.1f}', '+8.4')} ({_value('mask=student', '{R@1_mean:.1f} %', '79.0 %')}), "
+        f"the teacher's loss {_value('mask=teacher', '{-gain:.1f}', '0.8')} points.\n"
+    )
+    assert claims.check_markdown(_write(tmp_path, text), tmp_path) == []
 
 
 @pytest.mark.parametrize(
-    "wrong",
+    ("conditions", "template", "wrong"),
     [
-        "NetVLAD 70.8 ± 1.3",  # a typo in the last digit
-        "NetVLAD 70.61 ± 1.3",  # a stated extra decimal is held to it (70.6032 is not 70.61)
-        "the student −8.4",  # the sign is part of a signed claim
-        "the student +8.4 in 78.9 %",  # 78.98 rounds to 79.0, not 78.9
+        ("aggregator=netvlad", "{R@1_mean:.1f} ± {R@1_std:.1f}", "70.8 ± 1.3"),  # a typo in the last digit
+        ("aggregator=netvlad", "{R@1_mean:.1f}", "70.61"),  # an extra decimal is not what the template gives
+        ("mask=student", "{gain:+.1f}", "−8.4"),  # the sign is the data's
+        ("mask=teacher", "{R@1_mean:.1f} ± {R@1_std:.1f}", "79.0 ± 1.1"),  # the student's numbers, the teacher's row
     ],
 )
-def test_a_wrong_number_in_a_claim_fails(tmp_path: Path, wrong: str) -> None:
-    doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{wrong}.\n<!-- /claim -->\n")
-    problems = claims.check_markdown(doc, tmp_path)
-    assert problems and all(p.startswith("doc.md:2: ") for p in problems), problems
+def test_a_wrong_value_fails(tmp_path: Path, conditions: str, template: str, wrong: str) -> None:
+    doc = _write(tmp_path, f"Said:\nit was {_value(conditions, template, wrong)}.\n")
+    (problem,) = claims.check_markdown(doc, tmp_path)
+    assert problem.startswith(f"doc.md:2: {wrong!r} is not ") and "what data/r.csv gives" in problem, problem
 
 
 @pytest.mark.parametrize(
-    "mixed",
+    ("conditions", "error"),
     [
-        "NetVLAD 70.6 ± 1.1",  # 1.1 is a std, but the student's: a mean and its std come from one row, side by side
-        "| netvlad | 70.6 ± 1.3 / 79.0 |",  # one table cell's numbers come from one row
+        ("aggregator=sral", "aggregator=sral keeps rows that differ"),  # two rows: which one is said?
+        ("mask=oracle", "mask=oracle keeps no row"),
+        ("masks=student", "no column 'masks'"),
     ],
 )
-def test_numbers_written_together_come_from_one_record(tmp_path: Path, mixed: str) -> None:
-    doc = _write(tmp_path, f"<!-- claim: data/r.csv -->\n{mixed}\n<!-- /claim -->\n")
-    problems = claims.check_markdown(doc, tmp_path)
-    assert problems and all("not side by side" in p or "not from one record" in p for p in problems), problems
+def test_a_value_names_its_row(tmp_path: Path, conditions: str, error: str) -> None:
+    doc = _write(tmp_path, f"Said: {_value(conditions, '{R@1_mean:.1f}', '79.0')}.\n")
+    (problem,) = claims.check_markdown(doc, tmp_path)
+    assert problem.startswith("doc.md:1: ") and error in problem, problem
 
 
-def test_an_unsigned_magnitude_matches_a_loss(tmp_path: Path) -> None:
-    doc = _write(tmp_path, "<!-- claim: data/r.csv -->\na gain of 8.4 points\n<!-- /claim -->\n")
+def test_rows_that_agree_give_one_value(tmp_path: Path) -> None:
+    """A setting shared by the rows a condition keeps (every run's seeds) is one value."""
+    doc = _write(tmp_path, f"Over {_value('aggregator=sral', '{seeds:.0f} seeds', '3 seeds')}.\n")
     assert claims.check_markdown(doc, tmp_path) == []
 
 
-def test_a_generated_table_is_checked_and_rewritten(tmp_path: Path) -> None:
-    table = "| aggregator · mask | R@1 |\n|---|---:|\n| netvlad · none | 70.6 ± 1.3 |\n| sral · student | 79.0 ± 1.1 |"
-    doc = _write(tmp_path, f"<!-- table: data/r.csv aggregator,mask R@1 -->\n{table}\n<!-- /table -->\n")
+def test_generated_tables_and_values_are_checked_and_rewritten(tmp_path: Path) -> None:
+    table = (
+        "| aggregator · mask | R@1 |\n|---|---:|\n| netvlad · none | 70.6 ± 1.3 |\n| sral · student | 79.0 ± 1.1 |\n"
+        "| sral · teacher | 78.2 ± 0.9 |"
+    )
+    value = _value("mask=student", "{gain:+.1f}", "+8.4")
+    doc = _write(tmp_path, f"<!-- table: data/r.csv aggregator,mask R@1 -->\n{table}\n<!-- /table -->\nGain {value}.\n")
     assert claims.check_markdown(doc, tmp_path) == []
-    doc.write_text(doc.read_text(encoding="utf-8").replace("79.0 ± 1.1", "79.1 ± 1.1"), encoding="utf-8")
-    assert [p for p in claims.check_markdown(doc, tmp_path) if "table differs from data/r.csv" in p]
-    assert claims.write_tables(doc, tmp_path)
+    stale = doc.read_text(encoding="utf-8").replace("79.0 ± 1.1", "79.1 ± 1.1").replace("+8.4<", "+8.5<")
+    doc.write_text(stale, encoding="utf-8")
+    assert len(claims.check_markdown(doc, tmp_path)) == 2
+    assert claims.write_generated(doc, tmp_path)
     assert claims.check_markdown(doc, tmp_path) == []
-    assert table in doc.read_text(encoding="utf-8")
+    assert table in doc.read_text(encoding="utf-8") and value in doc.read_text(encoding="utf-8")
 
 
 def test_a_result_outside_a_marker_is_flagged(tmp_path: Path) -> None:
-    marked = "<!-- claim: data/r.csv -->\n70.6\n<!-- /claim -->\n"
-    text = "New: 81.2 R@1, +3 over none, 12 %, in 95 s.\n`lr 0.5` 16 epochs, 3 seeds, stage4, 180x240\n"
+    marked = _value("aggregator=netvlad", "{R@1_mean:.1f}", "70.6") + "\n## 3.1 A section, §3.4\n"
+    text = "New: 81.2 R@1, +3 over none, 12 %, in 95 s.\n`lr 0.5` 16 epochs, 3 seeds, stage4, 180x240, 95-percent\n"
     doc = _write(tmp_path, marked + text)
     loose = claims.unsourced_numbers(doc.read_text(encoding="utf-8"))
-    assert [(s.text, s.line) for s in loose] == [("81.2", 4), ("+3", 4), ("12 %", 4), ("95 s", 4)]
+    assert [(s.text, s.line) for s in loose] == [("81.2", 3), ("+3", 3), ("12 %", 3), ("95 s", 3)]
 
 
 def test_a_marker_opening_a_line_of_text_is_flagged(tmp_path: Path) -> None:
-    doc = _write(tmp_path, "Text <!-- claim: data/r.csv -->70.6\n<!-- /claim --> and more\n")
+    doc = _write(tmp_path, "Text\n" + _value("aggregator=netvlad", "{R@1_mean:.1f}", "70.6") + " and more\n")
     assert claims.check_markdown(doc, tmp_path) == [
         "doc.md:2: a marker opens this line of text, which would render as raw HTML (move it up a line)"
     ]
 
 
 def test_a_marker_without_its_end_or_source_is_one_error(tmp_path: Path) -> None:
-    doc = _write(tmp_path, "<!-- claim: data/r.csv -->\n70.6\n")
-    with pytest.raises(SemvprError, match="without its '<!-- /claim -->'"):
+    doc = _write(tmp_path, "Text <!-- value: data/r.csv mask=student '{gain:+.1f}' -->+8.4\n")
+    with pytest.raises(SemvprError, match="without its '<!-- /value -->'"):
         claims.check_markdown(doc, tmp_path)
-    doc.write_text("<!-- claim: data/missing.csv -->\n70.6\n<!-- /claim -->\n", encoding="utf-8")
+    doc.write_text("Text <!-- value: data/missing.csv '{gain}' -->70.6<!-- /value -->\n", encoding="utf-8")
     (problem,) = claims.check_markdown(doc, tmp_path)
     assert problem.startswith("doc.md:1: ") and "no such data file" in problem, problem
+    doc.write_text("Text <!-- value: data/r.csv mask=student -->70.6<!-- /value -->\n", encoding="utf-8")
+    (problem,) = claims.check_markdown(doc, tmp_path)
+    assert "expected '<!-- value: SOURCE [CONDITION ...] TEMPLATE -->'" in problem, problem
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -146,27 +163,37 @@ def test_the_command_names_each_problem_and_rewrites_tables(tmp_path: Path) -> N
     doc = _write(
         tmp_path,
         f"<!-- table: data/r.csv aggregator,mask R@1 -->\n{stale}\n<!-- /table -->\n"
-        "<!-- claim: data/r.csv -->\nthe student +8.5\n<!-- /claim -->\nand 81.2 R@1 unmarked\n",
+        f"the student {_value('mask=student', '{gain:+.1f}', '+8.5')}\nand 81.2 R@1 unmarked\n",
     )
     proc = _run("--root", str(tmp_path), str(doc), cwd=tmp_path)
     assert proc.returncode == 1, (proc.stdout, proc.stderr)
     assert proc.stdout.splitlines() == [
         "doc.md:1: table differs from data/r.csv (regenerate it)",
-        "doc.md:7: +8.5 is in no source of its claim (data/r.csv)",
-        "doc.md:9: 81.2 is outside every claim marker",
+        "doc.md:6: '+8.5' is not '+8.4', what data/r.csv gives (regenerate it)",
+        "doc.md:7: 81.2 is a result outside every value, table and count marker",
     ], proc.stdout
     proc = _run("--write", "--root", str(tmp_path), str(doc), cwd=tmp_path)
-    assert "79.0 ± 1.1" in doc.read_text(encoding="utf-8") and "table differs" not in proc.stdout, proc.stdout
+    text = doc.read_text(encoding="utf-8")
+    assert "79.0 ± 1.1" in text and "+8.4<" in text and "differs" not in proc.stdout, proc.stdout
 
 
-def test_a_json_pointer_narrows_a_source(tmp_path: Path) -> None:
-    (tmp_path / "r.json").write_text('{"teacher": {"car": 0.85}, "student": {"car": 0.81}}', encoding="utf-8")
+def test_a_json_value_names_its_field(tmp_path: Path) -> None:
+    """Without conditions a JSON part is one row, its fields by dotted path (lists by index); a pointer
+    narrows it."""
+    (tmp_path / "r.json").write_text(
+        '{"teacher": {"car": 0.85, "per_seed": [0.5, 0.7]}, "student": {"car": 0.81}}', encoding="utf-8"
+    )
     doc = tmp_path / "doc.md"
-    doc.write_text("<!-- claim: r.json#/teacher -->\ncar IoU 0.85\n<!-- /claim -->\n", encoding="utf-8")
+    marked = (
+        "car IoU <!-- value: r.json '{teacher.car:.2f}' -->0.85<!-- /value -->, seed 1 "
+        "<!-- value: r.json '{teacher.per_seed.1:.1f}' -->0.7<!-- /value -->, the student's "
+        "<!-- value: r.json#/student '{car:.2f}' -->0.81<!-- /value -->\n"
+    )
+    doc.write_text(marked, encoding="utf-8")
     assert claims.check_markdown(doc, tmp_path) == []
-    doc.write_text("<!-- claim: r.json#/teacher -->\ncar IoU 0.81\n<!-- /claim -->\n", encoding="utf-8")
-    assert claims.check_markdown(doc, tmp_path) == ["doc.md:2: 0.81 is in no source of its claim (r.json#/teacher)"]
-    doc.write_text("<!-- claim: r.json#/teacher/bus -->\n0.81\n<!-- /claim -->\n", encoding="utf-8")
+    doc.write_text(marked.replace("-->0.85<", "-->0.81<"), encoding="utf-8")
+    assert claims.check_markdown(doc, tmp_path) == ["doc.md:1: '0.81' is not '0.85', what r.json gives (regenerate it)"]
+    doc.write_text("x <!-- value: r.json#/teacher/bus '{car}' -->0.81<!-- /value -->\n", encoding="utf-8")
     (problem,) = claims.check_markdown(doc, tmp_path)
     assert problem.startswith("doc.md:1: ") and "no '/teacher/bus' in it" in problem, problem
 
@@ -254,10 +281,10 @@ def test_a_pivoted_table_with_templates_is_generated_and_checked(tmp_path: Path)
     for wrong in ("(−3.3 [−6.3, −0.3] *)", "(+2.3 [+0.8, +4.2] *)", "54.7 ± 1.3"):
         doc.write_text(f"{_PIVOT}{table.replace(wrong, wrong.replace('3', '4'))}\n<!-- /table -->\n", encoding="utf-8")
         assert claims.check_markdown(doc, tmp_path) == ["doc.md:1: table differs from p.csv (regenerate it)"]
-    assert claims.write_tables(doc, tmp_path) and table in doc.read_text(encoding="utf-8")
+    assert claims.write_generated(doc, tmp_path) and table in doc.read_text(encoding="utf-8")
     one_seed = _PIVOT.replace('"where=model!=gem" ', '"where=model=gem" "rows=gem · camvid" ')
     doc.write_text(f"{one_seed}\n<!-- /table -->\n", encoding="utf-8")
-    claims.write_tables(doc, tmp_path)
+    claims.write_generated(doc, tmp_path)
     assert "| gem · camvid | 34.5 (−3.0 [−7.0, +1.0]) | 89.5 (+2.5 [−0.5, +6.0]) |" in doc.read_text(encoding="utf-8")
 
 
@@ -287,7 +314,7 @@ def test_a_json_source_gives_rows_and_several_sources_join(tmp_path: Path) -> No
     joined = '<!-- table: p.csv+q.csv model pivot=source "as=p.csv=before" "as=q.csv=after" "where=pair=night" '
     joined += '"where=mask=none" R@1 -->\n'
     doc.write_text(f"{joined}<!-- /table -->\n", encoding="utf-8")
-    claims.write_tables(doc, tmp_path)
+    claims.write_generated(doc, tmp_path)
     expected = "| model | before | after |\n|---|---:|---:|\n| gem | 37.5 | – |\n| netvlad | 54.7 ± 1.3 | 60.0 ± 1.0 |"
     assert expected in doc.read_text(encoding="utf-8")
 
@@ -306,13 +333,16 @@ def test_a_json_source_gives_rows_and_several_sources_join(tmp_path: Path) -> No
     ],
 )
 def test_a_marker_that_cannot_be_rendered_or_counted_is_one_error(tmp_path: Path, marker: str, error: str) -> None:
-    """Its file and line, and the markers after it still checked (here a claim no source holds)."""
+    """Its file and line, and the markers after it still checked (here a value its row does not give)."""
     _pairs(tmp_path)
     doc = tmp_path / "doc.md"
     bad = f"{marker}\n<!-- /table -->\n" if "table:" in marker else f"{marker}\n"
-    doc.write_text(f"{bad}\nR@1 <!-- claim: p.csv -->99.9<!-- /claim -->\n", encoding="utf-8")
+    after = "R@1 <!-- value: p.csv pair=day model=gem mask=none '{R@1_mean:.1f}' -->99.9<!-- /value -->"
+    doc.write_text(f"{bad}\n{after}\n", encoding="utf-8")
     problems = claims.check_markdown(doc, tmp_path)
-    assert len(problems) == 2 and any(p.endswith(": 99.9 is in no source of its claim (p.csv)") for p in problems)
+    assert len(problems) == 2 and any(
+        p.endswith("'99.9' is not '87.0', what p.csv gives (regenerate it)") for p in problems
+    )
     assert any(p.startswith("doc.md:1: ") and error in p for p in problems), problems
 
 
@@ -329,24 +359,49 @@ def test_a_marker_that_cannot_be_rendered_or_counted_is_one_error(tmp_path: Path
     ],
 )
 def test_a_count_is_the_number_of_rows_its_conditions_keep(tmp_path: Path, count: str, holds: bool) -> None:
-    """A plain integer in prose, inside a claim, held to a query over its source."""
+    """A plain integer in prose held to a query over its source."""
     _pairs(tmp_path)
     doc = tmp_path / "doc.md"
-    doc.write_text(f"<!-- claim: p.csv -->\nOf the comparisons, {count} lost.\n<!-- /claim -->\n", encoding="utf-8")
+    doc.write_text(f"Of the comparisons, {count} lost.\n", encoding="utf-8")
     problems = claims.check_markdown(doc, tmp_path)
     assert problems == [] if holds else (len(problems) == 1 and "is not the" in problems[0]), problems
 
 
-@pytest.mark.parametrize(
-    ("text", "holds"), [("+4.4 (3 of 3)", True), ("+4.4 (2 of 3)", False), ("+1.9 (1 of 3)", True)]
-)
-def test_n_of_m_is_a_pair_of_adjacent_fields(tmp_path: Path, text: str, holds: bool) -> None:
-    """``N of M`` (seeds better) is two side-by-side fields of one row, exactly: 2 of 3 is not 1.9 and 2.6,
-    nor the teacher's 1 of 3."""
+def test_a_table_pivots_on_several_fields_in_chosen_groups(tmp_path: Path) -> None:
+    """``pivot=F,G`` groups columns by both fields' values; ``groups=`` picks and orders them as shown,
+    after ``as=`` (whose value and label may both hold ``=``)."""
+    _pairs(tmp_path)
+    marker = (
+        "<!-- table: p.csv model pivot=pair,mask 'groups=day · camvid|night masked=yes' "
+        "'as=night · camvid=night masked=yes' 'as=gem=GeM (`p=3`)' 'col=R@1={R@1_mean:.1f}' -->\n"
+    )
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"{marker}<!-- /table -->\n", encoding="utf-8")
+    claims.write_generated(doc, tmp_path)
+    expected = (
+        "| model | day · camvid | night masked=yes |\n|---|---:|---:|\n| GeM (`p=3`) | 89.5 | 34.5 |\n"
+        "| netvlad | 94.5 | 53.8 |"
+    )
+    assert expected in doc.read_text(encoding="utf-8")
+    doc.write_text(f"{marker.replace('day · camvid|', 'dusk · camvid|')}<!-- /table -->\n", encoding="utf-8")
+    (problem,) = claims.check_markdown(doc, tmp_path)
+    assert "no group 'dusk · camvid'" in problem, problem
+
+
+@pytest.mark.parametrize(("text", "holds"), [("+4.4 (3 of 3)", True), ("+4.4 (2 of 3)", False)])
+def test_n_of_m_is_a_pair_of_fields_of_one_row(tmp_path: Path, text: str, holds: bool) -> None:
+    """``N of M`` (seeds better) is what the row's two fields give, exactly."""
     (tmp_path / "g.csv").write_text(
         "model,gain_mean,gain_std,seeds_better,seeds\nstudent,+4.4,4.0,3,3\nteacher,+1.9,2.6,1,3\n", encoding="utf-8"
     )
     doc = tmp_path / "doc.md"
-    doc.write_text(f"<!-- claim: g.csv -->\nThe mask gains {text}.\n<!-- /claim -->\n", encoding="utf-8")
+    value = (
+        f"<!-- value: g.csv model=student '{{gain_mean:+.1f}} ({{seeds_better}} of {{seeds}})' -->{text}<!-- /value -->"
+    )
+    doc.write_text(f"The mask gains {value}.\n", encoding="utf-8")
     problems = claims.check_markdown(doc, tmp_path)
-    assert problems == [] if holds else problems == ["doc.md:2: 2 3 are not side by side in one record of g.csv"]
+    assert (
+        problems == []
+        if holds
+        else problems == ["doc.md:1: '+4.4 (2 of 3)' is not '+4.4 (3 of 3)', what g.csv gives (regenerate it)"]
+    )
