@@ -11,6 +11,8 @@ from semvpr.core.device import sweep_jobs
 # hydra/launcher=side_by_side's n_jobs: how many jobs of a sweep run at once on the job's accelerator.
 OmegaConf.register_new_resolver(
     "semvpr_sweep_jobs",
-    lambda accelerator, devices, cpu_jobs: sweep_jobs(accelerator, devices, int(cpu_jobs)),
+    lambda accelerator, devices, cpu_jobs, per_gpu=1: sweep_jobs(
+        accelerator, devices, int(cpu_jobs), per_gpu=int(per_gpu)
+    ),
     replace=True,
 )

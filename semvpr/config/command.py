@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import InterpolationToMissingValueError, MissingMandatoryValue
 
 from semvpr.config.plan import lease_folder, thread_plan
+from semvpr.config.schema import RunSettings, typed
 from semvpr.core.device import GpuLease, resolve, visible_gpus
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR, sole_writer
@@ -160,8 +161,8 @@ def model_pass(cfg: DictConfig) -> Iterator[Threads]:
 @contextmanager
 def leased_gpu(cfg: DictConfig) -> Iterator[None]:
     """In a sweep where several GPUs are visible, ``device=auto`` or ``cuda`` becomes ``cuda:N`` for the job's
-    life, N a GPU that no other job of this or another sweep on the cache holds (``core.device.GpuLease`` in
-    ``config.plan.lease_folder``); every job took cuda:0 before. Elsewhere ``cfg`` is left as it is."""
+    life, N a GPU with a slot (of ``jobs_per_gpu``) that no other job of this or another sweep on the cache
+    holds (``core.device.GpuLease`` in ``config.plan.lease_folder``). Elsewhere ``cfg`` is left as it is."""
     gpus = visible_gpus()
     word = str(cfg.get("device") or "auto")
     multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
@@ -169,7 +170,8 @@ def leased_gpu(cfg: DictConfig) -> Iterator[None]:
         yield
         return
     sweep_dir = Path(str(HydraConfig.get().sweep.dir))
-    with GpuLease(lease_folder(Path(str(cfg.paths.cache_dir)), sweep_dir), gpus) as lease, open_dict(cfg):
+    slots = typed(RunSettings, cfg, part=True).jobs_per_gpu
+    with GpuLease(lease_folder(Path(str(cfg.paths.cache_dir)), sweep_dir), gpus, slots) as lease, open_dict(cfg):
         cfg.device = f"cuda:{lease.index}"
         try:
             yield

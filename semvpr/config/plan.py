@@ -153,6 +153,8 @@ class Settings:
     #: The job's ``threads`` setting (auto or a number: semvpr.core.threads) and its trainer's accelerator.
     threads: str | int
     accelerator: str
+    #: A sweep's jobs side by side on each GPU (the slots of its lease).
+    jobs_per_gpu: int = 1
 
 
 def data_settings(cfg: DictConfig) -> DataSettings:
@@ -199,6 +201,7 @@ def settings_of(cfg: DictConfig, training: bool = False) -> Settings:
         training=_training(cfg) if training else None,
         threads=cfg.get("threads", "auto"),
         accelerator=str(cfg.trainer.accelerator) if "trainer" in cfg else "cpu",
+        jobs_per_gpu=typed(RunSettings, cfg, part=True).jobs_per_gpu,
     )
 
 
@@ -308,7 +311,8 @@ def job_device(settings: Settings, leased: int | None = None) -> torch.device:
 @contextmanager
 def sweep_gpu(settings: Settings, run_dir: Path) -> Iterator[int | None]:
     """The GPU a one-GPU job of a sweep takes for its life where several are visible (``GpuLease`` in
-    :func:`lease_folder`), so that the jobs launchers run side by side never share one; None elsewhere."""
+    :func:`lease_folder`): a slot of ``jobs_per_gpu`` no other job holds, so the jobs launchers run side by side
+    share a GPU only as asked; None elsewhere."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
@@ -318,7 +322,7 @@ def sweep_gpu(settings: Settings, run_dir: Path) -> Iterator[int | None]:
     if not (multirun and gpu_job and len(gpus) > 1):
         yield None
         return
-    with GpuLease(lease_folder(settings.storage.cache_dir, run_dir.parent), gpus) as lease:
+    with GpuLease(lease_folder(settings.storage.cache_dir, run_dir.parent), gpus, settings.jobs_per_gpu) as lease:
         yield lease.index
 
 

@@ -188,6 +188,8 @@ class RunSettings:
     num_figure_queries: int = setting(48, low=1)
     #: localize: the database places it lists per query.
     top_k: int = setting(5, low=1)
+    #: A sweep's jobs side by side on each GPU (small jobs that leave a GPU idle can share one).
+    jobs_per_gpu: int = setting(1, low=1, also="jobs of a sweep side by side on each GPU")
 
 
 @dataclass

@@ -4,9 +4,10 @@ Every stage of a job (trunk pass, teacher, pseudo-labels, student, k-means sampl
 mining distances) runs on the device of the job's backbone, which is built there: ``resolve`` turns the
 config's words into that device once, and the builders move every network onto it.
 
-A sweep on a machine with several GPUs runs one job per GPU at a time (``sweep_jobs``), and each job takes
-a GPU no other job of the sweep holds (``GpuLease``: an exclusive lock per GPU in the sweep directory,
-named by host, held for the job's life), so jobs never stack on ``cuda:0``.
+A sweep on a machine with GPUs runs ``jobs_per_gpu`` jobs per GPU at a time (``sweep_jobs``; small jobs
+that leave a GPU idle can share it), and each job takes a slot of a GPU no other job holds (``GpuLease``: an
+exclusive lock per slot in the sweep directory, named by host, held for the job's life), slots taken GPU
+by GPU before any GPU gets a second job, so jobs never stack on ``cuda:0``.
 """
 
 from __future__ import annotations
@@ -55,36 +56,41 @@ def visible_gpus() -> list[int]:
     return list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
 
 
-def sweep_jobs(accelerator: str, devices: object, cpu_jobs: int, gpus: Sequence[int] | None = None) -> int:
-    """How many jobs of a sweep run side by side: ``cpu_jobs`` on the CPU; on GPUs one job per visible GPU
-    for one-device jobs, and one job at a time for a job that takes several (DDP over the GPUs)."""
+def sweep_jobs(
+    accelerator: str, devices: object, cpu_jobs: int, gpus: Sequence[int] | None = None, per_gpu: int = 1
+) -> int:
+    """How many jobs of a sweep run side by side: ``cpu_jobs`` on the CPU; on GPUs ``per_gpu`` jobs per
+    visible GPU for one-device jobs, and one job at a time for a job that takes several (DDP over the GPUs)."""
     if str(accelerator).lower() not in GPU_WORDS:
         return cpu_jobs
     found = len(visible_gpus() if gpus is None else gpus)
     if devices != 1:
         return 1
-    return max(1, found)
+    return max(1, found) * per_gpu
 
 
 @dataclass
 class GpuLease:
-    """A GPU of ``gpus`` that no other job of the sweep holds, taken for as long as the lease is open.
+    """A slot of a GPU of ``gpus`` that no other job holds, taken for as long as the lease is open.
 
-    Each GPU has a lock file ``<folder>/<host>-gpu<N>.lock``; a job takes the first it can lock without
-    waiting, or waits on the first one when all are held (a sweep never runs more jobs than GPUs, so this
-    happens only beside another sweep). The lock goes with the process, so a killed job frees its GPU."""
+    Each GPU has ``slots`` lock files, ``<folder>/<host>-gpu<N>.lock`` and ``...-gpu<N>-slot<K>.lock`` for
+    K >= 1; a job takes the first it can lock without waiting, slot 0 of every GPU before slot 1 of any, or
+    waits on the first one when all are held (a sweep never runs more jobs than slots, so this happens only
+    beside another sweep). The lock goes with the process, so a killed job frees its slot."""
 
     folder: Path
     gpus: Sequence[int]
+    slots: int = 1
     index: int | None = None
     _handle: int | None = None
 
     def __enter__(self) -> GpuLease:
         self.folder.mkdir(parents=True, exist_ok=True)
         host = socket.gethostname().replace(os.sep, "_")
+        slots = [(gpu, slot) for slot in range(self.slots) for gpu in self.gpus]
         for wait in (False, True):
-            for gpu in self.gpus:
-                fd = open_lock(self.folder / f"{host}-gpu{gpu}.lock")
+            for gpu, slot in slots:
+                fd = open_lock(self.folder / f"{host}-gpu{gpu}{f'-slot{slot}' if slot else ''}.lock")
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
                 except BlockingIOError:

@@ -161,6 +161,22 @@ def test_a_sweep_runs_one_job_per_visible_gpu() -> None:
     assert sweep_jobs("gpu", 1, 2, gpus=[0, 1, 2, 3]) == 4
     assert sweep_jobs("gpu", 1, 2, gpus=[0]) == 1
     assert sweep_jobs("gpu", -1, 2, gpus=[0, 1]) == 1  # DDP over every GPU: one job at a time
+    assert sweep_jobs("gpu", 1, 2, gpus=[0, 1], per_gpu=3) == 6  # small jobs sharing each GPU
+    assert sweep_jobs("gpu", -1, 2, gpus=[0, 1], per_gpu=3) == 1
+    assert sweep_jobs("cpu", 1, 2, gpus=[0, 1], per_gpu=3) == 2
+
+
+def test_a_lease_with_slots_fills_every_gpu_before_sharing_one(tmp_path: Path) -> None:
+    """With two slots per GPU the jobs held at once get 3, 5, 3, 5 (never two on one while another is idle);
+    a freed slot is the next job's."""
+    from contextlib import ExitStack
+
+    with ExitStack() as held:
+        taken = [held.enter_context(GpuLease(tmp_path, [3, 5], slots=2)).index for _ in range(4)]
+        assert taken == [3, 5, 3, 5]
+        assert len(list(tmp_path.glob("*.lock"))) == 4
+    with GpuLease(tmp_path, [3, 5], slots=2) as first, GpuLease(tmp_path, [3, 5], slots=2) as second:
+        assert (first.index, second.index) == (3, 5)
 
 
 def _lease(folder: str, gpus: list[int], start: mp.synchronize.Barrier, queue: mp.Queue) -> None:

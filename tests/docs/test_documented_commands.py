@@ -15,6 +15,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from semvpr.config.checks import check_overrides
+from semvpr.core.device import visible_gpus
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
 from tests.docs.documented_commands import (
@@ -97,6 +98,10 @@ def test_every_launcher_composes_with_its_own_settings(launcher: list[str], conf
     assert ("n_jobs" in cfg.hydra.launcher) == (chosen in ("joblib", "side_by_side"))
     if launcher == ["hydra.launcher.n_jobs=3"]:
         assert chosen == "side_by_side" and cfg.hydra.launcher.n_jobs == 3
+    if chosen == "side_by_side":  # jobs_per_gpu reaches the count of GPU jobs side by side
+        with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+            gpu = compose(config_name=config, overrides=["trainer=gpu", "jobs_per_gpu=3"], return_hydra_config=True)
+        assert gpu.hydra.launcher.n_jobs == 3 * max(1, len(visible_gpus()))
     if chosen == "submitit_slurm":  # the README's SLURM job: its settings reach the launcher's config
         slurm = cfg.hydra.launcher
         assert (slurm.partition, slurm.gpus_per_node, slurm.timeout_min) == ("gpu", 1, 720)
