@@ -15,7 +15,7 @@ repository root; arguments split as a shell splits them); each holds exactly the
 
 Outside the markers a *result-like* number (one with a decimal point, an explicit sign, a ``%`` or a
 unit of time) is an error (:func:`unsourced_numbers`): a result is written only by a marker, a setting
-only as code (```lr=0.05```). Code spans, fenced code, link targets, HTML comments and section
+only as code (``lr=0.05``). Code spans, fenced code, link targets, HTML comments and section
 references (``§3.4``) are never read as numbers; other plain integers (sizes, seeds) are not checked.
 """
 
