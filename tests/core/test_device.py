@@ -305,14 +305,15 @@ def test_an_evaluation_sweeps_job_takes_a_gpu_no_job_of_any_sweep_on_the_cache_h
 
     monkeypatch.setattr(command.HydraConfig, "initialized", staticmethod(lambda: True))
     monkeypatch.setattr(command.HydraConfig, "get", staticmethod(lambda: Sweep))
-    cfg = OmegaConf.create({"device": "auto", "paths": {"cache_dir": str(cache)}})
+    run = {"seed": 0, "jobs_per_gpu": 1, "paths": {"cache_dir": str(cache)}}
+    cfg = OmegaConf.create({"device": "auto", **run})
     OmegaConf.set_struct(cfg, True)
     with GpuLease(lease_folder(cache, tmp_path / "other-sweep"), [0, 1, 2]) as other:
         assert other.index == 0
         with command.leased_gpu(cfg):
             assert cfg.device == "cuda:1"
     assert cfg.device == "auto"
-    cpu = OmegaConf.create({"device": "cpu", "paths": {"cache_dir": str(cache)}})
+    cpu = OmegaConf.create({"device": "cpu", **run})
     with command.leased_gpu(cpu):
         assert cpu.device == "cpu"
     Sweep.mode = command.RunMode.RUN
