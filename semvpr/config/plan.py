@@ -207,7 +207,7 @@ def settings_of(cfg: DictConfig, training: bool = False) -> Settings:
 
 def _training(cfg: DictConfig) -> Training:
     """The recipe, trainer and loggers of ``cfg`` (``recipe.batch_size`` is the global batch)."""
-    seed, recipe = int(cfg.seed), recipe_of(cfg)
+    seed, recipe, run = int(cfg.seed), recipe_of(cfg), typed(RunSettings, cfg, part=True)
     node, scheduler = cfg.recipe.get("loss"), cfg.recipe.get("scheduler")
     tuples = isinstance(recipe, TripletRecipe)
     return Training(
@@ -235,11 +235,12 @@ def _training(cfg: DictConfig) -> Training:
             loss=TripletLoss(recipe.margin) if node is None else instantiate_node(node),
             warmup_steps=0 if tuples else recipe.warmup_steps,
             scheduler_interval="epoch" if tuples else recipe.scheduler_interval,
+            check_loss_every_n_steps=run.check_loss_every_n_steps,
         ),
         trainer=cfg.trainer,
         loggers=tuple(cfg.logger.values()),
         ckpt_path=cfg.get("ckpt_path"),
-        figure_queries=typed(RunSettings, cfg, part=True).num_figure_queries,
+        figure_queries=run.num_figure_queries,
     )
 
 

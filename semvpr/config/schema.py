@@ -190,6 +190,9 @@ class RunSettings:
     top_k: int = setting(5, low=1)
     #: A sweep's jobs side by side on each GPU (small jobs that leave a GPU idle can share one).
     jobs_per_gpu: int = setting(1, low=1, also="jobs of a sweep side by side on each GPU")
+    #: Training steps between two reads of their losses from the device (a non-finite one stops the fit there;
+    #: every validation and checkpoint is preceded by one): a read makes the host wait for the device.
+    check_loss_every_n_steps: int = setting(50, low=1)
 
 
 @dataclass

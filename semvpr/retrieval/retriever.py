@@ -42,10 +42,43 @@ class Optimization:
     loss: Loss | None = None
     warmup_steps: int = 0
     scheduler_interval: str = "epoch"
+    #: Training steps between two reads of their losses (:class:`LossWatch`).
+    check_loss_every_n_steps: int = 1
 
     @property
     def loss_fn(self) -> Loss:
         return self.loss if self.loss is not None else TripletLoss(self.margin)
+
+
+class LossWatch:
+    """The training losses since the last check, kept where they were computed: noting one is no wait for the
+    device. :meth:`check` reads them at once, every ``every`` losses and whenever the retriever is validated or
+    saved, and raises at the first that is not finite (so no checkpoint ever holds what it trained)."""
+
+    def __init__(self, every: int) -> None:
+        self.every = every
+        self.losses: list[Tensor] = []
+        self.at: list[tuple[int, int]] = []  # each loss's epoch and step
+
+    def note(self, loss: Tensor, epoch: int, step: int) -> None:
+        self.losses.append(loss.detach())
+        self.at.append((epoch, step))
+        if len(self.losses) >= self.every:
+            self.check()
+
+    def check(self) -> None:
+        if not self.losses:
+            return
+        values, at = torch.stack(self.losses).float().cpu(), self.at
+        self.losses, self.at = [], []
+        bad = torch.nonzero(~torch.isfinite(values))
+        if len(bad):
+            first = int(bad[0])
+            epoch, step = at[first]
+            raise SemvprError(
+                f"training loss became {values[first].item()} at epoch {epoch} step {step}; the last good "
+                "checkpoint is left as it was (lower recipe.optimizer.lr?)"
+            )
 
 
 class Retriever(L.LightningModule):
@@ -79,6 +112,7 @@ class Retriever(L.LightningModule):
         # What this process's fit did: optimiser steps, whether any gave a parameter a non-zero gradient, and
         # the first loss (a fit whose loss never had a gradient learned nothing: nothing_learned).
         self.steps, self.had_gradient, self.first_loss = 0, False, None
+        self.loss_watch = LossWatch(optimization.check_loss_every_n_steps if optimization is not None else 1)
 
     # ----------------------------------------------------------------- descriptors
     @property
@@ -197,16 +231,21 @@ class Retriever(L.LightningModule):
             return sum(p.sum() for p in self.parameters() if p.requires_grad) * 0.0
         assert self.optimization is not None
         loss = self.optimization.loss_fn(self.describe_batch(batch), batch)
-        if not torch.isfinite(loss):
-            raise SemvprError(
-                f"training loss became {loss.item()} at epoch {self.current_epoch} step "
-                f"{self.global_step}; the last good checkpoint is left as it was (lower recipe.optimizer.lr?)"
-            )
+        self.loss_watch.note(loss, self.current_epoch, self.global_step)
         if self.first_loss is None:
             self.first_loss = float(loss.detach())
         rows = batch["tuples"] if "tuples" in batch else batch["labels"]
         self.log("train/loss", loss, prog_bar=True, batch_size=len(rows))
         return loss
+
+    def on_validation_start(self) -> None:
+        self.loss_watch.check()
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.loss_watch.check()
+
+    def on_train_end(self) -> None:
+        self.loss_watch.check()
 
     def on_before_optimizer_step(self, optimizer: Any) -> None:
         """Count the step, and until one is found, look for a non-zero gradient (after DDP's all-reduce and

@@ -262,6 +262,23 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(
     assert json.loads((tmp_path / "metrics.json").read_text())["status"] == "failed"
 
 
+def test_the_loss_watch_reads_the_losses_every_n_steps_and_names_the_first_bad_one() -> None:
+    """The per-step `bool(isfinite(loss))` made the host wait for the device at every step: the watch keeps the
+    losses as tensors and reads them every n, naming the first non-finite one's epoch and step."""
+    from semvpr.retrieval.retriever import LossWatch
+
+    watch = LossWatch(every=4)
+    for step, value in enumerate([1.0, float("inf"), float("nan")]):
+        watch.note(torch.tensor(value), 2, 10 + step)  # not read yet: no raise
+    with pytest.raises(SemvprError, match="loss became inf at epoch 2 step 11;"):
+        watch.note(torch.tensor(0.5), 2, 13)
+    assert watch.losses == []  # read once, then forgotten
+    watch.note(torch.tensor(float("nan")), 3, 14)
+    with pytest.raises(SemvprError, match="nan at epoch 3 step 14"):
+        watch.check()  # as before a validation or a checkpoint
+    watch.check()  # nothing left to read
+
+
 def test_failed_job_in_sweep_is_recorded_not_raised(cache_dir: Path, tmp_path: Path) -> None:
     metrics = run_job(tiny_config(cache_dir, "model.num_clusters=0"), tmp_path, multirun=True)
     written = json.loads((tmp_path / "metrics.json").read_text())

@@ -24,6 +24,9 @@ CASES: dict[str, Case] = {
     "lr=-1": Case(TRAIN, lambda t, c: ["recipe.optimizer.lr=-1"], "recipe.optimizer.lr=-1"),
     "num_figure_queries=0": Case(TRAIN, lambda t, c: ["num_figure_queries=0"], "num_figure_queries=0"),
     "jobs_per_gpu=0": Case(TRAIN, lambda t, c: ["jobs_per_gpu=0"], "jobs_per_gpu=0 must be a whole number >= 1"),
+    "check_loss_every_n_steps=0": Case(
+        TRAIN, lambda t, c: ["check_loss_every_n_steps=0"], "check_loss_every_n_steps=0 must be a whole number >= 1"
+    ),
     # null was let through and failed as a TypeError once training had ended
     "num_figure_queries=null": Case(TRAIN, lambda t, c: ["num_figure_queries=null"], "num_figure_queries=null must"),
     "precision=foo": Case(TRAIN, lambda t, c: ["trainer.precision=foo"], "trainer.precision='foo'"),
