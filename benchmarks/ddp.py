@@ -34,7 +34,7 @@ from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.retrieval.distributed import rank_slice, sharded
 from semvpr.retrieval.features import FeatureStore
-from semvpr.retrieval.mining import TupleDataset, collate_tuples
+from semvpr.retrieval.mining import TupleImages, collate_tuples
 from semvpr.retrieval.retriever import Optimization, Retriever
 
 GRID = (15, 20)  # conv4 output of a 240x320 image
@@ -85,11 +85,11 @@ def measure(rank: int, world: int, args: argparse.Namespace, port: int, out: str
     trainable = [p for p in retriever.parameters() if p.requires_grad]
     training = Training(retriever)
     wrapped = nn.parallel.DistributedDataParallel(training) if world > 1 else training
-    dataset = lambda tuples: TupleDataset(tuples, store, store)  # noqa: E731
+    images = TupleImages(store, store)
     slices = []
     for tuples in batches:
         mine = tuples[rank_slice(len(tuples), rank, world)]
-        batch = collate_tuples([dataset(mine)[i] for i in range(len(mine))]) or {}
+        batch = collate_tuples([images[t] for t in mine]) or {}
         slices.append({**batch, "pairs": sum(len(t[2]) for t in tuples) / world})
 
     def steps() -> torch.Tensor:

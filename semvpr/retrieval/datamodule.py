@@ -20,7 +20,8 @@ from torch.utils.data import ConcatDataset, DataLoader, Sampler
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.distributed import Describe, batch_block, world
 from semvpr.retrieval.features import PlaceFeatures, StoreDataset
-from semvpr.retrieval.mining import Mining, MiningPool, TrainingEpoch, loader_settings
+from semvpr.retrieval.loading import FitLoader, loader_settings
+from semvpr.retrieval.mining import Mining, MiningPool, TrainingEpoch, tuple_loader
 from semvpr.retrieval.places import (
     PlaceBatching,
     PlaceImages,
@@ -100,6 +101,7 @@ class RetrievalDataModule(EvalDataModule):
         # Tuples mined per epoch (the last epoch's count goes into metrics.json).
         self.num_tuples: list[int] = []
         self._epoch: TrainingEpoch | None = None
+        self._loader: FitLoader | None = None  # the fit's, made at its first epoch
         train = features.get("train")
         if train is not None:
             if not len(train.q):
@@ -111,14 +113,11 @@ class RetrievalDataModule(EvalDataModule):
 
     def train_dataloader(self) -> TrainingEpoch:
         self._count_tuples()
+        train, device = self.features["train"], self._device()
+        if self._loader is None:
+            self._loader = tuple_loader(train, self.num_workers, device)
         self._epoch = TrainingEpoch(
-            self.features["train"],
-            self.mining,
-            self.pool,
-            self.trainer.current_epoch,
-            self.describe,
-            self.num_workers,
-            self._device(),
+            train, self.mining, self.pool, self.trainer.current_epoch, self.describe, self._loader, device
         )
         return self._epoch
 
@@ -129,7 +128,7 @@ class RetrievalDataModule(EvalDataModule):
     def teardown(self, stage: str) -> None:
         if stage == "fit":
             self._count_tuples()
-            self._epoch = None
+            self._epoch = self._loader = None
 
     def epoch_facts(self) -> dict[str, Any]:
         return {"tuples_per_epoch": self.num_tuples}
@@ -168,6 +167,7 @@ class PlaceDataModule(EvalDataModule):
         self.batching = batching
         # Batches and places per epoch (the last epoch's go into metrics.json).
         self.batches: list[list[list[int]]] = []
+        self._loader: FitLoader | None = None  # the fit's, made at its first epoch
         train = features.get("train")
         if train is not None:
             self.places = training_places(train.places, batching.images_per_place)
@@ -183,12 +183,14 @@ class PlaceDataModule(EvalDataModule):
         train = self.features["train"]
         batches = epoch_batches(self.places, self.batching, self.trainer.current_epoch)
         self.batches.append(batches)
-        return DataLoader(
-            PlaceImages(train, self.places.labels),
-            batch_sampler=batches,
-            collate_fn=collate_places,
-            **loader_settings(self.num_workers, train.db.streams, self._device()),
-        )
+        if self._loader is None:
+            images = PlaceImages(train, self.places.labels)
+            self._loader = FitLoader(images, collate_places, self.num_workers, train.db.streams, self._device())
+        return self._loader.over(batches)
+
+    def teardown(self, stage: str) -> None:
+        if stage == "fit":
+            self._loader = None
 
     def epoch_facts(self) -> dict[str, Any]:
         last = self.batches[-1] if self.batches else []

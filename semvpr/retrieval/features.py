@@ -50,6 +50,7 @@ from semvpr.data.classes import NUM_CLASSES
 from semvpr.data.images import ImageDataset, load_image
 from semvpr.data.places import PlaceSet
 from semvpr.models.masks import MaskSource
+from semvpr.retrieval.loading import loader_settings
 
 STORAGES = ("auto", "ram", "disk", "stream")
 DISK_HEADROOM = 2 * 2**30
@@ -142,11 +143,16 @@ class StoreDataset(Dataset):
 
 
 def store_loader(
-    store: FeatureStore, batch_size: int, num_workers: int, index: Sequence[int] | None = None
+    store: FeatureStore,
+    batch_size: int,
+    num_workers: int,
+    index: Sequence[int] | None = None,
+    device: torch.device | str = "cpu",
 ) -> DataLoader:
-    """Batches of a store in order; decoding workers only where images are streamed."""
-    workers = num_workers if store.streams else 0
-    return DataLoader(StoreDataset(store, index), batch_size=batch_size, num_workers=workers, persistent_workers=False)
+    """Batches of a store in order, for a pass on ``device`` (workers and pinned memory as
+    :func:`semvpr.retrieval.loading.loader_settings` gives them)."""
+    settings = loader_settings(num_workers, store.streams, device)
+    return DataLoader(StoreDataset(store, index), batch_size=batch_size, **settings)
 
 
 @dataclass

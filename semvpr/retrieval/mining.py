@@ -29,26 +29,29 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import Dataset
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import fp32
 from semvpr.data.places import check_radius
 from semvpr.retrieval.distributed import Describe, from_rank_zero, rank_slice, world
 from semvpr.retrieval.features import FeatureStore, PlaceFeatures
+from semvpr.retrieval.loading import FitLoader
+
+#: A mined tuple: query, positive, negatives (rows of the query and database stores).
+Tuple = tuple[int, int, np.ndarray]
 
 
-class TupleDataset(Dataset):
-    """A mined tuple's images as one item: {"x" or "image": (2+n, ...), "mask": (2+n, 1, h, w) or empty}."""
+class TupleImages(Dataset):
+    """The images of the tuple an item's key names, as one item: {"trunk" or "image": (2+n, ...), "mask":
+    (2+n, 1, h, w) or empty}. The key is the tuple itself, so a loader over it reads whatever its batch sampler
+    names (:class:`semvpr.retrieval.loading.FitLoader`: one loader serves every sub-epoch)."""
 
-    def __init__(self, tuples: list[tuple[int, int, np.ndarray]], db: FeatureStore, q: FeatureStore) -> None:
-        self.tuples, self.db, self.q = tuples, db, q
+    def __init__(self, db: FeatureStore, q: FeatureStore) -> None:
+        self.db, self.q = db, q
 
-    def __len__(self) -> int:
-        return len(self.tuples)
-
-    def __getitem__(self, i: int) -> dict[str, Tensor]:
-        qi, pos, negs = self.tuples[i]
+    def __getitem__(self, key: Tuple) -> dict[str, Tensor]:
+        qi, pos, negs = key
         items = [self.q.item(qi), self.db.item(pos), *(self.db.item(int(j)) for j in negs)]
         # Per-row stacking: advanced indexing of bf16 tensors is ~10x slower on CPU.
         return {key: torch.stack([it[key] for it in items]) for key in items[0]}
@@ -70,20 +73,10 @@ def collate_tuples(items: list[dict[str, Tensor]]) -> dict[str, Tensor] | None:
     return batch
 
 
-class QueryBatches(Sampler[list[int]]):
-    """Tuple indices of ``batch_size`` consecutive sub-epoch queries (empty where none was minable)."""
-
-    def __init__(self, queries: np.ndarray, tuples: list[tuple[int, int, np.ndarray]], batch_size: int) -> None:
-        where = {qi: i for i, (qi, _, _) in enumerate(tuples)}
-        self.batches = [
-            [where[q] for q in queries[s : s + batch_size] if q in where] for s in range(0, len(queries), batch_size)
-        ]
-
-    def __len__(self) -> int:
-        return len(self.batches)
-
-    def __iter__(self) -> Iterator[list[int]]:
-        return iter(self.batches)
+def query_batches(queries: np.ndarray, tuples: list[Tuple], batch_size: int) -> list[list[Tuple]]:
+    """The tuples of each ``batch_size`` consecutive sub-epoch queries (empty where none was minable)."""
+    of = {t[0]: t for t in tuples}
+    return [[of[q] for q in queries[s : s + batch_size] if q in of] for s in range(0, len(queries), batch_size)]
 
 
 @dataclass(frozen=True)
@@ -182,12 +175,9 @@ class MiningPool:
         return cls(queries, np.full((len(train.q), mining.num_negatives), -1, dtype=np.int64))
 
 
-def loader_settings(num_workers: int, streams: bool, device: torch.device | str) -> dict[str, Any]:
-    """``num_workers`` and ``pin_memory`` of a loader over a feature store: on the CPU, workers only where the store
-    streams images (cached features are a memory copy away: a worker would only add start-up); on a GPU,
-    workers and pinned memory for cached stores too, so that the copies overlap the device's work."""
-    gpu = torch.device(device).type == "cuda"
-    return {"num_workers": num_workers if streams or gpu else 0, "pin_memory": gpu}
+def tuple_loader(train: PlaceFeatures, num_workers: int, device: torch.device | str) -> FitLoader:
+    """A fit's loader of mined tuples' images from ``train``'s stores (its workers kept across sub-epochs)."""
+    return FitLoader(TupleImages(train.db, train.q), collate_tuples, num_workers, train.db.streams, device)
 
 
 class TrainingEpoch:
@@ -206,11 +196,12 @@ class TrainingEpoch:
         pool: MiningPool,
         epoch: int,
         describe: Describe,
-        num_workers: int = 0,
+        loader: FitLoader | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        self.train, self.mining, self.describe, self.num_workers = train, mining, describe, num_workers
-        self.device, self.pool = device, pool
+        """``loader``: the fit's loader of tuples (:func:`tuple_loader`; without it, one without workers)."""
+        self.train, self.mining, self.describe, self.pool, self.device = train, mining, describe, pool, device
+        self.loader = loader if loader is not None else tuple_loader(train, 0, device)
         # Tuples mined, and whether the epoch ran at all (a resumed, finished fit builds it and never iterates).
         self.num_tuples, self.iterated = 0, False
         self.rng = np.random.default_rng([mining.seed, epoch])
@@ -236,13 +227,8 @@ class TrainingEpoch:
                 shared = (tuples, cache)
             tuples, cache[:] = from_rank_zero(shared if rank == 0 else None)
             self.num_tuples += len(tuples)
-            batches = QueryBatches(chunk, tuples, self.mining.batch_size).batches
-            pairs = [sum(len(tuples[i][2]) for i in batch) for batch in batches]
-            loader = DataLoader(
-                TupleDataset(tuples, train.db, train.q),
-                batch_sampler=[batch[rank_slice(len(batch), rank, size)] for batch in batches],
-                collate_fn=collate_tuples,
-                **loader_settings(self.num_workers, train.db.streams, self.device),
-            )
+            batches = query_batches(chunk, tuples, self.mining.batch_size)
+            pairs = [sum(len(t[2]) for t in batch) for batch in batches]
+            loader = self.loader.over([batch[rank_slice(len(batch), rank, size)] for batch in batches])
             for batch, n in zip(loader, pairs):
                 yield None if n == 0 else {**(batch or {}), "pairs": n / size}

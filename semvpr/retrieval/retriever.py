@@ -208,8 +208,8 @@ class Retriever(L.LightningModule):
         rows = len(store) if index is None else len(index)
         done = 0
         with autocast(self.device):
-            for batch in store_loader(store, self.eval_batch_size, self.num_workers, index):
-                batch = {k: v.to(self.device) for k, v in batch.items()}
+            for batch in store_loader(store, self.eval_batch_size, self.num_workers, index, self.device):
+                batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
                 desc = self.describe_batch(batch).float().cpu().numpy()
                 if out is None:
                     out = np.empty((rows, desc.shape[1]), np.float32)

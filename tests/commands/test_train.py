@@ -465,13 +465,20 @@ def test_same_numbers_whether_artifacts_are_built_cached_or_streamed(
         tiny_config(tmp_path / "cache", "filter=none", "trainer.max_epochs=2", "features.storage=stream"),
         tmp_path / "streamed",
     )
-    assert len(passes) == 6  # the cached job read them, the streamed one wrote none
+    # A streamed store is read by loader workers (kept from one sub-epoch to the next).
+    workers = run_job(
+        tiny_config(
+            tmp_path / "cache", "filter=none", "trainer.max_epochs=2", "features.storage=stream", "data.num_workers=1"
+        ),
+        tmp_path / "workers",
+    )
+    assert len(passes) == 6  # the cached job read them, the streamed ones wrote none
     assert (built["feature_storage"], cached["feature_storage"], streamed["feature_storage"]) == (
         "ram",
         "ram",
         "stream",
     )
-    _assert_same_run(built, cached, streamed)
+    _assert_same_run(built, cached, streamed, workers)
 
 
 @pytest.mark.reproducibility

@@ -10,7 +10,7 @@ import torch
 
 from semvpr.core.errors import SemvprError
 from semvpr.retrieval.features import FeatureStore
-from semvpr.retrieval.mining import Mining, QueryBatches, TupleDataset, collate_tuples
+from semvpr.retrieval.mining import Mining, TupleImages, collate_tuples, query_batches
 
 
 def mine(
@@ -121,9 +121,9 @@ def test_batches_hold_consecutive_queries_and_pair_every_negative_with_its_query
     db = FeatureStore(tuple(f"db{i}" for i in range(6)), (1, 1), torch.arange(6.0).view(6, 1, 1, 1), None)
     q = FeatureStore(("q0", "q1", "q2"), (1, 1), torch.tensor([10.0, 20.0, 30.0]).view(3, 1, 1, 1), None)
     tuples = [(0, 1, np.array([2, 3])), (2, 0, np.array([5]))]  # query 1 had nothing to mine
-    sampler = QueryBatches(np.array([2, 1, 0]), tuples, batch_size=2)
-    assert list(sampler) == [[1], [0]]  # queries (2, 1) then (0,)
-    batch = collate_tuples([TupleDataset(tuples, db, q)[i] for i in (0, 1)])
+    batches = query_batches(np.array([2, 1, 0]), tuples, batch_size=2)
+    assert batches == [[tuples[1]], [tuples[0]]]  # queries (2, 1) then (0,)
+    batch = collate_tuples([TupleImages(db, q)[t] for t in tuples])
     assert batch["trunk"].flatten().tolist() == [10.0, 1.0, 2.0, 3.0, 30.0, 0.0, 5.0]
     assert batch["tuples"].tolist() == [[0, 1, 2, 3], [4, 5, 6, -1]]
     assert collate_tuples([]) is None
