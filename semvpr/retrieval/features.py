@@ -271,11 +271,13 @@ def _extract(
         ImageDataset(list(paths), image_size, settings.resize),
         batch_size=settings.batch_size,
         num_workers=settings.num_workers,
+        pin_memory=device.type == "cuda",  # copied while the device works on the chunk before
     )
     backbone.eval()
     for batch, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
         for start in range(0, len(index), step):
-            images = batch[start : start + step].to(device).contiguous(memory_format=torch.channels_last)
+            images = batch[start : start + step].to(device, non_blocking=True)
+            images = images.contiguous(memory_format=torch.channels_last)
             first = int(index[start])
             rows = slice(first, first + len(images))
             with autocast(device):

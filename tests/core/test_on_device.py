@@ -1,0 +1,86 @@
+"""The training and description steps on each device: every test runs on the CPU, and again on a CUDA GPU where
+one is visible (marked ``gpu``; ``python -m pytest -m gpu``), where it must give what the CPU gives."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import Dataset
+
+from semvpr.core.errors import SemvprError
+from semvpr.core.precision import fp32
+from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.retrieval.loading import FitLoader
+from semvpr.retrieval.mining import Mining, MiningPool
+from semvpr.retrieval.retriever import LossWatch, Retriever
+from tests.retrieval.ddp_worker import DIM, Trunk, features
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.gpu, CUDA])]
+
+
+@pytest.fixture(autouse=True)
+def _no_tf32() -> Iterator[None]:
+    """fp32 on both devices, so that the GPU's results are the CPU's to rounding."""
+    with fp32("cpu"):
+        yield
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_store_described_on_the_device_gives_the_cpus_descriptors(device: str) -> None:
+    torch.manual_seed(0)
+    on_cpu = Retriever(Trunk(), NetVLAD(num_clusters=4, dim=DIM), eval_batch_size=6)
+    on_device = copy.deepcopy(on_cpu).to(device)
+    train = features()
+    rows = [3, 0, 17, 9, 25, 1, 39]
+    expected = on_cpu.describe_store(train.db, rows)
+    got = on_device.describe_store(train.db, rows)
+    assert got.shape == (len(rows), 4 * DIM) and got.dtype == np.float32
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    assert {p.device.type for p in on_device.parameters()} == {device}
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_loss_watch_leaves_the_losses_on_the_device_until_it_reads_them(device: str) -> None:
+    watch = LossWatch(every=3)
+    watch.note(torch.tensor(0.25, device=device), 0, 0)
+    watch.note(torch.tensor(float("nan"), device=device), 0, 1)
+    assert [loss.device.type for loss in watch.losses] == [device, device]
+    with pytest.raises(SemvprError, match="loss became nan at epoch 0 step 1"):
+        watch.note(torch.tensor(0.5, device=device), 0, 2)
+
+
+class Rows(Dataset):
+    def __getitem__(self, key: int) -> torch.Tensor:
+        return torch.full((2, 3), float(key))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_fit_loader_pins_its_batches_for_a_gpu(device: str) -> None:
+    loader = FitLoader(Rows(), torch.stack, num_workers=0, streams=False, device=device)
+    batches = list(loader.over([[1, 2], [5]]))
+    assert [b[:, 0, 0].tolist() for b in batches] == [[1.0, 2.0], [5.0]]
+    assert all(b.is_pinned() == (device == "cuda") for b in batches)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_mining_on_the_device_finds_the_cpus_tuples(device: str) -> None:
+    train = features()
+    mining = Mining(batch_size=3, cache_refresh=7, num_negatives=3, negative_candidates=12, margin=0.5)
+    pool = MiningPool.of(train, mining)
+    gen = np.random.default_rng(0)
+    db_desc = gen.normal(size=(len(train.db), 16)).astype(np.float32)
+    q_desc = gen.normal(size=(len(pool.queries), 16)).astype(np.float32)
+
+    def mine(on: str) -> list:
+        cache = np.full_like(pool.neg_cache, -1) if pool.neg_cache is not None else None
+        rng = np.random.default_rng(1)
+        return mining.mine(db_desc, q_desc, train.places, pool.queries, rng, cache, on)
+
+    expected, got = mine("cpu"), mine(device)
+    assert len(expected) > 0
+    assert [(q, p, n.tolist()) for q, p, n in got] == [(q, p, n.tolist()) for q, p, n in expected]
