@@ -7,18 +7,20 @@
 # estimate (summarize.py). Seeds run in the outer loop, so a stopped run has every draw at equal depth.
 # A cell recorded in cells/ (summarize.py OUT records the finished ones) is skipped: a run goes on from another
 # machine's records. Usage, from the repository root (each step is cached; a rerun skips every finished sweep):
-#   bash experiments/synthcity-power/run.sh OUT [SEEDS] [DRAWS]      (defaults: 15 seeds, 3 draws)
-# One job at a time with one thread (the other core stays free).
+#   bash experiments/synthcity-power/run.sh OUT [SEEDS] [DRAWS] [FIRST]   (defaults: 15 seeds, 3 draws, from 0)
+# One job at a time with one thread (the other core stays free). FIRST: the first seed this run takes, so that
+# two runs on one OUT share its cache and take disjoint seeds (run.sh OUT 15 3 8 beside run.sh OUT 8).
 set -euo pipefail
 source "$(dirname "$0")/../sweeps.sh"
 OUT=$(realpath -m "${1:?usage: run.sh OUT [SEEDS] [DRAWS]}")
 SEEDS=${2:-15}
 DRAWS=${3:-3}
+FIRST=${4:-0}
 CACHE="$OUT/cache"
 CELLS="$(dirname "$0")/cells"
 export HF_HUB_OFFLINE=1
 
-for ((seed = 0; seed < SEEDS; seed++)); do
+for ((seed = FIRST; seed < SEEDS; seed++)); do
   for ((draw = 0; draw < DRAWS; draw++)); do
     name="seed=$seed,draw=$draw"
     [ -f "$CELLS/$name.npz" ] && continue
