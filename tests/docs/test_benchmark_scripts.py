@@ -48,7 +48,10 @@ SCRIPTS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         lambda t: ["--sizes", "10", "20", "--image-size", "64", "80", "--batch", "2", "--workers", "0"],
         "growth_mb=",
     ),
-    "gpu.py": (lambda t: ["--device", "cpu", "--quick", "--work", str(t / "gpu")], "gpu_check devices=cpu"),
+    "gpu.py": (
+        lambda t: ["--device", "cpu", "--quick", "--work", str(t / "gpu"), "--record", str(t / "gpu.json")],
+        "gpu_check devices=cpu",
+    ),
     "mask_cost.py": (lambda t: ["--batch", "1", "--repeats", "1"], "teacher_cut="),
     "occluders.py": (lambda t: _occluder_fixture(t), "ratio="),
     "quickstart.py": (lambda t: ["--override", "experiment=tiny"], "floor_s="),
@@ -114,6 +117,14 @@ def test_benchmark_script_runs_with_small_arguments(tmp_path: Path, script: str)
         assert round(record["mean_over_dataset_seeds"]["gain"], 1) == gain, (record, last)
         assert record["command"].startswith("python benchmarks/calibrate_synthcity.py --preset tiny"), record
         assert record["machine"]["precision"] == "fp32" and record["runs"], record
+    if script == "gpu.py":
+        # Every step ran on the CPU and passed, the record complete with each step's result.
+        record = json.loads((tmp_path / "gpu.json").read_text(encoding="utf-8"))
+        assert record["status"] == "complete" and record["last"]["devices"] == "cpu", record
+        steps = ["placement", "tiny_sweep", "trunk_pass", "precisions", "fp32_drift", "ddp", "determinism"]
+        assert list(record["steps"]) == steps and {s["status"] for s in record["steps"].values()} == {"ok"}, record
+        assert record["steps"]["placement"]["result"]["module_calls"] > 100, record
+        assert 150 < record["steps"]["trunk_pass"]["result"]["conv_gflop_per_image"] < 190, record  # conv1_1-conv4_3
     if script == "record.py":
         # What the command printed, its last line's fields, the command as typed and the machine.
         record = json.loads((tmp_path / "record.json").read_text(encoding="utf-8"))
