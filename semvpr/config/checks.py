@@ -22,9 +22,11 @@ from semvpr.config.components import (
 from semvpr.config.schema import (
     SIZE_MAX,
     DataNode,
+    EvalSettings,
     Features,
     GsvRecipe,
     Model,
+    OptimizerNode,
     RunSettings,
     SegmentSettings,
     SegNode,
@@ -38,7 +40,6 @@ from semvpr.core.patterns import bounded_regex
 from semvpr.core.precision import lightning_precision
 from semvpr.core.spec import number, whole_number
 from semvpr.core.threads import parse_setting
-from semvpr.models.released import FORMATS as CKPT_FORMATS
 from semvpr.retrieval.controls import REMOVED_CLASSES
 
 
@@ -349,9 +350,8 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         if weights is None:
             raise SemvprError(f"{where}.weights=null: give imagenet, none (a random-init trunk) or a weight file")
         _check_path_setting(weights, f"{where}.weights")
-    fmt = cfg.get("ckpt_format")
-    if fmt is not None and fmt not in CKPT_FORMATS:
-        raise SemvprError(f"ckpt_format={fmt!r} is not one of {', '.join(CKPT_FORMATS)}")
+    if "ckpt_format" in cfg:
+        typed(EvalSettings, cfg, part=True)
     pattern = OmegaConf.select(cfg, "data.frame_pattern", default=None, throw_on_missing=False)
     if pattern is not None:
         bounded_regex(pattern, "data.frame_pattern")
@@ -477,13 +477,7 @@ def _check_size(value: Any, key: str) -> None:
 
 def _check_retrieval(cfg: DictConfig) -> None:
     typed(RunSettings, cfg, part=True)
-    lr = cfg.recipe.optimizer.get("lr")
-    try:
-        lr_ok = lr is not None and math.isfinite(float(lr)) and float(lr) > 0
-    except (TypeError, ValueError):
-        lr_ok = False
-    if not lr_ok:
-        raise SemvprError(f"recipe.optimizer.lr={lr!r} must be a number > 0")
+    typed(OptimizerNode, cfg.recipe.optimizer, "recipe.optimizer", part=True)
     _check_trainer(cfg.trainer)
     _check_optimization(cfg)
     if cfg.get("ckpt_path") not in (None, "last"):
@@ -562,16 +556,10 @@ def _shown(value: Any) -> Any:
 
 def _check_trainer(trainer: DictConfig) -> None:
     """The trainer's settings semvpr reads (``config.schema.TrainerSettings``), a precision this machine supports,
-    every epoch's own batches, and more than one device only with a DDP strategy (Lightning would otherwise
-    relaunch the whole command line in a second process)."""
+    and more than one device only with a DDP strategy (Lightning would otherwise relaunch the whole command line
+    in a second process)."""
     settings = typed(TrainerSettings, trainer, "trainer", part=True)
     lightning_precision(settings.precision, settings.accelerator)  # supported here, or one line
-    reload = trainer.get("reload_dataloaders_every_n_epochs", 1)
-    if reload != 1 or isinstance(reload, bool):
-        raise SemvprError(
-            f"trainer.reload_dataloaders_every_n_epochs={'null' if reload is None else reload}: every epoch draws "
-            "its own batches (mining, place sampling), so it must be 1"
-        )
     if not settings.strategy.startswith("ddp") and (settings.devices != 1 or settings.num_nodes != 1):
         raise SemvprError(
             f"trainer.devices={settings.devices} needs trainer=ddp (one process per device, started by semvpr); "

@@ -21,6 +21,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.spec import MAX_IMAGE_SIDE, REQUIRED, check_ranges, setting
 from semvpr.data.images import RESIZES
 from semvpr.models.masks import WEIGHTINGS
+from semvpr.models.released import FORMATS as CKPT_FORMATS
 from semvpr.retrieval.controls import APPLIES, CONTROLS
 
 S = TypeVar("S")
@@ -209,6 +210,26 @@ class TrainerSettings:
     num_sanity_val_steps: int | None = setting(None, low=-1, also="or null: Lightning's default")
     strategy: str = "auto"
     precision: str = REQUIRED
+    #: Lightning's reload (its default is none): without it every epoch trained on epoch 0's batches and mining.
+    reload_dataloaders_every_n_epochs: int = setting(
+        low=1, high=1, also="every epoch draws its own batches: mining, place sampling"
+    )
+
+
+@dataclass
+class OptimizerNode:
+    """The keys of ``recipe.optimizer`` (a partial of a torch optimiser) that semvpr reads itself; the class takes
+    the others (``_check_optimization`` builds it once on one parameter)."""
+
+    lr: float = setting(low=0, above=True)
+
+
+@dataclass
+class EvalSettings:
+    """semvpr.eval's (and localize's and the hub's) top-level settings that its code reads."""
+
+    #: What ``ckpt`` names: a semvpr checkpoint or an author's release layout (``models.released``).
+    ckpt_format: str = setting("auto", choices=CKPT_FORMATS)
 
 
 @dataclass

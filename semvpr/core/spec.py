@@ -138,7 +138,8 @@ def whole_number(value: object, key: str, low: int, high: int | None = None, als
     if not ok:
         bounds = f"from {low} to {high}" if high is not None else f">= {low}"
         shown = "null" if value is None else repr(value)  # as written on the command line
-        raise SemvprError(f"{key}={shown} must be a whole number {bounds}{f' ({also})' if also else ''}")
+        must = f"must be {low}" if low == high else f"must be a whole number {bounds}"
+        raise SemvprError(f"{key}={shown} {must}{f' ({also})' if also else ''}")
     return int(value)  # type: ignore[arg-type]
 
 

@@ -311,7 +311,10 @@ def test_a_bad_setting_is_one_line_and_exit_2(tmp_path: Path, checkpoint: Path, 
         (["recipe.scheduler.step_size=0"], r"^recipe\.scheduler \(torch\.optim\.lr_scheduler\.StepLR\) refuses"),
         (["recipe.scheduler.gamma=null", "trainer.max_epochs=6"], r"^recipe\.scheduler .* refuses its settings"),
         # Without a reload every epoch trained on epoch 0's batches and mining, silently.
-        (["trainer.reload_dataloaders_every_n_epochs=0"], "reload_dataloaders_every_n_epochs=0: .* must be 1"),
+        (
+            ["trainer.reload_dataloaders_every_n_epochs=0"],
+            r"^trainer\.reload_dataloaders_every_n_epochs=0 must be 1 \(",
+        ),
         (["backbone.weights=null"], r"^backbone\.weights=null: give imagenet, none"),  # was torch's TypeError
         # Lightning's TypeError once the Trainer was built, after the caches, teacher and student.
         (["trainer.log_every_n_steps=abc"], r"^trainer\.log_every_n_steps='abc' must be a whole number >= 1"),
