@@ -38,7 +38,19 @@ HERE = Path(__file__).parent
 CELLS = HERE / "cells"
 MASKS = {"none": "attention", "student": "unet", "teacher": "mask2former"}  # mask: the training filter
 CONTRASTS = (("student", "student's mask − none"), ("teacher", "teacher's mask − none"))
-FIELDS = ("draw", "seed", "contrast", "R@1", "reference_R@1", "gain", "ci_low", "ci_high", "excludes_0", "level")
+FIELDS = (
+    "draw",
+    "seed",
+    "contrast",
+    "R@1",
+    "reference_R@1",
+    "gain",
+    "ci_low",
+    "ci_high",
+    "excludes_0",
+    "level",
+    "machine",
+)
 CELL_NAME = re.compile(r"seed=(\d+),draw=(\d+)")
 
 
@@ -77,17 +89,25 @@ def record_cells(out: Path) -> int:
     return added
 
 
-def read_cells() -> dict[tuple[int, int], dict[str, np.ndarray]]:
-    """Every recorded cell's hits by mask, by (seed, draw)."""
+def read_cells() -> dict[tuple[int, int], tuple[dict[str, np.ndarray], str]]:
+    """Every recorded cell's hits by mask and the CPU it ran on, by (seed, draw)."""
     cells = {}
     for path in sorted(CELLS.glob("*.npz")):
         match = CELL_NAME.fullmatch(path.stem)
         with np.load(path, allow_pickle=False) as saved:
             hits = {mask: saved[mask] for mask in MASKS if mask in saved}
+            ran_on = json.loads(str(saved["machine"])) if "machine" in saved else {}
         if match is None or len(hits) != len(MASKS) or len({h.shape for h in hits.values()}) != 1:
             raise SemvprError(f"{path} is not a cell record (seed=S,draw=D.npz with the hits of {sorted(MASKS)})")
-        cells[int(match[1]), int(match[2])] = hits
+        cells[int(match[1]), int(match[2])] = hits, cpu_name(ran_on)
     return cells
+
+
+def cpu_name(described: dict) -> str:
+    """A machine as ``core.machine.describe`` recorded it, in a few words: the CPU and its bf16 units."""
+    flags = described.get("flags", [])
+    units = "AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags else "AVX2"
+    return f"{described.get('cpu', '?')} ({units})"
 
 
 @exit_on_user_error
@@ -105,7 +125,7 @@ def main() -> None:
     level = corrected_level(len(CONTRASTS))
     rows: list[dict[str, object]] = []
     diffs: dict[str, dict[int, list[np.ndarray]]] = {m: {} for m, _ in CONTRASTS}
-    for (seed, draw), hits in sorted(cells.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+    for (seed, draw), (hits, ran_on) in sorted(cells.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         none = hits["none"][:, 0]
         for mask, label in CONTRASTS:
             r1 = hits[mask][:, 0]
@@ -113,6 +133,7 @@ def main() -> None:
             rows.append({
                 "draw": draw, "seed": seed, "contrast": label, "R@1": round(100 * r1.mean(), 2),
                 "reference_R@1": round(100 * none.mean(), 2), "gain": round(100 * (r1.mean() - none.mean()), 2),
+                "machine": ran_on,
             })  # fmt: skip
     planned = f"{len(cells)} of {args.seeds * args.draws} cells"
     for mask, label in CONTRASTS:
