@@ -26,6 +26,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from semvpr.config.schema import RunSettings, typed
 from semvpr.core.checkpoint import FORMAT, check_values, segmenter_of
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import CONF_DIR
@@ -101,10 +102,10 @@ def model_config(
                 f"{where}: choices.{group}={choice!r} is not one of the project's {group} configs {options}"
             )
         cfg[group] = OmegaConf.load(CONF / group / f"{choice}.yaml")
-    seed = record.get("seed")
-    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**32:
-        raise SemvprError(f"{where}: seed={seed!r} is not a whole number from 0 to 2**32-1")
-    cfg.seed = seed
+    try:
+        cfg.seed = typed(RunSettings, {"seed": record.get("seed")}).seed
+    except SemvprError as err:
+        raise SemvprError(f"{where}: {err}") from None
     for group in (*GROUPS, *NODES):
         stored = config.get(group, {})
         schema = OmegaConf.to_container(cfg[group], resolve=True)

@@ -99,7 +99,9 @@ SENTINEL_TEXT = "untouched"
             r"teacher\.model\.embed_dim is a mapping",
         ),
         (lambda s: _set("choices.backbone", "../../tmp/evil"), r"choices\.backbone='\.\./\.\./tmp/evil' is not one of"),
-        (lambda s: _set("seed", "0"), r"seed='0' is not a whole number"),
+        (lambda s: _set("seed", "0"), r"seed='0' must be a whole number from 0"),
+        (lambda s: _set("seed", 2**32), r"seed=4294967296 must be a whole number from 0 to 4294967295"),
+        (lambda s: _set("seed", True), r"seed=True must be a whole number"),
         # A stored path redirected eval to load another directory as the teacher.
         (lambda s: _set("config.teacher.checkpoint", s), r"teacher\.checkpoint=.*names a local path"),
         (lambda s: _set("config.teacher.checkpoint", "../teachers/evil"), r"teacher\.checkpoint=.*names a local path"),
