@@ -60,6 +60,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script from anywhere, semvpr installed or not
     sys.path.insert(0, str(REPO))
 
+from benchmarks.record import fields  # noqa: E402
 from semvpr.core.errors import SemvprError, exit_on_user_error  # noqa: E402
 from semvpr.core.io import write_json  # noqa: E402
 from semvpr.core.machine import describe  # noqa: E402
@@ -327,6 +328,9 @@ class Check:
     started_utc: str = field(default_factory=lambda: datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"))
     steps: dict[str, dict[str, Any]] = field(default_factory=dict)
     output: list[str] = field(default_factory=list)
+    load_at_start: list[float] | None = field(
+        default_factory=lambda: list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    )
 
     def say(self, line: str) -> None:
         print(line, flush=True)
@@ -362,27 +366,17 @@ class Check:
     def write(self, status: str) -> None:
         if self.record_path is None:
             return
-        load = os.getloadavg() if hasattr(os, "getloadavg") else None
-        last = self.output[-1].split()[1:] if status != "running" and self.output else []
+        last = self.output[-1] if status != "running" and self.output else ""
         write_json(self.record_path, {
             "command": self.command,
-            "machine": {**describe(), "load_average_at_start": list(load) if load else None},
+            "machine": {**describe(), "load_average_at_start": self.load_at_start},
             "started_utc": self.started_utc,
             "wall_s": round(time.perf_counter() - self.started, 1),
             "status": status,
             "steps": self.steps,
             "output": self.output,
-            "last": dict(_field(item) for item in last if "=" in item),
+            "last": fields(last),
         })  # fmt: skip
-
-
-def _field(item: str) -> tuple[str, float | str]:
-    """``key=value`` as record.py reads it: a number where the value is one."""
-    key, _, value = item.partition("=")
-    try:
-        return key, float(value)
-    except ValueError:
-        return key, value
 
 
 @exit_on_user_error
