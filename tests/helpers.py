@@ -240,6 +240,21 @@ def write_msls_cities(root: Path) -> Path:
     return root
 
 
+def write_msls_test_ground_truth(root: Path) -> Path:
+    """The official test city miami of ``write_msls_cities(root)`` with its ground truth beside its images:
+    postprocessed.csv and the subtask index, no raw.csv (the test release has none). Its database holds a
+    panorama in the 'all' subtask (m_db0) and a frame outside it; its queries one in it (m_q0, 2 m from
+    m_db0) and one outside."""
+    miami = root / "test" / "miami"
+    for side, rows in (
+        ("database", [("m_db0", 10.0, 0.0, True, True), ("m_db1", 500.0, 0.0, False, False)]),
+        ("query", [("m_q0", 12.0, 0.0, False, True), ("m_q_other", 500.0, 3.0, False, False)]),
+    ):
+        write_msls_side(miami / side, rows)
+        (miami / side / "raw.csv").unlink()
+    return root
+
+
 def make_images(root: Path, n: int = 10) -> list[Path]:
     """Half-bright, half-dark images at a size other than LABEL_SIZE (so labelling must resize)."""
     root.mkdir(parents=True)

@@ -610,10 +610,13 @@ def read_msls(
     root: str | Path, split: str, cities: list[str] | None = None, subtask: str = "all", exclude_panos: bool = True
 ) -> PlaceSet:
     """Read Mapillary SLS following mapillary_sls: official cities per split, panoramas excluded,
-    and for ``split="val"`` only the frames of ``subtask`` (subtask_index.csv; "all" by default).
+    and for the scored splits (``val``, ``test``) only the frames of ``subtask`` (subtask_index.csv; "all"
+    by default).
 
-    The official test cities have no public ground truth (their results come from the Codalab
-    server); the benchmarks report the val cities (cph, sf), which is what ``data=msls`` tests on.
+    The benchmarks report the val cities (cph, sf), which is what ``data=msls`` tests on. The official
+    test cities (``split="test"``) are read where their ground truth lies beside their images
+    (``postprocessed.csv`` with easting and northing, as in train_val); their release has no ``raw.csv``, and
+    where a test city's ground truth comes without one its panoramas stay in, as in mapillary_sls's test mode.
     ``split="selection"`` reads the training cities held out for epoch selection
     (:data:`MSLS_SELECTION_CITIES`, as train cities are read); ``split="train"`` the others.
     """
@@ -646,19 +649,21 @@ def read_msls(
         if not (folder / "query" / "postprocessed.csv").is_file() and (folder / "query").is_dir():
             raise SemvprError(
                 f"MSLS city {city!r} has no ground truth ({folder / 'query' / 'postprocessed.csv'} "
-                f"missing): the official test cities are scored on the MSLS server; evaluate "
+                f"missing): place its postprocessed.csv beside each side's images, or evaluate "
                 f"on the val cities (cph, sf) as the benchmarks do"
             )
         # Cities sit in different UTM zones whose (east, north) ranges overlap; shifting each
         # city's easting by 10,000 km keeps radius searches from ever pairing two cities.
         shift = i * 1e7
-        side_subtask = subtask if split == "val" else None
-        paths, utm = _read_msls_side(folder / "database", side_subtask, exclude_panos)
-        db_paths += paths
-        db_utm += [(e + shift, n) for e, n in utm]
-        paths, utm = _read_msls_side(folder / "query", side_subtask, exclude_panos)
-        q_paths += paths
-        q_utm += [(e + shift, n) for e, n in utm]
+        for side, paths, utms in (("database", db_paths, db_utm), ("query", q_paths, q_utm)):
+            released_without_panos = split == "test" and not (folder / side / "raw.csv").is_file()
+            found, utm = _read_msls_side(
+                folder / side,
+                subtask if split in ("val", "test") else None,
+                exclude_panos and not released_without_panos,
+            )
+            paths += found
+            utms += [(e + shift, n) for e, n in utm]
     if not db_paths or not q_paths:
         raise SemvprError(
             f"{root}: empty MSLS split {split!r} for cities {cities} ({len(db_paths)} database, {len(q_paths)} queries)"

@@ -10,7 +10,15 @@ import pytest
 
 from semvpr.core.errors import SemvprError
 from semvpr.data.places import PlaceSet, parse_utm_name, read_dbstruct_mat, read_msls, read_utm_folder
-from tests.helpers import REPO, write_dbstruct, write_image, write_jpg, write_msls_cities, write_msls_side
+from tests.helpers import (
+    REPO,
+    write_dbstruct,
+    write_image,
+    write_jpg,
+    write_msls_cities,
+    write_msls_side,
+    write_msls_test_ground_truth,
+)
 
 
 def utm_name(east: float, north: float) -> str:
@@ -194,6 +202,25 @@ def test_msls_config_selects_on_held_out_train_cities_and_tests_on_val_cities(tm
     }
     # Epoch selection never sees the reported cities, and neither does training.
     assert city == {"train": {"london"}, "val": {"zurich"}, "test": {"cph", "sf"}}
+
+
+def test_msls_test_cities_are_scored_where_their_ground_truth_lies_beside_their_images(tmp_path: Path) -> None:
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    root = write_msls_test_ground_truth(write_msls_cities(tmp_path / "msls"))
+    test = read_msls(root, "test")
+    # The subtask filters the test frames as it does val's; with no raw.csv, the panorama m_db0 stays in.
+    assert [p.name for p in test.db_paths] == ["m_db0.jpg"] and [p.name for p in test.q_paths] == ["m_q0.jpg"]
+    assert test.name == "msls/test" and [p.tolist() for p in test.positives(25.0)] == [[0]]
+    # Where a test city's ground truth comes with raw.csv, its panoramas are excluded as everywhere else.
+    write_msls_side(
+        root / "test" / "miami" / "database", [("m_db0", 10.0, 0.0, True, True), ("m_db2", 11.0, 0.0, False, True)]
+    )
+    assert [p.name for p in read_msls(root, "test").db_paths] == ["m_db2.jpg"]
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["data=msls", f"data.root={root}", "data.test.split=test"])
+    assert {p.parts[-4] for p in instantiate(cfg.data.test).q_paths} == {"miami"}
 
 
 def test_read_msls_bad_inputs(tmp_path: Path) -> None:

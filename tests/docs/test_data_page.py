@@ -23,6 +23,7 @@ from tests.helpers import (
     write_image,
     write_lists,
     write_msls_cities,
+    write_msls_test_ground_truth,
     write_pitts_mat,
 )
 
@@ -42,7 +43,9 @@ def _rows() -> list[tuple[str, str]]:
 
 
 def _dataset(command: str) -> str:
-    return re.search(r"\bdata=(\w+)", command)[1]
+    """A line's fixture: its ``data=`` set, and ``msls:test`` where it scores MSLS's official test cities."""
+    name = re.search(r"\bdata=(\w+)", command)[1]
+    return f"{name}:test" if "data.test.split=test" in command else name
 
 
 def _folder(tmp: Path) -> tuple[dict[str, str], Expected]:
@@ -93,6 +96,11 @@ def _msls(tmp: Path) -> tuple[dict[str, str], Expected]:
     return {"DIR": str(write_msls_cities(tmp / "set"))}, (3, 2, 2)
 
 
+def _msls_test(tmp: Path) -> tuple[dict[str, str], Expected]:
+    # miami's frames of the 'all' subtask: the database panorama m_db0 (kept: no raw.csv) and the query m_q0.
+    return {"DIR": str(write_msls_test_ground_truth(write_msls_cities(tmp / "set")))}, (1, 1, 1)
+
+
 def _nordland(tmp: Path) -> tuple[dict[str, str], Expected]:
     return {"DIR": str(write_frames(tmp / "set", {"ref": list(range(12)), "query": list(range(12))}))}, (12, 12, 12)
 
@@ -109,6 +117,7 @@ FIXTURES: dict[str, Fixture] = {
     "gsv_npy": _gsv_npy,
     "patchnetvlad": _patchnetvlad,
     "msls": _msls,
+    "msls:test": _msls_test,
     "nordland": _nordland,
     "frames": _frames,
 }
