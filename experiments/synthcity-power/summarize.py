@@ -99,15 +99,8 @@ def read_cells() -> dict[tuple[int, int], tuple[dict[str, np.ndarray], str]]:
             ran_on = json.loads(str(saved["machine"])) if "machine" in saved else {}
         if match is None or len(hits) != len(MASKS) or len({h.shape for h in hits.values()}) != 1:
             raise SemvprError(f"{path} is not a cell record (seed=S,draw=D.npz with the hits of {sorted(MASKS)})")
-        cells[int(match[1]), int(match[2])] = hits, cpu_name(ran_on)
+        cells[int(match[1]), int(match[2])] = hits, machine.short_name(ran_on)
     return cells
-
-
-def cpu_name(described: dict) -> str:
-    """A machine as ``core.machine.describe`` recorded it, in a few words: the CPU and its bf16 units."""
-    flags = described.get("flags", [])
-    units = "AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags else "AVX2"
-    return f"{described.get('cpu', '?')} ({units})"
 
 
 @exit_on_user_error

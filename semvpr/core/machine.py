@@ -44,3 +44,11 @@ def describe() -> dict[str, object]:
         "cores": os.cpu_count(),
         "isa_caps": {name: os.environ[name] for name in ISA_CAPS if name in os.environ},
     }
+
+
+def short_name(described: dict[str, object]) -> str:
+    """A machine as :func:`describe` recorded it, in a few words: the CPU and the units its bf16 runs on
+    (``Intel(R) Xeon(R) ... (AMX)``; AVX2: fp32)."""
+    flags = set(described.get("flags", ()))  # type: ignore[arg-type]
+    units = "AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags else "AVX2"
+    return f"{described.get('cpu', '?')} ({units})"
