@@ -26,8 +26,10 @@ class PCAWhitening(nn.Module):
 
     @torch.no_grad()
     def fit(self, db: Tensor | np.ndarray) -> PCAWhitening:
-        """Fit mean and whitened top-``out_dim`` principal directions on (N,in_dim) descriptors."""
-        x = db.float().cpu() if isinstance(db, Tensor) else torch.from_numpy(np.array(db, dtype=np.float32))
+        """Fit mean and whitened top-``out_dim`` principal directions on (N,in_dim) descriptors, on the device the
+        layer is on (the Gram matrix in float32, its eigendecomposition in float64)."""
+        x = db.float() if isinstance(db, Tensor) else torch.from_numpy(np.array(db, dtype=np.float32))
+        x = x.to(self.mean.device)
         n = x.shape[0]
         if x.ndim != 2 or x.shape[1] != self.in_dim:
             raise ValueError(f"expected (N,{self.in_dim}) descriptors, got {tuple(x.shape)}")

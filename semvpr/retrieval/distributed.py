@@ -14,15 +14,16 @@ many. Work is split the same way everywhere:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 import torch.distributed as dist
 
-from semvpr.retrieval.features import FeatureStore
+if TYPE_CHECKING:  # features' loaders read the world size from here
+    from semvpr.retrieval.features import FeatureStore
 
-Describe = Callable[[FeatureStore, np.ndarray | None], np.ndarray]
+Describe = Callable[["FeatureStore", np.ndarray | None], np.ndarray]
 
 
 def world() -> tuple[int, int]:

@@ -13,13 +13,18 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from semvpr.retrieval.distributed import world
+
 
 def loader_settings(num_workers: int, streams: bool, device: torch.device | str) -> dict[str, Any]:
     """``num_workers`` and ``pin_memory`` of a loader over a feature store: on the CPU, workers only where the store
     streams images (cached features are a memory copy away: a worker would only add start-up); on a GPU,
-    workers and pinned memory for cached stores too, so that the copies overlap the device's work."""
+    workers and pinned memory for cached stores too, so that the copies overlap the device's work. Under DDP the
+    ``num_workers`` are the job's, divided among its ranks (at least one each where there are any)."""
     gpu = torch.device(device).type == "cuda"
-    return {"num_workers": num_workers if streams or gpu else 0, "pin_memory": gpu}
+    ranks = world()[1]
+    share = max(1, num_workers // ranks) if num_workers else 0
+    return {"num_workers": share if streams or gpu else 0, "pin_memory": gpu}
 
 
 class PassBatches(Sampler[Sequence[Any]]):

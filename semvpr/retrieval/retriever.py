@@ -24,7 +24,7 @@ from semvpr.core.precision import autocast
 from semvpr.core.threads import frozen_pass
 from semvpr.data.images import ImageDataset
 from semvpr.models.masks import ClassWeights, MaskSource
-from semvpr.retrieval.distributed import Describe
+from semvpr.retrieval.distributed import Describe, from_rank_zero, world
 from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
 from semvpr.retrieval.losses import Loss, TripletLoss
 
@@ -145,10 +145,15 @@ class Retriever(L.LightningModule):
 
     def fit_whitening(self, db: FeatureStore, describe: Describe | None = None) -> None:
         """Fit the PCA-whitening layer on (unwhitened) database descriptors; ``describe`` (default
-        :meth:`describe_store`) is how they are computed, e.g. sharded across ranks."""
+        :meth:`describe_store`) is how they are computed, e.g. sharded across ranks. Under DDP every rank takes
+        part in describing them, rank 0 alone decomposes them and the others take its fitted layer."""
         assert self.whitening is not None
         self.whitening_fitted.fill_(False)
-        self.whitening.fit((describe or self.describe_store)(db, None))
+        descriptors = (describe or self.describe_store)(db, None)
+        fitted = None
+        if world()[0] == 0:
+            fitted = {k: v.cpu() for k, v in self.whitening.fit(descriptors).state_dict().items()}
+        self.whitening.load_state_dict(from_rank_zero(fitted))
         self.whitening_fitted.fill_(True)
 
     def forward(self, images: Tensor, label_paths: Sequence[Path] | None = None) -> Tensor:

@@ -14,6 +14,7 @@ from torch.utils.data import Dataset
 from semvpr.core.errors import SemvprError
 from semvpr.core.precision import fp32
 from semvpr.models.aggregators.netvlad import NetVLAD
+from semvpr.models.whitening import PCAWhitening
 from semvpr.retrieval.loading import FitLoader
 from semvpr.retrieval.mining import Mining, MiningPool
 from semvpr.retrieval.retriever import LossWatch, Retriever
@@ -84,3 +85,23 @@ def test_mining_on_the_device_finds_the_cpus_tuples(device: str) -> None:
     expected, got = mine("cpu"), mine(device)
     assert len(expected) > 0
     assert [(q, p, n.tolist()) for q, p, n in got] == [(q, p, n.tolist()) for q, p, n in expected]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("rows", [20, 60], ids=["gram", "covariance"])
+def test_pca_whitening_is_fitted_on_the_device_it_is_on(device: str, rows: int) -> None:
+    gen = torch.Generator().manual_seed(0)
+    db = torch.randn(rows, 32, generator=gen) @ torch.randn(32, 32, generator=gen)
+    on_cpu = PCAWhitening(32, 6).fit(db)
+    on_device = PCAWhitening(32, 6).to(device)
+    fit = torch.linalg.eigh
+    seen: list[str] = []
+    with pytest.MonkeyPatch.context() as patch:  # where the decomposition runs, and in which precision
+        patch.setattr(torch.linalg, "eigh", lambda m: seen.append(f"{m.device.type} {m.dtype}") or fit(m))
+        on_device.fit(db.numpy())
+    assert seen == [f"{device} torch.float64"]
+    assert on_device.projection.device.type == device
+    # The same axes up to each one's sign.
+    cosine = (on_device.projection.cpu() * on_cpu.projection).sum(1) / on_cpu.projection.norm(dim=1) ** 2
+    torch.testing.assert_close(cosine.abs(), torch.ones(6), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(on_device.mean.cpu(), on_cpu.mean)

@@ -366,3 +366,34 @@ def test_a_ddp_run_dir_holding_a_quote_trains(tmp_path: Path) -> None:
     run = tmp_path / 'ru"n'
     _train(tmp_path, *DDP, f"hydra.run.dir='{run}'")
     assert json.loads((run / "metrics.json").read_text())["status"] == "ok"
+
+
+@pytest.mark.parametrize("rank", [0, 1])
+def test_under_ddp_only_rank_zero_decomposes_the_database_and_every_rank_takes_its_whitening(
+    monkeypatch: pytest.MonkeyPatch, rank: int
+) -> None:
+    sys.path.insert(0, str(WORKER.parent))
+    from ddp_worker import DIM, Trunk
+    from ddp_worker import features as toy_features
+
+    from semvpr.models.aggregators.gem import GeM
+    from semvpr.models.whitening import PCAWhitening
+    from semvpr.retrieval import retriever as retriever_module
+
+    torch.manual_seed(0)
+    model = retriever_module.Retriever(Trunk(), GeM(dim=DIM), whitening=PCAWhitening(DIM, 4), eval_batch_size=6)
+    db = toy_features().db
+    zero = PCAWhitening(DIM, 4).fit(model.describe_store(db, None))  # what rank 0 fits
+    fits: list[int] = []
+    real_fit = PCAWhitening.fit
+    monkeypatch.setattr(PCAWhitening, "fit", lambda self, x: fits.append(1) or real_fit(self, x))
+    monkeypatch.setattr(retriever_module, "world", lambda: (rank, 2))
+    sent: list[dict] = []
+    monkeypatch.setattr(
+        retriever_module, "from_rank_zero", lambda obj: sent.append(obj) or (obj if rank == 0 else zero.state_dict())
+    )
+    model.fit_whitening(db)
+    assert fits == ([1] if rank == 0 else []) and (sent[0] is None) == (rank != 0)
+    assert bool(model.whitening_fitted)
+    torch.testing.assert_close(model.whitening.projection, zero.projection)
+    torch.testing.assert_close(model.whitening.mean, zero.mean)

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import os
 
+import pytest
 import torch
 from torch.utils.data import Dataset
 
+from semvpr.retrieval import loading
 from semvpr.retrieval.loading import FitLoader, loader_settings
 
 
@@ -49,3 +51,12 @@ def test_a_pass_on_a_gpu_reads_every_store_with_workers_into_pinned_memory() -> 
     assert loader_settings(3, streams=True, device="cpu") == {"num_workers": 3, "pin_memory": False}
     gpu, cpu = store_loader(cached, 2, 3, device="cuda"), store_loader(cached, 2, 3)
     assert (gpu.num_workers, gpu.pin_memory, cpu.num_workers, cpu.pin_memory) == (3, True, 0, False)
+
+
+@pytest.mark.parametrize(("workers", "ranks", "each"), [(8, 2, 4), (5, 2, 2), (2, 4, 1), (0, 2, 0), (3, 1, 3)])
+def test_under_ddp_the_jobs_workers_are_divided_among_its_ranks(
+    monkeypatch: pytest.MonkeyPatch, workers: int, ranks: int, each: int
+) -> None:
+    monkeypatch.setattr(loading, "world", lambda: (ranks - 1, ranks))
+    assert loader_settings(workers, streams=True, device="cpu")["num_workers"] == each
+    assert loader_settings(workers, streams=False, device="cuda")["num_workers"] == each
