@@ -84,20 +84,36 @@ def hw_of(size: Size | None) -> tuple[int, int] | None:
     return h, w
 
 
-def load_image(path: str | Path, size: Size | None = None, resize: str = "bilinear") -> torch.Tensor:
-    """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes it as ``resize`` says (:data:`RESIZES`)."""
+def read_image(path: str | Path, size: Size | None = None, resize: str = "bilinear") -> torch.Tensor:
+    """(3,H,W) RGB at ``size`` = [H, W] resized as ``resize`` says (:data:`RESIZES`): its 8-bit values (uint8)
+    where it keeps them (no resize, or PIL's bilinear), floats in [0, 1] where bicubic resizing makes new ones.
+    :func:`to_unit` makes either the floats :func:`load_image` gives, on any device (a quarter of the bytes
+    copied)."""
     img = eight_bit_rgb(open_image(Path(path), "image"), path)
     hw = hw_of(size)
     if hw is None or img.size == (hw[1], hw[0]):
-        return _tensor(img)
+        return _eight_bits(img)
     if resize == "bilinear":
-        return _tensor(img.resize((hw[1], hw[0]), Image.BILINEAR))
-    return F.interpolate(_tensor(img)[None], size=hw, mode="bicubic", antialias=True, align_corners=False)[0]
+        return _eight_bits(img.resize((hw[1], hw[0]), Image.BILINEAR))
+    return F.interpolate(to_unit(_eight_bits(img))[None], size=hw, mode="bicubic", antialias=True, align_corners=False)[
+        0
+    ]
 
 
-def _tensor(img: Image.Image) -> torch.Tensor:
-    """An RGB image as (3,H,W) floats in [0, 1]."""
-    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float().div_(255.0)
+def load_image(path: str | Path, size: Size | None = None, resize: str = "bilinear") -> torch.Tensor:
+    """(3,H,W) float RGB in [0,1]; `size` = [H, W] resizes it as ``resize`` says (:data:`RESIZES`)."""
+    return to_unit(read_image(path, size, resize))
+
+
+def to_unit(images: torch.Tensor) -> torch.Tensor:
+    """Images as floats in [0, 1]: 8-bit values divided by 255 (the same bits on every device: IEEE division),
+    floats as they are."""
+    return images.float().div_(255.0) if images.dtype == torch.uint8 else images
+
+
+def _eight_bits(img: Image.Image) -> torch.Tensor:
+    """An RGB image as (3,H,W) uint8."""
+    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1)
 
 
 @dataclass(frozen=True)
@@ -110,15 +126,20 @@ class Reading:
 
 
 class ImageDataset(Dataset):
-    """Images from paths as (image (3,H,W) float [0,1], index), at ``image_size`` resized as ``resize`` says."""
+    """Images from paths as (image (3,H,W) float [0,1], index), at ``image_size`` resized as ``resize`` says;
+    ``eight_bit``: as :func:`read_image` gives them (uint8 where resizing keeps 8 bits), for :func:`to_unit` to
+    make floats on the device they are copied to."""
 
-    def __init__(self, paths: Sequence[str | Path], image_size: Size | None, resize: str = "bilinear") -> None:
+    def __init__(
+        self, paths: Sequence[str | Path], image_size: Size | None, resize: str = "bilinear", eight_bit: bool = False
+    ) -> None:
         self.paths = [Path(p) for p in paths]
         self.image_size = image_size
         self.resize = resize
+        self.read = read_image if eight_bit else load_image
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, int]:
-        return load_image(self.paths[index], self.image_size, self.resize), index
+        return self.read(self.paths[index], self.image_size, self.resize), index

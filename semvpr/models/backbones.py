@@ -32,6 +32,20 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 # trunk's throughput does not depend on the batch on a CPU: VGG16 at 480x640, 2 cores, fp32, 0.63
 # images/s at batch 2, 0.61 at 24). Without it, an eval batch of 24 at 480x640 peaked at 11 GB.
 FORWARD_BYTES = 2 * 2**30
+#: On a GPU, the share of its free memory one frozen pass may take instead (the model, the other stages' tensors
+#: and the allocator's slack keep the rest).
+GPU_FORWARD_SHARE = 0.25
+
+
+def forward_bytes(device: torch.device | str = "cpu") -> int:
+    """Activation bytes one frozen-prefix pass may use on ``device``: ``FORWARD_BYTES`` on the CPU, where the heap
+    holds all of it; on a GPU, ``GPU_FORWARD_SHARE`` of its free memory."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return FORWARD_BYTES
+    free, _ = torch.cuda.mem_get_info(device)
+    return int(free * GPU_FORWARD_SHARE)
+
 
 # (unit name, output channels, output stride, is scale output) — widths come from here, never from probing.
 VGG16_UNITS: tuple[tuple[str, int, int, bool], ...] = (
@@ -171,11 +185,14 @@ class Backbone(nn.Module):
                 outs.append(h)
         return outs
 
-    def images_per_forward(self, hw: Sequence[int], keep_scales: bool = True) -> int:
-        """How many images of size ``hw`` one frozen pass takes within ``FORWARD_BYTES`` (at least 1)."""
+    def images_per_forward(
+        self, hw: Sequence[int], keep_scales: bool = True, device: torch.device | str = "cpu"
+    ) -> int:
+        """How many images of size ``hw`` one frozen pass on ``device`` takes within :func:`forward_bytes` (at
+        least 1)."""
         transient, kept = self._values_per_pixel
         per_image = 4 * (transient + (kept if keep_scales else 0.0)) * int(hw[0]) * int(hw[1])
-        return max(1, int(FORWARD_BYTES // per_image))
+        return max(1, int(forward_bytes(device) // per_image))
 
     def forward_frozen(self, x: Tensor, keep_scales: bool = True) -> list[Tensor]:
         """Scale outputs inside the frozen prefix; [-1] is the input of the trainable part.
@@ -184,7 +201,7 @@ class Backbone(nn.Module):
         goes). Batches larger than ``images_per_forward`` run in chunks (the same outputs up to float
         rounding: oneDNN may choose another kernel for another batch size).
         """
-        n = self.images_per_forward(x.shape[-2:], keep_scales)
+        n = self.images_per_forward(x.shape[-2:], keep_scales, x.device)
         if len(x) > n:
             parts = [self.forward_frozen(chunk, keep_scales) for chunk in x.split(n)]
             return [torch.cat(level) for level in zip(*parts)]

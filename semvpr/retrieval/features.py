@@ -47,7 +47,7 @@ from semvpr.core.logs import Progress, progress
 from semvpr.core.precision import autocast
 from semvpr.core.threads import frozen_pass
 from semvpr.data.classes import NUM_CLASSES
-from semvpr.data.images import ImageDataset, load_image
+from semvpr.data.images import ImageDataset, read_image, to_unit
 from semvpr.data.places import PlaceSet
 from semvpr.models.masks import MaskSource
 from semvpr.retrieval.loading import loader_settings
@@ -91,9 +91,10 @@ class FeatureStore:
         return self.trunk is None
 
     def item(self, i: int) -> dict[str, Tensor]:
-        """{"trunk": (C,h',w')} or {"image": (3,H,W)}, plus "mask" ((1,h,w) or empty)."""
+        """{"trunk": (C,h',w')} or {"image": (3,H,W) as ``read_image`` gives it, made floats on the device by
+        ``to_unit``}, plus "mask" ((1,h,w) or empty)."""
         if self.trunk is None:
-            x = {"image": load_image(self.paths[i], self.image_size, self.resize)}
+            x = {"image": read_image(self.paths[i], self.image_size, self.resize)}
         else:
             x = {"trunk": self.trunk[i]}
         x["mask"] = self.mask[i].float() if self.mask is not None else torch.empty(0)
@@ -104,11 +105,11 @@ class FeatureStore:
         """Trunk features of a few images (cached rows, or the frozen prefix on the images)."""
         if self.trunk is not None:
             return torch.stack([self.trunk[int(i)] for i in index])
-        images = torch.stack([load_image(self.paths[int(i)], self.image_size, self.resize) for i in index])
+        images = torch.stack([read_image(self.paths[int(i)], self.image_size, self.resize) for i in index])
         device = next(backbone.parameters()).device
         with autocast(device), frozen_pass():
             out = backbone.forward_frozen(
-                images.to(device).contiguous(memory_format=torch.channels_last), keep_scales=False
+                to_unit(images.to(device)).contiguous(memory_format=torch.channels_last), keep_scales=False
             )[-1]
         return out.to(TRUNK_DTYPE)
 
@@ -246,6 +247,45 @@ class MaskPass:
 Side = tuple[Sequence[Path], Sequence[Path] | None]
 
 
+class HostWrites:
+    """Rows of device tensors written into host arrays. On a GPU each chunk's copies are started without
+    blocking (into pinned memory) and written once they are done, after the next chunk's work is queued, so
+    that they overlap it; on the CPU they are written at once."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.gpu = device.type == "cuda"
+        self.queued: list[tuple[np.ndarray, slice, Tensor]] = []
+        self.copying: tuple[torch.cuda.Event, list[tuple[np.ndarray, slice, Tensor]]] | None = None
+
+    def put(self, array: np.ndarray, rows: slice, tensor: Tensor) -> None:
+        """Write ``tensor`` into ``array[rows]`` (cast to the array's dtype as NumPy casts)."""
+        if not self.gpu:
+            array[rows] = tensor.numpy()
+            return
+        self.queued.append((array, rows, tensor.to("cpu", non_blocking=True)))
+
+    def chunk_done(self) -> None:
+        """The chunk's copies are all started: write the previous chunk's, whose copies have ended."""
+        if not self.gpu:
+            return
+        event = torch.cuda.Event()
+        event.record()
+        self.flush()
+        self.copying, self.queued = (event, self.queued), []
+
+    def flush(self) -> None:
+        """Write every copy started so far (its end waited for)."""
+        if self.copying is not None:
+            event, writes = self.copying
+            event.synchronize()
+            for array, rows, host in writes:
+                array[rows] = host.numpy()
+            self.copying = None
+        if self.queued:
+            self.chunk_done()
+            self.flush()
+
+
 @torch.no_grad()
 def _extract(
     backbone: nn.Module,
@@ -266,17 +306,18 @@ def _extract(
     keep = bool(wanted) or any(level != _last_level(backbone) for level in outs_to)
     run_backbone = bool(outs_to) or bool(wanted)
     # Chunks of images whose frozen-prefix activations (and kept skips) fit the backbone's budget.
-    step = backbone.images_per_forward(image_size, keep_scales=keep)
+    step = backbone.images_per_forward(image_size, keep_scales=keep, device=device)
     loader = DataLoader(
-        ImageDataset(list(paths), image_size, settings.resize),
+        ImageDataset(list(paths), image_size, settings.resize, eight_bit=True),  # made floats on the device
         batch_size=settings.batch_size,
         num_workers=settings.num_workers,
         pin_memory=device.type == "cuda",  # copied while the device works on the chunk before
     )
     backbone.eval()
+    writes = HostWrites(device)
     for batch, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
         for start in range(0, len(index), step):
-            images = batch[start : start + step].to(device, non_blocking=True)
+            images = to_unit(batch[start : start + step].to(device, non_blocking=True))
             images = images.contiguous(memory_format=torch.channels_last)
             first = int(index[start])
             rows = slice(first, first + len(images))
@@ -285,9 +326,11 @@ def _extract(
                 if masks is not None and mask_out is not None:
                     chunk_labels = [labels[int(i)] for i in index[start : start + step]] if labels is not None else None
                     mask = masks.source.grid_mask(images, outs, chunk_labels, grid, masks.weighting)
-                    mask_out[rows] = mask.cpu().numpy()
+                    writes.put(mask_out, rows, mask)
             for level, arr in outs_to.items():
-                arr[rows] = outs[level if keep else -1].to(TRUNK_DTYPE).cpu().view(torch.uint16).numpy()
+                writes.put(arr, rows, outs[level if keep else -1].to(TRUNK_DTYPE).view(torch.uint16))
+            writes.chunk_done()
+    writes.flush()
 
 
 def _last_level(backbone: nn.Module) -> int:

@@ -22,7 +22,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import progress
 from semvpr.core.precision import autocast
 from semvpr.core.threads import frozen_pass
-from semvpr.data.images import ImageDataset
+from semvpr.data.images import ImageDataset, to_unit
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.retrieval.distributed import Describe, from_rank_zero, world
 from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
@@ -136,7 +136,7 @@ class Retriever(L.LightningModule):
         if "image" in batch:
             with torch.no_grad(), frozen_pass():
                 trunk = self.backbone.forward_frozen(
-                    batch["image"].contiguous(memory_format=torch.channels_last), keep_scales=False
+                    to_unit(batch["image"]).contiguous(memory_format=torch.channels_last), keep_scales=False
                 )[-1]
                 trunk = trunk.to(TRUNK_DTYPE)
         else:
@@ -158,9 +158,9 @@ class Retriever(L.LightningModule):
 
     def forward(self, images: Tensor, label_paths: Sequence[Path] | None = None) -> Tensor:
         """Full pipeline on [0,1] images (the oracle mask also needs their label maps), in chunks of
-        images whose frozen-prefix activations fit ``FORWARD_BYTES`` (memory does not grow with the batch)."""
+        images whose frozen-prefix activations fit ``forward_bytes`` (memory does not grow with the batch)."""
         keep = self.mask_source is not None and bool(self.mask_source.trunk_levels(images.shape[-2:]))
-        step = self.backbone.images_per_forward(images.shape[-2:], keep_scales=keep)
+        step = self.backbone.images_per_forward(images.shape[-2:], keep_scales=keep, device=self.device)
         if len(images) > step:
             return torch.cat(
                 [
@@ -189,7 +189,7 @@ class Retriever(L.LightningModule):
         ``data.images.RESIZES``), written into ``out`` (N,D)."""
         self.eval()
         loader = DataLoader(
-            ImageDataset(list(paths), tuple(image_size), resize),
+            ImageDataset(list(paths), tuple(image_size), resize, eight_bit=True),  # made floats on the device
             batch_size=self.eval_batch_size,
             num_workers=self.num_workers,
             pin_memory=self.device.type == "cuda",
@@ -198,7 +198,7 @@ class Retriever(L.LightningModule):
             for images, index in progress(loader, desc, len(paths), size=lambda b: len(b[1])):
                 batch_labels = [labels[i] for i in index] if labels is not None else None
                 rows = slice(int(index[0]), int(index[-1]) + 1)
-                out[rows] = self(images.to(self.device), batch_labels).float().cpu().numpy()
+                out[rows] = self(to_unit(images.to(self.device, non_blocking=True)), batch_labels).float().cpu().numpy()
 
     @torch.no_grad()
     def describe_store(

