@@ -95,7 +95,7 @@ def pca_fit_set(cfg: DictConfig, pca: EvalPca, merged: DictConfig, evaluated: Pl
     training split or shares an image with the evaluated set."""
     fit_cfg = merged.copy()
     with open_dict(fit_cfg):
-        fit_cfg.data = with_place_set(cfg.pca, "pca").data
+        fit_cfg.data = with_place_set(pca, "pca").data
         fit_cfg.data.image_size = merged.data.image_size
         if "resize" in merged.data:
             fit_cfg.data.resize = merged.data.resize

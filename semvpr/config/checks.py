@@ -27,6 +27,7 @@ from semvpr.config.schema import (
     GsvRecipe,
     Model,
     OptimizerNode,
+    OtherPlaceSet,
     RunSettings,
     SegmentSettings,
     SegNode,
@@ -337,12 +338,8 @@ def check_config(cfg: DictConfig, run_dir: Path | None = None) -> None:
         check_dir_path(str(run_dir), "the run dir (hydra.run.dir)")
     for key in PATH_KEYS:
         _check_path_setting(OmegaConf.select(cfg, key, default=None, throw_on_missing=False), key)
-    init = OmegaConf.select(cfg, "init.overrides", default=None)
-    if init is not None and not (OmegaConf.is_list(init) and all(isinstance(o, str) for o in init)):
-        raise SemvprError(
-            f"init.overrides={_shown(init)!r} must be a list of the init set's settings: "
-            "\"init.overrides=['preset=tiny']\""
-        )
+    if "init" in cfg:
+        typed(OtherPlaceSet, cfg.init, "init")
     trunks = {"backbone": cfg.backbone} if "backbone" in cfg else {}  # segment's students' trunks: backbones.*
     trunks |= {f"backbones.{name}": node for name, node in (cfg.get("backbones") or {}).items()}
     for where, node in trunks.items():

@@ -51,6 +51,7 @@ from semvpr.config.checks import check_control_fits, check_model
 from semvpr.config.components import component_class, constructor_values, options
 from semvpr.config.plan import job_plan, mask_control, settings_of
 from semvpr.config.record import check_recorded_paths, model_config
+from semvpr.config.schema import OtherPlaceSet, typed
 from semvpr.core.checkpoint import (
     FORMAT,
     dtype_fault,
@@ -435,7 +436,7 @@ def init_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with its data replaced by the place set ``init.data`` names (``init.root`` its folder where it
     reads one, ``init.overrides`` more of its settings), at that set's own image size, and no mask: what an
     untrained aggregator's k-means reads."""
-    composed = with_place_set(cfg.init, "init")
+    composed = with_place_set(typed(OtherPlaceSet, cfg.init, "init"), "init")
     out = cfg.copy()
     with open_dict(out):
         out.data = composed.data
@@ -443,14 +444,13 @@ def init_config(cfg: DictConfig) -> DictConfig:
     return out
 
 
-def with_place_set(node: DictConfig, key: str) -> DictConfig:
+def with_place_set(chosen: OtherPlaceSet, key: str) -> DictConfig:
     """The training config with the place set a command's ``key`` node names beside the evaluated one
-    (``key.data``: a conf/data choice; ``key.root``: its folder where it reads one; ``key.overrides``: more of its
-    settings)."""
-    overrides = [f"data={node.data}"]
-    if node.get("root") is not None:
-        overrides.append(f"data.root={node.root}")
-    overrides += [f"data.{o}" for o in node.get("overrides") or []]
+    (``config.schema.OtherPlaceSet``: a conf/data choice, its folder where it reads one, more of its settings)."""
+    overrides = [f"data={chosen.data}"]
+    if chosen.root is not None:
+        overrides.append(f"data.root={chosen.root}")
+    overrides += [f"data.{o}" for o in chosen.overrides]
     return _compose("train", overrides, key)
 
 

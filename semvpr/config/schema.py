@@ -54,7 +54,10 @@ def typed(schema: type[S], node: Any, key: str = "", part: bool = False) -> S:
             f"{at}{err.full_key} is not set; pass it on the command line ({at}{err.full_key}=...)"
         ) from None
     except ValidationError as err:  # a kind the ranges leave to OmegaConf (a number for a text, a list for a number)
-        raise SemvprError(f"{at}{err.full_key}={err.value!r}: {str(err).splitlines()[0]}") from None
+        reason = str(err).splitlines()[0]
+        if "is not a ListConfig, list or tuple" in reason:
+            reason = f"must be a list: {at}{err.full_key}=[...]"
+        raise SemvprError(f"{at}{err.full_key}={err.value!r}: {reason}") from None
 
 
 def _resolved(node: Any, key: str) -> Any:
@@ -267,14 +270,21 @@ class SegmentSettings:
 
 
 @dataclass
-class EvalPca:
-    """semvpr.eval's ``pca``: a PCA-whitening fitted at evaluation on another place set's training database."""
+class OtherPlaceSet:
+    """A place set an evaluation reads beside the evaluated one: ``init`` (an untrained model's initialisation on
+    its training database) and ``pca`` (the PCA-whitening's fitting set)."""
 
-    #: The whitened descriptor's size (null: the model's own descriptors).
-    dim: int | None = setting(None, low=1, high=SIZE_MAX, also="or null: no PCA-whitening here")
-    #: The place set (a conf/data choice with a train split) whose training database images it is fitted on.
+    #: The place set: a conf/data choice with a train split.
     data: str = REQUIRED
     #: Its folder, for the sets that read one.
     root: str | None = None
     #: More of its settings, e.g. ['preset=tiny'].
     overrides: list[str] = dataclasses.field(default_factory=list)
+
+
+@dataclass
+class EvalPca(OtherPlaceSet):
+    """semvpr.eval's ``pca``: a PCA-whitening fitted at evaluation on another place set's training database."""
+
+    #: The whitened descriptor's size (null: the model's own descriptors).
+    dim: int | None = setting(None, low=1, high=SIZE_MAX, also="or null: no PCA-whitening here")

@@ -383,7 +383,7 @@ def test_init_overrides_given_as_one_string_is_one_line() -> None:
     from semvpr.core.errors import SemvprError
     from tests.helpers import config
 
-    with pytest.raises(SemvprError, match=r"^init\.overrides='abc' must be a list of the init set's settings"):
+    with pytest.raises(SemvprError, match=r"^init\.overrides='abc': must be a list: init\.overrides=\[\.\.\.\]$"):
         check_config(config("ckpt=none", "init.overrides=abc", config_name="eval"))
     check_config(config("ckpt=none", "init.overrides=['preset=tiny']", config_name="eval"))
 
