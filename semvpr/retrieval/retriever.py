@@ -25,7 +25,7 @@ from semvpr.core.threads import frozen_pass
 from semvpr.data.images import ImageDataset, to_unit
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.retrieval.distributed import Describe, from_rank_zero, world
-from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, grid_size, store_loader
+from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, HostWrites, grid_size, store_loader
 from semvpr.retrieval.losses import Loss, TripletLoss
 
 
@@ -212,14 +212,17 @@ class Retriever(L.LightningModule):
         self.eval()
         rows = len(store) if index is None else len(index)
         done = 0
+        writes = HostWrites(self.device)  # on a GPU, each batch's copy back overlaps the next batch's work
         with autocast(self.device):
             for batch in store_loader(store, self.eval_batch_size, self.num_workers, index, self.device):
                 batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
-                desc = self.describe_batch(batch).float().cpu().numpy()
+                desc = self.describe_batch(batch).float()
                 if out is None:
                     out = np.empty((rows, desc.shape[1]), np.float32)
-                out[done : done + len(desc)] = desc
+                writes.put(out, slice(done, done + len(desc)), desc)
+                writes.chunk_done()
                 done += len(desc)
+        writes.flush()
         self.train(was_training)
         return out if out is not None else np.zeros((0, self.descriptor_dim), np.float32)
 
