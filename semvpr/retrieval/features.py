@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import shutil
 import weakref
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,6 +81,8 @@ class FeatureStore:
     trunk_level: int = -1
     #: How streamed images are resized to ``image_size`` (``data.images.RESIZES``).
     resize: str = "bilinear"
+    #: The trunk and masks copied to a GPU once (:func:`store_batches`), by device.
+    on_device: dict[torch.device, tuple[Tensor, Tensor | None]] = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -154,6 +156,47 @@ def store_loader(
     :func:`semvpr.retrieval.loading.loader_settings` gives them)."""
     settings = loader_settings(num_workers, store.streams, device)
     return DataLoader(StoreDataset(store, index), batch_size=batch_size, **settings)
+
+
+#: The share of a GPU's free memory a cached store may take there to stay on it across passes.
+GPU_STORE_SHARE = 0.25
+
+
+def kept_on(store: FeatureStore, device: torch.device) -> tuple[Tensor, Tensor | None] | None:
+    """A cached store's trunk and masks on ``device``, copied there at its first pass, where it is a GPU and they
+    fit ``GPU_STORE_SHARE`` of its free memory (every later pass reads them there: no copy per batch); None
+    where they stay on the host."""
+    if device.type != "cuda" or store.trunk is None:
+        return None
+    if device not in store.on_device:
+        size = store.trunk.nbytes + (store.mask.nbytes if store.mask is not None else 0)
+        if size > GPU_STORE_SHARE * torch.cuda.mem_get_info(device)[0]:
+            return None
+        mask = store.mask.to(device) if store.mask is not None else None
+        store.on_device[device] = (store.trunk.to(device), mask)
+    return store.on_device[device]
+
+
+def store_batches(
+    store: FeatureStore,
+    batch_size: int,
+    num_workers: int,
+    index: Sequence[int] | None = None,
+    device: torch.device | str = "cpu",
+) -> Iterator[dict[str, Tensor]]:
+    """Batches of a store in order on ``device``, as :func:`store_loader`'s are collated: from the copy a GPU
+    keeps (:func:`kept_on`) or read through the loader and copied without blocking."""
+    device = torch.device(device)
+    kept = kept_on(store, device)
+    if kept is None:
+        for batch in store_loader(store, batch_size, num_workers, index, device):
+            yield {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+        return
+    trunk, mask = kept
+    rows = torch.arange(len(store), device=device) if index is None else torch.as_tensor(index, device=device)
+    for part in rows.split(batch_size):
+        masks = mask[part].float() if mask is not None else torch.empty((len(part), 0), device=device)
+        yield {"trunk": trunk[part], "mask": masks}
 
 
 @dataclass

@@ -25,7 +25,7 @@ from semvpr.core.threads import frozen_pass
 from semvpr.data.images import ImageDataset, to_unit
 from semvpr.models.masks import ClassWeights, MaskSource
 from semvpr.retrieval.distributed import Describe, from_rank_zero, world
-from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, HostWrites, grid_size, store_loader
+from semvpr.retrieval.features import TRUNK_DTYPE, FeatureStore, HostWrites, grid_size, store_batches
 from semvpr.retrieval.losses import Loss, TripletLoss
 
 
@@ -214,8 +214,7 @@ class Retriever(L.LightningModule):
         done = 0
         writes = HostWrites(self.device)  # on a GPU, each batch's copy back overlaps the next batch's work
         with autocast(self.device):
-            for batch in store_loader(store, self.eval_batch_size, self.num_workers, index, self.device):
-                batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
+            for batch in store_batches(store, self.eval_batch_size, self.num_workers, index, self.device):
                 desc = self.describe_batch(batch).float()
                 if out is None:
                     out = np.empty((rows, desc.shape[1]), np.float32)

@@ -15,7 +15,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.precision import fp32
 from semvpr.models.aggregators.netvlad import NetVLAD
 from semvpr.models.whitening import PCAWhitening
-from semvpr.retrieval.features import HostWrites
+from semvpr.retrieval.features import FeatureStore, HostWrites, kept_on, store_batches, store_loader
 from semvpr.retrieval.loading import FitLoader
 from semvpr.retrieval.mining import Mining, MiningPool
 from semvpr.retrieval.retriever import LossWatch, Retriever
@@ -122,3 +122,28 @@ def test_device_rows_reach_their_host_arrays_once_flushed(device: str) -> None:
     writes.flush()
     np.testing.assert_array_equal(trunk, values.to(torch.bfloat16).view(torch.uint16).numpy())
     np.testing.assert_array_equal(masks, (values[:, :2] / 3).numpy().astype(np.float16))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("with_masks", [True, False], ids=["masks", "no masks"])
+def test_store_batches_are_the_loaders_batches_on_the_device(device: str, with_masks: bool) -> None:
+    gen = torch.Generator().manual_seed(0)
+    trunk = torch.randn(7, 3, 2, 2, generator=gen).to(torch.bfloat16)
+    masks = (torch.rand(7, 1, 2, 2, generator=gen) > 0.5).to(torch.float16) if with_masks else None
+    store = FeatureStore(tuple(f"{i}.jpg" for i in range(7)), (8, 8), trunk, masks)
+    for index in (None, [5, 0, 3, 6, 1]):
+        expected = list(store_loader(store, 2, 0, index))
+        got = list(store_batches(store, 2, 0, index, device))
+        assert len(got) == len(expected)
+        for a, b in zip(got, expected, strict=True):
+            assert set(a) == set(b) and all(a[k].device.type == device for k in a)
+            assert all(a[k].dtype == b[k].dtype and torch.equal(a[k].cpu(), b[k]) for k in a)
+    # A GPU keeps the small store from its first pass on; the CPU reads it where it is.
+    assert list(store.on_device) == ([torch.device(device)] if device == "cuda" else [])
+
+
+def test_a_store_too_large_for_a_gpus_free_memory_stays_on_the_host(monkeypatch: pytest.MonkeyPatch) -> None:
+    store = FeatureStore(("a.jpg", "b.jpg"), (8, 8), torch.zeros(2, 4, 2, 2, dtype=torch.bfloat16), None)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (4 * store.trunk.nbytes - 1, 10**12))
+    assert kept_on(store, torch.device("cuda")) is None and not store.on_device
+    assert kept_on(store, torch.device("cpu")) is None
