@@ -308,25 +308,28 @@ class HostWrites:
         self.queued.append((array, rows, tensor.to("cpu", non_blocking=True)))
 
     def chunk_done(self) -> None:
-        """The chunk's copies are all started: write the previous chunk's, whose copies have ended."""
+        """The chunk's copies are all started: write the previous chunk's (their end waited for)."""
         if not self.gpu:
             return
         event = torch.cuda.Event()
         event.record()
-        self.flush()
+        self._write_copied()
         self.copying, self.queued = (event, self.queued), []
 
     def flush(self) -> None:
-        """Write every copy started so far (its end waited for)."""
-        if self.copying is not None:
-            event, writes = self.copying
-            event.synchronize()
-            for array, rows, host in writes:
-                array[rows] = host.numpy()
-            self.copying = None
+        """Write every copy started so far (their end waited for)."""
         if self.queued:
             self.chunk_done()
-            self.flush()
+        self._write_copied()
+
+    def _write_copied(self) -> None:
+        if self.copying is None:
+            return
+        event, writes = self.copying
+        event.synchronize()
+        for array, rows, host in writes:
+            array[rows] = host.numpy()
+        self.copying = None
 
 
 @torch.no_grad()

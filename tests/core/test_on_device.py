@@ -147,3 +147,31 @@ def test_a_store_too_large_for_a_gpus_free_memory_stays_on_the_host(monkeypatch:
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (4 * store.trunk.nbytes - 1, 10**12))
     assert kept_on(store, torch.device("cuda")) is None and not store.on_device
     assert kept_on(store, torch.device("cpu")) is None
+
+
+def test_on_a_gpu_a_chunks_rows_are_written_once_the_next_chunk_is_queued(monkeypatch: pytest.MonkeyPatch) -> None:
+    """HostWrites' deferred path, on the CPU: the GPU's copy-done events replaced by ones that record their waits."""
+    waited: list[int] = []
+
+    class Event:
+        def record(self) -> None:
+            self.number = len(waited) + 100
+
+        def synchronize(self) -> None:
+            waited.append(self.number)
+
+    monkeypatch.setattr(torch.cuda, "Event", Event)
+    out = np.zeros(6, np.float32)
+    writes = HostWrites(torch.device("cuda"))
+    writes.put(out, slice(0, 2), torch.tensor([1.0, 2.0]))
+    writes.chunk_done()
+    assert not out.any() and not waited  # the first chunk's copy may still run
+    writes.put(out, slice(2, 4), torch.tensor([3.0, 4.0]))
+    writes.chunk_done()
+    np.testing.assert_array_equal(out, [1, 2, 0, 0, 0, 0])  # its event waited for, the second still running
+    writes.put(out, slice(4, 6), torch.tensor([5.0, 6.0]))
+    writes.flush()
+    np.testing.assert_array_equal(out, [1, 2, 3, 4, 5, 6])
+    assert len(waited) == 3
+    writes.flush()  # nothing left: no wait
+    assert len(waited) == 3
