@@ -13,8 +13,9 @@ the mask on the database alone; on the queries alone). Each pooled over every se
 alike, its interval resampling the training seeds and, jointly for them, the test queries within each draw
 (``reporting.paired.seeds_and_queries_gain``), corrected for all the claims together (Bonferroni).
 
-results.csv: per seed and draw, each source's R@1 under every condition; then each contrast pooled, with its
-interval. hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``seed=S,draw=D|<source>|<condition>``).
+results.csv: per seed and draw, each source's R@1 under every condition; then its mean over the cells, and each
+contrast pooled, with its interval. hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20
+(``seed=S,draw=D|<source>|<condition>``).
 
     python experiments/synthcity-controls/summarize.py OUT [--seeds 3] [--draws 3]
 """
@@ -128,6 +129,11 @@ def main() -> None:
                 ref = hits["none", "none"] if reference == "none" else hits[source, reference]
                 gain = hits[source, condition][:, 0].astype(float) - ref[:, 0]
                 diffs.setdefault((source, label), {}).setdefault(draw, []).append(gain)
+    for source, condition in [("none", "none"), *((s, c) for s in SOURCES for c in CONDITIONS)]:
+        r1 = [float(r["R@1"]) for r in rows if (r["source"], r["condition"]) == (source, condition)]
+        label = "no mask" if source == "none" else CONDITIONS[condition][2]
+        rows.append({"draw": "all", "seed": f"mean of {len(r1)} cells", "source": source, "condition": label,
+                     "R@1": round(float(np.mean(r1)), 2)})  # fmt: skip
     for (source, label), by_draw in diffs.items():
         pooled = seeds_and_queries_gain([np.stack(sets) for sets in by_draw.values()], level=level)
         rows.append({"draw": "all", "seed": f"{len(cells)} cells", "source": source, "condition": label,
