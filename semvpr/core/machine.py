@@ -8,7 +8,7 @@ import os
 import platform
 from pathlib import Path
 
-#: CPU flags that decide the arithmetic: bf16 runs natively with AVX512-BF16 or AMX, else fp32 (AVX2).
+#: CPU flags that decide the arithmetic: bf16 on AVX512 (natively with AVX512-BF16 or AMX), else fp32 (AVX2).
 ARITHMETIC_FLAGS = frozenset({"avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile"})
 CPUINFO = Path("/proc/cpuinfo")
 #: Settings that cap the instruction set torch and oneDNN use below what the CPU has (a CPU without AVX512
@@ -47,8 +47,13 @@ def describe() -> dict[str, object]:
 
 
 def short_name(described: dict[str, object]) -> str:
-    """A machine as :func:`describe` recorded it, in a few words: the CPU and the units its bf16 runs on
-    (``Intel(R) Xeon(R) ... (AMX)``; AVX2: fp32)."""
+    """A machine as :func:`describe` recorded it, in a few words: the CPU and the widest units its arithmetic
+    runs on (``Intel(R) Xeon(R) ... (AMX)``; AVX512-BF16; AVX512, where oneDNN runs bf16 by conversion; AVX2:
+    fp32)."""
     flags = set(described.get("flags", ()))  # type: ignore[arg-type]
-    units = "AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags else "AVX2"
+    units = next(
+        (name for flag, name in (("amx_tile", "AMX"), ("avx512_bf16", "AVX512-BF16"), ("avx512f", "AVX512"))
+         if flag in flags),
+        "AVX2",
+    )  # fmt: skip
     return f"{described.get('cpu', '?')} ({units})"
