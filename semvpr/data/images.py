@@ -95,9 +95,8 @@ def read_image(path: str | Path, size: Size | None = None, resize: str = "biline
         return _eight_bits(img)
     if resize == "bilinear":
         return _eight_bits(img.resize((hw[1], hw[0]), Image.BILINEAR))
-    return F.interpolate(to_unit(_eight_bits(img))[None], size=hw, mode="bicubic", antialias=True, align_corners=False)[
-        0
-    ]
+    unit = to_unit(_eight_bits(img))[None]
+    return F.interpolate(unit, size=hw, mode="bicubic", antialias=True, align_corners=False)[0]
 
 
 def load_image(path: str | Path, size: Size | None = None, resize: str = "bilinear") -> torch.Tensor:
