@@ -302,7 +302,7 @@ def test_images_streamed_in_a_retriever_step_run_at_the_frozen_count(monkeypatch
 
     monkeypatch.setattr(trunk, "forward_frozen", counting)
     plan = Threads.resolve("auto", cores=2).adopt()
-    monkeypatch.setattr("semvpr.retrieval.features.load_image", lambda _path, _size, _resize: images[0])
+    monkeypatch.setattr("semvpr.retrieval.features.read_image", lambda _path, _size, _resize: images[0])
     store = FeatureStore(paths=(Path("a"), Path("b")), image_size=tuple(images.shape[-2:]), trunk=None, mask=None)
     with plan.stage("retriever") as n:
         assert n == 1
