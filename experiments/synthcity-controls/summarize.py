@@ -62,13 +62,27 @@ CONTRASTS = (
 FIELDS = ("draw", "seed", "source", "condition", "R@1", "gain", "ci_low", "ci_high", "excludes_0", "level", "machine")
 
 
-def _trained_on(evaluation: Evaluation, train: Path) -> str:
-    """The training filter of an evaluation's checkpoint, checked to be a run of ``train``."""
+def _trained_on(evaluation: Evaluation, train: Path) -> tuple[str, Path]:
+    """The mask source an evaluation's checkpoint was trained with (its filter) and its run, checked to be a run of
+    ``train``."""
     run = Path(str(evaluation.result["checkpoint"])).parents[1]
     for mask, filter_name in FILTERS.items():
         if run.parent == train and f"filter={filter_name}" in run.name:
-            return mask
+            return mask, run
     raise SemvprError(f"{evaluation.dir}: evaluates {run}, not a run of {train}")
+
+
+def _key(source: str, sweep: str, result: dict) -> tuple[str, str] | None:
+    """The (source, condition) an evaluation of a checkpoint trained with ``source`` is, None where run.sh makes
+    no such evaluation."""
+    if source == "none":
+        return ("none", "none") if sweep == "own" and result["mask"] == "none" else None
+    if result["mask"] != source:
+        return None
+    for condition, (in_sweep, recorded, _) in CONDITIONS.items():
+        if in_sweep == sweep and all(result[k] == v for k, v in recorded.items()):
+            return source, condition
+    return None
 
 
 def cell_hits(out: Path, name: str) -> dict[tuple[str, str], np.ndarray]:
@@ -77,19 +91,11 @@ def cell_hits(out: Path, name: str) -> dict[tuple[str, str], np.ndarray]:
     train, hits = out / "train" / name, {}
     for sweep in sorted({s for s, _, _ in CONDITIONS.values()}):
         for evaluation in read_evaluations(out / "test" / name / sweep):
-            source, result = _trained_on(evaluation, train), evaluation.result
-            if source == "none" or result["mask"] == "none":
-                key = ("none", "none") if sweep == "own" and source == result["mask"] == "none" else None
-            else:
-                key = next(
-                    ((source, c) for c, (s, rec, _) in CONDITIONS.items()
-                     if s == sweep and result["mask"] == source and all(result[k] == v for k, v in rec.items())),
-                    None,
-                )  # fmt: skip
+            (source, run), result = _trained_on(evaluation, train), evaluation.result
+            key = _key(source, sweep, result)
             if key is None or key in hits:
                 raise SemvprError(f"{evaluation.dir}: not one of run.sh's evaluations of {name}; rerun run.sh")
             if sweep == "own":
-                run = Path(str(result["checkpoint"])).parents[1]
                 trained = read_json(run / "metrics.json", "training metrics")["test/R@1"]
                 if abs(trained - result["test/R@1"]) > 0.006:
                     raise SemvprError(f"{evaluation.dir}: R@1 {result['test/R@1']} where its run tested {trained}")
