@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import shutil
@@ -17,6 +18,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from PIL import Image
 
 from semvpr import train
 from semvpr.config.build import build_aggregator, build_backbone
@@ -130,6 +132,8 @@ def test_run_writes_metrics_logs_and_checkpoints(trained_run: Path) -> None:
     assert retrievals == "val/retrievals" and [e.step for e in drawn] == [0, 1], drawn
     tile = round(THUMB_H * 80 / 64) + 2 * FRAME  # tiny's images are 64 x 80
     assert (drawn[-1].height, drawn[-1].width) == (4 * (THUMB_H + 2 * FRAME + CAPTION), 5 * tile + 4 * GAP)
+    shown = Image.open(io.BytesIO(drawn[-1].encoded_image_string))  # a JPEG: add_image's PNG costs 40x more
+    assert shown.format == "JPEG" and shown.size == (drawn[-1].width, drawn[-1].height)
     # The tested weights' epoch is the first with the best val/R@5 in the run's own CSV log (1-based).
     (log,) = list((trained_run / "csv").rglob("metrics.csv"))
     rows = list(csv.DictReader(log.read_text().splitlines()))
