@@ -1,11 +1,11 @@
 """results.csv and hits.npz of the espnetv2-trained-streets sweeps (run.sh OUT).
 
-results.csv: per pair, model and condition (no mask, ESPNetv2's mask, its controls, the student's own mask),
+results.csv: per pair, model and condition (no mask, ESPNetv2's mask in place of the model's own, its controls),
 Recall@1/5/10 as mean and sample std over the training seeds, and the R@1 gain over the same checkpoints without a
 mask with its 95 % interval (a bootstrap that resamples the seeds and, jointly for them, the queries); then the
 contrasts stated before the runs, each pooled over the three pairs (frame i is the same place in every traversal,
 so a place's gains are averaged over the pairs and the places resampled once) and, where it says so, over the four
-models, its interval corrected for the ten claims together (Bonferroni).
+models, its interval corrected for the eight claims together (Bonferroni).
 
 hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``<pair>|<filter>|<seed>|<condition>``).
 
@@ -25,10 +25,10 @@ from semvpr.reporting.paired import LEVEL, corrected_level, seeds_and_queries_ga
 
 PAIRS = ("day_left-night_right", "day_right-night_right", "day_left-day_right")
 MODELS = {
-    "none": "NetVLAD, trained without a mask",
-    "attention": "SRAL, trained without a mask",
-    "mask2former": "SRAL trained with ESPNetv2's mask",
-    "unet": "SRAL + U-Net student of ESPNetv2",
+    "none": "NetVLAD (filter=none)",
+    "attention": "SRAL (filter=attention)",
+    "unet": "SRAL + SynthCity student (filter=unet)",
+    "mask2former": "SRAL + SynthCity teacher (filter=mask2former)",
 }
 #: Each condition: the sweep run.sh writes it into, what its jobs' eval.json record, and its label.
 CONDITIONS = {
@@ -38,21 +38,17 @@ CONDITIONS = {
     "sky": ("espnetv2", {"mask_control": "sky"}, "its sky only"),
     "random": ("drawn", {"mask_control": "random"}, "as many cells at random"),
     "shuffled": ("drawn", {"mask_control": "shuffled"}, "another image's mask"),
-    "student": ("student", {"mask": "student", "mask_control": "none"}, "its own student mask"),
 }
-#: The contrasts claimed, stated before the runs: (model and condition, reference model and condition, label);
-#: a model of None pools the four models.
+#: The contrasts claimed, stated before the runs: (condition, reference, the models pooled, label).
 CONTRASTS = (
-    (("none", "espnetv2"), ("none", "none"), "NetVLAD: ESPNetv2 mask − none"),
-    (("attention", "espnetv2"), ("attention", "none"), "SRAL: ESPNetv2 mask − none"),
-    (("mask2former", "espnetv2"), ("mask2former", "none"), "SRAL trained with it: its mask − none"),
-    (("unet", "student"), ("unet", "none"), "SRAL + student: its mask − none"),
-    (("mask2former", "espnetv2"), ("attention", "none"), "SRAL trained with ESPNetv2's mask − SRAL, each as trained"),
-    (("unet", "student"), ("attention", "none"), "SRAL + student − SRAL, each as trained"),
-    ((None, "objects"), (None, "none"), "all four: objects only − none"),
-    ((None, "sky"), (None, "none"), "all four: sky only − none"),
-    ((None, "espnetv2"), (None, "random"), "all four: ESPNetv2 mask − random cells"),
-    ((None, "espnetv2"), (None, "shuffled"), "all four: ESPNetv2 mask − another image's mask"),
+    ("espnetv2", "none", ("none",), "NetVLAD: ESPNetv2 mask − none"),
+    ("espnetv2", "none", ("attention",), "SRAL: ESPNetv2 mask − none"),
+    ("espnetv2", "none", ("unet",), "SRAL + SynthCity student: ESPNetv2 mask − none"),
+    ("espnetv2", "none", ("mask2former",), "SRAL + SynthCity teacher: ESPNetv2 mask − none"),
+    ("objects", "none", tuple(MODELS), "all four: objects only − none"),
+    ("sky", "none", tuple(MODELS), "all four: sky only − none"),
+    ("espnetv2", "random", tuple(MODELS), "all four: ESPNetv2 mask − random cells"),
+    ("espnetv2", "shuffled", tuple(MODELS), "all four: ESPNetv2 mask − another image's mask"),
 )
 FIELDS = (
     "pair", "model", "mask", "seeds", "R@1_mean", "R@1_std", "R@5_mean", "R@10_mean",
@@ -96,54 +92,39 @@ def main() -> None:
     jobs = {(pair, c): sweep_hits(out / pair, c) for pair in PAIRS for c in CONDITIONS}
     seeds = sorted({s for f, s in jobs[(PAIRS[0], "none")]})
     for (pair, condition), found in jobs.items():
-        models = ("unet",) if condition == "student" else tuple(MODELS)
-        if set(found) != {(f, s) for f in models for s in seeds}:
+        if set(found) != {(f, s) for f in MODELS for s in seeds}:
             raise SemvprError(
-                f"{out / pair}: {condition} evaluations of {sorted(found)}, expected seeds {seeds} of {models}"
+                f"{out / pair}: {condition} evaluations of {sorted(found)}, expected seeds {seeds} of each"
             )
     # (pair, filter, condition): a (seeds, queries) array of R@1 hits.
-    r1 = {
-        (p, f, c): np.stack([jobs[(p, c)][(f, s)].r1 for s in seeds])
-        for (p, c), found in jobs.items()
-        for f, _ in found
-    }
+    r1 = {(p, f, c): np.stack([jobs[(p, c)][(f, s)].r1 for s in seeds]) for p, c in jobs for f in MODELS}
     rows: list[dict[str, object]] = []
     saved: dict[str, np.ndarray] = {}
     for pair in PAIRS:
         for filter_, model in MODELS.items():
             for condition, (_, _, label) in CONDITIONS.items():
-                if (pair, filter_, condition) not in r1:
-                    continue
                 results = [jobs[(pair, condition)][(filter_, s)] for s in seeds]
                 for s, e in zip(seeds, results, strict=True):
                     saved[f"{pair}|{filter_}|{s}|{condition}"] = e.hits
                 recalls = {n: np.array([e.result[f"test/R@{n}"] for e in results]) for n in (1, 5, 10)}
-                r1_seeds = recalls[1]
                 row = _row(pair.replace("-", " → "), model, label, seeds=len(seeds))
-                row |= {"R@1_mean": round(float(r1_seeds.mean()), 2), "R@1_std": round(float(r1_seeds.std(ddof=1)), 2)}
+                row |= {
+                    "R@1_mean": round(float(recalls[1].mean()), 2),
+                    "R@1_std": round(float(recalls[1].std(ddof=1)), 2),
+                }
                 row |= {f"R@{n}_mean": round(float(recalls[n].mean()), 2) for n in (5, 10)}
                 if condition != "none":
                     diff = r1[(pair, filter_, condition)].astype(float) - r1[(pair, filter_, "none")]
                     row |= seeds_and_queries_gain([diff], level=LEVEL).record(LEVEL)
                 rows.append(row)
     level = round(corrected_level(len(CONTRASTS)), 4)
-    for (model, condition), (ref_model, reference), label in CONTRASTS:
-        models = tuple(MODELS) if model is None else ((model, ref_model),)
-        pairs_of = [(m, m) for m in models] if model is None else list(models)
+    for condition, reference, models, label in CONTRASTS:
         # Each place's gain (per seed) averaged over the pairs and the models pooled: one (seeds, places) set.
         diff = np.mean(
-            [r1[(p, m, condition)].astype(float) - r1[(p, ref, reference)] for p in PAIRS for m, ref in pairs_of],
-            axis=0,
+            [r1[(p, m, condition)].astype(float) - r1[(p, m, reference)] for p in PAIRS for m in models], axis=0
         )
-        rows.append(
-            _row(
-                "all three",
-                "pooled",
-                label,
-                seeds=len(seeds),
-                **seeds_and_queries_gain([diff], level=level).record(level),
-            )
-        )
+        gain = seeds_and_queries_gain([diff], level=level)
+        rows.append(_row("all three", "pooled", label, seeds=len(seeds), **gain.record(level)))
     write_summary(Path(__file__).parent, FIELDS, rows, saved)
 
 
