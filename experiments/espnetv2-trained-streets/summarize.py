@@ -5,7 +5,9 @@ Recall@1/5/10 as mean and sample std over the training seeds, and the R@1 gain o
 mask with its 95 % interval (a bootstrap that resamples the seeds and, jointly for them, the queries); then the
 contrasts stated before the runs, each pooled over the three pairs (frame i is the same place in every traversal,
 so a place's gains are averaged over the pairs and the places resampled once) and, where it says so, over the four
-models, its interval corrected for the eight claims together (Bonferroni).
+models, its interval corrected for the eight claims together (Bonferroni). Then the occluded pair (``OUT/occluded``):
+each condition on its occluded frames against the same checkpoints on them without a mask (and that against its
+frames as they are), and its four contrasts pooled over the four models, corrected for those four together.
 
 hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``<pair>|<filter>|<seed>|<condition>``).
 
@@ -39,6 +41,14 @@ CONDITIONS = {
     "random": ("drawn", {"mask_control": "random"}, "as many cells at random"),
     "shuffled": ("drawn", {"mask_control": "shuffled"}, "another image's mask"),
 }
+#: The occluded pair's conditions, in ``OUT/occluded/<pair>``, and each one's reference.
+OCCLUDED = {
+    "occluded": ("none", {"mask": "none"}, "occluded, no mask"),
+    "oracle": ("none", {"mask": "oracle"}, "occluded, the pasted pixels' mask"),
+    "occluded-espnetv2": ("espnetv2", {"mask": "teacher", "mask_control": "none"}, "occluded, ESPNetv2 mask"),
+    "occluded-random": ("espnetv2", {"mask_control": "random"}, "occluded, as many cells at random"),
+}
+REFERENCE = {"occluded": "none", "oracle": "occluded", "occluded-espnetv2": "occluded", "occluded-random": "occluded"}
 #: The contrasts claimed, stated before the runs: (condition, reference, the models pooled, label).
 CONTRASTS = (
     ("espnetv2", "none", ("none",), "NetVLAD: ESPNetv2 mask − none"),
@@ -49,6 +59,13 @@ CONTRASTS = (
     ("sky", "none", tuple(MODELS), "all four: sky only − none"),
     ("espnetv2", "random", tuple(MODELS), "all four: ESPNetv2 mask − random cells"),
     ("espnetv2", "shuffled", tuple(MODELS), "all four: ESPNetv2 mask − another image's mask"),
+)
+#: The occluded pair's contrasts (one family of their own), pooled over the four models.
+OCCLUDED_CONTRASTS = (
+    ("occluded", "none", tuple(MODELS), "all four, occluded: occlusion's cost (occluded − as they are)"),
+    ("oracle", "occluded", tuple(MODELS), "all four, occluded: pasted pixels' mask − none"),
+    ("occluded-espnetv2", "occluded", tuple(MODELS), "all four, occluded: ESPNetv2 mask − none"),
+    ("occluded-espnetv2", "occluded-random", tuple(MODELS), "all four, occluded: ESPNetv2 mask − random cells"),
 )
 FIELDS = (
     "pair", "model", "mask", "seeds", "R@1_mean", "R@1_std", "R@5_mean", "R@10_mean",
@@ -69,7 +86,7 @@ def trained_as(evaluation: Evaluation) -> tuple[str, int]:
 
 def sweep_hits(folder: Path, condition: str) -> dict[tuple[str, int], Evaluation]:
     """The jobs of one condition in one pair's folder by (filter, training seed)."""
-    sweep, recorded, _ = CONDITIONS[condition]
+    sweep, recorded, _ = {**CONDITIONS, **OCCLUDED}[condition]
     jobs: dict[tuple[str, int], Evaluation] = {}
     for e in read_evaluations(folder / sweep):
         if all(e.result.get(k) == v for k, v in recorded.items()):
@@ -86,10 +103,30 @@ def _row(pair: str, model: str, mask: str, **values: object) -> dict[str, object
     return {"pair": pair, "model": model, "mask": mask, **values}
 
 
+def pooled(
+    r1: dict[tuple[str, str, str], np.ndarray], pairs: tuple[str, ...], contrasts: tuple, seeds: int
+) -> list[dict[str, object]]:
+    """One row per contrast (condition, reference, models, label), pooled over ``pairs`` and the models named (a
+    place's per-seed gains averaged over them: one (seeds, places) set), corrected for the contrasts together."""
+    level = round(corrected_level(len(contrasts)), 4)
+    rows = []
+    for condition, reference, models, label in contrasts:
+        diff = np.mean([r1[(p, m, condition)].astype(float) - r1[(p, m, reference)] for p in pairs for m in models], 0)
+        gain = seeds_and_queries_gain([diff], level=level)
+        rows.append(_row("all three" if len(pairs) > 1 else pairs[0].replace("-", " → "), "pooled", label,
+                         seeds=seeds, **gain.record(level)))  # fmt: skip
+    return rows
+
+
 @exit_on_user_error
 def main() -> None:
     out = summary_input(__doc__.splitlines()[0], "experiments/espnetv2-trained-streets/run.sh")
+    occluded_pairs = sorted(p.name for p in (out / "occluded").glob("*") if p.is_dir())
+    if len(occluded_pairs) != 1 or occluded_pairs[0] not in PAIRS:
+        raise SemvprError(f"{out / 'occluded'}: one occluded pair expected, found {occluded_pairs}; rerun run.sh")
+    occluded_pair = occluded_pairs[0]
     jobs = {(pair, c): sweep_hits(out / pair, c) for pair in PAIRS for c in CONDITIONS}
+    jobs |= {(occluded_pair, c): sweep_hits(out / "occluded" / occluded_pair, c) for c in OCCLUDED}
     seeds = sorted({s for f, s in jobs[(PAIRS[0], "none")]})
     for (pair, condition), found in jobs.items():
         if set(found) != {(f, s) for f in MODELS for s in seeds}:
@@ -100,9 +137,10 @@ def main() -> None:
     r1 = {(p, f, c): np.stack([jobs[(p, c)][(f, s)].r1 for s in seeds]) for p, c in jobs for f in MODELS}
     rows: list[dict[str, object]] = []
     saved: dict[str, np.ndarray] = {}
-    for pair in PAIRS:
+    parts = [(pair, CONDITIONS, lambda c: "none") for pair in PAIRS] + [(occluded_pair, OCCLUDED, REFERENCE.get)]
+    for pair, conditions, reference_of in parts:
         for filter_, model in MODELS.items():
-            for condition, (_, _, label) in CONDITIONS.items():
+            for condition, (_, _, label) in conditions.items():
                 results = [jobs[(pair, condition)][(filter_, s)] for s in seeds]
                 for s, e in zip(seeds, results, strict=True):
                     saved[f"{pair}|{filter_}|{s}|{condition}"] = e.hits
@@ -114,17 +152,12 @@ def main() -> None:
                 }
                 row |= {f"R@{n}_mean": round(float(recalls[n].mean()), 2) for n in (5, 10)}
                 if condition != "none":
-                    diff = r1[(pair, filter_, condition)].astype(float) - r1[(pair, filter_, "none")]
+                    reference = reference_of(condition)
+                    diff = r1[(pair, filter_, condition)].astype(float) - r1[(pair, filter_, reference)]
                     row |= seeds_and_queries_gain([diff], level=LEVEL).record(LEVEL)
                 rows.append(row)
-    level = round(corrected_level(len(CONTRASTS)), 4)
-    for condition, reference, models, label in CONTRASTS:
-        # Each place's gain (per seed) averaged over the pairs and the models pooled: one (seeds, places) set.
-        diff = np.mean(
-            [r1[(p, m, condition)].astype(float) - r1[(p, m, reference)] for p in PAIRS for m in models], axis=0
-        )
-        gain = seeds_and_queries_gain([diff], level=level)
-        rows.append(_row("all three", "pooled", label, seeds=len(seeds), **gain.record(level)))
+    rows += pooled(r1, PAIRS, CONTRASTS, len(seeds))
+    rows += pooled(r1, (occluded_pair,), OCCLUDED_CONTRASTS, len(seeds))
     write_summary(Path(__file__).parent, FIELDS, rows, saved)
 
 
