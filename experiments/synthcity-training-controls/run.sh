@@ -25,7 +25,7 @@ for ((draw = 0; draw < DRAWS; draw++)); do
       "${common[@]}" "hydra.sweep.dir=$(hq "$OUT/train/$name/mask")"
     sweep "$OUT/train/$name/control" python -m semvpr.train -m filter=unet mask.control=random,shuffled \
       mask.control_seed="$seed" "${common[@]}" "hydra.sweep.dir=$(hq "$OUT/train/$name/control")"
-    runs=("$OUT/train/$name"/mask/filter=*/checkpoints/best.ckpt "$OUT/train/$name"/control/*/checkpoints/best.ckpt)
+    runs=("$OUT/train/$name"/mask/*/checkpoints/best.ckpt "$OUT/train/$name"/control/*/checkpoints/best.ckpt)
     ckpts=()
     for run in "${runs[@]}"; do ckpts+=("$(hq "$run")"); done
     dir="$OUT/test/$name"
