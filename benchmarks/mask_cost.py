@@ -22,7 +22,8 @@ Timed, each the median over ``--repeats`` batches after one warm-up:
   ``image_size``);
 - ``espnetv2 s=W``: the grid mask of ESPNetv2 (``teacher=espnetv2``, the widths of its authors' s=2.0 and
   s=1.0 files, untrained) seeing the images at its authors' 1024x512, in fp32 as ``conf/teacher/espnetv2.yaml``
-  runs it.
+  runs it, beside its network alone on 1024x512 inputs (the resize in and the scores' resize back and pooling
+  are what the mask adds to it: ``espnetv2_<s>_mask_over_network``).
 
     python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1] [--teacher-backbone efficientnet_lite0]
 
@@ -170,11 +171,14 @@ def main() -> None:
         t[f"teacher@{size[0]}x{size[1]}"] = timed(
             f"teacher seeing {size[0]}x{size[1]}", lambda teacher=teacher: teacher.grid_mask(images, [], None, grid)
         )
+    at_its_size = torch.rand(len(images), 3, 512, 1024)
     for scale in ESPNETV2_WIDTHS:
         espnet = espnetv2_teacher(scale)
         t[f"espnetv2_{scale}"] = timed(
             f"espnetv2 s={scale} at 1024x512", lambda m=espnet: m.grid_mask(images, [], None, grid)
         )
+        network = espnet.segmenter.model
+        t[f"espnetv2_{scale}_network"] = timed("its network alone on 1024x512", lambda n=network: n(at_its_size))
     teacher_full = t[f"teacher@{SIZE[0]}x{SIZE[1]}"]
     teacher_small = t[f"teacher@{TEACHER_TRAINED_AT[0]}x{TEACHER_TRAINED_AT[1]}"]
     print(
@@ -188,7 +192,9 @@ def main() -> None:
         f"teacher_cut={teacher_full / teacher_small:.2f} "
         + " ".join(
             f"espnetv2_{s}_over_trunk={(t['trunk'] + t[f'espnetv2_{s}']) / t['trunk']:.2f} "
-            f"espnetv2_{s}_over_teacher={t[f'espnetv2_{s}'] / teacher_small:.2f}"
+            f"espnetv2_{s}_over_teacher={t[f'espnetv2_{s}'] / teacher_small:.2f} "
+            f"espnetv2_{s}_ips={1 / t[f'espnetv2_{s}']:.2f} "
+            f"espnetv2_{s}_mask_over_network={t[f'espnetv2_{s}'] / t[f'espnetv2_{s}_network']:.2f}"
             for s in ESPNETV2_WIDTHS
         )
     )
