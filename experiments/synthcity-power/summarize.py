@@ -11,12 +11,15 @@ The contrasts, stated before the runs: the R@1 gain of SRAL with the student's m
 SRAL without a mask (synthcity-default's protocol), pooled over every training seed and city draw, each draw
 weighted alike; the 95 % interval resamples the training seeds and, jointly for them, the test queries within
 each draw (``reporting.paired.seeds_and_queries_gain``), corrected for the two claims together (Bonferroni). The
-target: an interval half-width of at most 1 R@1 with 15 seeds × 3 draws.
+target: an interval half-width of at most 1 R@1 with 15 seeds × 3 draws. Those 15 seeds missed it (half-widths
+1.11 and 1.12), so seeds 15-19 were added to every draw, the protocol unchanged (the number a half-width that
+shrinks as one over the square root of the seeds would need, 0.97); the 15-seed pool stays a row of its own.
 
 results.csv: per seed and draw, each mask's test R@1 and gain over none; then per draw and pooled, each contrast
-with its interval and the seeds it pools. The pooled rows say how many of the planned cells they hold.
+with its interval and the seeds it pools; then the pool of the 15 stated seeds. The pooled rows say how many of
+the planned cells they hold.
 
-    python experiments/synthcity-power/summarize.py [OUT] [--seeds 15] [--draws 3]
+    python experiments/synthcity-power/summarize.py [OUT] [--seeds 20] [--draws 3]
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from semvpr.core import machine
 from semvpr.core.errors import SemvprError, exit_on_user_error
 from semvpr.core.io import read_json, write_csv, write_npz
 from semvpr.reporting.evaluations import read_evaluations
-from semvpr.reporting.paired import LEVEL, corrected_level, seeds_and_queries_gain
+from semvpr.reporting.paired import LEVEL, PairedGain, corrected_level, seeds_and_queries_gain
 
 HERE = Path(__file__).parent
 CELLS = HERE / "cells"
@@ -52,6 +55,7 @@ FIELDS = (
     "machine",
 )
 CELL_NAME = re.compile(r"seed=(\d+),draw=(\d+)")
+STATED_SEEDS = 15  # the seeds planned before any run; seeds from here on were added after they missed the target
 
 
 def checked_cell(out: Path, name: str) -> dict[str, np.ndarray] | None:
@@ -107,7 +111,7 @@ def read_cells() -> dict[tuple[int, int], tuple[dict[str, np.ndarray], str]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, nargs="?", help="the folder run.sh wrote (its finished cells recorded)")
-    parser.add_argument("--seeds", type=int, default=15, help="training seeds planned (run.sh's SEEDS)")
+    parser.add_argument("--seeds", type=int, default=20, help="training seeds planned (run.sh's SEEDS)")
     parser.add_argument("--draws", type=int, default=3, help="city draws planned (run.sh's DRAWS)")
     args = parser.parse_args()
     if args.out is not None:
@@ -117,25 +121,38 @@ def main() -> None:
         raise SemvprError(f"no cell recorded in {CELLS} yet (python experiments/synthcity-power/summarize.py OUT)")
     level = corrected_level(len(CONTRASTS))
     rows: list[dict[str, object]] = []
-    diffs: dict[str, dict[int, list[np.ndarray]]] = {m: {} for m, _ in CONTRASTS}
+    diffs: dict[str, dict[int, dict[int, np.ndarray]]] = {m: {} for m, _ in CONTRASTS}  # mask -> draw -> seed
     for (seed, draw), (hits, ran_on) in sorted(cells.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         none = hits["none"][:, 0]
         for mask, label in CONTRASTS:
             r1 = hits[mask][:, 0]
-            diffs[mask].setdefault(draw, []).append(r1.astype(float) - none)
+            diffs[mask].setdefault(draw, {})[seed] = r1.astype(float) - none
             rows.append({
                 "draw": draw, "seed": seed, "contrast": label, "R@1": round(100 * r1.mean(), 2),
                 "reference_R@1": round(100 * none.mean(), 2), "gain": round(100 * (r1.mean() - none.mean()), 2),
                 "machine": ran_on,
             })  # fmt: skip
-    planned = f"{len(cells)} of {args.seeds * args.draws} cells"
+
+    def pooled(mask: str, seeds: int) -> tuple[PairedGain, int]:
+        """The contrast pooled over every draw's recorded seeds below ``seeds``, and the cells it pools."""
+        sets = [np.stack([d for s, d in by_seed.items() if s < seeds]) for by_seed in diffs[mask].values()]
+        return seeds_and_queries_gain(sets, level=level), sum(len(s) for s in sets)
+
     for mask, label in CONTRASTS:
-        for draw, sets in diffs[mask].items():
-            gain = seeds_and_queries_gain([np.stack(sets)], level=level)
-            rows.append({"draw": draw, "seed": f"{len(sets)} seeds", "contrast": label, **gain.record(level)})
-        pooled = seeds_and_queries_gain([np.stack(s) for s in diffs[mask].values()], level=level)
-        rows.append({"draw": "all", "seed": planned, "contrast": label, **pooled.record(level)})
-        print(f"{label}: {pooled.text()} R@1 ({planned}; {LEVEL:.0%} family-wise, {level:.1%} each)")
+        for draw, by_seed in diffs[mask].items():
+            gain = seeds_and_queries_gain([np.stack(list(by_seed.values()))], level=level)
+            rows.append({"draw": draw, "seed": f"{len(by_seed)} seeds", "contrast": label, **gain.record(level)})
+        gain, n = pooled(mask, args.seeds)
+        planned = f"{n} of {args.seeds * args.draws} cells"
+        rows.append({"draw": "all", "seed": planned, "contrast": label, **gain.record(level)})
+        print(f"{label}: {gain.text()} R@1 ({planned}; {LEVEL:.0%} family-wise, {level:.1%} each)")
+    if args.seeds > STATED_SEEDS:  # the pool stated before the runs, on its own
+        for mask, label in CONTRASTS:
+            gain, n = pooled(mask, STATED_SEEDS)
+            where = f"{n} of {STATED_SEEDS * args.draws} cells"
+            rows.append(
+                {"draw": f"all, seeds 0-{STATED_SEEDS - 1}", "seed": where, "contrast": label, **gain.record(level)}
+            )
     write_csv(HERE / "results.csv", FIELDS, rows)
     print(f"wrote {HERE / 'results.csv'}")
 
