@@ -5,7 +5,8 @@
 # evaluated on each pair without a mask, with ESPNetv2's mask in place of any it was trained with, and with that
 # mask's controls (its objects only, its sky only, as many cells at random, another image's mask); then, on one pair
 # with CamVid test's objects pasted into its frames at CamVid train's coverage (occluded-real-coverage's occluders,
-# draw 0), without a mask, with the pasted pixels' mask, with ESPNetv2's and with as many cells at random.
+# draw 0) and at 10 % of each image, without a mask, with the pasted pixels' mask, with ESPNetv2's and with as many
+# cells at random.
 # summarize.py pairs every masked job by query with the same checkpoint unmasked.
 # Usage, from the repository root (each step is cached; a second run only re-reads, and reruns what did not end):
 #   [SEEDS=0,1,2] [OCCLUDED_PAIR=day_left:night_right] bash experiments/espnetv2-trained-streets/run.sh OUT \
@@ -47,12 +48,14 @@ for pair in day_left:night_right day_right:night_right day_left:day_right; do
   gardens_point "$dir/drawn" "$pair" "ckpt=$ALL" "${espnet[@]}" mask.control=random,shuffled
 done
 
-# 3. The occluded pair: the same checkpoints, one occluder draw.
-occluders=(data.occluders.source=camvid "data.occluders.root=$(hq "$CAMVID")" data.occluders.coverage=camvid
-           data.occluders.seed=0)
+# 3. The occluded pair: the same checkpoints, one occluder draw, at CamVid train's coverage and at 10 % of each image.
+occluders=(data.occluders.source=camvid "data.occluders.root=$(hq "$CAMVID")" data.occluders.seed=0)
 pair=${OCCLUDED_PAIR:-day_left:night_right}
-dir="$OUT/occluded/${pair/:/-}"
-gardens_point "$dir/none" "$pair" "ckpt=$ALL" mask=none,oracle "${occluders[@]}"
-gardens_point "$dir/espnetv2" "$pair" "ckpt=$ALL" "${espnet[@]}" mask.control=none,random "${occluders[@]}"
+for level in occluded:camvid occluded-10:0.1; do
+  dir="$OUT/${level%%:*}/${pair/:/-}"
+  at=("${occluders[@]}" "data.occluders.coverage=${level#*:}")
+  gardens_point "$dir/none" "$pair" "ckpt=$ALL" mask=none,oracle "${at[@]}"
+  gardens_point "$dir/espnetv2" "$pair" "ckpt=$ALL" "${espnet[@]}" mask.control=none,random "${at[@]}"
+done
 sweeps_done
 echo "done: python experiments/espnetv2-trained-streets/summarize.py $OUT"

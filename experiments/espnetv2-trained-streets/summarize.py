@@ -5,9 +5,10 @@ Recall@1/5/10 as mean and sample std over the training seeds, and the R@1 gain o
 mask with its 95 % interval (a bootstrap that resamples the seeds and, jointly for them, the queries); then the
 contrasts stated before the runs, each pooled over the three pairs (frame i is the same place in every traversal,
 so a place's gains are averaged over the pairs and the places resampled once) and, where it says so, over the four
-models, its interval corrected for the eight claims together (Bonferroni). Then the occluded pair (``OUT/occluded``):
-each condition on its occluded frames against the same checkpoints on them without a mask (and that against its
-frames as they are), and its four contrasts pooled over the four models, corrected for those four together.
+models, its interval corrected for the eight claims together (Bonferroni). Then the occluded pair, at CamVid train's
+coverage (``OUT/occluded``) and at 10 % of each image (``OUT/occluded-10``): each condition on the occluded frames
+against the same checkpoints on them without a mask (and that against its frames as they are), and, per level, its
+four contrasts pooled over the four models, corrected for those four together.
 
 hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``<pair>|<filter>|<seed>|<condition>``).
 
@@ -41,14 +42,42 @@ CONDITIONS = {
     "random": ("drawn", {"mask_control": "random"}, "as many cells at random"),
     "shuffled": ("drawn", {"mask_control": "shuffled"}, "another image's mask"),
 }
-#: The occluded pair's conditions, in ``OUT/occluded/<pair>``, and each one's reference.
-OCCLUDED = {
-    "occluded": ("none", {"mask": "none"}, "occluded, no mask"),
-    "oracle": ("none", {"mask": "oracle"}, "occluded, the pasted pixels' mask"),
-    "occluded-espnetv2": ("espnetv2", {"mask": "teacher", "mask_control": "none"}, "occluded, ESPNetv2 mask"),
-    "occluded-random": ("espnetv2", {"mask_control": "random"}, "occluded, as many cells at random"),
-}
-REFERENCE = {"occluded": "none", "oracle": "occluded", "occluded-espnetv2": "occluded", "occluded-random": "occluded"}
+#: The occluded frames of one pair, by the folder run.sh writes them into (``OUT/<folder>/<pair>``): the label's
+#: words and the condition names' suffix. CamVid train's coverage first; then a fixed 10 % of each image's pixels.
+OCCLUSIONS = {"occluded": ("occluded", ""), "occluded-10": ("occluded 10 %", "-10")}
+
+
+def occluded_conditions(tag: str, suffix: str) -> dict[str, tuple[str, dict[str, str], str]]:
+    """One occlusion's conditions: sweep, what its jobs' eval.json record, label."""
+    return {
+        f"occluded{suffix}": ("none", {"mask": "none"}, f"{tag}, no mask"),
+        f"oracle{suffix}": ("none", {"mask": "oracle"}, f"{tag}, the pasted pixels' mask"),
+        f"occluded{suffix}-espnetv2": (
+            "espnetv2",
+            {"mask": "teacher", "mask_control": "none"},
+            f"{tag}, ESPNetv2 mask",
+        ),
+        f"occluded{suffix}-random": ("espnetv2", {"mask_control": "random"}, f"{tag}, as many cells at random"),
+    }
+
+
+def occluded_contrasts(tag: str, suffix: str) -> tuple[tuple[str, str, tuple[str, ...], str], ...]:
+    """One occlusion's four contrasts (a family of their own), pooled over the four models."""
+    o = f"occluded{suffix}"
+    return (
+        (o, "none", tuple(MODELS), f"all four, {tag}: occlusion's cost (occluded − as they are)"),
+        (f"oracle{suffix}", o, tuple(MODELS), f"all four, {tag}: pasted pixels' mask − none"),
+        (f"{o}-espnetv2", o, tuple(MODELS), f"all four, {tag}: ESPNetv2 mask − none"),
+        (f"{o}-espnetv2", f"{o}-random", tuple(MODELS), f"all four, {tag}: ESPNetv2 mask − random cells"),
+    )
+
+
+OCCLUDED = {folder: occluded_conditions(*words) for folder, words in OCCLUSIONS.items()}
+#: Every condition of every folder: (sweep, recorded, label).
+ALL_CONDITIONS = {**CONDITIONS, **{c: v for level in OCCLUDED.values() for c, v in level.items()}}
+#: Each occluded condition's reference: the frames as they are for those without a mask (each level's first), those
+#: for every mask on them.
+REFERENCE = {c: "none" if i == 0 else next(iter(level)) for level in OCCLUDED.values() for i, c in enumerate(level)}
 #: The contrasts claimed, stated before the runs: (condition, reference, the models pooled, label).
 CONTRASTS = (
     ("espnetv2", "none", ("none",), "NetVLAD: ESPNetv2 mask − none"),
@@ -59,13 +88,6 @@ CONTRASTS = (
     ("sky", "none", tuple(MODELS), "all four: sky only − none"),
     ("espnetv2", "random", tuple(MODELS), "all four: ESPNetv2 mask − random cells"),
     ("espnetv2", "shuffled", tuple(MODELS), "all four: ESPNetv2 mask − another image's mask"),
-)
-#: The occluded pair's contrasts (one family of their own), pooled over the four models.
-OCCLUDED_CONTRASTS = (
-    ("occluded", "none", tuple(MODELS), "all four, occluded: occlusion's cost (occluded − as they are)"),
-    ("oracle", "occluded", tuple(MODELS), "all four, occluded: pasted pixels' mask − none"),
-    ("occluded-espnetv2", "occluded", tuple(MODELS), "all four, occluded: ESPNetv2 mask − none"),
-    ("occluded-espnetv2", "occluded-random", tuple(MODELS), "all four, occluded: ESPNetv2 mask − random cells"),
 )
 FIELDS = (
     "pair", "model", "mask", "seeds", "R@1_mean", "R@1_std", "R@5_mean", "R@10_mean",
@@ -86,7 +108,7 @@ def trained_as(evaluation: Evaluation) -> tuple[str, int]:
 
 def sweep_hits(folder: Path, condition: str) -> dict[tuple[str, int], Evaluation]:
     """The jobs of one condition in one pair's folder by (filter, training seed)."""
-    sweep, recorded, _ = {**CONDITIONS, **OCCLUDED}[condition]
+    sweep, recorded, _ = ALL_CONDITIONS[condition]
     jobs: dict[tuple[str, int], Evaluation] = {}
     for e in read_evaluations(folder / sweep):
         if all(e.result.get(k) == v for k, v in recorded.items()):
@@ -121,12 +143,17 @@ def pooled(
 @exit_on_user_error
 def main() -> None:
     out = summary_input(__doc__.splitlines()[0], "experiments/espnetv2-trained-streets/run.sh")
-    occluded_pairs = sorted(p.name for p in (out / "occluded").glob("*") if p.is_dir())
-    if len(occluded_pairs) != 1 or occluded_pairs[0] not in PAIRS:
-        raise SemvprError(f"{out / 'occluded'}: one occluded pair expected, found {occluded_pairs}; rerun run.sh")
-    occluded_pair = occluded_pairs[0]
+    occluded_pairs = {f: sorted(p.name for p in (out / f).glob("*") if p.is_dir()) for f in OCCLUSIONS}
+    if (
+        any(len(found) != 1 or found[0] not in PAIRS for found in occluded_pairs.values())
+        or len({found[0] for found in occluded_pairs.values()}) != 1
+    ):
+        raise SemvprError(f"{out}: one occluded pair expected, the same in {' and '.join(OCCLUSIONS)}, found "
+                          f"{occluded_pairs}; rerun run.sh")  # fmt: skip
+    occluded_pair = occluded_pairs["occluded"][0]
     jobs = {(pair, c): sweep_hits(out / pair, c) for pair in PAIRS for c in CONDITIONS}
-    jobs |= {(occluded_pair, c): sweep_hits(out / "occluded" / occluded_pair, c) for c in OCCLUDED}
+    for folder, conditions in OCCLUDED.items():
+        jobs |= {(occluded_pair, c): sweep_hits(out / folder / occluded_pair, c) for c in conditions}
     seeds = sorted({s for f, s in jobs[(PAIRS[0], "none")]})
     for (pair, condition), found in jobs.items():
         if set(found) != {(f, s) for f in MODELS for s in seeds}:
@@ -137,7 +164,8 @@ def main() -> None:
     r1 = {(p, f, c): np.stack([jobs[(p, c)][(f, s)].r1 for s in seeds]) for p, c in jobs for f in MODELS}
     rows: list[dict[str, object]] = []
     saved: dict[str, np.ndarray] = {}
-    parts = [(pair, CONDITIONS, lambda c: "none") for pair in PAIRS] + [(occluded_pair, OCCLUDED, REFERENCE.get)]
+    parts = [(pair, CONDITIONS, lambda c: "none") for pair in PAIRS]
+    parts += [(occluded_pair, conditions, REFERENCE.get) for conditions in OCCLUDED.values()]
     for pair, conditions, reference_of in parts:
         for filter_, model in MODELS.items():
             for condition, (_, _, label) in conditions.items():
@@ -157,7 +185,8 @@ def main() -> None:
                     row |= seeds_and_queries_gain([diff], level=LEVEL).record(LEVEL)
                 rows.append(row)
     rows += pooled(r1, PAIRS, CONTRASTS, len(seeds))
-    rows += pooled(r1, (occluded_pair,), OCCLUDED_CONTRASTS, len(seeds))
+    for words in OCCLUSIONS.values():
+        rows += pooled(r1, (occluded_pair,), occluded_contrasts(*words), len(seeds))
     write_summary(Path(__file__).parent, FIELDS, rows, saved)
 
 
