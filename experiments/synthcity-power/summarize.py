@@ -12,8 +12,8 @@ SRAL without a mask (synthcity-default's protocol), pooled over every training s
 weighted alike; the 95 % interval resamples the training seeds and, jointly for them, the test queries within
 each draw (``reporting.paired.seeds_and_queries_gain``), corrected for the two claims together (Bonferroni). The
 target: an interval half-width of at most 1 R@1 with 15 seeds × 3 draws. Those 15 seeds missed it (half-widths
-1.11 and 1.12), so seeds 15-19 were added to every draw, the protocol unchanged (the number a half-width that
-shrinks as one over the square root of the seeds would need, 0.97); the 15-seed pool stays a row of its own.
+1.11 and 1.12), so seeds 15-19 were added to every draw, the protocol unchanged (enough for a half-width that
+shrinks as one over the square root of the seeds to fall below 1); the 15-seed pool stays a row of its own.
 
 results.csv: per seed and draw, each mask's test R@1 and gain over none; then per draw and pooled, each contrast
 with its interval and the seeds it pools; then the pool of the 15 stated seeds. The pooled rows say how many of
