@@ -7,13 +7,13 @@
 # estimate (summarize.py). Seeds run in the outer loop, so a stopped run has every draw at equal depth.
 # A cell recorded in cells/ (summarize.py OUT records the finished ones) is skipped: a run goes on from another
 # machine's records. Usage, from the repository root (each step is cached; a rerun skips every finished sweep):
-#   bash experiments/synthcity-power/run.sh OUT [SEEDS] [DRAWS] [FIRST]   (defaults: 20 seeds, 3 draws, from 0)
+#   bash experiments/synthcity-power/run.sh OUT [SEEDS] [DRAWS] [FIRST]   (defaults: 24 seeds, 3 draws, from 0)
 # One job at a time with one thread (the other core stays free). FIRST: the first seed this run takes, so that
-# two runs on one OUT share its cache and take disjoint seeds (run.sh OUT 20 3 10 beside run.sh OUT 10).
+# two runs on one OUT share its cache and take disjoint seeds (run.sh OUT 24 3 12 beside run.sh OUT 12).
 set -euo pipefail
 source "$(dirname "$0")/../sweeps.sh"
 OUT=$(realpath -m "${1:?usage: run.sh OUT [SEEDS] [DRAWS]}")
-SEEDS=${2:-20}
+SEEDS=${2:-24}
 DRAWS=${3:-3}
 FIRST=${4:-0}
 CACHE="$OUT/cache"
