@@ -22,8 +22,9 @@ Timed, each the median over ``--repeats`` batches after one warm-up:
   ``image_size``);
 - ``espnetv2 s=W``: the grid mask of ESPNetv2 (``teacher=espnetv2``, the widths of its authors' s=2.0 and
   s=1.0 files, untrained) seeing the images at its authors' 1024x512, in fp32 as ``conf/teacher/espnetv2.yaml``
-  runs it, beside its network alone on 1024x512 inputs (the resize in and the scores' resize back and pooling
-  are what the mask adds to it: ``espnetv2_<s>_mask_over_network``).
+  runs it, beside its own labelling pass on the same images (``predict_train_ids``: what ``semvpr.label`` and the
+  pseudo-labels run, the resize in, the network, its softmax resized back and the argmax) and its network alone
+  on 1024x512 inputs (the resize in and the scores' resize back and pooling are what the mask adds to it).
 
     python benchmarks/mask_cost.py [--batch 8] [--repeats 5] [--threads 1] [--teacher-backbone efficientnet_lite0]
 
@@ -32,7 +33,9 @@ evaluation with the student's mask over one without), ``trunk_share_of_student``
 student's pass that is the shared trunk), ``teacher_over_trunk`` (trunk + teacher at 270x480 over the
 trunk), ``teacher_inference_over_trunk`` (the same with the teacher at its training size), ``teacher_cut``
 (teacher at 270x480 over teacher at its training size), and ``espnetv2_<s>_over_trunk`` (trunk + ESPNetv2 over
-the trunk) and ``espnetv2_<s>_over_teacher`` (ESPNetv2 over the CamVid teacher at its training size).
+the trunk), ``espnetv2_<s>_over_teacher`` (ESPNetv2 over the CamVid teacher at its training size),
+``espnetv2_<s>_mask_over_labels`` (its mask over its own labelling pass) and ``espnetv2_<s>_mask_over_network``
+(its mask over its network alone).
 """
 
 from __future__ import annotations
@@ -177,6 +180,8 @@ def main() -> None:
         t[f"espnetv2_{scale}"] = timed(
             f"espnetv2 s={scale} at 1024x512", lambda m=espnet: m.grid_mask(images, [], None, grid)
         )
+        labels = espnet.segmenter.predict_train_ids
+        t[f"espnetv2_{scale}_labels"] = timed("its labels of the images", lambda label=labels: label(images))
         network = espnet.segmenter.model
         t[f"espnetv2_{scale}_network"] = timed("its network alone on 1024x512", lambda n=network: n(at_its_size))
     teacher_full = t[f"teacher@{SIZE[0]}x{SIZE[1]}"]
@@ -194,6 +199,7 @@ def main() -> None:
             f"espnetv2_{s}_over_trunk={(t['trunk'] + t[f'espnetv2_{s}']) / t['trunk']:.2f} "
             f"espnetv2_{s}_over_teacher={t[f'espnetv2_{s}'] / teacher_small:.2f} "
             f"espnetv2_{s}_ips={1 / t[f'espnetv2_{s}']:.2f} "
+            f"espnetv2_{s}_mask_over_labels={t[f'espnetv2_{s}'] / t[f'espnetv2_{s}_labels']:.2f} "
             f"espnetv2_{s}_mask_over_network={t[f'espnetv2_{s}'] / t[f'espnetv2_{s}_network']:.2f}"
             for s in ESPNETV2_WIDTHS
         )

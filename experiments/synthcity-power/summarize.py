@@ -17,8 +17,8 @@ shrinks as one over the square root of the seeds to fall below 1). The 20 seeds 
 20-23 were added by the same rule (22 seeds) with a margin of two; each earlier pool stays a row of its own.
 
 results.csv: per seed and draw, each mask's test R@1 and gain over none; then per draw and pooled, each contrast
-with its interval and the seeds it pools; then the pools of the 15 stated seeds and of the first 20. The pooled rows say how many of
-the planned cells they hold.
+with its interval and the seeds it pools; then the pools of the 15 stated seeds and of the first 20. The pooled
+rows say how many of the planned cells they hold.
 
     python experiments/synthcity-power/summarize.py [OUT] [--seeds 24] [--draws 3]
 """

@@ -235,7 +235,10 @@ class TeacherMask(SegmenterMask):
         return not self.segmenter.on_trunk(image_size)
 
     def arithmetic(self, image_size: Sequence[int]) -> dict[str, str]:
-        return {"encoder": "trunk"} if self.segmenter.on_trunk(image_size) else {}
+        if self.segmenter.on_trunk(image_size):
+            return {"encoder": "trunk"}
+        # A per-pixel network's softmax is taken as given (no class shares) and resized before the trainId sum.
+        return {} if self.segmenter.is_mask2former else {"scores": "softmax, resized first"}
 
     def input_size(self, image_size: Sequence[int]) -> tuple[int, int] | None:
         size = getattr(self.segmenter, "inference_size", None)

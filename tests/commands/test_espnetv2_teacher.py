@@ -53,11 +53,17 @@ def test_the_teacher_sees_images_as_the_authors_test_script_does(espnet: Path) -
     expected = F.interpolate(prob, (45, 70), mode="bilinear", align_corners=False).argmax(1)
     expected[expected == 19] = IGNORE
     assert torch.equal(teacher.predict_train_ids(image), expected)
-    # The class probabilities are the softmax's, background left out: they sum to 1 - p(background).
-    class_prob = teacher.class_prob(image)
-    assert class_prob.shape == (2, 19, 45, 70)
-    background = F.interpolate(prob, (45, 70), mode="bilinear", align_corners=False)[:, 19]
-    assert torch.allclose(class_prob.sum(1), 1 - background, atol=1e-5)
+    # The class probabilities are the softmax's resized back, background left out (so they sum to 1 - p(background)),
+    # whether the images are smaller than the inference size (the scores resized first) or larger.
+    for h, w in ((45, 70), (80, 150)):
+        image = torch.rand(2, 3, h, w, generator=torch.Generator().manual_seed(h))
+        x = F.interpolate((image - mean) / std, SIZE, mode="bilinear", align_corners=False, antialias=True)
+        with torch.no_grad():
+            prob = F.interpolate(teacher.model(x).softmax(1), (h, w), mode="bilinear", align_corners=False)
+        class_prob = teacher.class_prob(image)
+        assert class_prob.shape == (2, 19, h, w)
+        assert (class_prob - prob[:, :19]).abs().max() < 1e-6
+        assert torch.allclose(class_prob.sum(1), 1 - prob[:, 19], atol=1e-5)
     assert teacher.trained_on.domain == "real" and teacher.teacher_key.startswith("espnetv2-")
     # Another file is another teacher: its labels are cached apart.
     other = teacher_architecture(spec(write_espnetv2(espnet.parent / "other.pth", seed=1)))
