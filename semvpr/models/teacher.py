@@ -275,20 +275,15 @@ class Teacher(nn.Module):
 
     def _class_prob(self, scores: Tensor, size: Sequence[int]) -> Tensor:
         size = tuple(size)
-        if self.resizes_first(scores.shape[-2:], size):
+        if not self.is_mask2former and size[0] * size[1] < scores.shape[-2] * scores.shape[-1]:
+            # A per-pixel network's softmax, normalised already: its sum into trainIds and the resize are both
+            # linear and commute up to float rounding, so resizing first to fewer pixels does less of each.
             scores = F.interpolate(scores, size=size, mode="bilinear", align_corners=False)
             return torch.einsum("bmhw,mc->bchw", scores, self.to_train).clamp(0.0, 1.0)
         if self.is_mask2former:  # mask sigmoids overlap, so the scores are not normalised: take each class's share
             scores = scores / scores.sum(1, keepdim=True).clamp_min(1e-6)
         prob = torch.einsum("bmhw,mc->bchw", scores, self.to_train)
         return F.interpolate(prob, size=size, mode="bilinear", align_corners=False).clamp(0.0, 1.0)
-
-    def resizes_first(self, scores_hw: Sequence[int], size: Sequence[int]) -> bool:
-        """Whether :meth:`class_prob` resizes the scores before summing them into trainIds: a per-pixel
-        network's softmax (already normalised, so the sum and the resize are both linear and commute up to
-        float rounding) going down to fewer pixels. A Mask2Former's shares are taken at its mask resolution."""
-        smaller = int(size[0]) * int(size[1]) < int(scores_hw[0]) * int(scores_hw[1])
-        return not self.is_mask2former and smaller
 
     @torch.no_grad()
     def predict_train_ids(self, images: Tensor) -> Tensor:
