@@ -51,6 +51,7 @@ FIELDS = (
     "gain",
     "ci_low",
     "ci_high",
+    "half_width",
     "excludes_0",
     "level",
     "machine",
@@ -110,6 +111,11 @@ def read_cells() -> dict[tuple[int, int], tuple[dict[str, np.ndarray], str]]:
     return cells
 
 
+def half_width(gain: PairedGain) -> dict[str, float]:
+    """The interval's half-width, the target's measure (points of R@1, to a thousandth: the target is 1)."""
+    return {"half_width": round((gain.high - gain.low) / 2, 3)}
+
+
 @exit_on_user_error
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -147,13 +153,16 @@ def main() -> None:
             rows.append({"draw": draw, "seed": f"{len(by_seed)} seeds", "contrast": label, **gain.record(level)})
         gain, n = pooled(mask, args.seeds)
         planned = f"{n} of {args.seeds * args.draws} cells"
-        rows.append({"draw": "all", "seed": planned, "contrast": label, **gain.record(level)})
+        rows.append({"draw": "all", "seed": planned, "contrast": label, **gain.record(level), **half_width(gain)})
         print(f"{label}: {gain.text()} R@1 ({planned}; {LEVEL:.0%} family-wise, {level:.1%} each)")
     for stage in (s for s in STAGES if s < args.seeds):  # each pool planned before an extension, on its own
         for mask, label in CONTRASTS:
             gain, n = pooled(mask, stage)
             where = f"{n} of {stage * args.draws} cells"
-            rows.append({"draw": f"all, seeds 0-{stage - 1}", "seed": where, "contrast": label, **gain.record(level)})
+            rows.append(
+                {"draw": f"all, seeds 0-{stage - 1}", "seed": where, "contrast": label, **gain.record(level)}
+                | half_width(gain)
+            )
     write_csv(HERE / "results.csv", FIELDS, rows)
     print(f"wrote {HERE / 'results.csv'}")
 
