@@ -159,10 +159,10 @@ def main() -> None:
         for mask, label in CONTRASTS:
             gain, n = pooled(mask, stage)
             where = f"{n} of {stage * args.draws} cells"
-            rows.append(
-                {"draw": f"all, seeds 0-{stage - 1}", "seed": where, "contrast": label, **gain.record(level)}
-                | half_width(gain)
-            )
+            rows.append({
+                "draw": f"all, seeds 0-{stage - 1}", "seed": where, "contrast": label, **gain.record(level),
+                **half_width(gain),
+            })  # fmt: skip
     write_csv(HERE / "results.csv", FIELDS, rows)
     print(f"wrote {HERE / 'results.csv'}")
 
