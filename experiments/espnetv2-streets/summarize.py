@@ -4,7 +4,9 @@ results.csv: per pair, model and condition (no mask, ESPNetv2's mask, and its co
 R@1 gain over the same model without a mask, paired by query, with its 95 % bootstrap interval (random and
 shuffled: each query's hits averaged over the three control seeds); then the contrasts stated before the runs,
 each pooled over the three pairs and both models with the places resampled jointly (frame i is the same place in
-every traversal) and its interval corrected for the seven claims together (Bonferroni).
+every traversal) and its interval corrected for the seven claims together (Bonferroni). Where run.sh was given
+the CamVid-distilled student (a ``student`` sweep in every pair), its mask too, with its two contrasts a family of
+their own (corrected for the two).
 
 hits.npz: every evaluation's per-query hits at N = 1, 5, 10, 20 (``<pair>|<aggregator>|<condition>|<seed>``).
 
@@ -36,6 +38,8 @@ CONDITIONS = {
     "database": ("sides", {"mask_apply": "database"}, (0,), "on the database only"),
     "queries": ("sides", {"mask_apply": "queries"}, (0,), "on the queries only"),
 }
+#: The student's mask, where run.sh ran it: ESPNetv2's labels of CamVid train distilled into the U-Net student.
+STUDENT = {"student": ("student", {"mask": "student"}, (0,), "its CamVid-distilled student's mask")}
 #: The contrasts claimed, stated before the runs: (condition, reference, label).
 CONTRASTS = (
     ("mask", "none", "ESPNetv2 mask − none"),
@@ -46,13 +50,18 @@ CONTRASTS = (
     ("database", "none", "database only − none"),
     ("queries", "none", "queries only − none"),
 )
+#: The student's contrasts, stated before its runs: a family of their own.
+STUDENT_CONTRASTS = (
+    ("student", "none", "student's mask − none"),
+    ("student", "mask", "student's mask − ESPNetv2 mask"),
+)
 FIELDS = ("pair", "model", "mask", "R@1", "R@5", "R@10", "gain", "ci_low", "ci_high", "excludes_0", "level")
 
 
 def sweep_hits(folder: Path, condition: str) -> dict[tuple[str, int], tuple[dict, np.ndarray]]:
     """The jobs of one condition in one pair's folder by (aggregator, control seed): eval.json and hits
     (``reporting.evaluations``), checked against the jobs run.sh gives the condition."""
-    sweep, recorded, seeds, _ = CONDITIONS[condition]
+    sweep, recorded, seeds, _ = (CONDITIONS | STUDENT)[condition]
     jobs = {
         (e.result["aggregator"], int(e.result["mask_control_seed"]) if len(seeds) > 1 else 0): (e.result, e.hits)
         for e in read_evaluations(folder / sweep)
@@ -74,10 +83,12 @@ def main() -> None:
     rows: list[dict[str, object]] = []
     saved: dict[str, np.ndarray] = {}
     rates: dict[tuple[str, str, str], np.ndarray] = {}  # (pair, aggregator, condition): each query's R@1 rate
+    student = all((out / pair / "student").is_dir() for pair in PAIRS)
+    conditions = CONDITIONS | (STUDENT if student else {})
     for pair in PAIRS:
-        jobs = {condition: sweep_hits(out / pair, condition) for condition in CONDITIONS}
+        jobs = {condition: sweep_hits(out / pair, condition) for condition in conditions}
         for aggregator, model in MODELS.items():
-            for condition, (_, _, seeds, label) in CONDITIONS.items():
+            for condition, (_, _, seeds, label) in conditions.items():
                 drawn = [jobs[condition][(aggregator, seed)] for seed in seeds]
                 for seed, (_, hits) in zip(seeds, drawn, strict=True):
                     saved[f"{pair}|{aggregator}|{condition}|{seed}"] = hits
@@ -88,11 +99,12 @@ def main() -> None:
                     gain = paired_gain(rates[(pair, aggregator, condition)], rates[(pair, aggregator, "none")])
                     row |= gain.record(LEVEL)
                 rows.append(row)
-    level = round(corrected_level(len(CONTRASTS)), 4)
-    for condition, reference, label in CONTRASTS:
-        keys = [(p, a) for p in PAIRS for a in MODELS]
-        gain = pooled_gain([(rates[(*k, condition)], rates[(*k, reference)]) for k in keys], level=level)
-        rows.append(_row("all three", "both", label, **gain.record(level)))
+    keys = [(p, a) for p in PAIRS for a in MODELS]
+    for family in (CONTRASTS, STUDENT_CONTRASTS) if student else (CONTRASTS,):
+        level = round(corrected_level(len(family)), 4)
+        for condition, reference, label in family:
+            gain = pooled_gain([(rates[(*k, condition)], rates[(*k, reference)]) for k in keys], level=level)
+            rows.append(_row("all three", "both", label, **gain.record(level)))
     write_summary(Path(__file__).parent, FIELDS, rows, saved)
 
 
