@@ -48,6 +48,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from semvpr.config.schema import typed
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.io import CONF_DIR
 from semvpr.core.precision import autocast, bf16_native
@@ -81,7 +82,7 @@ def camvid_student(backbone: Backbone) -> tuple[StudentMask, StudentSpec]:
     node = OmegaConf.load(conf / "student" / "unet.yaml")
     node.width = OmegaConf.load(conf / "segment.yaml").student.width
     del node["static_classes"]  # the teacher's list there; the default list here
-    spec = StudentSpec.from_mapping(node)
+    spec = typed(StudentSpec, node, "student")
     return StudentMask(student_architecture(spec, backbone)), spec
 
 
@@ -100,7 +101,7 @@ def camvid_teacher_node(encoder: str | None = None) -> DictConfig:
 def camvid_teacher(inference_size: Sequence[int], encoder: str | None = None) -> TeacherMask:
     """An untrained teacher of the CamVid teacher's model, seeing images at ``inference_size``."""
     node = camvid_teacher_node(encoder)
-    spec = TeacherSpec.from_mapping({**OmegaConf.to_container(node), "inference_size": list(inference_size)})
+    spec = typed(TeacherSpec, {**OmegaConf.to_container(node), "inference_size": list(inference_size)}, "teacher")
     return TeacherMask(embedded_teacher(spec))
 
 

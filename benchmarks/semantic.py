@@ -28,6 +28,7 @@ from PIL import Image
 from torch.utils.data import DataLoader
 from torchmetrics.classification import MulticlassJaccardIndex
 
+from semvpr.config.schema import typed
 from semvpr.core.errors import exit_on_user_error
 from semvpr.core.precision import autocast
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, static_lut
@@ -139,7 +140,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory(prefix="semvpr-bench-") as cache:
         start = time.perf_counter()
-        teacher = build_teacher(TeacherSpec.from_mapping(cfg.teacher), seg_train, seg_val, cache)
+        teacher = build_teacher(typed(TeacherSpec, cfg.teacher, "teacher"), seg_train, seg_val, cache)
         teacher_s = time.perf_counter() - start
         miou, static_iou = teacher_held_out(teacher, seg_val, size, lut)
         print(f"teacher: {teacher_s:.0f} s, held-out mIoU {miou:.3f}, static IoU {static_iou:.3f}")
@@ -160,7 +161,11 @@ def main() -> None:
         backbone = VGG16Backbone(weights="none", train_from="conv5").eval()
         start = time.perf_counter()
         student = build_student(
-            StudentSpec.from_mapping(cfg.student), backbone, LabelledImages(images, labels, train.root), size, cache
+            typed(StudentSpec, cfg.student, "student"),
+            backbone,
+            LabelledImages(images, labels, train.root),
+            size,
+            cache,
         )
         student_s = time.perf_counter() - start
         n = min(args.eval_images, len(test.db_paths))

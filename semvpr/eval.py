@@ -149,7 +149,7 @@ def evaluate_checkpoint(
     given), recorded as ``precision``."""
     start = time.perf_counter()
     check_config(cfg, run_dir)
-    save = SaveSpec.from_mapping(cfg.get("save"))  # before any pass: a bad value, or h5py missing, is one line
+    save = typed(SaveSpec, cfg.get("save") or {}, "save")  # before any pass: a bad value, or h5py missing, is one line
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     test_set = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])
     device = resolve(cfg.get("device"))

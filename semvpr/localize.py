@@ -29,6 +29,7 @@ from semvpr.config.checks import check_config, check_overrides_or_exit
 from semvpr.config.command import hydra_command, model_arithmetic, model_pass
 from semvpr.config.plan import data_settings, settings_of
 from semvpr.config.restore import explicit_keys, load_retriever
+from semvpr.config.schema import typed
 from semvpr.core.device import resolve
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import write_json
@@ -54,7 +55,7 @@ def localize(cfg: DictConfig, explicit: set[str] = frozenset(), run_dir: Path | 
             raise SemvprError(
                 f"{key}={OmegaConf.select(cfg, key)} is semvpr.eval's; localize does not read it: drop it"
             )
-    save = SaveSpec.from_mapping(cfg.get("save"))
+    save = typed(SaveSpec, cfg.get("save") or {}, "save")
     paths = folder_images(cfg.queries, "queries")
     # The data is the invocation's whatever the model; read after the checkpoint is validated.
     database = functools.cache(lambda: build_places(data_settings(cfg), ("test",))["test"])

@@ -382,13 +382,12 @@ def _check_finite(cfg: DictConfig) -> None:
 def _check_semantic_settings(cfg: DictConfig) -> None:
     """The teacher's and the student's typed settings, where the config has them: a value of the wrong
     kind (``student.flip=maybe``) is one line before any work, not a truthy surprise after it."""
-    from semvpr.models.student import StudentSpec
-    from semvpr.models.teacher import TeacherSpec
+    from semvpr.config.plan import student_spec, teacher_spec
 
     if cfg.get("teacher") is not None:
-        TeacherSpec.from_mapping(cfg.teacher)
+        teacher_spec(cfg)
     if cfg.get("student") is not None:
-        StudentSpec.from_mapping(cfg.student)
+        student_spec(cfg)
 
 
 #: Settings that name a file or folder to read; a NUL or an over-long name is refused before any reader.

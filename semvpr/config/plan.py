@@ -280,12 +280,12 @@ def job_plan(cfg: DictConfig, device: torch.device | None = None, training: bool
 
 def student_spec(cfg: DictConfig) -> StudentSpec:
     """The student's settings (``cfg.student``)."""
-    return StudentSpec.from_mapping(cfg.student)
+    return typed(StudentSpec, cfg.student, "student")
 
 
 def teacher_spec(cfg: DictConfig) -> TeacherSpec:
     """The teacher's settings (``cfg.teacher``)."""
-    return TeacherSpec.from_mapping(cfg.teacher)
+    return typed(TeacherSpec, cfg.teacher, "teacher")
 
 
 def ranks_of(trainer_cfg: DictConfig) -> tuple[int, int]:

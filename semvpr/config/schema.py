@@ -10,6 +10,7 @@ Adding a setting is one field here and its value in the yaml; the code reads it 
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -42,12 +43,15 @@ def typed(schema: type[S], node: Any, key: str = "", part: bool = False) -> S:
     check_ranges(schema, values, key)
     at = f"{key}." if key else ""
     try:
-        return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), values))  # type: ignore[return-value]
+        return OmegaConf.to_object(OmegaConf.merge(_writable(OmegaConf.structured(schema)), values))  # type: ignore[return-value]
     except ConfigKeyError as err:
-        owner = f"{key}={values['name']}" if "name" in values else key
+        parent, inner = str(err.full_key).rpartition(".")[0], schema
+        for name in parent.split(".") if parent else ():  # a nested node's own settings (teacher.train)
+            inner = typing.get_type_hints(inner)[name]
+        owner = f"{at}{parent}" if parent else f"{key}={values['name']}" if "name" in values else key
         raise SemvprError(
-            f"{at}{err.key} is not a setting of {owner} (a typo, or one of another {key}?); its settings: "
-            f"{', '.join(names)}"
+            f"{at}{err.full_key} is not a setting of {owner} (a typo, or one of another {key}?); its settings: "
+            f"{', '.join(f.name for f in dataclasses.fields(inner))}"  # type: ignore[arg-type]
         ) from None
     except MissingMandatoryValue as err:
         raise SemvprError(
@@ -58,6 +62,18 @@ def typed(schema: type[S], node: Any, key: str = "", part: bool = False) -> S:
         if "is not a ListConfig, list or tuple" in reason:
             reason = f"must be a list: {at}{err.full_key}=[...]"
         raise SemvprError(f"{at}{err.full_key}={err.value!r}: {reason}") from None
+
+
+def _writable(schema: DictConfig) -> DictConfig:
+    """A structured config with its nodes writable: OmegaConf makes a frozen dataclass's nodes (nested ones too)
+    read-only, so that nothing could be merged into them; the object made from it is frozen all the same."""
+    stack: list[Any] = [schema]
+    while stack:
+        node = stack.pop()
+        OmegaConf.set_readonly(node, None)
+        keys = node.keys() if OmegaConf.is_dict(node) else range(len(node))
+        stack += [child for child in map(node._get_node, keys) if OmegaConf.is_config(child)]  # values unresolved
+    return schema
 
 
 def _resolved(node: Any, key: str) -> Any:

@@ -45,7 +45,7 @@ from scipy import ndimage
 from semvpr.core.cache import build_once, files_identity
 from semvpr.core.errors import SemvprError
 from semvpr.core.logs import Progress
-from semvpr.core.spec import from_mapping
+from semvpr.core.spec import from_mapping, setting
 from semvpr.data.camvid import read_camvid
 from semvpr.data.classes import DYNAMIC_NAMES, TRAIN_ID_NAMES
 from semvpr.data.images import eight_bit_rgb, open_image
@@ -77,18 +77,16 @@ class OccluderSpec:
     smallest object (a fraction of its source frame) and whether to paste (``paste=false``: the images
     unchanged, the label maps of the same draw: the holes a mask makes, without the objects)."""
 
-    source: str = "none"
+    source: str = setting("none", choices=SOURCES)
     root: str | None = None
     coverage: float | str = 0.2
-    seed: int = 0
+    seed: int = setting(0, low=0)
     min_area: float = 0.002
     paste: bool = True
 
     @classmethod
     def from_mapping(cls, node: object) -> OccluderSpec:
         spec = from_mapping(cls, node or {}, "data.occluders")  # type: ignore[arg-type]
-        if spec.source not in SOURCES:
-            raise SemvprError(f"data.occluders.source={spec.source!r}: expected one of {', '.join(SOURCES)}")
         if spec.source == "none":
             return spec
         if not spec.root:
@@ -107,8 +105,6 @@ class OccluderSpec:
             )
         if not 0 < spec.min_area < 1:
             raise SemvprError(f"data.occluders.min_area={spec.min_area!r}: expected a fraction of a frame in (0, 1)")
-        if spec.seed < 0:
-            raise SemvprError(f"data.occluders.seed={spec.seed!r}: expected a whole number >= 0")
         return spec
 
     @property

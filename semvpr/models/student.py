@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import atomic_dir, read_json, regular_file, write_json
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import from_mapping, image_size, setting
+from semvpr.core.spec import image_size, setting
 from semvpr.data.classes import NUM_CLASSES, STATIC_NAMES, check_class_names
 from semvpr.models.masks import static_vector
 from semvpr.models.weights import check_tensor
@@ -32,14 +32,14 @@ from semvpr.models.weights import check_tensor
 
 @dataclass(frozen=True)
 class StudentSpec:
-    """The student's architecture and training settings (``conf/student/*.yaml``)."""
+    """The student's architecture and training settings (``conf/student/*.yaml``; ``config.plan.student_spec``)."""
 
     name: str = "unet"
     #: Strides of the frozen features it decodes (the output is at the smallest).
-    strides: Sequence[int] = (4, 8, 16)
+    strides: tuple[int, ...] = setting((4, 8, 16), low=1, high=64, also="a list of strides from 1 to 64")
     width: int = setting(32, low=1, high=4096)
     #: Pseudo-label classes that count as static (the binary target).
-    static_classes: Sequence[str] = STATIC_NAMES
+    static_classes: tuple[str, ...] = STATIC_NAMES
     epochs: int = setting(10, low=1)
     batch_size: int = setting(16, low=1)
     lr: float = setting(3.0e-3, above=True)
@@ -56,15 +56,10 @@ class StudentSpec:
     #: A student directory saved by ``semvpr.segment`` (read by eval, localize and the hub); None = trained.
     checkpoint: str | None = None
 
-    @classmethod
-    def from_mapping(cls, node: Mapping[str, Any]) -> StudentSpec:
-        """From a ``student`` config node (unknown keys refused in one line; sizes and classes in range, by
-        the rule a saved student's ``student.json`` is read with)."""
-        spec = from_mapping(cls, node, "student")
-        if not (spec.strides and all(_count(s, 64) for s in spec.strides)):
-            raise SemvprError(f"student.strides={list(spec.strides)!r} is not a list of strides from 1 to 64")
-        check_class_names(spec.static_classes, "student.static_classes")
-        return spec
+    def __post_init__(self) -> None:
+        """Its class names known, by the rule a saved student's ``student.json`` is read with (the fields' kinds
+        and ranges are the schema's: ``config.schema.typed``)."""
+        check_class_names(self.static_classes, "student.static_classes")
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:

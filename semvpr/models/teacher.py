@@ -24,7 +24,7 @@ from semvpr.core.errors import SemvprError
 from semvpr.core.logs import quiet_third_party
 from semvpr.core.precision import autocast
 from semvpr.core.provenance import TrainedOn
-from semvpr.core.spec import count, from_mapping, image_size, plain, setting
+from semvpr.core.spec import MAX_IMAGE_SIDE, count, setting
 from semvpr.data.classes import DYNAMIC_NAMES, IGNORE, STATIC_NAMES, TRAIN_ID_NAMES, check_class_names
 from semvpr.models.backbones import (
     EFFICIENTNET_LITE,
@@ -78,32 +78,22 @@ class TeacherSpec:
     #: [H, W] the teacher sees (images are resized, predictions resized back); None = the size it was
     #: trained at where that is known (the embedded teacher's image_size, a semvpr.segment directory's
     #: semvpr.json), else as given.
-    inference_size: Sequence[int] | None = None
-    static_classes: Sequence[str] = STATIC_NAMES
-    dynamic_classes: Sequence[str] = DYNAMIC_NAMES
+    inference_size: tuple[int, int] | None = setting(
+        None, low=1, high=MAX_IMAGE_SIDE, also="[H, W]: two whole numbers, or null"
+    )
+    static_classes: tuple[str, ...] = STATIC_NAMES
+    dynamic_classes: tuple[str, ...] = DYNAMIC_NAMES
     predict_batch_size: int = setting(16, low=1, high=4096)
     #: Read the retrieval trunk's frozen outputs in place of the pixel encoder where that encoder is the trunk.
     share_trunk: bool = True
     #: [H, W] the embedded teacher trains at.
-    image_size: Sequence[int] = (180, 240)
-    model: Mapping[str, Any] = field(default_factory=dict)
+    image_size: tuple[int, int] = setting((180, 240), low=1, high=MAX_IMAGE_SIDE, also="[H, W]: two whole numbers")
+    model: dict[str, Any] = field(default_factory=dict)
     train: TeacherTraining = field(default_factory=TeacherTraining)
 
-    @classmethod
-    def from_mapping(cls, node: Mapping[str, Any]) -> TeacherSpec:
-        """From a ``teacher`` config node (unknown keys refused in one line)."""
-        values = dict(plain(node))
-        values["train"] = from_mapping(TeacherTraining, values.get("train", {}), "teacher.train")
-        spec = from_mapping(cls, values, "teacher")
-        spec.check()
-        return spec
-
-    def check(self) -> None:
-        """Sizes and class lists in range (the same rule as the values a teacher directory gives): one line
-        naming the setting, before anything is built."""
-        if self.inference_size is not None:
-            image_size(list(self.inference_size), "teacher.inference_size")
-        image_size(list(self.image_size), "teacher.image_size")
+    def __post_init__(self) -> None:
+        """Its class lists and embedded model by the rule a teacher directory's values are read with (the fields'
+        kinds and ranges are the schema's: ``config.schema.typed``)."""
         check_class_names(self.static_classes, "teacher.static_classes")
         check_class_names(self.dynamic_classes, "teacher.dynamic_classes", empty=True)
         check_embedded_model(self.model, "teacher.model")

@@ -32,7 +32,7 @@ import numpy as np
 
 from semvpr.core.errors import SemvprError
 from semvpr.core.io import check_replaceable, temp_prefix, write_npy, write_text
-from semvpr.core.spec import from_mapping, setting
+from semvpr.core.spec import setting
 from semvpr.data.places import PlaceSet
 from semvpr.reporting.prediction_images import MaskOf, drawn_queries, write_prediction_images
 
@@ -50,17 +50,14 @@ class SaveSpec:
     image_top: int = setting(5, low=1, also="database images beside each drawn query")
     only_wrong: bool = False
 
-    @classmethod
-    def from_mapping(cls, node: object) -> SaveSpec:
-        spec = from_mapping(cls, node or {}, "save")  # type: ignore[arg-type]
-        if spec.hloc:
+    def __post_init__(self) -> None:
+        if self.hloc:
             try:
                 import h5py  # noqa: F401
             except ImportError:
                 raise SemvprError(
                     "save.hloc=true writes an h5 file and needs h5py: pip install 'semvpr[hloc]'"
                 ) from None
-        return spec
 
     @property
     def any(self) -> bool:

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from semvpr.config.schema import typed
 from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, TRAIN_ID_COLOURS
 from semvpr.models.teacher import TeacherSpec, TeacherTraining
@@ -85,7 +86,7 @@ def test_without_a_file_it_is_one_line_naming_the_setting(tmp_path: Path) -> Non
     with pytest.raises(SemvprError, match=r"teacher=espnetv2 needs teacher.checkpoint=FILE"):
         teacher_architecture(TeacherSpec(name="espnetv2"))
     with pytest.raises(SemvprError, match=r"teacher.name='segformer' is not one of"):
-        TeacherSpec.from_mapping({"name": "segformer"})
+        typed(TeacherSpec, {"name": "segformer"}, "teacher")
     with pytest.raises(SemvprError, match=r"not found"):
         teacher_architecture(spec(tmp_path / "absent.pth"))
 

@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from semvpr.config.schema import typed
 from semvpr.core.errors import SemvprError, one_line
 from semvpr.models.masks import TeacherMask
 from semvpr.models.teacher import TeacherSpec
@@ -155,10 +156,13 @@ def test_saved_teacher_is_a_checkpoint_with_equal_predictions(
 ) -> None:
     run_dir, cfg = segment_run
     trained = build_teacher(
-        TeacherSpec.from_mapping(cfg.teacher), instantiate(cfg.seg.train), instantiate(cfg.seg.val), cfg.paths.cache_dir
+        typed(TeacherSpec, cfg.teacher, "teacher"),
+        instantiate(cfg.seg.train),
+        instantiate(cfg.seg.val),
+        cfg.paths.cache_dir,
     )
     loaded = build_teacher(
-        TeacherSpec.from_mapping(OmegaConf.merge(cfg.teacher, {"checkpoint": str(run_dir / "teacher")})),
+        typed(TeacherSpec, OmegaConf.merge(cfg.teacher, {"checkpoint": str(run_dir / "teacher")}), "teacher"),
         None,
         None,
         tmp_path / "other-cache",

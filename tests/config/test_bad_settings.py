@@ -19,7 +19,9 @@ def _no_descriptors(cache: Path) -> None:
 CASES: dict[str, Case] = {
     "num_clusters=abc": Case(TRAIN, lambda t, c: ["model.num_clusters=abc"], "model.num_clusters='abc'"),
     "seed=abc": Case(TRAIN, lambda t, c: ["seed=abc"], "seed='abc'"),
-    "student.flip=maybe": Case(TRAIN, lambda t, c: ["student.flip=maybe"], "student.flip='maybe': expected true"),
+    "student.flip=maybe": Case(
+        TRAIN, lambda t, c: ["student.flip=maybe"], "student.flip='maybe' must be true or false"
+    ),
     "seed=-1": Case(TRAIN, lambda t, c: ["seed=-1"], "seed=-1"),
     "lr=-1": Case(TRAIN, lambda t, c: ["recipe.optimizer.lr=-1"], "recipe.optimizer.lr=-1"),
     "num_figure_queries=0": Case(TRAIN, lambda t, c: ["num_figure_queries=0"], "num_figure_queries=0"),
@@ -198,7 +200,9 @@ CASES: dict[str, Case] = {
         EVAL, lambda t, c: [f"ckpt={c}", "data.image_size=[48,20000]"], "data.image_size[1]=20000"
     ),
     "eval teacher.inference_size past the bound": Case(
-        EVAL, lambda t, c: [f"ckpt={c}", "teacher.inference_size=[9000,9000]"], "teacher.inference_size=[9000, 9000]"
+        EVAL,
+        lambda t, c: [f"ckpt={c}", "teacher.inference_size=[9000,9000]"],
+        "teacher.inference_size[0]=9000 must be a whole number from 1 to 4096",
     ),
     "recipe.margin=-1": Case(TRAIN, lambda t, c: ["recipe.margin=-1"], "recipe.margin=-1"),
     "recipe.negative_candidates=0": Case(

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from semvpr.config.schema import typed
 from semvpr.core.cache import LOCK_DIR, artifact_dir, build_once
 
 
@@ -201,9 +202,9 @@ def test_segmenter_counts_and_rates_out_of_range_are_one_line(group: str, values
 
     with pytest.raises(SemvprError, match=line):
         if group == "teacher":
-            TeacherSpec.from_mapping({"train": values})
+            typed(TeacherSpec, {"train": values}, "teacher")
         else:
-            StudentSpec.from_mapping(values)
+            typed(StudentSpec, values, "student")
 
 
 def test_segmenter_counts_and_rates_at_their_bounds_are_taken() -> None:
@@ -211,9 +212,9 @@ def test_segmenter_counts_and_rates_at_their_bounds_are_taken() -> None:
     from semvpr.models.teacher import TeacherSpec
 
     low = {"epochs": 1, "batch_size": 1, "weight_decay": 0, "num_workers": 0}
-    teacher = TeacherSpec.from_mapping({"train": {**low, "lr": 1e-9, "warmup_steps": 0, "backbone_lr_factor": 0}})
+    teacher = typed(TeacherSpec, {"train": {**low, "lr": 1e-9, "warmup_steps": 0, "backbone_lr_factor": 0}}, "teacher")
     assert (teacher.train.epochs, teacher.train.backbone_lr_factor, teacher.train.val_every) == (1, 0, None)
-    student = StudentSpec.from_mapping({**low, "lr": 1e-9, "max_images": 1})
+    student = typed(StudentSpec, {**low, "lr": 1e-9, "max_images": 1}, "student")
     assert (student.epochs, student.max_images) == (1, 1)
 
 
@@ -225,20 +226,24 @@ def test_typed_settings_refuse_values_of_another_kind() -> None:
     from semvpr.models.teacher import TeacherSpec
 
     for node, message in (
-        ({"flip": "maybe"}, "student.flip='maybe': expected true or false"),
-        ({"epochs": 2.5}, "student.epochs=2.5: expected a whole number"),
-        ({"epochs": True}, "student.epochs=True: expected a whole number"),
-        ({"max_images": "all"}, "student.max_images='all': expected a whole number or null"),
-        ({"strides": [4, "8"]}, r"student.strides=\[4, '8'\]: expected a list of whole numbers"),
-        ({"lr": "fast"}, "student.lr='fast': expected a number"),
+        ({"flip": "maybe"}, "student.flip='maybe' must be true or false"),
+        ({"epochs": 2.5}, "student.epochs=2.5 must be a whole number >= 1"),
+        ({"epochs": True}, "student.epochs=True must be a whole number >= 1"),
+        ({"max_images": "all"}, r"student.max_images='all' must be a whole number >= 1 \(or null: all\)"),
+        ({"strides": [4, "8"]}, r"student.strides\[1\]='8' must be a whole number from 1 to 64"),
+        ({"strides": []}, r"student.strides=\[\] must be a list of strides from 1 to 64"),
+        ({"lr": "fast"}, "student.lr='fast' must be a finite number > 0"),
+        ({"fooo": 1}, "student.fooo is not a setting of student"),
     ):
         with pytest.raises(SemvprError, match=message):
-            StudentSpec.from_mapping(node)
-    with pytest.raises(SemvprError, match="teacher.train.val_every='x': expected a whole number or null"):
-        TeacherSpec.from_mapping({"train": {"val_every": "x"}})
-    with pytest.raises(SemvprError, match="teacher.inference_size=7: expected a list of whole numbers or null"):
-        TeacherSpec.from_mapping({"inference_size": 7})
+            typed(StudentSpec, node, "student")
+    with pytest.raises(SemvprError, match="teacher.train.val_every='x' must be a whole number >= 1"):
+        typed(TeacherSpec, {"train": {"val_every": "x"}}, "teacher")
+    with pytest.raises(SemvprError, match=r"teacher.train.fooo is not a setting of teacher.train .*: epochs, "):
+        typed(TeacherSpec, {"train": {"fooo": 1}}, "teacher")
+    with pytest.raises(SemvprError, match=r"teacher.inference_size=7 must be \[H, W\]: two whole numbers, or null"):
+        typed(TeacherSpec, {"inference_size": 7}, "teacher")
     # What fits is taken as given: ints for floats, null where allowed, lists for sequences.
-    spec = StudentSpec.from_mapping({"flip": True, "lr": 1, "max_images": None, "strides": [8, 16]})
+    spec = typed(StudentSpec, {"flip": True, "lr": 1, "max_images": None, "strides": [8, 16]}, "student")
     assert spec.flip is True and spec.lr == 1 and spec.max_images is None and list(spec.strides) == [8, 16]
-    assert TeacherSpec.from_mapping({"inference_size": None, "train": {"val_every": 3}}).train.val_every == 3
+    assert typed(TeacherSpec, {"inference_size": None, "train": {"val_every": 3}}, "teacher").train.val_every == 3

@@ -168,7 +168,7 @@ def test_every_setting_is_part_of_the_cache_key(frames: Path, camvid: Path, tmp_
     [
         ({"coverage": 0.0}, "coverage=0.0: expected a fraction"),
         ({"coverage": 0.9}, "coverage=0.9: expected a fraction"),
-        ({"source": "cityscapes"}, "source='cityscapes': expected one of none, camvid"),
+        ({"source": "cityscapes"}, "source='cityscapes' is not one of ['none', 'camvid']"),
         ({"root": None}, "data.occluders.root is not set"),
         # A folder that is not CamVid: was named seg.root, segment's setting.
         ({"root": "/"}, "CamVid split list /test.txt not found; data.occluders.root must hold test.txt"),

@@ -10,6 +10,7 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
+from semvpr.config.schema import typed
 from semvpr.core.errors import SemvprError
 from semvpr.models.backbones import VGG16Backbone
 from semvpr.models.student import Student, StudentSpec
@@ -97,7 +98,7 @@ def test_short_fit_beats_chance_and_is_cached(
     paths, maps = toy_set(tmp_path / "img", 24, seed=0)
     labels = write_labels(tmp_path / "labels-abc", paths, maps)
     student = build_student(
-        StudentSpec.from_mapping(tiny_cfg()),
+        typed(StudentSpec, tiny_cfg(), "student"),
         backbone,
         LabelledImages(paths, labels, tmp_path / "img"),
         SIZE,
@@ -122,7 +123,7 @@ def test_short_fit_beats_chance_and_is_cached(
 
     monkeypatch.setattr(student_mod, "fit_student", lambda *a: pytest.fail("trained twice"))
     again = build_student(
-        StudentSpec.from_mapping(tiny_cfg()),
+        typed(StudentSpec, tiny_cfg(), "student"),
         backbone,
         LabelledImages(paths, labels, tmp_path / "img"),
         SIZE,
@@ -217,7 +218,11 @@ def test_a_flipping_student_caches_its_mirror_images_features(backbone: VGG16Bac
     cfg = tiny_cfg()
     cfg.update(epochs=1)
     build = lambda c: build_student(  # noqa: E731
-        StudentSpec.from_mapping(c), backbone, LabelledImages(paths, labels, tmp_path / "img"), SIZE, tmp_path / "cache"
+        typed(StudentSpec, c, "student"),
+        backbone,
+        LabelledImages(paths, labels, tmp_path / "img"),
+        SIZE,
+        tmp_path / "cache",
     )
     build(cfg)
     cfg.update(flip=True)
@@ -240,7 +245,7 @@ def test_a_student_trained_at_another_thread_count_is_another_cache_entry(
         for threads in (1, 2, 1):
             torch.set_num_threads(threads)
             student = build_student(
-                StudentSpec.from_mapping(cfg),
+                typed(StudentSpec, cfg, "student"),
                 backbone,
                 LabelledImages(paths, labels, tmp_path / "img"),
                 SIZE,

@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 from transformers import Mask2FormerForUniversalSegmentation
 
+from semvpr.config.schema import typed
 from semvpr.core.cache import LOCK_DIR
 from semvpr.core.errors import SemvprError
 from semvpr.data.classes import IGNORE, TRAIN_ID_NAMES, train_ids_to_label_ids
@@ -32,7 +33,7 @@ def tiny_spec(**over: object) -> TeacherSpec:
     cfg.model = TINY_TEACHER_MODEL
     cfg.train.update(epochs=1, batch_size=2, num_workers=0, warmup_steps=1, augment=False)
     cfg.merge_with(over)
-    return TeacherSpec.from_mapping(cfg)
+    return typed(TeacherSpec, cfg, "teacher")
 
 
 def scene(rng: np.random.Generator, h: int = 32, w: int = 48) -> tuple[np.ndarray, np.ndarray]:
