@@ -143,7 +143,7 @@ def temp_dir(parent: Path, name: str) -> Path:
 def open_lock(path: Path) -> int:
     """A descriptor to ``flock`` the lock file ``path`` through, created where absent (mode as the umask
     gives). A link there is refused; another user's lock file in a shared folder opens read-only (flock
-    needs no write access to it)."""
+    needs no write access to it; ``filelock``'s native lock does, which is why the cache keeps its own)."""
     try:
         try:
             return os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
