@@ -58,10 +58,10 @@ STUDENT_CONTRASTS = (
 FIELDS = ("pair", "model", "mask", "R@1", "R@5", "R@10", "gain", "ci_low", "ci_high", "excludes_0", "level")
 
 
-def sweep_hits(folder: Path, condition: str) -> dict[tuple[str, int], tuple[dict, np.ndarray]]:
-    """The jobs of one condition in one pair's folder by (aggregator, control seed): eval.json and hits
-    (``reporting.evaluations``), checked against the jobs run.sh gives the condition."""
-    sweep, recorded, seeds, _ = (CONDITIONS | STUDENT)[condition]
+def sweep_hits(folder: Path, condition: str, entry: tuple) -> dict[tuple[str, int], tuple[dict, np.ndarray]]:
+    """The jobs of one condition (its :data:`CONDITIONS` entry) in one pair's folder by (aggregator, control seed):
+    eval.json and hits (``reporting.evaluations``), checked against the jobs run.sh gives the condition."""
+    sweep, recorded, seeds, _ = entry
     jobs = {
         (e.result["aggregator"], int(e.result["mask_control_seed"]) if len(seeds) > 1 else 0): (e.result, e.hits)
         for e in read_evaluations(folder / sweep)
@@ -86,7 +86,7 @@ def main() -> None:
     student = all((out / pair / "student").is_dir() for pair in PAIRS)
     conditions = CONDITIONS | (STUDENT if student else {})
     for pair in PAIRS:
-        jobs = {condition: sweep_hits(out / pair, condition) for condition in conditions}
+        jobs = {condition: sweep_hits(out / pair, condition, entry) for condition, entry in conditions.items()}
         for aggregator, model in MODELS.items():
             for condition, (_, _, seeds, label) in conditions.items():
                 drawn = [jobs[condition][(aggregator, seed)] for seed in seeds]

@@ -38,16 +38,18 @@ def _scores(entry: dict) -> dict[str, float]:
 @exit_on_user_error
 def main() -> None:
     out = summary_input(__doc__.splitlines()[0], "experiments/synthcity-espnetv2/run.sh")
+    results = {draw: read_json(out / f"segment-s{draw}" / "results.json", "a semvpr.segment result") for draw in DRAWS}
+    for draw, result in results.items():
+        if Path(result["dataset"]["root"]).parent.name != f"synthcity-s{draw}":
+            raise SemvprError(f"{out}/segment-s{draw} scored {result['dataset']['root']}, not draw {draw}'s city")
+        if missing := [key for key in MODELS if key not in result]:
+            raise SemvprError(f"{out}/segment-s{draw}: no {missing[0]} in results.json; rerun run.sh")
     rows = []
     for key, model in MODELS.items():
-        drawn = []
-        for draw in DRAWS:
-            result = read_json(out / f"segment-s{draw}" / "results.json", "a semvpr.segment result")
-            if Path(result["dataset"]["root"]).parent.name != f"synthcity-s{draw}":
-                raise SemvprError(f"{out}/segment-s{draw} scored {result['dataset']['root']}, not draw {draw}'s city")
-            if key not in result:
-                raise SemvprError(f"{out}/segment-s{draw}: no {key} in results.json; rerun run.sh")
-            drawn.append({"model": model, "draw": draw, "images": result["dataset"]["val"], **_scores(result[key])})
+        drawn = [
+            {"model": model, "draw": draw, "images": result["dataset"]["val"], **_scores(result[key])}
+            for draw, result in results.items()
+        ]
         numbers = [k for k in FIELDS[3:] if k in drawn[0]]
         mean = {k: round(sum(float(r[k]) for r in drawn) / len(drawn), 4) for k in numbers}
         rows += [*drawn, {"model": model, "draw": "mean", "images": sum(r["images"] for r in drawn), **mean}]
